@@ -1,0 +1,49 @@
+# CAST on gRPC: the one entry point. `make test` and `make demo` install what is missing.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PROTOS := $(wildcard proto/cast/v1/*.proto)
+GEN_STAMP := python/cast/v1/.generated
+
+.PHONY: all setup proto test test-python lint demo clean help
+
+all: setup proto
+
+help:
+	@echo "make setup   create .venv with pinned dependencies and the cast package"
+	@echo "make proto   generate Python code from proto/ (never committed)"
+	@echo "make test    set up, build and run every test"
+	@echo "make lint    ruff and mypy"
+	@echo "make demo    run the demo system"
+
+$(VENV)/.installed: requirements-dev.txt pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements-dev.txt
+	$(PY) -m pip install --quiet --no-deps -e .
+	touch $@
+
+setup: $(VENV)/.installed
+
+$(GEN_STAMP): $(PROTOS) $(VENV)/.installed
+	rm -rf python/cast/v1
+	mkdir -p python/cast/v1
+	$(PY) -m grpc_tools.protoc -Iproto --python_out=python --grpc_python_out=python \
+	  --mypy_out=quiet:python --plugin=protoc-gen-mypy=$(VENV)/bin/protoc-gen-mypy $(PROTOS)
+	echo '"""Generated from proto/cast/v1 by make proto; not committed."""' > python/cast/v1/__init__.py
+	touch $@
+
+proto: $(GEN_STAMP)
+
+test-python: setup proto
+	$(PY) -m pytest -q tests
+
+test: test-python
+
+lint: setup proto
+	$(VENV)/bin/ruff check python tests
+	$(VENV)/bin/mypy
+
+clean:
+	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache

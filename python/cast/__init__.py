@@ -1,0 +1,81 @@
+"""CAST on gRPC: working memories shared by robot components in Python, C++ and Java.
+
+The public API of the Python client library and component model. Everything
+a component author needs is importable from ``cast``.
+"""
+
+from cast.client.component import (
+    Component,
+    Entry,
+    LockGuard,
+    ManagedComponent,
+    Task,
+    UnmanagedComponent,
+    WatchHandle,
+    WorkingMemoryAddress,
+    WorkingMemoryChange,
+)
+from cast.client.filters import (
+    ChangeFilter,
+    address_filter,
+    global_type_filter,
+    local_type_filter,
+    operation_filter,
+    source_filter,
+)
+from cast.core.policies import Decision, TaskPolicy
+from cast.core.records import LockMode, Operation, WriteResult
+from cast.core.tasks import TaskOutcome, TaskState
+from cast.errors import (
+    AlreadyExistsError,
+    CastError,
+    ConsistencyError,
+    DeadlineExceededError,
+    HistoryExpiredError,
+    InternalError,
+    InvalidArgumentError,
+    LockedError,
+    NotFoundError,
+    PermissionDeniedError,
+    ResourceExhaustedError,
+    UnauthenticatedError,
+    UnavailableError,
+)
+
+__all__ = [
+    "AlreadyExistsError",
+    "CastError",
+    "ChangeFilter",
+    "Component",
+    "ConsistencyError",
+    "DeadlineExceededError",
+    "Decision",
+    "Entry",
+    "HistoryExpiredError",
+    "InternalError",
+    "InvalidArgumentError",
+    "LockGuard",
+    "LockMode",
+    "LockedError",
+    "ManagedComponent",
+    "NotFoundError",
+    "Operation",
+    "PermissionDeniedError",
+    "ResourceExhaustedError",
+    "Task",
+    "TaskOutcome",
+    "TaskPolicy",
+    "TaskState",
+    "UnauthenticatedError",
+    "UnavailableError",
+    "UnmanagedComponent",
+    "WatchHandle",
+    "WorkingMemoryAddress",
+    "WorkingMemoryChange",
+    "WriteResult",
+    "address_filter",
+    "global_type_filter",
+    "local_type_filter",
+    "operation_filter",
+    "source_filter",
+]

@@ -1,0 +1,1 @@
+"""The Python client library: transports, component model, runner."""

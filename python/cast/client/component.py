@@ -1,0 +1,499 @@
+"""The component model (DESIGN.md section 5): base classes and the WM vocabulary.
+
+A component subclasses :class:`UnmanagedComponent` or :class:`ManagedComponent`
+and overrides lifecycle hooks. Every working-memory call is addressed to the
+component's own subarchitecture unless ``subarchitecture=`` names another.
+Values are protobuf messages; a write serialises (so later changes to the
+object do not reach the WM) and a read returns a fresh object, in process too.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import secrets
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, NamedTuple, TypeVar
+
+from google.protobuf.message import Message
+
+from cast.client.dispatcher import Dispatcher
+from cast.client.filters import ChangeFilter, TypeLike, type_name
+from cast.client.transport import Transport
+from cast.core.host import BatchOp
+from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, Operation, WriteResult
+from cast.core.schemas import files_of
+from cast.core.sessions import ComponentState
+from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
+from cast.errors import CastError, InvalidArgumentError
+
+__all__ = [
+    "Component",
+    "Entry",
+    "LockGuard",
+    "ManagedComponent",
+    "Task",
+    "UnmanagedComponent",
+    "WatchHandle",
+    "WorkingMemoryAddress",
+    "WorkingMemoryChange",
+]
+
+log = logging.getLogger("cast.component")
+
+M = TypeVar("M", bound=Message)
+
+
+class WorkingMemoryAddress(NamedTuple):
+    """Where an entry lives."""
+
+    id: str
+    subarchitecture: str
+
+
+def _decode(cls: type[M], type_name_: str, data: bytes, what: str) -> M:
+    expected = cls.DESCRIPTOR.full_name
+    if type_name_ != expected:
+        raise InvalidArgumentError(f"{what} has type {type_name_}, not {expected}: read it with the right class")
+    return cls.FromString(data)
+
+
+@dataclass(frozen=True)
+class Entry(Generic[M]):
+    """An entry read from a WM: its value (a fresh copy) and its metadata."""
+
+    address: WorkingMemoryAddress
+    type: str
+    value: M
+    version: int
+    author: str
+    revision: int
+    modified_ns: int
+
+    @property
+    def id(self) -> str:
+        """The entry's id."""
+        return self.address.id
+
+
+def _entry(cls: type[M], record: EntryRecord) -> Entry[M]:
+    return Entry(
+        WorkingMemoryAddress(record.id, record.subarchitecture),
+        record.type,
+        _decode(cls, record.type, record.data, f"entry '{record.id}'"),
+        record.version,
+        record.author,
+        record.revision,
+        record.modified_ns,
+    )
+
+
+class WorkingMemoryChange:
+    """One change event as delivered to an ``on_change`` callback."""
+
+    __slots__ = ("_ev",)
+
+    def __init__(self, event: ChangeEvent) -> None:
+        self._ev = event
+
+    operation = property(lambda self: self._ev.operation, doc="ADD, OVERWRITE or DELETE.")
+    revision = property(lambda self: self._ev.revision, doc="The WM revision of the change.")
+    type = property(lambda self: self._ev.type, doc="Full message name of the entry's value.")
+    version = property(lambda self: self._ev.version, doc="The entry's version after the change.")
+    source_component = property(lambda self: self._ev.source_component, doc="Id of the writing component.")
+    source_subarchitecture = property(lambda self: self._ev.source_subarchitecture, doc="SA of the writer.")
+    time_ns = property(lambda self: self._ev.time_ns, doc="Server time of the change (ns since the epoch).")
+
+    @property
+    def address(self) -> WorkingMemoryAddress:
+        """The entry changed."""
+        return WorkingMemoryAddress(self._ev.id, self._ev.subarchitecture)
+
+    @property
+    def id(self) -> str:
+        """The changed entry's id."""
+        return self._ev.id
+
+    @property
+    def subarchitecture(self) -> str:
+        """The SA whose WM changed."""
+        return self._ev.subarchitecture
+
+    @property
+    def has_entry(self) -> bool:
+        """Whether the event carries the entry (the filter set include_entry)."""
+        return self._ev.entry is not None
+
+    def entry(self, cls: type[M]) -> Entry[M]:
+        """The entry carried by the event (after the write; for DELETE, as it was)."""
+        if self._ev.entry is None:
+            raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
+        return _entry(cls, self._ev.entry)
+
+    def __repr__(self) -> str:
+        return (
+            f"WorkingMemoryChange({self.operation.name} {self.subarchitecture}/{self.id} "
+            f"type={self.type} v={self.version} rev={self.revision} by={self.source_component})"
+        )
+
+
+class Task:
+    """A task proposed by a managed component, as its task manager decided."""
+
+    __slots__ = ("_rec",)
+
+    def __init__(self, record: TaskRecord) -> None:
+        self._rec = record
+
+    task_id = property(lambda self: self._rec.task_id, doc="Id given by the task manager.")
+    name = property(lambda self: self._rec.name, doc="Name given at proposal.")
+    subarchitecture = property(lambda self: self._rec.subarchitecture, doc="SA whose TM decided.")
+    component = property(lambda self: self._rec.component, doc="The proposer.")
+    priority = property(lambda self: self._rec.priority, doc="Priority given at proposal.")
+    state = property(lambda self: self._rec.state, doc="WAITING, ADOPTED, REJECTED, ...")
+    reason = property(lambda self: self._rec.reason, doc="Why it was rejected or ended.")
+
+    def data(self, cls: type[M]) -> M | None:
+        """The proposal's payload as ``cls`` (None if none was given)."""
+        if not self._rec.data_type:
+            return None
+        return _decode(cls, self._rec.data_type, self._rec.data, f"task '{self.task_id}' data")
+
+    def __repr__(self) -> str:
+        return f"Task({self.task_id} '{self.name}' {self.state.name})"
+
+
+class WatchHandle:
+    """Returned by ``on_change``; ``cancel()`` stops the callback."""
+
+    def __init__(self, component: Component, watch_id: int) -> None:
+        self._component = component
+        self.watch_id = watch_id
+        self.error: CastError | None = None
+
+    @property
+    def active(self) -> bool:
+        """Whether the callback is still registered."""
+        return self.watch_id in self._component._callbacks
+
+    def cancel(self) -> None:
+        """Stop delivering changes to this callback (idempotent)."""
+        self._component._cancel_watch(self.watch_id)
+
+
+class LockGuard:
+    """A held lock; a context manager that unlocks on exit (``with self.lock(id): ...``)."""
+
+    def __init__(self, component: Component, address: WorkingMemoryAddress, depth: int) -> None:
+        self._component = component
+        self.address = address
+        self.depth = depth
+        self._released = False
+
+    def unlock(self) -> None:
+        """Release this lock level (idempotent)."""
+        if not self._released:
+            self._released = True
+            self._component.unlock(self.address.id, subarchitecture=self.address.subarchitecture)
+
+    def __enter__(self) -> LockGuard:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.unlock()
+
+
+class Component:
+    """What every component can do; subclass :class:`UnmanagedComponent` or :class:`ManagedComponent`."""
+
+    kind = "unmanaged"
+
+    # ------------------------------------------------------------ lifecycle
+
+    def configure(self, args: dict[str, Any]) -> None:
+        """Called first with the component's ``args`` from the configuration."""
+
+    def start(self) -> None:
+        """Called after configure, before run: register callbacks here."""
+
+    def run(self) -> None:
+        """The main loop; by default waits until the component is stopped."""
+        self.wait_for_stop()
+
+    def stop(self) -> None:
+        """Called once on shutdown (SIGINT/SIGTERM or ``request_stop``)."""
+
+    # -------------------------------------------------------------- binding
+
+    def _cast_bind(self, transport: Transport, language: str = "python") -> None:
+        """Attach to a working memory system (done by the runner, not by users)."""
+        self._transport = transport
+        self._identity: Identity = transport.identity
+        self._dispatcher = Dispatcher(self._identity.component_id)
+        self._callbacks: dict[int, tuple[Callable[[WorkingMemoryChange], None], WatchHandle]] = {}
+        self._watch_ids = itertools.count(1)
+        self._registered_types: set[str] = set()
+        self._schema_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._state = ComponentState.STARTING
+        self._id_prefix = f"{self._identity.component_id}:{secrets.token_hex(3)}:"
+        self._id_counter = itertools.count(1)
+        transport.set_event_sink(self._on_event, self._on_watch_error)
+        transport.start_session(language, self.kind, lambda: self._state)
+
+    def _cast_close(self) -> None:
+        self._dispatcher.stop()
+        self._transport.close()
+
+    @property
+    def component_id(self) -> str:
+        """This component's id."""
+        return self._identity.component_id
+
+    @property
+    def subarchitecture(self) -> str:
+        """This component's own subarchitecture."""
+        return self._identity.subarchitecture
+
+    @property
+    def privileged(self) -> bool:
+        """Whether this component may write every SA."""
+        return self._identity.privileged
+
+    @property
+    def running(self) -> bool:
+        """False once the component has been asked to stop."""
+        return not self._stopping.is_set()
+
+    def wait_for_stop(self, timeout: float | None = None) -> bool:
+        """Sleep until asked to stop (True) or ``timeout`` seconds pass (False); use in run() loops."""
+        return self._stopping.wait(timeout)
+
+    def request_stop(self) -> None:
+        """Ask the runner to stop this component (stop() is then called once)."""
+        self._stopping.set()
+
+    @property
+    def log(self) -> logging.Logger:
+        """A logger named after the component."""
+        return logging.getLogger(f"cast.component.{self.component_id}")
+
+    # ------------------------------------------------------------ WM: write
+
+    def new_id(self) -> str:
+        """A fresh entry id, unique across components and restarts."""
+        return f"{self._id_prefix}{next(self._id_counter)}"
+
+    def _sa(self, subarchitecture: str | None) -> str:
+        return subarchitecture or self._identity.subarchitecture
+
+    def _serialise(self, value: Message) -> tuple[str, bytes]:
+        if not isinstance(value, Message):
+            raise InvalidArgumentError(
+                f"entry values are protobuf messages, got {type(value).__name__}: define a message type for it"
+            )
+        name = value.DESCRIPTOR.full_name
+        if name not in self._registered_types:
+            with self._schema_lock:
+                if name not in self._registered_types:
+                    self._transport.register_schemas(files_of(value.DESCRIPTOR))
+                    self._registered_types.add(name)
+        return name, value.SerializeToString()
+
+    def add(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> WriteResult:
+        """Create an entry; AlreadyExistsError if the id is taken."""
+        type_name_, data = self._serialise(value)
+        return self._transport.add(self._sa(subarchitecture), entry_id, type_name_, data)
+
+    def overwrite(
+        self,
+        entry_id: str,
+        value: Message,
+        *,
+        subarchitecture: str | None = None,
+        expected_version: int | None = None,
+    ) -> WriteResult:
+        """Replace an entry's value; ConsistencyError if ``expected_version`` is given and differs."""
+        type_name_, data = self._serialise(value)
+        return self._transport.overwrite(self._sa(subarchitecture), entry_id, type_name_, data, expected_version)
+
+    def delete(
+        self, entry_id: str, *, subarchitecture: str | None = None, expected_version: int | None = None
+    ) -> WriteResult:
+        """Delete an entry (its locks go with it)."""
+        return self._transport.delete(self._sa(subarchitecture), entry_id, expected_version)
+
+    def batch(self, operations: Sequence[tuple[str, str, Message | None]], *, subarchitecture: str | None = None) -> list[WriteResult]:
+        """Apply ``(operation, id, value)`` writes in order, all or nothing.
+
+        ``operation`` is ``"add"``, ``"overwrite"`` or ``"delete"`` (value None).
+        """
+        sa = self._sa(subarchitecture)
+        ops = []
+        for kind, entry_id, value in operations:
+            op = Operation[kind.upper()]
+            if op is Operation.DELETE:
+                ops.append(BatchOp(op, sa, entry_id))
+            else:
+                if value is None:
+                    raise InvalidArgumentError(f"batch {kind} of '{entry_id}' needs a value")
+                type_name_, data = self._serialise(value)
+                ops.append(BatchOp(op, sa, entry_id, type_name_, data))
+        return self._transport.batch(ops)
+
+    # ------------------------------------------------------------- WM: read
+
+    def get(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> M:
+        """The value of an entry, as a new ``cls`` object; NotFoundError if missing."""
+        record = self._transport.get(self._sa(subarchitecture), entry_id)
+        return _decode(cls, record.type, record.data, f"entry '{entry_id}'")
+
+    def get_entry(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> Entry[M]:
+        """An entry with its version and author (for versioned overwrites)."""
+        return _entry(cls, self._transport.get(self._sa(subarchitecture), entry_id))
+
+    def get_all(self, cls: type[M], *, subarchitecture: str | None = None, limit: int = 0) -> list[Entry[M]]:
+        """Every entry of type ``cls``, newest first (at most ``limit`` if given)."""
+        records = self._transport.get_by_type(self._sa(subarchitecture), type_name(cls), limit)
+        return [_entry(cls, r) for r in records]
+
+    def exists(self, entry_id: str, *, subarchitecture: str | None = None) -> bool:
+        """Whether an entry exists."""
+        return self._transport.exists(self._sa(subarchitecture), entry_id)
+
+    # ---------------------------------------------------------------- locks
+
+    def lock(
+        self,
+        entry_id: str,
+        mode: LockMode = LockMode.OD,
+        *,
+        subarchitecture: str | None = None,
+        timeout: float | None = None,
+    ) -> LockGuard:
+        """Lock an entry, waiting for another holder up to ``timeout`` seconds (None: forever).
+
+        Re-entrant. Use as ``with self.lock(id): ...`` to unlock at the end.
+        DeadlineExceededError when the wait times out.
+        """
+        sa = self._sa(subarchitecture)
+        depth = self._transport.lock(sa, entry_id, LockMode(mode), timeout, False)
+        return LockGuard(self, WorkingMemoryAddress(entry_id, sa), depth)
+
+    def try_lock(self, entry_id: str, mode: LockMode = LockMode.OD, *, subarchitecture: str | None = None) -> bool:
+        """Lock an entry if no other component holds it; never waits."""
+        from cast.errors import LockedError
+
+        try:
+            self._transport.lock(self._sa(subarchitecture), entry_id, LockMode(mode), None, True)
+        except LockedError:
+            return False
+        return True
+
+    def unlock(self, entry_id: str, *, subarchitecture: str | None = None) -> int:
+        """Release one level of this component's lock; return the remaining depth."""
+        return self._transport.unlock(self._sa(subarchitecture), entry_id)
+
+    # ------------------------------------------------------------- watching
+
+    def on_change(
+        self,
+        filters: ChangeFilter | Sequence[ChangeFilter],
+        callback: Callable[[WorkingMemoryChange], None],
+    ) -> WatchHandle:
+        """Call ``callback(change)`` on the dispatcher thread for each matching change, in revision order.
+
+        Several filters are ORed. Changes made after this returns are never
+        missed.
+        """
+        flist = [filters] if isinstance(filters, ChangeFilter) else list(filters)
+        if not flist:
+            raise InvalidArgumentError("on_change needs at least one filter")
+        watch_id = next(self._watch_ids)
+        handle = WatchHandle(self, watch_id)
+        self._callbacks[watch_id] = (callback, handle)
+        try:
+            self._transport.watch(watch_id, [f.resolve(self.subarchitecture) for f in flist])
+        except BaseException:
+            self._callbacks.pop(watch_id, None)
+            raise
+        return handle
+
+    def _cancel_watch(self, watch_id: int) -> None:
+        if self._callbacks.pop(watch_id, None) is not None:
+            self._transport.cancel_watch(watch_id)
+
+    def _on_event(self, event: ChangeEvent, watch_ids: Sequence[int]) -> None:
+        change = WorkingMemoryChange(event)
+        for wid in watch_ids:
+            registered = self._callbacks.get(wid)
+            if registered is not None:
+                self._dispatcher.submit(self._deliver, wid, change)
+
+    def _deliver(self, watch_id: int, change: WorkingMemoryChange) -> None:
+        registered = self._callbacks.get(watch_id)
+        if registered is not None:  # cancelled while queued: drop
+            registered[0](change)
+
+    def _on_watch_error(self, error: CastError) -> None:
+        for _, handle in list(self._callbacks.values()):
+            handle.error = error
+        self._dispatcher.submit(self.watch_failed, error)
+
+    def watch_failed(self, error: CastError) -> None:
+        """Called (on the dispatcher) when change delivery stopped, e.g. HistoryExpiredError.
+
+        The default logs it. Override to resynchronise: read the current state,
+        then register the callbacks again.
+        """
+        log.error("%s: change delivery stopped: %s", self.component_id, error)
+
+    def drain(self, timeout: float | None = None) -> bool:
+        """Wait until every callback queued so far has run (tests, orderly shutdown)."""
+        return self._dispatcher.drain(timeout)
+
+
+class UnmanagedComponent(Component):
+    """A component that runs continuously and pushes its results to working memory."""
+
+    kind = "unmanaged"
+
+
+class ManagedComponent(Component):
+    """A component whose expensive work runs as tasks its SA's task manager adopts."""
+
+    kind = "managed"
+
+    def _cast_bind(self, transport: Transport, language: str = "python") -> None:
+        super()._cast_bind(transport, language)
+        transport.set_decision_sink(self._on_decision)
+
+    def _on_decision(self, record: TaskRecord) -> None:
+        task = Task(record)
+        if record.state is TaskState.ADOPTED:
+            self._dispatcher.submit(self.task_adopted, task)
+        elif record.state is TaskState.REJECTED:
+            self._dispatcher.submit(self.task_rejected, task)
+
+    def propose_task(self, name: str, data: Message | None = None, *, priority: int = 0) -> Task:
+        """Propose a task to the own SA's task manager; the decision arrives in a hook."""
+        type_name_, payload = ("", b"") if data is None else self._serialise(data)
+        return Task(self._transport.propose(name, type_name_, payload, priority))
+
+    def retract_task(self, task: Task | str) -> None:
+        """Withdraw a waiting or adopted task."""
+        self._transport.retract(task if isinstance(task, str) else task.task_id)
+
+    def task_complete(
+        self, task: Task | str, outcome: TaskOutcome = TaskOutcome.SUCCEEDED, reason: str = ""
+    ) -> None:
+        """Report that an adopted task ended, with its outcome."""
+        self._transport.complete(task if isinstance(task, str) else task.task_id, outcome, reason)
+
+    def task_adopted(self, task: Task) -> None:
+        """Hook: the task manager adopted ``task``; do the work, then call task_complete."""
+
+    def task_rejected(self, task: Task) -> None:
+        """Hook: the task manager rejected ``task``."""

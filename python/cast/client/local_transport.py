@@ -1,0 +1,206 @@
+"""Reaching working memories in the same process: direct calls on the core, no gRPC.
+
+Used for components that run inside the server's process (``in_process: true``).
+Semantics are the remote ones: the same checks, the same errors, values still
+copied (the component serialises on write and parses on read), events in the
+same order; only the network and the protobuf envelopes are gone.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+from google.protobuf import descriptor_pb2
+
+from cast.client.transport import EventSink
+from cast.core.host import BatchOp
+from cast.core.records import EntryRecord, Identity, LockMode, WriteResult
+from cast.core.sessions import ComponentState
+from cast.core.system import System
+from cast.core.tasks import TaskOutcome, TaskRecord
+from cast.core.watch import EventFilter, Subscription
+from cast.errors import CastError, DeadlineExceededError, LockedError
+
+__all__ = ["LocalTransport"]
+
+
+class LocalTransport:
+    """A component's direct connection to a :class:`System` in the same process."""
+
+    def __init__(self, system: System, identity: Identity) -> None:
+        self.identity = identity
+        self._system = system
+        self._host = system.host
+        self._sub_lock = threading.Lock()
+        self._sub: Subscription | None = None
+        self._sink: EventSink | None = None
+        self._on_error: Callable[[CastError], None] = lambda err: None
+        self._decision_sink: Callable[[TaskRecord], None] | None = None
+        self._session_id = ""
+        self._closing = threading.Event()
+
+    def system_name(self) -> str:
+        """The system's name."""
+        return self._system.name
+
+    def subarchitectures(self) -> list[str]:
+        """The system's SA names."""
+        return self._host.subarchitectures
+
+    def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
+        """Create an entry."""
+        return self._host.add(self.identity, sa, entry_id, type_name, data)
+
+    def overwrite(
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> WriteResult:
+        """Replace an entry's value."""
+        return self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
+
+    def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
+        """Delete an entry."""
+        return self._host.delete(self.identity, sa, entry_id, expected_version)
+
+    def batch(self, ops: Sequence[BatchOp]) -> list[WriteResult]:
+        """Apply writes in order, all or nothing."""
+        return self._host.batch(self.identity, ops)
+
+    def get(self, sa: str, entry_id: str) -> EntryRecord:
+        """Read one entry (records are immutable, so sharing one is safe)."""
+        return self._host.get(self.identity, sa, entry_id)
+
+    def get_by_type(self, sa: str, type_name: str, limit: int) -> list[EntryRecord]:
+        """Read the entries of one type, newest first."""
+        return self._host.get_by_type(self.identity, sa, type_name, limit)[0]
+
+    def exists(self, sa: str, entry_id: str) -> bool:
+        """Whether an entry exists."""
+        return self._host.exists(self.identity, sa, entry_id)
+
+    def lock(self, sa: str, entry_id: str, mode: LockMode, timeout: float | None, no_wait: bool) -> int:
+        """Take a lock, waiting on this thread for its release up to ``timeout`` seconds."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                return self._host.try_lock(self.identity, sa, entry_id, mode)
+            except LockedError as exc:
+                if no_wait:
+                    raise
+                blocked = exc
+            released = threading.Event()
+            cancel = self._host.wait_for_unlock(sa, entry_id, released.set)
+            try:
+                remaining = None if end is None else max(0.0, end - time.monotonic())
+                if not released.wait(remaining):
+                    raise DeadlineExceededError(f"deadline passed while waiting: {blocked.message}")
+            finally:
+                cancel()
+
+    def unlock(self, sa: str, entry_id: str) -> int:
+        """Release one level of a lock."""
+        return self._host.unlock(self.identity, sa, entry_id)
+
+    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
+        """Register entry types with the in-process server."""
+        self._system.schemas.register(files)
+
+    def set_event_sink(self, sink: EventSink, on_error: Callable[[CastError], None]) -> None:
+        """Where events go; they are delivered from the writer's thread, in order."""
+        self._sink = sink
+        self._on_error = on_error
+
+    def _wake(self) -> None:
+        # Called on the writer's thread; the lock keeps deliveries in order when
+        # several threads write at once.
+        with self._sub_lock:
+            if self._sub is None or self._sink is None:
+                return
+            try:
+                matches = self._sub.poll()
+            except CastError as exc:
+                self._sub.close()
+                self._sub = None
+                self._on_error(exc)
+                return
+            for m in matches:
+                self._sink(m.event, m.watch_ids)
+
+    def watch(
+        self, watch_id: int, filters: Sequence[EventFilter], start_revisions: dict[str, int] | None = None
+    ) -> dict[str, int]:
+        """Create a watch."""
+        if self._sink is None:
+            raise RuntimeError("set_event_sink must be called before watch")
+        with self._sub_lock:
+            if self._sub is None:
+                self._sub = Subscription(self._host, self._wake)
+            revisions = self._sub.add_watch(watch_id, filters, start_revisions)
+        if start_revisions:
+            self._wake()
+        return revisions
+
+    def cancel_watch(self, watch_id: int) -> None:
+        """Remove a watch."""
+        with self._sub_lock:
+            if self._sub is not None:
+                self._sub.cancel(watch_id)
+
+    def propose(self, name: str, data_type: str, data: bytes, priority: int) -> TaskRecord:
+        """Propose a task to the own SA's task manager."""
+        return self._copy(self._system.tasks.propose(self.identity, name, data_type, data, priority))
+
+    @staticmethod
+    def _copy(task: TaskRecord) -> TaskRecord:
+        return TaskRecord(**vars(task))
+
+    def retract(self, task_id: str) -> None:
+        """Withdraw a task."""
+        self._system.tasks.retract(self.identity, task_id)
+
+    def complete(self, task_id: str, outcome: TaskOutcome, reason: str) -> None:
+        """Report an adopted task's outcome."""
+        self._system.tasks.complete(self.identity, task_id, outcome, reason)
+
+    def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
+        """Where task decisions go."""
+        self._decision_sink = sink
+        self._system.tasks.add_listener(self._decided)
+        self._decided(self.identity.component_id)
+
+    def _decided(self, component_id: str) -> None:
+        if component_id != self.identity.component_id or self._decision_sink is None:
+            return
+        for task in self._system.tasks.take_decisions(component_id):
+            self._decision_sink(task)
+
+    def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
+        """Register and keep the session alive from a timer thread."""
+        sessions = self._system.sessions
+        self._session_id = sessions.register(self.identity, language, kind, os.getpid(), socket.gethostname())
+        interval = max(0.05, sessions.lease_ms / 3000)
+
+        def beat() -> None:
+            while not self._closing.wait(interval):
+                try:
+                    sessions.heartbeat(self.identity, self._session_id, state())
+                except CastError:
+                    return
+            sessions.end(self._session_id)
+
+        sessions.heartbeat(self.identity, self._session_id, state())
+        threading.Thread(target=beat, name="cast-heartbeat", daemon=True).start()
+
+    def close(self) -> None:
+        """End the session; stop watching."""
+        self._closing.set()
+        if self._session_id:
+            self._system.sessions.end(self._session_id)
+        self._system.tasks.remove_listener(self._decided)
+        with self._sub_lock:
+            if self._sub is not None:
+                self._sub.close()
+                self._sub = None

@@ -1,0 +1,178 @@
+"""Running a component: the launch contract (DESIGN.md section 6) and the lifecycle.
+
+Every component process gets ``CAST_ENDPOINT``, ``CAST_COMPONENT_ID``,
+``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object).
+The runner connects, calls configure(args), start(), run(), and stop() once
+on SIGINT/SIGTERM, on ``request_stop()``, or when run() raised.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from cast.auth import peek
+from cast.client.component import Component
+from cast.client.grpc_transport import GrpcTransport
+from cast.client.transport import Transport
+from cast.core.records import Identity
+from cast.core.sessions import ComponentState
+from cast.errors import CastError, InvalidArgumentError
+
+__all__ = ["LaunchContract", "load_component_class", "main", "run_component"]
+
+log = logging.getLogger("cast.run")
+
+
+@dataclass(frozen=True)
+class LaunchContract:
+    """The environment a component process is started with."""
+
+    endpoint: str
+    component_id: str
+    subarchitecture: str
+    token: str
+    args: dict[str, Any]
+
+    @classmethod
+    def from_env(cls, env: Mapping[str, str] | None = None) -> LaunchContract:
+        """Read the contract; InvalidArgumentError naming every missing variable."""
+        env = os.environ if env is None else env
+        names = ("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN")
+        missing = [n for n in names if not env.get(n)]
+        if missing:
+            raise InvalidArgumentError(
+                f"missing launch environment: {', '.join(missing)}; start the component with `cast run CONFIG`, "
+                "or get the variables from `cast token`"
+            )
+        try:
+            args = json.loads(env.get("CAST_ARGS") or "{}")
+        except json.JSONDecodeError as exc:
+            raise InvalidArgumentError(f"CAST_ARGS is not valid JSON: {exc}") from None
+        if not isinstance(args, dict):
+            raise InvalidArgumentError("CAST_ARGS must be a JSON object")
+        return cls(env["CAST_ENDPOINT"], env["CAST_COMPONENT_ID"], env["CAST_SUBARCHITECTURE"], env["CAST_TOKEN"], args)
+
+    def identity(self) -> Identity:
+        """The component's identity (privileged as the token claims; the server verifies it)."""
+        claimed = peek(self.token)
+        return Identity(self.component_id, self.subarchitecture, bool(claimed and claimed.privileged))
+
+    def connect(self) -> GrpcTransport:
+        """A gRPC connection to the system."""
+        return GrpcTransport(self.endpoint, self.token, self.identity())
+
+
+def load_component_class(spec: str) -> type[Component]:
+    """The class named by ``module:Class``; InvalidArgumentError saying what is wrong."""
+    module_name, sep, class_name = spec.partition(":")
+    if not sep or not module_name or not class_name:
+        raise InvalidArgumentError(f"component class '{spec}' must be written module:Class")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise InvalidArgumentError(f"cannot import module '{module_name}' for component class '{spec}': {exc}") from exc
+    cls = getattr(module, class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Component)):
+        raise InvalidArgumentError(
+            f"'{spec}' is not a component class: it must subclass cast.UnmanagedComponent or cast.ManagedComponent"
+        )
+    return cls
+
+
+class _Lifecycle:
+    """Drives one component through configure, start, run and stop."""
+
+    def __init__(self, component: Component, transport: Transport, args: dict[str, Any]) -> None:
+        self.component = component
+        self.args = args
+        self.failed = False
+        self._stopped = threading.Lock()
+        self._stop_called = False
+        component._cast_bind(transport)
+
+    def stop(self) -> None:
+        """Call stop() exactly once."""
+        with self._stopped:
+            if self._stop_called:
+                return
+            self._stop_called = True
+        self.component._state = ComponentState.STOPPING
+        self.component.request_stop()
+        try:
+            self.component.stop()
+        except Exception:  # noqa: BLE001 - report, and still shut down
+            log.exception("%s: stop() failed", self.component.component_id)
+            self.failed = True
+
+    def run(self) -> None:
+        """configure, start, run; stop() on failure. Returns when run() returns or fails."""
+        c = self.component
+        try:
+            c.configure(self.args)
+            c.start()
+            c._state = ComponentState.RUNNING
+            c.run()
+        except Exception:  # noqa: BLE001
+            log.exception("%s failed", c.component_id)
+            self.failed = True
+            self.stop()
+
+    def close(self) -> None:
+        self.component._cast_close()
+
+
+def run_component(
+    component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True
+) -> int:
+    """Run a component to the end; return the process exit code (0 ok, 1 failed).
+
+    run() executes on a worker thread so that a signal can call stop() while
+    run() is busy; after run() returns the component keeps serving callbacks
+    until it is asked to stop.
+    """
+    life = _Lifecycle(component, transport, args)
+    if handle_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: component.request_stop())
+    worker = threading.Thread(target=life.run, name=f"cast-run-{component.component_id}", daemon=True)
+    worker.start()
+    try:
+        while not component.wait_for_stop(0.2):
+            if not worker.is_alive() and life.failed:
+                break
+        life.stop()
+        worker.join(10.0)
+        if worker.is_alive():
+            log.error("%s: run() did not return within 10 s of stop()", component.component_id)
+            life.failed = True
+        component.drain(5.0)
+    finally:
+        life.close()
+    return 1 if life.failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m cast.run module:Class``: run one component from the launch environment."""
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1 or argv[0] in ("-h", "--help"):
+        print("usage: python -m cast.run module:Class   (reads CAST_ENDPOINT, CAST_TOKEN, ... from the environment)")
+        return 2
+    logging.basicConfig(level=os.environ.get("CAST_LOG_LEVEL", "INFO"), format="%(asctime)s %(name)s: %(message)s")
+    try:
+        cls = load_component_class(argv[0])
+        contract = LaunchContract.from_env()
+        component = cls()
+        transport = contract.connect()
+    except CastError as exc:
+        print(f"cast.run: {exc.message}", file=sys.stderr)
+        return 2
+    return run_component(component, transport, contract.args)

@@ -1,0 +1,216 @@
+"""Translation between wire messages (cast.v1) and the core's records.
+
+Used by the servicers (core -> wire) and by the client library (wire -> the
+same record types), so an in-process component and a remote one see
+identical objects. Protobuf only; no gRPC here.
+"""
+
+from __future__ import annotations
+
+from google.protobuf import any_pb2, timestamp_pb2
+
+from cast.core.records import ChangeEvent, EntryRecord, Operation
+from cast.core.sessions import ComponentInfo, ComponentState
+from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
+from cast.core.watch import EventFilter
+from cast.errors import InvalidArgumentError
+from cast.v1 import directory_pb2, entry_pb2, task_manager_pb2
+
+__all__ = [
+    "TYPE_URL_PREFIX",
+    "any_to_type_data",
+    "component_to_pb",
+    "entry_from_pb",
+    "entry_to_pb",
+    "event_from_pb",
+    "event_to_pb",
+    "filter_from_pb",
+    "filter_to_pb",
+    "task_from_pb",
+    "task_to_pb",
+    "timestamp",
+]
+
+TYPE_URL_PREFIX = "type.googleapis.com/"
+
+
+def timestamp(ns: int) -> timestamp_pb2.Timestamp:
+    """A Timestamp from nanoseconds since the epoch."""
+    return timestamp_pb2.Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+
+
+def _ns(ts: timestamp_pb2.Timestamp) -> int:
+    return ts.seconds * 1_000_000_000 + ts.nanos
+
+
+def any_to_type_data(value: any_pb2.Any, what: str = "value") -> tuple[str, bytes]:
+    """(type name, bytes) of an Any; INVALID_ARGUMENT if it names no type."""
+    url = value.type_url
+    if not url:
+        raise InvalidArgumentError(
+            f"{what} has no type_url: pack a protobuf message into the Any (Any.Pack) so the entry has a type"
+        )
+    return url[url.rfind("/") + 1 :], value.value
+
+
+def _any(type_name: str, data: bytes) -> any_pb2.Any:
+    return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
+
+
+def entry_to_pb(record: EntryRecord) -> entry_pb2.Entry:
+    """Wire form of a stored entry."""
+    return entry_pb2.Entry(
+        address=entry_pb2.EntryAddress(id=record.id, subarchitecture=record.subarchitecture),
+        type=record.type,
+        value=_any(record.type, record.data),
+        version=record.version,
+        author=record.author,
+        modified=timestamp(record.modified_ns),
+        revision=record.revision,
+    )
+
+
+def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:
+    """Record form of a wire entry (client side)."""
+    return EntryRecord(
+        entry.address.subarchitecture,
+        entry.address.id,
+        entry.type,
+        entry.value.value,
+        entry.version,
+        entry.author,
+        _ns(entry.modified),
+        entry.revision,
+    )
+
+
+def event_to_pb(ev: ChangeEvent, watch_ids: list[int], include_entry: bool) -> entry_pb2.ChangeEvent:
+    """Wire form of an event for one stream."""
+    pb = entry_pb2.ChangeEvent(
+        revision=ev.revision,
+        operation=ev.operation,  # type: ignore[arg-type]  # IntEnum values equal the wire enum
+        address=entry_pb2.EntryAddress(id=ev.id, subarchitecture=ev.subarchitecture),
+        type=ev.type,
+        source_component=ev.source_component,
+        source_subarchitecture=ev.source_subarchitecture,
+        version=ev.version,
+        time=timestamp(ev.time_ns),
+        watch_ids=watch_ids,
+    )
+    if include_entry and ev.entry is not None:
+        pb.entry.CopyFrom(entry_to_pb(ev.entry))
+    return pb
+
+
+def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
+    """Record form of a wire event (client side); ``seq`` is 0."""
+    return ChangeEvent(
+        0,
+        pb.revision,
+        Operation(pb.operation),
+        pb.address.subarchitecture,
+        pb.address.id,
+        pb.type,
+        pb.source_component,
+        pb.source_subarchitecture,
+        pb.version,
+        _ns(pb.time),
+        entry_from_pb(pb.entry) if pb.HasField("entry") else None,
+    )
+
+
+def filter_from_pb(pb: entry_pb2.ChangeFilter) -> EventFilter:
+    """Core filter from a wire filter; INVALID_ARGUMENT for an unknown operation."""
+    ops = set()
+    for op in pb.operations:
+        if op == entry_pb2.OPERATION_UNSPECIFIED:
+            continue
+        try:
+            ops.add(Operation(op))
+        except ValueError:
+            raise InvalidArgumentError(f"unknown operation {op} in a change filter") from None
+    return EventFilter(
+        frozenset(ops),
+        pb.type,
+        pb.id,
+        pb.subarchitecture,
+        pb.source_component,
+        pb.source_subarchitecture,
+        pb.include_entry,
+    )
+
+
+def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:
+    """Wire filter from a core filter."""
+    return entry_pb2.ChangeFilter(
+        operations=sorted(int(op) for op in f.operations),  # type: ignore[misc]
+        type=f.type,
+        id=f.id,
+        subarchitecture=f.subarchitecture,
+        source_component=f.source_component,
+        source_subarchitecture=f.source_subarchitecture,
+        include_entry=f.include_entry,
+    )
+
+
+def task_to_pb(task: TaskRecord) -> task_manager_pb2.Task:
+    """Wire form of a task."""
+    pb = task_manager_pb2.Task(
+        task_id=task.task_id,
+        name=task.name,
+        subarchitecture=task.subarchitecture,
+        component=task.component,
+        priority=task.priority,
+        state=task.state,  # type: ignore[arg-type]
+        outcome=task.outcome,  # type: ignore[arg-type]
+        reason=task.reason,
+        proposed=timestamp(task.proposed_ns),
+    )
+    if task.data_type:
+        pb.data.CopyFrom(_any(task.data_type, task.data))
+    if task.decided_ns:
+        pb.decided.CopyFrom(timestamp(task.decided_ns))
+    return pb
+
+
+def task_from_pb(pb: task_manager_pb2.Task) -> TaskRecord:
+    """Record form of a wire task (client side)."""
+    data_type, data = any_to_type_data(pb.data) if pb.HasField("data") else ("", b"")
+    return TaskRecord(
+        pb.task_id,
+        pb.name,
+        pb.subarchitecture,
+        pb.component,
+        data_type,
+        data,
+        pb.priority,
+        TaskState(pb.state),
+        _ns(pb.proposed),
+        TaskOutcome(pb.outcome),
+        pb.reason,
+        _ns(pb.decided) if pb.HasField("decided") else 0,
+    )
+
+
+def component_to_pb(info: ComponentInfo) -> directory_pb2.ComponentInfo:
+    """Wire form of a directory entry."""
+    return directory_pb2.ComponentInfo(
+        id=info.id,
+        subarchitecture=info.subarchitecture,
+        privileged=info.privileged,
+        language=info.language,
+        kind=info.kind,
+        state=int(info.state),  # type: ignore[arg-type]
+        session_id=info.session_id,
+        pid=info.pid,
+        host=info.host,
+        sessions=info.sessions,
+    )
+
+
+def component_state(value: int) -> ComponentState | None:
+    """Core state from a wire value (None for unspecified or unknown)."""
+    try:
+        return ComponentState(value)
+    except ValueError:
+        return None

@@ -1,0 +1,1 @@
+"""The WM core: plain Python, no gRPC."""

@@ -1,0 +1,165 @@
+"""Plain value types of the WM core: identities, entries, events, limits.
+
+Entry records and events are immutable once made: a write makes a new record,
+so an event can keep a reference to the record it reports without copying the
+value, and readers can never see a record change under them.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import NamedTuple
+
+__all__ = [
+    "ChangeEvent",
+    "EntryRecord",
+    "Identity",
+    "Limits",
+    "LockMode",
+    "Operation",
+    "WriteResult",
+]
+
+
+class Operation(enum.IntEnum):
+    """Kind of a write; values equal the wire enum ``cast.v1.Operation``."""
+
+    ADD = 1
+    OVERWRITE = 2
+    DELETE = 3
+
+
+class LockMode(enum.IntEnum):
+    """What a lock keeps other components from doing; values equal ``cast.v1.LockMode``."""
+
+    O = 1  # noqa: E741 - the mode's name in CAST
+    OD = 2
+    ODR = 3
+
+
+class Identity(NamedTuple):
+    """Who makes a call: taken from a verified token, never from a request field."""
+
+    component_id: str
+    subarchitecture: str
+    privileged: bool = False
+
+    def describe(self) -> str:
+        """Human form used in error messages: ``component 'x' (SA 'vision')``."""
+        sa = self.subarchitecture or "no SA"
+        return f"component '{self.component_id}' (SA '{sa}')"
+
+
+class WriteResult(NamedTuple):
+    """Result of one write: the WM revision it made and the entry's new version."""
+
+    revision: int
+    version: int
+
+
+class EntryRecord:
+    """One entry as stored: never mutated after creation."""
+
+    __slots__ = ("subarchitecture", "id", "type", "data", "version", "author", "modified_ns", "revision")
+
+    def __init__(
+        self,
+        subarchitecture: str,
+        id: str,  # noqa: A002 - the wire name
+        type: str,  # noqa: A002 - the wire name
+        data: bytes,
+        version: int,
+        author: str,
+        modified_ns: int,
+        revision: int,
+    ) -> None:
+        self.subarchitecture = subarchitecture
+        self.id = id
+        self.type = type
+        self.data = data
+        self.version = version
+        self.author = author
+        self.modified_ns = modified_ns
+        self.revision = revision
+
+    def __repr__(self) -> str:
+        return (
+            f"EntryRecord({self.subarchitecture}/{self.id}, type={self.type}, "
+            f"version={self.version}, author={self.author}, revision={self.revision})"
+        )
+
+
+class ChangeEvent:
+    """One change of one WM, as kept in its history ring and delivered to watchers.
+
+    ``seq`` orders events across all WMs of a host; ``revision`` numbers them
+    within their WM. ``entry`` is the record after the write (for DELETE, the
+    record that was deleted). ``odr_holder`` is the component that held an ODR
+    lock on the entry when it was written, so that other watchers are not sent
+    its content.
+    """
+
+    __slots__ = (
+        "seq",
+        "revision",
+        "operation",
+        "subarchitecture",
+        "id",
+        "type",
+        "source_component",
+        "source_subarchitecture",
+        "version",
+        "time_ns",
+        "entry",
+        "odr_holder",
+    )
+
+    def __init__(
+        self,
+        seq: int,
+        revision: int,
+        operation: Operation,
+        subarchitecture: str,
+        id: str,  # noqa: A002 - the wire name
+        type: str,  # noqa: A002 - the wire name
+        source_component: str,
+        source_subarchitecture: str,
+        version: int,
+        time_ns: int,
+        entry: EntryRecord | None,
+        odr_holder: str | None = None,
+    ) -> None:
+        self.seq = seq
+        self.revision = revision
+        self.operation = operation
+        self.subarchitecture = subarchitecture
+        self.id = id
+        self.type = type
+        self.source_component = source_component
+        self.source_subarchitecture = source_subarchitecture
+        self.version = version
+        self.time_ns = time_ns
+        self.entry = entry
+        self.odr_holder = odr_holder
+
+    def __repr__(self) -> str:
+        return (
+            f"ChangeEvent({self.operation.name} {self.subarchitecture}/{self.id} rev={self.revision} "
+            f"v={self.version} type={self.type} by={self.source_component})"
+        )
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Limits a server enforces; every refusal names the limit and how to change it."""
+
+    max_id_bytes: int = 256
+    max_type_bytes: int = 512
+    max_value_bytes: int = 8 * 1024 * 1024
+    max_entries: int = 10_000_000
+    history_events: int = 65_536
+    history_bytes: int = 256 * 1024 * 1024
+    max_watchers: int = 10_000
+    max_lock_waiters: int = 10_000
+    max_batch_operations: int = 10_000

@@ -1,0 +1,229 @@
+"""Task managers: one per subarchitecture, each with its policy.
+
+The board keeps every live task, asks the SA's policy for decisions after each
+change, queues decisions for the proposing component, and publishes every
+state change through ``publish`` (the server writes it into the SA's WM as a
+``cast.v1.Task`` entry, so decisions are change events any tool can watch).
+"""
+
+from __future__ import annotations
+
+import enum
+import itertools
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+from cast.core.host import MemoryHost
+from cast.core.policies import AlwaysPolicy, TaskPolicy
+from cast.core.records import EntryRecord, Identity
+from cast.errors import InvalidArgumentError, LockedError, NotFoundError, PermissionDeniedError
+
+__all__ = ["TaskBoard", "TaskOutcome", "TaskRecord", "TaskState"]
+
+
+class TaskState(enum.IntEnum):
+    """Values equal the wire enum ``cast.v1.TaskState``."""
+
+    WAITING = 1
+    ADOPTED = 2
+    REJECTED = 3
+    RETRACTED = 4
+    COMPLETED = 5
+
+
+class TaskOutcome(enum.IntEnum):
+    """Values equal the wire enum ``cast.v1.TaskOutcome``."""
+
+    UNSPECIFIED = 0
+    SUCCEEDED = 1
+    FAILED = 2
+    ABANDONED = 3
+
+
+LIVE = (TaskState.WAITING, TaskState.ADOPTED)
+
+
+@dataclass
+class TaskRecord:
+    """One task and where it is in its life."""
+
+    task_id: str
+    name: str
+    subarchitecture: str
+    component: str
+    data_type: str
+    data: bytes
+    priority: int
+    state: TaskState
+    proposed_ns: int
+    outcome: TaskOutcome = TaskOutcome.UNSPECIFIED
+    reason: str = ""
+    decided_ns: int = 0
+
+
+class _WMView:
+    """Read-only view of one SA's WM for a policy."""
+
+    def __init__(self, host: MemoryHost, sa: str) -> None:
+        self._host = host
+        self._sa = sa
+        self._who = Identity(f"{sa}.task_manager", sa, False)
+
+    def get_by_type(self, type_name: str, limit: int = 0) -> list[EntryRecord]:
+        return self._host.get_by_type(self._who, self._sa, type_name, limit)[0]
+
+    def entry_count(self) -> int:
+        return self._host.entry_count(self._sa)
+
+
+Publisher = Callable[[TaskRecord], None]
+
+
+class TaskBoard:
+    """The task managers of every SA of a host."""
+
+    def __init__(
+        self,
+        host: MemoryHost,
+        policies: Mapping[str, TaskPolicy] | None = None,
+        publish: Publisher | None = None,
+        clock: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self._host = host
+        self._policies: dict[str, TaskPolicy] = {sa: AlwaysPolicy() for sa in host.subarchitectures}
+        for sa, policy in (policies or {}).items():
+            host.revision(sa)  # NOT_FOUND for an unknown SA
+            self._policies[sa] = policy
+        self._publish = publish
+        self._clock = clock
+        self._mutex = threading.RLock()
+        self._ids = itertools.count(1)
+        self._live: dict[str, TaskRecord] = {}  # insertion order = proposal order
+        self._decisions: dict[str, list[TaskRecord]] = {}
+        self._listeners: list[Callable[[str], None]] = []
+        self.counters: dict[str, dict[str, int]] = {
+            sa: {"proposed": 0, "adopted": 0, "rejected": 0, "retracted": 0, "completed": 0}
+            for sa in host.subarchitectures
+        }
+
+    def policy(self, sa: str) -> TaskPolicy:
+        """The policy of one SA."""
+        self._host.revision(sa)
+        return self._policies[sa]
+
+    def add_listener(self, listener: Callable[[str], None]) -> None:
+        """Call ``listener(component_id)`` when decisions are queued for that component."""
+        self._listeners.append(listener)
+
+    def remove_listener(self, listener: Callable[[str], None]) -> None:
+        """Stop calling a listener."""
+        if listener in self._listeners:
+            self._listeners.remove(listener)
+
+    def propose(
+        self, who: Identity, name: str, data_type: str = "", data: bytes = b"", priority: int = 0
+    ) -> TaskRecord:
+        """Propose a task to the caller's SA task manager; return it (maybe already decided)."""
+        if not who.subarchitecture:
+            raise PermissionDeniedError(f"{who.describe()} belongs to no SA, so it has no task manager")
+        if not name or len(name.encode()) > 256:
+            raise InvalidArgumentError("task name must be 1 to 256 bytes")
+        sa = who.subarchitecture
+        self._host.revision(sa)
+        with self._mutex:
+            task = TaskRecord(
+                f"task-{next(self._ids)}", name, sa, who.component_id, data_type, data, priority,
+                TaskState.WAITING, self._clock(),
+            )
+            self._live[task.task_id] = task
+            self.counters[sa]["proposed"] += 1
+            self._emit(task, queue=False)
+            self._decide(sa)
+            return task
+
+    def retract(self, who: Identity, task_id: str) -> TaskRecord:
+        """Withdraw a waiting or adopted task of the caller."""
+        with self._mutex:
+            task = self._own(who, task_id)
+            self._finish(task, TaskState.RETRACTED, TaskOutcome.UNSPECIFIED, "retracted by its proposer")
+            return task
+
+    def complete(self, who: Identity, task_id: str, outcome: TaskOutcome, reason: str = "") -> TaskRecord:
+        """Report the outcome of an adopted task of the caller."""
+        with self._mutex:
+            task = self._own(who, task_id)
+            if task.state is not TaskState.ADOPTED:
+                raise LockedError(
+                    f"task '{task_id}' is {task.state.name.lower()}, not adopted: only adopted tasks complete "
+                    "(retract a waiting one instead)"
+                )
+            self._finish(task, TaskState.COMPLETED, TaskOutcome(outcome), reason)
+            return task
+
+    def release_component(self, component_id: str) -> list[str]:
+        """Retract every live task of a component whose session ended."""
+        with self._mutex:
+            mine = [t for t in self._live.values() if t.component == component_id]
+            for task in mine:
+                self._finish(task, TaskState.RETRACTED, TaskOutcome.UNSPECIFIED, "its component's session ended")
+            self._decisions.pop(component_id, None)
+            return [t.task_id for t in mine]
+
+    def take_decisions(self, component_id: str) -> list[TaskRecord]:
+        """Drain the decisions queued for a component (adopted, rejected), oldest first."""
+        with self._mutex:
+            return self._decisions.pop(component_id, [])
+
+    def tasks(self, sa: str = "") -> list[TaskRecord]:
+        """Live tasks (waiting or adopted), oldest first, of one SA or all."""
+        if sa:
+            self._host.revision(sa)
+        with self._mutex:
+            return [t for t in self._live.values() if not sa or t.subarchitecture == sa]
+
+    def _own(self, who: Identity, task_id: str) -> TaskRecord:
+        task = self._live.get(task_id)
+        if task is None:
+            raise NotFoundError(f"no live task '{task_id}' (it never existed, or already ended)")
+        if task.component != who.component_id:
+            raise PermissionDeniedError(
+                f"task '{task_id}' was proposed by '{task.component}', not by {who.describe()}"
+            )
+        return task
+
+    def _finish(self, task: TaskRecord, state: TaskState, outcome: TaskOutcome, reason: str) -> None:
+        task.state, task.outcome, task.reason = state, outcome, reason
+        del self._live[task.task_id]
+        self.counters[task.subarchitecture][state.name.lower()] += 1
+        self._emit(task, queue=False)
+        self._decide(task.subarchitecture)
+
+    def _decide(self, sa: str) -> None:
+        waiting = [t for t in self._live.values() if t.subarchitecture == sa and t.state is TaskState.WAITING]
+        if not waiting:
+            return
+        adopted = [t for t in self._live.values() if t.subarchitecture == sa and t.state is TaskState.ADOPTED]
+        decision = self._policies[sa].decide(waiting, adopted, _WMView(self._host, sa))
+        now = self._clock()
+        for task in decision.adopt:
+            if task.state is TaskState.WAITING:
+                task.state, task.decided_ns = TaskState.ADOPTED, now
+                self.counters[sa]["adopted"] += 1
+                self._emit(task, queue=True)
+        for task, reason in decision.reject:
+            if task.state is TaskState.WAITING:
+                task.state, task.decided_ns, task.reason = TaskState.REJECTED, now, reason
+                del self._live[task.task_id]
+                self.counters[sa]["rejected"] += 1
+                self._emit(task, queue=True)
+
+    def _emit(self, task: TaskRecord, queue: bool) -> None:
+        if self._publish is not None:
+            self._publish(task)
+        if queue:
+            snapshot = TaskRecord(**vars(task))
+            self._decisions.setdefault(task.component, []).append(snapshot)
+            for listener in list(self._listeners):
+                listener(task.component)

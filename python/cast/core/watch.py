@@ -1,0 +1,202 @@
+"""Watch cursors: several filtered watches reading the history rings of a host.
+
+A :class:`Subscription` is one consumer's view (one gRPC Watch stream, or one
+in-process component). It holds watches, each a set of filters with its own
+next revision per WM, and :meth:`Subscription.poll` returns every event that
+is pending for any of them, once, with the ids of the watches it matched, in
+the order the host applied them.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+from cast.core.host import MemoryHost
+from cast.core.records import ChangeEvent, Operation
+from cast.errors import InvalidArgumentError, ResourceExhaustedError
+
+__all__ = ["EventFilter", "Match", "Subscription"]
+
+
+@dataclass(frozen=True)
+class EventFilter:
+    """Selects events: every set field must match; empty fields match anything."""
+
+    operations: frozenset[Operation] = frozenset()
+    type: str = ""
+    id: str = ""
+    subarchitecture: str = ""
+    source_component: str = ""
+    source_subarchitecture: str = ""
+    include_entry: bool = False
+
+    def matches(self, ev: ChangeEvent) -> bool:
+        """Whether ``ev`` passes this filter."""
+        return (
+            (not self.operations or ev.operation in self.operations)
+            and (not self.type or ev.type == self.type)
+            and (not self.id or ev.id == self.id)
+            and (not self.subarchitecture or ev.subarchitecture == self.subarchitecture)
+            and (not self.source_component or ev.source_component == self.source_component)
+            and (not self.source_subarchitecture or ev.source_subarchitecture == self.source_subarchitecture)
+        )
+
+
+class Match:
+    """An event pending for a subscription, the watches it matched, and whether to send its entry."""
+
+    __slots__ = ("event", "watch_ids", "include_entry")
+
+    def __init__(self, event: ChangeEvent, watch_ids: list[int], include_entry: bool) -> None:
+        self.event = event
+        self.watch_ids = watch_ids
+        self.include_entry = include_entry
+
+
+@dataclass
+class _Watch:
+    watch_id: int
+    filters: tuple[EventFilter, ...]
+    sas: frozenset[str]  # the WMs its filters can match
+    next: dict[str, int] = field(default_factory=dict)
+
+
+class Subscription:
+    """One consumer's watches over a host; not thread-safe (one consumer at a time)."""
+
+    def __init__(self, host: MemoryHost, wake: Callable[[], None]) -> None:
+        limit = host.limits.max_watchers
+        if host.listener_count() >= limit:
+            raise ResourceExhaustedError(
+                f"this server already has {host.listener_count()} watchers, the limit (limits.max_watchers = "
+                f"{limit}): share one watch stream between filters, or raise the limit"
+            )
+        self._host = host
+        self._wake = wake
+        self._watches: dict[int, _Watch] = {}
+        self.behind = False  # the last poll stopped at its budget with events left
+        host.add_listener(wake)
+
+    @property
+    def watch_ids(self) -> list[int]:
+        """Ids of the live watches."""
+        return list(self._watches)
+
+    def add_watch(
+        self,
+        watch_id: int,
+        filters: Sequence[EventFilter],
+        start_revisions: Mapping[str, int] | None = None,
+    ) -> dict[str, int]:
+        """Add a watch; return every WM's current revision.
+
+        ``start_revisions`` maps an SA to the first revision to deliver; other
+        SAs start after their current revision. HistoryExpiredError if a start
+        is older than the history, INVALID_ARGUMENT if it is in the future.
+        """
+        if watch_id in self._watches:
+            raise InvalidArgumentError(f"watch id {watch_id} is already in use on this stream: pick another")
+        if not filters:
+            raise InvalidArgumentError("a watch needs at least one filter (an empty filter matches everything)")
+        all_sas = self._host.subarchitectures
+        sas: set[str] = set()
+        for f in filters:
+            if f.subarchitecture:
+                if f.subarchitecture not in all_sas:
+                    self._host.revision(f.subarchitecture)  # raises the NOT_FOUND with the known SAs
+                sas.add(f.subarchitecture)
+            else:
+                sas.update(all_sas)
+        revisions = self._host.revisions()
+        starts = dict(start_revisions or {})
+        for sa, start in starts.items():
+            if sa not in revisions:
+                self._host.revision(sa)
+            if start > revisions[sa] + 1:
+                raise InvalidArgumentError(
+                    f"start revision {start} for subarchitecture '{sa}' is in the future (current revision is "
+                    f"{revisions[sa]})"
+                )
+            if start < 1:
+                raise InvalidArgumentError(f"start revision for subarchitecture '{sa}' must be >= 1, got {start}")
+            self._host.events_since(sa, start)  # raises HistoryExpiredError if too old
+        nxt = {sa: starts.get(sa, revisions[sa] + 1) for sa in sas}
+        self._watches[watch_id] = _Watch(watch_id, tuple(filters), frozenset(sas), nxt)
+        if starts:
+            self._wake()  # history to replay
+        return revisions
+
+    def cancel(self, watch_id: int) -> bool:
+        """Remove a watch; False if there was none with that id."""
+        return self._watches.pop(watch_id, None) is not None
+
+    def poll(self, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
+        """Pending events matching any watch, each once, in the host's order (per WM: by revision).
+
+        ``max_events`` and ``max_bytes`` (entry bytes of matches that include
+        their entry; 0: no cap) bound one batch; :attr:`behind` then tells that
+        more is pending. HistoryExpiredError if a watch fell behind the history.
+        """
+        self.behind = False
+        if not self._watches:
+            return []
+        per_sa: list[list[Match]] = []
+        budget_events, budget_bytes = max_events, max_bytes
+        exhausted = False
+        for sa in self._sas():
+            if exhausted:
+                self.behind = True  # conservative: a wake-up with nothing pending costs little
+                break
+            watches = [w for w in self._watches.values() if sa in w.sas]
+            start = min(w.next[sa] for w in watches)
+            events = self._host.events_since(sa, start)
+            if not events:
+                continue
+            matches = []
+            last = start
+            for ev in events:
+                last = ev.revision + 1
+                ids = []
+                include = False
+                for w in watches:
+                    if ev.revision < w.next[sa]:
+                        continue
+                    for f in w.filters:
+                        if f.matches(ev):
+                            ids.append(w.watch_id)
+                            include = include or f.include_entry
+                            break
+                if ids:
+                    matches.append(Match(ev, ids, include))
+                    if max_events:
+                        budget_events -= 1
+                    if max_bytes and include and ev.entry is not None:
+                        budget_bytes -= len(ev.entry.data)
+                    if (max_events and budget_events <= 0) or (max_bytes and budget_bytes <= 0):
+                        exhausted = True
+                        self.behind = last <= events[-1].revision
+                        break
+            for w in watches:
+                w.next[sa] = max(w.next[sa], last)
+            if matches:
+                per_sa.append(matches)
+        if len(per_sa) == 1:
+            return per_sa[0]
+        return list(heapq.merge(*per_sa, key=lambda m: m.event.seq))
+
+    def positions(self) -> dict[int, dict[str, int]]:
+        """Next revision per SA of every watch (for resuming elsewhere)."""
+        return {wid: dict(w.next) for wid, w in self._watches.items()}
+
+    def _sas(self) -> Iterable[str]:
+        seen: set[str] = set()
+        for w in self._watches.values():
+            seen |= w.sas
+        return sorted(seen)
+
+    def close(self) -> None:
+        """Stop being woken; drop every watch."""
+        self._host.remove_listener(self._wake)
+        self._watches.clear()

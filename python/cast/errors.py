@@ -1,0 +1,143 @@
+"""The named errors of CAST, shared by the WM core, the server and the client library.
+
+Every error corresponds to one gRPC status code (by name, so this module needs
+no gRPC import). The server turns a raised error into that status; the client
+library turns the status back into the same class, so a component sees the
+same exception whether its WM is in-process or remote.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AlreadyExistsError",
+    "CastError",
+    "ConsistencyError",
+    "DeadlineExceededError",
+    "HistoryExpiredError",
+    "InternalError",
+    "InvalidArgumentError",
+    "LockedError",
+    "NotFoundError",
+    "PermissionDeniedError",
+    "ResourceExhaustedError",
+    "UnauthenticatedError",
+    "UnavailableError",
+    "error_for_code",
+]
+
+
+class CastError(Exception):
+    """Base class of every CAST error; ``code`` is the gRPC status code name."""
+
+    code: str = "UNKNOWN"
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.message = message
+
+
+class AlreadyExistsError(CastError):
+    """An entry with this id already exists (ALREADY_EXISTS)."""
+
+    code = "ALREADY_EXISTS"
+
+
+class NotFoundError(CastError):
+    """The entry, subarchitecture or task does not exist (NOT_FOUND)."""
+
+    code = "NOT_FOUND"
+
+
+class ConsistencyError(CastError):
+    """The entry's version is not the expected one (ABORTED)."""
+
+    code = "ABORTED"
+
+
+class PermissionDeniedError(CastError):
+    """The component may not write where it tried to (PERMISSION_DENIED)."""
+
+    code = "PERMISSION_DENIED"
+
+
+class LockedError(CastError):
+    """Another component holds a lock that forbids this (FAILED_PRECONDITION).
+
+    Also raised for an unlock of an entry the caller does not hold.
+    """
+
+    code = "FAILED_PRECONDITION"
+
+
+class InvalidArgumentError(CastError):
+    """A bad id, type, value or request (INVALID_ARGUMENT)."""
+
+    code = "INVALID_ARGUMENT"
+
+
+class UnauthenticatedError(CastError):
+    """The call had no valid token (UNAUTHENTICATED)."""
+
+    code = "UNAUTHENTICATED"
+
+
+class DeadlineExceededError(CastError):
+    """The call's deadline passed before it could complete (DEADLINE_EXCEEDED)."""
+
+    code = "DEADLINE_EXCEEDED"
+
+
+class HistoryExpiredError(CastError):
+    """A watch asked for (or fell behind to) revisions older than the kept history (OUT_OF_RANGE).
+
+    The watcher must resynchronise: read the current state, then watch from the
+    current revision.
+    """
+
+    code = "OUT_OF_RANGE"
+
+
+class ResourceExhaustedError(CastError):
+    """A configured limit was reached (RESOURCE_EXHAUSTED)."""
+
+    code = "RESOURCE_EXHAUSTED"
+
+
+class UnavailableError(CastError):
+    """The server cannot be reached (UNAVAILABLE)."""
+
+    code = "UNAVAILABLE"
+
+
+class InternalError(CastError):
+    """A bug: the server failed in a way it should not (INTERNAL)."""
+
+    code = "INTERNAL"
+
+
+_BY_CODE: dict[str, type[CastError]] = {
+    cls.code: cls
+    for cls in (
+        AlreadyExistsError,
+        NotFoundError,
+        ConsistencyError,
+        PermissionDeniedError,
+        LockedError,
+        InvalidArgumentError,
+        UnauthenticatedError,
+        DeadlineExceededError,
+        HistoryExpiredError,
+        ResourceExhaustedError,
+        UnavailableError,
+        InternalError,
+    )
+}
+
+
+def error_for_code(code_name: str, message: str) -> CastError:
+    """Return the named error for a gRPC status code name (``"NOT_FOUND"``, ...)."""
+    cls = _BY_CODE.get(code_name, CastError)
+    err = cls(message)
+    if cls is CastError:
+        err.code = code_name
+    return err

@@ -1,0 +1,1 @@
+"""The gRPC server: servicers that translate between cast.v1 and the core."""

@@ -1,0 +1,102 @@
+"""The Directory servicer: system description, sessions, schemas."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+
+import grpc
+from google.protobuf import descriptor_pb2
+
+from cast.convert import component_state, component_to_pb
+from cast.core.system import System
+from cast.errors import InvalidArgumentError
+from cast.server.rpc import Authenticator, rpc, stream_rpc
+from cast.v1 import directory_pb2 as dir_pb2, directory_pb2_grpc as dir_grpc
+
+__all__ = ["DirectoryServicer", "describe"]
+
+
+def describe(system: System) -> dir_pb2.SystemDescription:
+    """The wire description of a system."""
+    revisions = system.host.revisions()
+    return dir_pb2.SystemDescription(
+        name=system.name,
+        subarchitectures=[
+            dir_pb2.SubarchitectureInfo(
+                name=sa,
+                endpoint=system.endpoints.get(sa, ""),
+                task_manager_policy=system.tasks.policy(sa).describe(),
+                revision=revisions[sa],
+                entries=system.host.entry_count(sa),
+            )
+            for sa in system.host.subarchitectures
+        ],
+        components=[component_to_pb(c) for c in system.sessions.components()],
+        endpoint=next(iter(system.endpoints.values()), ""),
+    )
+
+
+class DirectoryServicer(dir_grpc.DirectoryServicer):
+    """Serves the directory of one :class:`System`."""
+
+    def __init__(self, system: System, auth: Authenticator) -> None:
+        self._system = system
+        self._auth = auth
+
+    @rpc
+    async def DescribeSystem(
+        self, request: dir_pb2.DescribeSystemRequest, context: grpc.aio.ServicerContext
+    ) -> dir_pb2.SystemDescription:
+        """Describe SAs, endpoints and components."""
+        self._auth.identify(context)
+        return describe(self._system)
+
+    @rpc
+    async def Register(
+        self, request: dir_pb2.RegisterRequest, context: grpc.aio.ServicerContext
+    ) -> dir_pb2.RegisterResponse:
+        """Start a session for the caller."""
+        who = self._auth.identify(context)
+        sessions = self._system.sessions
+        session_id = sessions.register(who, request.language, request.kind, request.pid, request.host)
+        return dir_pb2.RegisterResponse(
+            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system)
+        )
+
+    @stream_rpc
+    async def Heartbeat(
+        self, request_iterator: AsyncIterator[dir_pb2.HeartbeatRequest], context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[dir_pb2.HeartbeatResponse]:
+        """Keep a session alive; the session ends with this stream."""
+        who = self._auth.identify(context)
+        sessions = self._system.sessions
+        session_id = ""
+        try:
+            async for beat in request_iterator:
+                if session_id and beat.session_id != session_id:
+                    raise InvalidArgumentError("one heartbeat stream serves one session")
+                session_id = beat.session_id
+                sessions.heartbeat(who, session_id, component_state(beat.state))
+                yield dir_pb2.HeartbeatResponse(lease_ms=sessions.lease_ms)
+        finally:
+            # The component is gone (or its stream broke): release what it held.
+            if session_id:
+                sessions.end(session_id)
+
+    @rpc
+    async def RegisterSchemas(
+        self, request: dir_pb2.RegisterSchemasRequest, context: grpc.aio.ServicerContext
+    ) -> dir_pb2.RegisterSchemasResponse:
+        """Store entry type descriptors."""
+        self._auth.identify(context)
+        types = self._system.schemas.register(request.files.file)
+        return dir_pb2.RegisterSchemasResponse(types=types)
+
+    @rpc
+    async def GetSchema(
+        self, request: dir_pb2.GetSchemaRequest, context: grpc.aio.ServicerContext
+    ) -> dir_pb2.GetSchemaResponse:
+        """Descriptors of one type."""
+        self._auth.identify(context)
+        files = self._system.schemas.files_for(request.type)
+        return dir_pb2.GetSchemaResponse(files=descriptor_pb2.FileDescriptorSet(file=files))

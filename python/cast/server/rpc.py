@@ -1,0 +1,85 @@
+"""Shared plumbing of the servicers: identity from metadata, errors to status codes."""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any, TypeVar
+
+import grpc
+
+from cast.auth import TokenSigner
+from cast.core.records import Identity
+from cast.errors import CastError, UnauthenticatedError
+
+__all__ = ["Authenticator", "rpc", "stream_rpc"]
+
+log = logging.getLogger("cast.server")
+
+Req = TypeVar("Req")
+Resp = TypeVar("Resp")
+
+
+class Authenticator:
+    """Finds the caller's identity in the ``authorization: Bearer <token>`` metadata."""
+
+    def __init__(self, signer: TokenSigner) -> None:
+        self._signer = signer
+
+    def identify(self, context: grpc.aio.ServicerContext) -> Identity:
+        """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""
+        for key, value in context.invocation_metadata() or ():
+            if key == "authorization":
+                text = value.decode() if isinstance(value, bytes) else value
+                scheme, _, token = text.partition(" ")
+                if scheme.lower() != "bearer" or not token:
+                    raise UnauthenticatedError("authorization metadata must be 'Bearer <token>'")
+                return self._signer.verify(token.strip())
+        raise UnauthenticatedError(
+            "no token: send 'authorization: Bearer <token>' metadata (components get CAST_TOKEN from the "
+            "orchestrator or `cast token`)"
+        )
+
+
+async def _abort(context: grpc.aio.ServicerContext, exc: BaseException) -> None:
+    if isinstance(exc, CastError):
+        await context.abort(grpc.StatusCode[exc.code], exc.message)
+    log.exception("internal error in %s", context)
+    await context.abort(grpc.StatusCode.INTERNAL, f"internal server error: {type(exc).__name__}: {exc}")
+
+
+def rpc(
+    fn: Callable[[Any, Req, grpc.aio.ServicerContext], Awaitable[Resp]],
+) -> Callable[[Any, Req, grpc.aio.ServicerContext], Awaitable[Resp]]:
+    """Wrap a unary handler: a raised CastError becomes its status code, anything else INTERNAL."""
+
+    @functools.wraps(fn)
+    async def wrapper(self: Any, request: Req, context: grpc.aio.ServicerContext) -> Resp:
+        try:
+            return await fn(self, request, context)
+        except Exception as exc:  # noqa: BLE001 - every failure must become a status, never a crash
+            if isinstance(exc, grpc.aio.AbortError):
+                raise
+            await _abort(context, exc)
+            raise AssertionError("unreachable") from exc
+
+    return wrapper
+
+
+def stream_rpc(
+    fn: Callable[[Any, Any, grpc.aio.ServicerContext], AsyncIterator[Resp]],
+) -> Callable[[Any, Any, grpc.aio.ServicerContext], AsyncIterator[Resp]]:
+    """Wrap a streaming handler the same way as :func:`rpc`."""
+
+    @functools.wraps(fn)
+    async def wrapper(self: Any, request: Any, context: grpc.aio.ServicerContext) -> AsyncIterator[Resp]:
+        try:
+            async for item in fn(self, request, context):
+                yield item
+        except Exception as exc:  # noqa: BLE001
+            if isinstance(exc, grpc.aio.AbortError):
+                raise
+            await _abort(context, exc)
+
+    return wrapper

@@ -1,0 +1,247 @@
+"""The WorkingMemory servicer: translates cast.v1 requests into calls on the core."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import AsyncIterator
+
+import grpc
+
+from cast.convert import any_to_type_data, entry_to_pb, event_to_pb, filter_from_pb
+from cast.core.host import BatchOp
+from cast.core.records import Identity, LockMode, Operation
+from cast.core.system import System
+from cast.core.watch import Match, Subscription
+from cast.errors import CastError, DeadlineExceededError, InvalidArgumentError, LockedError
+from cast.server.rpc import Authenticator, rpc, stream_rpc
+from cast.v1 import entry_pb2, working_memory_pb2 as wm_pb2, working_memory_pb2_grpc as wm_grpc
+
+__all__ = ["WorkingMemoryServicer"]
+
+# One watch batch stops growing past this many events or entry bytes, so a
+# stream catching up never sends a message the client refuses for its size.
+_BATCH_EVENTS = 4096
+_BATCH_BYTES = 4 * 1024 * 1024
+
+
+def _lock_mode(value: int) -> LockMode:
+    try:
+        return LockMode(value)
+    except ValueError:
+        raise InvalidArgumentError(f"lock mode must be O, OD or ODR (1, 2 or 3), got {value}") from None
+
+
+def _op(kind: str, req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest) -> BatchOp:
+    addr = req.address
+    if kind == "add":
+        type_name, data = any_to_type_data(req.value)  # type: ignore[union-attr]
+        return BatchOp(Operation.ADD, addr.subarchitecture, addr.id, type_name, data)
+    expected = req.expected_version if req.HasField("expected_version") else None
+    if kind == "overwrite":
+        type_name, data = any_to_type_data(req.value)  # type: ignore[union-attr]
+        return BatchOp(Operation.OVERWRITE, addr.subarchitecture, addr.id, type_name, data, expected)
+    return BatchOp(Operation.DELETE, addr.subarchitecture, addr.id, expected_version=expected)
+
+
+class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
+    """Serves every WM of one :class:`System`."""
+
+    def __init__(self, system: System, auth: Authenticator) -> None:
+        self._system = system
+        self._host = system.host
+        self._auth = auth
+
+    @rpc
+    async def Add(self, request: wm_pb2.AddRequest, context: grpc.aio.ServicerContext) -> wm_pb2.WriteResponse:
+        """Create an entry."""
+        who = self._auth.identify(context)
+        op = _op("add", request)
+        result = self._host.add(who, op.subarchitecture, op.id, op.type, op.data)
+        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+
+    @rpc
+    async def Overwrite(
+        self, request: wm_pb2.OverwriteRequest, context: grpc.aio.ServicerContext
+    ) -> wm_pb2.WriteResponse:
+        """Replace an entry's value."""
+        who = self._auth.identify(context)
+        op = _op("overwrite", request)
+        result = self._host.overwrite(who, op.subarchitecture, op.id, op.type, op.data, op.expected_version)
+        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+
+    @rpc
+    async def Delete(self, request: wm_pb2.DeleteRequest, context: grpc.aio.ServicerContext) -> wm_pb2.WriteResponse:
+        """Delete an entry."""
+        who = self._auth.identify(context)
+        op = _op("delete", request)
+        result = self._host.delete(who, op.subarchitecture, op.id, op.expected_version)
+        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+
+    @rpc
+    async def Get(self, request: wm_pb2.GetRequest, context: grpc.aio.ServicerContext) -> wm_pb2.GetResponse:
+        """Read one entry."""
+        who = self._auth.identify(context)
+        record = self._host.get(who, request.address.subarchitecture, request.address.id)
+        return wm_pb2.GetResponse(entry=entry_to_pb(record))
+
+    @rpc
+    async def GetByType(
+        self, request: wm_pb2.GetByTypeRequest, context: grpc.aio.ServicerContext
+    ) -> wm_pb2.GetByTypeResponse:
+        """Read the entries of one type, newest first."""
+        who = self._auth.identify(context)
+        records, revision = self._host.get_by_type(who, request.subarchitecture, request.type, request.limit)
+        return wm_pb2.GetByTypeResponse(entries=[entry_to_pb(r) for r in records], revision=revision)
+
+    @rpc
+    async def Exists(self, request: wm_pb2.ExistsRequest, context: grpc.aio.ServicerContext) -> wm_pb2.ExistsResponse:
+        """Whether an entry exists."""
+        who = self._auth.identify(context)
+        return wm_pb2.ExistsResponse(
+            exists=self._host.exists(who, request.address.subarchitecture, request.address.id)
+        )
+
+    @rpc
+    async def Lock(self, request: wm_pb2.LockRequest, context: grpc.aio.ServicerContext) -> wm_pb2.LockResponse:
+        """Take a lock, waiting up to the call's deadline unless no_wait."""
+        who = self._auth.identify(context)
+        sa, entry_id, mode = request.address.subarchitecture, request.address.id, _lock_mode(request.mode)
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                return wm_pb2.LockResponse(depth=self._host.try_lock(who, sa, entry_id, mode))
+            except LockedError as exc:
+                if request.no_wait:
+                    raise
+                blocked = exc
+            released = loop.create_future()
+
+            def wake(fut: asyncio.Future[None] = released) -> None:
+                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result(None))
+
+            cancel = self._host.wait_for_unlock(sa, entry_id, wake)
+            try:
+                await asyncio.wait_for(released, timeout=context.time_remaining())
+            except TimeoutError:
+                raise DeadlineExceededError(f"deadline passed while waiting: {blocked.message}") from None
+            finally:
+                cancel()
+
+    @rpc
+    async def Unlock(self, request: wm_pb2.UnlockRequest, context: grpc.aio.ServicerContext) -> wm_pb2.UnlockResponse:
+        """Release one level of the caller's lock."""
+        who = self._auth.identify(context)
+        depth = self._host.unlock(who, request.address.subarchitecture, request.address.id)
+        return wm_pb2.UnlockResponse(depth=depth)
+
+    @rpc
+    async def Batch(self, request: wm_pb2.BatchRequest, context: grpc.aio.ServicerContext) -> wm_pb2.BatchResponse:
+        """Apply many writes in order, all or nothing."""
+        who = self._auth.identify(context)
+        ops = []
+        for index, item in enumerate(request.operations):
+            kind = item.WhichOneof("operation")
+            if kind is None:
+                raise InvalidArgumentError(f"batch operation {index} is empty: set add, overwrite or delete")
+            try:
+                ops.append(_op(kind, getattr(item, kind)))
+            except CastError as exc:
+                raise type(exc)(f"batch operation {index}: {exc.message}") from None
+        results = self._host.batch(who, ops)
+        return wm_pb2.BatchResponse(
+            results=[wm_pb2.WriteResponse(revision=r.revision, version=r.version) for r in results]
+        )
+
+    @stream_rpc
+    async def Watch(
+        self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[wm_pb2.WatchResponse]:
+        """Stream event batches for the watches the client creates on this stream."""
+        who = self._auth.identify(context)
+        stream = _WatchStream(self._system, who)
+        try:
+            async for response in stream.run(request_iterator):
+                yield response
+        finally:
+            stream.close()
+
+
+class _WatchStream:
+    """One Watch call: reads create/cancel requests, writes control messages and event batches."""
+
+    def __init__(self, system: System, who: Identity) -> None:
+        self._who = who
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
+        self._wake = asyncio.Event()
+        self._sub = Subscription(system.host, self._notify)
+        self._control: list[wm_pb2.WatchResponse] = []
+        self._error: BaseException | None = None
+        self._done = False
+
+    def _notify(self) -> None:
+        # Writes made by in-process components arrive on their own threads.
+        if threading.get_ident() == self._loop_thread:
+            self._wake.set()
+        else:
+            self._loop.call_soon_threadsafe(self._wake.set)
+
+    async def _read(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> None:
+        try:
+            async for req in requests:
+                kind = req.WhichOneof("request")
+                if kind == "create":
+                    self._control.append(self._create(req.create))
+                elif kind == "cancel":
+                    if self._sub.cancel(req.cancel.watch_id):
+                        self._control.append(wm_pb2.WatchResponse(cancelled=[req.cancel.watch_id]))
+                else:
+                    raise InvalidArgumentError("empty watch request: set create or cancel")
+                self._wake.set()
+        except Exception as exc:  # noqa: BLE001 - handed to the writer, which ends the call with it
+            self._error = exc
+        self._done = True
+        self._wake.set()
+
+    def _create(self, create: wm_pb2.WatchCreate) -> wm_pb2.WatchResponse:
+        try:
+            filters = [filter_from_pb(f) for f in create.filters]
+            revisions = self._sub.add_watch(create.watch_id, filters, dict(create.start_revisions))
+        except CastError as exc:
+            failed = wm_pb2.WatchFailed(watch_id=create.watch_id, code=exc.code, message=exc.message)
+            return wm_pb2.WatchResponse(failed=failed)
+        return wm_pb2.WatchResponse(created=wm_pb2.WatchCreated(watch_id=create.watch_id, revisions=revisions))
+
+    async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse]:
+        reader = asyncio.ensure_future(self._read(requests))
+        try:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                while self._control:
+                    yield self._control.pop(0)
+                if self._error is not None:
+                    raise self._error
+                matches = self._sub.poll(_BATCH_EVENTS, _BATCH_BYTES)
+                if matches:
+                    if len(matches) >= _BATCH_EVENTS or self._sub.behind:
+                        self._wake.set()  # more is pending: go round again after this batch
+                    yield wm_pb2.WatchResponse(events=self._events(matches))
+                elif self._done and not self._sub.watch_ids:
+                    return
+        finally:
+            reader.cancel()
+
+    def _events(self, matches: list[Match]) -> list[entry_pb2.ChangeEvent]:
+        me = self._who.component_id
+        out = []
+        for m in matches:
+            ev = m.event
+            # An entry written under another component's ODR lock is not sent to others.
+            include = m.include_entry and (ev.odr_holder is None or ev.odr_holder == me)
+            out.append(event_to_pb(ev, m.watch_ids, include))
+        return out
+
+    def close(self) -> None:
+        self._sub.close()
