@@ -319,11 +319,18 @@ class Component:
         type_name_, data = self._serialise(value)
         return self._transport.overwrite(self._sa(subarchitecture), entry_id, type_name_, data, expected_version)
 
-    def delete(
+    def delete_entry(
         self, entry_id: str, *, subarchitecture: str | None = None, expected_version: int | None = None
     ) -> WriteResult:
-        """Delete an entry (its locks go with it)."""
+        """Delete an entry (its locks go with it).
+
+        ``delete_entry`` is the name in every language (``deleteEntry`` in C++
+        and Java), since ``delete`` is a C++ keyword; :meth:`delete` is the
+        same call under its DESIGN.md name.
+        """
         return self._transport.delete(self._sa(subarchitecture), entry_id, expected_version)
+
+    delete = delete_entry
 
     def batch(self, operations: Sequence[tuple[str, str, Message | None]], *, subarchitecture: str | None = None) -> list[WriteResult]:
         """Apply ``(operation, id, value)`` writes in order, all or nothing.

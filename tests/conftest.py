@@ -1,0 +1,168 @@
+"""Shared fixtures: real servers on port 0, tokens, test entry types, component processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+VENV_BIN = Path(sys.executable).parent
+SECRET = "test-secret-0123456789abcdef-0123456789"
+
+# Generate the test entry types once per session, into a directory that is on
+# sys.path here and on PYTHONPATH for component processes.
+_GEN_DIR = Path(tempfile.mkdtemp(prefix="cast-test-gen-"))
+subprocess.run(
+    [
+        sys.executable,
+        "-m",
+        "grpc_tools.protoc",
+        f"-I{ROOT / 'tests' / 'protos'}",
+        f"--python_out={_GEN_DIR}",
+        *[str(p) for p in sorted((ROOT / "tests" / "protos").glob("*.proto"))],
+    ],
+    check=True,
+)
+sys.path.insert(0, str(_GEN_DIR))
+# Test component modules live in tests/components.
+sys.path.insert(0, str(ROOT / "tests" / "components"))
+
+from cast.auth import TokenSigner  # noqa: E402
+from cast.client.component import Component  # noqa: E402
+from cast.client.grpc_transport import GrpcTransport  # noqa: E402
+from cast.core.records import Identity  # noqa: E402
+
+GEN_DIR = _GEN_DIR
+PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"), str(ROOT / "python")])
+
+
+@dataclass
+class ServerHandle:
+    """A `cast serve` process on a free port."""
+
+    process: subprocess.Popen[str]
+    endpoint: str
+    config_path: Path
+    signer: TokenSigner = field(default_factory=lambda: TokenSigner(SECRET.encode()))
+    log_lines: list[str] = field(default_factory=list)
+
+    def token(self, component_id: str, sa: str, privileged: bool = False) -> str:
+        """A valid token for a component."""
+        return self.signer.issue(Identity(component_id, sa, privileged))
+
+    def env(self, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None) -> dict[str, str]:
+        """The launch environment of a component process."""
+        env = dict(os.environ)
+        env.update(
+            CAST_ENDPOINT=self.endpoint,
+            CAST_COMPONENT_ID=component_id,
+            CAST_SUBARCHITECTURE=sa,
+            CAST_TOKEN=self.token(component_id, sa, privileged),
+            CAST_ARGS=json.dumps(args or {}),
+            PYTHONPATH=PYTHONPATH,
+        )
+        return env
+
+    def connect(
+        self, component_id: str, sa: str, privileged: bool = False, cls: type[Component] | None = None
+    ) -> Component:
+        """A component object in the test process, bound over gRPC (close with .close())."""
+        from cast import UnmanagedComponent
+
+        component = (cls or UnmanagedComponent)()
+        identity = Identity(component_id, sa, privileged)
+        component._cast_bind(GrpcTransport(self.endpoint, self.token(component_id, sa, privileged), identity))
+        return component
+
+    def spawn(
+        self, spec: str, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None
+    ) -> subprocess.Popen[str]:
+        """Start `python -m cast.run spec` as a separate process."""
+        return subprocess.Popen(
+            [sys.executable, "-m", "cast.run", spec],
+            env=self.env(component_id, sa, privileged, args),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+
+    def stop(self) -> None:
+        """Stop the server (SIGTERM, then SIGKILL)."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def start_server(tmp: Path, config: dict[str, Any], extra_args: list[str] | None = None) -> ServerHandle:
+    """Write ``config`` as YAML and start `cast serve` on port 0; wait for its first line."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    config_path = tmp / "system.yaml"
+    config_path.write_text(yaml.safe_dump(config))
+    env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
+    proc = subprocess.Popen(
+        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", "127.0.0.1:0", *(extra_args or [])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        cwd=tmp,
+    )
+    assert proc.stdout is not None
+    first = proc.stdout.readline().strip()
+    if not first.startswith("listening on "):
+        proc.kill()
+        rest = proc.stdout.read()
+        raise RuntimeError(f"server did not start: {first}\n{rest}")
+    handle = ServerHandle(proc, first.removeprefix("listening on "), config_path)
+
+    def drain() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            handle.log_lines.append(line)
+
+    threading.Thread(target=drain, daemon=True).start()
+    return handle
+
+
+DEFAULT_CONFIG: dict[str, Any] = {
+    "system": "test",
+    "subarchitectures": {"vision": {}, "language": {}, "motor": {}},
+}
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[ServerHandle]:
+    """A real server hosting vision, language and motor (task managers: always)."""
+    handle = start_server(tmp_path, DEFAULT_CONFIG)
+    yield handle
+    handle.stop()
+
+
+@pytest.fixture
+def server_factory(tmp_path: Path) -> Iterator[Any]:
+    """Start servers with custom configurations; all are stopped at the end."""
+    started: list[ServerHandle] = []
+
+    def make(config: dict[str, Any], extra_args: list[str] | None = None) -> ServerHandle:
+        handle = start_server(tmp_path / f"server{len(started)}", config, extra_args)
+        started.append(handle)
+        return handle
+
+    yield make
+    for handle in started:
+        handle.stop()
