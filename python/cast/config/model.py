@@ -1,0 +1,143 @@
+"""The validated configuration: what the orchestrator and the server are given."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cast.config.problems import Position
+from cast.core.policies import TaskPolicy, make_policy
+from cast.core.records import Limits
+
+__all__ = [
+    "LANGUAGES",
+    "KINDS",
+    "RESTART_MODES",
+    "ComponentConfig",
+    "OrchestratorOptions",
+    "RestartPolicy",
+    "ServerConfig",
+    "SubarchitectureConfig",
+    "SystemConfig",
+]
+
+LANGUAGES = ("python", "cpp", "java")
+KINDS = ("unmanaged", "managed")
+RESTART_MODES = ("never", "on-failure", "always")
+DEFAULT_LISTEN = "127.0.0.1:0"
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """When the orchestrator restarts a component that exited, and how often."""
+
+    mode: str = "on-failure"
+    max_restarts: int = 5
+    backoff: float = 0.5  # seconds before the first restart; doubles each time
+    max_backoff: float = 10.0
+
+    def delay(self, restarts_so_far: int) -> float:
+        """Seconds to wait before restart number ``restarts_so_far + 1``."""
+        return float(min(self.max_backoff, self.backoff * (2 ** restarts_so_far)))
+
+    def should_restart(self, exit_code: int, restarts_so_far: int) -> bool:
+        """Whether a component that exited with ``exit_code`` is started again."""
+        if self.mode == "never" or restarts_so_far >= self.max_restarts:
+            return False
+        return self.mode == "always" or exit_code != 0
+
+
+@dataclass
+class ComponentConfig:
+    """One component of a subarchitecture."""
+
+    id: str
+    subarchitecture: str
+    language: str = "python"
+    kind: str = "unmanaged"
+    cls: str = ""  # python: module:Class; java: fully.qualified.Class
+    run: str = ""  # cpp: executable (absolute, relative to base_dir, or a bare name looked up)
+    args: dict[str, Any] = field(default_factory=dict)
+    privileged: bool = False
+    in_process: bool = False
+    manual: bool = False  # started by hand (`cast token`), not by the orchestrator
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
+    classpath: list[str] = field(default_factory=list)  # java: extra entries, absolute
+    base_dir: Path = field(default_factory=Path.cwd)  # directory of the file that defines it
+    position: Position = field(default_factory=lambda: Position("<config>"))
+    positions: dict[str, Position] = field(default_factory=dict)  # of each key's value, for later checks
+
+    def at(self, key: str) -> Position:
+        """Where the value of ``key`` is written (the component itself if not written)."""
+        return self.positions.get(key, self.position)
+
+    @property
+    def launched(self) -> bool:
+        """Whether the orchestrator starts this component as its own process."""
+        return not (self.in_process or self.manual)
+
+
+@dataclass
+class SubarchitectureConfig:
+    """One subarchitecture: its task manager policy and its components."""
+
+    name: str
+    policy: str = "always"
+    policy_options: dict[str, Any] = field(default_factory=dict)
+    components: dict[str, ComponentConfig] = field(default_factory=dict)
+    position: Position = field(default_factory=lambda: Position("<config>"))
+
+    def make_policy(self) -> TaskPolicy:
+        """The task manager policy object."""
+        return make_policy(self.policy, self.policy_options)
+
+
+@dataclass
+class ServerConfig:
+    """One server process: where it listens and which SAs it hosts."""
+
+    name: str
+    listen: str = DEFAULT_LISTEN
+    subarchitectures: list[str] = field(default_factory=list)
+
+
+@dataclass
+class OrchestratorOptions:
+    """How ``cast run`` supervises the system."""
+
+    connect_timeout: float = 60.0  # seconds to wait for every component to connect
+    stop_timeout: float = 10.0  # seconds between SIGTERM and SIGKILL
+    lease_ms: int = 10_000  # session lease without heartbeats
+
+
+@dataclass
+class SystemConfig:
+    """A whole system."""
+
+    name: str
+    subarchitectures: dict[str, SubarchitectureConfig]
+    limits: Limits = field(default_factory=Limits)
+    source: str = "<config>"
+    servers: list[ServerConfig] = field(default_factory=list)
+    python_path: list[Path] = field(default_factory=list)
+    orchestrator: OrchestratorOptions = field(default_factory=OrchestratorOptions)
+    variables: dict[str, str] = field(default_factory=dict)
+    files: list[Path] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.servers:
+            self.servers = [ServerConfig("main", DEFAULT_LISTEN, list(self.subarchitectures))]
+
+    @property
+    def components(self) -> list[ComponentConfig]:
+        """Every component, in file order (the order they are started in)."""
+        return [c for sa in self.subarchitectures.values() for c in sa.components.values()]
+
+    def component(self, component_id: str) -> ComponentConfig | None:
+        """A component by id."""
+        return next((c for c in self.components if c.id == component_id), None)
+
+    def server_of(self, sa: str) -> ServerConfig:
+        """The server hosting an SA."""
+        return next(s for s in self.servers if sa in s.subarchitectures)

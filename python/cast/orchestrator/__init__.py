@@ -1,0 +1,1 @@
+"""The orchestrator behind ``cast run``: servers, component processes, supervision, status."""
