@@ -30,7 +30,8 @@ $(GEN_STAMP): $(PROTOS) $(VENV)/.installed
 	rm -rf python/cast/v1
 	mkdir -p python/cast/v1
 	$(PY) -m grpc_tools.protoc -Iproto --python_out=python --grpc_python_out=python \
-	  --mypy_out=quiet:python --plugin=protoc-gen-mypy=$(VENV)/bin/protoc-gen-mypy $(PROTOS)
+	  --mypy_out=quiet:python --mypy_grpc_out=quiet:python --plugin=protoc-gen-mypy=$(VENV)/bin/protoc-gen-mypy \
+	  --plugin=protoc-gen-mypy_grpc=$(VENV)/bin/protoc-gen-mypy_grpc $(PROTOS)
 	echo '"""Generated from proto/cast/v1 by make proto; not committed."""' > python/cast/v1/__init__.py
 	touch $@
 

@@ -61,7 +61,9 @@ class ServerHandle:
         """A valid token for a component."""
         return self.signer.issue(Identity(component_id, sa, privileged))
 
-    def env(self, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None) -> dict[str, str]:
+    def env(
+        self, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None
+    ) -> dict[str, str]:
         """The launch environment of a component process."""
         env = dict(os.environ)
         env.update(
@@ -112,7 +114,7 @@ def start_server(tmp: Path, config: dict[str, Any], extra_args: list[str] | None
     """Write ``config`` as YAML and start `cast serve` on port 0; wait for its first line."""
     tmp.mkdir(parents=True, exist_ok=True)
     config_path = tmp / "system.yaml"
-    config_path.write_text(yaml.safe_dump(config))
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
     env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
     proc = subprocess.Popen(
         [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", "127.0.0.1:0", *(extra_args or [])],

@@ -9,6 +9,7 @@ object do not reach the WM) and a read returns a fresh object, in process too.
 
 from __future__ import annotations
 
+import builtins
 import itertools
 import logging
 import secrets
@@ -20,7 +21,7 @@ from typing import Any, Generic, NamedTuple, TypeVar
 from google.protobuf.message import Message
 
 from cast.client.dispatcher import Dispatcher
-from cast.client.filters import ChangeFilter, TypeLike, type_name
+from cast.client.filters import ChangeFilter, type_name
 from cast.client.transport import Transport
 from cast.core.host import BatchOp
 from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, Operation, WriteResult
@@ -126,7 +127,7 @@ class WorkingMemoryChange:
         """Whether the event carries the entry (the filter set include_entry)."""
         return self._ev.entry is not None
 
-    def entry(self, cls: type[M]) -> Entry[M]:
+    def entry(self, cls: builtins.type[M]) -> Entry[M]:
         """The entry carried by the event (after the write; for DELETE, as it was)."""
         if self._ev.entry is None:
             raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
@@ -209,6 +210,8 @@ class Component:
     """What every component can do; subclass :class:`UnmanagedComponent` or :class:`ManagedComponent`."""
 
     kind = "unmanaged"
+    max_pending_callbacks = 10_000
+    """How many callbacks may wait for the dispatcher before delivery backs off (see Dispatcher)."""
 
     # ------------------------------------------------------------ lifecycle
 
@@ -231,16 +234,19 @@ class Component:
         """Attach to a working memory system (done by the runner, not by users)."""
         self._transport = transport
         self._identity: Identity = transport.identity
-        self._dispatcher = Dispatcher(self._identity.component_id)
+        self._dispatcher = Dispatcher(self._identity.component_id, self.max_pending_callbacks)
+        self._dispatcher.on_space = transport.pump
         self._callbacks: dict[int, tuple[Callable[[WorkingMemoryChange], None], WatchHandle]] = {}
         self._watch_ids = itertools.count(1)
         self._registered_types: set[str] = set()
         self._schema_lock = threading.Lock()
         self._stopping = threading.Event()
+        # In process, events arrive on the writer's thread, which must never block.
+        self._block_on_full = not transport.delivers_on_writer_thread
         self._state = ComponentState.STARTING
         self._id_prefix = f"{self._identity.component_id}:{secrets.token_hex(3)}:"
         self._id_counter = itertools.count(1)
-        transport.set_event_sink(self._on_event, self._on_watch_error)
+        transport.set_event_sink(self._on_event, self._on_watch_error, self._dispatcher.room)
         transport.start_session(language, self.kind, lambda: self._state)
 
     def _cast_close(self) -> None:
@@ -332,7 +338,9 @@ class Component:
 
     delete = delete_entry
 
-    def batch(self, operations: Sequence[tuple[str, str, Message | None]], *, subarchitecture: str | None = None) -> list[WriteResult]:
+    def batch(
+        self, operations: Sequence[tuple[str, str, Message | None]], *, subarchitecture: str | None = None
+    ) -> list[WriteResult]:
         """Apply ``(operation, id, value)`` writes in order, all or nothing.
 
         ``operation`` is ``"add"``, ``"overwrite"`` or ``"delete"`` (value None).
@@ -437,7 +445,7 @@ class Component:
         for wid in watch_ids:
             registered = self._callbacks.get(wid)
             if registered is not None:
-                self._dispatcher.submit(self._deliver, wid, change)
+                self._dispatcher.submit(self._deliver, wid, change, block=self._block_on_full)
 
     def _deliver(self, watch_id: int, change: WorkingMemoryChange) -> None:
         registered = self._callbacks.get(watch_id)
@@ -493,9 +501,7 @@ class ManagedComponent(Component):
         """Withdraw a waiting or adopted task."""
         self._transport.retract(task if isinstance(task, str) else task.task_id)
 
-    def task_complete(
-        self, task: Task | str, outcome: TaskOutcome = TaskOutcome.SUCCEEDED, reason: str = ""
-    ) -> None:
+    def task_complete(self, task: Task | str, outcome: TaskOutcome = TaskOutcome.SUCCEEDED, reason: str = "") -> None:
         """Report that an adopted task ended, with its outcome."""
         self._transport.complete(task if isinstance(task, str) else task.task_id, outcome, reason)
 

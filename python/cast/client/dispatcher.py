@@ -13,23 +13,44 @@ log = logging.getLogger("cast.component")
 
 
 class Dispatcher:
-    """Runs queued calls on its own thread, in order; a failing callback is logged, not fatal."""
+    """Runs queued calls on its own thread, in order; a failing callback is logged, not fatal.
 
-    def __init__(self, name: str) -> None:
+    The queue is bounded by ``capacity`` so that a component whose callbacks
+    are slow lags behind on the server (which keeps a bounded history and says
+    so when the lag exceeds it) instead of growing without bound in memory.
+    A blocking :meth:`submit` waits for room; ``on_space`` is called (on the
+    dispatcher thread) when room appears after the queue was full.
+    """
+
+    def __init__(self, name: str, capacity: int = 10_000) -> None:
         self._queue: queue.SimpleQueue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name=f"cast-dispatch-{name}", daemon=True)
         self._idle = threading.Condition()
         self._pending = 0
+        self.capacity = capacity
+        self.on_space: Callable[[], None] | None = None
+        self._was_full = False
         self._thread.start()
+
+    def room(self) -> int:
+        """How many more calls fit before the queue is full."""
+        with self._idle:
+            room = self.capacity - self._pending
+            if room <= 0:
+                self._was_full = True
+            return max(0, room)
 
     @property
     def thread(self) -> threading.Thread:
         """The dispatcher thread (callbacks run on it)."""
         return self._thread
 
-    def submit(self, fn: Callable[..., object], *args: object) -> None:
-        """Queue ``fn(*args)``."""
+    def submit(self, fn: Callable[..., object], *args: object, block: bool = True) -> None:
+        """Queue ``fn(*args)``; with ``block``, first wait while the queue is full."""
         with self._idle:
+            if block and self._pending >= self.capacity and threading.current_thread() is not self._thread:
+                self._was_full = True
+                self._idle.wait_for(lambda: self._pending < self.capacity)
             self._pending += 1
         self._queue.put((fn, args))
 
@@ -41,13 +62,17 @@ class Dispatcher:
             fn, args = item
             try:
                 fn(*args)
-            except Exception:  # noqa: BLE001 - one bad callback must not stop the others
+            except Exception:
                 log.exception("callback %s failed", getattr(fn, "__qualname__", fn))
             finally:
                 with self._idle:
                     self._pending -= 1
-                    if self._pending == 0:
-                        self._idle.notify_all()
+                    self._idle.notify_all()
+                    resume = self._was_full and self._pending <= self.capacity // 2
+                    if resume:
+                        self._was_full = False
+                if resume and self.on_space is not None:
+                    self.on_space()
 
     def drain(self, timeout: float | None = None) -> bool:
         """Wait until every queued call has run; False on timeout."""

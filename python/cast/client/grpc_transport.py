@@ -13,22 +13,33 @@ from typing import Any
 import grpc
 from google.protobuf import any_pb2, descriptor_pb2
 
-from cast.convert import TYPE_URL_PREFIX, event_from_pb, filter_to_pb, task_from_pb
+from cast.client.transport import EventSink
+from cast.convert import TYPE_URL_PREFIX, entry_from_pb, event_from_pb, filter_to_pb, task_from_pb
 from cast.core.host import BatchOp
 from cast.core.records import EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter
-from cast.client.transport import EventSink
-from cast.convert import entry_from_pb
 from cast.errors import CastError, DeadlineExceededError, UnavailableError, error_for_code
 from cast.v1 import (
     directory_pb2 as dir_pb2,
+)
+from cast.v1 import (
     directory_pb2_grpc as dir_grpc,
+)
+from cast.v1 import (
     entry_pb2,
+)
+from cast.v1 import (
     task_manager_pb2 as tm_pb2,
+)
+from cast.v1 import (
     task_manager_pb2_grpc as tm_grpc,
+)
+from cast.v1 import (
     working_memory_pb2 as wm_pb2,
+)
+from cast.v1 import (
     working_memory_pb2_grpc as wm_grpc,
 )
 
@@ -117,7 +128,9 @@ class _WatchStream:
             pending[1].append(result)
             pending[0].set()
 
-    def create(self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], timeout: float) -> dict[str, int]:
+    def create(
+        self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], timeout: float
+    ) -> dict[str, int]:
         done = threading.Event()
         box: list[Any] = []
         self._pending[watch_id] = (done, box)
@@ -139,11 +152,13 @@ class _WatchStream:
     def close(self) -> None:
         self._closed = True
         self._requests.put(None)
-        self._call.cancel()
+        self._call.cancel()  # type: ignore[no-untyped-call]
 
 
 class GrpcTransport:
     """A component's connection to a CAST system through its directory endpoint."""
+
+    delivers_on_writer_thread = False
 
     def __init__(self, endpoint: str, token: str, identity: Identity, call_timeout: float = 30.0) -> None:
         self.identity = identity
@@ -169,7 +184,9 @@ class GrpcTransport:
             raise map_rpc_error(exc) from None
 
     def _describe(self) -> dir_pb2.SystemDescription:
-        desc: dir_pb2.SystemDescription = self._call(self._directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+        desc: dir_pb2.SystemDescription = self._call(
+            self._directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest()
+        )
         self._system = desc
         with self._lock:
             for sa in desc.subarchitectures:
@@ -284,10 +301,19 @@ class GrpcTransport:
 
     # -------------------------------------------------------------- watching
 
-    def set_event_sink(self, sink: EventSink, on_error: Callable[[CastError], None]) -> None:
-        """Where events go (from the watch threads, in order per server)."""
+    def set_event_sink(
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+    ) -> None:
+        """Where events go (from the watch threads, in order per server).
+
+        The watch threads may block in ``sink``: the stream then stops being
+        read, and the server lets this watcher lag (bounded by its history).
+        """
         self._sink = sink
         self._on_error = on_error
+
+    def pump(self) -> None:
+        """Nothing to do: the watch threads deliver as soon as the sink takes events."""
 
     def watch(
         self, watch_id: int, filters: Sequence[EventFilter], start_revisions: dict[str, int] | None = None

@@ -31,6 +31,8 @@ __all__ = ["LocalTransport"]
 class LocalTransport:
     """A component's direct connection to a :class:`System` in the same process."""
 
+    delivers_on_writer_thread = True
+
     def __init__(self, system: System, identity: Identity) -> None:
         self.identity = identity
         self._system = system
@@ -38,6 +40,7 @@ class LocalTransport:
         self._sub_lock = threading.Lock()
         self._sub: Subscription | None = None
         self._sink: EventSink | None = None
+        self._room: Callable[[], int] | None = None
         self._on_error: Callable[[CastError], None] = lambda err: None
         self._decision_sink: Callable[[TaskRecord], None] | None = None
         self._session_id = ""
@@ -108,26 +111,39 @@ class LocalTransport:
         """Register entry types with the in-process server."""
         self._system.schemas.register(files)
 
-    def set_event_sink(self, sink: EventSink, on_error: Callable[[CastError], None]) -> None:
-        """Where events go; they are delivered from the writer's thread, in order."""
+    def set_event_sink(
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+    ) -> None:
+        """Where events go; they are delivered from the writer's thread, in order, never blocking it."""
         self._sink = sink
         self._on_error = on_error
+        self._room = room
+
+    def pump(self) -> None:
+        """Deliver what was left pending while the sink was full."""
+        self._wake()
 
     def _wake(self) -> None:
         # Called on the writer's thread; the lock keeps deliveries in order when
-        # several threads write at once.
+        # several threads write at once. Only as many events as the sink has
+        # room for are taken, so a slow component lags (and past the history is
+        # told so) instead of blocking the writer.
         with self._sub_lock:
-            if self._sub is None or self._sink is None:
-                return
-            try:
-                matches = self._sub.poll()
-            except CastError as exc:
-                self._sub.close()
-                self._sub = None
-                self._on_error(exc)
-                return
-            for m in matches:
-                self._sink(m.event, m.watch_ids)
+            while self._sub is not None and self._sink is not None:
+                budget = self._room() if self._room is not None else 0
+                if self._room is not None and budget == 0:
+                    return  # the sink remembers it was full and calls pump() when it drains
+                try:
+                    matches = self._sub.poll(max_events=budget)
+                except CastError as exc:
+                    self._sub.close()
+                    self._sub = None
+                    self._on_error(exc)
+                    return
+                for m in matches:
+                    self._sink(m.event, m.watch_ids)
+                if not self._sub.behind:
+                    return
 
     def watch(
         self, watch_id: int, filters: Sequence[EventFilter], start_revisions: dict[str, int] | None = None

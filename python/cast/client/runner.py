@@ -109,7 +109,7 @@ class _Lifecycle:
         self.component.request_stop()
         try:
             self.component.stop()
-        except Exception:  # noqa: BLE001 - report, and still shut down
+        except Exception:
             log.exception("%s: stop() failed", self.component.component_id)
             self.failed = True
 
@@ -121,7 +121,7 @@ class _Lifecycle:
             c.start()
             c._state = ComponentState.RUNNING
             c.run()
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("%s failed", c.component_id)
             self.failed = True
             self.stop()
@@ -130,9 +130,7 @@ class _Lifecycle:
         self.component._cast_close()
 
 
-def run_component(
-    component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True
-) -> int:
+def run_component(component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True) -> int:
     """Run a component to the end; return the process exit code (0 ok, 1 failed).
 
     run() executes on a worker thread so that a signal can call stop() while

@@ -36,6 +36,8 @@ class Transport(Protocol):
     """Everything a component does to working memories and its task manager."""
 
     identity: Identity
+    delivers_on_writer_thread: bool
+    """True if the event sink is called on writers' threads (so it must never block)."""
 
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
@@ -80,8 +82,18 @@ class Transport(Protocol):
     def cancel_watch(self, watch_id: int) -> None:
         """Remove a watch."""
 
-    def set_event_sink(self, sink: EventSink, on_error: Callable[[CastError], None]) -> None:
-        """Where events (and a fatal watch error, e.g. history expired) go."""
+    def set_event_sink(
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+    ) -> None:
+        """Where events (and a fatal watch error, e.g. history expired) go.
+
+        ``room()`` says how many events the sink can take without blocking;
+        a transport that delivers on a writer's thread uses it so that it never
+        blocks the writer, and leaves the rest pending until :meth:`pump`.
+        """
+
+    def pump(self) -> None:
+        """Deliver events left pending for lack of room (called when the sink has room again)."""
 
     def propose(self, name: str, data_type: str, data: bytes, priority: int) -> TaskRecord:
         """Propose a task to the own SA's task manager."""

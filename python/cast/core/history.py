@@ -17,7 +17,7 @@ __all__ = ["History"]
 class History:
     """Events of one WM, revisions ``first`` .. ``last``, oldest dropped first."""
 
-    __slots__ = ("subarchitecture", "_buf", "_start", "_first", "_max_events", "_max_bytes", "_bytes")
+    __slots__ = ("_buf", "_bytes", "_first", "_max_bytes", "_max_events", "_start", "subarchitecture")
 
     def __init__(self, subarchitecture: str, max_events: int, max_bytes: int) -> None:
         self.subarchitecture = subarchitecture

@@ -61,7 +61,7 @@ class BatchOp:
 class _Planned:
     """A write that passed every check, ready to be committed."""
 
-    __slots__ = ("wm", "op", "record", "old", "who")
+    __slots__ = ("old", "op", "record", "who", "wm")
 
     def __init__(
         self, wm: WorkingMemory, op: Operation, record: EntryRecord | None, old: EntryRecord | None, who: Identity
@@ -309,9 +309,7 @@ class MemoryHost:
             if op.operation is Operation.OVERWRITE:
                 if self._validator is not None:
                     self._validator(op.type, op.data)
-                record = EntryRecord(
-                    sa, entry_id, op.type, op.data, current.version + 1, who.component_id, now, 0
-                )
+                record = EntryRecord(sa, entry_id, op.type, op.data, current.version + 1, who.component_id, now, 0)
                 planned = _Planned(wm, Operation.OVERWRITE, record, current, who)
             else:
                 planned = _Planned(wm, Operation.DELETE, None, current, who)

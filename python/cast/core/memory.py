@@ -29,7 +29,7 @@ class LockState:
 class WorkingMemory:
     """Entries of one subarchitecture, indexed by id and by type (newest first)."""
 
-    __slots__ = ("name", "entries", "_by_type", "last_versions", "history", "locks")
+    __slots__ = ("_by_type", "entries", "history", "last_versions", "locks", "name")
 
     def __init__(self, name: str, history_events: int, history_bytes: int) -> None:
         self.name = name

@@ -151,6 +151,7 @@ class ExclusivePolicy(TaskPolicy):
             decision.adopt.append(queue.pop(0))
         busy = adopted[0] if adopted else (decision.adopt[0] if decision.adopt else None)
         for task in queue:
+            assert busy is not None  # queue is non-empty only when something runs or was just adopted
             decision.reject.append((task, f"busy: task '{busy.name}' ({busy.task_id}) is running"))
         return decision
 

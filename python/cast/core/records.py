@@ -33,7 +33,7 @@ class Operation(enum.IntEnum):
 class LockMode(enum.IntEnum):
     """What a lock keeps other components from doing; values equal ``cast.v1.LockMode``."""
 
-    O = 1  # noqa: E741 - the mode's name in CAST
+    O = 1
     OD = 2
     ODR = 3
 
@@ -61,7 +61,7 @@ class WriteResult(NamedTuple):
 class EntryRecord:
     """One entry as stored: never mutated after creation."""
 
-    __slots__ = ("subarchitecture", "id", "type", "data", "version", "author", "modified_ns", "revision")
+    __slots__ = ("author", "data", "id", "modified_ns", "revision", "subarchitecture", "type", "version")
 
     def __init__(
         self,
@@ -101,18 +101,18 @@ class ChangeEvent:
     """
 
     __slots__ = (
-        "seq",
-        "revision",
-        "operation",
-        "subarchitecture",
+        "entry",
         "id",
-        "type",
+        "odr_holder",
+        "operation",
+        "revision",
+        "seq",
         "source_component",
         "source_subarchitecture",
-        "version",
+        "subarchitecture",
         "time_ns",
-        "entry",
-        "odr_holder",
+        "type",
+        "version",
     )
 
     def __init__(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterable
+from typing import Any
 
 from google.protobuf import descriptor_pb2, descriptor_pool, json_format, message, message_factory
 from google.protobuf.descriptor import Descriptor, FileDescriptor
@@ -125,8 +126,7 @@ class SchemaRegistry:
             desc = self._pool.FindMessageTypeByName(type_name)
         except KeyError:
             raise NotFoundError(
-                f"no schema registered for type '{type_name}': the writing component registers it on its "
-                "first write"
+                f"no schema registered for type '{type_name}': the writing component registers it on its first write"
             ) from None
         out: list[descriptor_pb2.FileDescriptorProto] = []
         seen: set[str] = set()
@@ -162,7 +162,7 @@ def _message_names(prefix: str, messages: Iterable[descriptor_pb2.DescriptorProt
     return out
 
 
-def files_of(descriptor: Descriptor) -> list[descriptor_pb2.FileDescriptorProto]:
+def files_of(descriptor: Descriptor | Any) -> list[descriptor_pb2.FileDescriptorProto]:
     """The .proto file defining a message class's descriptor and all it imports, dependencies first."""
     out: list[descriptor_pb2.FileDescriptorProto] = []
     seen: set[str] = set()

@@ -134,8 +134,15 @@ class TaskBoard:
         self._host.revision(sa)
         with self._mutex:
             task = TaskRecord(
-                f"task-{next(self._ids)}", name, sa, who.component_id, data_type, data, priority,
-                TaskState.WAITING, self._clock(),
+                f"task-{next(self._ids)}",
+                name,
+                sa,
+                who.component_id,
+                data_type,
+                data,
+                priority,
+                TaskState.WAITING,
+                self._clock(),
             )
             self._live[task.task_id] = task
             self.counters[sa]["proposed"] += 1
@@ -188,9 +195,7 @@ class TaskBoard:
         if task is None:
             raise NotFoundError(f"no live task '{task_id}' (it never existed, or already ended)")
         if task.component != who.component_id:
-            raise PermissionDeniedError(
-                f"task '{task_id}' was proposed by '{task.component}', not by {who.describe()}"
-            )
+            raise PermissionDeniedError(f"task '{task_id}' was proposed by '{task.component}', not by {who.describe()}")
         return task
 
     def _finish(self, task: TaskRecord, state: TaskState, outcome: TaskOutcome, reason: str) -> None:

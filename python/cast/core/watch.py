@@ -47,7 +47,7 @@ class EventFilter:
 class Match:
     """An event pending for a subscription, the watches it matched, and whether to send its entry."""
 
-    __slots__ = ("event", "watch_ids", "include_entry")
+    __slots__ = ("event", "include_entry", "watch_ids")
 
     def __init__(self, event: ChangeEvent, watch_ids: list[int], include_entry: bool) -> None:
         self.event = event

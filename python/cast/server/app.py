@@ -53,9 +53,7 @@ def system_from_config(config: SystemConfig, lease_ms: int = 10_000) -> System:
         lease_ms=lease_ms,
     )
     for comp in config.components:
-        system.expect(
-            ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind)
-        )
+        system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind))
     return system
 
 
@@ -120,7 +118,7 @@ async def start_server(system: System, signer: TokenSigner, listen: str = "127.0
     working_memory_pb2_grpc.add_WorkingMemoryServicer_to_server(WorkingMemoryServicer(system, auth), server)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), server)
     directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), server)
-    health_servicer = health.aio.HealthServicer()
+    health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
         (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME),

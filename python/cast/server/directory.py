@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 
-import grpc
 from google.protobuf import descriptor_pb2
 
 from cast.convert import component_state, component_to_pb
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
-from cast.server.rpc import Authenticator, rpc, stream_rpc
-from cast.v1 import directory_pb2 as dir_pb2, directory_pb2_grpc as dir_grpc
+from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
 
 __all__ = ["DirectoryServicer", "describe"]
 
@@ -45,7 +45,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
 
     @rpc
     async def DescribeSystem(
-        self, request: dir_pb2.DescribeSystemRequest, context: grpc.aio.ServicerContext
+        self, request: dir_pb2.DescribeSystemRequest, context: Context
     ) -> dir_pb2.SystemDescription:
         """Describe SAs, endpoints and components."""
         self._auth.identify(context)
@@ -53,7 +53,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
 
     @rpc
     async def Register(
-        self, request: dir_pb2.RegisterRequest, context: grpc.aio.ServicerContext
+        self, request: dir_pb2.RegisterRequest, context: Context
     ) -> dir_pb2.RegisterResponse:
         """Start a session for the caller."""
         who = self._auth.identify(context)
@@ -65,7 +65,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
 
     @stream_rpc
     async def Heartbeat(
-        self, request_iterator: AsyncIterator[dir_pb2.HeartbeatRequest], context: grpc.aio.ServicerContext
+        self, request_iterator: AsyncIterator[dir_pb2.HeartbeatRequest], context: Context
     ) -> AsyncIterator[dir_pb2.HeartbeatResponse]:
         """Keep a session alive; the session ends with this stream."""
         who = self._auth.identify(context)
@@ -85,7 +85,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
 
     @rpc
     async def RegisterSchemas(
-        self, request: dir_pb2.RegisterSchemasRequest, context: grpc.aio.ServicerContext
+        self, request: dir_pb2.RegisterSchemasRequest, context: Context
     ) -> dir_pb2.RegisterSchemasResponse:
         """Store entry type descriptors."""
         self._auth.identify(context)
@@ -94,7 +94,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
 
     @rpc
     async def GetSchema(
-        self, request: dir_pb2.GetSchemaRequest, context: grpc.aio.ServicerContext
+        self, request: dir_pb2.GetSchemaRequest, context: Context
     ) -> dir_pb2.GetSchemaResponse:
         """Descriptors of one type."""
         self._auth.identify(context)

@@ -34,9 +34,7 @@ class InProcessComponents:
             raise ValueError(f"component '{config.id}': only Python components can run in process")
         cls = load_component_class(config.cls)
         component = cls()
-        transport = LocalTransport(
-            self._system, Identity(config.id, config.subarchitecture, config.privileged)
-        )
+        transport = LocalTransport(self._system, Identity(config.id, config.subarchitecture, config.privileged))
 
         def body() -> None:
             self.exit_codes[config.id] = run_component(component, transport, dict(config.args), handle_signals=False)

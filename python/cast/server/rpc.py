@@ -13,9 +13,12 @@ from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.errors import CastError, UnauthenticatedError
 
-__all__ = ["Authenticator", "rpc", "stream_rpc"]
+__all__ = ["Authenticator", "Context", "rpc", "stream_rpc"]
 
 log = logging.getLogger("cast.server")
+
+Context = grpc.aio.ServicerContext[Any, Any]
+"""The servicer context of any call (the servicers only read metadata and deadlines from it)."""
 
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
@@ -27,7 +30,7 @@ class Authenticator:
     def __init__(self, signer: TokenSigner) -> None:
         self._signer = signer
 
-    def identify(self, context: grpc.aio.ServicerContext) -> Identity:
+    def identify(self, context: Context) -> Identity:
         """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""
         for key, value in context.invocation_metadata() or ():
             if key == "authorization":
@@ -42,7 +45,7 @@ class Authenticator:
         )
 
 
-async def _abort(context: grpc.aio.ServicerContext, exc: BaseException) -> None:
+async def _abort(context: Context, exc: BaseException) -> None:
     if isinstance(exc, CastError):
         await context.abort(grpc.StatusCode[exc.code], exc.message)
     log.exception("internal error in %s", context)
@@ -50,15 +53,15 @@ async def _abort(context: grpc.aio.ServicerContext, exc: BaseException) -> None:
 
 
 def rpc(
-    fn: Callable[[Any, Req, grpc.aio.ServicerContext], Awaitable[Resp]],
-) -> Callable[[Any, Req, grpc.aio.ServicerContext], Awaitable[Resp]]:
+    fn: Callable[[Any, Req, Context], Awaitable[Resp]],
+) -> Callable[[Any, Req, Context], Awaitable[Resp]]:
     """Wrap a unary handler: a raised CastError becomes its status code, anything else INTERNAL."""
 
     @functools.wraps(fn)
-    async def wrapper(self: Any, request: Req, context: grpc.aio.ServicerContext) -> Resp:
+    async def wrapper(self: Any, request: Req, context: Context) -> Resp:
         try:
             return await fn(self, request, context)
-        except Exception as exc:  # noqa: BLE001 - every failure must become a status, never a crash
+        except Exception as exc:
             if isinstance(exc, grpc.aio.AbortError):
                 raise
             await _abort(context, exc)
@@ -68,16 +71,16 @@ def rpc(
 
 
 def stream_rpc(
-    fn: Callable[[Any, Any, grpc.aio.ServicerContext], AsyncIterator[Resp]],
-) -> Callable[[Any, Any, grpc.aio.ServicerContext], AsyncIterator[Resp]]:
+    fn: Callable[[Any, Any, Context], AsyncIterator[Resp]],
+) -> Callable[[Any, Any, Context], AsyncIterator[Resp]]:
     """Wrap a streaming handler the same way as :func:`rpc`."""
 
     @functools.wraps(fn)
-    async def wrapper(self: Any, request: Any, context: grpc.aio.ServicerContext) -> AsyncIterator[Resp]:
+    async def wrapper(self: Any, request: Any, context: Context) -> AsyncIterator[Resp]:
         try:
             async for item in fn(self, request, context):
                 yield item
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             if isinstance(exc, grpc.aio.AbortError):
                 raise
             await _abort(context, exc)

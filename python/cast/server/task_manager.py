@@ -6,14 +6,13 @@ import asyncio
 import threading
 from collections.abc import AsyncIterator
 
-import grpc
-
 from cast.convert import any_to_type_data, task_to_pb
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome
 from cast.errors import InvalidArgumentError
-from cast.server.rpc import Authenticator, rpc, stream_rpc
-from cast.v1 import task_manager_pb2 as tm_pb2, task_manager_pb2_grpc as tm_grpc
+from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.v1 import task_manager_pb2 as tm_pb2
+from cast.v1 import task_manager_pb2_grpc as tm_grpc
 
 __all__ = ["TaskManagerServicer"]
 
@@ -26,7 +25,9 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self._auth = auth
 
     @rpc
-    async def Propose(self, request: tm_pb2.ProposeRequest, context: grpc.aio.ServicerContext) -> tm_pb2.ProposeResponse:
+    async def Propose(
+        self, request: tm_pb2.ProposeRequest, context: Context
+    ) -> tm_pb2.ProposeResponse:
         """Propose a task to the caller's SA."""
         who = self._auth.identify(context)
         data_type, data = any_to_type_data(request.data, "task data") if request.HasField("data") else ("", b"")
@@ -34,7 +35,9 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         return tm_pb2.ProposeResponse(task=task_to_pb(task))
 
     @rpc
-    async def Retract(self, request: tm_pb2.RetractRequest, context: grpc.aio.ServicerContext) -> tm_pb2.RetractResponse:
+    async def Retract(
+        self, request: tm_pb2.RetractRequest, context: Context
+    ) -> tm_pb2.RetractResponse:
         """Withdraw a task."""
         who = self._auth.identify(context)
         self._tasks.retract(who, request.task_id)
@@ -42,7 +45,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
 
     @rpc
     async def Complete(
-        self, request: tm_pb2.CompleteRequest, context: grpc.aio.ServicerContext
+        self, request: tm_pb2.CompleteRequest, context: Context
     ) -> tm_pb2.CompleteResponse:
         """Report the outcome of an adopted task."""
         who = self._auth.identify(context)
@@ -57,7 +60,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
 
     @rpc
     async def ListTasks(
-        self, request: tm_pb2.ListTasksRequest, context: grpc.aio.ServicerContext
+        self, request: tm_pb2.ListTasksRequest, context: Context
     ) -> tm_pb2.ListTasksResponse:
         """The live tasks of one SA or all."""
         self._auth.identify(context)
@@ -65,7 +68,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
 
     @stream_rpc
     async def Decisions(
-        self, request: tm_pb2.DecisionsRequest, context: grpc.aio.ServicerContext
+        self, request: tm_pb2.DecisionsRequest, context: Context
     ) -> AsyncIterator[tm_pb2.Task]:
         """Stream the decisions about the caller's tasks."""
         who = self._auth.identify(context)

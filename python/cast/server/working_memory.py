@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import AsyncIterator
-
-import grpc
+from collections.abc import AsyncIterator, Callable
 
 from cast.convert import any_to_type_data, entry_to_pb, event_to_pb, filter_from_pb
 from cast.core.host import BatchOp
@@ -14,8 +12,10 @@ from cast.core.records import Identity, LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, DeadlineExceededError, InvalidArgumentError, LockedError
-from cast.server.rpc import Authenticator, rpc, stream_rpc
-from cast.v1 import entry_pb2, working_memory_pb2 as wm_pb2, working_memory_pb2_grpc as wm_grpc
+from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.v1 import entry_pb2
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
 __all__ = ["WorkingMemoryServicer"]
 
@@ -32,14 +32,14 @@ def _lock_mode(value: int) -> LockMode:
         raise InvalidArgumentError(f"lock mode must be O, OD or ODR (1, 2 or 3), got {value}") from None
 
 
-def _op(kind: str, req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest) -> BatchOp:
+def _op(req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest) -> BatchOp:
     addr = req.address
-    if kind == "add":
-        type_name, data = any_to_type_data(req.value)  # type: ignore[union-attr]
+    if isinstance(req, wm_pb2.AddRequest):
+        type_name, data = any_to_type_data(req.value)
         return BatchOp(Operation.ADD, addr.subarchitecture, addr.id, type_name, data)
     expected = req.expected_version if req.HasField("expected_version") else None
-    if kind == "overwrite":
-        type_name, data = any_to_type_data(req.value)  # type: ignore[union-attr]
+    if isinstance(req, wm_pb2.OverwriteRequest):
+        type_name, data = any_to_type_data(req.value)
         return BatchOp(Operation.OVERWRITE, addr.subarchitecture, addr.id, type_name, data, expected)
     return BatchOp(Operation.DELETE, addr.subarchitecture, addr.id, expected_version=expected)
 
@@ -53,33 +53,33 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self._auth = auth
 
     @rpc
-    async def Add(self, request: wm_pb2.AddRequest, context: grpc.aio.ServicerContext) -> wm_pb2.WriteResponse:
+    async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
         who = self._auth.identify(context)
-        op = _op("add", request)
+        op = _op(request)
         result = self._host.add(who, op.subarchitecture, op.id, op.type, op.data)
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
     async def Overwrite(
-        self, request: wm_pb2.OverwriteRequest, context: grpc.aio.ServicerContext
+        self, request: wm_pb2.OverwriteRequest, context: Context
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
         who = self._auth.identify(context)
-        op = _op("overwrite", request)
+        op = _op(request)
         result = self._host.overwrite(who, op.subarchitecture, op.id, op.type, op.data, op.expected_version)
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
-    async def Delete(self, request: wm_pb2.DeleteRequest, context: grpc.aio.ServicerContext) -> wm_pb2.WriteResponse:
+    async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
         """Delete an entry."""
         who = self._auth.identify(context)
-        op = _op("delete", request)
+        op = _op(request)
         result = self._host.delete(who, op.subarchitecture, op.id, op.expected_version)
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
-    async def Get(self, request: wm_pb2.GetRequest, context: grpc.aio.ServicerContext) -> wm_pb2.GetResponse:
+    async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
         """Read one entry."""
         who = self._auth.identify(context)
         record = self._host.get(who, request.address.subarchitecture, request.address.id)
@@ -87,7 +87,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 
     @rpc
     async def GetByType(
-        self, request: wm_pb2.GetByTypeRequest, context: grpc.aio.ServicerContext
+        self, request: wm_pb2.GetByTypeRequest, context: Context
     ) -> wm_pb2.GetByTypeResponse:
         """Read the entries of one type, newest first."""
         who = self._auth.identify(context)
@@ -95,15 +95,13 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         return wm_pb2.GetByTypeResponse(entries=[entry_to_pb(r) for r in records], revision=revision)
 
     @rpc
-    async def Exists(self, request: wm_pb2.ExistsRequest, context: grpc.aio.ServicerContext) -> wm_pb2.ExistsResponse:
+    async def Exists(self, request: wm_pb2.ExistsRequest, context: Context) -> wm_pb2.ExistsResponse:
         """Whether an entry exists."""
         who = self._auth.identify(context)
-        return wm_pb2.ExistsResponse(
-            exists=self._host.exists(who, request.address.subarchitecture, request.address.id)
-        )
+        return wm_pb2.ExistsResponse(exists=self._host.exists(who, request.address.subarchitecture, request.address.id))
 
     @rpc
-    async def Lock(self, request: wm_pb2.LockRequest, context: grpc.aio.ServicerContext) -> wm_pb2.LockResponse:
+    async def Lock(self, request: wm_pb2.LockRequest, context: Context) -> wm_pb2.LockResponse:
         """Take a lock, waiting up to the call's deadline unless no_wait."""
         who = self._auth.identify(context)
         sa, entry_id, mode = request.address.subarchitecture, request.address.id, _lock_mode(request.mode)
@@ -117,8 +115,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
                 blocked = exc
             released = loop.create_future()
 
-            def wake(fut: asyncio.Future[None] = released) -> None:
-                loop.call_soon_threadsafe(lambda: fut.done() or fut.set_result(None))
+            def resolve(fut: asyncio.Future[None] = released) -> None:
+                if not fut.done():
+                    fut.set_result(None)
+
+            def wake(resolve: Callable[[], None] = resolve) -> None:
+                loop.call_soon_threadsafe(resolve)
 
             cancel = self._host.wait_for_unlock(sa, entry_id, wake)
             try:
@@ -129,14 +131,14 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
                 cancel()
 
     @rpc
-    async def Unlock(self, request: wm_pb2.UnlockRequest, context: grpc.aio.ServicerContext) -> wm_pb2.UnlockResponse:
+    async def Unlock(self, request: wm_pb2.UnlockRequest, context: Context) -> wm_pb2.UnlockResponse:
         """Release one level of the caller's lock."""
         who = self._auth.identify(context)
         depth = self._host.unlock(who, request.address.subarchitecture, request.address.id)
         return wm_pb2.UnlockResponse(depth=depth)
 
     @rpc
-    async def Batch(self, request: wm_pb2.BatchRequest, context: grpc.aio.ServicerContext) -> wm_pb2.BatchResponse:
+    async def Batch(self, request: wm_pb2.BatchRequest, context: Context) -> wm_pb2.BatchResponse:
         """Apply many writes in order, all or nothing."""
         who = self._auth.identify(context)
         ops = []
@@ -145,7 +147,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
             if kind is None:
                 raise InvalidArgumentError(f"batch operation {index} is empty: set add, overwrite or delete")
             try:
-                ops.append(_op(kind, getattr(item, kind)))
+                ops.append(_op(getattr(item, kind)))
             except CastError as exc:
                 raise type(exc)(f"batch operation {index}: {exc.message}") from None
         results = self._host.batch(who, ops)
@@ -155,7 +157,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 
     @stream_rpc
     async def Watch(
-        self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: grpc.aio.ServicerContext
+        self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context
     ) -> AsyncIterator[wm_pb2.WatchResponse]:
         """Stream event batches for the watches the client creates on this stream."""
         who = self._auth.identify(context)

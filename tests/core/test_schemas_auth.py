@@ -1,0 +1,73 @@
+"""Entry schemas (validation, JSON rendering) and tokens."""
+
+from __future__ import annotations
+
+import pytest
+from cast_testing_pb2 import Counter, Pose
+from google.protobuf import timestamp_pb2
+
+from cast.auth import TokenSigner, peek
+from cast.core.host import MemoryHost
+from cast.core.records import Identity
+from cast.core.schemas import SchemaRegistry, files_of
+from cast.errors import InvalidArgumentError, NotFoundError, UnauthenticatedError
+
+
+def test_registered_types_are_validated_and_rendered() -> None:
+    reg = SchemaRegistry()
+    types = reg.register(files_of(Pose.DESCRIPTOR))
+    assert {"cast.testing.Pose", "cast.testing.Counter"} <= set(types)
+    data = Pose(x=1.5, label="cup", tags=["red"]).SerializeToString()
+    reg.validate("cast.testing.Pose", data)
+    assert reg.to_json("cast.testing.Pose", data) == {"x": 1.5, "label": "cup", "tags": ["red"]}
+    with pytest.raises(InvalidArgumentError, match="does not parse as cast.testing.Pose"):
+        reg.validate("cast.testing.Pose", b"\xff\xff\xff")
+    reg.validate("unknown.Type", b"\xff\xff\xff")  # no schema: passes through
+    with pytest.raises(NotFoundError):
+        reg.to_json("unknown.Type", b"")
+
+
+def test_host_refuses_bytes_that_do_not_parse_as_their_registered_type() -> None:
+    reg = SchemaRegistry()
+    reg.register(files_of(Counter.DESCRIPTOR))
+    host = MemoryHost(["vision"], validator=reg.validate)
+    who = Identity("a", "vision")
+    host.add(who, "vision", "ok", "cast.testing.Counter", Counter(value=1).SerializeToString())
+    with pytest.raises(InvalidArgumentError, match="does not parse"):
+        host.add(who, "vision", "bad", "cast.testing.Counter", b"\x08")  # truncated varint
+    with pytest.raises(InvalidArgumentError):
+        host.overwrite(who, "vision", "ok", "cast.testing.Counter", b"\x0a\x05ab")  # length past the end
+    assert host.get(who, "vision", "ok").version == 0 and not host.exists(who, "vision", "bad")
+
+
+def test_schema_registration_is_idempotent_but_refuses_changed_files() -> None:
+    reg = SchemaRegistry()
+    files = files_of(timestamp_pb2.Timestamp.DESCRIPTOR)
+    reg.register(files)
+    reg.register(files)
+    changed = [f.__deepcopy__() for f in files]
+    changed[-1].message_type[0].field[0].name = "renamed"
+    with pytest.raises(InvalidArgumentError, match="already registered with different content"):
+        reg.register(changed)
+    missing_dep = [f for f in files_of(Pose.DESCRIPTOR) if f.name.endswith("cast_testing.proto")]
+    assert reg.register(missing_dep)  # no imports: fine
+    assert reg.files_for("cast.testing.Pose")[-1].name == "cast_testing.proto"
+
+
+def test_tokens_verify_and_forgeries_fail() -> None:
+    signer = TokenSigner(b"s" * 32)
+    token = signer.issue(Identity("comp", "vision", True))
+    assert signer.verify(token) == Identity("comp", "vision", True)
+    assert peek(token) == Identity("comp", "vision", True)
+    other = TokenSigner(b"t" * 32)
+    with pytest.raises(UnauthenticatedError, match="signature does not match"):
+        other.verify(token)
+    _, _, sig = token.partition(".")
+    forged_body = TokenSigner(b"t" * 32).issue(Identity("comp", "vision", True)).partition(".")[0]
+    with pytest.raises(UnauthenticatedError):
+        signer.verify(f"{forged_body}x.{sig}")
+    with pytest.raises(UnauthenticatedError, match="malformed"):
+        signer.verify("garbage")
+    expired = signer.issue(Identity("comp", "vision"), ttl_seconds=-10)
+    with pytest.raises(UnauthenticatedError, match="expired"):
+        signer.verify(expired)

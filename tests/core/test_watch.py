@@ -1,0 +1,131 @@
+"""Watch cursors: filters, exactly-once delivery in order, resume, history overflow."""
+
+from __future__ import annotations
+
+import pytest
+
+from cast.core.host import MemoryHost
+from cast.core.records import Identity, Limits, Operation
+from cast.core.watch import EventFilter, Subscription
+from cast.errors import HistoryExpiredError, InvalidArgumentError, NotFoundError, ResourceExhaustedError
+
+V = Identity("v", "vision")
+L = Identity("l", "language")
+
+
+def make(limits: Limits | None = None) -> tuple[MemoryHost, Subscription, list[int]]:
+    host = MemoryHost(["vision", "language"], limits)
+    wakes: list[int] = []
+    return host, Subscription(host, lambda: wakes.append(1)), wakes
+
+
+def test_several_filters_and_watches_each_event_once_with_matching_ids() -> None:
+    host, sub, wakes = make()
+    sub.add_watch(1, [EventFilter(type="t.A"), EventFilter(operations=frozenset({Operation.DELETE}))])
+    sub.add_watch(2, [EventFilter(subarchitecture="language")])
+    sub.add_watch(3, [EventFilter(source_component="v", id="x")])
+    host.add(V, "vision", "x", "t.A", b"")
+    host.add(V, "vision", "y", "t.B", b"")
+    host.add(L, "language", "z", "t.B", b"")
+    host.delete(V, "vision", "y")
+    assert wakes  # writers wake the subscription
+    got = [(m.event.subarchitecture, m.event.id, m.event.operation, m.watch_ids) for m in sub.poll()]
+    assert got == [
+        ("vision", "x", Operation.ADD, [1, 3]),
+        ("language", "z", Operation.ADD, [2]),
+        ("vision", "y", Operation.DELETE, [1]),
+    ]
+    assert sub.poll() == []  # nothing twice
+
+
+def test_events_come_in_host_order_across_wms_and_revision_order_within() -> None:
+    host, sub, _ = make()
+    sub.add_watch(1, [EventFilter()])
+    for i in range(20):
+        who, sa = (V, "vision") if i % 3 else (L, "language")
+        host.add(who, sa, f"e{i}", "t.T", b"")
+    matches = sub.poll()
+    assert [m.event.id for m in matches] == [f"e{i}" for i in range(20)]
+    for sa in ("vision", "language"):
+        revs = [m.event.revision for m in matches if m.event.subarchitecture == sa]
+        assert revs == list(range(1, len(revs) + 1))
+
+
+def test_a_new_watch_sees_only_later_changes_unless_it_resumes() -> None:
+    host, sub, _ = make()
+    host.add(V, "vision", "old", "t.T", b"")
+    revisions = sub.add_watch(1, [EventFilter()])
+    assert revisions == {"vision": 1, "language": 0}
+    host.add(V, "vision", "new", "t.T", b"")
+    assert [m.event.id for m in sub.poll()] == ["new"]
+    sub.add_watch(2, [EventFilter(subarchitecture="vision")], {"vision": 1})
+    replay = sub.poll()
+    assert [(m.event.id, m.watch_ids) for m in replay] == [("old", [2]), ("new", [2])]
+
+
+def test_resume_older_than_history_is_refused_with_resync_advice() -> None:
+    host, sub, _ = make(Limits(history_events=4))
+    for i in range(10):
+        host.add(V, "vision", f"e{i}", "t.T", b"")
+    assert host.history_bounds("vision") == (7, 10)
+    with pytest.raises(HistoryExpiredError, match="revision 3 is no longer in the history.*kept: 7..10.*resynchronise"):
+        sub.add_watch(1, [EventFilter()], {"vision": 3})
+    sub.add_watch(1, [EventFilter()], {"vision": 7})
+    assert [m.event.revision for m in sub.poll()] == [7, 8, 9, 10]
+
+
+def test_a_watcher_that_falls_behind_is_told_never_silently_skipped() -> None:
+    host, sub, _ = make(Limits(history_events=8))
+    sub.add_watch(1, [EventFilter()])
+    for i in range(5):
+        host.add(V, "vision", f"e{i}", "t.T", b"")
+    assert len(sub.poll()) == 5
+    for i in range(5, 30):  # writers are never blocked by the slow watcher
+        host.add(V, "vision", f"e{i}", "t.T", b"")
+    with pytest.raises(HistoryExpiredError):
+        sub.poll()
+
+
+def test_history_is_bounded_by_bytes_too() -> None:
+    host, _, _ = make(Limits(history_events=1000, history_bytes=100))
+    for i in range(10):
+        host.add(V, "vision", f"e{i}", "t.T", b"x" * 30)
+    first, last = host.history_bounds("vision")
+    assert last == 10 and last - first + 1 <= 4
+
+
+def test_poll_budget_splits_batches_without_loss() -> None:
+    host, sub, _ = make()
+    sub.add_watch(1, [EventFilter(include_entry=True)])
+    for i in range(10):
+        host.add(V, "vision", f"e{i}", "t.T", b"")
+    seen = []
+    while True:
+        batch = sub.poll(max_events=3)
+        seen.extend(m.event.revision for m in batch)
+        if not sub.behind:
+            break
+    assert seen == list(range(1, 11))
+
+
+def test_bad_watches_are_refused() -> None:
+    _, sub, _ = make()
+    with pytest.raises(InvalidArgumentError, match="at least one filter"):
+        sub.add_watch(1, [])
+    with pytest.raises(NotFoundError, match="no subarchitecture 'motor'"):
+        sub.add_watch(1, [EventFilter(subarchitecture="motor")])
+    with pytest.raises(InvalidArgumentError, match="in the future"):
+        sub.add_watch(1, [EventFilter()], {"vision": 5})
+    sub.add_watch(1, [EventFilter()])
+    with pytest.raises(InvalidArgumentError, match="already in use"):
+        sub.add_watch(1, [EventFilter()])
+    assert sub.cancel(1) and not sub.cancel(1)
+
+
+def test_watcher_limit() -> None:
+    host = MemoryHost(["vision"], Limits(max_watchers=1))
+    first = Subscription(host, lambda: None)
+    with pytest.raises(ResourceExhaustedError, match="max_watchers = 1"):
+        Subscription(host, lambda: None)
+    first.close()
+    Subscription(host, lambda: None)

@@ -1,0 +1,135 @@
+"""The server with components as separate processes: the guarantees end to end."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections import defaultdict
+
+import pytest
+from cast_testing_pb2 import Counter, Pose
+
+import cast
+from tests.conftest import ServerHandle
+
+
+def wait_until(predicate, timeout: float = 30.0, what: str = "condition") -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def finish(proc, timeout: float = 60.0) -> str:  # type: ignore[no-untyped-def]
+    out, _ = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, out
+    return out
+
+
+def test_many_writers_in_several_sas_one_watcher_sees_every_event_once_in_order(server: ServerHandle) -> None:
+    watcher = server.connect("watcher", "language")
+    events: list[cast.WorkingMemoryChange] = []
+    watcher.on_change(cast.global_type_filter(Counter), events.append)
+    writers = [
+        server.spawn("itest_components:Writer", f"w-{sa}-{i}", sa, args={"count": 40})
+        for sa in ("vision", "language", "motor")
+        for i in range(2)
+    ]
+    for proc in writers:
+        finish(proc)
+    expected_per_writer = 40 + 40 + len(range(0, 40, 3))  # adds, overwrites, deletes
+    wait_until(lambda: len(events) >= 6 * expected_per_writer, what="all events")
+    watcher.drain(5)
+    time.sleep(0.2)
+    assert len(events) == 6 * expected_per_writer  # nothing twice
+    by_sa: dict[str, list[int]] = defaultdict(list)
+    for ev in events:
+        by_sa[ev.subarchitecture].append(ev.revision)
+    for sa, revisions in by_sa.items():
+        # every write of each WM, in revision order, with no gap
+        assert revisions == list(range(1, len(revisions) + 1)), sa
+        assert len(revisions) == 2 * expected_per_writer
+    per_writer: dict[str, int] = defaultdict(int)
+    for ev in events:
+        per_writer[ev.source_component] += 1
+    assert set(per_writer.values()) == {expected_per_writer}
+    watcher._cast_close()
+
+
+def test_cross_sa_reads(server: ServerHandle) -> None:
+    vision = server.connect("seg", "vision")
+    for label in ("cube", "ball"):
+        vision.add(vision.new_id(), Pose(label=label))
+    finish(server.spawn("itest_components:CrossReader", "reader", "language", args={"source": "vision"}))
+    summary = vision.get("summary", Pose, subarchitecture="language")
+    assert summary.label == "ball,cube"
+    vision._cast_close()
+
+
+def test_privileged_writes_another_sa_while_unprivileged_is_refused(server: ServerHandle) -> None:
+    finish(server.spawn("itest_components:Intruder", "intruder", "language", args={"target": "vision"}))
+    finish(server.spawn("itest_components:Intruder", "boss", "language", privileged=True, args={"target": "motor"}))
+    reader = server.connect("reader", "motor")
+    refused = reader.get("outcome-intruder", Pose, subarchitecture="language").label
+    assert refused.startswith("refused: component 'intruder' (SA 'language') may not add in subarchitecture 'vision'")
+    assert reader.get("outcome-boss", Pose, subarchitecture="language").label == "written"
+    assert reader.get("goal", Pose, subarchitecture="motor").label == "from boss"
+    assert not reader.exists("goal", subarchitecture="vision")
+    reader._cast_close()
+
+
+def test_managed_component_task_is_adopted_through_the_task_manager(server: ServerHandle) -> None:
+    finish(server.spawn("itest_components:Proposer", "proposer", "vision"))
+    reader = server.connect("reader", "vision")
+    adopted = [e for e in reader.get_all(Pose) if e.id.startswith("adopted-")]
+    assert len(adopted) == 1
+    assert adopted[0].value.label == "cube" and list(adopted[0].value.tags) == ["recognise"]
+    reader._cast_close()
+
+
+def test_sigterm_calls_the_stop_hook(server: ServerHandle) -> None:
+    proc = server.spawn("itest_components:StopRecorder", "recorder", "vision")
+    reader = server.connect("reader", "vision")
+    wait_until(lambda: reader.exists("started"), what="component start")
+    proc.send_signal(signal.SIGTERM)
+    finish(proc)
+    assert reader.get("stopped", Pose).label == "stop hook ran"
+    reader._cast_close()
+
+
+def test_a_killed_components_locks_are_released(server: ServerHandle) -> None:
+    proc = server.spawn("itest_components:Crasher", "crasher", "vision")
+    other = server.connect("other", "vision")
+    wait_until(lambda: other.exists("ready"), what="crasher ready")
+    with pytest.raises(cast.LockedError, match="locked \\(ODR\\) by component 'crasher'"):
+        other.get("held", Pose)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    # The heartbeat stream breaks with the process, ending the session and its locks.
+    with other.lock("held", cast.LockMode.O, timeout=30):
+        assert other.get("held", Pose).label == "locked by a crasher"
+    other._cast_close()
+
+
+def test_forged_and_missing_tokens_are_unauthenticated(server: ServerHandle) -> None:
+    import grpc
+
+    from cast.auth import TokenSigner
+    from cast.client.grpc_transport import GrpcTransport
+    from cast.core.records import Identity
+    from cast.v1 import entry_pb2, working_memory_pb2, working_memory_pb2_grpc
+
+    forged = TokenSigner(b"not-the-system-secret-000000").issue(Identity("evil", "vision", True))
+    with pytest.raises(cast.UnauthenticatedError, match="signature does not match"):
+        GrpcTransport(server.endpoint, forged, Identity("evil", "vision", True))
+    channel = grpc.insecure_channel(server.endpoint)
+    stub = working_memory_pb2_grpc.WorkingMemoryStub(channel)
+    req = working_memory_pb2.GetRequest(address=entry_pb2.EntryAddress(id="x", subarchitecture="vision"))
+    with pytest.raises(grpc.RpcError) as info:
+        stub.Get(req, timeout=10)
+    assert info.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    assert "no token" in info.value.details()
+    channel.close()
