@@ -133,3 +133,24 @@ def test_forged_and_missing_tokens_are_unauthenticated(server: ServerHandle) -> 
     assert info.value.code() == grpc.StatusCode.UNAUTHENTICATED
     assert "no token" in info.value.details()
     channel.close()
+
+
+def test_in_process_component_under_cast_serve(server_factory) -> None:  # type: ignore[no-untyped-def]
+    handle = server_factory(
+        {
+            "system": "inproc",
+            "subarchitectures": {
+                "vision": {
+                    "components": {
+                        "inside": {"class": "itest_components:Writer", "in_process": True, "args": {"count": 5}},
+                    }
+                },
+                "language": {},
+            },
+        }
+    )
+    reader = handle.connect("reader", "language")
+    wait_until(lambda: len(reader.get_all(Counter, subarchitecture="vision")) == 3, what="in-process writes")
+    entries = reader.get_all(Counter, subarchitecture="vision")
+    assert {e.author for e in entries} == {"inside"} and {e.version for e in entries} == {1}
+    reader._cast_close()
