@@ -42,6 +42,9 @@ class System:
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         self.endpoints: dict[str, str] = {sa: "" for sa in subarchitectures}
+        # SAs of the same system served by other servers (set by the orchestrator), so that this
+        # server's directory routes components to them.
+        self.remote_endpoints: dict[str, str] = {}
         self.started_ns = time.time_ns()
 
     def expect(self, info: ComponentInfo) -> None:

@@ -19,12 +19,15 @@ from cast.config import SystemConfig
 from cast.core.sessions import ComponentInfo
 from cast.core.system import System
 from cast.server.directory import DirectoryServicer
+from cast.server.inspection import InspectionServicer
 from cast.server.rpc import Authenticator
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.working_memory import WorkingMemoryServicer
 from cast.v1 import (
     directory_pb2,
     directory_pb2_grpc,
+    inspection_pb2,
+    inspection_pb2_grpc,
     task_manager_pb2,
     task_manager_pb2_grpc,
     working_memory_pb2,
@@ -40,6 +43,7 @@ SERVICE_NAMES = (
     working_memory_pb2.DESCRIPTOR.services_by_name["WorkingMemory"].full_name,
     task_manager_pb2.DESCRIPTOR.services_by_name["TaskManager"].full_name,
     directory_pb2.DESCRIPTOR.services_by_name["Directory"].full_name,
+    inspection_pb2.DESCRIPTOR.services_by_name["Inspection"].full_name,
 )
 
 
@@ -118,6 +122,7 @@ async def start_server(system: System, signer: TokenSigner, listen: str = "127.0
     working_memory_pb2_grpc.add_WorkingMemoryServicer_to_server(WorkingMemoryServicer(system, auth), server)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), server)
     directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), server)
+    inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), server)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(

@@ -30,7 +30,8 @@ def describe(system: System) -> dir_pb2.SystemDescription:
                 entries=system.host.entry_count(sa),
             )
             for sa in system.host.subarchitectures
-        ],
+        ]
+        + [dir_pb2.SubarchitectureInfo(name=sa, endpoint=ep) for sa, ep in system.remote_endpoints.items()],
         components=[component_to_pb(c) for c in system.sessions.components()],
         endpoint=next(iter(system.endpoints.values()), ""),
     )

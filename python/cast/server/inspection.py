@@ -1,0 +1,55 @@
+"""The Inspection servicer: whole-WM listings and task counters for tools (``cast ls``, ``cast tasks``)."""
+
+from __future__ import annotations
+
+from cast.convert import entry_to_pb
+from cast.core.system import System
+from cast.errors import InvalidArgumentError
+from cast.server.rpc import Authenticator, Context, rpc
+from cast.v1 import inspection_pb2 as insp_pb2
+from cast.v1 import inspection_pb2_grpc as insp_grpc
+
+__all__ = ["InspectionServicer"]
+
+
+class InspectionServicer(insp_grpc.InspectionServicer):
+    """Serves tool reads of one :class:`System`."""
+
+    def __init__(self, system: System, auth: Authenticator) -> None:
+        self._system = system
+        self._auth = auth
+
+    @rpc
+    async def ListEntries(self, request: insp_pb2.ListEntriesRequest, context: Context) -> insp_pb2.ListEntriesResponse:
+        """Entries of one WM without values, oldest write first."""
+        self._auth.identify(context)
+        host = self._system.host
+        if not request.subarchitecture:
+            raise InvalidArgumentError("name the subarchitecture to list")
+        revision = host.revision(request.subarchitecture)  # NOT_FOUND for an SA not hosted here
+        records = host.all_entries(request.subarchitecture)
+        if request.type:
+            records = [r for r in records if r.type == request.type]
+        if request.limit:
+            records = records[-request.limit :]
+        entries = []
+        for record in records:
+            pb = entry_to_pb(record)
+            pb.ClearField("value")  # a listing never carries content (ODR locks stay honoured)
+            entries.append(pb)
+        return insp_pb2.ListEntriesResponse(entries=entries, revision=revision)
+
+    @rpc
+    async def TaskStatistics(
+        self, request: insp_pb2.TaskStatisticsRequest, context: Context
+    ) -> insp_pb2.TaskStatisticsResponse:
+        """Decision counts per SA since the server started."""
+        self._auth.identify(context)
+        tasks = self._system.tasks
+        sas = [request.subarchitecture] if request.subarchitecture else self._system.host.subarchitectures
+        out = []
+        for sa in sas:
+            policy = tasks.policy(sa).describe()  # NOT_FOUND for an SA not hosted here
+            counts = tasks.counters[sa]
+            out.append(insp_pb2.TaskCounters(subarchitecture=sa, policy=policy, **counts))
+        return insp_pb2.TaskStatisticsResponse(subarchitectures=out)
