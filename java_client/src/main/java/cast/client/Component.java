@@ -1,0 +1,548 @@
+package cast.client;
+
+import com.google.protobuf.Any;
+import com.google.protobuf.Message;
+import java.security.SecureRandom;
+import java.time.Duration;
+import java.util.ArrayList;
+import java.util.HexFormat;
+import java.util.List;
+import java.util.Map;
+import java.util.Set;
+import java.util.concurrent.ConcurrentHashMap;
+import java.util.concurrent.CountDownLatch;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicInteger;
+import java.util.concurrent.atomic.AtomicLong;
+import java.util.logging.Level;
+import java.util.logging.Logger;
+
+/**
+ * What every component can do (DESIGN.md section 5); subclass
+ * {@link UnmanagedComponent} or {@link ManagedComponent} and override the hooks.
+ *
+ * <p>Every working-memory call is addressed to the component's own
+ * subarchitecture unless an SA is given. Values are protobuf messages, which are
+ * immutable in Java: a write sends the value's bytes and a read parses a fresh
+ * object, so a component never shares a mutable object with the working memory.
+ * Every method may be called from any thread. Callbacks and hooks run on one
+ * dispatcher thread per component, one at a time, in the order the changes and
+ * decisions arrived (revision order per working memory).
+ */
+public abstract class Component implements AutoCloseable {
+  private static final SecureRandom RANDOM = new SecureRandom();
+
+  private GrpcTransport transport;
+  private Dispatcher dispatcher;
+  private String idPrefix;
+  private final AtomicLong idCounter = new AtomicLong();
+  private final AtomicInteger watchIds = new AtomicInteger();
+  private final Map<Integer, Registration> callbacks = new ConcurrentHashMap<>();
+  private final Set<String> registeredTypes = ConcurrentHashMap.newKeySet();
+  private final Object schemaLock = new Object();
+  private final CountDownLatch stopping = new CountDownLatch(1);
+  private volatile cast.v1.ComponentState state = cast.v1.ComponentState.COMPONENT_STATE_STARTING;
+
+  private record Registration(ChangeCallback callback, WatchHandle handle) {}
+
+  // ------------------------------------------------------------- lifecycle
+
+  /** Called first, with the component's {@code args} from the configuration. */
+  public void configure(Args args) throws Exception {}
+
+  /** Called after configure, before run: register callbacks here. */
+  public void start() throws Exception {}
+
+  /** The main loop; by default waits until the component is asked to stop. */
+  public void run() throws Exception {
+    waitForStop();
+  }
+
+  /** Called once on shutdown (SIGINT/SIGTERM, {@link #requestStop()}, or a failure of the hooks). */
+  public void stop() throws Exception {}
+
+  /** The kind reported to the directory ("managed" or "unmanaged"). */
+  abstract String kind();
+
+  // --------------------------------------------------------------- binding
+
+  /** Attach to a system (done by the runner, not by users). */
+  void bind(GrpcTransport transport) {
+    if (this.transport != null) {
+      throw new IllegalStateException("component " + componentId() + " is already connected");
+    }
+    this.transport = transport;
+    this.dispatcher = new Dispatcher(transport.componentId());
+    byte[] salt = new byte[3];
+    RANDOM.nextBytes(salt);
+    // Unique across components (the id) and across restarts of one component (the salt).
+    this.idPrefix = transport.componentId() + ":" + HexFormat.of().formatHex(salt) + ":";
+    transport.setEventSink(this::onEvent, this::onWatchError);
+    bindExtra(transport);
+    transport.startSession("java", kind(), () -> state);
+  }
+
+  /** Subclasses open their extra streams here (before the session starts). */
+  void bindExtra(GrpcTransport transport) {}
+
+  void setState(cast.v1.ComponentState state) {
+    this.state = state;
+  }
+
+  private GrpcTransport t() {
+    GrpcTransport tr = transport;
+    if (tr == null) {
+      throw new IllegalStateException(
+          getClass().getName()
+              + " is not connected: run it with `java cast.client.Runner "
+              + getClass().getName()
+              + "`, or connect it with Runner.connect(component, contract)");
+    }
+    return tr;
+  }
+
+  GrpcTransport transportForTasks() {
+    return t();
+  }
+
+  /** Close the connection: queued callbacks run, then the session ends (locks and tasks released). */
+  @Override
+  public void close() {
+    if (dispatcher != null) {
+      dispatcher.stop(Duration.ofSeconds(5));
+    }
+    if (transport != null) {
+      transport.close();
+    }
+  }
+
+  /** This component's id. */
+  public String componentId() {
+    return t().componentId();
+  }
+
+  /** This component's own subarchitecture. */
+  public String subarchitecture() {
+    return t().subarchitecture();
+  }
+
+  /** Whether this component may write every SA (as its token claims; the server checks). */
+  public boolean isPrivileged() {
+    return t().privileged();
+  }
+
+  /** False once the component has been asked to stop. */
+  public boolean isRunning() {
+    return stopping.getCount() > 0;
+  }
+
+  /** Sleep until asked to stop. */
+  public void waitForStop() throws InterruptedException {
+    stopping.await();
+  }
+
+  /** Sleep until asked to stop (true) or {@code timeout} passes (false); use in run() loops. */
+  public boolean waitForStop(Duration timeout) throws InterruptedException {
+    return stopping.await(timeout.toNanos(), TimeUnit.NANOSECONDS);
+  }
+
+  /** Ask the runner to stop this component (stop() is then called once). */
+  public void requestStop() {
+    stopping.countDown();
+  }
+
+  /** A logger named after the component. */
+  public Logger log() {
+    return Logger.getLogger("cast.component." + (transport == null ? getClass().getSimpleName() : componentId()));
+  }
+
+  /** The names of the system's SAs, as the directory described them at connection. */
+  public List<String> subarchitectures() {
+    List<String> names = new ArrayList<>();
+    for (cast.v1.SubarchitectureInfo sa : t().system().getSubarchitecturesList()) {
+      names.add(sa.getName());
+    }
+    return names;
+  }
+
+  // ------------------------------------------------------------- WM: write
+
+  /** A fresh entry id, unique across components and restarts. */
+  public String newId() {
+    t();
+    return idPrefix + idCounter.incrementAndGet();
+  }
+
+  private String sa(String subarchitecture) {
+    return subarchitecture == null || subarchitecture.isEmpty() ? subarchitecture() : subarchitecture;
+  }
+
+  /** The value as it goes on the wire, after registering its type's schema once. */
+  Any serialise(Message value) {
+    if (value == null) {
+      throw new InvalidArgumentError("entry values are protobuf messages, got null");
+    }
+    String name = value.getDescriptorForType().getFullName();
+    if (!registeredTypes.contains(name)) {
+      synchronized (schemaLock) {
+        if (!registeredTypes.contains(name)) {
+          // Tools render the type as JSON, and the server checks the bytes, from now on.
+          t().registerSchemas(Schemas.filesOf(value.getDescriptorForType()));
+          registeredTypes.add(name);
+        }
+      }
+    }
+    return Types.pack(value);
+  }
+
+  /** Create an entry in the own SA; AlreadyExistsError if the id is taken. */
+  public WriteResult add(String id, Message value) {
+    return add(id, value, null);
+  }
+
+  /** Create an entry in {@code subarchitecture} (privileged components only, for other SAs). */
+  public WriteResult add(String id, Message value, String subarchitecture) {
+    Any any = serialise(value);
+    return t().add(sa(subarchitecture), id, any);
+  }
+
+  /** Replace an entry's value in the own SA; NotFoundError if it does not exist. */
+  public WriteResult overwrite(String id, Message value) {
+    return overwrite(id, value, null, null);
+  }
+
+  /** Replace an entry's value if its version is {@code expectedVersion}, else ConsistencyError. */
+  public WriteResult overwrite(String id, Message value, long expectedVersion) {
+    return overwrite(id, value, null, expectedVersion);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture}. */
+  public WriteResult overwrite(String id, Message value, String subarchitecture) {
+    return overwrite(id, value, subarchitecture, null);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture}, checking its version unless it is null. */
+  public WriteResult overwrite(String id, Message value, String subarchitecture, Long expectedVersion) {
+    Any any = serialise(value);
+    return t().overwrite(sa(subarchitecture), id, any, expectedVersion);
+  }
+
+  /**
+   * Delete an entry of the own SA (its locks go with it). Named {@code deleteEntry}
+   * in every language, since {@code delete} is a C++ keyword.
+   */
+  public WriteResult deleteEntry(String id) {
+    return deleteEntry(id, null, null);
+  }
+
+  /** Delete an entry if its version is {@code expectedVersion}, else ConsistencyError. */
+  public WriteResult deleteEntry(String id, long expectedVersion) {
+    return deleteEntry(id, null, expectedVersion);
+  }
+
+  /** Delete an entry of {@code subarchitecture}. */
+  public WriteResult deleteEntry(String id, String subarchitecture) {
+    return deleteEntry(id, subarchitecture, null);
+  }
+
+  /** Delete an entry of {@code subarchitecture}, checking its version unless it is null. */
+  public WriteResult deleteEntry(String id, String subarchitecture, Long expectedVersion) {
+    return t().delete(sa(subarchitecture), id, expectedVersion);
+  }
+
+  /** A batch of writes to the own SA, applied in order, all or nothing, by {@link Batch#apply()}. */
+  public Batch batch() {
+    return new Batch(this, subarchitecture());
+  }
+
+  /** A batch of writes to {@code subarchitecture}. */
+  public Batch batch(String subarchitecture) {
+    return new Batch(this, sa(subarchitecture));
+  }
+
+  List<WriteResult> applyBatch(String sa, cast.v1.BatchRequest req) {
+    return t().batch(sa, req);
+  }
+
+  // -------------------------------------------------------------- WM: read
+
+  /** The value of an entry of the own SA, as a new {@code cls} object; NotFoundError if missing. */
+  public <T extends Message> T get(String id, Class<T> cls) {
+    return get(id, cls, null);
+  }
+
+  /** The value of an entry of {@code subarchitecture}. */
+  public <T extends Message> T get(String id, Class<T> cls, String subarchitecture) {
+    Types.defaultInstance(cls); // a bad class fails before the call
+    cast.v1.Entry e = t().get(sa(subarchitecture), id);
+    return Types.decode(cls, e.getType(), e.getValue().getValue(), "entry '" + id + "'");
+  }
+
+  /** An entry of the own SA with its version and author (for versioned overwrites). */
+  public <T extends Message> Entry<T> getEntry(String id, Class<T> cls) {
+    return getEntry(id, cls, null);
+  }
+
+  /** An entry of {@code subarchitecture} with its metadata. */
+  public <T extends Message> Entry<T> getEntry(String id, Class<T> cls, String subarchitecture) {
+    Types.defaultInstance(cls);
+    return Entry.fromProto(t().get(sa(subarchitecture), id), cls);
+  }
+
+  /** Every entry of type {@code cls} in the own SA, newest first. */
+  public <T extends Message> List<Entry<T>> getAll(Class<T> cls) {
+    return getAll(cls, null, 0);
+  }
+
+  /** Every entry of type {@code cls} in {@code subarchitecture}, newest first. */
+  public <T extends Message> List<Entry<T>> getAll(Class<T> cls, String subarchitecture) {
+    return getAll(cls, subarchitecture, 0);
+  }
+
+  /** The newest {@code limit} entries of type {@code cls} (0: all) in {@code subarchitecture}. */
+  public <T extends Message> List<Entry<T>> getAll(Class<T> cls, String subarchitecture, int limit) {
+    if (limit < 0) {
+      throw new InvalidArgumentError("limit must be 0 (no limit) or positive, got " + limit);
+    }
+    String type = Types.typeName(cls);
+    List<Entry<T>> out = new ArrayList<>();
+    for (cast.v1.Entry e : t().getByType(sa(subarchitecture), type, limit)) {
+      out.add(Entry.fromProto(e, cls));
+    }
+    return out;
+  }
+
+  /** Whether an entry exists in the own SA. */
+  public boolean exists(String id) {
+    return exists(id, null);
+  }
+
+  /** Whether an entry exists in {@code subarchitecture}. */
+  public boolean exists(String id, String subarchitecture) {
+    return t().exists(sa(subarchitecture), id);
+  }
+
+  // ----------------------------------------------------------------- locks
+
+  /** Lock an entry of the own SA in mode OD, waiting as long as another component holds it. */
+  public LockGuard lock(String id) {
+    return lock(id, LockMode.OD, null, null);
+  }
+
+  /** Lock an entry of the own SA, waiting as long as another component holds it. */
+  public LockGuard lock(String id, LockMode mode) {
+    return lock(id, mode, null, null);
+  }
+
+  /** Lock an entry of the own SA, waiting up to {@code timeout} (null: forever); DeadlineExceededError after it. */
+  public LockGuard lock(String id, LockMode mode, Duration timeout) {
+    return lock(id, mode, null, timeout);
+  }
+
+  /**
+   * Lock an entry, waiting up to {@code timeout} (null: forever) for another
+   * holder. Re-entrant. Use as {@code try (LockGuard g = lock(id, mode)) { ... }}
+   * to unlock at the end.
+   */
+  public LockGuard lock(String id, LockMode mode, String subarchitecture, Duration timeout) {
+    String target = sa(subarchitecture);
+    int depth = t().lock(target, id, mode == null ? LockMode.OD : mode, timeout, false);
+    return new LockGuard(this, new WorkingMemoryAddress(id, target), depth);
+  }
+
+  /** Lock an entry of the own SA in mode OD if no other component holds it; never waits. */
+  public boolean tryLock(String id) {
+    return tryLock(id, LockMode.OD, null);
+  }
+
+  /** Lock an entry of the own SA if no other component holds it; never waits. */
+  public boolean tryLock(String id, LockMode mode) {
+    return tryLock(id, mode, null);
+  }
+
+  /** Lock an entry of {@code subarchitecture} if no other component holds it; never waits. */
+  public boolean tryLock(String id, LockMode mode, String subarchitecture) {
+    try {
+      t().lock(sa(subarchitecture), id, mode == null ? LockMode.OD : mode, null, true);
+      return true;
+    } catch (LockedError e) {
+      return false;
+    }
+  }
+
+  /** Release one level of this component's lock on an entry of the own SA; returns the remaining depth. */
+  public int unlock(String id) {
+    return unlock(id, null);
+  }
+
+  /** Release one level of this component's lock on an entry of {@code subarchitecture}. */
+  public int unlock(String id, String subarchitecture) {
+    return t().unlock(sa(subarchitecture), id);
+  }
+
+  // -------------------------------------------------------------- watching
+
+  /** {@code callback} for each change matching {@code filter}; see {@link #onChange(List, ChangeCallback)}. */
+  public WatchHandle onChange(ChangeFilter filter, ChangeCallback callback) {
+    return onChange(List.of(filter), callback);
+  }
+
+  /**
+   * Call {@code callback} on the dispatcher thread for each change matching any of
+   * {@code filters}, in revision order. Returns once the servers confirmed the
+   * watch, so a change made after this returns is never missed.
+   */
+  public WatchHandle onChange(List<ChangeFilter> filters, ChangeCallback callback) {
+    if (filters == null || filters.isEmpty()) {
+      throw new InvalidArgumentError("onChange needs at least one filter");
+    }
+    if (callback == null) {
+      throw new InvalidArgumentError("onChange needs a callback");
+    }
+    GrpcTransport tr = t();
+    List<cast.v1.ChangeFilter> wire = new ArrayList<>();
+    for (ChangeFilter f : filters) {
+      if (f == null) {
+        throw new InvalidArgumentError("onChange filters must not be null");
+      }
+      wire.add(f.toProto(tr.subarchitecture()));
+    }
+    int watchId = watchIds.incrementAndGet();
+    WatchHandle handle = new WatchHandle(this, watchId);
+    // Registered before the create is sent: events may arrive before the confirmation.
+    callbacks.put(watchId, new Registration(callback, handle));
+    try {
+      tr.watch(watchId, wire, Map.of());
+    } catch (RuntimeException e) {
+      callbacks.remove(watchId);
+      throw e;
+    }
+    return handle;
+  }
+
+  boolean hasWatch(int watchId) {
+    return callbacks.containsKey(watchId);
+  }
+
+  void cancelWatch(int watchId) {
+    if (callbacks.remove(watchId) != null) {
+      t().cancelWatch(watchId);
+    }
+  }
+
+  private void onEvent(cast.v1.ChangeEvent event) {
+    WorkingMemoryChange change = null;
+    for (int wid : event.getWatchIdsList()) {
+      if (callbacks.containsKey(wid)) {
+        if (change == null) {
+          change = new WorkingMemoryChange(event);
+        }
+        WorkingMemoryChange c = change;
+        dispatcher.submit(() -> deliver(wid, c));
+      }
+    }
+  }
+
+  private void deliver(int watchId, WorkingMemoryChange change) {
+    Registration r = callbacks.get(watchId);
+    if (r == null) {
+      return; // cancelled while queued: dropped, as promised by WatchHandle.cancel
+    }
+    try {
+      r.callback().onChange(change);
+    } catch (Exception e) {
+      log().log(Level.SEVERE, "change callback failed on " + change, e);
+    }
+  }
+
+  private void onWatchError(CastError error) {
+    for (Registration r : callbacks.values()) {
+      r.handle().setError(error);
+    }
+    submit(() -> watchFailed(error));
+  }
+
+  /**
+   * Called on the dispatcher when change delivery stopped, e.g. with
+   * HistoryExpiredError. The default logs it; override to resynchronise: read the
+   * current state, then register the callbacks again.
+   */
+  public void watchFailed(CastError error) throws Exception {
+    log().severe(componentId() + ": change delivery stopped: " + error.getClass().getSimpleName() + ": " + error.getMessage());
+  }
+
+  /** Run a hook on the dispatcher thread, logging its failure. */
+  void submit(HookCall call) {
+    dispatcher.submit(
+        () -> {
+          try {
+            call.run();
+          } catch (Exception e) {
+            log().log(Level.SEVERE, "hook failed", e);
+          }
+        });
+  }
+
+  /** A hook invocation that may throw. */
+  @FunctionalInterface
+  interface HookCall {
+    void run() throws Exception;
+  }
+
+  /** Wait until every callback queued so far has run (tests, orderly shutdown); false on timeout. */
+  public boolean drain(Duration timeout) throws InterruptedException {
+    return dispatcher == null || dispatcher.drain(timeout);
+  }
+
+  /** Callbacks and hooks queued or running on the dispatcher (for tests). */
+  long pendingCallbacks() {
+    return dispatcher == null ? 0 : dispatcher.pending();
+  }
+
+  /** Whether the calling thread is this component's dispatcher thread. */
+  public boolean onDispatcherThread() {
+    return dispatcher != null && Thread.currentThread() == dispatcher.thread();
+  }
+
+  // --------------------------------------------------------- filter helpers
+
+  /** See {@link Filters#localTypeFilter(Class, Operation...)}. */
+  public static ChangeFilter localTypeFilter(Class<? extends Message> cls, Operation... operations) {
+    return Filters.localTypeFilter(cls, operations);
+  }
+
+  /** See {@link Filters#localTypeFilter(String, Operation...)}. */
+  public static ChangeFilter localTypeFilter(String typeName, Operation... operations) {
+    return Filters.localTypeFilter(typeName, operations);
+  }
+
+  /** See {@link Filters#globalTypeFilter(Class, Operation...)}. */
+  public static ChangeFilter globalTypeFilter(Class<? extends Message> cls, Operation... operations) {
+    return Filters.globalTypeFilter(cls, operations);
+  }
+
+  /** See {@link Filters#globalTypeFilter(String, Operation...)}. */
+  public static ChangeFilter globalTypeFilter(String typeName, Operation... operations) {
+    return Filters.globalTypeFilter(typeName, operations);
+  }
+
+  /** See {@link Filters#addressFilter(String, Operation...)}. */
+  public static ChangeFilter addressFilter(String id, Operation... operations) {
+    return Filters.addressFilter(id, operations);
+  }
+
+  /** See {@link Filters#addressFilter(WorkingMemoryAddress, Operation...)}. */
+  public static ChangeFilter addressFilter(WorkingMemoryAddress address, Operation... operations) {
+    return Filters.addressFilter(address, operations);
+  }
+
+  /** See {@link Filters#sourceFilter(String, Operation...)}. */
+  public static ChangeFilter sourceFilter(String componentId, Operation... operations) {
+    return Filters.sourceFilter(componentId, operations);
+  }
+
+  /** See {@link Filters#operationFilter(Operation...)}. */
+  public static ChangeFilter operationFilter(Operation... operations) {
+    return Filters.operationFilter(operations);
+  }
+}

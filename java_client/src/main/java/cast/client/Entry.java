@@ -1,0 +1,45 @@
+package cast.client;
+
+import com.google.protobuf.Message;
+import java.time.Instant;
+
+/**
+ * An entry read from a working memory: its value (a fresh object that nobody
+ * else holds) and its metadata.
+ *
+ * @param <T> the entry's message class
+ * @param address where the entry lives
+ * @param type full protobuf name of the value's type
+ * @param value the entry's value
+ * @param version 0 after add, +1 with every overwrite
+ * @param author id of the component that made the last write
+ * @param revision the working memory's revision of the last write
+ * @param modified server time of the last write
+ */
+public record Entry<T extends Message>(
+    WorkingMemoryAddress address,
+    String type,
+    T value,
+    long version,
+    String author,
+    long revision,
+    Instant modified) {
+
+  /** The entry's id. */
+  public String id() {
+    return address.id();
+  }
+
+  /** Decode a wire entry into {@code cls}; InvalidArgumentError if its type is another. */
+  static <T extends Message> Entry<T> fromProto(cast.v1.Entry pb, Class<T> cls) {
+    T value = Types.decode(cls, pb.getType(), pb.getValue().getValue(), "entry '" + pb.getAddress().getId() + "'");
+    return new Entry<>(
+        new WorkingMemoryAddress(pb.getAddress().getId(), pb.getAddress().getSubarchitecture()),
+        pb.getType(),
+        value,
+        pb.getVersion(),
+        pb.getAuthor(),
+        pb.getRevision(),
+        Instant.ofEpochSecond(pb.getModified().getSeconds(), pb.getModified().getNanos()));
+  }
+}

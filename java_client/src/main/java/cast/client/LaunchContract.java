@@ -1,0 +1,95 @@
+package cast.client;
+
+import com.google.protobuf.Struct;
+import com.google.protobuf.Value;
+import com.google.protobuf.util.JsonFormat;
+import java.nio.charset.StandardCharsets;
+import java.util.ArrayList;
+import java.util.Base64;
+import java.util.List;
+import java.util.Map;
+
+/**
+ * The environment a component process is started with (DESIGN.md section 6):
+ * CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
+ * CAST_ARGS (a JSON object).
+ *
+ * @param endpoint the directory's address, host:port
+ * @param componentId this component's id
+ * @param subarchitecture this component's SA
+ * @param token the signed token the orchestrator (or {@code cast token}) issued
+ * @param args the component's arguments
+ */
+public record LaunchContract(
+    String endpoint, String componentId, String subarchitecture, String token, Args args) {
+
+  /** The variables that must be set. */
+  public static final List<String> REQUIRED =
+      List.of("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN");
+
+  /** Read the contract from {@code env}; InvalidArgumentError naming every missing variable. */
+  public static LaunchContract fromEnv(Map<String, String> env) {
+    List<String> missing = new ArrayList<>();
+    for (String name : REQUIRED) {
+      String v = env.get(name);
+      if (v == null || v.isEmpty()) {
+        missing.add(name);
+      }
+    }
+    if (!missing.isEmpty()) {
+      throw new InvalidArgumentError(
+          "missing launch environment: "
+              + String.join(", ", missing)
+              + "; start the component with `cast run CONFIG`, or get the variables from `cast token`");
+    }
+    Args args;
+    try {
+      args = Args.fromJson(env.get("CAST_ARGS"));
+    } catch (InvalidArgumentError e) {
+      throw new InvalidArgumentError("CAST_ARGS: " + e.getMessage());
+    }
+    return new LaunchContract(
+        env.get("CAST_ENDPOINT"),
+        env.get("CAST_COMPONENT_ID"),
+        env.get("CAST_SUBARCHITECTURE"),
+        env.get("CAST_TOKEN"),
+        args);
+  }
+
+  /** Read the contract from the process environment. */
+  public static LaunchContract fromEnv() {
+    return fromEnv(System.getenv());
+  }
+
+  /**
+   * Whether the token claims the component is privileged. The client only reads
+   * the claim (to know what it may try); the server verifies the signature.
+   */
+  public boolean privileged() {
+    return tokenClaimsPrivileged(token);
+  }
+
+  /** The "p" claim of a token's payload; false if the token cannot be read. */
+  static boolean tokenClaimsPrivileged(String token) {
+    if (token == null) {
+      return false;
+    }
+    int dot = token.indexOf('.');
+    String body = dot < 0 ? token : token.substring(0, dot);
+    try {
+      String json = new String(Base64.getUrlDecoder().decode(body), StandardCharsets.UTF_8);
+      Struct.Builder b = Struct.newBuilder();
+      JsonFormat.parser().merge(json, b);
+      Value p = b.getFieldsOrDefault("p", null);
+      return p != null && p.getKindCase() == Value.KindCase.BOOL_VALUE && p.getBoolValue();
+    } catch (Exception e) { // not our token format: claim nothing, the server decides
+      return false;
+    }
+  }
+
+  @Override
+  public String toString() {
+    // Never print the token: logs are read by people who should not hold it.
+    return "LaunchContract(" + componentId + "@" + subarchitecture + " via " + endpoint + ", args=" + args + ")";
+  }
+}

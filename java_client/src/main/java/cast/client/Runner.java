@@ -1,0 +1,297 @@
+package cast.client;
+
+import java.lang.reflect.Constructor;
+import java.lang.reflect.InvocationTargetException;
+import java.lang.reflect.Modifier;
+import java.lang.reflect.Proxy;
+import java.time.Duration;
+import java.util.Map;
+import java.util.concurrent.CountDownLatch;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicBoolean;
+import java.util.logging.Level;
+import java.util.logging.Logger;
+
+/**
+ * Runs one component process from the launch contract (DESIGN.md section 6):
+ *
+ * <pre>java -cp cast-client-all.jar:&lt;component classes&gt; cast.client.Runner com.example.MyComponent</pre>
+ *
+ * <p>Reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
+ * CAST_ARGS; connects; calls configure(args), start(), run(); calls stop() once on
+ * SIGTERM/SIGINT, on {@code requestStop()}, or when a hook failed. Exit status: 0
+ * after a clean stop, 1 when a hook failed, 2 for a bad command line or launch
+ * environment (or a system that cannot be reached or refuses the token).
+ */
+public final class Runner {
+  private static final Logger LOG = Logger.getLogger("cast.run");
+  static final String USAGE =
+      "usage: java -cp cast-client-all.jar:<classes> cast.client.Runner <fully.qualified.ComponentClass>\n"
+          + "  (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN, CAST_ARGS from the environment)";
+
+  private Runner() {}
+
+  /** The process entry point. */
+  public static void main(String[] argv) {
+    configureLogging(System.getenv("CAST_LOG_LEVEL"));
+    System.exit(run(argv, System.getenv(), true));
+  }
+
+  /** Run a component from a command line and an environment; returns the exit status. */
+  static int run(String[] argv, Map<String, String> env, boolean handleSignals) {
+    if (argv.length != 1 || argv[0].equals("-h") || argv[0].equals("--help")) {
+      System.err.println(USAGE);
+      return 2;
+    }
+    Component component;
+    LaunchContract contract;
+    try {
+      Class<? extends Component> cls = loadComponentClass(argv[0]);
+      contract = LaunchContract.fromEnv(env);
+      component = instantiate(cls);
+    } catch (InvalidArgumentError e) {
+      System.err.println("cast.client.Runner: " + e.getMessage());
+      return 2;
+    } catch (RuntimeException e) {
+      LOG.log(Level.SEVERE, "constructing " + argv[0] + " failed", e);
+      return 1;
+    }
+    try {
+      connect(component, contract);
+    } catch (CastError e) {
+      System.err.println(
+          "cast.client.Runner: cannot join the system at " + contract.endpoint() + ": " + e.getMessage());
+      return 2;
+    }
+    return runComponent(component, contract.args(), handleSignals);
+  }
+
+  /** The component class named {@code className}; InvalidArgumentError saying what is wrong. */
+  public static Class<? extends Component> loadComponentClass(String className) {
+    Class<?> cls;
+    try {
+      ClassLoader loader = Thread.currentThread().getContextClassLoader();
+      cls = Class.forName(className, true, loader == null ? Runner.class.getClassLoader() : loader);
+    } catch (ClassNotFoundException | LinkageError e) {
+      throw new InvalidArgumentError(
+          "cannot load component class '"
+              + className
+              + "': "
+              + (e instanceof ClassNotFoundException ? "not on the class path" : e.toString())
+              + " (java -cp cast-client-all.jar:<your classes> cast.client.Runner "
+              + className
+              + ")");
+    }
+    if (!Component.class.isAssignableFrom(cls)) {
+      throw new InvalidArgumentError(
+          "'"
+              + className
+              + "' is not a component class: it must extend cast.client.UnmanagedComponent or"
+              + " cast.client.ManagedComponent");
+    }
+    if (Modifier.isAbstract(cls.getModifiers())) {
+      throw new InvalidArgumentError("component class '" + className + "' is abstract: the runner needs a concrete class");
+    }
+    @SuppressWarnings("unchecked")
+    Class<? extends Component> c = (Class<? extends Component>) cls;
+    return c;
+  }
+
+  private static Component instantiate(Class<? extends Component> cls) {
+    Constructor<? extends Component> ctor;
+    try {
+      ctor = cls.getConstructor();
+    } catch (NoSuchMethodException e) {
+      throw new InvalidArgumentError(
+          "component class '" + cls.getName() + "' needs a public no-argument constructor (and must be a public class)");
+    }
+    try {
+      return ctor.newInstance();
+    } catch (InvocationTargetException e) {
+      Throwable cause = e.getCause();
+      throw cause instanceof RuntimeException ? (RuntimeException) cause : new RuntimeException(cause);
+    } catch (ReflectiveOperationException e) {
+      throw new InvalidArgumentError("cannot construct component class '" + cls.getName() + "': " + e);
+    }
+  }
+
+  /**
+   * Connect a component to the system of {@code contract} without running it:
+   * for tests and for programs that drive a component themselves. Close it with
+   * {@link Component#close()}.
+   */
+  public static <C extends Component> C connect(C component, LaunchContract contract) {
+    component.bind(new GrpcTransport(contract));
+    return component;
+  }
+
+  /** Drives one component through configure, start, run and stop. */
+  private static final class Lifecycle {
+    private final Component component;
+    private final Args args;
+    private final AtomicBoolean stopCalled = new AtomicBoolean();
+    volatile boolean failed;
+
+    Lifecycle(Component component, Args args) {
+      this.component = component;
+      this.args = args;
+    }
+
+    /** Call stop() exactly once. */
+    void stop() {
+      if (!stopCalled.compareAndSet(false, true)) {
+        return;
+      }
+      component.setState(cast.v1.ComponentState.COMPONENT_STATE_STOPPING);
+      component.requestStop();
+      try {
+        component.stop();
+      } catch (Throwable e) { // report, and still shut down
+        LOG.log(Level.SEVERE, component.componentId() + ": stop() failed", e);
+        failed = true;
+      }
+    }
+
+    /** configure, start, run; stop() on failure. */
+    void run() {
+      try {
+        component.configure(args);
+        component.start();
+        component.setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
+        component.run();
+      } catch (Throwable e) {
+        LOG.log(Level.SEVERE, component.componentId() + " failed", e);
+        failed = true;
+        stop();
+      }
+    }
+  }
+
+  /**
+   * Run a connected component to the end and close it; returns the exit status
+   * (0 ok, 1 failed). run() executes on a worker thread so that a signal can call
+   * stop() while run() is busy; after run() returns the component keeps serving
+   * callbacks until it is asked to stop.
+   */
+  public static int runComponent(Component component, Args args, boolean handleSignals) {
+    Lifecycle life = new Lifecycle(component, args);
+    CountDownLatch finished = new CountDownLatch(1);
+    Thread hook = null;
+    if (handleSignals) {
+      installSignalHandlers(component::requestStop);
+      // Safety net for a JVM shutdown we did not start (a signal the handlers do
+      // not cover, System.exit from a component): stop cleanly before the JVM goes.
+      hook =
+          new Thread(
+              () -> {
+                component.requestStop();
+                try {
+                  finished.await(15, TimeUnit.SECONDS);
+                } catch (InterruptedException e) {
+                  Thread.currentThread().interrupt();
+                }
+              },
+              "cast-shutdown");
+      Runtime.getRuntime().addShutdownHook(hook);
+    }
+    Thread worker = new Thread(life::run, "cast-run-" + component.componentId());
+    worker.setDaemon(true);
+    worker.start();
+    try {
+      while (!component.waitForStop(Duration.ofMillis(200))) {
+        if (!worker.isAlive() && life.failed) {
+          break;
+        }
+      }
+      life.stop();
+      worker.join(10_000);
+      if (worker.isAlive()) {
+        LOG.severe(component.componentId() + ": run() did not return within 10 s of stop(); interrupting it");
+        worker.interrupt();
+        worker.join(1_000);
+        life.failed = true;
+      }
+      component.drain(Duration.ofSeconds(5));
+    } catch (InterruptedException e) {
+      Thread.currentThread().interrupt();
+      life.failed = true;
+    } finally {
+      component.close();
+      finished.countDown();
+    }
+    if (hook != null) {
+      try {
+        Runtime.getRuntime().removeShutdownHook(hook);
+      } catch (IllegalStateException e) {
+        // the JVM is already shutting down: the hook is running and sees `finished`
+      }
+    }
+    return life.failed ? 1 : 0;
+  }
+
+  /**
+   * Make SIGTERM and SIGINT call {@code onSignal} instead of exiting the JVM, so the
+   * runner stops the component and exits with its own status. Uses sun.misc.Signal
+   * (module jdk.unsupported, present in every OpenJDK) through reflection to avoid a
+   * compile-time dependency; without it the shutdown hook still calls stop().
+   */
+  static boolean installSignalHandlers(Runnable onSignal) {
+    try {
+      Class<?> signalClass = Class.forName("sun.misc.Signal");
+      Class<?> handlerClass = Class.forName("sun.misc.SignalHandler");
+      Object handler =
+          Proxy.newProxyInstance(
+              Runner.class.getClassLoader(),
+              new Class<?>[] {handlerClass},
+              (proxy, method, args) -> {
+                if (method.getName().equals("handle")) {
+                  onSignal.run();
+                  return null;
+                }
+                if (method.getName().equals("equals")) {
+                  return proxy == args[0];
+                }
+                if (method.getName().equals("hashCode")) {
+                  return System.identityHashCode(proxy);
+                }
+                return "cast-signal-handler";
+              });
+      for (String name : new String[] {"TERM", "INT"}) {
+        Object signal = signalClass.getConstructor(String.class).newInstance(name);
+        signalClass.getMethod("handle", signalClass, handlerClass).invoke(null, signal, handler);
+      }
+      return true;
+    } catch (ReflectiveOperationException | RuntimeException e) {
+      LOG.warning("cannot handle SIGTERM/SIGINT directly (" + e + "); relying on the shutdown hook");
+      return false;
+    }
+  }
+
+  /** One line per record on stderr, at CAST_LOG_LEVEL (DEBUG, INFO, WARNING, ERROR; default INFO). */
+  static void configureLogging(String level) {
+    if (System.getProperty("java.util.logging.SimpleFormatter.format") == null) {
+      System.setProperty("java.util.logging.SimpleFormatter.format", "%1$tF %1$tT %3$s: %4$s: %5$s%6$s%n");
+    }
+    Level lvl;
+    switch (level == null ? "INFO" : level.toUpperCase()) {
+      case "DEBUG":
+        lvl = Level.FINE;
+        break;
+      case "WARNING":
+      case "WARN":
+        lvl = Level.WARNING;
+        break;
+      case "ERROR":
+      case "CRITICAL":
+        lvl = Level.SEVERE;
+        break;
+      default:
+        lvl = Level.INFO;
+    }
+    Logger root = Logger.getLogger("");
+    root.setLevel(lvl);
+    for (var h : root.getHandlers()) {
+      h.setLevel(lvl);
+    }
+  }
+}

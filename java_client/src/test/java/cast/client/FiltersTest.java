@@ -1,0 +1,105 @@
+package cast.client;
+
+import static org.junit.jupiter.api.Assertions.*;
+
+import cast.testing.CastTesting.Counter;
+import cast.testing.CastTesting.Pose;
+import java.util.List;
+import java.util.Set;
+import org.junit.jupiter.api.Test;
+
+class FiltersTest {
+  @Test
+  void localTypeFilterWatchesTheOwnSubarchitecture() {
+    ChangeFilter f = Filters.localTypeFilter(Counter.class, Operation.ADD);
+    assertTrue(f.isLocal());
+    cast.v1.ChangeFilter pb = f.toProto("vision");
+    assertEquals("cast.testing.Counter", pb.getType());
+    assertEquals("vision", pb.getSubarchitecture());
+    assertEquals(List.of(cast.v1.Operation.OPERATION_ADD), pb.getOperationsList());
+    assertFalse(pb.getIncludeEntry());
+  }
+
+  @Test
+  void globalTypeFilterWatchesEverySubarchitecture() {
+    cast.v1.ChangeFilter pb = Filters.globalTypeFilter(Pose.class).toProto("vision");
+    assertEquals("cast.testing.Pose", pb.getType());
+    assertEquals("", pb.getSubarchitecture(), "empty SA means every SA on the wire");
+    assertTrue(pb.getOperationsList().isEmpty(), "no operations means every operation");
+  }
+
+  @Test
+  void typeFiltersAcceptTypeNames() {
+    assertEquals(
+        Filters.localTypeFilter(Counter.class), Filters.localTypeFilter("cast.testing.Counter"));
+    assertEquals(
+        Filters.globalTypeFilter(Counter.class), Filters.globalTypeFilter("cast.testing.Counter"));
+  }
+
+  @Test
+  void addressFilterDefaultsToTheOwnSubarchitecture() {
+    cast.v1.ChangeFilter own = Filters.addressFilter("e1", Operation.OVERWRITE, Operation.DELETE).toProto("motor");
+    assertEquals("e1", own.getId());
+    assertEquals("motor", own.getSubarchitecture());
+    assertEquals(
+        Set.of(cast.v1.Operation.OPERATION_OVERWRITE, cast.v1.Operation.OPERATION_DELETE),
+        Set.copyOf(own.getOperationsList()));
+    cast.v1.ChangeFilter other =
+        Filters.addressFilter(new WorkingMemoryAddress("e2", "language")).toProto("motor");
+    assertEquals("e2", other.getId());
+    assertEquals("language", other.getSubarchitecture());
+  }
+
+  @Test
+  void sourceFilterMatchesAComponentEverywhere() {
+    cast.v1.ChangeFilter pb = Filters.sourceFilter("planner").toProto("vision");
+    assertEquals("planner", pb.getSourceComponent());
+    assertEquals("", pb.getSubarchitecture());
+    assertEquals("", pb.getType());
+  }
+
+  @Test
+  void operationFilterIsGlobalUnlessMadeLocal() {
+    ChangeFilter deletes = Filters.operationFilter(Operation.DELETE);
+    assertEquals("", deletes.toProto("vision").getSubarchitecture());
+    assertEquals("vision", deletes.local().toProto("vision").getSubarchitecture());
+    assertEquals("motor", deletes.inSubarchitecture("motor").toProto("vision").getSubarchitecture());
+    assertEquals(List.of(cast.v1.Operation.OPERATION_DELETE), deletes.toProto("x").getOperationsList());
+  }
+
+  @Test
+  void withersReturnNewFiltersAndLeaveTheOriginal() {
+    ChangeFilter f = Filters.globalTypeFilter(Counter.class);
+    ChangeFilter g = f.withEntry().withOperations(Operation.ADD).fromSubarchitecture("language");
+    assertFalse(f.includeEntry());
+    assertTrue(f.operations().isEmpty());
+    assertTrue(g.includeEntry());
+    assertEquals(Set.of(Operation.ADD), g.operations());
+    cast.v1.ChangeFilter pb = g.toProto("vision");
+    assertTrue(pb.getIncludeEntry());
+    assertEquals("language", pb.getSourceSubarchitecture());
+    assertNotEquals(f, g);
+    assertThrows(UnsupportedOperationException.class, () -> g.operations().add(Operation.DELETE));
+  }
+
+  @Test
+  void componentStaticsAreTheSameHelpers() {
+    assertEquals(Filters.localTypeFilter(Counter.class), Component.localTypeFilter(Counter.class));
+    assertEquals(Filters.globalTypeFilter(Pose.class, Operation.ADD), Component.globalTypeFilter(Pose.class, Operation.ADD));
+    assertEquals(Filters.addressFilter("x"), Component.addressFilter("x"));
+    assertEquals(Filters.sourceFilter("c"), Component.sourceFilter("c"));
+    assertEquals(Filters.operationFilter(Operation.ADD), Component.operationFilter(Operation.ADD));
+  }
+
+  @Test
+  void badArgumentsAreRefusedWithAClearMessage() {
+    InvalidArgumentError e = assertThrows(InvalidArgumentError.class, () -> Filters.addressFilter(""));
+    assertTrue(e.getMessage().contains("entry id"), e.getMessage());
+    assertThrows(InvalidArgumentError.class, () -> Filters.sourceFilter(null));
+    assertThrows(InvalidArgumentError.class, () -> Filters.localTypeFilter(""));
+    assertThrows(InvalidArgumentError.class, () -> Filters.operationFilter(Operation.ADD, null));
+    InvalidArgumentError notMessage =
+        assertThrows(InvalidArgumentError.class, () -> Filters.localTypeFilter(com.google.protobuf.Message.class));
+    assertTrue(notMessage.getMessage().contains("not a generated protobuf message class"), notMessage.getMessage());
+  }
+}
