@@ -28,16 +28,16 @@ def deep_check(
     env = dict(os.environ if env is None else env)
     with extended_sys_path(config.python_path):
         for comp in config.components:
-            where = f"component '{comp.id}'"
+            where = f"components.{comp.id}"
             if comp.language == "python":
                 try:
                     cls = load_component_class(comp.cls)
                 except CastError as exc:
-                    problems.error(comp.at("class"), f"{where} class", exc.message)
+                    problems.error(comp.at("class"), f"{where}.class", exc.message)
                     continue
                 if getattr(cls, "kind", comp.kind) != comp.kind:
                     problems.error(
-                        comp.at("kind"), f"{where} kind",
+                        comp.at("kind"), f"{where}.kind",
                         f"'{comp.cls}' is a {cls.kind} component but the configuration says kind: {comp.kind}",
                     )
             if comp.manual or comp.in_process:
@@ -46,7 +46,8 @@ def deep_check(
                 launcher_for(comp.language).command(comp, config, env)
             except CastError as exc:
                 key = "run" if comp.language == "cpp" else "class"
+                message = exc.message.removeprefix(f"component '{comp.id}': ")
                 if builds_required:
-                    problems.error(comp.at(key), where, exc.message)
+                    problems.error(comp.at(key), f"{where}.{key}", message)
                 else:
-                    problems.warn(comp.at(key), where, exc.message)
+                    problems.warn(comp.at(key), f"{where}.{key}", message)

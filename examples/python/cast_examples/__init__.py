@@ -1,0 +1,1 @@
+"""The scene-description demo's Python components (configs/demo.yaml)."""

@@ -1,0 +1,63 @@
+"""The coordination SA: a privileged coordinator that posts goals into the other SAs.
+
+It asks a script of questions by writing ``Question`` entries straight into
+the language WM (a cross-SA write only a privileged component may make), and
+prints each answer when the language SA writes it back.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import cast
+from castdemo.scene_pb2 import Question
+
+__all__ = ["Coordinator"]
+
+
+class Coordinator(cast.UnmanagedComponent):
+    """Asks scripted questions. Args: ``questions``, ``language_sa``, ``start_after_s``, ``every_s``, ``urgent``."""
+
+    def configure(self, args: dict[str, Any]) -> None:
+        """Read the script."""
+        self.questions = [str(q) for q in args.get("questions", [])]
+        self.language_sa = str(args.get("language_sa", "language"))
+        self.start_after = float(args.get("start_after_s", 3.0))
+        self.every = float(args.get("every_s", 1.5))
+        self.urgent = {str(q) for q in args.get("urgent", [])}
+        self.answered = 0
+        self.mutex = threading.Lock()
+
+    def start(self) -> None:
+        """Listen for answers in the language WM."""
+        self.on_change(
+            cast.ChangeFilter(operations=frozenset({cast.Operation.OVERWRITE}), type=Question.DESCRIPTOR.full_name,
+                              subarchitecture=self.language_sa),
+            self.replied,
+        )
+
+    def run(self) -> None:
+        """Ask one question every few seconds."""
+        if self.wait_for_stop(self.start_after):
+            return
+        for number, text in enumerate(self.questions, 1):
+            priority = 10 if text in self.urgent else 0
+            question = Question(number=number, text=text, asked_by=self.component_id, priority=priority)
+            self.add(f"question-{number}", question, subarchitecture=self.language_sa)
+            print(f"asks q{number}{' (urgent)' if priority else ''}: {text}", flush=True)
+            if self.wait_for_stop(self.every):
+                return
+        self.wait_for_stop()
+
+    def replied(self, change: cast.WorkingMemoryChange) -> None:
+        """Print an answer."""
+        question = self.get(change.id, Question, subarchitecture=self.language_sa)
+        if question.answered:
+            with self.mutex:
+                self.answered += 1
+            print(f"q{question.number} {question.text} -> {question.answer}", flush=True)
+
+    def stop(self) -> None:
+        """Say how the conversation went."""
+        print(f"{self.answered} of {len(self.questions)} questions answered", flush=True)

@@ -1,0 +1,7 @@
+"""``python -m cast.cli``."""
+
+import sys
+
+from cast.cli.main import main
+
+sys.exit(main())

@@ -1,0 +1,162 @@
+"""Finding and reaching a running system from a tool (``cast ls``, ``cast token``, ...).
+
+The address: ``--endpoint``, else ``$CAST_ENDPOINT``, else the ``system.json``
+that ``cast run`` writes in its runtime directory. The identity: ``$CAST_TOKEN``
+if set, else a token for ``cast-cli`` (no SA, not privileged: reads only)
+issued from the system's secret: ``--secret-file``, ``$CAST_SECRET``,
+``$CAST_SECRET_FILE``, the runtime directory's ``secret``, ``.cast/secret``.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from cast.auth import TokenSigner, load_secret
+from cast.client.grpc_transport import CHANNEL_OPTIONS, map_rpc_error
+from cast.core.records import Identity
+from cast.errors import CastError, NotFoundError
+from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import inspection_pb2_grpc as insp_grpc
+from cast.v1 import task_manager_pb2_grpc as tm_grpc
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
+
+__all__ = ["TOOL_ID", "NoSystemError", "ServerStubs", "SystemClient", "find_endpoint", "find_secret", "tool_token"]
+
+TOOL_ID = "cast-cli"
+
+
+class NoSystemError(NotFoundError):
+    """No running system could be found."""
+
+
+def find_endpoint(explicit: str | None, runtime: RuntimeDir, env: Mapping[str, str]) -> str:
+    """The directory address of the running system."""
+    if explicit:
+        return explicit
+    if env.get("CAST_ENDPOINT"):
+        return env["CAST_ENDPOINT"]
+    state = runtime.read_state()
+    if state is not None:
+        return str(state["endpoint"])
+    raise NoSystemError(
+        f"no running system found: none recorded in {runtime.state_path}; start one with `cast run CONFIG`, "
+        "or give --endpoint HOST:PORT (or set CAST_ENDPOINT)"
+    )
+
+
+def find_secret(explicit: str | None, runtime: RuntimeDir, env: Mapping[str, str]) -> bytes:
+    """The token secret of the running system."""
+    if explicit:
+        return Path(explicit).read_bytes().strip()
+    if env.get("CAST_SECRET") or env.get("CAST_SECRET_FILE"):
+        found = load_secret()
+        if found:
+            return found
+    secret = runtime.read_secret() or load_secret()
+    if secret is None:
+        raise NoSystemError(
+            f"no token secret: none in {runtime.secret_path} (written by a running `cast run`); pass --secret-file, "
+            "or set CAST_SECRET"
+        )
+    return secret
+
+
+def tool_token(secret_file: str | None, runtime: RuntimeDir, env: Mapping[str, str]) -> str:
+    """``$CAST_TOKEN``, or a read-only tool token issued from the secret."""
+    if env.get("CAST_TOKEN"):
+        return env["CAST_TOKEN"]
+    return TokenSigner(find_secret(secret_file, runtime, env)).issue(Identity(TOOL_ID, "", False), 3600)
+
+
+@dataclass
+class ServerStubs:
+    """The stubs of one server."""
+
+    endpoint: str
+    channel: grpc.Channel
+    wm: wm_grpc.WorkingMemoryStub
+    tm: tm_grpc.TaskManagerStub
+    directory: dir_grpc.DirectoryStub
+    inspection: insp_grpc.InspectionStub
+
+
+class SystemClient:
+    """A tool's connection to a running system: the directory and every server it names."""
+
+    def __init__(self, endpoint: str, token: str, timeout: float = 10.0) -> None:
+        self.metadata = (("authorization", f"Bearer {token}"),)
+        self.timeout = timeout
+        self._servers: dict[str, ServerStubs] = {}
+        self.directory = self._stubs(endpoint)
+        self.system = self.call(self.directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+
+    def _stubs(self, endpoint: str) -> ServerStubs:
+        stubs = self._servers.get(endpoint)
+        if stubs is None:
+            channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+            stubs = ServerStubs(
+                endpoint, channel, wm_grpc.WorkingMemoryStub(channel), tm_grpc.TaskManagerStub(channel),
+                dir_grpc.DirectoryStub(channel), insp_grpc.InspectionStub(channel),
+            )
+            self._servers[endpoint] = stubs
+        return stubs
+
+    def call(self, method: Any, request: Any) -> Any:
+        """Call a unary method with the tool's token; the named CastError on failure."""
+        try:
+            return method(request, metadata=self.metadata, timeout=self.timeout)
+        except grpc.RpcError as exc:
+            raise map_rpc_error(exc) from None
+
+    @property
+    def subarchitectures(self) -> list[str]:
+        """Every SA of the system, in the directory's order."""
+        return [sa.name for sa in self.system.subarchitectures]
+
+    def server(self, sa: str) -> ServerStubs:
+        """The server hosting an SA; NotFoundError naming the known SAs."""
+        for info in self.system.subarchitectures:
+            if info.name == sa:
+                same = not info.endpoint or info.endpoint == self.system.endpoint
+                return self.directory if same else self._stubs(info.endpoint)
+        raise NotFoundError(f"no subarchitecture '{sa}' (known: {', '.join(self.subarchitectures)})")
+
+    def servers(self) -> list[tuple[ServerStubs, list[str]]]:
+        """Each server with the SAs it hosts."""
+        out: dict[str, tuple[ServerStubs, list[str]]] = {}
+        for sa in self.subarchitectures:
+            stubs = self.server(sa)
+            out.setdefault(stubs.endpoint, (stubs, []))[1].append(sa)
+        return list(out.values())
+
+    def close(self) -> None:
+        """Close every channel."""
+        for stubs in self._servers.values():
+            stubs.channel.close()
+
+    def __enter__(self) -> SystemClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def connect(args: Any, env: Mapping[str, str] | None = None) -> SystemClient:
+    """A :class:`SystemClient` from the common tool options (--endpoint, --runtime-dir, --secret-file)."""
+    env = os.environ if env is None else env
+    runtime = RuntimeDir(Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(env))
+    endpoint = find_endpoint(args.endpoint, runtime, env)
+    try:
+        return SystemClient(endpoint, tool_token(args.secret_file, runtime, env))
+    except CastError as exc:
+        if exc.code == "UNAVAILABLE":
+            raise NoSystemError(f"no system answers at {endpoint}: {exc.message}") from None
+        raise

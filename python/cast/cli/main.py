@@ -1,0 +1,42 @@
+"""The ``cast`` command line: serve, run, check, token, and the inspection commands."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from cast.cli import inspection, run, serve, token
+from cast.errors import CastError
+
+__all__ = ["build_parser", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``cast``."""
+    parser = argparse.ArgumentParser(prog="cast", description="CAST on gRPC: working memories for robot components")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    run.add_commands(sub)
+    serve.add_command(sub)
+    token.add_command(sub)
+    inspection.add_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``cast`` command; the exit status."""
+    args = build_parser().parse_args(argv)
+    level = getattr(args, "log_level", "WARNING")
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
+    try:
+        return int(args.fn(args))
+    except CastError as exc:
+        print(f"cast {args.command}: {exc.message}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+    except OSError as exc:
+        print(f"cast {args.command}: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,91 @@
+"""``cast check CONFIG`` and ``cast run CONFIG``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from cast.cli.options import parse_sets
+from cast.config import SystemConfig, read_config
+from cast.config.check import deep_check
+from cast.config.problems import Problems
+
+__all__ = ["add_commands"]
+
+
+def _validated(args: argparse.Namespace, builds_required: bool) -> tuple[SystemConfig | None, Problems]:
+    config, problems = read_config(args.config, parse_sets(args.set))
+    if config is not None and not problems.errors:
+        deep_check(config, problems, builds_required=builds_required)
+    for problem in sorted(problems.items, key=lambda p: (p.warning, p.position.file, p.position.line)):
+        print(problem, file=sys.stderr)
+    return (None if problems.errors else config), problems
+
+
+def _describe(config: SystemConfig) -> str:
+    langs = Counter(c.language for c in config.components)
+    servers = ", ".join(f"{s.name} ({', '.join(s.subarchitectures)})" for s in config.servers)
+    comps = ", ".join(f"{n} {lang}" for lang, n in langs.items()) or "none"
+    return (f"system '{config.name}': {len(config.subarchitectures)} subarchitectures, "
+            f"{len(config.components)} components ({comps}); servers: {servers}")
+
+
+def _check(args: argparse.Namespace) -> int:
+    config, problems = _validated(args, builds_required=False)
+    if config is None:
+        errors = len(problems.errors)
+        print(f"{args.config}: {errors} error{'s' if errors != 1 else ''}", file=sys.stderr)
+        return 1
+    print(f"{args.config}: ok: {_describe(config)}")
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    from cast.orchestrator.orchestrator import Orchestrator, RunOptions
+    from cast.orchestrator.output import Output
+    from cast.orchestrator.runtime import default_runtime_dir
+
+    config, _ = _validated(args, builds_required=True)
+    if config is None:
+        print(f"cast run: {args.config} has errors; nothing was started", file=sys.stderr)
+        return 2
+    options = RunOptions(
+        run_for=args.for_seconds,
+        runtime_dir=Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(),
+        summary_json=Path(args.summary_json) if args.summary_json else None,
+    )
+    console = Console(highlight=False, soft_wrap=True)
+    if not console.is_terminal:
+        console = Console(highlight=False, soft_wrap=True, width=120)  # logs and pipes: room for the tables
+    output = Output(console, live_status=not args.no_status,
+                    quiet_components=args.quiet)
+    result = asyncio.run(Orchestrator(config, options, output, dict(os.environ)).run())
+    return result.exit_code
+
+
+def add_commands(sub: Any) -> None:
+    """Add ``cast check`` and ``cast run``."""
+    check = sub.add_parser("check", help="validate a configuration without starting anything (exit 0 ok, 1 not)")
+    check.add_argument("config", help="system configuration (YAML)")
+    check.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a config variable")
+    check.set_defaults(fn=_check)
+
+    run = sub.add_parser("run", help="start a system: servers, every component, live status; Ctrl-C stops it")
+    run.add_argument("config", help="system configuration (YAML)")
+    run.add_argument("--for", dest="for_seconds", type=float, default=None, metavar="SECONDS",
+                     help="stop after this many seconds (counted once every component is connected); exit 1 if "
+                          "a component failed")
+    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a config variable")
+    run.add_argument("--no-status", action="store_true", help="no live status view (component output only)")
+    run.add_argument("--quiet", action="store_true", help="do not echo component output (it is still logged)")
+    run.add_argument("--runtime-dir", help="where the secret, system.json and logs go (default: $CAST_RUNTIME_DIR "
+                                           "or .cast)")
+    run.add_argument("--summary-json", metavar="FILE", help="also write the final summary as JSON")
+    run.set_defaults(fn=_run)

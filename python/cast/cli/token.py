@@ -1,0 +1,88 @@
+"""``cast token COMPONENT``: the launch environment of a component started by hand (dynamic join).
+
+The component's SA, privilege and arguments come from ``--config`` (the
+component must be in it), else from ``--sa``/``--privileged``, else from the
+running system's directory (a configured component not started yet). The
+secret and address are those of the running ``cast run`` (its runtime
+directory) unless given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+from pathlib import Path
+from typing import Any
+
+from cast.auth import TokenSigner
+from cast.cli.connect import SystemClient, find_endpoint, find_secret
+from cast.cli.options import parse_sets
+from cast.config import load_config
+from cast.core.records import Identity
+from cast.errors import InvalidArgumentError, NotFoundError
+from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
+
+__all__ = ["add_command"]
+
+
+def _token(args: argparse.Namespace) -> int:
+    env = os.environ
+    runtime = RuntimeDir(Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(env))
+    secret = find_secret(args.secret_file, runtime, env)
+    endpoint = find_endpoint(args.endpoint, runtime, env)
+    signer = TokenSigner(secret)
+    sa, privileged, comp_args, extra = args.subarchitecture, args.privileged, {}, {}
+    if args.config:
+        config = load_config(args.config, parse_sets(args.set))
+        found = config.component(args.component)
+        if found is None:
+            known = ", ".join(c.id for c in config.components) or "none"
+            raise NotFoundError(f"no component '{args.component}' in {args.config} (known: {known})")
+        sa, privileged, comp_args = found.subarchitecture, found.privileged or privileged, found.args
+        if found.language == "python" and config.python_path:
+            parts = [str(p) for p in config.python_path] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+            extra["PYTHONPATH"] = os.pathsep.join(parts)
+    elif not sa:
+        # Ask the running system about a component it expects.
+        tool = signer.issue(Identity("cast-cli", "", False), 60)
+        with SystemClient(endpoint, tool) as client:
+            info = next((c for c in client.system.components if c.id == args.component), None)
+        if info is None:
+            raise InvalidArgumentError(
+                f"component '{args.component}' is not known to the running system: give --sa SA "
+                "(and --privileged if it writes other SAs), or --config CONFIG"
+            )
+        sa, privileged = info.subarchitecture, info.privileged or privileged
+    token = signer.issue(Identity(args.component, sa, privileged), args.ttl)
+    values = {
+        "CAST_ENDPOINT": endpoint,
+        "CAST_COMPONENT_ID": args.component,
+        "CAST_SUBARCHITECTURE": sa,
+        "CAST_TOKEN": token,
+        "CAST_ARGS": json.dumps(comp_args),
+        **extra,
+    }
+    if args.json:
+        print(json.dumps(values))
+    else:
+        for key, value in values.items():
+            print(f"export {key}={shlex.quote(value)}")
+    return 0
+
+
+def add_command(sub: Any) -> None:
+    """Add ``cast token``."""
+    token = sub.add_parser("token", help="print the launch environment of a component started by hand")
+    token.add_argument("component", help="component id")
+    token.add_argument("--config", help="take SA, privileged and args from this configuration")
+    token.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a config variable")
+    token.add_argument("--subarchitecture", "--sa", default="", help="the component's SA")
+    token.add_argument("--privileged", action="store_true", help="may write every SA")
+    token.add_argument("--endpoint", help="directory HOST:PORT (default: $CAST_ENDPOINT, else the running `cast run`)")
+    token.add_argument("--runtime-dir", help="runtime directory of the running `cast run` (default: .cast)")
+    token.add_argument("--ttl", type=float, default=0, help="seconds until the token expires (0: never)")
+    token.add_argument("--secret-file", help="token secret (default: $CAST_SECRET, else the runtime directory's)")
+    token.add_argument("--json", action="store_true", help="print a JSON object instead of shell exports")
+    token.set_defaults(fn=_token)

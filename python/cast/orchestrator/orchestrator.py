@@ -1,0 +1,201 @@
+"""``cast run``: validate, serve, launch, supervise, show, and shut down in order.
+
+The servers run in this process's event loop; each component runs as its own
+process (or, with ``in_process: true``, on a thread of the server hosting its
+SA). Shutdown, on Ctrl-C, SIGTERM or the end of ``--for``: components in
+reverse start order (SIGTERM, so their runner calls stop(); SIGKILL after the
+stop timeout), then in-process components, then the servers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cast.auth import TokenSigner
+from cast.config.model import ComponentConfig, SystemConfig
+from cast.core.records import Identity
+from cast.orchestrator.output import Output
+from cast.orchestrator.runtime import RuntimeDir
+from cast.orchestrator.servers import ServerGroup
+from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
+from cast.orchestrator.supervisor import Phase, Supervisor
+
+__all__ = ["Orchestrator", "RunOptions", "RunResult"]
+
+# Variables a component must never inherit: with the secret it could forge any identity.
+_PRIVATE_ENV = ("CAST_SECRET", "CAST_SECRET_FILE")
+
+
+@dataclass
+class RunOptions:
+    """How to run a system."""
+
+    run_for: float | None = None  # seconds after every component connected; None: until signalled
+    runtime_dir: Path = field(default_factory=lambda: Path(".cast"))
+    status_interval: float = 0.5
+    summary_json: Path | None = None
+
+
+@dataclass
+class RunResult:
+    """What a run ended with."""
+
+    failures: list[str]
+    snapshot: Snapshot | None
+    connect_seconds: float | None = None
+
+    @property
+    def exit_code(self) -> int:
+        """0 if every component ran and stopped cleanly, else 1."""
+        return 1 if self.failures else 0
+
+
+class Orchestrator:
+    """Runs one system until it is told to stop."""
+
+    def __init__(
+        self, config: SystemConfig, options: RunOptions, output: Output, env: Mapping[str, str] | None = None
+    ) -> None:
+        self.config = config
+        self.options = options
+        self.output = output
+        self.env = dict(os.environ if env is None else env)
+        self.runtime = RuntimeDir(options.runtime_dir)
+        self._stop = asyncio.Event()
+        self._signer: TokenSigner | None = None
+        self._servers: ServerGroup | None = None
+
+    def request_stop(self) -> None:
+        """Begin the orderly shutdown (what Ctrl-C and SIGTERM do)."""
+        self._stop.set()
+
+    def _contract(self, comp: ComponentConfig) -> dict[str, str]:
+        assert self._signer is not None and self._servers is not None
+        token = self._signer.issue(Identity(comp.id, comp.subarchitecture, comp.privileged))
+        return {
+            "CAST_ENDPOINT": self._servers.directory.endpoint,
+            "CAST_COMPONENT_ID": comp.id,
+            "CAST_SUBARCHITECTURE": comp.subarchitecture,
+            "CAST_TOKEN": token,
+            "CAST_ARGS": json.dumps(comp.args),
+        }
+
+    async def run(self) -> RunResult:
+        """Run the system; return when it has shut down."""
+        self.runtime.claim()
+        secret = self.env.get("CAST_SECRET", "").encode() or None
+        if secret:
+            self.runtime.write_secret(secret)
+        else:
+            secret = self.runtime.new_secret()
+        self._signer = TokenSigner(secret)
+        # User policy classes and in-process components import from python_path.
+        sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(sig, self.request_stop)
+        servers = self._servers = ServerGroup(self.config, self._signer)
+        await servers.start()
+        child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
+        supervisor = Supervisor(self.config, self._contract, self.runtime.logs, self.output.component_line,
+                                self.output.notice, child_env)
+        tracker = StatusTracker(self.config, servers, supervisor)
+        self.runtime.write_state({
+            "system": self.config.name,
+            "endpoint": servers.directory.endpoint,
+            "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures}
+                        for s in servers.servers},
+            "config": str(Path(self.config.source).resolve()),
+        })
+        self.output.known_components([c.id for c in self.config.components])
+        self.output.notice(
+            f"system '{self.config.name}': {len(self.config.subarchitectures)} SAs on "
+            + ", ".join(f"{s.config.name} {s.endpoint}" for s in servers.servers)
+            + f"; runtime directory {self.runtime.path}"
+        )
+        failures: list[str] = []
+        connect_seconds: float | None = None
+        snapshot: Snapshot | None = None
+        status_task: asyncio.Task[None] | None = None
+        try:
+            with self.output:
+                for comp in self.config.components:
+                    if comp.in_process:
+                        servers.start_in_process(comp)
+                started = time.monotonic()
+                supervisor.start_all()
+                status_task = asyncio.ensure_future(self._show_status(tracker))
+                missing = await self._wait_connected(servers, supervisor)
+                if missing:
+                    failures.extend(f"{cid} did not connect within {self.config.orchestrator.connect_timeout:.0f} s"
+                                    for cid in missing)
+                    self.output.notice(f"not connected: {', '.join(missing)}")
+                else:
+                    connect_seconds = time.monotonic() - started
+                    count = sum(1 for c in self.config.components if not c.manual)
+                    self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
+                if self.options.run_for is not None and not self._stop.is_set():
+                    loop.call_later(self.options.run_for, self._stop.set)
+                await self._stop.wait()
+                self.output.notice("stopping: components in reverse order, then the servers")
+                await supervisor.stop_all(self.config.orchestrator.stop_timeout)
+                await loop.run_in_executor(None, servers.stop_in_process)
+                status_task.cancel()
+                snapshot = tracker.snapshot()
+        finally:
+            if status_task is not None:
+                status_task.cancel()
+            await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
+            await servers.stop()
+            self.runtime.release()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError):
+                    loop.remove_signal_handler(sig)
+        for sup in supervisor.components.values():
+            cid = sup.config.id
+            if sup.crashes:
+                codes = ", ".join(str(c) for c in sup.crashes)
+                failures.append(f"{cid} crashed {len(sup.crashes)} time(s) (exit codes {codes})")
+            if sup.phase is Phase.FAILED and sup.error:
+                failures.append(f"{cid}: {sup.error}")
+            if sup.stop_code not in (None, 0):
+                failures.append(f"{cid} exited with code {sup.stop_code} when stopped"
+                                + (" (killed)" if sup.process is not None and sup.process.killed else ""))
+        if snapshot is not None:
+            self.output.show(render_summary(snapshot, failures))
+            if self.options.summary_json is not None:
+                data = {**snapshot.to_json(), "failures": failures, "connect_seconds": connect_seconds}
+                self.options.summary_json.write_text(json.dumps(data, indent=2))
+        return RunResult(failures, snapshot, connect_seconds)
+
+    async def _wait_connected(self, servers: ServerGroup, supervisor: Supervisor) -> list[str]:
+        expected = [c.id for c in self.config.components if not c.manual]
+        deadline = time.monotonic() + self.config.orchestrator.connect_timeout
+        while True:
+            infos = {i.id: i for i in servers.directory.system.sessions.components()}
+            missing = [
+                cid for cid in expected
+                if not infos[cid].session_id
+                and not (cid in supervisor.components and supervisor.components[cid].phase in (Phase.FAILED,
+                                                                                                 Phase.EXITED))
+            ]
+            if not missing or self._stop.is_set() or time.monotonic() > deadline:
+                return [] if self._stop.is_set() else missing
+            await asyncio.sleep(0.05)
+
+    async def _show_status(self, tracker: StatusTracker) -> None:
+        if not self.output.live_status:
+            return
+        while True:
+            self.output.update_status(render_status(tracker.snapshot()))
+            await asyncio.sleep(self.options.status_interval)

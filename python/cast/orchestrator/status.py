@@ -1,0 +1,201 @@
+"""What the live status view and the final summary show, and how they look.
+
+A :class:`Snapshot` is taken from the servers' own objects (the orchestrator
+hosts them) and the supervisor's records; rendering it is separate, so the
+summary printed at the end and ``--summary-json`` use the same numbers.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from rich.console import Group, RenderableType
+from rich.table import Table
+from rich.text import Text
+
+from cast.config.model import SystemConfig
+from cast.core.sessions import ComponentState
+from cast.core.tasks import TaskState
+from cast.orchestrator.servers import ServerGroup
+from cast.orchestrator.supervisor import Supervisor
+
+__all__ = ["ComponentRow", "Snapshot", "StatusTracker", "SubarchitectureRow", "render_status", "render_summary"]
+
+
+@dataclass
+class ComponentRow:
+    """One component as the status view shows it."""
+
+    id: str
+    subarchitecture: str
+    language: str
+    kind: str
+    launch: str  # process, in-process, manual, joined
+    phase: str  # orchestrator's view: running, restarting, failed, ...
+    session: str  # server's view: expected, starting, running, stopping, disconnected
+    pid: int
+    restarts: int
+    sessions: int
+    crashes: list[int] = field(default_factory=list)
+
+
+@dataclass
+class SubarchitectureRow:
+    """One SA: its WM and its task manager."""
+
+    name: str
+    endpoint: str
+    policy: str
+    entries: int
+    revision: int
+    events_per_s: float
+    waiting: int
+    running: int
+    counters: dict[str, int]
+    types: dict[str, int]
+
+
+@dataclass
+class Snapshot:
+    """The whole system at one moment."""
+
+    system: str
+    endpoint: str
+    uptime: float
+    components: list[ComponentRow]
+    subarchitectures: list[SubarchitectureRow]
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready form."""
+        return asdict(self)
+
+
+class StatusTracker:
+    """Takes snapshots; remembers the last revisions to compute events per second."""
+
+    def __init__(self, config: SystemConfig, servers: ServerGroup, supervisor: Supervisor) -> None:
+        self._config = config
+        self._servers = servers
+        self._supervisor = supervisor
+        self._started = time.monotonic()
+        self._last: tuple[float, dict[str, int]] | None = None
+
+    def snapshot(self) -> Snapshot:
+        """The current state of everything."""
+        now = time.monotonic()
+        directory = self._servers.directory.system
+        rows: list[ComponentRow] = []
+        configured = {c.id: c for c in self._config.components}
+        for info in directory.sessions.components():
+            comp = configured.get(info.id)
+            sup = self._supervisor.components.get(info.id)
+            if comp is None:
+                launch, phase = "joined", "-"
+            elif comp.in_process:
+                launch, phase = "in-process", "running" if info.session_id else "-"
+            elif comp.manual:
+                launch, phase = "manual", "-"
+            else:
+                launch, phase = "process", sup.phase.value if sup is not None else "-"
+            rows.append(ComponentRow(
+                id=info.id,
+                subarchitecture=info.subarchitecture,
+                language=info.language or (comp.language if comp else ""),
+                kind=info.kind or (comp.kind if comp else ""),
+                launch=launch,
+                phase=phase,
+                session=ComponentState(info.state).name.lower(),
+                pid=(sup.pid if sup is not None and sup.pid else info.pid if info.session_id else 0),
+                restarts=sup.restarts if sup is not None else 0,
+                sessions=info.sessions,
+                crashes=list(sup.crashes) if sup is not None else [],
+            ))
+        revisions: dict[str, int] = {}
+        sas: list[SubarchitectureRow] = []
+        elapsed = now - self._last[0] if self._last else 0.0
+        for server in self._servers.servers:
+            system = server.system
+            live = system.tasks.tasks()
+            for sa in system.host.subarchitectures:
+                revision = system.host.revision(sa)
+                revisions[sa] = revision
+                before = self._last[1].get(sa, revision) if self._last else revision
+                sas.append(SubarchitectureRow(
+                    name=sa,
+                    endpoint=server.endpoint,
+                    policy=system.tasks.policy(sa).describe(),
+                    entries=system.host.entry_count(sa),
+                    revision=revision,
+                    events_per_s=(revision - before) / elapsed if elapsed > 0 else 0.0,
+                    waiting=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.WAITING),
+                    running=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.ADOPTED),
+                    counters=dict(system.tasks.counters[sa]),
+                    types=system.host.type_counts(sa),
+                ))
+        self._last = (now, revisions)
+        return Snapshot(self._config.name, self._servers.directory.endpoint, now - self._started, rows, sas)
+
+
+_PHASE_STYLE = {"running": "green", "restarting": "yellow", "failed": "bold red", "exited": "dim",
+                "stopping": "yellow", "stopped": "dim", "pending": "dim"}
+_SESSION_STYLE = {"running": "green", "starting": "yellow", "expected": "dim", "stopping": "yellow",
+                  "disconnected": "red"}
+
+
+def _components_table(snap: Snapshot) -> Table:
+    table = Table(title="components", title_justify="left", expand=False, pad_edge=False)
+    for col in ("id", "SA", "lang", "kind", "launch", "process", "session", "pid", "restarts"):
+        table.add_column(col, justify="right" if col in ("pid", "restarts") else "left")
+    for c in snap.components:
+        table.add_row(
+            c.id, c.subarchitecture, c.language, c.kind, c.launch,
+            Text(c.phase, style=_PHASE_STYLE.get(c.phase, "")),
+            Text(c.session, style=_SESSION_STYLE.get(c.session, "")),
+            str(c.pid or ""), str(c.restarts or ""),
+        )
+    return table
+
+
+def _sa_table(snap: Snapshot, live: bool) -> Table:
+    table = Table(title="subarchitectures", title_justify="left", expand=False, pad_edge=False)
+    cols = ["SA", "policy", "entries", "events"]
+    if live:
+        cols += ["events/s", "waiting", "running"]
+    cols += ["proposed", "adopted", "rejected", "completed"]
+    for col in cols:
+        table.add_column(col, justify="left" if col in ("SA", "policy") else "right")
+    for sa in snap.subarchitectures:
+        row = [sa.name, sa.policy, str(sa.entries), str(sa.revision)]
+        if live:
+            row += [f"{sa.events_per_s:.1f}", str(sa.waiting), str(sa.running)]
+        row += [str(sa.counters.get(k, 0)) for k in ("proposed", "adopted", "rejected", "completed")]
+        table.add_row(*row)
+    return table
+
+
+def render_status(snap: Snapshot) -> RenderableType:
+    """The live view: a header line, the components and the SAs."""
+    header = Text.assemble(
+        ("cast run ", "bold"), (snap.system, "bold cyan"), f"  {snap.endpoint}  up {snap.uptime:.0f} s  ",
+        ("(Ctrl-C stops)", "dim"),
+    )
+    return Group(header, _components_table(snap), _sa_table(snap, live=True))
+
+
+def render_summary(snap: Snapshot, failures: list[str]) -> RenderableType:
+    """The summary printed at the end of a run."""
+    parts: list[RenderableType] = [
+        Text.assemble(("summary of ", "bold"), (snap.system, "bold cyan"), f" after {snap.uptime:.1f} s"),
+        _sa_table(snap, live=False),
+    ]
+    restarted = [c for c in snap.components if c.restarts or c.crashes]
+    if restarted:
+        parts.append(Text("; ".join(f"{c.id}: {len(c.crashes)} crash(es), {c.restarts} restart(s)"
+                                    for c in restarted), style="yellow"))
+    if failures:
+        parts.append(Text("failed: " + "; ".join(failures), style="bold red"))
+    else:
+        parts.append(Text("every component ran and stopped cleanly", style="green"))
+    return Group(*parts)

@@ -1,0 +1,157 @@
+"""Supervision of launched components: start, watch, restart by policy, stop in order.
+
+A component that exits while the system runs is a crash if its exit code is
+not 0. Its restart policy decides what follows: ``never`` leaves it down,
+``on-failure`` restarts crashes, ``always`` restarts any exit; each restart
+waits ``backoff`` seconds, doubling, and gives up after ``max_restarts``. The
+server has already released the crashed component's locks and tasks (its
+session ended with its connection), and a restarted component registering
+again ends any session of the old one that is still open.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import os
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cast.config.model import ComponentConfig, SystemConfig
+from cast.errors import CastError
+from cast.orchestrator.launchers import launcher_for
+from cast.orchestrator.process import ComponentProcess, LineSink
+
+__all__ = ["Phase", "Supervised", "Supervisor"]
+
+
+class Phase(enum.Enum):
+    """Where a supervised component is, as the orchestrator sees it."""
+
+    PENDING = "pending"
+    RUNNING = "running"
+    RESTARTING = "restarting"
+    EXITED = "exited"  # ended with code 0 and is not restarted
+    FAILED = "failed"  # crashed and is not restarted (policy, or out of restarts)
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+@dataclass
+class Supervised:
+    """One launched component and its history."""
+
+    config: ComponentConfig
+    phase: Phase = Phase.PENDING
+    process: ComponentProcess | None = None
+    restarts: int = 0
+    crashes: list[int] = field(default_factory=list)  # exit codes of unexpected exits
+    stop_code: int | None = None  # exit code when the orchestrator stopped it
+    error: str = ""
+    started_at: float = 0.0
+
+    @property
+    def pid(self) -> int:
+        """The current process id (0 if none)."""
+        return self.process.pid if self.process is not None and self.process.running else 0
+
+    @property
+    def failed(self) -> bool:
+        """Whether this component counts as a failure of the run."""
+        return bool(self.crashes) or self.phase is Phase.FAILED or (self.stop_code not in (None, 0))
+
+
+Notify = Callable[[str], None]
+
+
+class Supervisor:
+    """Launches and supervises every launched component of a system."""
+
+    def __init__(
+        self,
+        config: SystemConfig,
+        contract: Callable[[ComponentConfig], dict[str, str]],
+        logs: Path,
+        sink: LineSink,
+        notify: Notify,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
+        self.config = config
+        self._contract = contract
+        self._logs = logs
+        self._sink = sink
+        self._notify = notify
+        self._env = dict(os.environ if env is None else env)
+        self.components: dict[str, Supervised] = {c.id: Supervised(c) for c in config.components if c.launched}
+        self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._stopping = False
+
+    def start_all(self) -> None:
+        """Launch every component (they connect concurrently)."""
+        for sup in self.components.values():
+            self._tasks[sup.config.id] = asyncio.ensure_future(self._supervise(sup))
+
+    async def _launch(self, sup: Supervised) -> bool:
+        comp = sup.config
+        launcher = launcher_for(comp.language)
+        try:
+            argv = launcher.command(comp, self.config, self._env)
+        except CastError as exc:
+            sup.error = exc.message
+            return False
+        env = {**self._env, **launcher.environment(comp, self.config, self._env), **self._contract(comp)}
+        process = ComponentProcess(comp.id, argv, env, self._logs / f"{comp.id}.log", self._sink)
+        try:
+            await process.start()
+        except OSError as exc:
+            sup.error = f"cannot start {argv[0]}: {exc.strerror or exc}"
+            return False
+        sup.process, sup.phase, sup.started_at = process, Phase.RUNNING, time.monotonic()
+        return True
+
+    async def _supervise(self, sup: Supervised) -> None:
+        comp = sup.config
+        while not self._stopping:
+            if not await self._launch(sup):
+                sup.phase = Phase.FAILED
+                self._notify(f"{comp.id}: {sup.error}")
+                return
+            assert sup.process is not None
+            code = await sup.process.wait()
+            if self._stopping:
+                return
+            if code != 0:
+                sup.crashes.append(code)
+            how = f"crashed (exit code {code})" if code != 0 else "exited"
+            if not comp.restart.should_restart(code, sup.restarts):
+                sup.phase = Phase.FAILED if code != 0 else Phase.EXITED
+                reason = "" if comp.restart.mode == "never" or code == 0 else f" after {sup.restarts} restarts"
+                self._notify(f"{comp.id} {how}; not restarted{reason} (restart: {comp.restart.mode})")
+                return
+            delay = comp.restart.delay(sup.restarts)
+            sup.phase = Phase.RESTARTING
+            self._notify(f"{comp.id} {how}; restarting in {delay:.1f} s (restart {sup.restarts + 1} of "
+                         f"{comp.restart.max_restarts})")
+            await asyncio.sleep(delay)
+            sup.restarts += 1
+
+    async def stop_all(self, timeout: float) -> None:
+        """Stop components in reverse start order: SIGTERM, then SIGKILL after ``timeout`` seconds."""
+        self._stopping = True
+        for sup in reversed(list(self.components.values())):
+            task = self._tasks.get(sup.config.id)
+            if sup.process is not None and sup.process.running:
+                sup.phase = Phase.STOPPING
+                sup.stop_code = await sup.process.stop(timeout)
+                if sup.process.killed:
+                    self._notify(f"{sup.config.id} did not stop within {timeout:.0f} s: killed")
+                elif sup.stop_code != 0:
+                    self._notify(f"{sup.config.id} stopped with exit code {sup.stop_code}")
+                sup.phase = Phase.STOPPED
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
