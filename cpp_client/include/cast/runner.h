@@ -1,0 +1,68 @@
+// Running a component: the launch contract (DESIGN.md section 6) and the
+// lifecycle (docs/client-protocol.md, "Start-up").
+//
+//   class Segmenter : public cast::UnmanagedComponent { ... };
+//   CAST_COMPONENT_MAIN(Segmenter)
+//
+// makes an executable that reads CAST_ENDPOINT, CAST_COMPONENT_ID,
+// CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), connects,
+// calls configure(args), start(), run(), and stop() once on SIGINT/SIGTERM,
+// on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
+// failed, 2 bad launch environment (missing variables, bad CAST_ARGS, or a
+// system that refuses the token or cannot be reached at start).
+#pragma once
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "cast/args.h"
+#include "cast/component.h"
+#include "cast/transport.h"
+
+namespace cast {
+
+// The environment a component process is started with.
+struct LaunchContract {
+  std::string endpoint;
+  std::string componentId;
+  std::string subarchitecture;
+  std::string token;
+  Args args;
+
+  // Reads the contract from the process environment; InvalidArgumentError
+  // naming every missing variable, or saying what is wrong with CAST_ARGS.
+  static LaunchContract fromEnv();
+  // The same from a given environment (for tests).
+  static LaunchContract fromEnv(const std::map<std::string, std::string>& env);
+
+  // The component's identity; privileged as the token claims (the server
+  // verifies the token, the client only reads it).
+  Identity identity() const;
+  // A gRPC connection to the system.
+  std::shared_ptr<detail::Transport> connect() const;
+};
+
+// What a token says about its holder, read without verifying it; nullopt if
+// it is not a CAST token.
+std::optional<Identity> peekToken(const std::string& token);
+
+// Runs a bound-to-be component to the end and returns the exit code (0 ok,
+// 1 failed). run() executes on a worker thread so that a signal can call
+// stop() while run() is busy. With handleSignals, SIGINT and SIGTERM ask
+// the component to stop.
+int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
+                 bool handleSignals = true);
+
+// The whole main(): reads the launch environment, makes the component, runs it.
+int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc, char** argv);
+
+}  // namespace cast
+
+// Defines main() for a component class (default-constructible).
+#define CAST_COMPONENT_MAIN(ComponentClass)                                                   \
+  int main(int argc, char** argv) {                                                           \
+    return ::cast::runMain([] { return std::unique_ptr<::cast::Component>(new ComponentClass()); }, argc, argv); \
+  }

@@ -1,0 +1,98 @@
+// How a component reaches its working memories. Components never use this
+// directly: the runner binds a component to a transport (GrpcTransport for a
+// real system); tests may bind one of their own. Values cross this interface
+// serialised, so nothing the component holds is ever shared with the WM.
+#pragma once
+
+#include <google/protobuf/descriptor.pb.h>
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cast/errors.h"
+#include "cast/filters.h"
+#include "cast/types.h"
+
+namespace cast {
+
+// Who a component is: its id, its SA, and whether it may write every SA.
+struct Identity {
+  std::string componentId;
+  std::string subarchitecture;
+  bool privileged = false;
+};
+
+namespace detail {
+
+// One write of a batch.
+struct BatchOp {
+  Operation operation = Operation::Add;
+  std::string subarchitecture;
+  std::string id;
+  std::string type;  // empty for delete
+  std::string data;
+  std::optional<std::uint64_t> expectedVersion;
+};
+
+using EventSink = std::function<void(EventRecord event, const std::vector<std::uint32_t>& watchIds)>;
+using ErrorSink = std::function<void(std::shared_ptr<CastError> error)>;
+using DecisionSink = std::function<void(TaskRecord task)>;
+using StateSource = std::function<ComponentState()>;
+
+class Transport {
+ public:
+  virtual ~Transport() = default;
+
+  virtual const Identity& identity() const = 0;
+
+  virtual WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
+                          const std::string& data) = 0;
+  virtual WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
+                                const std::string& data, std::optional<std::uint64_t> expectedVersion) = 0;
+  virtual WriteResult deleteEntry(const std::string& sa, const std::string& id,
+                                  std::optional<std::uint64_t> expectedVersion) = 0;
+  virtual std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) = 0;
+
+  virtual EntryRecord get(const std::string& sa, const std::string& id) = 0;
+  virtual std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type,
+                                             std::uint32_t limit) = 0;
+  virtual bool exists(const std::string& sa, const std::string& id) = 0;
+
+  // timeout: how long to wait for another holder (nullopt: forever).
+  virtual std::uint32_t lock(const std::string& sa, const std::string& id, LockMode mode,
+                             std::optional<std::chrono::milliseconds> timeout, bool noWait) = 0;
+  virtual std::uint32_t unlock(const std::string& sa, const std::string& id) = 0;
+
+  // Registers .proto files (a type's file and everything it imports) with
+  // every server of the system.
+  virtual void registerSchemas(const google::protobuf::FileDescriptorSet& files) = 0;
+
+  // Where events and stream failures go; called before the first watch.
+  virtual void setEventSink(EventSink sink, ErrorSink onError) = 0;
+  // Creates watch `watchId` (filters already resolved); returns when every
+  // server involved confirmed it, with the revisions it starts after.
+  virtual std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
+                                                     const std::map<std::string, std::uint64_t>& startRevisions) = 0;
+  virtual void cancelWatch(std::uint32_t watchId) = 0;
+
+  virtual TaskRecord propose(const std::string& name, const std::string& dataType, const std::string& data,
+                             std::int32_t priority) = 0;
+  virtual void retract(const std::string& taskId) = 0;
+  virtual void complete(const std::string& taskId, TaskOutcome outcome, const std::string& reason) = 0;
+  // Opens the decision stream of the own SA's task manager.
+  virtual void setDecisionSink(DecisionSink sink) = 0;
+
+  // Registers the component's session(s) and keeps them alive.
+  virtual void startSession(const std::string& language, const std::string& kind, StateSource state) = 0;
+  // Ends sessions and streams; no sink is called after close() returns.
+  virtual void close() = 0;
+};
+
+}  // namespace detail
+}  // namespace cast

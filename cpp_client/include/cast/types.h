@@ -1,0 +1,211 @@
+// The value types of the component API: addresses, write results, entries,
+// change events and tasks. They are plain copies: nothing here refers back to
+// the working memory, so a component may keep, change or pass them around
+// freely without affecting what other components read.
+#pragma once
+
+#include <google/protobuf/message.h>
+
+#include <cstdint>
+#include <optional>
+#include <ostream>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#include "cast/errors.h"
+
+namespace cast {
+
+// What a write did. Values equal cast.v1.Operation.
+enum class Operation { Add = 1, Overwrite = 2, Delete = 3 };
+
+// What a lock keeps other components from doing. Values equal cast.v1.LockMode.
+enum class LockMode {
+  O = 1,    // others may not overwrite
+  OD = 2,   // nor delete
+  ODR = 3,  // nor read
+};
+
+// A component's life stage as its session reports it (cast.v1.ComponentState).
+enum class ComponentState { Starting = 2, Running = 3, Stopping = 4 };
+
+// Where a task is in its life (cast.v1.TaskState).
+enum class TaskState { Unspecified = 0, Waiting = 1, Adopted = 2, Rejected = 3, Retracted = 4, Completed = 5 };
+
+// What the proposer reports when a task ends (cast.v1.TaskOutcome).
+enum class TaskOutcome { Unspecified = 0, Succeeded = 1, Failed = 2, Abandoned = 3 };
+
+const char* toString(Operation op);
+const char* toString(LockMode mode);
+const char* toString(TaskState state);
+const char* toString(TaskOutcome outcome);
+inline std::ostream& operator<<(std::ostream& os, Operation op) { return os << toString(op); }
+inline std::ostream& operator<<(std::ostream& os, LockMode m) { return os << toString(m); }
+inline std::ostream& operator<<(std::ostream& os, TaskState s) { return os << toString(s); }
+inline std::ostream& operator<<(std::ostream& os, TaskOutcome o) { return os << toString(o); }
+
+// Where an entry lives: its id in the WM of one subarchitecture.
+struct WorkingMemoryAddress {
+  std::string id;
+  std::string subarchitecture;
+  bool operator==(const WorkingMemoryAddress& o) const { return id == o.id && subarchitecture == o.subarchitecture; }
+  bool operator!=(const WorkingMemoryAddress& o) const { return !(*this == o); }
+};
+
+// The result of one write: the WM revision it made and the entry's version.
+struct WriteResult {
+  std::uint64_t revision = 0;
+  std::uint64_t version = 0;
+};
+
+// The full protobuf name of a message type, as entry types are named.
+template <class T>
+const std::string& typeName() {
+  static_assert(std::is_base_of_v<google::protobuf::Message, T>,
+                "entry types are protobuf messages: generate them with cast_add_entry_types()");
+  return T::descriptor()->full_name();
+}
+
+namespace detail {
+
+// An entry as the transport returns it: the value still serialised.
+struct EntryRecord {
+  WorkingMemoryAddress address;
+  std::string type;
+  std::string data;
+  std::uint64_t version = 0;
+  std::string author;
+  std::uint64_t revision = 0;
+  std::int64_t modifiedNs = 0;
+};
+
+// A change event as the transport returns it.
+struct EventRecord {
+  std::uint64_t revision = 0;
+  Operation operation = Operation::Add;
+  WorkingMemoryAddress address;
+  std::string type;
+  std::string sourceComponent;
+  std::string sourceSubarchitecture;
+  std::uint64_t version = 0;
+  std::int64_t timeNs = 0;
+  std::optional<EntryRecord> entry;
+};
+
+// Parses `data` as T after checking the declared type; "what" names the
+// thing read in the error (entry 'x', task 't' data).
+template <class T>
+T decode(const std::string& declaredType, const std::string& data, const std::string& what) {
+  const std::string& expected = typeName<T>();
+  if (declaredType != expected) {
+    throw InvalidArgumentError(what + " has type " + declaredType + ", not " + expected +
+                               ": read it with the right class");
+  }
+  T value;
+  if (!value.ParseFromString(data)) {
+    throw InvalidArgumentError(what + " does not parse as " + expected + ": it was written with another type");
+  }
+  return value;
+}
+
+}  // namespace detail
+
+// An entry read from a WM: a fresh copy of its value and its metadata.
+template <class T>
+struct Entry {
+  WorkingMemoryAddress address;
+  std::string type;
+  T value;
+  std::uint64_t version = 0;
+  std::string author;        // component that made the last write
+  std::uint64_t revision = 0;  // WM revision of the last write
+  std::int64_t modifiedNs = 0;  // server time of the last write (ns since the epoch)
+
+  const std::string& id() const { return address.id; }
+};
+
+namespace detail {
+template <class T>
+Entry<T> toEntry(const EntryRecord& r) {
+  return Entry<T>{r.address, r.type, decode<T>(r.type, r.data, "entry '" + r.address.id + "'"),
+                  r.version, r.author, r.revision, r.modifiedNs};
+}
+}  // namespace detail
+
+// One change event as delivered to an onChange callback.
+class WorkingMemoryChange {
+ public:
+  explicit WorkingMemoryChange(detail::EventRecord event) : ev_(std::move(event)) {}
+
+  Operation operation() const { return ev_.operation; }
+  std::uint64_t revision() const { return ev_.revision; }
+  const std::string& type() const { return ev_.type; }
+  std::uint64_t version() const { return ev_.version; }
+  const std::string& sourceComponent() const { return ev_.sourceComponent; }
+  const std::string& sourceSubarchitecture() const { return ev_.sourceSubarchitecture; }
+  std::int64_t timeNs() const { return ev_.timeNs; }
+  const WorkingMemoryAddress& address() const { return ev_.address; }
+  const std::string& id() const { return ev_.address.id; }
+  const std::string& subarchitecture() const { return ev_.address.subarchitecture; }
+  // Whether the event carries the entry (a matching filter set includeEntry).
+  bool hasEntry() const { return ev_.entry.has_value(); }
+  // The entry carried by the event (after the write; for DELETE, as it was).
+  template <class T>
+  Entry<T> entry() const {
+    if (!ev_.entry) throw InvalidArgumentError("this change carries no entry: ask for it with includeEntry");
+    return detail::toEntry<T>(*ev_.entry);
+  }
+
+ private:
+  detail::EventRecord ev_;
+};
+
+std::ostream& operator<<(std::ostream& os, const WorkingMemoryChange& change);
+
+namespace detail {
+// A task as the transport returns it.
+struct TaskRecord {
+  std::string taskId;
+  std::string name;
+  std::string subarchitecture;
+  std::string component;
+  std::int32_t priority = 0;
+  TaskState state = TaskState::Unspecified;
+  TaskOutcome outcome = TaskOutcome::Unspecified;
+  std::string reason;
+  std::string dataType;  // full name of the payload's type, empty if none
+  std::string data;      // serialised payload
+};
+}  // namespace detail
+
+// A task proposed by a managed component, as its task manager decided.
+class Task {
+ public:
+  Task() = default;
+  explicit Task(detail::TaskRecord record) : rec_(std::move(record)) {}
+
+  const std::string& taskId() const { return rec_.taskId; }
+  const std::string& name() const { return rec_.name; }
+  const std::string& subarchitecture() const { return rec_.subarchitecture; }  // SA whose TM decided
+  const std::string& component() const { return rec_.component; }              // the proposer
+  std::int32_t priority() const { return rec_.priority; }
+  TaskState state() const { return rec_.state; }
+  TaskOutcome outcome() const { return rec_.outcome; }
+  const std::string& reason() const { return rec_.reason; }  // why rejected, retracted or ended
+  // Whether the proposal carried a payload.
+  bool hasData() const { return !rec_.dataType.empty(); }
+  // The proposal's payload as T (nullopt if none was given).
+  template <class T>
+  std::optional<T> data() const {
+    if (rec_.dataType.empty()) return std::nullopt;
+    return detail::decode<T>(rec_.dataType, rec_.data, "task '" + rec_.taskId + "' data");
+  }
+
+ private:
+  detail::TaskRecord rec_;
+};
+
+std::ostream& operator<<(std::ostream& os, const Task& task);
+
+}  // namespace cast

@@ -1,0 +1,421 @@
+#include "cast/component.h"
+
+#include <random>
+#include <sstream>
+
+#include "cast/schemas.h"
+#include "component_core.h"
+
+namespace cast {
+
+using detail::ComponentCore;
+
+// ---------------------------------------------------------------- core
+
+namespace detail {
+
+Transport& ComponentCore::transport() const {
+  if (!transport_) {
+    throw CastError(
+        "the component is not bound to a working memory system: run it with CAST_COMPONENT_MAIN, or call bind()",
+        "FAILED_PRECONDITION");
+  }
+  if (closed) throw CastError("the component was closed: its session has ended", "FAILED_PRECONDITION");
+  return *transport_;
+}
+
+void ComponentCore::cancelWatch(std::uint32_t watchId) {
+  bool had;
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    had = callbacks.erase(watchId) > 0;
+  }
+  if (had && transport_ && !closed) transport_->cancelWatch(watchId);
+}
+
+bool ComponentCore::watchActive(std::uint32_t watchId) {
+  std::lock_guard<std::mutex> lock(mu);
+  return callbacks.count(watchId) > 0;
+}
+
+std::shared_ptr<CastError> ComponentCore::watchError(std::uint32_t watchId) {
+  std::lock_guard<std::mutex> lock(mu);
+  auto it = errors.find(watchId);
+  return it == errors.end() ? nullptr : it->second;
+}
+
+}  // namespace detail
+
+// ---------------------------------------------------------------- LockGuard
+
+LockGuard::LockGuard(std::shared_ptr<ComponentCore> core, WorkingMemoryAddress address, std::uint32_t depth)
+    : core_(std::move(core)), address_(std::move(address)), depth_(depth), held_(true) {}
+
+LockGuard::LockGuard(LockGuard&& other) noexcept
+    : core_(std::move(other.core_)), address_(std::move(other.address_)), depth_(other.depth_), held_(other.held_) {
+  other.held_ = false;
+}
+
+LockGuard& LockGuard::operator=(LockGuard&& other) noexcept {
+  if (this != &other) {
+    if (held_) {
+      try {
+        unlock();
+      } catch (...) {  // logged by the destructor path below; nothing to do here
+      }
+    }
+    core_ = std::move(other.core_);
+    address_ = std::move(other.address_);
+    depth_ = other.depth_;
+    held_ = other.held_;
+    other.held_ = false;
+  }
+  return *this;
+}
+
+LockGuard::~LockGuard() {
+  if (!held_) return;
+  try {
+    unlock();
+  } catch (const CastError& e) {
+    core_->log.warning("unlock of " + address_.subarchitecture + "/" + address_.id +
+                       " at the end of its guard failed: " + e.name() + ": " + e.message());
+  } catch (const std::exception& e) {
+    core_->log.warning("unlock of " + address_.subarchitecture + "/" + address_.id + " failed: " + e.what());
+  }
+}
+
+void LockGuard::unlock() {
+  if (!held_) return;
+  held_ = false;  // one attempt only: a failed unlock is not retried by the destructor
+  core_->transport().unlock(address_.subarchitecture, address_.id);
+}
+
+void LockGuard::release() noexcept { held_ = false; }
+
+// ---------------------------------------------------------------- WatchHandle
+
+void WatchHandle::cancel() {
+  if (auto core = core_.lock()) core->cancelWatch(watchId_);
+}
+
+bool WatchHandle::active() const {
+  auto core = core_.lock();
+  return core && core->watchActive(watchId_);
+}
+
+std::shared_ptr<CastError> WatchHandle::error() const {
+  auto core = core_.lock();
+  return core ? core->watchError(watchId_) : nullptr;
+}
+
+// ---------------------------------------------------------------- Component
+
+Component::Component() : core_(std::make_shared<ComponentCore>(this)) {}
+
+Component::~Component() {
+  try {
+    close();
+  } catch (...) {  // a destructor must not throw; close() logs what failed
+  }
+}
+
+ComponentCore& Component::core() const { return *core_; }
+
+void Component::configure(const Args&) {}
+void Component::start() {}
+void Component::run() { waitForStop(); }
+void Component::stop() {}
+
+void Component::watchFailed(const CastError& error) {
+  log().error(std::string("change delivery stopped: ") + error.name() + ": " + error.message());
+}
+
+const std::string& Component::componentId() const { return core_->identity.componentId; }
+const std::string& Component::subarchitecture() const { return core_->identity.subarchitecture; }
+bool Component::privileged() const { return core_->identity.privileged; }
+const Logger& Component::log() const { return core_->log; }
+
+bool Component::running() const {
+  std::lock_guard<std::mutex> lock(core_->stopMu);
+  return !core_->stopping;
+}
+
+bool Component::waitForStop(std::chrono::milliseconds timeout) const {
+  std::unique_lock<std::mutex> lock(core_->stopMu);
+  return core_->stopCv.wait_for(lock, timeout, [this] { return core_->stopping; });
+}
+
+void Component::waitForStop() const {
+  std::unique_lock<std::mutex> lock(core_->stopMu);
+  core_->stopCv.wait(lock, [this] { return core_->stopping; });
+}
+
+void Component::requestStop() {
+  {
+    std::lock_guard<std::mutex> lock(core_->stopMu);
+    core_->stopping = true;
+  }
+  core_->stopCv.notify_all();
+}
+
+void Component::setState(ComponentState state) { core_->state = state; }
+
+void Component::bind(std::shared_ptr<detail::Transport> transport, const std::string& language) {
+  if (core_->transport_) throw CastError("the component is already bound", "FAILED_PRECONDITION");
+  if (!transport) throw InvalidArgumentError("bind() needs a transport");
+  ComponentCore& c = *core_;
+  c.identity = transport->identity();
+  c.log = Logger("cast.component." + c.identity.componentId);
+  c.dispatcher = std::make_unique<detail::Dispatcher>(c.identity.componentId);
+  // A random part per process keeps ids unique across restarts of the same
+  // component (the counter starts again at 1).
+  std::random_device rd;
+  std::ostringstream prefix;
+  prefix << c.identity.componentId << ":" << std::hex;
+  for (int i = 0; i < 3; ++i) {
+    unsigned byte = rd() & 0xffu;
+    if (byte < 16) prefix << '0';
+    prefix << byte;
+  }
+  prefix << ":";
+  c.idPrefix = prefix.str();
+  c.transport_ = std::move(transport);
+
+  std::weak_ptr<ComponentCore> weak = core_;
+  c.transport_->setEventSink(
+      [weak](detail::EventRecord event, const std::vector<std::uint32_t>& watchIds) {
+        auto core = weak.lock();
+        if (!core || !core->dispatcher) return;
+        auto change = std::make_shared<const WorkingMemoryChange>(std::move(event));
+        for (std::uint32_t wid : watchIds) {
+          {
+            std::lock_guard<std::mutex> lock(core->mu);
+            if (core->callbacks.count(wid) == 0) continue;
+          }
+          core->dispatcher->submit([weak, wid, change] {
+            auto c2 = weak.lock();
+            if (!c2) return;
+            ChangeCallback cb;
+            {
+              std::lock_guard<std::mutex> lock(c2->mu);
+              auto it = c2->callbacks.find(wid);
+              if (it == c2->callbacks.end()) return;  // cancelled while queued: drop
+              cb = it->second;
+            }
+            cb(*change);
+          });
+        }
+      },
+      [weak](std::shared_ptr<CastError> error) {
+        auto core = weak.lock();
+        if (!core || !core->dispatcher) return;
+        {
+          std::lock_guard<std::mutex> lock(core->mu);
+          for (const auto& kv : core->callbacks) core->errors[kv.first] = error;
+        }
+        core->dispatcher->submit([weak, error] {
+          auto c2 = weak.lock();
+          if (c2 && !c2->closed) c2->owner->watchFailed(*error);
+        });
+      });
+  std::weak_ptr<ComponentCore> weakState = core_;
+  c.transport_->startSession(language, kind(), [weakState] {
+    auto core = weakState.lock();
+    return core ? core->state.load() : ComponentState::Stopping;
+  });
+  onBound();
+}
+
+void Component::close() {
+  ComponentCore& c = *core_;
+  if (c.closed.exchange(true)) return;
+  requestStop();
+  if (c.dispatcher) c.dispatcher->stop();
+  if (c.transport_) {
+    try {
+      c.transport_->close();
+    } catch (const std::exception& e) {
+      c.log.warning(std::string("closing the connection failed: ") + e.what());
+    }
+  }
+}
+
+std::string Component::targetSa(const std::string& subarchitecture) const {
+  return subarchitecture.empty() ? core_->identity.subarchitecture : subarchitecture;
+}
+
+std::string Component::newId() {
+  if (core_->idPrefix.empty()) core().transport();  // throws the "not bound" error
+  return core_->idPrefix + std::to_string(++core_->idCounter);
+}
+
+std::pair<std::string, std::string> Component::serialise(const google::protobuf::Message& value) {
+  detail::Transport& t = core().transport();
+  const google::protobuf::Descriptor* descriptor = value.GetDescriptor();
+  const std::string& name = descriptor->full_name();
+  {
+    std::lock_guard<std::mutex> lock(core_->schemaMu);
+    if (core_->registeredTypes.count(name) == 0) {
+      t.registerSchemas(schemaFilesOf(descriptor));
+      core_->registeredTypes.insert(name);
+    }
+  }
+  std::string data;
+  if (!value.SerializeToString(&data)) {
+    throw InvalidArgumentError("value of type " + name + " could not be serialised (required fields missing?)");
+  }
+  return {name, std::move(data)};
+}
+
+WriteResult Component::add(const std::string& id, const google::protobuf::Message& value,
+                           const std::string& subarchitecture) {
+  auto [type, data] = serialise(value);
+  return core().transport().add(targetSa(subarchitecture), id, type, data);
+}
+
+WriteResult Component::overwrite(const std::string& id, const google::protobuf::Message& value,
+                                 const std::string& subarchitecture, std::optional<std::uint64_t> expectedVersion) {
+  auto [type, data] = serialise(value);
+  return core().transport().overwrite(targetSa(subarchitecture), id, type, data, expectedVersion);
+}
+
+WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,
+                                   std::optional<std::uint64_t> expectedVersion) {
+  return core().transport().deleteEntry(targetSa(subarchitecture), id, expectedVersion);
+}
+
+std::vector<WriteResult> Component::batch(const std::vector<BatchWrite>& writes, const std::string& subarchitecture) {
+  std::vector<detail::BatchOp> ops;
+  const std::string target = targetSa(subarchitecture);
+  for (const auto& w : writes) {
+    detail::BatchOp op;
+    op.operation = w.operation;
+    op.subarchitecture = target;
+    op.id = w.id;
+    op.expectedVersion = w.expectedVersion;
+    if (w.operation != Operation::Delete) {
+      if (w.value == nullptr) {
+        throw InvalidArgumentError(std::string("batch ") + toString(w.operation) + " of '" + w.id + "' needs a value");
+      }
+      std::tie(op.type, op.data) = serialise(*w.value);
+    }
+    ops.push_back(std::move(op));
+  }
+  if (ops.empty()) return {};
+  return core().transport().batch(ops);
+}
+
+detail::EntryRecord Component::readEntry(const std::string& id, const std::string& subarchitecture) {
+  return core().transport().get(targetSa(subarchitecture), id);
+}
+
+std::vector<detail::EntryRecord> Component::readAll(const std::string& type, const std::string& subarchitecture,
+                                                    std::uint32_t limit) {
+  return core().transport().getByType(targetSa(subarchitecture), type, limit);
+}
+
+bool Component::exists(const std::string& id, const std::string& subarchitecture) {
+  return core().transport().exists(targetSa(subarchitecture), id);
+}
+
+LockGuard Component::lock(const std::string& id, LockMode mode, const std::string& subarchitecture,
+                          std::optional<std::chrono::milliseconds> timeout) {
+  const std::string target = targetSa(subarchitecture);
+  std::uint32_t depth = core().transport().lock(target, id, mode, timeout, false);
+  return LockGuard(core_, WorkingMemoryAddress{id, target}, depth);
+}
+
+bool Component::tryLock(const std::string& id, LockMode mode, const std::string& subarchitecture) {
+  try {
+    core().transport().lock(targetSa(subarchitecture), id, mode, std::nullopt, true);
+  } catch (const LockedError&) {
+    return false;
+  }
+  return true;
+}
+
+std::uint32_t Component::unlock(const std::string& id, const std::string& subarchitecture) {
+  return core().transport().unlock(targetSa(subarchitecture), id);
+}
+
+WatchHandle Component::onChange(const ChangeFilter& filter, ChangeCallback callback) {
+  return onChange(std::vector<ChangeFilter>{filter}, std::move(callback));
+}
+
+WatchHandle Component::onChange(const std::vector<ChangeFilter>& filters, ChangeCallback callback) {
+  detail::Transport& t = core().transport();
+  if (filters.empty()) throw InvalidArgumentError("onChange needs at least one filter");
+  if (!callback) throw InvalidArgumentError("onChange needs a callback");
+  std::vector<ChangeFilter> resolved;
+  for (const auto& f : filters) resolved.push_back(f.resolve(subarchitecture()));
+  std::uint32_t watchId;
+  {
+    std::lock_guard<std::mutex> lock(core_->mu);
+    watchId = core_->nextWatchId++;
+    // Registered before the watch exists, so no event can find it missing.
+    core_->callbacks[watchId] = std::move(callback);
+  }
+  try {
+    t.watch(watchId, resolved, {});
+  } catch (...) {
+    std::lock_guard<std::mutex> lock(core_->mu);
+    core_->callbacks.erase(watchId);
+    throw;
+  }
+  return WatchHandle(core_, watchId);
+}
+
+bool Component::drain(std::chrono::milliseconds timeout) {
+  return core_->dispatcher ? core_->dispatcher->drain(timeout) : true;
+}
+
+bool Component::onDispatcherThread() const { return core_->dispatcher && core_->dispatcher->onThread(); }
+
+// ---------------------------------------------------------------- ManagedComponent
+
+void ManagedComponent::onBound() {
+  // The sink may capture `this`: the transport calls no sink after close(),
+  // and close() runs before the component goes away.
+  ComponentCore& c = core();
+  c.transport().setDecisionSink([this, &c](detail::TaskRecord record) {
+    if (c.closed || !c.dispatcher) return;
+    auto task = std::make_shared<const Task>(std::move(record));
+    if (task->state() == TaskState::Adopted) {
+      c.dispatcher->submit([this, task] { taskAdopted(*task); });
+    } else if (task->state() == TaskState::Rejected) {
+      c.dispatcher->submit([this, task] { taskRejected(*task); });
+    }
+  });
+}
+
+Task ManagedComponent::proposeTask(const std::string& name, std::int32_t priority) {
+  return Task(core().transport().propose(name, "", "", priority));
+}
+
+Task ManagedComponent::proposeTask(const std::string& name, const google::protobuf::Message& data,
+                                   std::int32_t priority) {
+  auto [type, bytes] = serialise(data);
+  return Task(core().transport().propose(name, type, bytes, priority));
+}
+
+void ManagedComponent::retractTask(const Task& task) { retractTask(task.taskId()); }
+void ManagedComponent::retractTask(const std::string& taskId) { core().transport().retract(taskId); }
+
+void ManagedComponent::taskComplete(const Task& task, TaskOutcome outcome, const std::string& reason) {
+  taskComplete(task.taskId(), outcome, reason);
+}
+
+void ManagedComponent::taskComplete(const std::string& taskId, TaskOutcome outcome, const std::string& reason) {
+  core().transport().complete(taskId, outcome, reason);
+}
+
+void ManagedComponent::taskAdopted(const Task& task) {
+  log().info("task " + task.taskId() + " '" + task.name() + "' adopted; override taskAdopted to run it");
+}
+
+void ManagedComponent::taskRejected(const Task& task) {
+  log().info("task " + task.taskId() + " '" + task.name() + "' rejected: " + task.reason());
+}
+
+}  // namespace cast

@@ -1,0 +1,87 @@
+#include "dispatcher.h"
+
+#include <exception>
+
+#include "cast/errors.h"
+
+namespace cast::detail {
+
+Dispatcher::Dispatcher(std::string name) : state_(std::make_shared<State>("cast.dispatch." + name)) {
+  thread_ = std::thread([state = state_] { loop(state); });
+  threadId_ = thread_.get_id();
+}
+
+Dispatcher::~Dispatcher() { stop(); }
+
+void Dispatcher::submit(std::function<void()> fn) {
+  {
+    std::lock_guard<std::mutex> lock(state_->mu);
+    if (state_->stopping) return;
+    state_->queue.push_back(std::move(fn));
+    ++state_->pending;
+  }
+  state_->wake.notify_one();
+}
+
+void Dispatcher::loop(const std::shared_ptr<State>& s) {
+  for (;;) {
+    std::function<void()> fn;
+    {
+      std::unique_lock<std::mutex> lock(s->mu);
+      s->wake.wait(lock, [&] { return !s->queue.empty() || s->stopping; });
+      if (s->queue.empty()) break;  // stopping and nothing left to run
+      fn = std::move(s->queue.front());
+      s->queue.pop_front();
+    }
+    try {
+      fn();
+    } catch (const CastError& e) {
+      s->log.error(std::string("callback failed: ") + e.name() + ": " + e.message());
+    } catch (const std::exception& e) {
+      s->log.error(std::string("callback failed: ") + e.what());
+    } catch (...) {
+      s->log.error("callback failed with a non-standard exception");
+    }
+    fn = nullptr;  // destroy what the callback captured before reporting idle
+    {
+      std::lock_guard<std::mutex> lock(s->mu);
+      --s->pending;
+      if (s->pending == 0) s->idle.notify_all();
+    }
+  }
+  std::lock_guard<std::mutex> lock(s->mu);
+  s->finished = true;
+  s->idle.notify_all();
+}
+
+bool Dispatcher::drain(std::chrono::milliseconds timeout) {
+  if (onThread()) return false;
+  std::unique_lock<std::mutex> lock(state_->mu);
+  return state_->idle.wait_for(lock, timeout, [this] { return state_->pending == 0 || state_->finished; });
+}
+
+void Dispatcher::stop(std::chrono::milliseconds timeout) {
+  {
+    std::lock_guard<std::mutex> lock(state_->mu);
+    state_->stopping = true;
+  }
+  state_->wake.notify_all();
+  if (!thread_.joinable()) return;
+  if (onThread()) {
+    // stop() from a callback: the thread ends after this callback returns.
+    thread_.detach();
+    return;
+  }
+  {
+    std::unique_lock<std::mutex> lock(state_->mu);
+    if (!state_->idle.wait_for(lock, timeout, [this] { return state_->finished; })) {
+      state_->log.error("a callback was still running " + std::to_string(timeout.count()) +
+                        " ms after stop; leaving the dispatcher thread behind");
+      thread_.detach();
+      return;
+    }
+  }
+  thread_.join();
+}
+
+}  // namespace cast::detail

@@ -1,0 +1,230 @@
+#include "cast/runner.h"
+
+#include <google/protobuf/struct.pb.h>
+#include <google/protobuf/util/json_util.h>
+
+#include <atomic>
+#include <csignal>
+#include <cstdlib>
+#include <cstring>
+#include <future>
+#include <iostream>
+#include <thread>
+
+#include "cast/grpc_transport.h"
+#include "cast/log.h"
+
+extern char** environ;
+
+namespace cast {
+
+namespace {
+
+std::map<std::string, std::string> processEnv() {
+  std::map<std::string, std::string> env;
+  for (char** e = environ; e != nullptr && *e != nullptr; ++e) {
+    const char* eq = std::strchr(*e, '=');
+    if (eq != nullptr) env.emplace(std::string(*e, static_cast<std::size_t>(eq - *e)), std::string(eq + 1));
+  }
+  return env;
+}
+
+// base64url without padding, as the token issuer writes it.
+std::optional<std::string> base64UrlDecode(const std::string& in) {
+  std::string out;
+  unsigned value = 0;
+  int bits = 0;
+  for (char ch : in) {
+    int d;
+    if (ch >= 'A' && ch <= 'Z') d = ch - 'A';
+    else if (ch >= 'a' && ch <= 'z') d = ch - 'a' + 26;
+    else if (ch >= '0' && ch <= '9') d = ch - '0' + 52;
+    else if (ch == '-' || ch == '+') d = 62;
+    else if (ch == '_' || ch == '/') d = 63;
+    else if (ch == '=') break;
+    else return std::nullopt;
+    value = (value << 6) | static_cast<unsigned>(d);
+    bits += 6;
+    if (bits >= 8) {
+      bits -= 8;
+      out.push_back(static_cast<char>((value >> bits) & 0xffu));
+    }
+  }
+  return out;
+}
+
+// Set from the signal handler; polled by the main thread. A lock-free atomic
+// is the only thing a handler may safely touch.
+std::atomic<bool> g_signalled{false};
+static_assert(std::atomic<bool>::is_always_lock_free);
+
+extern "C" void onSignal(int) { g_signalled.store(true); }
+
+void installSignalHandlers() {
+  struct sigaction sa {};
+  sa.sa_handler = onSignal;
+  sigemptyset(&sa.sa_mask);
+  sa.sa_flags = 0;
+  sigaction(SIGINT, &sa, nullptr);
+  sigaction(SIGTERM, &sa, nullptr);
+}
+
+std::string describe(const std::exception_ptr& ep) {
+  try {
+    std::rethrow_exception(ep);
+  } catch (const CastError& e) {
+    return std::string(e.name()) + ": " + e.message();
+  } catch (const std::exception& e) {
+    return e.what();
+  } catch (...) {
+    return "a non-standard exception";
+  }
+}
+
+}  // namespace
+
+LaunchContract LaunchContract::fromEnv() { return fromEnv(processEnv()); }
+
+LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>& env) {
+  auto get = [&](const char* name) {
+    auto it = env.find(name);
+    return it == env.end() ? std::string() : it->second;
+  };
+  std::string missing;
+  for (const char* name : {"CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN"}) {
+    if (get(name).empty()) missing += (missing.empty() ? "" : ", ") + std::string(name);
+  }
+  if (!missing.empty()) {
+    throw InvalidArgumentError("missing launch environment: " + missing +
+                               "; start the component with `cast run CONFIG`, or get the variables from `cast token`");
+  }
+  LaunchContract c;
+  c.endpoint = get("CAST_ENDPOINT");
+  c.componentId = get("CAST_COMPONENT_ID");
+  c.subarchitecture = get("CAST_SUBARCHITECTURE");
+  c.token = get("CAST_TOKEN");
+  c.args = Args::fromJson(get("CAST_ARGS"));
+  return c;
+}
+
+std::optional<Identity> peekToken(const std::string& token) {
+  const auto dot = token.find('.');
+  if (dot == std::string::npos) return std::nullopt;
+  auto payload = base64UrlDecode(token.substr(0, dot));
+  if (!payload) return std::nullopt;
+  google::protobuf::Struct claims;
+  if (!google::protobuf::util::JsonStringToMessage(*payload, &claims).ok()) return std::nullopt;
+  const auto& f = claims.fields();
+  Identity id;
+  if (auto it = f.find("c"); it != f.end()) id.componentId = it->second.string_value();
+  if (auto it = f.find("s"); it != f.end()) id.subarchitecture = it->second.string_value();
+  if (auto it = f.find("p"); it != f.end()) id.privileged = it->second.bool_value();
+  return id;
+}
+
+Identity LaunchContract::identity() const {
+  auto claimed = peekToken(token);
+  return Identity{componentId, subarchitecture, claimed && claimed->privileged};
+}
+
+std::shared_ptr<detail::Transport> LaunchContract::connect() const {
+  return connectGrpc(endpoint, token, identity());
+}
+
+int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
+                 bool handleSignals) {
+  if (handleSignals) installSignalHandlers();
+  component.bind(std::move(transport));
+  const Logger& log = component.log();
+  std::atomic<bool> failed{false};
+  std::atomic<bool> stopCalled{false};
+
+  // stop() exactly once, whoever asks first.
+  auto stopOnce = [&] {
+    if (stopCalled.exchange(true)) return;
+    component.setState(ComponentState::Stopping);
+    component.requestStop();
+    try {
+      component.stop();
+    } catch (...) {
+      log.error("stop() failed: " + describe(std::current_exception()));
+      failed = true;
+    }
+  };
+
+  std::promise<void> runDone;
+  auto runFinished = runDone.get_future();
+  std::thread worker([&] {
+    try {
+      component.configure(args);
+      component.start();
+      component.setState(ComponentState::Running);
+      component.run();
+    } catch (...) {
+      log.error("failed: " + describe(std::current_exception()));
+      failed = true;
+      stopOnce();
+    }
+    runDone.set_value();
+  });
+
+  using namespace std::chrono_literals;
+  while (!component.waitForStop(200ms)) {
+    if (g_signalled.load()) {
+      log.info("signal received: stopping");
+      break;
+    }
+    if (failed && runFinished.wait_for(0ms) == std::future_status::ready) break;
+  }
+  stopOnce();
+  if (runFinished.wait_for(10s) != std::future_status::ready) {
+    // run() ignores the stop request: nothing can end a thread from outside,
+    // so end the process (the server releases our session when it goes).
+    log.error("run() did not return within 10 s of stop(): exiting anyway");
+    std::_Exit(1);
+  }
+  worker.join();
+  // Callbacks queued before the stop still run, then the session ends.
+  component.drain(5000ms);
+  component.close();
+  return failed ? 1 : 0;
+}
+
+int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc, char** argv) {
+  if (argc > 1 && (std::strcmp(argv[1], "-h") == 0 || std::strcmp(argv[1], "--help") == 0)) {
+    std::cout << "usage: " << argv[0]
+              << "   (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS\n"
+                 "   from the environment; `cast run CONFIG` sets them, `cast token` prints them)\n";
+    return 0;
+  }
+  // Signals are caught from the start, so a SIGTERM that arrives while
+  // connecting still ends the process in order.
+  installSignalHandlers();
+  LaunchContract contract;
+  std::shared_ptr<detail::Transport> transport;
+  try {
+    contract = LaunchContract::fromEnv();
+    transport = contract.connect();
+  } catch (const CastError& e) {
+    std::cerr << "cast: " << e.message() << std::endl;
+    return 2;
+  }
+  std::unique_ptr<Component> component;
+  try {
+    component = factory();
+  } catch (...) {
+    std::cerr << "cast: constructing the component failed: " << describe(std::current_exception()) << std::endl;
+    transport->close();
+    return 1;
+  }
+  try {
+    return runComponent(*component, std::move(transport), contract.args);
+  } catch (...) {
+    // bind() failing (Register refused, server gone) ends here.
+    std::cerr << "cast: " << contract.componentId << ": " << describe(std::current_exception()) << std::endl;
+    component->close();
+    return 1;
+  }
+}
+
+}  // namespace cast

@@ -1,0 +1,96 @@
+// The dispatcher runs callbacks one at a time, in order, on one thread.
+#include "dispatcher.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <set>
+#include <stdexcept>
+#include <thread>
+#include <vector>
+
+namespace {
+
+using namespace std::chrono_literals;
+
+TEST(Dispatcher, RunsInSubmissionOrderOnOneThread) {
+  cast::detail::Dispatcher d("test");
+  std::vector<int> seen;
+  std::set<std::thread::id> threads;
+  for (int i = 0; i < 1000; ++i) {
+    d.submit([&, i] {
+      seen.push_back(i);
+      threads.insert(std::this_thread::get_id());
+    });
+  }
+  ASSERT_TRUE(d.drain(5000ms));
+  ASSERT_EQ(seen.size(), 1000u);
+  for (int i = 0; i < 1000; ++i) EXPECT_EQ(seen[static_cast<size_t>(i)], i);
+  EXPECT_EQ(threads.size(), 1u);
+  EXPECT_EQ(threads.count(std::this_thread::get_id()), 0u);
+}
+
+TEST(Dispatcher, AFailingCallbackDoesNotStopTheOthers) {
+  cast::detail::Dispatcher d("test");
+  std::atomic<int> ran{0};
+  d.submit([] { throw std::runtime_error("callback bug"); });
+  d.submit([&] { ++ran; });
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(ran.load(), 1);
+}
+
+TEST(Dispatcher, OneAtATime) {
+  cast::detail::Dispatcher d("test");
+  std::atomic<int> inside{0};
+  std::atomic<int> maxInside{0};
+  std::vector<std::thread> producers;
+  for (int p = 0; p < 4; ++p) {
+    producers.emplace_back([&] {
+      for (int i = 0; i < 50; ++i) {
+        d.submit([&] {
+          int now = ++inside;
+          int prev = maxInside.load();
+          while (now > prev && !maxInside.compare_exchange_weak(prev, now)) {
+          }
+          std::this_thread::sleep_for(50us);
+          --inside;
+        });
+      }
+    });
+  }
+  for (auto& t : producers) t.join();
+  ASSERT_TRUE(d.drain(10000ms));
+  EXPECT_EQ(maxInside.load(), 1);
+}
+
+TEST(Dispatcher, DrainTimesOutWhileACallbackRuns) {
+  cast::detail::Dispatcher d("test");
+  std::atomic<bool> release{false};
+  d.submit([&] {
+    while (!release) std::this_thread::sleep_for(1ms);
+  });
+  EXPECT_FALSE(d.drain(50ms));
+  release = true;
+  EXPECT_TRUE(d.drain(5000ms));
+}
+
+TEST(Dispatcher, StopRunsWhatIsQueuedThenIgnoresNewWork) {
+  cast::detail::Dispatcher d("test");
+  std::atomic<int> ran{0};
+  for (int i = 0; i < 10; ++i) d.submit([&] { ++ran; });
+  d.stop();
+  EXPECT_EQ(ran.load(), 10);
+  d.submit([&] { ++ran; });
+  std::this_thread::sleep_for(20ms);
+  EXPECT_EQ(ran.load(), 10);
+}
+
+TEST(Dispatcher, DrainOnTheDispatcherThreadDoesNotDeadlock) {
+  cast::detail::Dispatcher d("test");
+  std::atomic<int> result{-1};
+  d.submit([&] { result = d.drain(1000ms) ? 1 : 0; });
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(result.load(), 0);
+}
+
+}  // namespace
