@@ -5,8 +5,11 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PROTOS := $(wildcard proto/cast/v1/*.proto)
 GEN_STAMP := python/cast/v1/.generated
+EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
+EXAMPLES_STAMP := build/python-examples/.generated
+DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto test test-python lint demo clean help
+.PHONY: all setup proto examples test test-python lint demo clean help
 
 all: setup proto
 
@@ -15,7 +18,7 @@ help:
 	@echo "make proto   generate Python code from proto/ (never committed)"
 	@echo "make test    set up, build and run every test"
 	@echo "make lint    ruff and mypy"
-	@echo "make demo    run the demo system"
+	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,7 +40,19 @@ $(GEN_STAMP): $(PROTOS) $(VENV)/.installed
 
 proto: $(GEN_STAMP)
 
-test-python: setup proto
+# The demo's entry types, for its Python components (configs/demo.yaml puts this on PYTHONPATH).
+$(EXAMPLES_STAMP): $(EXAMPLE_PROTOS) $(VENV)/.installed
+	rm -rf build/python-examples
+	mkdir -p build/python-examples
+	$(PY) -m grpc_tools.protoc -Iexamples/proto --python_out=build/python-examples $(EXAMPLE_PROTOS)
+	touch $@
+
+examples: $(EXAMPLES_STAMP)
+
+demo: setup proto examples
+	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
+
+test-python: setup proto examples
 	$(PY) -m pytest -q tests
 
 test: test-python

@@ -10,8 +10,9 @@ from __future__ import annotations
 import threading
 from typing import Any
 
-import cast
 from castdemo.scene_pb2 import Question
+
+import cast
 
 __all__ = ["Coordinator"]
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 import re
 from typing import Any
 
-import cast
 from castdemo.scene_pb2 import Question, SceneObject
+
+import cast
 
 __all__ = ["Answerer", "answer"]
 

@@ -17,9 +17,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import cast
 from castdemo.scene_pb2 import RecognitionRequest, SceneObject
 
+import cast
 from cast_examples.scene import TrueObject, features, make_scene, name_colour, name_shape
 
 __all__ = ["ColourRecogniser", "Recogniser", "Segmenter", "ShapeRecogniser"]
