@@ -7,7 +7,10 @@ import cast.testing.RichEntry.Region;
 import cast.testing.Shade;
 import com.google.protobuf.ByteString;
 import com.google.protobuf.Descriptors.FieldDescriptor;
+import com.google.protobuf.Message;
 import java.util.ArrayList;
+import java.util.HashMap;
+import java.util.Map;
 import java.util.List;
 
 /**
@@ -95,6 +98,18 @@ public final class Rich {
     return b.build();
   }
 
+  /** A map field's entries as a Map: the wire (and reflection) order of map entries is not defined. */
+  static Map<Object, Object> asMap(RichEntry m, FieldDescriptor fd) {
+    Map<Object, Object> map = new HashMap<>();
+    for (Object o : (List<?>) m.getField(fd)) {
+      Message entry = (Message) o;
+      FieldDescriptor key = entry.getDescriptorForType().findFieldByNumber(1);
+      FieldDescriptor value = entry.getDescriptorForType().findFieldByNumber(2);
+      map.put(entry.getField(key), entry.getField(value));
+    }
+    return map;
+  }
+
   /** The names of the fields where {@code got} differs from {@code want} (value or presence). */
   public static List<String> diff(RichEntry want, RichEntry got) {
     List<String> diffs = new ArrayList<>();
@@ -102,7 +117,7 @@ public final class Rich {
       boolean presence = fd.hasPresence();
       if (presence && want.hasField(fd) != got.hasField(fd)) {
         diffs.add(fd.getName() + " (presence)");
-      } else if (!want.getField(fd).equals(got.getField(fd))) {
+      } else if (fd.isMapField() ? !asMap(want, fd).equals(asMap(got, fd)) : !want.getField(fd).equals(got.getField(fd))) {
         diffs.add(fd.getName());
       }
     }
