@@ -56,21 +56,29 @@ class LocalTransport:
 
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        return self._host.add(self.identity, sa, entry_id, type_name, data)
+        result = self._host.add(self.identity, sa, entry_id, type_name, data)
+        self._system.durable_sync()  # acknowledged only once durable, as over gRPC
+        return result
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        return self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
+        result = self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
+        self._system.durable_sync()
+        return result
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
-        return self._host.delete(self.identity, sa, entry_id, expected_version)
+        result = self._host.delete(self.identity, sa, entry_id, expected_version)
+        self._system.durable_sync()
+        return result
 
     def batch(self, ops: Sequence[BatchOp]) -> list[WriteResult]:
         """Apply writes in order, all or nothing."""
-        return self._host.batch(self.identity, ops)
+        results = self._host.batch(self.identity, ops)
+        self._system.durable_sync()
+        return results
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry (records are immutable, so sharing one is safe)."""

@@ -16,21 +16,26 @@ from typing import Any
 import yaml
 
 from cast.config.model import (
+    AuthConfig,
     ComponentConfig,
     OrchestratorOptions,
+    PersistenceConfig,
     RestartPolicy,
     ServerConfig,
     SubarchitectureConfig,
     SystemConfig,
+    TlsConfig,
 )
 from cast.config.problems import ConfigError, Position, Problem, Problems
 from cast.config.source import load_tree
 from cast.config.validate import build_config
 
 __all__ = [
+    "AuthConfig",
     "ComponentConfig",
     "ConfigError",
     "OrchestratorOptions",
+    "PersistenceConfig",
     "Position",
     "Problem",
     "Problems",
@@ -38,6 +43,7 @@ __all__ = [
     "ServerConfig",
     "SubarchitectureConfig",
     "SystemConfig",
+    "TlsConfig",
     "load_config",
     "parse_config",
     "read_config",

@@ -11,20 +11,25 @@ from cast.core.policies import TaskPolicy, make_policy
 from cast.core.records import Limits
 
 __all__ = [
+    "DURABILITY_MODES",
     "LANGUAGES",
     "KINDS",
     "RESTART_MODES",
+    "AuthConfig",
     "ComponentConfig",
     "OrchestratorOptions",
+    "PersistenceConfig",
     "RestartPolicy",
     "ServerConfig",
     "SubarchitectureConfig",
     "SystemConfig",
+    "TlsConfig",
 ]
 
 LANGUAGES = ("python", "cpp", "java")
 KINDS = ("unmanaged", "managed")
 RESTART_MODES = ("never", "on-failure", "always")
+DURABILITY_MODES = ("always", "batch", "none")
 DEFAULT_LISTEN = "127.0.0.1:0"
 
 
@@ -93,6 +98,42 @@ class SubarchitectureConfig:
         return make_policy(self.policy, self.policy_options)
 
 
+@dataclass(frozen=True)
+class PersistenceConfig:
+    """Where a server keeps its working memories, and when a write counts as done.
+
+    ``durability``: ``always`` (each write fsynced before it is acknowledged),
+    ``batch`` (group commit, still acknowledged only once durable) or ``none``
+    (written in the background; a crash may lose acknowledged writes).
+    """
+
+    path: Path
+    durability: str = "batch"
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """TLS for every server of the system and the components' connections.
+
+    Servers present ``cert``/``key``; clients verify them against ``ca``. With
+    ``client_auth`` servers also require a client certificate signed by ``ca``
+    (components present ``cert``/``key`` too, or their own via CAST_TLS_CERT/KEY).
+    """
+
+    ca: Path
+    cert: Path
+    key: Path
+    client_auth: bool = False
+
+
+@dataclass(frozen=True)
+class AuthConfig:
+    """Token rules: whether reads need a token, and how long issued tokens live (0: forever)."""
+
+    reads_require_token: bool = True
+    token_ttl: float = 0.0
+
+
 @dataclass
 class ServerConfig:
     """One server process: where it listens and which SAs it hosts."""
@@ -100,6 +141,7 @@ class ServerConfig:
     name: str
     listen: str = DEFAULT_LISTEN
     subarchitectures: list[str] = field(default_factory=list)
+    persistence: PersistenceConfig | None = None
 
 
 @dataclass
@@ -124,6 +166,8 @@ class SystemConfig:
     orchestrator: OrchestratorOptions = field(default_factory=OrchestratorOptions)
     variables: dict[str, str] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
+    tls: TlsConfig | None = None
+    auth: AuthConfig = field(default_factory=AuthConfig)
 
     def __post_init__(self) -> None:
         if not self.servers:

@@ -15,15 +15,19 @@ from typing import Any
 
 from cast.config.model import (
     DEFAULT_LISTEN,
+    DURABILITY_MODES,
     KINDS,
     LANGUAGES,
     RESTART_MODES,
+    AuthConfig,
     ComponentConfig,
     OrchestratorOptions,
+    PersistenceConfig,
     RestartPolicy,
     ServerConfig,
     SubarchitectureConfig,
     SystemConfig,
+    TlsConfig,
 )
 from cast.config.problems import Position, Problems, closest, did_you_mean
 from cast.config.source import SourceTree, YList, YMap
@@ -34,13 +38,19 @@ from cast.errors import InvalidArgumentError
 
 __all__ = ["build_config"]
 
-TOP_KEYS = {"system", "subarchitectures", "components", "servers", "limits", "python_path", "orchestrator"}
+TOP_KEYS = {
+    "system", "subarchitectures", "components", "servers", "limits", "python_path", "orchestrator", "persistence",
+    "tls", "auth",
+}
 SA_KEYS = {"task_manager", "components"}
 COMPONENT_KEYS = {
     "language", "kind", "class", "run", "args", "privileged", "in_process", "manual", "restart", "classpath",
 }
 RESTART_KEYS = {"policy", "max_restarts", "backoff", "max_backoff"}
-SERVER_KEYS = {"listen", "subarchitectures"}
+SERVER_KEYS = {"listen", "subarchitectures", "persistence"}
+PERSISTENCE_KEYS = {"path", "durability"}
+TLS_KEYS = {"ca", "cert", "key", "client_auth"}
+AUTH_KEYS = {"reads_require_token", "token_ttl"}
 ORCHESTRATOR_KEYS = {"connect_timeout", "stop_timeout", "lease_ms"}
 POLICY_OPTIONS = {"always": set(), "exclusive": set(), "fifo": {"max_concurrent", "max_waiting"},
                   "priority": {"max_concurrent", "max_waiting"}}
@@ -141,15 +151,69 @@ class _Validator:
             self.p.error(root.at("subarchitectures"), "subarchitectures", "name at least one subarchitecture")
         elif "subarchitectures" not in root:
             self.p.error(root.pos, "subarchitectures", "missing: name at least one subarchitecture")
+        servers = self.servers(sas)
+        persistence = self.persistence(root, "persistence")
+        if persistence is not None:
+            if "servers" in root:
+                self.p.error(root.at("persistence"), "persistence",
+                             "with a 'servers:' section, give each server its own 'persistence:' (one file each)")
+            else:
+                servers[0].persistence = persistence
         return SystemConfig(
             name=name,
             subarchitectures=sas,
             limits=self.limits(),
             source=str(root.pos.file),
-            servers=self.servers(sas),
+            servers=servers,
             python_path=python_path,
             orchestrator=self.orchestrator(),
+            tls=self.tls(),
+            auth=self.auth(),
         )
+
+    # ------------------------------------------------- reliability, security
+
+    def one_path(self, m: YMap, key: str, where: str) -> Path | None:
+        value = m.get(key)
+        if not isinstance(value, str) or not value:
+            self.p.error(m.value_at(key) if key in m else m.pos, where, "needs a file path")
+            return None
+        path = Path(value)
+        # Relative paths are relative to the file they are written in, like python_path.
+        return path if path.is_absolute() else (Path(m.value_at(key).file).resolve().parent / path).resolve()
+
+    def persistence(self, parent: YMap, where: str) -> PersistenceConfig | None:
+        raw = self.mapping(parent, "persistence", where)
+        if raw is None:
+            return None
+        self.keys(raw, PERSISTENCE_KEYS, f"{where}.")
+        path = self.one_path(raw, "path", f"{where}.path")
+        durability = self.choice(raw, "durability", f"{where}.durability", DURABILITY_MODES, "batch")
+        return None if path is None else PersistenceConfig(path, durability)
+
+    def tls(self) -> TlsConfig | None:
+        raw = self.mapping(self.root, "tls", "tls")
+        if raw is None:
+            return None
+        self.keys(raw, TLS_KEYS, "tls.")
+        ca, cert, key = (self.one_path(raw, k, f"tls.{k}") for k in ("ca", "cert", "key"))
+        client_auth = self.boolean(raw, "client_auth", "tls.client_auth")
+        if ca is None or cert is None or key is None:
+            return None
+        return TlsConfig(ca, cert, key, client_auth)
+
+    def auth(self) -> AuthConfig:
+        raw = self.mapping(self.root, "auth", "auth")
+        default = AuthConfig()
+        if raw is None:
+            return default
+        self.keys(raw, AUTH_KEYS, "auth.")
+        reads = raw.get("reads_require_token", True)
+        if not isinstance(reads, bool):
+            self.p.error(raw.value_at("reads_require_token"), "auth.reads_require_token",
+                         f"must be true or false, not {reads!r}")
+            reads = True
+        return AuthConfig(reads, self.number(raw, "token_ttl", "auth.token_ttl", default.token_ttl))
 
     def subarchitectures(self) -> dict[str, SubarchitectureConfig]:
         out: dict[str, SubarchitectureConfig] = {}
@@ -315,7 +379,7 @@ class _Validator:
                 self.p.error(sraw.value_at("listen"), f"{where}.listen",
                              f"'{listen}' must be HOST:PORT (port 0 picks a free port)")
             names = sraw.get("subarchitectures")
-            server = ServerConfig(name, listen)
+            server = ServerConfig(name, listen, persistence=self.persistence(sraw, f"{where}.persistence"))
             if not isinstance(names, YList) or not names:
                 self.p.error(sraw.at("subarchitectures") if names is not None else raw.at(name),
                              f"{where}.subarchitectures", "list the SAs this server hosts, e.g. [vision, language]")

@@ -101,10 +101,14 @@ class MemoryHost:
                 raise InvalidArgumentError(f"subarchitecture '{name}' is named twice")
             self._wms[name] = WorkingMemory(name, self.limits.history_events, self.limits.history_bytes)
         self._seq = itertools.count(1)
+        self._seq_floor = 0  # highest event sequence number restored from a journal
         self._listeners: list[Callable[[], None]] = []
         self._lock_waiters: dict[tuple[str, str], list[Callable[[], None]]] = {}
         self._waiter_count = 0
         self._held: dict[str, set[tuple[str, str]]] = {}  # component -> locked addresses
+        # Called under the mutex with the events of each commit (cast.core.journal.Journal.append):
+        # it only queues them, so durability never holds the mutex for I/O. None: memory only.
+        self.journal: Callable[[list[ChangeEvent]], None] | None = None
 
     # ----------------------------------------------------------------- queries
 
@@ -323,6 +327,8 @@ class MemoryHost:
     def _commit(self, planned: list[_Planned]) -> tuple[list[WriteResult], list[tuple[str, str]]]:
         results = []
         released: list[tuple[str, str]] = []
+        journal = self.journal
+        journaled: list[ChangeEvent] = []
         for p in planned:
             wm = p.wm
             revision = wm.revision + 1
@@ -342,23 +348,26 @@ class MemoryHost:
                     released.append((wm.name, entry_id))
                 event_entry = old
                 version = old.version
-            wm.history.append(
-                ChangeEvent(
-                    next(self._seq),
-                    revision,
-                    p.op,
-                    wm.name,
-                    entry_id,
-                    event_entry.type,
-                    p.who.component_id,
-                    p.who.subarchitecture,
-                    version,
-                    event_entry.modified_ns if p.record is not None else self._clock(),
-                    event_entry,
-                    odr_holder,
-                )
+            event = ChangeEvent(
+                next(self._seq),
+                revision,
+                p.op,
+                wm.name,
+                entry_id,
+                event_entry.type,
+                p.who.component_id,
+                p.who.subarchitecture,
+                version,
+                event_entry.modified_ns if p.record is not None else self._clock(),
+                event_entry,
+                odr_holder,
             )
+            wm.history.append(event)
+            if journal is not None:
+                journaled.append(event)
             results.append(WriteResult(revision, version))
+        if journal is not None:
+            journal(journaled)
         return results, released
 
     def _after_commit(self, released: list[tuple[str, str]]) -> None:
@@ -381,6 +390,37 @@ class MemoryHost:
             results, released = self._commit([planned])
         self._after_commit(released)
         return results[0]
+
+    def restore(
+        self,
+        sa: str,
+        entries: Sequence[EntryRecord],
+        deleted: dict[str, int],
+        revision: int,
+        events: Sequence[ChangeEvent],
+    ) -> None:
+        """Load one WM's state read back from a journal, before the host serves anyone.
+
+        ``entries`` oldest write first (so the type index is newest first again),
+        ``deleted`` the last versions of deleted entries, ``revision`` the WM's
+        revision counter, ``events`` the newest events kept (contiguous up to
+        ``revision``; otherwise the history restarts empty after ``revision``).
+        """
+        with self._mutex:
+            wm = self._wm(sa)
+            for record in entries:
+                wm.put(record)
+            wm.last_versions.update(deleted)
+            kept = list(events)
+            contiguous = bool(kept) and kept[-1].revision == revision and all(
+                b.revision == a.revision + 1 for a, b in itertools.pairwise(kept)
+            )
+            wm.history.reset((kept[0].revision - 1) if contiguous else revision)
+            for event in kept if contiguous else ():
+                wm.history.append(event)
+            top = max((e.seq for e in kept), default=0)
+            self._seq = itertools.count(max(top, self._seq_floor) + 1)
+            self._seq_floor = max(top, self._seq_floor)
 
     # ------------------------------------------------------------------ locks
 

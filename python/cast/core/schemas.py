@@ -8,7 +8,7 @@ through unchecked: the server never needs to know a type to store it.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from google.protobuf import descriptor_pb2, descriptor_pool, json_format, message, message_factory
@@ -28,6 +28,9 @@ class SchemaRegistry:
         self._pool = descriptor_pool.DescriptorPool()
         self._files: dict[str, descriptor_pb2.FileDescriptorProto] = {}
         self._classes: dict[str, type[message.Message]] = {}
+        # Told (name, serialised file) of every newly added file, under the registry's mutex, so a
+        # journal stores schemas in registration order (cast.core.journal.Journal.append_schemas).
+        self.on_added: Callable[[list[tuple[str, bytes]]], None] | None = None
 
     def register(self, files: Iterable[descriptor_pb2.FileDescriptorProto]) -> list[str]:
         """Add .proto file descriptors (with their dependencies, in any order); return the message types defined.
@@ -74,6 +77,8 @@ class SchemaRegistry:
 
             for name in pending:
                 add(name, ())
+            if added and self.on_added is not None:
+                self.on_added([(name, self._files[name].SerializeToString()) for name in sorted(added)])
             for name in pending:
                 fd = self._files[name]
                 prefix = f"{fd.package}." if fd.package else ""

@@ -6,10 +6,12 @@ call it directly. Either way the same objects enforce the same guarantees.
 
 from __future__ import annotations
 
+import secrets
 import time
 from collections.abc import Mapping, Sequence
 
 from cast.core.host import BatchOp, MemoryHost
+from cast.core.journal import Journal
 from cast.core.policies import TaskPolicy
 from cast.core.records import Identity, Limits, Operation
 from cast.core.schemas import SchemaRegistry, files_of
@@ -31,6 +33,7 @@ class System:
         policies: Mapping[str, TaskPolicy] | None = None,
         limits: Limits | None = None,
         lease_ms: int = 10_000,
+        journal: Journal | None = None,
     ) -> None:
         # Imported here so that importing the core does not require generated code.
         from cast.v1 import task_manager_pb2
@@ -46,6 +49,57 @@ class System:
         # server's directory routes components to them.
         self.remote_endpoints: dict[str, str] = {}
         self.started_ns = time.time_ns()
+        # Server settings from the configuration (cast.server.app.ServerSettings: TLS, token rules),
+        # carried here so that whoever starts the server from this System applies them.
+        self.settings: object | None = None
+        self.journal = journal
+        # Identifies this history of revisions: watchers resume only into the history they saw. A
+        # journal keeps it across restarts; without one every start is a new history.
+        self.history_id = journal.history_id if journal is not None else secrets.token_hex(8)
+        if journal is not None:
+            self._restore(journal)
+
+    def _restore(self, journal: Journal) -> None:
+        """Load the journal's state, then start journaling every commit and schema."""
+        from google.protobuf import descriptor_pb2
+
+        stored = journal.load()
+        if stored.schemas:
+            files = [descriptor_pb2.FileDescriptorProto.FromString(data) for data in stored.schemas]
+            self.schemas.register(files)
+        for sa, state in stored.wms.items():
+            if sa in self.endpoints:  # an SA no longer configured keeps its rows but is not served
+                self.host.restore(sa, state.entries, state.deleted, state.revision, state.events)
+        self.host.journal = journal.append
+        self.schemas.on_added = journal.append_schemas
+        # Task entries of the previous run: every session ended with it, so its tasks did too. Delete
+        # them as the task manager would, so watchers see a DELETE, not an entry that silently vanished.
+        for sa, state in stored.wms.items():
+            if sa not in self.endpoints:
+                continue
+            author = Identity(f"{sa}.task_manager", sa, True)
+            for record in state.entries:
+                if record.type == TASK_TYPE:
+                    self.host.system_write(author, BatchOp(Operation.DELETE, sa, record.id))
+
+    async def durable(self) -> None:
+        """Return once every write made so far is durable (at once without a waiting journal)."""
+        journal = self.journal
+        if journal is not None and journal.waits:
+            await journal.wait_async(journal.ticket())
+
+    def durable_sync(self) -> None:
+        """Block until every write made so far is durable (for callers on their own threads)."""
+        journal = self.journal
+        if journal is not None and journal.waits:
+            journal.wait(journal.ticket())
+
+    def close(self) -> None:
+        """Flush and close the journal (a clean shutdown); the System must not be written after."""
+        if self.journal is not None:
+            self.host.journal = None
+            self.schemas.on_added = None
+            self.journal.close()
 
     def expect(self, info: ComponentInfo) -> None:
         """Record a configured component so the directory lists it before it connects."""

@@ -15,7 +15,8 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from cast.auth import TokenSigner
-from cast.config import SystemConfig
+from cast.config import ServerConfig, SystemConfig, TlsConfig
+from cast.core.journal import Journal
 from cast.core.sessions import ComponentInfo
 from cast.core.system import System
 from cast.server.directory import DirectoryServicer
@@ -34,7 +35,14 @@ from cast.v1 import (
     working_memory_pb2_grpc,
 )
 
-__all__ = ["RunningServer", "serve_forever", "start_server", "system_from_config"]
+__all__ = [
+    "RunningServer",
+    "ServerSettings",
+    "serve_forever",
+    "server_credentials",
+    "start_server",
+    "system_from_config",
+]
 
 log = logging.getLogger("cast.server")
 
@@ -47,18 +55,56 @@ SERVICE_NAMES = (
 )
 
 
-def system_from_config(config: SystemConfig, lease_ms: int = 10_000) -> System:
-    """A :class:`System` hosting every SA of a configuration, expecting its components."""
+@dataclass(frozen=True)
+class ServerSettings:
+    """How a server is reached and whom it answers: TLS files, and whether reads need a token."""
+
+    tls: TlsConfig | None = None
+    reads_require_token: bool = True
+
+
+def system_from_config(
+    config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None
+) -> System:
+    """A :class:`System` hosting the SAs of ``server`` (default: every SA), expecting every component.
+
+    The server's ``persistence`` opens its journal and restores what it holds;
+    without ``server`` the single configured server's persistence is used (a
+    configuration with several servers run as one by ``cast serve`` keeps
+    memory only). TLS and token rules travel in ``system.settings`` to
+    :func:`start_server`.
+    """
+    if server is None:
+        hosted = list(config.subarchitectures)
+        persistence = config.servers[0].persistence if len(config.servers) == 1 else None
+    else:
+        hosted, persistence = list(server.subarchitectures), server.persistence
+    journal = None
+    if persistence is not None:
+        journal = Journal(persistence.path, persistence.durability, config.limits.history_events)
     system = System(
         config.name,
-        list(config.subarchitectures),
-        {name: sa.make_policy() for name, sa in config.subarchitectures.items()},
+        hosted,
+        {name: config.subarchitectures[name].make_policy() for name in hosted},
         config.limits,
         lease_ms=lease_ms,
+        journal=journal,
     )
+    system.settings = ServerSettings(config.tls, config.auth.reads_require_token)
     for comp in config.components:
         system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind))
     return system
+
+
+def server_credentials(tls: TlsConfig) -> grpc.ServerCredentials:
+    """Credentials of a TLS server: its certificate, and the CA that client certificates must chain to."""
+    try:
+        key, cert, ca = tls.key.read_bytes(), tls.cert.read_bytes(), tls.ca.read_bytes()
+    except OSError as exc:
+        raise OSError(f"cannot read the TLS files of the configuration (tls.ca/cert/key): {exc}") from exc
+    return grpc.ssl_server_credentials(
+        [(key, cert)], root_certificates=ca if tls.client_auth else None, require_client_auth=tls.client_auth
+    )
 
 
 @dataclass
@@ -82,12 +128,16 @@ class RunningServer:
         self._on_stop.append(callback)
 
     async def stop(self, grace: float = 1.0) -> None:
-        """Stop in-process components, then the server, letting calls finish for ``grace`` seconds."""
+        """Stop in-process components, then the server, letting calls finish for ``grace`` seconds.
+
+        Last, the journal is flushed and closed (a clean shutdown loses nothing in any mode).
+        """
         for callback in reversed(self._on_stop):
             await asyncio.get_running_loop().run_in_executor(None, callback)
         for task in self._tasks:
             task.cancel()
         await self.server.stop(grace)
+        await asyncio.get_running_loop().run_in_executor(None, self.system.close)
 
 
 async def _expire_sessions(system: System) -> None:
@@ -105,8 +155,17 @@ def _split_listen(listen: str) -> tuple[str, str]:
     return host or "0.0.0.0", port
 
 
-async def start_server(system: System, signer: TokenSigner, listen: str = "127.0.0.1:0") -> RunningServer:
-    """Start serving ``system`` on ``listen`` (HOST:PORT; port 0 picks a free one)."""
+async def start_server(
+    system: System, signer: TokenSigner, listen: str = "127.0.0.1:0", settings: ServerSettings | None = None
+) -> RunningServer:
+    """Start serving ``system`` on ``listen`` (HOST:PORT; port 0 picks a free one).
+
+    ``settings`` default to ``system.settings`` (from the configuration), else
+    plaintext with tokens required for every call. With TLS only a TLS port is
+    opened: a plaintext client fails its handshake.
+    """
+    if settings is None:
+        settings = system.settings if isinstance(system.settings, ServerSettings) else ServerSettings()
     host, _ = _split_listen(listen)
     options: Sequence[tuple[str, int]] = (
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
@@ -118,7 +177,7 @@ async def start_server(system: System, signer: TokenSigner, listen: str = "127.0
         ("grpc.keepalive_permit_without_calls", 1),
     )
     server = grpc.aio.server(options=options)
-    auth = Authenticator(signer)
+    auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
     working_memory_pb2_grpc.add_WorkingMemoryServicer_to_server(WorkingMemoryServicer(system, auth), server)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), server)
     directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), server)
@@ -129,7 +188,10 @@ async def start_server(system: System, signer: TokenSigner, listen: str = "127.0
         (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME),
         server,
     )
-    port = server.add_insecure_port(listen)
+    if settings.tls is not None:
+        port = server.add_secure_port(listen, server_credentials(settings.tls))
+    else:
+        port = server.add_insecure_port(listen)
     if port == 0:
         raise OSError(f"cannot listen on {listen}: address in use or not available")
     await server.start()

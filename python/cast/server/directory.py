@@ -49,7 +49,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         self, request: dir_pb2.DescribeSystemRequest, context: Context
     ) -> dir_pb2.SystemDescription:
         """Describe SAs, endpoints and components."""
-        self._auth.identify(context)
+        self._auth.identify_read(context)
         return describe(self._system)
 
     @rpc
@@ -91,6 +91,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         """Store entry type descriptors."""
         self._auth.identify(context)
         types = self._system.schemas.register(request.files.file)
+        await self._system.durable()
         return dir_pb2.RegisterSchemasResponse(types=types)
 
     @rpc
@@ -98,6 +99,6 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         self, request: dir_pb2.GetSchemaRequest, context: Context
     ) -> dir_pb2.GetSchemaResponse:
         """Descriptors of one type."""
-        self._auth.identify(context)
+        self._auth.identify_read(context)
         files = self._system.schemas.files_for(request.type)
         return dir_pb2.GetSchemaResponse(files=descriptor_pb2.FileDescriptorSet(file=files))

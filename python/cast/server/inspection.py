@@ -22,7 +22,7 @@ class InspectionServicer(insp_grpc.InspectionServicer):
     @rpc
     async def ListEntries(self, request: insp_pb2.ListEntriesRequest, context: Context) -> insp_pb2.ListEntriesResponse:
         """Entries of one WM without values, oldest write first."""
-        self._auth.identify(context)
+        self._auth.identify_read(context)
         host = self._system.host
         if not request.subarchitecture:
             raise InvalidArgumentError("name the subarchitecture to list")
@@ -44,7 +44,7 @@ class InspectionServicer(insp_grpc.InspectionServicer):
         self, request: insp_pb2.TaskStatisticsRequest, context: Context
     ) -> insp_pb2.TaskStatisticsResponse:
         """Decision counts per SA since the server started."""
-        self._auth.identify(context)
+        self._auth.identify_read(context)
         tasks = self._system.tasks
         sas = [request.subarchitecture] if request.subarchitecture else self._system.host.subarchitectures
         out = []

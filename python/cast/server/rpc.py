@@ -13,12 +13,15 @@ from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.errors import CastError, UnauthenticatedError
 
-__all__ = ["Authenticator", "Context", "rpc", "stream_rpc"]
+__all__ = ["ANONYMOUS", "Authenticator", "Context", "rpc", "stream_rpc"]
 
 log = logging.getLogger("cast.server")
 
 Context = grpc.aio.ServicerContext[Any, Any]
 """The servicer context of any call (the servicers only read metadata and deadlines from it)."""
+
+ANONYMOUS = Identity("anonymous", "", False)
+"""Who reads without a token when ``auth.reads_require_token`` is false (it holds no locks, writes nothing)."""
 
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
@@ -27,8 +30,21 @@ Resp = TypeVar("Resp")
 class Authenticator:
     """Finds the caller's identity in the ``authorization: Bearer <token>`` metadata."""
 
-    def __init__(self, signer: TokenSigner) -> None:
+    def __init__(self, signer: TokenSigner, reads_require_token: bool = True) -> None:
         self._signer = signer
+        self.reads_require_token = reads_require_token
+
+    def identify_read(self, context: Context) -> Identity:
+        """The caller of a read: like :meth:`identify`, but anonymous if there is no token and reads are open.
+
+        Reads are open when the configuration says ``auth.reads_require_token:
+        false``; a bad token is refused all the same.
+        """
+        if not self.reads_require_token:
+            metadata = context.invocation_metadata() or ()
+            if not any(key == "authorization" for key, _ in metadata):
+                return ANONYMOUS
+        return self.identify(context)
 
     def identify(self, context: Context) -> Identity:
         """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""

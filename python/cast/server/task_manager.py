@@ -23,6 +23,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
     def __init__(self, system: System, auth: Authenticator) -> None:
         self._tasks = system.tasks
         self._auth = auth
+        self._system = system
 
     @rpc
     async def Propose(
@@ -32,6 +33,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         who = self._auth.identify(context)
         data_type, data = any_to_type_data(request.data, "task data") if request.HasField("data") else ("", b"")
         task = self._tasks.propose(who, request.name, data_type, data, request.priority)
+        await self._system.durable()
         return tm_pb2.ProposeResponse(task=task_to_pb(task))
 
     @rpc
@@ -41,6 +43,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         """Withdraw a task."""
         who = self._auth.identify(context)
         self._tasks.retract(who, request.task_id)
+        await self._system.durable()
         return tm_pb2.RetractResponse()
 
     @rpc
@@ -56,6 +59,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         if outcome is TaskOutcome.UNSPECIFIED:
             raise InvalidArgumentError("a completed task needs an outcome: SUCCEEDED, FAILED or ABANDONED")
         self._tasks.complete(who, request.task_id, outcome, request.reason)
+        await self._system.durable()
         return tm_pb2.CompleteResponse()
 
     @rpc
@@ -63,7 +67,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self, request: tm_pb2.ListTasksRequest, context: Context
     ) -> tm_pb2.ListTasksResponse:
         """The live tasks of one SA or all."""
-        self._auth.identify(context)
+        self._auth.identify_read(context)
         return tm_pb2.ListTasksResponse(tasks=[task_to_pb(t) for t in self._tasks.tasks(request.subarchitecture)])
 
     @stream_rpc

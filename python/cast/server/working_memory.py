@@ -51,6 +51,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self._system = system
         self._host = system.host
         self._auth = auth
+        # With a journal that makes writers wait, a write is acknowledged only once durable.
+        self._durable = system.durable if system.journal is not None and system.journal.waits else None
 
     @rpc
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
@@ -58,6 +60,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         who = self._auth.identify(context)
         op = _op(request)
         result = self._host.add(who, op.subarchitecture, op.id, op.type, op.data)
+        if self._durable is not None:
+            await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
@@ -68,6 +72,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         who = self._auth.identify(context)
         op = _op(request)
         result = self._host.overwrite(who, op.subarchitecture, op.id, op.type, op.data, op.expected_version)
+        if self._durable is not None:
+            await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
@@ -76,12 +82,14 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         who = self._auth.identify(context)
         op = _op(request)
         result = self._host.delete(who, op.subarchitecture, op.id, op.expected_version)
+        if self._durable is not None:
+            await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
     async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
         """Read one entry."""
-        who = self._auth.identify(context)
+        who = self._auth.identify_read(context)
         record = self._host.get(who, request.address.subarchitecture, request.address.id)
         return wm_pb2.GetResponse(entry=entry_to_pb(record))
 
@@ -90,14 +98,14 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self, request: wm_pb2.GetByTypeRequest, context: Context
     ) -> wm_pb2.GetByTypeResponse:
         """Read the entries of one type, newest first."""
-        who = self._auth.identify(context)
+        who = self._auth.identify_read(context)
         records, revision = self._host.get_by_type(who, request.subarchitecture, request.type, request.limit)
         return wm_pb2.GetByTypeResponse(entries=[entry_to_pb(r) for r in records], revision=revision)
 
     @rpc
     async def Exists(self, request: wm_pb2.ExistsRequest, context: Context) -> wm_pb2.ExistsResponse:
         """Whether an entry exists."""
-        who = self._auth.identify(context)
+        who = self._auth.identify_read(context)
         return wm_pb2.ExistsResponse(exists=self._host.exists(who, request.address.subarchitecture, request.address.id))
 
     @rpc
@@ -151,6 +159,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
             except CastError as exc:
                 raise type(exc)(f"batch operation {index}: {exc.message}") from None
         results = self._host.batch(who, ops)
+        if self._durable is not None:
+            await self._durable()
         return wm_pb2.BatchResponse(
             results=[wm_pb2.WriteResponse(revision=r.revision, version=r.version) for r in results]
         )
@@ -160,7 +170,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context
     ) -> AsyncIterator[wm_pb2.WatchResponse]:
         """Stream event batches for the watches the client creates on this stream."""
-        who = self._auth.identify(context)
+        who = self._auth.identify_read(context)
         stream = _WatchStream(self._system, who)
         try:
             async for response in stream.run(request_iterator):
@@ -178,6 +188,8 @@ class _WatchStream:
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
         self._sub = Subscription(system.host, self._notify)
+        self._system = system
+        self._durable = system.durable if system.journal is not None and system.journal.waits else None
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
@@ -226,6 +238,9 @@ class _WatchStream:
                 if self._error is not None:
                     raise self._error
                 matches = self._sub.poll(_BATCH_EVENTS, _BATCH_BYTES)
+                if matches and self._durable is not None:
+                    # Send only durable events: a watcher must never see a write a crash then undoes.
+                    await self._durable()
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch

@@ -1,0 +1,90 @@
+"""Helpers of the reliability suite: restartable `cast serve` processes, raw stubs, waiting."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+import yaml
+
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> None:
+    """Poll ``predicate`` until true; fail naming ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+def serve(
+    config_path: Path, listen: str = "127.0.0.1:0", env: dict[str, str] | None = None, cwd: Path | None = None
+) -> ServerHandle:
+    """Start `cast serve CONFIG` and wait for its `listening on` line."""
+    full_env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH, **(env or {}))
+    proc = subprocess.Popen(
+        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", listen],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=full_env,
+        cwd=cwd or config_path.parent,
+        start_new_session=True,
+    )
+    assert proc.stdout is not None
+    first = proc.stdout.readline().strip()
+    if not first.startswith("listening on "):
+        proc.kill()
+        raise RuntimeError(f"server did not start: {first}\n{proc.stdout.read()}")
+    handle = ServerHandle(proc, first.removeprefix("listening on "), config_path)
+
+    def drain() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            handle.log_lines.append(line)
+
+    threading.Thread(target=drain, daemon=True).start()
+    return handle
+
+
+def kill9(handle: ServerHandle) -> None:
+    """SIGKILL a server process and reap it."""
+    if handle.process.poll() is None:
+        os.kill(handle.process.pid, signal.SIGKILL)
+    handle.process.wait(10)
+
+
+def write_config(path: Path, config: dict[str, Any]) -> Path:
+    """Write a configuration as YAML; return its path."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+def metadata(handle: ServerHandle, component: str, sa: str, privileged: bool = False) -> tuple[tuple[str, str]]:
+    """Call metadata with a valid token."""
+    return (("authorization", f"Bearer {handle.token(component, sa, privileged)}"),)
+
+
+@pytest.fixture
+def servers() -> Iterator[list[ServerHandle]]:
+    """A list the test appends its server handles to; every one is stopped at the end."""
+    started: list[ServerHandle] = []
+    yield started
+    for handle in started:
+        if handle.process.poll() is None:
+            handle.stop()
+
+
+def channel(endpoint: str) -> grpc.Channel:
+    """A plaintext channel."""
+    return grpc.insecure_channel(endpoint)
