@@ -159,7 +159,9 @@ void Component::requestStop() {
   core_->stopCv.notify_all();
 }
 
-void Component::setState(ComponentState state) { core_->state = state; }
+void Component::setState(ComponentState state) {
+  if (core_->state.exchange(state) != state && core_->transport_ && !core_->closed) core_->transport_->stateChanged();
+}
 
 void Component::bind(std::shared_ptr<detail::Transport> transport, const std::string& language) {
   if (core_->transport_) throw CastError("the component is already bound", "FAILED_PRECONDITION");

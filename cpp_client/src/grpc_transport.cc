@@ -545,6 +545,14 @@ class GrpcTransport final : public Transport {
     }
   }
 
+  void stateChanged() override {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      ++stateVersion_;
+    }
+    closingCv_.notify_all();
+  }
+
   void close() override {
     {
       std::lock_guard<std::mutex> lock(mu_);
@@ -623,13 +631,20 @@ class GrpcTransport final : public Transport {
   void heartbeatLoop(Server& s, Millis interval, const StateSource& state) {
     auto stream = s.dir->Heartbeat(s.heartbeatContext.get());
     v1::HeartbeatResponse response;
+    std::uint64_t reported = 0;
     for (;;) {
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        reported = stateVersion_;
+      }
       v1::HeartbeatRequest beat;
       beat.set_session_id(s.sessionId);
       beat.set_state(static_cast<v1::ComponentState>(state()));
       if (!stream->Write(beat) || !stream->Read(&response)) break;
       std::unique_lock<std::mutex> lock(mu_);
-      if (closingCv_.wait_for(lock, interval, [this] { return closing_; })) break;
+      // Wake early for a state change, so it is reported at once.
+      closingCv_.wait_for(lock, interval, [&] { return closing_ || stateVersion_ != reported; });
+      if (closing_) break;
     }
     s.heartbeatContext->TryCancel();
     const grpc::Status status = stream->Finish();
@@ -653,6 +668,7 @@ class GrpcTransport final : public Transport {
   std::mutex mu_;
   std::condition_variable closingCv_;
   bool closing_ = false;
+  std::uint64_t stateVersion_ = 0;  // bumped by stateChanged()
   std::map<std::string, std::unique_ptr<Server>> servers_;  // by endpoint
   Server* directory_ = nullptr;
   std::map<std::string, Server*> routes_;  // SA -> server

@@ -90,6 +90,9 @@ class Transport {
 
   // Registers the component's session(s) and keeps them alive.
   virtual void startSession(const std::string& language, const std::string& kind, StateSource state) = 0;
+  // The component's state changed: report it now rather than at the next
+  // heartbeat, so tools see RUNNING / STOPPING when it happens.
+  virtual void stateChanged() {}
   // Ends sessions and streams; no sink is called after close() returns.
   virtual void close() = 0;
 };

@@ -1,0 +1,154 @@
+"""Running C++ components from pytest: the built executables and a line protocol to drive them.
+
+The executables live in ``build/cpp/bin`` (``make cpp``; ``$CAST_CPP_BIN_DIR``
+overrides, as for the orchestrator). ``cast_probe``
+(cpp_client/tests/components/cast_probe.cc) reads one command per stdin line
+and answers each with one JSON line on stdout, in order. A missing build fails
+the tests, it never skips them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import subprocess
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def cpp_bin_dir() -> Path:
+    """Where the C++ component executables are."""
+    return Path(os.environ.get("CAST_CPP_BIN_DIR") or ROOT / "build" / "cpp" / "bin")
+
+
+def cpp_executable(name: str) -> Path:
+    """The path of a built C++ executable; fails the test (never skips) when it is missing."""
+    path = cpp_bin_dir() / name
+    if not (path.is_file() and os.access(path, os.X_OK)):
+        pytest.fail(f"the C++ component '{name}' is not built ({path} missing): run `make cpp` first")
+    return path
+
+
+class CppProcess:
+    """A C++ component process started with the launch contract; its output is collected as it comes."""
+
+    def __init__(self, name: str, env: dict[str, str], stdin: bool = False) -> None:
+        self.name = name
+        self.proc = subprocess.Popen(
+            [str(cpp_executable(name))],
+            env=env,
+            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            encoding="utf-8",
+        )
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.stdout_lines: list[str] = []
+        self.stderr_lines: list[str] = []
+        threading.Thread(target=self._read_stdout, daemon=True).start()
+        threading.Thread(target=self._read_stderr, daemon=True).start()
+
+    def _read_stdout(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.stdout_lines.append(line)
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.stderr_lines.append(line)
+
+    def output(self) -> str:
+        """What the process printed, for failure messages."""
+        return "".join(self.stdout_lines[-40:]) + "--- stderr ---\n" + "".join(self.stderr_lines[-60:])
+
+    def next_json(self, timeout: float = 30.0) -> dict[str, Any]:
+        """The next JSON line on stdout."""
+        try:
+            line = self.lines.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"{self.name}: no output within {timeout} s\n{self.output()}") from None
+        if line is None:
+            self.proc.wait(10)
+            raise AssertionError(f"{self.name} exited ({self.proc.returncode}) before answering\n{self.output()}")
+        try:
+            msg: dict[str, Any] = json.loads(line)
+        except json.JSONDecodeError:
+            raise AssertionError(f"{self.name}: not a JSON line: {line!r}\n{self.output()}") from None
+        return msg
+
+    def wait(self, timeout: float = 30.0) -> int:
+        """The exit status, waiting up to ``timeout`` seconds."""
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{self.name} did not exit within {timeout} s\n{self.output()}") from None
+
+    def terminate(self) -> None:
+        """SIGTERM: the runner calls stop() and exits."""
+        self.proc.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        """SIGKILL: no clean-up at all; the server must notice the session end."""
+        self.proc.kill()
+        self.proc.wait(10)
+
+    def close(self) -> None:
+        """Kill the process if it is still running (test clean-up)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
+class CppProbe(CppProcess):
+    """A ``cast_probe`` process: one command per line, one JSON answer per command."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        super().__init__("cast_probe", env, stdin=True)
+
+    def ready(self, timeout: float = 30.0) -> dict[str, Any]:
+        """Wait until the probe is connected and started."""
+        msg = self.next_json(timeout)
+        assert msg.get("ready"), f"expected the ready line, got {msg}\n{self.output()}"
+        return msg
+
+    def send(self, *words: Any) -> None:
+        """Send one command line without waiting for the answer."""
+        assert self.proc.stdin is not None
+        line = " ".join(json.dumps(w, ensure_ascii=False) if isinstance(w, dict | list) else str(w) for w in words)
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
+    def call(self, *words: Any, timeout: float = 30.0) -> dict[str, Any]:
+        """Send a command and return its answer (ok or not)."""
+        self.send(*words)
+        return self.next_json(timeout)
+
+    def ok(self, *words: Any, timeout: float = 30.0) -> dict[str, Any]:
+        """Send a command that must succeed; return its result."""
+        r = self.call(*words, timeout=timeout)
+        assert r["ok"], f"{' '.join(map(str, words))} failed: {r}\n{self.output()}"
+        result: dict[str, Any] = r["result"]
+        return result
+
+    def fails(self, error: str, *words: Any, timeout: float = 30.0) -> dict[str, Any]:
+        """Send a command that must fail with the named error; return the answer."""
+        r = self.call(*words, timeout=timeout)
+        assert not r["ok"] and r["error"] == error, f"{' '.join(map(str, words))}: expected {error}, got {r}"
+        return r
+
+    def quit(self, timeout: float = 30.0) -> int:
+        """Ask the probe to stop; return its exit status."""
+        if self.proc.poll() is None:
+            self.send("quit")
+        return self.wait(timeout)

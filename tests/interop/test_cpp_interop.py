@@ -1,0 +1,348 @@
+"""C++ and Python components in one system over a real server: reads, writes, watches, permissions, errors."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import grpc
+import pytest
+from cast_testing_pb2 import Counter, Pose
+
+import cast
+from cast.errors import ConsistencyError, NotFoundError
+from cast.v1 import directory_pb2, directory_pb2_grpc
+from tests.interop.cpp_support import CppProbe
+
+COUNTER = "cast.testing.Counter"
+
+
+def counter_json(writer: str, value: int) -> dict[str, Any]:
+    """A Counter as protobuf JSON (int64 as a string)."""
+    return {"writer": writer, "value": str(value)}
+
+
+@pytest.fixture
+def cpp(server: Any) -> Iterator[Callable[..., CppProbe]]:
+    """Start cast_probe components on ``server``; all are killed at the end."""
+    started: list[CppProbe] = []
+
+    def start(component_id: str, sa: str = "vision", privileged: bool = False) -> CppProbe:
+        probe = CppProbe(server.env(component_id, sa, privileged))
+        started.append(probe)
+        assert probe.ready()["id"] == component_id
+        return probe
+
+    yield start
+    for probe in started:
+        probe.close()
+
+
+def test_cpp_writes_python_reads(server: Any, cpp: Any) -> None:
+    c = cpp("cwriter")
+    for i in range(5):
+        r = c.ok("add", COUNTER, f"c{i}", "-", counter_json("cwriter", i))
+        assert r["version"] == 0
+    assert c.ok("overwrite", COUNTER, "c1", "-", 0, counter_json("cwriter", 100))["version"] == 1
+    c.fails("ConsistencyError", "overwrite", COUNTER, "c1", "-", 0, counter_json("cwriter", 101))
+    c.ok("delete", "c4", "-", 0)
+    c.ok("add", "Pose", "p", "-", {"x": 1.5, "y": -2.0, "label": "gauche ü", "tags": ["a", "é"]})
+
+    py = server.connect("pyreader", "vision")
+    try:
+        assert py.get("c0", Counter) == Counter(writer="cwriter", value=0)
+        entry = py.get_entry("c1", Counter)
+        assert entry.value == Counter(writer="cwriter", value=100)
+        assert entry.version == 1
+        assert entry.author == "cwriter"
+        assert not py.exists("c4")
+        assert [e.id for e in py.get_all(Counter)] == ["c1", "c3", "c2", "c0"]  # newest first
+        assert py.get("p", Pose) == Pose(x=1.5, y=-2.0, label="gauche ü", tags=["a", "é"])
+    finally:
+        py._cast_close()
+
+    # The C++ client registered the schemas of what it wrote, so tools render them as JSON.
+    with grpc.insecure_channel(server.endpoint) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
+        for type_name in ("cast.testing.Counter", "cast.testing.Pose"):
+            schema = stub.GetSchema(directory_pb2.GetSchemaRequest(type=type_name), metadata=md)
+            assert [f.name for f in schema.files.file] == ["cast_testing.proto"]
+    assert c.quit() == 0
+
+
+def test_python_writes_cpp_reads(server: Any, cpp: Any) -> None:
+    py = server.connect("pywriter", "language")
+    try:
+        py.add("a", Counter(writer="pywriter", value=-(2**63)))
+        py.add("b", Counter(writer="pywriter", value=2**63 - 1))
+        py.overwrite("b", Counter(writer="pywriter", value=7), expected_version=0)
+        py.add("pose", Pose(x=0.25, label="ünïcödé", tags=["x"]))
+    finally:
+        py._cast_close()
+    c = cpp("creader", "vision")
+    r = c.ok("get", COUNTER, "a", "language")
+    assert r["value"] == counter_json("pywriter", -(2**63))
+    assert r["author"] == "pywriter" and r["version"] == 0
+    r = c.ok("get", COUNTER, "b", "language")
+    assert r["value"] == counter_json("pywriter", 7) and r["version"] == 1
+    assert c.ok("get", "Pose", "pose", "language")["value"] == {"x": 0.25, "label": "ünïcödé", "tags": ["x"]}
+    entries = c.ok("getall", COUNTER, "language", 0)["entries"]
+    assert [e["id"] for e in entries] == ["b", "a"]
+    assert [e["id"] for e in c.ok("getall", COUNTER, "language", 1)["entries"]] == ["b"]
+    assert c.ok("exists", "a", "language") == {"exists": True}
+    assert c.ok("exists", "a", "-") == {"exists": False}
+    # The C++ reader decodes with the class it asks for, and says so when it is the wrong one.
+    err = c.fails("InvalidArgumentError", "get", "Pose", "a", "language")
+    assert err["message"] == "entry 'a' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class"
+    assert c.quit() == 0
+
+
+def test_errors_reach_cpp_by_name(server: Any, cpp: Any) -> None:
+    c = cpp("cerr", "vision")
+    c.ok("add", COUNTER, "x", "-", counter_json("cerr", 1))
+    assert "already exists" in c.fails("AlreadyExistsError", "add", COUNTER, "x", "-", {})["message"]
+    assert c.fails("NotFoundError", "get", COUNTER, "nope", "-")["code"] == "NOT_FOUND"
+    assert c.fails("NotFoundError", "overwrite", COUNTER, "nope", "-", "-", {})["code"] == "NOT_FOUND"
+    assert c.fails("ConsistencyError", "delete", "x", "-", 3)["code"] == "ABORTED"
+    missing_sa = c.fails("NotFoundError", "get", COUNTER, "x", "atlantis")
+    assert "atlantis" in missing_sa["message"] and "vision" in missing_sa["message"], missing_sa
+    c.fails("InvalidArgumentError", "add", COUNTER, "", "-", {})  # ids are 1 to 256 bytes
+    c.fails("LockedError", "unlock", "x", "-")  # not held
+    assert c.quit() == 0
+
+
+def test_unprivileged_cross_sa_write_is_refused(server: Any, cpp: Any) -> None:
+    c = cpp("cvision", "vision")
+    err = c.fails("PermissionDeniedError", "add", COUNTER, "goal", "language", counter_json("cvision", 1))
+    assert err["code"] == "PERMISSION_DENIED"
+    # The message names the component, its SA and the target SA.
+    for word in ("cvision", "vision", "language"):
+        assert word in err["message"], err
+    py = server.connect("pylang", "language")
+    try:
+        py.add("goal", Counter(writer="pylang", value=1))
+        c.fails("PermissionDeniedError", "overwrite", COUNTER, "goal", "language", "-", counter_json("cvision", 2))
+        c.fails("PermissionDeniedError", "delete", "goal", "language", "-")
+        assert py.get("goal", Counter).value == 1, "a refused write changes nothing"
+        # Reads are open to everyone.
+        assert c.ok("get", COUNTER, "goal", "language")["value"] == counter_json("pylang", 1)
+    finally:
+        py._cast_close()
+    assert c.quit() == 0
+
+
+def test_privileged_cpp_component_writes_every_sa(server: Any, cpp: Any) -> None:
+    c = cpp("cplanner", "vision", privileged=True)
+    assert c.ok("whoami")["privileged"] is True
+    c.ok("add", COUNTER, "goal", "motor", counter_json("cplanner", 1))
+    py = server.connect("pymotor", "motor")
+    try:
+        entry = py.get_entry("goal", Counter)
+        assert entry.author == "cplanner" and entry.value.value == 1
+    finally:
+        py._cast_close()
+    assert c.quit() == 0
+
+
+def test_cpp_watcher_counts_every_event_of_many_python_writers_once_in_order(server: Any, cpp: Any) -> None:
+    writers, per_writer = 6, 60
+    c = cpp("cwatcher", "vision")
+    c.ok("watch", "all", {"filters": [{"kind": "global", "type": COUNTER, "include_entry": True}]})
+    revisions: dict[str, list[int]] = {"vision": [], "language": []}
+    lock = threading.Lock()
+    failures: list[BaseException] = []
+
+    def write(n: int) -> None:
+        sa = "vision" if n % 2 == 0 else "language"
+        py = server.connect(f"pw{n}", sa)
+        try:
+            for i in range(per_writer):
+                entry_id = f"w{n}-{i % 10}"
+                if i < 10:
+                    r = py.add(entry_id, Counter(writer=f"pw{n}", value=i))
+                elif i % 3 == 0:
+                    r = py.delete_entry(entry_id)
+                    r2 = py.add(entry_id, Counter(writer=f"pw{n}", value=i))
+                    with lock:
+                        revisions[sa].append(r.revision)
+                    r = r2
+                else:
+                    if not py.exists(entry_id):
+                        r = py.add(entry_id, Counter(writer=f"pw{n}", value=i))
+                    else:
+                        r = py.overwrite(entry_id, Counter(writer=f"pw{n}", value=i))
+                with lock:
+                    revisions[sa].append(r.revision)
+        except BaseException as exc:  # reported below, with the thread's context
+            failures.append(exc)
+        finally:
+            py._cast_close()
+
+    threads = [threading.Thread(target=write, args=(n,)) for n in range(writers)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not failures, failures
+    total = sum(len(v) for v in revisions.values())
+    got = c.ok("events", "all", total, 60000, timeout=90)
+    assert got["error"] == "" and got["on_dispatcher"] is True
+    events = got["events"]
+    assert len(events) == total, f"{len(events)} events for {total} writes"
+    for sa in ("vision", "language"):
+        seen = [e["revision"] for e in events if e["sa"] == sa]
+        # Exactly once, in revision order, with no gaps: the revisions the writers got back.
+        assert seen == sorted(revisions[sa]), f"{sa}: events out of order or missing"
+        assert seen == list(range(1, len(seen) + 1))
+    # Per writer, the values arrive in the order they were written.
+    for n in range(writers):
+        values = [int(e["value"]["value"]) if "value" in e["value"] else 0
+                  for e in events if e["source"] == f"pw{n}" and e["operation"] != "DELETE"]
+        assert values == sorted(values), f"pw{n}: values out of order"
+    assert c.quit() == 0
+
+
+def test_cpp_filters_select_what_they_say(server: Any, cpp: Any) -> None:
+    c = cpp("cfilters", "vision")
+    specs = {
+        "local": [{"kind": "local", "type": COUNTER}],
+        "address": [{"kind": "address", "id": "target", "sa": "language"}],
+        "source": [{"kind": "source", "component": "pyb"}],
+        "deletes": [{"kind": "operation", "ops": ["DELETE"]}],
+        "local_adds": [{"kind": "operation", "ops": ["ADD"], "sa": "local"}],
+        "either": [{"kind": "address", "id": "x"}, {"kind": "global", "type": "cast.testing.Pose"}],
+    }
+    for name, filters in specs.items():
+        c.ok("watch", name, {"filters": filters})
+    pya = server.connect("pya", "vision")
+    pyb = server.connect("pyb", "language")
+    try:
+        pya.add("x", Counter(writer="pya", value=1))  # local, local_adds, either
+        pyb.add("target", Counter(writer="pyb", value=1))  # address, source
+        pyb.add("p", Pose(label="p"))  # source, either
+        pya.overwrite("x", Counter(writer="pya", value=2))  # local, either
+        pyb.delete_entry("target")  # address, source, deletes
+        pya.delete_entry("x")  # local, deletes, either
+        pya.add("end", Counter(writer="pya", value=0))  # local, local_adds: the last write
+    finally:
+        pya._cast_close()
+        pyb._cast_close()
+    # Everything before the last write has been delivered once it has (one stream, in order).
+    assert len(c.ok("events", "local", 4, 20000)["events"]) == 4
+
+    def seen(name: str) -> list[tuple[str, str, str]]:
+        return [(e["operation"], e["sa"], e["id"]) for e in c.ok("events", name, 0, 0)["events"]]
+
+    assert seen("local") == [("ADD", "vision", "x"), ("OVERWRITE", "vision", "x"), ("DELETE", "vision", "x"),
+                             ("ADD", "vision", "end")]
+    assert seen("address") == [("ADD", "language", "target"), ("DELETE", "language", "target")]
+    assert seen("source") == [("ADD", "language", "target"), ("ADD", "language", "p"),
+                              ("DELETE", "language", "target")]
+    assert sorted(seen("deletes")) == [("DELETE", "language", "target"), ("DELETE", "vision", "x")]
+    assert seen("local_adds") == [("ADD", "vision", "x"), ("ADD", "vision", "end")]
+    either = seen("either")
+    assert ("ADD", "language", "p") in either and ("OVERWRITE", "vision", "x") in either and len(either) == 4
+    assert c.quit() == 0
+
+
+def test_cancelled_cpp_watch_gets_nothing_more(server: Any, cpp: Any) -> None:
+    c = cpp("ccancel", "vision")
+    c.ok("watch", "w", {"filters": [{"kind": "local", "type": COUNTER}]})
+    c.ok("watch", "control", {"filters": [{"kind": "local", "type": COUNTER}]})
+    c.ok("add", COUNTER, "a", "-", counter_json("ccancel", 1))
+    assert len(c.ok("events", "w", 1, 10000)["events"]) == 1
+    assert c.ok("cancel", "w") == {"active": False}
+    c.ok("add", COUNTER, "b", "-", counter_json("ccancel", 2))
+    assert len(c.ok("events", "control", 2, 10000)["events"]) == 2  # delivered to the other watch
+    assert len(c.ok("events", "w", 0, 0)["events"]) == 1
+    assert c.quit() == 0
+
+
+def test_writes_and_reads_are_copies_across_languages(server: Any, cpp: Any) -> None:
+    # Python changes its object after writing; C++ reads what was written, not the change.
+    py = server.connect("pycopy", "vision")
+    try:
+        value = Counter(writer="pycopy", value=1)
+        py.add("v", value)
+        value.value = 99
+        assert c_value(cpp("ccopy", "vision"), "v") == 1
+        # C++ overwrites; Python's earlier read object does not change.
+        earlier = py.get("v", Counter)
+        probe = cpp("ccopy2", "vision")
+        probe.ok("overwrite", COUNTER, "v", "-", 0, counter_json("ccopy2", 2))
+        assert earlier.value == 1
+        assert py.get("v", Counter).value == 2
+        with pytest.raises(ConsistencyError):
+            py.overwrite("v", Counter(writer="pycopy", value=3), expected_version=0)
+        probe.ok("delete", "v", "-", 1)
+        with pytest.raises(NotFoundError):
+            py.get("v", Counter)
+    finally:
+        py._cast_close()
+
+
+def c_value(probe: CppProbe, entry_id: str) -> int:
+    return int(probe.ok("get", COUNTER, entry_id, "-")["value"]["value"])
+
+
+def test_cpp_component_shows_up_in_the_directory(server: Any, cpp: Any) -> None:
+    c = cpp("cdir", "motor")
+    with grpc.insecure_channel(server.endpoint) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
+        # The state change is reported at once, not at the next heartbeat.
+        deadline = time.monotonic() + 2
+        while True:
+            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
+            info = next(ci for ci in desc.components if ci.id == "cdir")
+            if info.state == directory_pb2.COMPONENT_STATE_RUNNING or time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+        assert info.language == "cpp"
+        assert info.kind == "managed"  # the probe is a ManagedComponent
+        assert info.subarchitecture == "motor"
+        assert info.pid == c.proc.pid
+        assert info.state == directory_pb2.COMPONENT_STATE_RUNNING
+    assert c.quit() == 0
+    # A clean exit ends the session at once (no lease to wait for).
+    with grpc.insecure_channel(server.endpoint) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        deadline = time.monotonic() + 5
+        while True:
+            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
+            info = next(ci for ci in desc.components if ci.id == "cdir")
+            if info.state == directory_pb2.COMPONENT_STATE_DISCONNECTED or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        assert info.state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+
+
+def test_batch_and_new_ids_from_python_are_visible_to_cpp(server: Any, cpp: Any) -> None:
+    py = server.connect("pybatch", "vision")
+    try:
+        ids = [py.new_id() for _ in range(3)]
+        py.batch([("add", i, Counter(writer="pybatch", value=n)) for n, i in enumerate(ids)])
+    finally:
+        py._cast_close()
+    c = cpp("cbatch", "vision")
+    # proto JSON leaves out zero values
+    assert [int(e["value"].get("value", 0)) for e in c.ok("getall", COUNTER, "-", 0)["entries"]] == [2, 1, 0]
+    new = {c.ok("newid")["id"] for _ in range(50)}
+    assert len(new) == 50 and all(i.startswith("cbatch:") for i in new)
+    assert c.quit() == 0
+
+
+def test_python_reading_a_cpp_entry_with_the_wrong_class_names_its_type(server: Any, cpp: Any) -> None:
+    c = cpp("cwrong", "vision")
+    c.ok("add", "Pose", "thing", "-", {"label": "not a counter"})
+    py = server.connect("pywrong", "vision")
+    try:
+        with pytest.raises(cast.InvalidArgumentError) as exc:
+            py.get("thing", Counter)
+        assert "cast.testing.Pose" in exc.value.message
+    finally:
+        py._cast_close()
+    assert c.quit() == 0
