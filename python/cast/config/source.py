@@ -7,9 +7,10 @@ validator can name the line of each problem, also inside included files.
 Variables: ``${NAME}`` and ``${NAME:-default}`` in any scalar (keys too).
 Values come, first match wins, from ``--set NAME=value``, the environment,
 the ``variables:`` section of the file (then of the files it includes), and
-finally the inline default. ``$${`` writes a literal ``${``. A plain (unquoted)
-scalar that contained a variable is typed after substitution, so
-``max_concurrent: ${N:-2}`` is the number 2.
+finally the inline default. ``$${`` writes a literal ``${``. A value that is
+one variable (``${N:-2}``, or ``"${N:-2}"`` as flow mappings need) is typed
+after substitution, so it is the number 2; quoted text around a variable
+(``"n=${N}"``) stays a string.
 
 Includes: ``include: other.yaml`` or a list of files, relative to the
 including file (variables allowed in the paths). Included files are merged
@@ -141,7 +142,8 @@ class _Reader:
         pos = position_of(file, node)
         if "$" in node.value and _VAR.search(node.value):
             text = self.substitute(node.value, pos, key)
-            if node.style is not None:  # quoted or block scalar: stays a string
+            whole = _VAR.fullmatch(node.value) is not None and node.value != "$${"
+            if node.style is not None and not whole:  # quoted text around a variable: stays a string
                 return text
             tag = self._resolver.resolve(ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
             node = ScalarNode(tag, text, node.start_mark, node.end_mark)

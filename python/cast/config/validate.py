@@ -398,7 +398,7 @@ class _Validator:
             out.append(server)
         for sa in sas:
             if sa not in hosted and out:
-                self.p.error(raw.pos, "servers", f"no server hosts subarchitecture '{sa}': add it to one "
+                self.p.error(self.root.at("servers"), "servers", f"no server hosts subarchitecture '{sa}': add it to one "
                                                  "server's subarchitectures")
         return out
 

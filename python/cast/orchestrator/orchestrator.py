@@ -15,6 +15,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -73,10 +74,23 @@ class Orchestrator:
         self._stop = asyncio.Event()
         self._signer: TokenSigner | None = None
         self._servers: ServerGroup | None = None
+        self.supervisor: Supervisor | None = None
+        self.connected = threading.Event()  # set once every component has connected
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread = 0
+
+    @property
+    def servers(self) -> ServerGroup:
+        """The running servers (after :meth:`run` started them)."""
+        assert self._servers is not None, "the system is not running"
+        return self._servers
 
     def request_stop(self) -> None:
-        """Begin the orderly shutdown (what Ctrl-C and SIGTERM do)."""
-        self._stop.set()
+        """Begin the orderly shutdown (what Ctrl-C and SIGTERM do); callable from any thread."""
+        if self._loop is not None and threading.get_ident() != self._loop_thread:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        else:
+            self._stop.set()
 
     def _contract(self, comp: ComponentConfig) -> dict[str, str]:
         assert self._signer is not None and self._servers is not None
@@ -100,15 +114,18 @@ class Orchestrator:
         self._signer = TokenSigner(secret)
         # User policy classes and in-process components import from python_path.
         sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError):
+            # Not in the main thread (an orchestrator embedded in a test): the caller stops it.
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.add_signal_handler(sig, self.request_stop)
         servers = self._servers = ServerGroup(self.config, self._signer)
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
-        supervisor = Supervisor(self.config, self._contract, self.runtime.logs, self.output.component_line,
-                                self.output.notice, child_env)
+        supervisor = self.supervisor = Supervisor(
+            self.config, self._contract, self.runtime.logs, self.output.component_line, self.output.notice, child_env
+        )
         tracker = StatusTracker(self.config, servers, supervisor)
         self.runtime.write_state({
             "system": self.config.name,
@@ -141,6 +158,7 @@ class Orchestrator:
                                     for cid in missing)
                     self.output.notice(f"not connected: {', '.join(missing)}")
                 else:
+                    self.connected.set()
                     connect_seconds = time.monotonic() - started
                     count = sum(1 for c in self.config.components if not c.manual)
                     self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
@@ -159,7 +177,7 @@ class Orchestrator:
             await servers.stop()
             self.runtime.release()
             for sig in (signal.SIGINT, signal.SIGTERM):
-                with contextlib.suppress(NotImplementedError):
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                     loop.remove_signal_handler(sig)
         for sup in supervisor.components.values():
             cid = sup.config.id

@@ -24,8 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import psutil
-
 from cast.errors import CastError
 
 __all__ = ["RuntimeDir", "RuntimeDirBusyError", "default_runtime_dir"]
@@ -41,6 +39,16 @@ def default_runtime_dir(env: Mapping[str, str] | None = None) -> Path:
     """``$CAST_RUNTIME_DIR`` or ``.cast`` in the working directory."""
     env = os.environ if env is None else env
     return Path(env.get("CAST_RUNTIME_DIR") or ".cast")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # exists, owned by someone else
+    return True
 
 
 @dataclass
@@ -71,7 +79,7 @@ class RuntimeDir:
         except (OSError, ValueError):
             return None
         pid = int(state.get("pid", 0))
-        if not pid or not psutil.pid_exists(pid):
+        if not pid or not _alive(pid):
             return None
         return dict(state)
 

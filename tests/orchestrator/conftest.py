@@ -1,0 +1,202 @@
+"""Fixtures of the orchestrator tests: configurations, an orchestrator embedded in the test, `cast run` processes."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from rich.console import Console
+
+from cast.config import load_config
+from cast.config.check import deep_check
+from cast.config.problems import Problems
+from cast.orchestrator.orchestrator import Orchestrator, RunOptions, RunResult
+from cast.orchestrator.output import Output
+from tests.conftest import ROOT
+
+COMPONENTS = Path(__file__).resolve().parent / "components"
+CAST = str(Path(sys.executable).parent / "cast")
+
+
+def wait_for(condition: Callable[[], Any], timeout: float = 60.0, what: str = "condition") -> Any:
+    """Poll until ``condition()`` is truthy; fail the test after ``timeout`` seconds (a guard, not a measurement)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def write_config(path: Path, data: dict[str, Any]) -> Path:
+    """Write a configuration with the test components on its python_path."""
+    data = {"python_path": [str(COMPONENTS)], **data}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@dataclass
+class Embedded:
+    """An orchestrator running on a thread of the test process, its servers' objects at hand."""
+
+    orchestrator: Orchestrator
+    output: io.StringIO
+    thread: threading.Thread
+    result: list[RunResult] = field(default_factory=list)
+
+    @property
+    def servers(self) -> Any:
+        return self.orchestrator.servers
+
+    def system(self, sa: str) -> Any:
+        return self.orchestrator.servers.hosting(sa).system
+
+    def stop(self) -> RunResult:
+        self.orchestrator.request_stop()
+        self.thread.join(60)
+        assert not self.thread.is_alive(), "the orchestrator did not stop"
+        return self.result[0]
+
+    def text(self) -> str:
+        return self.output.getvalue()
+
+
+@pytest.fixture
+def embedded(tmp_path: Path) -> Iterator[Callable[..., Embedded]]:
+    """Start an orchestrator for a configuration file inside the test process; stopped at the end."""
+    started: list[Embedded] = []
+
+    def start(config_path: Path, sets: dict[str, str] | None = None, wait: bool = True) -> Embedded:
+        config = load_config(config_path, sets)
+        problems = Problems()
+        deep_check(config, problems, builds_required=True)
+        problems.raise_if_errors()
+        buffer = io.StringIO()
+        output = Output(Console(file=buffer, width=200, highlight=False), live_status=False)
+        options = RunOptions(runtime_dir=tmp_path / f"runtime{len(started)}")
+        orch = Orchestrator(config, options, output, dict(os.environ))
+        box: list[RunResult] = []
+        errors: list[BaseException] = []
+
+        def body() -> None:
+            try:
+                box.append(asyncio.run(orch.run()))
+            except BaseException as exc:
+                errors.append(exc)
+                raise
+
+        thread = threading.Thread(target=body, name="orchestrator", daemon=True)
+        thread.start()
+        handle = Embedded(orch, buffer, thread, box)
+        started.append(handle)
+        if wait:
+            wait_for(lambda: orch.connected.is_set() or errors or not thread.is_alive(), what="components to connect")
+            assert not errors, errors
+            assert orch.connected.is_set(), buffer.getvalue()
+        return handle
+
+    yield start
+    for handle in started:
+        if handle.thread.is_alive():
+            handle.stop()
+
+
+@dataclass
+class CastRun:
+    """A `cast run` process with its own runtime directory."""
+
+    process: subprocess.Popen[str]
+    cwd: Path
+    runtime_dir: Path
+    lines: list[str] = field(default_factory=list)
+
+    def env(self) -> dict[str, str]:
+        """Environment for CLI commands aimed at this run."""
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+        env["CAST_RUNTIME_DIR"] = str(self.runtime_dir)
+        return env
+
+    def cli(self, *args: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+        """Run a `cast` command against this system."""
+        out = subprocess.run([CAST, *args], cwd=self.cwd, env=self.env(), capture_output=True, text=True,
+                             timeout=timeout)
+        if check:
+            assert out.returncode == 0, f"cast {' '.join(args)} failed ({out.returncode}):\n{out.stderr}"
+        return out
+
+    def cli_json(self, *args: str) -> Any:
+        return json.loads(self.cli(*args, "--json").stdout)
+
+    def state(self) -> dict[str, Any]:
+        return dict(json.loads((self.runtime_dir / "system.json").read_text()))
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+        return self.process.wait(60)
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+
+def start_cast_run(cwd: Path, config: Path, *extra: str, env: dict[str, str] | None = None) -> CastRun:
+    """Start `cast run CONFIG --no-status` and wait until every component is connected."""
+    runtime = cwd / "runtime"
+    base = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+    proc = subprocess.Popen(
+        [CAST, "run", str(config), "--no-status", "--runtime-dir", str(runtime), *extra],
+        cwd=cwd, env={**base, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    run = CastRun(proc, cwd, runtime)
+    connected = threading.Event()
+
+    def pump() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            run.lines.append(line)
+            if "components connected in" in line:
+                connected.set()
+        connected.set()
+
+    threading.Thread(target=pump, daemon=True).start()
+    if not connected.wait(90) or proc.poll() is not None:
+        proc.kill()
+        raise AssertionError(f"cast run did not start:\n{run.output()}")
+    return run
+
+
+def build_examples() -> Path:
+    """Generate the demo's entry types as `make examples` does (if missing); return the demo config."""
+    out = ROOT / "build" / "python-examples"
+    protos = sorted((ROOT / "examples" / "proto" / "castdemo").glob("*.proto"))
+    stamp = out / ".generated"
+    if not stamp.exists() or any(p.stat().st_mtime > stamp.stat().st_mtime for p in protos):
+        out.mkdir(parents=True, exist_ok=True)
+        subprocess.run(
+            [sys.executable, "-m", "grpc_tools.protoc", f"-I{ROOT / 'examples' / 'proto'}", f"--python_out={out}",
+             *map(str, protos)],
+            check=True,
+        )
+        stamp.touch()
+    return ROOT / "configs" / "demo.yaml"
+
+
+@pytest.fixture(scope="session")
+def demo_built() -> Path:
+    """The demo's entry types are generated; the demo config's path."""
+    return build_examples()
