@@ -238,7 +238,9 @@ def test_bad_values(tmp_path: Path) -> None:
 
 def test_every_problem_is_reported_not_just_the_first(tmp_path: Path) -> None:
     path = tmp_path / "system.yaml"
-    path.write_text("subarchitectures:\n  v:\n    task_manager: {policy: nope}\n    componets: {}\nlimits: {max_entries: 0}\n")
+    path.write_text(
+        "subarchitectures:\n  v:\n    task_manager: {policy: nope}\n    componets: {}\nlimits: {max_entries: 0}\n"
+    )
     with pytest.raises(ConfigError) as info:
         load_config(path, environ={})
     lines = str(info.value).splitlines()

@@ -398,8 +398,8 @@ class _Validator:
             out.append(server)
         for sa in sas:
             if sa not in hosted and out:
-                self.p.error(self.root.at("servers"), "servers", f"no server hosts subarchitecture '{sa}': add it to one "
-                                                 "server's subarchitectures")
+                self.p.error(self.root.at("servers"), "servers",
+                             f"no server hosts subarchitecture '{sa}': add it to one server's subarchitectures")
         return out
 
     def limits(self) -> Limits:
