@@ -47,16 +47,18 @@ class History:
 
     def append(self, event: ChangeEvent) -> None:
         """Append the event of revision ``last + 1``."""
-        self._buf.append(event)
+        buf = self._buf
+        buf.append(event)
         if event.entry is not None:
             self._bytes += len(event.entry.data)
-        while self.last - self._first + 1 > self._max_events or (
-            self._bytes > self._max_bytes and self._first < self.last
+        # Kept events are buf[_start:]; at least the newest is always kept.
+        while len(buf) - self._start > self._max_events or (
+            self._bytes > self._max_bytes and len(buf) - self._start > 1
         ):
             self._drop_oldest()
         # Compact only when the dead prefix dominates, so append stays O(1) amortised.
-        if self._start > 1024 and self._start * 2 > len(self._buf):
-            del self._buf[: self._start]
+        if self._start > 1024 and self._start * 2 > len(buf):
+            del buf[: self._start]
             self._start = 0
 
     def _drop_oldest(self) -> None:

@@ -21,7 +21,6 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 from cast.core.memory import LockState, WorkingMemory
@@ -46,8 +45,7 @@ _TYPE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\Z")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 
-@dataclass(frozen=True)
-class BatchOp:
+class BatchOp(NamedTuple):
     """One write of a batch: ``data``/``type`` are ignored for DELETE."""
 
     operation: Operation
@@ -106,6 +104,7 @@ class MemoryHost:
         self._lock_waiters: dict[tuple[str, str], list[Callable[[], None]]] = {}
         self._waiter_count = 0
         self._held: dict[str, set[tuple[str, str]]] = {}  # component -> locked addresses
+        self._good_types: set[str] = set()  # type names that passed _check_type
         # Called under the mutex with the events of each commit (cast.core.journal.Journal.append):
         # it only queues them, so durability never holds the mutex for I/O. None: memory only.
         self.journal: Callable[[list[ChangeEvent]], None] | None = None
@@ -224,9 +223,10 @@ class MemoryHost:
             overlay: dict[tuple[str, str], _Slot] = {}
             counts: dict[str, int] = {}
             planned = []
+            now = self._clock()  # the operations of one batch share their time
             for index, op in enumerate(ops):
                 try:
-                    planned.append(self._plan(who, op, overlay, counts))
+                    planned.append(self._plan(who, op, overlay, counts, now))
                 except CastError as exc:
                     exc.message = f"batch operation {index}: {exc.message}"
                     exc.args = (exc.message,)
@@ -262,6 +262,7 @@ class MemoryHost:
         op: BatchOp,
         overlay: dict[tuple[str, str], _Slot] | None,
         counts: dict[str, int] | None,
+        now: int = 0,
     ) -> _Planned:
         wm = self._wm(op.subarchitecture)
         sa, entry_id = op.subarchitecture, op.id
@@ -277,7 +278,7 @@ class MemoryHost:
         lock = wm.locks.get(entry_id)
         if slot is not None and slot.record is None:
             lock = None  # deleted earlier in this batch: its lock went with it
-        now = self._clock()
+        now = now or self._clock()
         if op.operation is Operation.ADD:
             if current is not None:
                 raise AlreadyExistsError(
@@ -586,6 +587,8 @@ class MemoryHost:
             raise InvalidArgumentError(f"entry id {entry_id!r} contains control characters: use printable text")
 
     def _check_type(self, type_name: str) -> None:
+        if type_name in self._good_types:
+            return
         if not type_name:
             raise InvalidArgumentError(
                 "entry type is empty: the value must be a google.protobuf.Any whose type_url names a message"
@@ -595,6 +598,8 @@ class MemoryHost:
                 f"entry type {type_name[:80]!r} is not a full protobuf message name such as 'pkg.Message' "
                 f"(letters, digits, '_' and '.', at most {self.limits.max_type_bytes} characters)"
             )
+        if len(self._good_types) < 10_000:
+            self._good_types.add(type_name)
 
 
 def _check_sa_name(name: str) -> None:
