@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python lint demo clean help
+.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help
 
 all: setup proto
 
@@ -19,6 +19,8 @@ help:
 	@echo "make test    set up, build and run every test"
 	@echo "make lint    ruff and mypy"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
+	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
+	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,10 +54,20 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
 
-test-python: setup proto examples
+test-python: setup proto examples bench-deps
 	$(PY) -m pytest -q tests
 
 test: test-python
+
+# Redis is the peer the benchmarks compare against (Debian's redis-server).
+bench-deps:
+	@command -v redis-server >/dev/null || { apt-get update -q && apt-get install -y -q redis-server; }
+
+bench: setup proto bench-deps
+	$(PY) -m bench.run
+
+bench-quick: setup proto bench-deps
+	$(PY) -m bench.run --quick --out bench/results/quick
 
 lint: setup proto
 	$(VENV)/bin/ruff check python tests

@@ -1,0 +1,96 @@
+"""Timing helpers and subprocess servers shared by every benchmark."""
+
+from __future__ import annotations
+
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PYTHON = sys.executable
+
+
+def free_port() -> int:
+    """A free loopback port (for servers that cannot bind port 0 themselves, like redis-server)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def percentile(samples: Sequence[float], q: float) -> float:
+    """The q-th percentile (0..100) of samples, by nearest rank."""
+    ordered = sorted(samples)
+    if not ordered:
+        return float("nan")
+    k = max(0, min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1))))
+    return ordered[k]
+
+
+def rate(n: int, fn: Callable[[int], object]) -> float:
+    """Calls per second of ``fn(i)``: a warm-up with i < 200, then n measured calls with the next i."""
+    warm = min(200, n)
+    for i in range(warm):
+        fn(i)
+    start = time.perf_counter()
+    for i in range(warm, warm + n):
+        fn(i)
+    return n / (time.perf_counter() - start)
+
+
+def latencies_us(n: int, fn: Callable[[int], float]) -> list[float]:
+    """``fn(i)`` returns one latency in seconds; warm up (i < 100), then n samples in microseconds."""
+    warm = min(100, n)
+    for i in range(warm):
+        fn(i)
+    return [fn(i) * 1e6 for i in range(warm, warm + n)]
+
+
+def summary_us(samples: Sequence[float]) -> dict[str, float]:
+    """p50/p99/mean of latency samples (microseconds)."""
+    return {
+        "p50_us": round(percentile(samples, 50), 1),
+        "p99_us": round(percentile(samples, 99), 1),
+        "mean_us": round(statistics.fmean(samples), 1),
+    }
+
+
+@dataclass
+class Proc:
+    """A started helper process and the first line it printed."""
+
+    process: subprocess.Popen[str]
+    first_line: str
+
+    def stop(self) -> None:
+        """Terminate and reap."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def start(cmd: Sequence[str], cwd: Path | None = None, env: dict[str, str] | None = None) -> Proc:
+    """Start a process and wait for its first line of output (its address)."""
+    proc = subprocess.Popen(
+        list(cmd),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, **(env or {})},
+    )
+    assert proc.stdout is not None
+    line = proc.stdout.readline().strip()
+    if not line:
+        proc.kill()
+        raise RuntimeError(f"{cmd[0]} did not start")
+    return Proc(proc, line)

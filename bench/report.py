@@ -1,0 +1,106 @@
+"""Writing bench/results/latest.{md,json} and the PNG plots from one run's figures."""
+
+from __future__ import annotations
+
+import json
+import platform
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+
+def _ratio(value: float, base: float | None) -> str:
+    if not base or base != base:  # missing or NaN
+        return "-"
+    return f"{value / base:.2f}x"
+
+
+def write_markdown(path: Path, rows: list[dict[str, Any]], machine: dict[str, Any], command: str) -> None:
+    """The table: every figure, its ratio to the floor and to the peer, target and whether it was met."""
+    lines = [
+        "# Benchmark results",
+        "",
+        f"Command: `{command}`. Machine: {machine['cores']} cores, {machine['python']}, grpcio {machine['grpcio']}, "
+        f"protobuf {machine['protobuf']}, Redis {machine['redis']}, {machine['platform']}.",
+        "",
+        "| id | figure | value | floor | vs floor | peer | vs peer | target | met |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        for i, fig in enumerate(row["figures"]):
+            lines.append(
+                "| {id} | {name} | {value} | {floor} | {vf} | {peer} | {vp} | {target} | {met} |".format(
+                    id=row["id"] if i == 0 else "",
+                    name=fig["name"],
+                    value=fig["value"],
+                    floor=fig.get("floor", "-"),
+                    vf=_ratio(fig["value"], fig.get("floor")),
+                    peer=fig.get("peer", "-"),
+                    vp=_ratio(fig["value"], fig.get("peer")),
+                    target=row["target"] if i == 0 else "",
+                    met=("yes" if row["met"] else "**no**") if i == 0 else "",
+                )
+            )
+    lines += ["", "Floors and peer measured in the same run:", ""]
+    for key, value in machine["floors"].items():
+        lines.append(f"- {key}: {value}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_json(path: Path, rows: list[dict[str, Any]], machine: dict[str, Any]) -> None:
+    """One object per id with its figures, target and whether it was met."""
+    doc = {"machine": machine, "results": {row["id"]: {k: v for k, v in row.items() if k != "id"} for row in rows}}
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+
+
+def plot_latency_cdf(path: Path, series: dict[str, list[float]]) -> None:
+    """CDF of write -> event latency (and the floors', where given)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, samples in series.items():
+        xs = sorted(samples)
+        ys = [(i + 1) / len(xs) for i in range(len(xs))]
+        ax.plot(xs, ys, label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("latency (µs, log scale)")
+    ax.set_ylabel("fraction of events")
+    ax.set_title("Write → event latency")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_xy(path: Path, xs: list[float], ys: list[float], xlabel: str, ylabel: str, title: str) -> None:
+    """A simple line plot with points."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(xs, ys, marker="o")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def machine_info(floors: dict[str, Any], redis_version: str) -> dict[str, Any]:
+    """Cores and versions, and the floors for the report header."""
+    import os
+
+    import google.protobuf
+    import grpc
+
+    return {
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "grpcio": grpc.__version__,
+        "protobuf": google.protobuf.__version__,
+        "redis": redis_version,
+        "platform": platform.platform(),
+        "floors": floors,
+    }

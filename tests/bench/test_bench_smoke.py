@@ -1,0 +1,31 @@
+"""`make bench-quick` produces its table, JSON and plots (never checks the numbers)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import ROOT
+
+IDS = ["M1", "M2", "M3", "M4", "M5", "M6", "M7"]
+
+
+def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.run", "--quick", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    table = (tmp_path / "latest.md").read_text()
+    for row_id in IDS:
+        assert f"| {row_id} |" in table
+    assert "cores" in table and "grpcio" in table and "Redis" in table
+    doc = json.loads((tmp_path / "latest.json").read_text())
+    assert sorted(doc["results"]) == IDS
+    for row in doc["results"].values():
+        assert {"target", "met", "figures"} <= set(row)
+        assert isinstance(row["met"], bool)
+    for plot in ("latency_cdf.png", "fanout.png", "wm_size.png"):
+        assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"
