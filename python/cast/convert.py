@@ -24,11 +24,13 @@ __all__ = [
     "entry_to_pb",
     "event_from_pb",
     "event_to_pb",
+    "event_wire",
     "filter_from_pb",
     "filter_to_pb",
     "task_from_pb",
     "task_to_pb",
     "timestamp",
+    "watch_events_wire",
 ]
 
 TYPE_URL_PREFIX = "type.googleapis.com/"
@@ -100,6 +102,46 @@ def event_to_pb(ev: ChangeEvent, watch_ids: list[int], include_entry: bool) -> e
     if include_entry and ev.entry is not None:
         pb.entry.CopyFrom(entry_to_pb(ev.entry))
     return pb
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def event_wire(ev: ChangeEvent, include_entry: bool) -> bytes:
+    """The encoded ``cast.v1.ChangeEvent`` without watch ids, cached on the event."""
+    cache = ev.wire
+    if cache is None:
+        cache = ev.wire = [None, None]
+    encoded = cache[include_entry]
+    if encoded is None:
+        encoded = cache[include_entry] = event_to_pb(ev, [], include_entry).SerializeToString()
+    return encoded
+
+
+_EVENTS_TAG = b"\x0a"  # WatchResponse.events: field 1, length-delimited
+_WATCH_IDS_TAG = b"\x52"  # ChangeEvent.watch_ids: field 10, packed
+
+
+def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool]]) -> bytes:
+    """An encoded ``cast.v1.WatchResponse`` carrying ``(event, watch_ids, include_entry)`` items.
+
+    Protobuf lets fields of a message be concatenated, so each event's cached
+    encoding is reused as is and only its watch ids are appended: fan-out to
+    many streams costs one encoding per event, not one per event per stream.
+    """
+    parts: list[bytes] = []
+    for ev, watch_ids, include in events:
+        body = event_wire(ev, include)
+        packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(_varint(i) for i in watch_ids)
+        tail = _WATCH_IDS_TAG + _varint(len(packed)) + packed
+        parts.extend((_EVENTS_TAG, _varint(len(body) + len(tail)), body, tail))
+    return b"".join(parts)
 
 
 def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:

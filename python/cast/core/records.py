@@ -113,6 +113,7 @@ class ChangeEvent:
         "time_ns",
         "type",
         "version",
+        "wire",
     )
 
     def __init__(
@@ -142,6 +143,9 @@ class ChangeEvent:
         self.time_ns = time_ns
         self.entry = entry
         self.odr_holder = odr_holder
+        # Encoded forms cached by the transport layer (without, with the entry), so
+        # that fan-out to many watchers encodes each event once.
+        self.wire: list[bytes | None] | None = None
 
     def __repr__(self) -> str:
         return (

@@ -24,6 +24,7 @@ from cast.server.inspection import InspectionServicer
 from cast.server.rpc import Authenticator
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.working_memory import WorkingMemoryServicer
+from cast.server.working_memory import add_to_server as add_working_memory
 from cast.v1 import (
     directory_pb2,
     directory_pb2_grpc,
@@ -32,7 +33,6 @@ from cast.v1 import (
     task_manager_pb2,
     task_manager_pb2_grpc,
     working_memory_pb2,
-    working_memory_pb2_grpc,
 )
 
 __all__ = [
@@ -178,7 +178,7 @@ async def start_server(
     )
     server = grpc.aio.server(options=options)
     auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
-    working_memory_pb2_grpc.add_WorkingMemoryServicer_to_server(WorkingMemoryServicer(system, auth), server)
+    add_working_memory(WorkingMemoryServicer(system, auth), server)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), server)
     directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), server)
     inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), server)

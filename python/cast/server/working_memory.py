@@ -6,18 +6,19 @@ import asyncio
 import threading
 from collections.abc import AsyncIterator, Callable
 
-from cast.convert import any_to_type_data, entry_to_pb, event_to_pb, filter_from_pb
+import grpc
+
+from cast.convert import any_to_type_data, entry_to_pb, filter_from_pb, watch_events_wire
 from cast.core.host import BatchOp
 from cast.core.records import Identity, LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
-from cast.errors import CastError, DeadlineExceededError, InvalidArgumentError, LockedError
+from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, InvalidArgumentError, LockedError
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
-from cast.v1 import entry_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
-__all__ = ["WorkingMemoryServicer"]
+__all__ = ["WorkingMemoryServicer", "add_to_server"]
 
 # One watch batch stops growing past this many events or entry bytes, so a
 # stream catching up never sends a message the client refuses for its size.
@@ -168,8 +169,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     @stream_rpc
     async def Watch(
         self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context
-    ) -> AsyncIterator[wm_pb2.WatchResponse]:
-        """Stream event batches for the watches the client creates on this stream."""
+    ) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:  # type: ignore[override]  # bytes: see add_to_server
+        """Stream event batches for the watches the client creates on this stream.
+
+        Event batches are yielded already encoded (bytes); :func:`add_to_server`
+        registers a serializer that passes them through.
+        """
         who = self._auth.identify_read(context)
         stream = _WatchStream(self._system, who)
         try:
@@ -219,15 +224,23 @@ class _WatchStream:
         self._wake.set()
 
     def _create(self, create: wm_pb2.WatchCreate) -> wm_pb2.WatchResponse:
+        history_id = self._system.history_id
         try:
+            if create.history_id and create.start_revisions and create.history_id != history_id:
+                raise HistoryExpiredError(
+                    f"this server's history ({history_id}) is not the one the watch resumes from "
+                    f"({create.history_id}): the server restarted without it (no persistence, or writes lost in "
+                    "a crash); resynchronise: read the current state, then watch from the current revision"
+                )
             filters = [filter_from_pb(f) for f in create.filters]
             revisions = self._sub.add_watch(create.watch_id, filters, dict(create.start_revisions))
         except CastError as exc:
             failed = wm_pb2.WatchFailed(watch_id=create.watch_id, code=exc.code, message=exc.message)
             return wm_pb2.WatchResponse(failed=failed)
-        return wm_pb2.WatchResponse(created=wm_pb2.WatchCreated(watch_id=create.watch_id, revisions=revisions))
+        created = wm_pb2.WatchCreated(watch_id=create.watch_id, revisions=revisions, history_id=history_id)
+        return wm_pb2.WatchResponse(created=created)
 
-    async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse]:
+    async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
         reader = asyncio.ensure_future(self._read(requests))
         try:
             while True:
@@ -244,21 +257,48 @@ class _WatchStream:
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
-                    yield wm_pb2.WatchResponse(events=self._events(matches))
+                    yield self._events(matches)
                 elif self._done and not self._sub.watch_ids:
                     return
         finally:
             reader.cancel()
 
-    def _events(self, matches: list[Match]) -> list[entry_pb2.ChangeEvent]:
+    def _events(self, matches: list[Match]) -> bytes:
+        """The batch as an encoded WatchResponse (see :func:`cast.convert.watch_events_wire`)."""
         me = self._who.component_id
-        out = []
-        for m in matches:
-            ev = m.event
-            # An entry written under another component's ODR lock is not sent to others.
-            include = m.include_entry and (ev.odr_holder is None or ev.odr_holder == me)
-            out.append(event_to_pb(ev, m.watch_ids, include))
-        return out
+        # An entry written under another component's ODR lock is not sent to others.
+        return watch_events_wire(
+            [
+                (m.event, m.watch_ids, m.include_entry and (m.event.odr_holder is None or m.event.odr_holder == me))
+                for m in matches
+            ]
+        )
 
     def close(self) -> None:
         self._sub.close()
+
+
+def _serialize_watch(response: wm_pb2.WatchResponse | bytes) -> bytes:
+    return response if isinstance(response, bytes) else response.SerializeToString()
+
+
+def add_to_server(servicer: WorkingMemoryServicer, server: grpc.aio.Server) -> None:
+    """Register the servicer like the generated helper does, but let Watch send pre-encoded batches."""
+    service = wm_pb2.DESCRIPTOR.services_by_name["WorkingMemory"]
+    factories = {
+        (False, False): grpc.unary_unary_rpc_method_handler,
+        (False, True): grpc.unary_stream_rpc_method_handler,
+        (True, False): grpc.stream_unary_rpc_method_handler,
+        (True, True): grpc.stream_stream_rpc_method_handler,
+    }
+    handlers = {}
+    for method in service.methods:
+        request_cls = getattr(wm_pb2, method.input_type.name)
+        response_cls = getattr(wm_pb2, method.output_type.name)
+        factory = factories[(method.client_streaming, method.server_streaming)]
+        handlers[method.name] = factory(
+            getattr(servicer, method.name),
+            request_deserializer=request_cls.FromString,
+            response_serializer=_serialize_watch if method.name == "Watch" else response_cls.SerializeToString,
+        )
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(service.full_name, handlers),))
