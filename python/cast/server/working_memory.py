@@ -167,9 +167,9 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         )
 
     @stream_rpc
-    async def Watch(
+    async def Watch(  # type: ignore[override]  # yields bytes too: see add_to_server
         self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context
-    ) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:  # type: ignore[override]  # bytes: see add_to_server
+    ) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
         """Stream event batches for the watches the client creates on this stream.
 
         Event batches are yielded already encoded (bytes); :func:`add_to_server`
