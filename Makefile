@@ -57,7 +57,7 @@ demo: setup proto examples
 test-python: setup proto examples bench-deps
 	$(PY) -m pytest -q tests
 
-test: test-python
+test: test-cpp test-python
 
 # Redis is the peer the benchmarks compare against (Debian's redis-server).
 bench-deps:
@@ -68,6 +68,30 @@ bench: setup proto bench-deps
 
 bench-quick: setup proto bench-deps
 	$(PY) -m bench.run --quick --out bench/results/quick
+
+# The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),
+# built with Debian's gRPC and protobuf into build/cpp (components in build/cpp/bin). Missing
+# Debian packages are installed first (apt-get update only when something is missing).
+CPP_BUILD := build/cpp
+CPP_DEBS := cmake g++ make pkg-config libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libgtest-dev
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+.PHONY: cpp cpp-deps test-cpp
+
+cpp-deps:
+	@missing=""; for p in $(CPP_DEBS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q $$missing; \
+	fi
+
+cpp: cpp-deps
+	cmake -S cpp_client -B $(CPP_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
+	cmake --build $(CPP_BUILD) -j2
+
+test-cpp: cpp
+	ctest --test-dir $(CPP_BUILD) --output-on-failure
 
 lint: setup proto
 	$(VENV)/bin/ruff check python tests

@@ -172,8 +172,15 @@ class Probe : public cast::ManagedComponent {
   }
 
   void record(const cast::Task& task) {
+    std::string data;
+    if (task.hasData()) data = cast::probe::messageJson(*task.data<cast::testing::Counter>());
+    std::string json = taskJson(task);
+    json.pop_back();  // reopen the object to add what only a hook knows
+    json += ", \"on_dispatcher\": " + std::string(onDispatcherThread() ? "true" : "false");
+    if (!data.empty()) json += ", \"data\": " + data;
+    json += "}";
     std::lock_guard<std::mutex> lock(mu_);
-    decisions_.push_back(taskJson(task));
+    decisions_.push_back(json);
     cv_.notify_all();
   }
 
