@@ -57,7 +57,7 @@ demo: setup proto examples
 test-python: setup proto examples bench-deps
 	$(PY) -m pytest -q tests
 
-test: test-cpp test-python
+test: test-cpp test-java test-python
 
 # Redis is the peer the benchmarks compare against (Debian's redis-server).
 bench-deps:
@@ -92,6 +92,30 @@ cpp: cpp-deps
 
 test-cpp: cpp
 	ctest --test-dir $(CPP_BUILD) --output-on-failure
+
+# The Java client library (java_client/): target/cast-client-all.jar for component processes
+# (`java -cp cast-client-all.jar:... cast.client.Runner Class`), the test classes the interop
+# tests run, and cast:cast-client installed into ~/.m2 for users' Maven projects (examples/java).
+# The first build downloads grpc-java, protobuf and the Maven plugins from Maven Central.
+JAVA_JAR := java_client/target/cast-client-all.jar
+JAVA_SOURCES := java_client/pom.xml $(shell find java_client/src -type f 2>/dev/null) $(wildcard tests/protos/*.proto)
+MVN := mvn -B -ntp
+.PHONY: java java-deps test-java
+
+java-deps:
+	@command -v java >/dev/null && command -v mvn >/dev/null || { \
+	  echo "installing a JDK and Maven"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q openjdk-17-jdk-headless maven; }
+
+$(JAVA_JAR): $(JAVA_SOURCES) $(PROTOS)
+	cd java_client && $(MVN) -q install -DskipTests
+	touch $@
+
+java: java-deps $(JAVA_JAR)
+
+# JUnit tests on the classes `make java` compiled, with Surefire's summary.
+test-java: java
+	cd java_client && $(MVN) surefire:test
 
 lint: setup proto
 	$(VENV)/bin/ruff check python tests

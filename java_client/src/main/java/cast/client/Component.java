@@ -87,6 +87,9 @@ public abstract class Component implements AutoCloseable {
 
   void setState(cast.v1.ComponentState state) {
     this.state = state;
+    if (transport != null) {
+      transport.stateChanged();
+    }
   }
 
   private GrpcTransport t() {

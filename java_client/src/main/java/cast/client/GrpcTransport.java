@@ -114,6 +114,7 @@ final class GrpcTransport implements AutoCloseable {
     volatile String sessionId = "";
     StreamObserver<HeartbeatRequest> heartbeat; // guarded by itself once set
     ScheduledFuture<?> beat;
+    Runnable beatNow;
 
     Server(String endpoint) {
       this.endpoint = endpoint;
@@ -611,24 +612,41 @@ final class GrpcTransport implements AutoCloseable {
                 }
               });
       server.heartbeat = hb;
-      server.beat =
-          heartbeats.scheduleAtFixedRate(
-              () -> {
-                try {
-                  var beat =
-                      HeartbeatRequest.newBuilder().setSessionId(server.sessionId).setState(state.get()).build();
-                  synchronized (hb) {
-                    if (!closing.get()) {
-                      hb.onNext(beat);
-                    }
-                  }
-                } catch (RuntimeException e) { // keep beating: one failed send must not end the schedule
-                  LOG.log(Level.WARNING, "heartbeat to " + server.endpoint + " not sent", e);
+      server.beatNow =
+          () -> {
+            try {
+              var beat = HeartbeatRequest.newBuilder().setSessionId(server.sessionId).setState(state.get()).build();
+              synchronized (hb) {
+                if (!closing.get()) {
+                  hb.onNext(beat);
                 }
-              },
-              0,
-              intervalMs,
-              TimeUnit.MILLISECONDS);
+              }
+            } catch (RuntimeException e) { // keep beating: one failed send must not end the schedule
+              LOG.log(Level.WARNING, "heartbeat to " + server.endpoint + " not sent", e);
+            }
+          };
+      server.beat = heartbeats.scheduleAtFixedRate(server.beatNow, 0, intervalMs, TimeUnit.MILLISECONDS);
+    }
+  }
+
+  /**
+   * Report a new component state at once rather than at the next scheduled beat
+   * (a third of the lease, seconds by default), so tools see RUNNING or STOPPING
+   * when it happens.
+   */
+  void stateChanged() {
+    if (closing.get()) {
+      return;
+    }
+    for (Server server : allServers()) {
+      Runnable beat = server.beatNow;
+      if (beat != null) {
+        try {
+          heartbeats.execute(beat);
+        } catch (java.util.concurrent.RejectedExecutionException e) {
+          return; // closing
+        }
+      }
     }
   }
 

@@ -369,6 +369,16 @@ class ComponentTest {
   }
 
   @Test
+  void aStateChangeIsReportedAtOnce() throws Exception {
+    fake.leaseMs = 60_000; // scheduled beats every 20 s: only the first one comes by schedule
+    Plain c = connect(new Plain(), "c1", "vision");
+    assertTrue(eventually(() -> fake.beats.size() == 1, Duration.ofSeconds(5)));
+    c.setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
+    assertTrue(eventually(() -> fake.beats.size() == 2, Duration.ofSeconds(5)));
+    assertEquals(cast.v1.ComponentState.COMPONENT_STATE_RUNNING, fake.beats.get(1).getState());
+  }
+
+  @Test
   void anUnconnectedComponentSaysHowToConnectIt() {
     IllegalStateException e = assertThrows(IllegalStateException.class, () -> new Plain().newId());
     assertTrue(e.getMessage().contains("cast.client.Runner"), e.getMessage());

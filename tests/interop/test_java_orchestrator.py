@@ -1,0 +1,99 @@
+"""Java components under `cast run`: launched by the orchestrator, killed with SIGKILL, restarted."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import grpc
+import yaml
+from cast_testing_pb2 import Counter
+
+import cast
+from cast.v1 import directory_pb2, directory_pb2_grpc
+from tests.interop.java_support import TEST_CLASSES, CastRun, java_classpath
+
+
+def components(run: CastRun) -> dict[str, directory_pb2.ComponentInfo]:
+    with grpc.insecure_channel(run.endpoint()) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        md = (("authorization", f"Bearer {run.token('tool', 'vision')}"),)
+        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
+    return {c.id: c for c in desc.components}
+
+
+def wait_for(predicate: Any, timeout: float = 30.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    return None
+
+
+def locked_by_other(component: Any) -> bool:
+    """Whether another component holds an ODR lock on "held" (a read probe: it takes no lock)."""
+    try:
+        component.get("held", Counter)
+    except cast.LockedError:
+        return True
+    return False
+
+
+class PyWorker(cast.ManagedComponent):
+    def __init__(self) -> None:
+        super().__init__()
+        self.adopted: list[cast.Task] = []
+        self.adopted_event = threading.Event()
+
+    def task_adopted(self, task: cast.Task) -> None:
+        self.adopted.append(task)
+        self.adopted_event.set()
+
+
+def test_sigkilled_java_component_releases_locks_and_tasks_and_is_restarted(tmp_path: Path) -> None:
+    java_classpath()  # fails the test if the Java build is missing
+    config = tmp_path / "system.yaml"
+    config.write_text(yaml.safe_dump({
+        "system": "restart",
+        "subarchitectures": {"vision": {
+            "task_manager": {"policy": "fifo", "max_concurrent": 1},
+            "components": {"holder": {
+                "language": "java", "kind": "managed", "class": "cast.itest.Holder",
+                "classpath": [str(TEST_CLASSES)], "restart": {"policy": "on-failure", "backoff": 0.2},
+            }},
+        }},
+    }, sort_keys=False))
+    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    py = None
+    try:
+        first = wait_for(lambda: (c := components(run).get("holder")) and c.state == directory_pb2.COMPONENT_STATE_RUNNING and c)
+        assert first, run.output()
+        assert (first.language, first.kind, first.sessions) == ("java", "managed", 1)
+        py = run.connect("pyworker", "vision", cls=PyWorker)
+        assert wait_for(lambda: locked_by_other(py), 10)
+        py.propose_task("python-task")
+        assert not py.adopted_event.wait(1.0), "the Java task holds the only slot"
+
+        os.kill(first.pid, signal.SIGKILL)
+
+        assert py.adopted_event.wait(15), f"the killed component's task was not released\n{run.output()}"
+        with py.lock("held", cast.LockMode.ODR, timeout=15):
+            assert py.get("held", Counter).writer == "holder"
+            # The orchestrator restarts the component: a new process, a second session, which waits for the lock.
+            second = wait_for(lambda: (c := components(run)["holder"]).sessions == 2 and c.pid != first.pid and c)
+            assert second, run.output()
+        py.task_complete(py.adopted[0])
+        # The restarted holder takes the lock and the task slot again.
+        assert wait_for(lambda: locked_by_other(py), 30), run.output()
+        assert wait_for(lambda: components(run)["holder"].state == directory_pb2.COMPONENT_STATE_RUNNING), run.output()
+    finally:
+        if py is not None:
+            py._cast_close()
+        run.stop()  # its exit status reports the crash; what matters here is what the crash left behind
+    assert "holder crashed (exit code -9); restarting" in run.output()
