@@ -34,7 +34,8 @@ B = Identity("b", "language")
 
 
 def make(path: Path, mode: str, history: int = 64) -> System:
-    return System("t", ["vision", "language"], limits=Limits(history_events=history), journal=Journal(path, mode, history))
+    journal = Journal(path, mode, history)
+    return System("t", ["vision", "language"], limits=Limits(history_events=history), journal=journal)
 
 
 def state(system: System) -> dict[str, Any]:

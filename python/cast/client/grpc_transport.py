@@ -13,6 +13,7 @@ from typing import Any
 import grpc
 from google.protobuf import any_pb2, descriptor_pb2
 
+from cast.client.connection import Backoff, ClientTls, TokenSource
 from cast.client.transport import EventSink
 from cast.convert import TYPE_URL_PREFIX, entry_from_pb, event_from_pb, filter_to_pb, task_from_pb
 from cast.core.host import BatchOp
@@ -20,7 +21,7 @@ from cast.core.records import EntryRecord, Identity, LockMode, Operation, WriteR
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter
-from cast.errors import CastError, DeadlineExceededError, UnavailableError, error_for_code
+from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
 from cast.v1 import (
     directory_pb2 as dir_pb2,
 )
@@ -54,7 +55,16 @@ CHANNEL_OPTIONS = (
     ("grpc.keepalive_time_ms", 10_000),
     ("grpc.keepalive_timeout_ms", 5_000),
     ("grpc.keepalive_permit_without_calls", 1),
+    # Try again soon after the server went away (gRPC's default backoff grows to two minutes),
+    # so a restarted server is found within a few seconds.
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 2_000),
 )
+
+# Errors after which a stream is opened again (the server went away, or the connection broke);
+# any other error ends the stream for good and is reported.
+_TRANSIENT = ("UNAVAILABLE", "UNKNOWN", "INTERNAL", "CANCELLED", "DEADLINE_EXCEEDED", "UNAUTHENTICATED")
 
 
 def map_rpc_error(exc: grpc.RpcError) -> CastError:
@@ -63,7 +73,10 @@ def map_rpc_error(exc: grpc.RpcError) -> CastError:
     details = exc.details() if hasattr(exc, "details") else str(exc)
     name = code.name if code is not None else "UNKNOWN"
     if name == "UNAVAILABLE":
-        return UnavailableError(f"server unavailable: {details}")
+        return UnavailableError(
+            f"server unavailable ({details}): a write made by this call may or may not have been applied; the "
+            "client reconnects by itself, retry the call later"
+        )
     return error_for_code(name, details or name)
 
 
@@ -78,49 +91,170 @@ def _addr(sa: str, entry_id: str) -> entry_pb2.EntryAddress:
 class _Server:
     """One server endpoint: its channel and stubs."""
 
-    def __init__(self, endpoint: str) -> None:
+    def __init__(self, endpoint: str, tls: ClientTls | None = None) -> None:
         self.endpoint = endpoint
-        self.channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+        if tls is None:
+            self.channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+        else:
+            options = [*CHANNEL_OPTIONS, *tls.channel_options()]
+            self.channel = grpc.secure_channel(endpoint, tls.credentials(), options=options)
         self.wm = wm_grpc.WorkingMemoryStub(self.channel)
         self.tm = tm_grpc.TaskManagerStub(self.channel)
         self.directory = dir_grpc.DirectoryStub(self.channel)
         self.watch_stream: _WatchStream | None = None
         self.session_id = ""
+        self.registered = threading.Event()  # a session is open on this server
 
     def close(self) -> None:
         self.channel.close()
 
 
-class _WatchStream:
-    """One Watch call to one server, shared by every watch of the component on that server."""
+class _Watch:
+    """What the client keeps of one watch so that it can be created again after a reconnect."""
 
-    def __init__(self, server: _Server, metadata: Any, sink: EventSink, on_error: Callable[[CastError], None]) -> None:
-        self._requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] = queue.SimpleQueue()
-        self._pending: dict[int, tuple[threading.Event, list[Any]]] = {}
+    __slots__ = ("base", "filters", "first_starts", "sas", "watch_id")
+
+    def __init__(self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int]) -> None:
+        self.watch_id = watch_id
+        self.filters = list(filters)
+        self.first_starts = starts
+        self.sas: list[str] = []  # the SAs of this server the watch covers (known once created)
+        # Per SA, the revision the watch is known to have seen up to (None until created).
+        self.base: dict[str, int] | None = None
+
+
+class _WatchStream:
+    """One Watch call to one server, shared by every watch of the component on that server.
+
+    When the connection breaks the stream is opened again with backoff and every
+    watch is created again from the revision after the last one it got (per SA):
+    no gap and no duplicate. The server's history id comes along, so a server that
+    lost that history (restarted without persistence) refuses the resume, and the
+    component is told to resynchronise (``watch_failed`` with HistoryExpiredError).
+    """
+
+    def __init__(
+        self,
+        server: _Server,
+        tokens: TokenSource,
+        sink: EventSink,
+        on_error: Callable[[CastError], None],
+        closing: threading.Event,
+    ) -> None:
+        self._server = server
+        self._tokens = tokens
         self._sink = sink
         self._on_error = on_error
+        self._closing = closing
+        self._mutex = threading.Lock()
+        self._watches: dict[int, _Watch] = {}
+        self._pending: dict[int, tuple[threading.Event, list[Any]]] = {}
+        # The newest revision per SA received on this stream: the server moves every watch of an SA
+        # on one stream past the events it sends, so each watch has seen at least this far.
+        self._seen: dict[str, int] = {}
+        self.history_id = ""
+        self.connected = False
+        self.dead = False  # ended for good (e.g. fell behind the history): a new watch needs a new stream
+        self.reconnects = 0
         self._closed = False
-        self._call = server.wm.Watch(iter(self._requests.get, None), metadata=metadata)
-        self._thread = threading.Thread(target=self._read, name=f"cast-watch-{server.endpoint}", daemon=True)
+        self._requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] | None = None
+        self._call: Any = None
+        self._opened = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"cast-watch-{server.endpoint}", daemon=True)
         self._thread.start()
+        self._opened.wait()
 
-    def _read(self) -> None:
-        try:
-            for resp in self._call:
-                if resp.events:
-                    for pb in resp.events:
-                        self._sink(event_from_pb(pb), pb.watch_ids)
-                if resp.HasField("created"):
-                    self._resolve(resp.created.watch_id, dict(resp.created.revisions))
-                if resp.HasField("failed"):
-                    self._resolve(resp.failed.watch_id, error_for_code(resp.failed.code, resp.failed.message))
-        except grpc.RpcError as exc:
-            if self._closed:
+    # ------------------------------------------------------------ requests
+
+    def _create_request(self, w: _Watch) -> wm_pb2.WatchRequest:
+        if w.base is None:
+            starts, history_id = w.first_starts, ""
+        else:
+            starts = {sa: max(w.base.get(sa, 0), self._seen.get(sa, 0)) + 1 for sa in w.sas}
+            # What is sent is where the watch now is: a later resume never goes back before it.
+            w.base = {sa: start - 1 for sa, start in starts.items()}
+            history_id = self.history_id
+        create = wm_pb2.WatchCreate(
+            watch_id=w.watch_id, filters=[filter_to_pb(f) for f in w.filters], start_revisions=starts,
+            history_id=history_id,
+        )
+        return wm_pb2.WatchRequest(create=create)
+
+    def _open(self) -> Any:
+        with self._mutex:
+            requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] = queue.SimpleQueue()
+            self._requests = requests
+            for w in self._watches.values():
+                requests.put(self._create_request(w))
+            self._call = self._server.wm.Watch(iter(requests.get, None), metadata=self._tokens.metadata())
+            return self._call
+
+    # -------------------------------------------------------------- reader
+
+    def _run(self) -> None:
+        backoff = Backoff()
+        first = True
+        while not self._closed:
+            call = self._open()
+            if first:
+                self._opened.set()
+                first = False
+            try:
+                for resp in call:
+                    if not self.connected:
+                        self.connected = True
+                        backoff.reset()
+                    self._handle(resp)
+                error: CastError = UnavailableError(f"the watch stream to {self._server.endpoint} ended")
+            except grpc.RpcError as exc:
+                error = map_rpc_error(exc)
+            self.connected = False
+            if self._closed or self._closing.is_set():
                 return
-            err = map_rpc_error(exc)
-            for wid in list(self._pending):
-                self._resolve(wid, err)
-            self._on_error(err)
+            if error.code not in _TRANSIENT:
+                self._fail(error)
+                return
+            log.warning("watch stream to %s broke (%s); reconnecting", self._server.endpoint, error.message)
+            self.reconnects += 1
+            if self._closing.wait(backoff.next()):
+                return
+
+    def _handle(self, resp: wm_pb2.WatchResponse) -> None:
+        if resp.events:
+            for pb in resp.events:
+                event = event_from_pb(pb)
+                self._sink(event, pb.watch_ids)
+                if event.revision > self._seen.get(event.subarchitecture, 0):
+                    self._seen[event.subarchitecture] = event.revision
+        if resp.HasField("created"):
+            created = resp.created
+            self.history_id = created.history_id or self.history_id
+            w = self._watches.get(created.watch_id)
+            if w is not None and w.base is None:
+                revisions = dict(created.revisions)
+                covers_all = any(not f.subarchitecture for f in w.filters)
+                w.sas = [sa for sa in revisions if covers_all or any(f.subarchitecture == sa for f in w.filters)]
+                w.base = {sa: w.first_starts.get(sa, revisions[sa] + 1) - 1 for sa in w.sas}
+            self._resolve(created.watch_id, dict(created.revisions))
+        if resp.HasField("failed"):
+            failed = resp.failed
+            error = error_for_code(failed.code, failed.message)
+            if failed.watch_id in self._pending:
+                self._resolve(failed.watch_id, error)
+            elif self._watches.pop(failed.watch_id, None) is not None:
+                # A resume refused after a reconnect: the history no longer covers it (or the server
+                # lost it): the component must resynchronise.
+                if not isinstance(error, HistoryExpiredError):
+                    error = HistoryExpiredError(f"watch {failed.watch_id} could not resume: {failed.message}")
+                self._on_error(error)
+
+    def _fail(self, error: CastError) -> None:
+        self.dead = True
+        with self._mutex:
+            self._watches.clear()
+        for wid in list(self._pending):
+            self._resolve(wid, error)
+        self._on_error(error)
 
     def _resolve(self, watch_id: int, result: Any) -> None:
         pending = self._pending.pop(watch_id, None)
@@ -128,31 +262,47 @@ class _WatchStream:
             pending[1].append(result)
             pending[0].set()
 
+    # ---------------------------------------------------------------- API
+
     def create(
         self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], timeout: float
     ) -> dict[str, int]:
         done = threading.Event()
         box: list[Any] = []
-        self._pending[watch_id] = (done, box)
-        create = wm_pb2.WatchCreate(
-            watch_id=watch_id, filters=[filter_to_pb(f) for f in filters], start_revisions=starts
-        )
-        self._requests.put(wm_pb2.WatchRequest(create=create))
+        w = _Watch(watch_id, filters, starts)
+        with self._mutex:
+            self._pending[watch_id] = (done, box)
+            self._watches[watch_id] = w
+            if self._requests is not None:
+                self._requests.put(self._create_request(w))
         if not done.wait(timeout):
             self._pending.pop(watch_id, None)
+            self._watches.pop(watch_id, None)
+            if not self.connected:
+                raise UnavailableError(
+                    f"server {self._server.endpoint} unreachable: the watch was not created within {timeout} s"
+                )
             raise DeadlineExceededError(f"the server did not confirm watch {watch_id} within {timeout} s")
         result = box[0]
         if isinstance(result, CastError):
+            self._watches.pop(watch_id, None)
             raise result
         return dict(result)
 
     def cancel(self, watch_id: int) -> None:
-        self._requests.put(wm_pb2.WatchRequest(cancel=wm_pb2.WatchCancel(watch_id=watch_id)))
+        with self._mutex:
+            self._watches.pop(watch_id, None)
+            if self._requests is not None:
+                self._requests.put(wm_pb2.WatchRequest(cancel=wm_pb2.WatchCancel(watch_id=watch_id)))
 
     def close(self) -> None:
         self._closed = True
-        self._requests.put(None)
-        self._call.cancel()  # type: ignore[no-untyped-call]
+        with self._mutex:
+            if self._requests is not None:
+                self._requests.put(None)
+            call = self._call
+        if call is not None:
+            call.cancel()
 
 
 class GrpcTransport:
@@ -160,12 +310,20 @@ class GrpcTransport:
 
     delivers_on_writer_thread = False
 
-    def __init__(self, endpoint: str, token: str, identity: Identity, call_timeout: float = 30.0) -> None:
+    def __init__(
+        self,
+        endpoint: str,
+        token: str | TokenSource,
+        identity: Identity,
+        call_timeout: float = 30.0,
+        tls: ClientTls | None = None,
+    ) -> None:
         self.identity = identity
-        self._metadata = (("authorization", f"Bearer {token}"),)
+        self._tokens = token if isinstance(token, TokenSource) else TokenSource(token)
+        self._tls = tls
         self._timeout = call_timeout
         self._lock = threading.Lock()
-        self._directory = _Server(endpoint)
+        self._directory = _Server(endpoint, tls)
         self._servers: dict[str, _Server] = {endpoint: self._directory}
         self._watch_servers: dict[int, list[_Server]] = {}
         self._sink: EventSink | None = None
@@ -173,13 +331,14 @@ class GrpcTransport:
         self._decision_threads: list[threading.Thread] = []
         self._closing = threading.Event()
         self._routes: dict[str, _Server] = {}
+        self.sessions = 0  # sessions registered (more than one per server after reconnects)
         self._describe()
 
     # --------------------------------------------------------------- routing
 
     def _call(self, fn: Callable[..., Any], request: Any, timeout: float | None = -1.0) -> Any:
         try:
-            return fn(request, metadata=self._metadata, timeout=self._timeout if timeout == -1.0 else timeout)
+            return fn(request, metadata=self._tokens.metadata(), timeout=self._timeout if timeout == -1.0 else timeout)
         except grpc.RpcError as exc:
             raise map_rpc_error(exc) from None
 
@@ -195,7 +354,7 @@ class GrpcTransport:
                 else:
                     server = self._servers.get(sa.endpoint)
                     if server is None:
-                        server = self._servers[sa.endpoint] = _Server(sa.endpoint)
+                        server = self._servers[sa.endpoint] = _Server(sa.endpoint, self._tls)
                     self._routes[sa.name] = server
         return desc
 
@@ -330,8 +489,8 @@ class GrpcTransport:
         revisions: dict[str, int] = {}
         for server in targets:
             with self._lock:
-                if server.watch_stream is None:
-                    server.watch_stream = _WatchStream(server, self._metadata, self._sink, self._on_error)
+                if server.watch_stream is None or server.watch_stream.dead:
+                    server.watch_stream = _WatchStream(server, self._tokens, self._sink, self._on_error, self._closing)
                 stream = server.watch_stream
             mine = {sa: r for sa, r in (start_revisions or {}).items() if self._server(sa) is server}
             revisions.update(stream.create(watch_id, filters, mine, self._timeout))
@@ -364,19 +523,31 @@ class GrpcTransport:
         self._call(self._server(self.identity.subarchitecture).tm.Complete, req)
 
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
-        """Open the decision stream of the own SA's task manager; decisions go to ``sink``."""
+        """Open the decision stream of the own SA's task manager; decisions go to ``sink``.
+
+        The stream is opened again after a disconnect, once the session is registered again.
+        """
         server = self._server(self.identity.subarchitecture)
-        call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._metadata)
 
         def read() -> None:
-            try:
-                for task in call:
-                    sink(task_from_pb(task))
-            except grpc.RpcError as exc:
-                if not self._closing.is_set():
-                    self._on_error(map_rpc_error(exc))
+            backoff = Backoff()
+            while not self._closing.is_set():
+                call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
+                self._decision_call = call
+                try:
+                    for task in call:
+                        backoff.reset()
+                        sink(task_from_pb(task))
+                except grpc.RpcError as exc:
+                    if self._closing.is_set():
+                        return
+                    error = map_rpc_error(exc)
+                    if error.code not in _TRANSIENT:
+                        self._on_error(error)
+                        return
+                if self._closing.wait(backoff.next()):
+                    return
 
-        self._decision_call = call
         thread = threading.Thread(target=read, name="cast-decisions", daemon=True)
         thread.start()
         self._decision_threads.append(thread)
@@ -384,29 +555,61 @@ class GrpcTransport:
     # -------------------------------------------------------------- sessions
 
     def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
-        """Register with every server and keep the sessions alive with heartbeat streams."""
+        """Register with every server and keep the sessions alive with heartbeat streams.
+
+        A broken session is registered again with backoff (a new session: the
+        server released the locks and tasks of the old one when it ended).
+        """
         for server in list(self._servers.values()):
-            req = dir_pb2.RegisterRequest(language=language, kind=kind, pid=os.getpid(), host=socket.gethostname())
-            resp = self._call(server.directory.Register, req)
-            server.session_id = resp.session_id
-            interval = max(0.05, resp.lease_ms / 3000)
+            interval = self._register(server, language, kind)
             threading.Thread(
-                target=self._heartbeat, args=(server, interval, state), name="cast-heartbeat", daemon=True
+                target=self._heartbeat, args=(server, interval, language, kind, state), name="cast-heartbeat",
+                daemon=True,
             ).start()
 
-    def _heartbeat(self, server: _Server, interval: float, state: Callable[[], ComponentState]) -> None:
-        def beats() -> Iterator[dir_pb2.HeartbeatRequest]:
-            while True:
-                yield dir_pb2.HeartbeatRequest(session_id=server.session_id, state=int(state()))  # type: ignore[arg-type]
-                if self._closing.wait(interval):
-                    return
+    def _register(self, server: _Server, language: str, kind: str) -> float:
+        req = dir_pb2.RegisterRequest(language=language, kind=kind, pid=os.getpid(), host=socket.gethostname())
+        resp = self._call(server.directory.Register, req)
+        server.session_id = resp.session_id
+        server.registered.set()
+        self.sessions += 1
+        return float(max(0.05, resp.lease_ms / 3000))
 
-        try:
-            for _ in server.directory.Heartbeat(beats(), metadata=self._metadata):
-                pass
-        except grpc.RpcError as exc:
-            if not self._closing.is_set():
-                log.error("heartbeat to %s failed: %s", server.endpoint, map_rpc_error(exc))
+    def _heartbeat(
+        self, server: _Server, interval: float, language: str, kind: str, state: Callable[[], ComponentState]
+    ) -> None:
+        backoff = Backoff()
+        while not self._closing.is_set():
+            session_id = server.session_id
+
+            def beats(session_id: str = session_id, every: float = interval) -> Iterator[dir_pb2.HeartbeatRequest]:
+                while True:
+                    yield dir_pb2.HeartbeatRequest(session_id=session_id, state=int(state()))  # type: ignore[arg-type]
+                    if self._closing.wait(every):
+                        return
+
+            try:
+                for _ in server.directory.Heartbeat(beats(), metadata=self._tokens.metadata()):
+                    backoff.reset()
+                if self._closing.is_set():
+                    return
+                reason = "the server ended the heartbeat stream"
+            except grpc.RpcError as exc:
+                if self._closing.is_set():
+                    return
+                reason = map_rpc_error(exc).message
+            server.registered.clear()
+            log.warning(
+                "session with %s lost (%s): its locks and tasks are released; registering again",
+                server.endpoint, reason,
+            )
+            while not self._closing.wait(backoff.next()):
+                try:
+                    interval = self._register(server, language, kind)
+                    log.info("registered again with %s (session %s)", server.endpoint, server.session_id)
+                    break
+                except CastError as err:
+                    log.info("registering with %s failed (%s); retrying", server.endpoint, err.message)
 
     def close(self) -> None:
         """End sessions and streams, close channels."""

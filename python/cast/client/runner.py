@@ -1,7 +1,8 @@
 """Running a component: the launch contract (DESIGN.md section 6) and the lifecycle.
 
 Every component process gets ``CAST_ENDPOINT``, ``CAST_COMPONENT_ID``,
-``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object).
+``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object), and
+optionally ``CAST_TOKEN_FILE`` and ``CAST_TLS_*`` (see :mod:`cast.client.connection`).
 The runner connects, calls configure(args), start(), run(), and stop() once
 on SIGINT/SIGTERM, on ``request_stop()``, or when run() raised.
 """
@@ -21,6 +22,7 @@ from typing import Any
 
 from cast.auth import peek
 from cast.client.component import Component
+from cast.client.connection import ClientTls, TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.transport import Transport
 from cast.core.records import Identity
@@ -41,6 +43,8 @@ class LaunchContract:
     subarchitecture: str
     token: str
     args: dict[str, Any]
+    tls: ClientTls | None = None  # CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
+    token_file: str = ""  # CAST_TOKEN_FILE: re-read when the orchestrator renews the token
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> LaunchContract:
@@ -59,7 +63,15 @@ class LaunchContract:
             raise InvalidArgumentError(f"CAST_ARGS is not valid JSON: {exc}") from None
         if not isinstance(args, dict):
             raise InvalidArgumentError("CAST_ARGS must be a JSON object")
-        return cls(env["CAST_ENDPOINT"], env["CAST_COMPONENT_ID"], env["CAST_SUBARCHITECTURE"], env["CAST_TOKEN"], args)
+        return cls(
+            env["CAST_ENDPOINT"],
+            env["CAST_COMPONENT_ID"],
+            env["CAST_SUBARCHITECTURE"],
+            env["CAST_TOKEN"],
+            args,
+            ClientTls.from_env(env),
+            env.get("CAST_TOKEN_FILE", ""),
+        )
 
     def identity(self) -> Identity:
         """The component's identity (privileged as the token claims; the server verifies it)."""
@@ -68,7 +80,8 @@ class LaunchContract:
 
     def connect(self) -> GrpcTransport:
         """A gRPC connection to the system."""
-        return GrpcTransport(self.endpoint, self.token, self.identity())
+        tokens = TokenSource(self.token, self.token_file or None)
+        return GrpcTransport(self.endpoint, tokens, self.identity(), tls=self.tls)
 
 
 def load_component_class(spec: str) -> type[Component]:
