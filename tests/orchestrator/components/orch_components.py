@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -27,14 +28,31 @@ class Producer(cast.UnmanagedComponent):
 
 
 class Worker(cast.ManagedComponent):
-    """For each item added anywhere, proposes a task; when adopted, writes ``result-<i>`` into its own SA."""
+    """For each item added anywhere, proposes a task; when adopted, writes ``result-<i>`` into its own SA.
+
+    Items already in ``source_sa`` when it starts are picked up too (watch first, then read).
+    """
+
+    def configure(self, args: dict[str, Any]) -> None:
+        self.source = str(args.get("source_sa", ""))
+        self.seen: set[str] = set()
+        self.mutex = threading.Lock()
 
     def start(self) -> None:
         self.on_change(cast.global_type_filter(StringValue, cast.Operation.ADD), self.item)
+        if self.source:
+            for entry in self.get_all(StringValue, subarchitecture=self.source):
+                self.propose_once(entry.id)
 
     def item(self, change: cast.WorkingMemoryChange) -> None:
-        if change.id.startswith("item-"):
-            self.propose_task(f"work {change.id}", StringValue(value=change.id))
+        self.propose_once(change.id)
+
+    def propose_once(self, entry_id: str) -> None:
+        with self.mutex:  # start() and the dispatcher both get here
+            if not entry_id.startswith("item-") or entry_id in self.seen:
+                return
+            self.seen.add(entry_id)
+        self.propose_task(f"work {entry_id}", StringValue(value=entry_id))
 
     def task_adopted(self, task: cast.Task) -> None:
         data = task.data(StringValue)
@@ -49,14 +67,26 @@ class Reporter(cast.UnmanagedComponent):
 
     def configure(self, args: dict[str, Any]) -> None:
         self.expected = int(args.get("expected", 3))
+        self.source = str(args.get("source_sa", ""))
         self.seen: set[str] = set()
+        self.mutex = threading.Lock()
 
     def start(self) -> None:
         self.on_change(cast.global_type_filter(Int64Value, cast.Operation.ADD), self.result)
+        if self.source:
+            for entry in self.get_all(Int64Value, subarchitecture=self.source):
+                self.count(entry.id)
 
     def result(self, change: cast.WorkingMemoryChange) -> None:
-        self.seen.add(change.id)
-        if len(self.seen) == self.expected:
+        self.count(change.id)
+
+    def count(self, entry_id: str) -> None:
+        with self.mutex:  # start() and the dispatcher both get here
+            if not entry_id.startswith("result-") or entry_id in self.seen:
+                return
+            self.seen.add(entry_id)
+            complete = len(self.seen) == self.expected
+        if complete:
             self.add("report", BoolValue(value=True))
 
 
@@ -136,3 +166,10 @@ class Failing(cast.UnmanagedComponent):
 
     def run(self) -> None:
         raise RuntimeError("broken on purpose")
+
+
+class Recorder(cast.UnmanagedComponent):
+    """Prints when its stop() is called (the order of shutdown shows in the output)."""
+
+    def stop(self) -> None:
+        print("stop() called", flush=True)

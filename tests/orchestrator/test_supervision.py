@@ -1,0 +1,196 @@
+"""Supervision: restarts by policy (locks and tasks of the crashed process released), clean shutdown, no orphans."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from cast.core.records import Identity
+from cast.orchestrator.supervisor import Phase
+from tests.orchestrator.conftest import CAST, Embedded, start_cast_run, wait_for, write_config
+
+
+def gone(pid: int) -> bool:
+    """The process no longer exists (or is a zombie waiting for its parent)."""
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def test_crashed_component_is_restarted_and_its_lock_and_task_released(
+    tmp_path: Path, embedded: Callable[..., Embedded]
+) -> None:
+    marker = tmp_path / "crashed-once"
+    cfg = write_config(tmp_path / "crash.yaml", {
+        "system": "crash",
+        "subarchitectures": {
+            "work": {
+                "task_manager": {"policy": "exclusive"},
+                "components": {"crasher": {
+                    "kind": "managed", "class": "orch_components:Crasher", "args": {"marker": str(marker)},
+                    "restart": {"policy": "on-failure", "backoff": 0.05},
+                }},
+            },
+            "other": {"components": {"checker": {
+                "class": "orch_components:Checker", "args": {"target_sa": "work", "marker": str(marker)},
+                "privileged": True,  # it writes the other SA's entry
+            }}},
+        },
+    })
+    run = embedded(cfg)
+    host = run.system("work").host
+    who = Identity("test", "work")
+    # The restarted crasher's task is adopted although the exclusive TM had adopted the dead one's.
+    wait_for(lambda: host.exists(who, "work", "adopted-after-restart"), what="a task adopted after the restart")
+    # Another component could take the lock the crashed process held.
+    wait_for(lambda: host.exists(who, "work", "held") and host.get(who, "work", "held").author == "checker",
+             what="the checker to overwrite the formerly locked entry")
+    tasks = run.system("work").tasks
+    assert tasks.counters["work"]["retracted"] >= 1  # the dead process's task
+    assert all(t.name != "doomed" for t in tasks.tasks("work"))
+    sup = run.orchestrator.supervisor
+    assert sup is not None
+    crasher = sup.components["crasher"]
+    assert (crasher.restarts, crasher.crashes, crasher.phase) == (1, [3], Phase.RUNNING)
+    info = next(c for c in run.system("work").sessions.components() if c.id == "crasher")
+    assert info.sessions == 2 and info.session_id
+    result = run.stop()
+    assert "crasher crashed (exit code 3); restarting" in run.text()
+    assert result.failures == ["crasher crashed 1 time(s) (exit codes 3)"]
+    assert result.exit_code == 1
+
+
+def test_restart_policies_never_and_max_restarts(tmp_path: Path, embedded: Callable[..., Embedded]) -> None:
+    cfg = write_config(tmp_path / "failing.yaml", {
+        "subarchitectures": {"work": {"components": {
+            "once": {"class": "orch_components:Failing", "restart": "never"},
+            "thrice": {"class": "orch_components:Failing",
+                       "restart": {"policy": "on-failure", "max_restarts": 2, "backoff": 0.01}},
+            "steady": {"class": "orch_components:Producer"},
+        }}},
+    })
+    run = embedded(cfg, wait=False)
+    sup = wait_for(lambda: run.orchestrator.supervisor, what="the supervisor")
+    wait_for(lambda: sup.components["once"].phase is Phase.FAILED and sup.components["thrice"].phase is Phase.FAILED,
+             what="both failing components to give up")
+    assert (sup.components["once"].restarts, sup.components["once"].crashes) == (0, [1])
+    assert (sup.components["thrice"].restarts, sup.components["thrice"].crashes) == (2, [1, 1, 1])
+    result = run.stop()
+    assert "thrice crashed (exit code 1); not restarted after 2 restarts" in run.text()
+    assert "once crashed (exit code 1); not restarted (restart: never)" in run.text()
+    assert result.exit_code == 1
+    assert sup.components["steady"].stop_code == 0
+
+
+def test_sigterm_stops_components_in_reverse_order_and_leaves_no_process(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "tidy.yaml", {
+        "system": "tidy",
+        "subarchitectures": {"work": {"components": {
+            "first": {"class": "orch_components:Recorder"},
+            "spawner": {"class": "orch_components:Spawner"},
+            "last": {"class": "orch_components:Recorder"},
+        }}},
+    })
+    run = start_cast_run(tmp_path, cfg)
+    pids = [c["pid"] for c in run.cli_json("components")]
+    child = wait_for(lambda: _child_pid(run), what="the spawner's child")
+    assert all(not gone(p) for p in [*pids, child])
+    assert run.stop(signal.SIGTERM) == 0, run.output()
+    out = run.output()
+    assert out.index("last | stop() called") < out.index("first | stop() called")
+    wait_for(lambda: all(gone(p) for p in [*pids, child]), timeout=10, what="every process to be gone")
+    assert not (run.runtime_dir / "system.json").exists() and not (run.runtime_dir / "secret").exists()
+    assert (run.runtime_dir / "logs" / "first.log").read_text().strip().endswith("stop() called")
+
+
+def _child_pid(run: Any) -> int:
+    out = run.cli("get", "work", "child-pid", "--json", check=False)
+    # An Int64Value renders as its value, a string (protobuf JSON for 64-bit numbers).
+    return int(json.loads(out.stdout)["value"]) if out.returncode == 0 else 0
+
+
+def test_component_that_ignores_stop_is_killed_and_fails_the_run(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "stubborn.yaml", {
+        "orchestrator": {"stop_timeout": 1},
+        "subarchitectures": {"work": {"components": {"stubborn": {"class": "orch_components:Stubborn"}}}},
+    })
+    out = subprocess.run([CAST, "run", str(cfg), "--for", "0.5", "--no-status", "--runtime-dir", str(tmp_path / "rt")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "stubborn did not stop within 1 s: killed" in out.stdout
+    assert "failed: stubborn exited with code -9 when stopped (killed)" in out.stdout
+
+
+def test_killing_the_orchestrator_takes_its_components_along(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "orphans.yaml", {
+        "subarchitectures": {"work": {"components": {"a": {"class": "orch_components:Recorder"},
+                                                     "b": {"class": "orch_components:Recorder"}}}},
+    })
+    run = start_cast_run(tmp_path, cfg)
+    pids = [c["pid"] for c in run.cli_json("components")]
+    assert run.stop(signal.SIGKILL) == -signal.SIGKILL
+    wait_for(lambda: all(gone(p) for p in pids), timeout=30, what="the components to follow their orchestrator")
+
+
+def test_for_seconds_exits_non_zero_when_a_component_failed(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "bad.yaml", {
+        "subarchitectures": {"work": {"components": {
+            "broken": {"class": "orch_components:Failing", "restart": "never"},
+            "fine": {"class": "orch_components:Producer"},
+        }}},
+    })
+    out = subprocess.run([CAST, "run", str(cfg), "--for", "1", "--no-status", "--runtime-dir", str(tmp_path / "rt")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "failed: broken crashed 1 time(s) (exit codes 1)" in out.stdout
+    assert "RuntimeError: broken on purpose" in (tmp_path / "rt" / "logs" / "broken.log").read_text()
+
+
+def test_in_process_component_runs_inside_the_server(tmp_path: Path, embedded: Callable[..., Embedded]) -> None:
+    cfg = write_config(tmp_path / "inproc.yaml", {
+        "subarchitectures": {"work": {"components": {
+            "inside": {"class": "orch_components:Producer", "in_process": True, "args": {"count": 2}},
+            "outside": {"kind": "managed", "class": "orch_components:Worker", "args": {"source_sa": "work"}},
+        }}},
+    })
+    run = embedded(cfg)
+    host = run.system("work").host
+    who = Identity("test", "work")
+    wait_for(lambda: host.exists(who, "work", "result-1"), what="the worker's results for the in-process items")
+    infos = {c.id: c for c in run.system("work").sessions.components()}
+    assert infos["inside"].pid == os.getpid()  # the server's (here: the test's) process
+    assert infos["outside"].pid != os.getpid()
+    assert run.stop().exit_code == 0
+
+
+def test_servers_split_subarchitectures_and_route_components(
+    tmp_path: Path, embedded: Callable[..., Embedded]
+) -> None:
+    cfg = write_config(tmp_path / "two-servers.yaml", {
+        "system": "split",
+        "subarchitectures": {
+            "vision": {"components": {
+                "worker": {"kind": "managed", "class": "orch_components:Worker", "args": {"source_sa": "motor"}},
+                "reporter": {"class": "orch_components:Reporter", "args": {"expected": 3, "source_sa": "vision"}},
+            }},
+            "motor": {"components": {"producer": {"class": "orch_components:Producer", "args": {"count": 3}}}},
+        },
+        "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
+    })
+    run = embedded(cfg)
+    main, motion = run.servers.servers
+    assert main.endpoint != motion.endpoint
+    assert main.system.host.subarchitectures == ["vision"] and motion.system.host.subarchitectures == ["motor"]
+    who = Identity("test", "")
+    wait_for(lambda: main.system.host.exists(who, "vision", "report"), what="the report on the main server")
+    assert motion.system.host.entry_count("motor") == 3
+    assert main.system.remote_endpoints == {"motor": motion.endpoint}
+    assert run.stop().exit_code == 0
