@@ -3,15 +3,19 @@
 // component would. Each decision is printed as one JSON line on stdout, so a
 // test can check the policy's decisions as the component saw them.
 //
-// args: {"tasks": N, "work_ms": M, "prefix": "t", "priorities": [..]}
+// args: {"tasks": N, "work_ms": M, "prefix": "t", "priorities": [..], "hold": ID}
 // Proposes N tasks named <prefix>0 .. <prefix>N-1 in start(); each adopted
 // task "works" for work_ms on its own thread, then completes SUCCEEDED.
+// With "hold", it first adds a Counter entry ID (unless it exists) and keeps an
+// ODR lock on it while it lives: the session tests kill it and check that
+// the server releases the lock.
 #include <iostream>
 #include <mutex>
 #include <thread>
 #include <vector>
 
 #include "cast/cast.h"
+#include "cast_testing.pb.h"
 #include "probe_json.h"
 
 namespace {
@@ -22,6 +26,7 @@ class Tasker : public cast::ManagedComponent {
     tasks_ = args.getInt("tasks", 3);
     workMs_ = args.getInt("work_ms", 100);
     prefix_ = args.getString("prefix", "t");
+    hold_ = args.getString("hold");
     if (args.has("priorities")) {
       for (const auto& v : args.values().fields().at("priorities").list_value().values()) {
         priorities_.push_back(static_cast<std::int32_t>(v.number_value()));
@@ -30,6 +35,16 @@ class Tasker : public cast::ManagedComponent {
   }
 
   void start() override {
+    if (!hold_.empty()) {
+      cast::testing::Counter c;
+      c.set_writer(componentId());
+      try {
+        add(hold_, c);
+      } catch (const cast::AlreadyExistsError&) {  // a restart: the entry outlived us
+      }
+      held_ = lock(hold_, cast::LockMode::ODR, "", std::chrono::seconds(30));
+      print(cast::probe::Object().str("holding", hold_).unum("depth", held_.depth()));
+    }
     for (std::int64_t i = 0; i < tasks_; ++i) {
       const auto priority = i < static_cast<std::int64_t>(priorities_.size()) ? priorities_[static_cast<size_t>(i)] : 0;
       cast::Task t = proposeTask(prefix_ + std::to_string(i), priority);
@@ -58,6 +73,7 @@ class Tasker : public cast::ManagedComponent {
   }
 
   void stop() override {
+    if (held_.held()) held_.unlock();
     std::vector<std::thread> workers;
     {
       std::lock_guard<std::mutex> lock(mu_);
@@ -75,6 +91,8 @@ class Tasker : public cast::ManagedComponent {
   std::int64_t tasks_ = 3;
   std::int64_t workMs_ = 100;
   std::string prefix_;
+  std::string hold_;
+  cast::LockGuard held_;
   std::vector<std::int32_t> priorities_;
   std::mutex mu_;
   std::mutex outMu_;

@@ -1,0 +1,241 @@
+"""C++ component sessions: the runner's launch contract and exit codes, signals, and what a SIGKILL leaves behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+import yaml
+from cast_testing_pb2 import Counter
+
+import cast
+from cast.v1 import directory_pb2, directory_pb2_grpc, task_manager_pb2, task_manager_pb2_grpc
+from tests.interop.cpp_support import CastRun, CppProbe, CppProcess, cpp_executable
+
+
+def wait_for(predicate: Any, timeout: float = 30.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    return None
+
+
+def components(endpoint: str, token: str) -> dict[str, directory_pb2.ComponentInfo]:
+    with grpc.insecure_channel(endpoint) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),))
+    return {c.id: c for c in desc.components}
+
+
+def live_tasks(endpoint: str, token: str, sa: str) -> list[task_manager_pb2.Task]:
+    with grpc.insecure_channel(endpoint) as channel:
+        stub = task_manager_pb2_grpc.TaskManagerStub(channel)
+        resp = stub.ListTasks(task_manager_pb2.ListTasksRequest(subarchitecture=sa),
+                              metadata=(("authorization", f"Bearer {token}"),))
+    return list(resp.tasks)
+
+
+def readable(component: Any, entry_id: str) -> bool:
+    """Whether ``entry_id`` can be read (no other component holds an ODR lock on it)."""
+    try:
+        component.get(entry_id, Counter)
+    except cast.LockedError:
+        return False
+    return True
+
+
+class PyWorker(cast.ManagedComponent):
+    def __init__(self) -> None:
+        super().__init__()
+        self.adopted: list[cast.Task] = []
+        self.adopted_event = threading.Event()
+
+    def task_adopted(self, task: cast.Task) -> None:
+        self.adopted.append(task)
+        self.adopted_event.set()
+
+
+# ------------------------------------------------------------------ SIGKILL, server side
+
+
+def test_sigkilled_cpp_component_releases_its_locks_and_tasks(server_factory: Any) -> None:
+    handle = server_factory({"system": "kill", "subarchitectures": {
+        "vision": {"task_manager": {"policy": "fifo", "max_concurrent": 1}}}})
+    tool = handle.token("tool", "vision")
+    c = CppProbe(handle.env("cvictim", "vision"))
+    py = handle.connect("pysurvivor", "vision", cls=PyWorker)
+    try:
+        c.ready()
+        c.ok("add", "Counter", "held", "-", {"writer": "cvictim", "value": "1"})
+        assert c.ok("lock", "held", "ODR", "-", "-") == {"depth": 1}
+        assert c.ok("lock", "held", "ODR", "-", "-") == {"depth": 2}  # two levels: all go with the session
+        assert c.ok("propose", "running", 0)["state"] in ("WAITING", "ADOPTED")
+        c.ok("propose", "queued", 0)
+        decided = c.ok("decisions", 1, 10000)["decisions"]
+        assert [d["name"] for d in decided] == ["running"]
+        assert not readable(py, "held")
+        assert sorted(t.name for t in live_tasks(handle.endpoint, tool, "vision")) == ["queued", "running"]
+        py.propose_task("python-task")  # waits behind the C++ tasks (fifo, one at a time)
+        assert not py.adopted_event.wait(0.5)
+
+        c.kill()  # no stop(), no unlock, no goodbye: the server sees the session end
+
+        assert wait_for(lambda: readable(py, "held"), 10), "the ODR lock was not released"
+        assert py.try_lock("held", cast.LockMode.ODR)
+        py.unlock("held")
+        assert py.adopted_event.wait(10), "the slot of the killed component's task was not freed"
+        assert [t.name for t in py.adopted] == ["python-task"]
+        assert [t.name for t in live_tasks(handle.endpoint, tool, "vision")] == ["python-task"]
+        info = components(handle.endpoint, tool)["cvictim"]
+        assert info.state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+    finally:
+        py._cast_close()
+        c.close()
+
+
+# ------------------------------------------------------------------ the runner
+
+
+def run_once(env: dict[str, str], name: str = "cast_probe", timeout: float = 30.0) -> tuple[int, str]:
+    proc = CppProcess(name, env, stdin=True)
+    try:
+        status = proc.wait(timeout)
+        time.sleep(0.1)  # let the reader threads collect the last lines
+        return status, proc.output()
+    finally:
+        proc.close()
+
+
+def test_missing_launch_environment_exits_2_naming_every_variable() -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+    env["CAST_COMPONENT_ID"] = "lonely"
+    status, out = run_once(env)
+    assert status == 2
+    assert "missing launch environment: CAST_ENDPOINT, CAST_SUBARCHITECTURE, CAST_TOKEN" in out, out
+
+
+def test_bad_args_exit_2(server: Any) -> None:
+    env = server.env("cargs", "vision")
+    env["CAST_ARGS"] = "[1, 2]"
+    status, out = run_once(env)
+    assert status == 2 and "CAST_ARGS must be a JSON object" in out, out
+    env["CAST_ARGS"] = "{not json"
+    status, out = run_once(env)
+    assert status == 2 and "CAST_ARGS is not valid JSON" in out, out
+
+
+def test_refused_token_and_unreachable_server_exit_2(server: Any) -> None:
+    env = server.env("ctoken", "vision")
+    env["CAST_TOKEN"] = "forged.token"
+    status, out = run_once(env)
+    assert status == 2, out
+    env = server.env("cnowhere", "vision")
+    env["CAST_ENDPOINT"] = "127.0.0.1:1"
+    status, out = run_once(env)
+    assert status == 2 and "server unavailable" in out, out
+
+
+def test_a_failing_hook_exits_1(server: Any) -> None:
+    env = server.env("cfail", "vision", args={"mode": "nonsense"})
+    status, out = run_once(env, "cast_test_fidelity")
+    assert status == 1
+    assert "args must be" in out, out
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_calls_stop_and_exits_0(server: Any, sig: signal.Signals) -> None:
+    # The tasker works on adopted tasks off the dispatcher; stop() joins its workers.
+    proc = CppProcess("cast_test_tasker", server.env("csig", "vision", args={"tasks": 2, "work_ms": 60000}))
+    try:
+        lines = [proc.next_json(30) for _ in range(4)]  # 2 proposed, 2 adopted (policy always)
+        assert sum(1 for x in lines if "adopted" in x) == 2, lines
+        started = time.monotonic()
+        proc.proc.send_signal(sig)
+        assert proc.wait(15) == 0, proc.output()
+        assert time.monotonic() - started < 10, "stop must not wait for the work to finish"
+        tool = server.token("tool", "vision")
+        # A clean stop ends the session: the tasks it left adopted are released.
+        assert wait_for(lambda: not live_tasks(server.endpoint, tool, "vision"), 10)
+    finally:
+        proc.close()
+
+
+def test_help_needs_no_environment() -> None:
+    import subprocess
+
+    out = subprocess.run([str(cpp_executable("cast_probe")), "--help"], capture_output=True, text=True, timeout=10)
+    assert out.returncode == 0 and "CAST_ENDPOINT" in out.stdout
+
+
+# ------------------------------------------------------------------ under the orchestrator
+
+
+def test_sigkilled_cpp_component_is_restarted_by_the_orchestrator(tmp_path: Path) -> None:
+    cpp_executable("cast_test_tasker")  # fails the test if the C++ build is missing
+    config = tmp_path / "system.yaml"
+    config.write_text(yaml.safe_dump({
+        "system": "restart",
+        "subarchitectures": {"vision": {
+            "task_manager": {"policy": "fifo", "max_concurrent": 1},
+            "components": {"holder": {
+                "language": "cpp", "kind": "managed", "run": "cast_test_tasker",
+                "args": {"tasks": 1, "work_ms": 600000, "hold": "held", "prefix": "cpp-"},
+                "restart": {"policy": "on-failure", "backoff": 0.2},
+            }},
+        }},
+    }, sort_keys=False))
+    run = CastRun(config, tmp_path / "runtime")
+    py = None
+    try:
+        tool = run.token("tool", "vision")
+
+        def holder_running(sessions: int) -> Any:
+            info = components(run.endpoint(), tool).get("holder")
+            ok = info and info.state == directory_pb2.COMPONENT_STATE_RUNNING and info.sessions == sessions
+            return info if ok else None
+
+        first = wait_for(lambda: holder_running(1), 60)
+        assert first, run.output()
+        assert (first.language, first.kind) == ("cpp", "managed")
+        py = run.connect("pyworker", "vision", cls=PyWorker)
+        assert wait_for(lambda: not readable(py, "held"), 10), "the C++ component holds its lock"
+        assert wait_for(lambda: [t.name for t in live_tasks(run.endpoint(), tool, "vision")] == ["cpp-0"], 10)
+        py.propose_task("python-task")  # queued behind the C++ task
+        assert not py.adopted_event.wait(0.5)
+        # A blocking Python lock waits for the C++ one; it gets it when the session ends,
+        # before the restarted component can lock again.
+        got: list[cast.LockGuard] = []
+        waiter = threading.Thread(target=lambda: got.append(py.lock("held", cast.LockMode.ODR, timeout=30)))
+        waiter.start()
+
+        os.kill(first.pid, signal.SIGKILL)
+
+        waiter.join(30)
+        assert got, "the killed component's lock was not released"
+        assert py.adopted_event.wait(10), "the killed component's task was not released"
+        assert [t.name for t in py.adopted] == ["python-task"]
+        # Restarted at once; its start() waits for the lock Python now holds.
+        second = wait_for(lambda: (i := components(run.endpoint(), tool).get("holder")) and i.sessions == 2 and i, 30)
+        assert second, f"not restarted\n{run.output()}"
+        assert second.pid != first.pid
+        got[0].unlock()
+        assert wait_for(lambda: holder_running(2), 30), f"the restarted component did not start\n{run.output()}"
+        assert wait_for(lambda: not readable(py, "held"), 10), "the restarted component takes its lock again"
+        # It proposes again, behind the Python task that now runs.
+        assert wait_for(lambda: sorted(t.name for t in live_tasks(run.endpoint(), tool, "vision"))
+                        == ["cpp-0", "python-task"], 10)
+    finally:
+        if py is not None:
+            py._cast_close()
+        run.stop()
+    # Nothing is left behind: the restarted C++ process ended with the system.
+    assert wait_for(lambda: not Path(f"/proc/{second.pid}").exists(), 10)
