@@ -18,6 +18,7 @@ import base64
 import hashlib
 import hmac
 import json
+import math
 import os
 import secrets
 import time
@@ -57,13 +58,14 @@ class TokenSigner:
 
     def issue(self, identity: Identity, ttl_seconds: float = 0) -> str:
         """A token for ``identity``; it expires after ``ttl_seconds`` (0: never)."""
-        now = int(time.time())
+        now = time.time()
         payload = {
             "c": identity.component_id,
             "s": identity.subarchitecture,
             "p": identity.privileged,
-            "iat": now,
-            "exp": int(now + ttl_seconds) if ttl_seconds else 0,
+            "iat": int(now),
+            # Rounded up, so that a token lives at least ttl_seconds (renewal schedules rely on it).
+            "exp": math.ceil(now + ttl_seconds) if ttl_seconds else 0,
         }
         body = _b64(json.dumps(payload, separators=(",", ":"), sort_keys=True).encode())
         return f"{body}.{self._sign(body)}"

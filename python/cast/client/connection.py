@@ -108,6 +108,14 @@ class TokenSource:
             except OSError:
                 pass  # keep the last token: the orchestrator may be replacing the file
 
+    def refresh(self) -> bool:
+        """Re-read the file now (after the server refused the token); True if the token changed."""
+        if self._path is None:
+            return False
+        before = self._token
+        self._refresh(force=True)
+        return self._token != before
+
     def token(self) -> str:
         """The token to send now."""
         if self._path is not None:

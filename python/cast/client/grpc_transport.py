@@ -337,10 +337,18 @@ class GrpcTransport:
     # --------------------------------------------------------------- routing
 
     def _call(self, fn: Callable[..., Any], request: Any, timeout: float | None = -1.0) -> Any:
+        deadline = self._timeout if timeout == -1.0 else timeout
         try:
-            return fn(request, metadata=self._tokens.metadata(), timeout=self._timeout if timeout == -1.0 else timeout)
+            return fn(request, metadata=self._tokens.metadata(), timeout=deadline)
         except grpc.RpcError as exc:
-            raise map_rpc_error(exc) from None
+            error = map_rpc_error(exc)
+        # A refused token may just have been renewed in its file: read it and try once more.
+        if error.code == "UNAUTHENTICATED" and self._tokens.refresh():
+            try:
+                return fn(request, metadata=self._tokens.metadata(), timeout=deadline)
+            except grpc.RpcError as exc:
+                error = map_rpc_error(exc)
+        raise error from None
 
     def _describe(self) -> dir_pb2.SystemDescription:
         desc: dir_pb2.SystemDescription = self._call(

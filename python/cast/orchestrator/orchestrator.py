@@ -23,9 +23,9 @@ from pathlib import Path
 
 from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, SystemConfig
-from cast.core.records import Identity
 from cast.orchestrator.output import Output
 from cast.orchestrator.runtime import RuntimeDir
+from cast.orchestrator.security import LaunchSecurity
 from cast.orchestrator.servers import ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
 from cast.orchestrator.supervisor import Phase, Supervisor
@@ -73,6 +73,7 @@ class Orchestrator:
         self.runtime = RuntimeDir(options.runtime_dir)
         self._stop = asyncio.Event()
         self._signer: TokenSigner | None = None
+        self._security: LaunchSecurity | None = None
         self._servers: ServerGroup | None = None
         self.supervisor: Supervisor | None = None
         self.connected = threading.Event()  # set once every component has connected
@@ -94,13 +95,14 @@ class Orchestrator:
 
     def _contract(self, comp: ComponentConfig) -> dict[str, str]:
         assert self._signer is not None and self._servers is not None
-        token = self._signer.issue(Identity(comp.id, comp.subarchitecture, comp.privileged))
+        assert self._security is not None
         return {
             "CAST_ENDPOINT": self._servers.directory.endpoint,
             "CAST_COMPONENT_ID": comp.id,
             "CAST_SUBARCHITECTURE": comp.subarchitecture,
-            "CAST_TOKEN": token,
             "CAST_ARGS": json.dumps(comp.args),
+            # CAST_TOKEN, and with a token ttl CAST_TOKEN_FILE (renewed), with TLS CAST_TLS_*.
+            **self._security.contract(comp),
         }
 
     async def run(self) -> RunResult:
@@ -112,6 +114,7 @@ class Orchestrator:
         else:
             secret = self.runtime.new_secret()
         self._signer = TokenSigner(secret)
+        self._security = LaunchSecurity(self.config, self._signer, self.runtime.path)
         # User policy classes and in-process components import from python_path.
         sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
         loop = self._loop = asyncio.get_running_loop()
@@ -144,6 +147,7 @@ class Orchestrator:
         connect_seconds: float | None = None
         snapshot: Snapshot | None = None
         status_task: asyncio.Task[None] | None = None
+        renew_task: asyncio.Future[None] | None = None
         try:
             with self.output:
                 for comp in self.config.components:
@@ -151,6 +155,7 @@ class Orchestrator:
                         servers.start_in_process(comp)
                 started = time.monotonic()
                 supervisor.start_all()
+                renew_task = asyncio.ensure_future(self._security.renew_forever())
                 status_task = asyncio.ensure_future(self._show_status(tracker))
                 missing = await self._wait_connected(servers, supervisor)
                 if missing:
@@ -173,6 +178,8 @@ class Orchestrator:
         finally:
             if status_task is not None:
                 status_task.cancel()
+            if renew_task is not None:
+                renew_task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
             await servers.stop()
             self.runtime.release()

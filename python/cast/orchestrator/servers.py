@@ -13,9 +13,8 @@ from dataclasses import dataclass, field
 
 from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, ServerConfig, SystemConfig
-from cast.core.sessions import ComponentInfo
 from cast.core.system import System
-from cast.server.app import RunningServer, start_server
+from cast.server.app import RunningServer, start_server, system_from_config
 from cast.server.in_process import InProcessComponents
 
 __all__ = ["HostedServer", "ServerGroup", "build_system"]
@@ -23,16 +22,8 @@ __all__ = ["HostedServer", "ServerGroup", "build_system"]
 
 def build_system(config: SystemConfig, server: ServerConfig) -> System:
     """The :class:`System` of one server: its SAs with their policies, expecting every component."""
-    system = System(
-        config.name,
-        server.subarchitectures,
-        {sa: config.subarchitectures[sa].make_policy() for sa in server.subarchitectures},
-        config.limits,
-        lease_ms=config.orchestrator.lease_ms,
-    )
-    for comp in config.components:
-        system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind))
-    return system
+    # The server's persistence, TLS and token rules come with it (cast.server.app.system_from_config).
+    return system_from_config(config, config.orchestrator.lease_ms, server)
 
 
 @dataclass
