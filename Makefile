@@ -51,7 +51,7 @@ $(EXAMPLES_STAMP): $(EXAMPLE_PROTOS) $(VENV)/.installed
 
 examples: $(EXAMPLES_STAMP)
 
-demo: setup proto examples
+demo: setup proto examples cpp
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
 
 test-python: setup proto examples bench-deps
