@@ -209,7 +209,7 @@ def rich_entry(variant: str) -> Message:
             attributes={"ключ": "значение", "a": ""},
             children=[R(label="child", colour=RichEntry.COLOUR_RED)],
         ),
-        tags=["α", "", "tag"],
+        tags=["α", "", "tag"],  # noqa: RUF001 - a non-ASCII letter on purpose
         samples=[-(2**63), 0, 2**63 - 1, -1],
         weights=[0.5, -0.0, 1e300],
         colours=[RichEntry.COLOUR_RED, RichEntry.COLOUR_GREEN, RichEntry.COLOUR_BLUE, RichEntry.COLOUR_UNSPECIFIED],
@@ -246,7 +246,7 @@ def field_diffs(want: Message, got: Message) -> list[str]:
             continue
         w, g = getattr(want, fd.name), getattr(got, fd.name)
         if fd.is_repeated and not hasattr(w, "keys"):
-            if len(w) != len(g) or not all(_same(x, y) for x, y in zip(w, g)):
+            if len(w) != len(g) or not all(_same(x, y) for x, y in zip(w, g, strict=True)):
                 diffs.append(fd.name)
         elif hasattr(w, "keys"):
             if dict(w) != dict(g):

@@ -72,7 +72,8 @@ def test_sigkilled_java_component_releases_locks_and_tasks_and_is_restarted(tmp_
     run = CastRun(config, tmp_path / "runtime", tmp_path)
     py = None
     try:
-        first = wait_for(lambda: (c := components(run).get("holder")) and c.state == directory_pb2.COMPONENT_STATE_RUNNING and c)
+        running = directory_pb2.COMPONENT_STATE_RUNNING
+        first = wait_for(lambda: (c := components(run).get("holder")) and c.state == running and c)
         assert first, run.output()
         assert (first.language, first.kind, first.sessions) == ("java", "managed", 1)
         py = run.connect("pyworker", "vision", cls=PyWorker)

@@ -69,7 +69,8 @@ def test_priority_adopts_the_highest_priority_first(managed: Any) -> None:
     jc = managed({"policy": "priority", "max_concurrent": 1})
     blocker = jc.ok("propose", name="blocker")["task_id"]
     assert adopted(jc) == "blocker"
-    ids = {name: jc.ok("propose", name=name, priority=prio)["task_id"] for name, prio in (("low", 1), ("high", 5), ("mid", 3))}
+    priorities = (("low", 1), ("high", 5), ("mid", 3))
+    ids = {name: jc.ok("propose", name=name, priority=prio)["task_id"] for name, prio in priorities}
     jc.no_event("adopted", within=0.5)
     order = []
     current = blocker

@@ -247,12 +247,17 @@ class ComponentTest {
     Plain writer = connect(new Plain(), "w", "vision");
     Plain watcher = connect(new Plain(), "watcher", "vision");
     List<Long> values = Collections.synchronizedList(new ArrayList<>());
+    List<Counter> deleted = Collections.synchronizedList(new ArrayList<>());
     Set<Thread> threads = Collections.synchronizedSet(new HashSet<>());
     List<Boolean> onDispatcher = Collections.synchronizedList(new ArrayList<>());
     watcher.onChange(
         Filters.localTypeFilter(Counter.class).withEntry(),
         ch -> {
-          values.add(ch.entry(Counter.class).value().getValue());
+          if (ch.operation() == Operation.ADD) {
+            values.add(ch.entry(Counter.class).value().getValue());
+          } else {
+            deleted.add(ch.entry(Counter.class).value()); // for a DELETE: the entry as it was
+          }
           threads.add(Thread.currentThread());
           onDispatcher.add(watcher.onDispatcherThread());
         });
@@ -264,7 +269,10 @@ class ComponentTest {
     writer.deleteEntry("c0");
     writer.add("other", Pose.getDefaultInstance());
     // Events travel on the watch stream, not with the write's answer: wait for them.
-    assertTrue(eventually(() -> ops.size() == 1 && values.size() == 50, Duration.ofSeconds(5)), values.toString());
+    assertTrue(
+        eventually(() -> ops.size() == 1 && values.size() == 50 && deleted.size() == 1, Duration.ofSeconds(5)),
+        values.toString());
+    assertEquals(List.of(counter("w", 0)), deleted);
     assertTrue(watcher.drain(Duration.ofSeconds(5)));
     List<Long> expected = new ArrayList<>();
     for (long i = 0; i < 50; i++) {

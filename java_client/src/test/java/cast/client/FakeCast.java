@@ -222,9 +222,8 @@ final class FakeCast implements AutoCloseable {
         }
         if (!ids.isEmpty()) {
           var ev = e.toBuilder().addAllWatchIds(ids);
-          cast.v1.Entry stored = entries.get(key(e.getAddress()));
-          if (withEntry[0] && stored != null) {
-            ev.setEntry(stored);
+          if (!withEntry[0]) {
+            ev.clearEntry();
           }
           resp.addEvents(ev);
         }
@@ -251,12 +250,15 @@ final class FakeCast implements AutoCloseable {
         && (f.getSourceComponent().isEmpty() || f.getSourceComponent().equals(e.getSourceComponent()));
   }
 
+  /** Apply a write; the event carries the entry after it (for DELETE: as it was), publish strips it unless asked. */
   private ChangeEvent write(cast.v1.Operation op, EntryAddress addr, com.google.protobuf.Any value, long version) {
     String who = CALLER.get();
     long rev = revisions.merge(addr.getSubarchitecture(), 1L, Long::sum);
-    if (op != cast.v1.Operation.OPERATION_DELETE) {
-      entries.put(
-          key(addr),
+    cast.v1.Entry entry;
+    if (op == cast.v1.Operation.OPERATION_DELETE) {
+      entry = entries.remove(key(addr));
+    } else {
+      entry =
           cast.v1.Entry.newBuilder()
               .setAddress(addr)
               .setType(Types.typeOf(value))
@@ -265,7 +267,8 @@ final class FakeCast implements AutoCloseable {
               .setAuthor(who)
               .setRevision(rev)
               .setModified(Timestamp.newBuilder().setSeconds(1_700_000_000L))
-              .build());
+              .build();
+      entries.put(key(addr), entry);
     }
     return ChangeEvent.newBuilder()
         .setRevision(rev)
@@ -274,6 +277,7 @@ final class FakeCast implements AutoCloseable {
         .setType(Types.typeOf(value))
         .setSourceComponent(who)
         .setVersion(version)
+        .setEntry(entry)
         .build();
   }
 
@@ -338,7 +342,6 @@ final class FakeCast implements AutoCloseable {
           fail(obs, Status.ABORTED, "version " + old.getVersion() + ", not " + req.getExpectedVersion());
           return;
         }
-        entries.remove(key(req.getAddress()));
         e = write(cast.v1.Operation.OPERATION_DELETE, req.getAddress(), old.getValue(), old.getVersion());
       }
       publish(List.of(e));
