@@ -11,6 +11,7 @@ import subprocess
 import threading
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 
 from cast.config import load_config
@@ -19,12 +20,13 @@ from cast.orchestrator.output import Output
 from tests.orchestrator.conftest import CAST, wait_for
 
 
-def test_demo_runs_for_a_fixed_time_and_exits_zero(demo_built: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("sets", [[], ["--set", "SEGMENTER_LANGUAGE=python"]], ids=["default", "python-segmenter"])
+def test_demo_runs_for_a_fixed_time_and_exits_zero(demo_built: Path, tmp_path: Path, sets: list[str]) -> None:
     summary = tmp_path / "summary.json"
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
     out = subprocess.run(
         [CAST, "run", str(demo_built), "--for", "6", "--runtime-dir", str(tmp_path / "rt"), "--summary-json",
-         str(summary)],
+         str(summary), *sets],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=180,
     )
     assert out.returncode == 0, out.stdout + out.stderr
