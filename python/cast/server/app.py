@@ -9,6 +9,7 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -21,6 +22,7 @@ from cast.core.sessions import ComponentInfo
 from cast.core.system import System
 from cast.server.directory import DirectoryServicer
 from cast.server.inspection import InspectionServicer
+from cast.server.malformed import SafeRegistrar
 from cast.server.rpc import Authenticator
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.working_memory import WorkingMemoryServicer
@@ -178,10 +180,12 @@ async def start_server(
     )
     server = grpc.aio.server(options=options)
     auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
-    add_working_memory(WorkingMemoryServicer(system, auth), server)
-    task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), server)
-    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), server)
-    inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), server)
+    # Requests whose bytes do not parse are answered INVALID_ARGUMENT (cast.server.malformed).
+    registrar: Any = SafeRegistrar(server)
+    add_working_memory(WorkingMemoryServicer(system, auth), registrar)
+    task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), registrar)
+    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), registrar)
+    inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), registrar)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
