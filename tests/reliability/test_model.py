@@ -120,6 +120,23 @@ ops = st.tuples(
 )
 
 
+def _apply(
+    host: MemoryHost, op: str, who: Identity, sa: str, eid: str, data: bytes, expected: int | None, mode: LockMode
+) -> object:
+    if op == "add":
+        return tuple(host.add(who, sa, eid, "t.T", data))
+    if op == "overwrite":
+        return tuple(host.overwrite(who, sa, eid, "t.T", data, expected))
+    if op == "delete":
+        return tuple(host.delete(who, sa, eid, expected))
+    if op == "lock":
+        return host.try_lock(who, sa, eid, mode)
+    if op == "unlock":
+        return host.unlock(who, sa, eid)
+    record = host.get(who, sa, eid)
+    return (record.version, record.data)
+
+
 def _outcome(fn: object, *args: object) -> object:
     try:
         return fn(*args)  # type: ignore[operator]
@@ -134,23 +151,15 @@ def test_core_agrees_with_the_reference_model(steps: list[tuple[object, ...]]) -
     model = Model()
     for op, name, sa, eid, data, expected, mode in steps:
         who = WHO[name]  # type: ignore[index]
-        if op == "add":
-            got = _outcome(lambda: tuple(host.add(who, sa, eid, "t.T", data)))  # type: ignore[arg-type]
-            want = model.write(who, "add", sa, eid, data, None)  # type: ignore[arg-type]
-        elif op == "overwrite":
-            got = _outcome(lambda: tuple(host.overwrite(who, sa, eid, "t.T", data, expected)))  # type: ignore[arg-type]
-            want = model.write(who, "overwrite", sa, eid, data, expected)  # type: ignore[arg-type]
-        elif op == "delete":
-            got = _outcome(lambda: tuple(host.delete(who, sa, eid, expected)))  # type: ignore[arg-type]
-            want = model.write(who, "delete", sa, eid, b"", expected)  # type: ignore[arg-type]
+        got = _outcome(_apply, host, op, who, sa, eid, data, expected, mode)
+        if op in ("add", "overwrite", "delete"):
+            payload = data if op != "delete" else b""
+            want = model.write(who, op, sa, eid, payload, expected if op != "add" else None)  # type: ignore[arg-type]
         elif op == "lock":
-            got = _outcome(host.try_lock, who, sa, eid, mode)
             want = model.try_lock(who, sa, eid, mode)  # type: ignore[arg-type]
         elif op == "unlock":
-            got = _outcome(host.unlock, who, sa, eid)
             want = model.unlock(who, sa, eid)  # type: ignore[arg-type]
         else:
-            got = _outcome(lambda: (lambda r: (r.version, r.data))(host.get(who, sa, eid)))  # type: ignore[arg-type]
             want = model.get(who, sa, eid)  # type: ignore[arg-type]
         assert got == want, (op, name, sa, eid, expected, mode)
         for s in SAS:
