@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -215,3 +216,37 @@ def test_python_sees_java_changes_through_its_own_watch(server: Any, java: Any) 
         assert jc.quit() == 0
     finally:
         py._cast_close()
+
+
+def test_a_stuck_java_watcher_never_blocks_writers_and_is_told_past_the_history(server_factory: Any) -> None:
+    server = server_factory({"system": "lag", "limits": {"history_events": 64}, "subarchitectures": {"vision": {}}})
+    env = dict(server.env("jslow", "vision"), DRIVEN_MAX_PENDING="4")
+    jc = JavaComponent(env)
+    py = server.connect("pyfast", "vision")
+    try:
+        jc.ready()
+        watch = jc.ok("watch", gated=True, filters=[{"kind": "local_type", "type": "cast.testing.Pose",
+                                                      "include_entry": True}])["watch"]
+        # Far more than the history, in events and in bytes (past the transport's buffers), while the
+        # Java callback is stuck: the writer is never held up.
+        label = "x" * 2048
+        started = time.monotonic()
+        for i in range(3000):
+            py.add(f"p{i}", Pose(x=i, label=label))
+        assert time.monotonic() - started < 60
+        jc.ok("open_gate")
+        failed = jc.wait_event("watch_failed", timeout=60)
+        assert failed["error"] == "HistoryExpiredError", failed
+        stats = jc.ok("watch_stats", watch=watch)
+        events = stats["events"]
+        assert 0 < len(events) < 3000, "some events were delivered, then the watcher was told it fell behind"
+        assert [e["id"] for e in events] == [f"p{i}" for i in range(len(events))], "no gap before the failure"
+        # Resynchronising: a new watch on a new stream gets the changes from now on.
+        again = jc.ok("watch", filters=[{"kind": "local_type", "type": "cast.testing.Pose"}])["watch"]
+        py.add("after", Pose(label="after"))
+        stats = jc.ok("watch_stats", watch=again, expected=1, timeout_ms=10000)
+        assert [e["id"] for e in stats["events"]] == ["after"]
+        assert jc.quit() == 0
+    finally:
+        py._cast_close()
+        jc.close()

@@ -72,7 +72,7 @@ public abstract class Component implements AutoCloseable {
       throw new IllegalStateException("component " + componentId() + " is already connected");
     }
     this.transport = transport;
-    this.dispatcher = new Dispatcher(transport.componentId());
+    this.dispatcher = new Dispatcher(transport.componentId(), maxPendingCallbacks());
     byte[] salt = new byte[3];
     RANDOM.nextBytes(salt);
     // Unique across components (the id) and across restarts of one component (the salt).
@@ -80,6 +80,17 @@ public abstract class Component implements AutoCloseable {
     transport.setEventSink(this::onEvent, this::onWatchError);
     bindExtra(transport);
     transport.startSession("java", kind(), () -> state);
+  }
+
+  /**
+   * How many callbacks may wait on the dispatcher before the component stops
+   * reading its change streams (default 10,000). Past it the component lags on
+   * the server instead of buffering without bound, and past the server's history
+   * {@link #watchFailed} receives a HistoryExpiredError. Called once, when the
+   * component connects.
+   */
+  protected int maxPendingCallbacks() {
+    return 10_000;
   }
 
   /** Subclasses open their extra streams here (before the session starts). */
@@ -441,7 +452,13 @@ public abstract class Component implements AutoCloseable {
           change = new WorkingMemoryChange(event);
         }
         WorkingMemoryChange c = change;
-        dispatcher.submit(() -> deliver(wid, c));
+        try {
+          // Waits while the queue is full: the stream's reader stops, the server holds the rest.
+          dispatcher.submitBlocking(() -> deliver(wid, c));
+        } catch (InterruptedException e) {
+          Thread.currentThread().interrupt();
+          return;
+        }
       }
     }
   }

@@ -10,6 +10,12 @@ import java.util.logging.Logger;
  * One thread per component that runs its callbacks and hooks one at a time, in
  * the order they were queued. A failing callback is logged, not fatal: one bad
  * callback must not stop the others.
+ *
+ * <p>The queue is bounded by {@code capacity}: a blocking submit (from a stream's
+ * reader) waits for room, so a component whose callbacks are slow stops reading
+ * its Watch stream and lags on the server, which keeps a bounded history and
+ * says so (HistoryExpiredError) past it, instead of the client buffering without
+ * bound. The same policy as the Python client (docs/decisions.md).
  */
 final class Dispatcher {
   private static final Logger LOG = Logger.getLogger("cast.component");
@@ -18,9 +24,14 @@ final class Dispatcher {
   private final LinkedBlockingQueue<Runnable> queue = new LinkedBlockingQueue<>();
   private final Thread thread;
   private final Object idle = new Object();
+  private final int capacity;
   private long pending; // guarded by idle
 
-  Dispatcher(String name) {
+  Dispatcher(String name, int capacity) {
+    if (capacity < 1) {
+      throw new InvalidArgumentError("the dispatcher's capacity must be at least 1, got " + capacity);
+    }
+    this.capacity = capacity;
     thread = new Thread(this::loop, "cast-dispatch-" + name);
     thread.setDaemon(true);
     thread.start();
@@ -38,9 +49,23 @@ final class Dispatcher {
     }
   }
 
-  /** Queue a call. */
+  /** Queue a call without waiting (hooks, errors: never held up by a full queue). */
   void submit(Runnable call) {
     synchronized (idle) {
+      pending++;
+    }
+    queue.add(call);
+  }
+
+  /**
+   * Queue a call, first waiting while the queue is full (except on the dispatcher
+   * thread itself, which would wait for itself).
+   */
+  void submitBlocking(Runnable call) throws InterruptedException {
+    synchronized (idle) {
+      while (pending >= capacity && Thread.currentThread() != thread) {
+        idle.wait();
+      }
       pending++;
     }
     queue.add(call);
@@ -64,8 +89,8 @@ final class Dispatcher {
       } finally {
         synchronized (idle) {
           pending--;
-          if (pending == 0) {
-            idle.notifyAll();
+          if (pending == 0 || pending == capacity - 1) {
+            idle.notifyAll(); // drain() waits for 0, submitBlocking() for room
           }
         }
       }

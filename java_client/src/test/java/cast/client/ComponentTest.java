@@ -181,6 +181,41 @@ class ComponentTest {
   }
 
   @Test
+  void oneComponentIsSafeToUseFromManyThreads() throws Exception {
+    Plain c = connect(new Plain(), "c1", "vision");
+    int threads = 8;
+    int each = 50;
+    ExecutorService pool = Executors.newFixedThreadPool(threads);
+    CountDownLatch go = new CountDownLatch(1);
+    List<Future<?>> done = new ArrayList<>();
+    for (int t = 0; t < threads; t++) {
+      int n = t;
+      done.add(
+          pool.submit(
+              () -> {
+                go.await();
+                for (int i = 0; i < each; i++) {
+                  String id = c.newId();
+                  c.add(id, counter("t" + n, i));
+                  assertEquals(i, c.get(id, Counter.class).getValue());
+                  try (LockGuard g = c.lock(id)) {
+                    c.overwrite(id, counter("t" + n, i + 1), 0L);
+                  }
+                }
+                return null;
+              }));
+    }
+    go.countDown(); // every thread's first write is of the same, not yet registered type
+    for (Future<?> f : done) {
+      f.get(30, TimeUnit.SECONDS);
+    }
+    pool.shutdown();
+    assertEquals(1, fake.schemaRequests.size(), "the schema is registered once, before the first write");
+    assertEquals(threads * each, c.getAll(Counter.class).size());
+    assertTrue(fake.lockHolders.isEmpty());
+  }
+
+  @Test
   void getAllReturnsEntriesNewestFirstAsTheClassAsked() {
     Plain c = connect(new Plain(), "c1", "vision");
     c.add("a", counter("c1", 1));

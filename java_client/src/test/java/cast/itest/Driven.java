@@ -49,6 +49,14 @@ public class Driven extends ManagedComponent {
   private final LinkedBlockingQueue<String> commands = new LinkedBlockingQueue<>();
   private final Map<Integer, Recorded> watches = new ConcurrentHashMap<>();
   private final Map<String, Task> tasks = new ConcurrentHashMap<>();
+  private final java.util.concurrent.CountDownLatch gate = new java.util.concurrent.CountDownLatch(1);
+
+  /** DRIVEN_MAX_PENDING lets a test make the dispatcher queue small (a slow watcher lags sooner). */
+  @Override
+  protected int maxPendingCallbacks() {
+    String n = System.getenv("DRIVEN_MAX_PENDING");
+    return n == null ? super.maxPendingCallbacks() : Integer.parseInt(n);
+  }
 
   /** The changes one watch received, in delivery order. */
   static final class Recorded {
@@ -296,7 +304,16 @@ public class Driven extends ManagedComponent {
             filters.add(filter(f.getAsJsonObject()));
           }
           Recorded[] holder = new Recorded[1];
-          WatchHandle h = onChange(filters, ch -> record(holder[0], ch));
+          boolean gated = c.has("gated") && c.get("gated").getAsBoolean();
+          WatchHandle h =
+              onChange(
+                  filters,
+                  ch -> {
+                    if (gated) {
+                      gate.await(); // a stuck callback, until "open_gate"
+                    }
+                    record(holder[0], ch);
+                  });
           holder[0] = new Recorded(h);
           watches.put(h.watchId(), holder[0]);
           reply.addProperty("watch", h.watchId());
@@ -355,6 +372,9 @@ public class Driven extends ManagedComponent {
             result(reply, add(str(c, "echo_to"), got, sa));
           }
         }
+        break;
+      case "open_gate":
+        gate.countDown();
         break;
       case "quit":
         requestStop();
