@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 from google.protobuf.wrappers_pb2 import Int64Value, StringValue
 
 import cast
@@ -76,3 +78,69 @@ class NetLocker(cast.ManagedComponent):
 
     def task_adopted(self, task: cast.Task) -> None:
         print(f"ADOPTED {task.task_id}", flush=True)
+
+
+class Churner(cast.ManagedComponent):
+    """Read-modify-write under a lock: ``shared-<k>`` gets value = version + 1, checked by version.
+
+    Proposes a task now and then and holds each adopted task for a while, so a kill finds
+    locks and tasks to release.
+    """
+
+    def configure(self, args: dict[str, object]) -> None:
+        self.keys = int(args.get("keys", 3))  # type: ignore[call-overload]
+
+    def start(self) -> None:
+        for k in range(self.keys):
+            try:
+                self.add(f"shared-{k}", Int64Value(value=0))
+            except cast.AlreadyExistsError:
+                pass
+
+    def run(self) -> None:
+        i = 0
+        while self.running:
+            i += 1
+            key = f"shared-{i % self.keys}"
+            try:
+                with self.lock(key, cast.LockMode.OD, timeout=5):
+                    entry = self.get_entry(key, Int64Value)
+                    self.overwrite(key, Int64Value(value=entry.version + 1), expected_version=entry.version)
+                if i % 20 == 0:
+                    self.propose_task(f"job-{i}")
+            except cast.CastError as exc:
+                self.log.info("round %d: %s", i, exc)
+            self.wait_for_stop(0.01)
+
+    def task_adopted(self, task: cast.Task) -> None:
+        threading.Timer(0.5, self._finish, args=(task,)).start()
+
+    def _finish(self, task: cast.Task) -> None:
+        try:
+            self.task_complete(task)
+        except cast.CastError:
+            pass
+
+
+class Auditor(cast.UnmanagedComponent):
+    """Checks every change of a ``shared-*`` entry: its value must equal its version."""
+
+    def start(self) -> None:
+        self.checked = 0
+        self.violations = 0
+        self.on_change(cast.local_type_filter(Int64Value, include_entry=True), self.check)
+
+    def check(self, change: cast.WorkingMemoryChange) -> None:
+        if not change.id.startswith("shared-") or change.operation is cast.Operation.DELETE:
+            return
+        entry = change.entry(Int64Value)
+        self.checked += 1
+        if entry.value.value != entry.version:
+            self.violations += 1
+            self.log.error("inconsistent entry %s: value %d at version %d", change.id, entry.value.value,
+                           entry.version)
+
+    def run(self) -> None:
+        self.add("audit", StringValue(value="0 0"))
+        while not self.wait_for_stop(0.2):
+            self.overwrite("audit", StringValue(value=f"{self.checked} {self.violations}"))
