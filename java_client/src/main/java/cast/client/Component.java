@@ -449,7 +449,13 @@ public abstract class Component implements AutoCloseable {
     for (int wid : event.getWatchIdsList()) {
       if (callbacks.containsKey(wid)) {
         if (change == null) {
-          change = new WorkingMemoryChange(event);
+          try {
+            change = new WorkingMemoryChange(event);
+          } catch (CastError e) {
+            // An event this library cannot represent must not break the stream for the others.
+            log().severe("dropping change event revision " + event.getRevision() + ": " + e.getMessage());
+            return;
+          }
         }
         WorkingMemoryChange c = change;
         try {
