@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help
+.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help soak
 
 all: setup proto
 
@@ -17,6 +17,7 @@ help:
 	@echo "make setup   create .venv with pinned dependencies and the cast package"
 	@echo "make proto   generate Python code from proto/ (never committed)"
 	@echo "make test    set up, build and run every test"
+	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
@@ -58,6 +59,10 @@ test-python: setup proto examples bench-deps
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java test-python
+
+# The long variants of tests/reliability (CAST_SOAK=1); figures go to build/reliability-figures.json.
+soak: setup proto examples
+	CAST_SOAK=1 $(PY) -m pytest -q tests/reliability --timeout 1800
 
 # Redis is the peer the benchmarks compare against (Debian's redis-server).
 bench-deps:

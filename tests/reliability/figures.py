@@ -1,7 +1,8 @@
 """Figures measured by the reliability tests, collected for docs/reliability.md.
 
 Each test that measures something calls :func:`record`; the figures of the
-last run are in ``build/reliability-figures.json`` (one key per measurement).
+last run are in ``build/reliability-figures.json`` (``build/reliability-figures-soak.json`` for
+``make soak``), one key per measurement.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
-FIGURES = Path(__file__).resolve().parents[2] / "build" / "reliability-figures.json"
+_BUILD = Path(__file__).resolve().parents[2] / "build"
+FIGURES = _BUILD / ("reliability-figures-soak.json" if os.environ.get("CAST_SOAK") == "1" else "reliability-figures.json")
 _lock = threading.Lock()
 
 

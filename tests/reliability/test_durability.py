@@ -28,6 +28,7 @@ from cast.core.watch import EventFilter, Subscription
 from cast.errors import HistoryExpiredError
 from cast.v1 import directory_pb2, directory_pb2_grpc, entry_pb2, working_memory_pb2, working_memory_pb2_grpc
 from tests.reliability.conftest import kill9, metadata, serve, wait_for, write_config
+from tests.reliability.figures import record, soak
 
 A = Identity("a", "vision")
 B = Identity("b", "language")
@@ -150,6 +151,7 @@ def test_group_commit_makes_fewer_transactions_than_writes(tmp_path: Path) -> No
         t.join()
     assert s.host.entry_count("vision") == 800
     assert s.journal is not None and s.journal.commits < 800
+    record("group_commit", {"writers": 8, "writes": 800, "transactions": s.journal.commits})
     s.close()
 
 
@@ -244,7 +246,8 @@ def _kill_under_load(tmp_path: Path, mode: str, writers: int, seconds: float) ->
 
 @pytest.mark.parametrize("mode", ["always", "batch", "none"])
 def test_kill9_under_write_load_loses_no_acknowledged_write(tmp_path: Path, mode: str) -> None:
-    result = _kill_under_load(tmp_path, mode, writers=4, seconds=1.0)
+    result = _kill_under_load(tmp_path, mode, writers=8 if soak() else 4, seconds=20.0 if soak() else 1.0)
+    record(f"kill9_server_{mode}", {k: v for k, v in result.items() if k != "lost_ids"})
     print(json.dumps(result))
     if mode != "none":
         assert result["lost"] == 0, result
