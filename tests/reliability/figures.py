@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 _BUILD = Path(__file__).resolve().parents[2] / "build"
-FIGURES = _BUILD / ("reliability-figures-soak.json" if os.environ.get("CAST_SOAK") == "1" else "reliability-figures.json")
+_NAME = "reliability-figures-soak.json" if os.environ.get("CAST_SOAK") == "1" else "reliability-figures.json"
+FIGURES = _BUILD / _NAME
 _lock = threading.Lock()
 
 
