@@ -50,7 +50,11 @@ std::shared_ptr<CastError> errorForCode(const std::string& codeName, const std::
 std::shared_ptr<CastError> errorForStatus(const grpc::Status& status) {
   const std::string name = statusCodeName(static_cast<int>(status.error_code()));
   std::string details = status.error_message();
-  if (name == "UNAVAILABLE") return errorForCode(name, "server unavailable: " + details);
+  if (name == "UNAVAILABLE") {
+    return errorForCode(name, "server unavailable (" + details +
+                                  "): a write made by this call may or may not have been applied; the client "
+                                  "reconnects by itself, retry the call later");
+  }
   return errorForCode(name, details.empty() ? name : details);
 }
 

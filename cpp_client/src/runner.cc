@@ -104,6 +104,8 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   c.subarchitecture = get("CAST_SUBARCHITECTURE");
   c.token = get("CAST_TOKEN");
   c.args = Args::fromJson(get("CAST_ARGS"));
+  c.tokenFile = get("CAST_TOKEN_FILE");
+  c.tls = ClientTls::fromEnv(env);
   return c;
 }
 
@@ -128,7 +130,10 @@ Identity LaunchContract::identity() const {
 }
 
 std::shared_ptr<detail::Transport> LaunchContract::connect() const {
-  return connectGrpc(endpoint, token, identity());
+  ConnectOptions options;
+  options.tokenFile = tokenFile;
+  options.tls = tls;
+  return connectGrpc(endpoint, token, identity(), options);
 }
 
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,

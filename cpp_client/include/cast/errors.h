@@ -79,9 +79,9 @@ std::shared_ptr<CastError> errorForCode(const std::string& codeName, const std::
 // of range).
 std::string statusCodeName(int grpcStatusCode);
 
-// The named error for a failed call's status (UNAVAILABLE gets a "server
-// unavailable: " prefix, as in the Python client, since gRPC's own text does
-// not say which side failed).
+// The named error for a failed call's status. UNAVAILABLE gets the Python
+// client's explanation around gRPC's text, which says neither which side
+// failed nor whether a write went through.
 std::shared_ptr<CastError> errorForStatus(const grpc::Status& status);
 
 // Throws errorForStatus(status) unless the status is OK.

@@ -5,7 +5,8 @@
 //   CAST_COMPONENT_MAIN(Segmenter)
 //
 // makes an executable that reads CAST_ENDPOINT, CAST_COMPONENT_ID,
-// CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), connects,
+// CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), and
+// optionally CAST_TOKEN_FILE and CAST_TLS_* (see cast/grpc_transport.h), connects,
 // calls configure(args), start(), run(), and stop() once on SIGINT/SIGTERM,
 // on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
 // failed, 2 bad launch environment (missing variables, bad CAST_ARGS, or a
@@ -20,6 +21,7 @@
 
 #include "cast/args.h"
 #include "cast/component.h"
+#include "cast/grpc_transport.h"
 #include "cast/transport.h"
 
 namespace cast {
@@ -31,6 +33,8 @@ struct LaunchContract {
   std::string subarchitecture;
   std::string token;
   Args args;
+  std::string tokenFile;          // CAST_TOKEN_FILE: re-read when the orchestrator renews the token
+  std::optional<ClientTls> tls;   // CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
 
   // Reads the contract from the process environment; InvalidArgumentError
   // naming every missing variable, or saying what is wrong with CAST_ARGS.

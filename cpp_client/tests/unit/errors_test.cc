@@ -94,7 +94,9 @@ TEST(Errors, OtherCodesArePlainCastErrorsKeepingTheirCode) {
 
 TEST(Errors, UnavailableSaysTheServerIsUnreachable) {
   auto err = cast::errorForStatus(grpc::Status(grpc::StatusCode::UNAVAILABLE, "failed to connect"));
-  EXPECT_EQ(err->message(), "server unavailable: failed to connect");
+  EXPECT_EQ(err->message(),
+            "server unavailable (failed to connect): a write made by this call may or may not have been applied; "
+            "the client reconnects by itself, retry the call later");
 }
 
 TEST(Errors, EmptyDetailsFallBackToTheCodeName) {
