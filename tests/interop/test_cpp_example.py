@@ -1,4 +1,7 @@
-"""The README's C++ example is the example's files, builds with exactly its CMake, and runs; the demo's C++ segmenter."""
+"""The README's C++ example is the example's files, builds with exactly its CMake, and runs.
+
+Also the demo with its C++ segmenter.
+"""
 
 from __future__ import annotations
 

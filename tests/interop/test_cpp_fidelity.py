@@ -25,7 +25,8 @@ VARIANTS = ["polygon", "circle", "name"]
 def fidelity(server: Any, component_id: str, mode: str, entry_id: str, variant: str) -> tuple[int, dict[str, Any]]:
     """Run cast_test_fidelity once; its exit status and its JSON result line."""
     proc = CppProcess(
-        "cast_test_fidelity", server.env(component_id, "vision", args={"mode": mode, "id": entry_id, "variant": variant})
+        "cast_test_fidelity",
+        server.env(component_id, "vision", args={"mode": mode, "id": entry_id, "variant": variant}),
     )
     try:
         result = proc.next_json(30)

@@ -96,7 +96,9 @@ def test_python_writes_cpp_reads(server: Any, cpp: Any) -> None:
     assert c.ok("exists", "a", "-") == {"exists": False}
     # The C++ reader decodes with the class it asks for, and says so when it is the wrong one.
     err = c.fails("InvalidArgumentError", "get", "Pose", "a", "language")
-    assert err["message"] == "entry 'a' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class"
+    assert err["message"] == (
+        "entry 'a' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class"
+    )
     assert c.quit() == 0
 
 

@@ -32,7 +32,8 @@ def wait_for(predicate: Any, timeout: float = 30.0) -> Any:
 def components(endpoint: str, token: str) -> dict[str, directory_pb2.ComponentInfo]:
     with grpc.insecure_channel(endpoint) as channel:
         stub = directory_pb2_grpc.DirectoryStub(channel)
-        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),))
+        md = (("authorization", f"Bearer {token}"),)
+        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
     return {c.id: c for c in desc.components}
 
 

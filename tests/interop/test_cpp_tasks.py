@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+
 import cast
 from cast.v1 import task_manager_pb2 as tm_pb2
 from tests.interop.cpp_support import CppProbe, CppProcess
