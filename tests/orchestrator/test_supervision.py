@@ -194,3 +194,21 @@ def test_servers_split_subarchitectures_and_route_components(
     assert motion.system.host.entry_count("motor") == 3
     assert main.system.remote_endpoints == {"motor": motion.endpoint}
     assert run.stop().exit_code == 0
+
+
+def test_a_second_ctrl_c_kills_what_is_still_stopping(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "impatient.yaml", {
+        "orchestrator": {"stop_timeout": 600},
+        "subarchitectures": {"work": {"components": {"stubborn": {"class": "orch_components:Stubborn"},
+                                                     "fine": {"class": "orch_components:Recorder"}}}},
+    })
+    run = start_cast_run(tmp_path, cfg)
+    pids = [c["pid"] for c in run.cli_json("components")]
+    run.process.send_signal(signal.SIGINT)
+    wait_for(lambda: "cast: stopping:" in run.output(), what="the orderly stop to begin")
+    wait_for(lambda: "fine | stop() called" in run.output(), what="the first component to stop")
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(120) == 1  # far sooner than the 600 s stop timeout
+    assert "stopping now: killing every component" in run.output()
+    assert "stubborn exited with code -9 when stopped (killed)" in run.output()
+    wait_for(lambda: all(gone(p) for p in pids), timeout=10, what="every process to be gone")

@@ -93,6 +93,13 @@ class Orchestrator:
         else:
             self._stop.set()
 
+    def _on_signal(self) -> None:
+        if self._stop.is_set() and self.supervisor is not None:
+            # Asked twice: the user does not want to wait for stop() hooks any longer.
+            self.output.notice("stopping now: killing every component")
+            self.supervisor.kill_all()
+        self._stop.set()
+
     def _contract(self, comp: ComponentConfig) -> dict[str, str]:
         assert self._signer is not None and self._servers is not None
         assert self._security is not None
@@ -122,7 +129,7 @@ class Orchestrator:
         for sig in (signal.SIGINT, signal.SIGTERM):
             # Not in the main thread (an orchestrator embedded in a test): the caller stops it.
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.add_signal_handler(sig, self.request_stop)
+                loop.add_signal_handler(sig, self._on_signal)
         servers = self._servers = ServerGroup(self.config, self._signer)
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}

@@ -112,6 +112,11 @@ class ComponentProcess:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(self._proc.pid, sig)
 
+    def kill(self) -> None:
+        """SIGKILL the process group now."""
+        self.killed = True
+        self._kill_group(signal.SIGKILL)
+
     async def stop(self, timeout: float) -> int:
         """SIGTERM (the runner calls stop()), then SIGKILL after ``timeout`` seconds; return the exit code."""
         assert self._proc is not None

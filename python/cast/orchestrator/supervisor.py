@@ -120,6 +120,8 @@ class Supervisor:
                 self._notify(f"{comp.id}: {sup.error}")
                 return
             assert sup.process is not None
+            if self._stopping:  # a stop began while this (re)start was under way
+                return
             code = await sup.process.wait()
             if self._stopping:
                 return
@@ -155,3 +157,15 @@ class Supervisor:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+        # A process (re)started while the others were being stopped: stop it too.
+        for sup in self.components.values():
+            if sup.process is not None and sup.process.running:
+                sup.stop_code = await sup.process.stop(timeout)
+                sup.phase = Phase.STOPPED
+
+    def kill_all(self) -> None:
+        """SIGKILL every running component at once (a second Ctrl-C: no more waiting)."""
+        self._stopping = True
+        for sup in self.components.values():
+            if sup.process is not None and sup.process.running:
+                sup.process.kill()
