@@ -9,6 +9,7 @@ order; the answer is written back into the same entry.
 from __future__ import annotations
 
 import re
+import threading
 from typing import Any
 
 from castdemo.scene_pb2 import Question, SceneObject
@@ -79,18 +80,31 @@ class Answerer(cast.ManagedComponent):
         self.pending: dict[str, str] = {}  # task id -> question id
 
     def start(self) -> None:
-        """Watch for new questions."""
+        """Watch for new questions, then take on those already asked."""
+        self.seen: set[str] = set()
+        self.mutex = threading.Lock()
         self.on_change(cast.local_type_filter(Question, cast.Operation.ADD), self.asked)
+        for entry in self.get_all(Question):
+            if not entry.value.answered:
+                self.take(entry.id, entry.value)
 
     def asked(self, change: cast.WorkingMemoryChange) -> None:
         """Propose to answer, at the question's priority."""
-        question = self.get(change.id, Question)
-        task = self.propose_task(f"answer q{question.number}", priority=question.priority)
-        self.pending[task.task_id] = change.id
+        self.take(change.id, self.get(change.id, Question))
+
+    def take(self, question_id: str, question: Question) -> None:
+        """Propose to answer one question, once."""
+        with self.mutex:
+            if question_id in self.seen:
+                return
+            self.seen.add(question_id)
+            task = self.propose_task(f"answer q{question.number}", priority=question.priority)
+            self.pending[task.task_id] = question_id
 
     def task_adopted(self, task: cast.Task) -> None:
         """Read the scene, answer, write the answer into the question."""
-        question_id = self.pending.pop(task.task_id)
+        with self.mutex:  # take() records the task under the mutex, maybe after the decision came
+            question_id = self.pending.pop(task.task_id)
         objects = [e.value for e in self.get_all(SceneObject, subarchitecture=self.vision_sa)]
         with self.lock(question_id, cast.LockMode.OD, timeout=5):
             question = self.get(question_id, Question)

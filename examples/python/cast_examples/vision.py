@@ -97,12 +97,29 @@ class Recogniser(cast.ManagedComponent):
         self.done = 0
 
     def start(self) -> None:
-        """Watch for new regions in the own SA."""
+        """Watch for new regions in the own SA, then take on those already there (a segmenter may be quicker)."""
+        self.proposed: set[str] = set()
+        self.mutex = threading.Lock()
         self.on_change(cast.local_type_filter(SceneObject, cast.Operation.ADD), self.new_region)
+        for entry in self.get_all(SceneObject):
+            if not self.known(entry.value):
+                self.propose_once(entry.id)
+
+    def known(self, region: SceneObject) -> bool:
+        """Whether the region already has this recogniser's feature."""
+        return bool(getattr(region, self.feature))
 
     def new_region(self, change: cast.WorkingMemoryChange) -> None:
         """Propose to recognise a new region."""
-        self.propose(change.id)
+        self.propose_once(change.id)
+
+    def propose_once(self, object_id: str) -> None:
+        """Propose a region's first task (the watch and the start-up read may both see it)."""
+        with self.mutex:
+            if object_id in self.proposed:
+                return
+            self.proposed.add(object_id)
+        self.propose(object_id)
 
     def propose(self, object_id: str) -> None:
         """Propose the task for one region."""
