@@ -212,3 +212,21 @@ def test_a_second_ctrl_c_kills_what_is_still_stopping(tmp_path: Path) -> None:
     assert "stopping now: killing every component" in run.output()
     assert "stubborn exited with code -9 when stopped (killed)" in run.output()
     wait_for(lambda: all(gone(p) for p in pids), timeout=10, what="every process to be gone")
+
+
+def test_a_component_that_cannot_start_is_not_restarted(tmp_path: Path, embedded: Callable[..., Embedded]) -> None:
+    cfg = write_config(tmp_path / "missing.yaml", {
+        "subarchitectures": {"work": {"components": {
+            "ghost": {"class": "orch_components:Producer"},
+        }}},
+    })
+    run = embedded(cfg)
+    sup = run.orchestrator.supervisor
+    assert sup is not None
+    # The class imported when the file was checked, but this process will not find it.
+    sup.components["ghost"].config.cls = "orch_components:Vanished"
+    sup.components["ghost"].process.kill()  # type: ignore[union-attr]
+    wait_for(lambda: sup.components["ghost"].phase is Phase.FAILED, what="the ghost to be given up")
+    assert sup.components["ghost"].restarts == 1 and sup.components["ghost"].crashes == [-9, 2]
+    assert "ghost could not start (exit code 2" in run.text()
+    assert run.stop().exit_code == 1

@@ -3,7 +3,9 @@
 A component that exits while the system runs is a crash if its exit code is
 not 0. Its restart policy decides what follows: ``never`` leaves it down,
 ``on-failure`` restarts crashes, ``always`` restarts any exit; each restart
-waits ``backoff`` seconds, doubling, and gives up after ``max_restarts``. The
+waits ``backoff`` seconds, doubling, and gives up after ``max_restarts``. Exit
+code 2 is the runners' "cannot start" (class not found, launch environment
+missing): never restarted, since trying again cannot help. The
 server has already released the crashed component's locks and tasks (its
 session ended with its connection), and a restarted component registering
 again ends any session of the old one that is still open.
@@ -65,6 +67,9 @@ class Supervised:
 
 
 Notify = Callable[[str], None]
+
+CANNOT_START = 2
+"""Exit code of every language's runner when the component cannot start at all (class, environment)."""
 
 
 class Supervisor:
@@ -128,6 +133,12 @@ class Supervisor:
             if code != 0:
                 sup.crashes.append(code)
             how = f"crashed (exit code {code})" if code != 0 else "exited"
+            if code == CANNOT_START:
+                # The runners' "bad class or launch environment": starting again cannot help.
+                sup.phase = Phase.FAILED
+                self._notify(f"{comp.id} could not start (exit code {code}: see its output or "
+                             f"{self._logs / (comp.id + '.log')}); not restarted")
+                return
             if not comp.restart.should_restart(code, sup.restarts):
                 sup.phase = Phase.FAILED if code != 0 else Phase.EXITED
                 reason = "" if comp.restart.mode == "never" or code == 0 else f" after {sup.restarts} restarts"
