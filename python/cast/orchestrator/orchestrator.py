@@ -173,7 +173,13 @@ class Orchestrator:
                     self.connected.set()
                     connect_seconds = time.monotonic() - started
                     count = sum(1 for c in self.config.components if not c.manual)
-                    self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
+                    down = [cid for cid, sup in supervisor.components.items()
+                            if sup.phase in (Phase.FAILED, Phase.EXITED)]
+                    if down:
+                        self.output.notice(f"{count - len(down)} of {count} components connected in "
+                                           f"{connect_seconds:.2f} s; not running: {', '.join(down)}")
+                    else:
+                        self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
                 if self.options.run_for is not None and not self._stop.is_set():
                     loop.call_later(self.options.run_for, self._stop.set)
                 await self._stop.wait()
