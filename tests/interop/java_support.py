@@ -313,6 +313,32 @@ class CastRun:
         component._cast_bind(transport)
         return component
 
+    def components(self) -> dict[str, Any]:
+        """The system's components as the directory describes them (id -> ComponentInfo)."""
+        import grpc
+
+        from cast.v1 import directory_pb2, directory_pb2_grpc
+
+        with grpc.insecure_channel(self.endpoint()) as channel:
+            stub = directory_pb2_grpc.DirectoryStub(channel)
+            md = (("authorization", f"Bearer {self.token('tool', 'tools')}"),)
+            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
+        return {c.id: c for c in desc.components}
+
+    def wait_running(self, component_id: str, timeout: float = 30.0) -> Any:
+        """Wait until a component reports RUNNING (its start() returned); its ComponentInfo."""
+        import time
+
+        from cast.v1 import directory_pb2
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            info = self.components().get(component_id)
+            if info is not None and info.state == directory_pb2.COMPONENT_STATE_RUNNING:
+                return info
+            time.sleep(0.05)
+        raise AssertionError(f"{component_id} did not reach RUNNING within {timeout} s\n{self.output()}")
+
     def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
         """A `cast` command aimed at this run."""
         env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}

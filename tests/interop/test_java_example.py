@@ -70,11 +70,16 @@ def test_the_example_builds_and_answers_greetings_under_cast_run(tmp_path: Path)
     run = CastRun(work / "system.yaml", tmp_path / "runtime", work)
     py = None
     try:
+        # "Connected" means registered; the callback exists once start() returned (state RUNNING).
+        run.wait_running("answerer")
         py = run.connect("greeter", "greetings")
         answered = threading.Event()
         py.on_change(cast.address_filter("reply-g1"), lambda change: answered.set())
         py.add("g1", Greeting(text="world", **{"from": "greeter"}))
-        assert answered.wait(30), run.output()
+        if not answered.wait(30):
+            logs = "".join(p.read_text() for p in (tmp_path / "runtime" / "logs").glob("*.log"))
+            raise AssertionError(f"no answer\n{run.output()}\n{run.cli('components').stdout}\n"
+                                 f"{run.cli('tasks').stdout}\n{run.cli('ls').stdout}\nlogs:\n{logs}")
         reply = py.get_entry("reply-g1", Greeting)
         assert reply.value.text == "hello, world"
         assert reply.value.reply_to == "g1"

@@ -9,21 +9,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-import grpc
 import yaml
 from cast_testing_pb2 import Counter
 
 import cast
-from cast.v1 import directory_pb2, directory_pb2_grpc
+from cast.v1 import directory_pb2
 from tests.interop.java_support import TEST_CLASSES, CastRun, java_classpath
 
 
 def components(run: CastRun) -> dict[str, directory_pb2.ComponentInfo]:
-    with grpc.insecure_channel(run.endpoint()) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {run.token('tool', 'vision')}"),)
-        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-    return {c.id: c for c in desc.components}
+    return dict(run.components())
 
 
 def wait_for(predicate: Any, timeout: float = 30.0) -> Any:

@@ -62,6 +62,9 @@ public final class Runner {
       System.err.println(
           "cast.client.Runner: cannot join the system at " + contract.endpoint() + ": " + e.getMessage());
       return 2;
+    } catch (IllegalArgumentException e) { // a CAST_ENDPOINT grpc cannot parse as host:port
+      System.err.println("cast.client.Runner: bad CAST_ENDPOINT '" + contract.endpoint() + "': " + e.getMessage());
+      return 2;
     }
     return runComponent(component, contract.args(), handleSignals);
   }

@@ -50,6 +50,8 @@ class RunnerTest {
     // Port 1 on loopback: nothing listens there, the connection is refused at once.
     env.put("CAST_ENDPOINT", "127.0.0.1:1");
     assertEquals(2, Runner.run(new String[] {Good.class.getName()}, env, false));
+    env.put("CAST_ENDPOINT", "not a valid:target:%%");
+    assertEquals(2, Runner.run(new String[] {Good.class.getName()}, env, false));
   }
 
   static final class Lifecycle extends UnmanagedComponent {
