@@ -19,6 +19,8 @@ help:
 	@echo "make test    set up, build and run every test"
 	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
+	@echo "make cpp     build the C++ client library, its tests and C++ components (build/cpp, bin/)"
+	@echo "make test-cpp   the C++ unit tests (GoogleTest via ctest)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
