@@ -169,7 +169,7 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
   ComponentCore& c = *core_;
   c.identity = transport->identity();
   c.log = Logger("cast.component." + c.identity.componentId);
-  c.dispatcher = std::make_unique<detail::Dispatcher>(c.identity.componentId);
+  c.dispatcher = std::make_unique<detail::Dispatcher>(c.identity.componentId, c.maxPending);
   // A random part per process keeps ids unique across restarts of the same
   // component (the counter starts again at 1).
   std::random_device rd;
@@ -370,6 +370,11 @@ WatchHandle Component::onChange(const std::vector<ChangeFilter>& filters, Change
 
 bool Component::drain(std::chrono::milliseconds timeout) {
   return core_->dispatcher ? core_->dispatcher->drain(timeout) : true;
+}
+
+void Component::setMaxPendingCallbacks(std::size_t count) {
+  if (core_->dispatcher) throw CastError("setMaxPendingCallbacks must be called before bind()", "FAILED_PRECONDITION");
+  core_->maxPending = count == 0 ? 1 : count;
 }
 
 bool Component::onDispatcherThread() const { return core_->dispatcher && core_->dispatcher->onThread(); }

@@ -31,6 +31,7 @@ class ComponentCore {
   Identity identity;
   Logger log{"cast.component"};
   std::unique_ptr<Dispatcher> dispatcher;
+  std::size_t maxPending = 10000;
 
   std::mutex mu;  // guards callbacks, errors, nextWatchId
   std::map<std::uint32_t, ChangeCallback> callbacks;

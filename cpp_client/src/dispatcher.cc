@@ -6,7 +6,8 @@
 
 namespace cast::detail {
 
-Dispatcher::Dispatcher(std::string name) : state_(std::make_shared<State>("cast.dispatch." + name)) {
+Dispatcher::Dispatcher(std::string name, std::size_t capacity)
+    : state_(std::make_shared<State>("cast.dispatch." + name, capacity == 0 ? 1 : capacity)) {
   thread_ = std::thread([state = state_] { loop(state); });
   threadId_ = thread_.get_id();
 }
@@ -15,7 +16,10 @@ Dispatcher::~Dispatcher() { stop(); }
 
 void Dispatcher::submit(std::function<void()> fn) {
   {
-    std::lock_guard<std::mutex> lock(state_->mu);
+    std::unique_lock<std::mutex> lock(state_->mu);
+    if (!onThread()) {
+      state_->idle.wait(lock, [this] { return state_->pending < state_->capacity || state_->stopping; });
+    }
     if (state_->stopping) return;
     state_->queue.push_back(std::move(fn));
     ++state_->pending;
@@ -46,7 +50,7 @@ void Dispatcher::loop(const std::shared_ptr<State>& s) {
     {
       std::lock_guard<std::mutex> lock(s->mu);
       --s->pending;
-      if (s->pending == 0) s->idle.notify_all();
+      s->idle.notify_all();  // room for a waiting submit, or idle for drain()
     }
   }
   std::lock_guard<std::mutex> lock(s->mu);
@@ -66,6 +70,7 @@ void Dispatcher::stop(std::chrono::milliseconds timeout) {
     state_->stopping = true;
   }
   state_->wake.notify_all();
+  state_->idle.notify_all();  // a submit waiting for room gives up
   if (!thread_.joinable()) return;
   if (onThread()) {
     // stop() from a callback: the thread ends after this callback returns.

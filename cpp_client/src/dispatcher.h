@@ -1,6 +1,12 @@
 // One thread per component that runs its callbacks one at a time, in the
 // order they were queued. A failing callback is logged and the next one runs:
 // one bad callback must not silence the others.
+//
+// The queue is bounded (`capacity`), as in the Python client: a component
+// whose callbacks are slow then lags behind on the server, which keeps a
+// bounded history and says so (HistoryExpiredError) when the lag exceeds it,
+// instead of the component growing without bound in memory. submit() from a
+// stream's reader thread waits for room, which stops reading that stream.
 #pragma once
 
 #include <chrono>
@@ -17,12 +23,14 @@ namespace cast::detail {
 
 class Dispatcher {
  public:
-  explicit Dispatcher(std::string name);
+  explicit Dispatcher(std::string name, std::size_t capacity = 10000);
   ~Dispatcher();
   Dispatcher(const Dispatcher&) = delete;
   Dispatcher& operator=(const Dispatcher&) = delete;
 
-  // Queues `fn`; ignored once stop() was called.
+  // Queues `fn`, first waiting while the queue is full (never on the
+  // dispatcher thread itself, which would wait for itself); ignored once
+  // stop() was called.
   void submit(std::function<void()> fn);
   // Waits until everything queued so far has run; false on timeout. Called
   // on the dispatcher thread itself it cannot wait for itself: returns false.
@@ -35,11 +43,12 @@ class Dispatcher {
   // Shared with the thread, so a thread left running (stop() from a callback,
   // or a callback that hangs) never touches a destroyed Dispatcher.
   struct State {
-    explicit State(std::string name) : log(std::move(name)) {}
+    State(std::string name, std::size_t capacity) : log(std::move(name)), capacity(capacity) {}
     Logger log;
+    std::size_t capacity;
     std::mutex mu;
     std::condition_variable wake;
-    std::condition_variable idle;
+    std::condition_variable idle;  // also signalled when room appears
     std::deque<std::function<void()>> queue;
     std::size_t pending = 0;  // queued + running
     bool stopping = false;

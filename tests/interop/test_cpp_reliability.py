@@ -304,3 +304,39 @@ def test_the_orchestrator_renews_tokens_of_cpp_components(tmp_path: Path) -> Non
         assert not any("complete_failed" in line for line in run.lines), run.output()
     finally:
         run.stop()
+
+
+def test_a_stuck_cpp_watcher_never_blocks_writers_and_is_told_past_the_history(server_factory: Any) -> None:
+    from cast_testing_pb2 import Pose
+
+    server = server_factory({"system": "lag", "limits": {"history_events": 64}, "subarchitectures": {"vision": {}}})
+    env = dict(server.env("cslow", "vision"), CAST_PROBE_MAX_PENDING="4")
+    probe = CppProbe(env)
+    py = server.connect("pyfast", "vision")
+    try:
+        probe.ready()
+        probe.ok("watch", "stuck", {"gated": True, "filters": [
+            {"kind": "local", "type": "cast.testing.Pose", "include_entry": True}]})
+        # Far more than the history, in events and in bytes (past the transport's buffers), while
+        # the C++ callback is stuck: the writer is never held up.
+        label = "x" * 2048
+        started = time.monotonic()
+        for i in range(3000):
+            py.add(f"p{i}", Pose(x=i, label=label))
+        assert time.monotonic() - started < 60
+        probe.ok("open_gate")
+        deadline = time.monotonic() + 60
+        while (got := probe.ok("events", "stuck", 0, 0))["error"] == "" and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert got["error"] == "HistoryExpiredError", "the watcher was not told it fell behind"
+        ids = [e["id"] for e in got["events"]]
+        assert 0 < len(ids) < 3000, "some events were delivered, then the watcher was told it fell behind"
+        assert ids == [f"p{i}" for i in range(len(ids))], "no gap before the failure"
+        # Resynchronising: a new watch on a new stream gets the changes from now on.
+        probe.ok("watch", "again", {"filters": [{"kind": "local", "type": "cast.testing.Pose"}]})
+        py.add("after", Pose(label="after"))
+        assert [e["id"] for e in probe.ok("events", "again", 1, 10000)["events"]] == ["after"]
+        assert probe.quit() == 0
+    finally:
+        py._cast_close()
+        probe.close()

@@ -222,6 +222,12 @@ class Component {
   bool drain(std::chrono::milliseconds timeout = std::chrono::milliseconds(5000));
   // Whether the calling thread is this component's dispatcher thread.
   bool onDispatcherThread() const;
+  // How many callbacks may wait for the dispatcher (default 10000; call
+  // before bind(), e.g. in the constructor). When they are that many, the
+  // component stops reading its watch streams and lags on the server, which
+  // tells it (watchFailed, HistoryExpiredError) if the lag outgrows the
+  // server's history: memory stays bounded, nothing is lost silently.
+  void setMaxPendingCallbacks(std::size_t count);
 
   // ------------------------------------------------------------ binding
   // Attaches the component to a working memory system (the runner does this;

@@ -17,7 +17,9 @@
 //   lock ID MODE SA TIMEOUT_MS     trylock ID MODE SA
 //   unlock ID SA                   release ID SA   (drops a guard: RAII unlock)
 //   copy TYPE FROM TO SA           (read, drop unknown fields, add: fidelity)
-//   watch NAME JSON                cancel NAME
+//   watch NAME JSON                cancel NAME       open_gate
+//     (JSON: {"filters": [...], "gated": bool}; a gated callback blocks
+//     until open_gate; CAST_PROBE_MAX_PENDING bounds the dispatcher queue)
 //   events NAME COUNT TIMEOUT_MS   (waits for COUNT events, returns them all)
 //   propose NAME PRIORITY [TYPE JSON]
 //   decisions COUNT TIMEOUT_MS     complete TASK_ID OUTCOME REASON
@@ -28,6 +30,7 @@
 #include <unistd.h>
 
 #include <condition_variable>
+#include <cstdlib>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -124,6 +127,11 @@ std::string taskJson(const cast::Task& t) {
 
 class Probe : public cast::ManagedComponent {
  public:
+  Probe() {
+    // A small dispatcher queue, for the tests of a stuck watcher.
+    if (const char* max = std::getenv("CAST_PROBE_MAX_PENDING")) setMaxPendingCallbacks(std::stoul(max));
+  }
+
   ~Probe() override {
     // Locks still held at exit are left to the server, which releases them
     // when the session ends (that is what the session tests check).
@@ -300,6 +308,14 @@ class Probe : public cast::ManagedComponent {
       });
     }
     if (cmd == "watch") return watchCommand(split(line, 2));  // watch NAME JSON
+    if (cmd == "open_gate") {  // lets gated watch callbacks return
+      {
+        std::lock_guard<std::mutex> l(mu_);
+        gateOpen_ = true;
+      }
+      cv_.notify_all();
+      return "{}";
+    }
     if (cmd == "cancel") {  // cancel NAME
       auto a = split(line, 2);
       std::lock_guard<std::mutex> l(mu_);
@@ -377,7 +393,13 @@ class Probe : public cast::ManagedComponent {
       else throw cast::InvalidArgumentError("probe: unknown filter kind '" + kind + "'");
     }
     auto w = std::make_shared<Watch>();
-    w->handle = onChange(filters, [this, w](const cast::WorkingMemoryChange& c) {
+    // A gated watch's callback blocks until open_gate: a stuck component.
+    const bool gated = spec.fields().count("gated") && spec.fields().at("gated").bool_value();
+    w->handle = onChange(filters, [this, w, gated](const cast::WorkingMemoryChange& c) {
+      if (gated) {
+        std::unique_lock<std::mutex> l(mu_);
+        cv_.wait(l, [this] { return gateOpen_; });
+      }
       Object o;
       o.unum("revision", c.revision())
           .str("operation", cast::toString(c.operation()))
@@ -404,6 +426,7 @@ class Probe : public cast::ManagedComponent {
   std::map<std::string, std::vector<cast::LockGuard>> guards_;
   std::map<std::string, std::shared_ptr<Watch>> watches_;
   std::vector<std::string> decisions_;
+  bool gateOpen_ = false;
 };
 
 }  // namespace

@@ -94,3 +94,57 @@ TEST(Dispatcher, DrainOnTheDispatcherThreadDoesNotDeadlock) {
 }
 
 }  // namespace
+
+namespace {
+
+TEST(Dispatcher, AFullQueueHoldsTheSubmitterBack) {
+  cast::detail::Dispatcher d("test", 2);
+  std::atomic<bool> release{false};
+  std::atomic<int> ran{0};
+  d.submit([&] {
+    while (!release) std::this_thread::sleep_for(1ms);
+    ++ran;
+  });
+  d.submit([&] { ++ran; });  // the queue holds two: full now
+  std::atomic<bool> submitted{false};
+  std::thread producer([&] {
+    d.submit([&] { ++ran; });
+    submitted = true;
+  });
+  std::this_thread::sleep_for(50ms);
+  EXPECT_FALSE(submitted) << "submit must wait for room";
+  release = true;
+  producer.join();
+  EXPECT_TRUE(submitted);
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(ran.load(), 3);
+}
+
+TEST(Dispatcher, TheDispatcherThreadNeverWaitsForItself) {
+  cast::detail::Dispatcher d("test", 1);
+  std::atomic<int> ran{0};
+  d.submit([&] {
+    d.submit([&] { ++ran; });  // full, but waiting here would deadlock
+    ++ran;
+  });
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(ran.load(), 2);
+}
+
+TEST(Dispatcher, StopReleasesAWaitingSubmitter) {
+  auto d = std::make_unique<cast::detail::Dispatcher>("test", 1);
+  std::atomic<bool> release{false};
+  d->submit([&] {
+    while (!release) std::this_thread::sleep_for(1ms);
+  });
+  std::thread producer([&] { d->submit([] {}); });
+  std::this_thread::sleep_for(30ms);
+  std::thread stopper([&] { d->stop(5000ms); });
+  std::this_thread::sleep_for(30ms);
+  release = true;
+  producer.join();  // returns: stop() woke it, its call is dropped
+  stopper.join();
+  SUCCEED();
+}
+
+}  // namespace
