@@ -481,17 +481,28 @@ public abstract class Component implements AutoCloseable {
     }
   }
 
-  private void onWatchError(CastError error) {
-    for (Registration r : callbacks.values()) {
-      r.handle().setError(error);
+  /** Change delivery stopped: for one watch ({@code watchId} >= 0, which is dropped) or for all. */
+  private void onWatchError(CastError error, int watchId) {
+    if (watchId >= 0) {
+      Registration r = callbacks.remove(watchId);
+      if (r != null) {
+        r.handle().setError(error);
+      }
+    } else {
+      for (Registration r : callbacks.values()) {
+        r.handle().setError(error);
+      }
     }
     submit(() -> watchFailed(error));
   }
 
   /**
    * Called on the dispatcher when change delivery stopped, e.g. with
-   * HistoryExpiredError. The default logs it; override to resynchronise: read the
-   * current state, then register the callbacks again.
+   * HistoryExpiredError: the component fell behind the server's history, or a
+   * server restarted without the history a watch was resuming from. The default
+   * logs it; override to resynchronise: read the current state, then register the
+   * callbacks again. (After an ordinary disconnect the library resumes every watch
+   * by itself, with no gap and no duplicate.)
    */
   public void watchFailed(CastError error) throws Exception {
     log().severe(componentId() + ": change delivery stopped: " + error.getClass().getSimpleName() + ": " + error.getMessage());

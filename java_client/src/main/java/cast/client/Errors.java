@@ -52,8 +52,12 @@ public final class Errors {
       details = status.getCause() != null ? String.valueOf(status.getCause()) : name;
     }
     if (status.getCode() == Status.Code.UNAVAILABLE) {
-      // Say which side failed: the message alone ("io exception") does not.
-      return new UnavailableError("server unavailable: " + details);
+      // Say which side failed (the details alone, "io exception", do not) and what to do.
+      return new UnavailableError(
+          "server unavailable ("
+              + details
+              + "): a write made by this call may or may not have been applied; the client reconnects by"
+              + " itself, retry the call later");
     }
     return forCode(name, details);
   }

@@ -33,14 +33,21 @@ import cast.v1.WorkingMemoryGrpc;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
+import io.grpc.CallOptions;
+import io.grpc.Channel;
+import io.grpc.ClientCall;
+import io.grpc.ClientInterceptor;
+import io.grpc.ForwardingClientCall;
+import io.grpc.Grpc;
 import io.grpc.ManagedChannel;
 import io.grpc.ManagedChannelBuilder;
 import io.grpc.Metadata;
+import io.grpc.MethodDescriptor;
+import io.grpc.Status;
 import io.grpc.StatusRuntimeException;
 import io.grpc.stub.AbstractStub;
 import io.grpc.stub.ClientCallStreamObserver;
 import io.grpc.stub.ClientResponseObserver;
-import io.grpc.stub.MetadataUtils;
 import io.grpc.stub.StreamObserver;
 import java.lang.management.ManagementFactory;
 import java.net.InetAddress;
@@ -50,15 +57,19 @@ import java.util.HashMap;
 import java.util.LinkedHashMap;
 import java.util.List;
 import java.util.Map;
+import java.util.Set;
 import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.ExecutionException;
 import java.util.concurrent.Executors;
 import java.util.concurrent.ScheduledExecutorService;
+import java.util.concurrent.ScheduledThreadPoolExecutor;
 import java.util.concurrent.ScheduledFuture;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.TimeoutException;
 import java.util.concurrent.atomic.AtomicBoolean;
+import java.util.concurrent.atomic.AtomicInteger;
+import java.util.function.BiConsumer;
 import java.util.function.Consumer;
 import java.util.function.Function;
 import java.util.function.Supplier;
@@ -70,6 +81,13 @@ import java.util.logging.Logger;
  * following docs/client-protocol.md call by call: routing by SA from
  * DescribeSystem, one Watch stream per server, a session (Register + Heartbeat
  * stream) per server, the Decisions stream of the own SA's task manager.
+ *
+ * <p>When a server goes away the component object stays and this class
+ * reconnects (docs/client-protocol.md, "Reconnection"): unary calls fail at once
+ * with UnavailableError; Watch streams are opened again with backoff and every
+ * watch resumes from the revision after the last one it got (no gap, no
+ * duplicate), guarded by the server's history id; sessions are registered again
+ * (locks and tasks do not survive); the Decisions stream is opened again.
  */
 final class GrpcTransport implements AutoCloseable {
   private static final Logger LOG = Logger.getLogger("cast.client");
@@ -77,6 +95,15 @@ final class GrpcTransport implements AutoCloseable {
   static final Duration DEFAULT_CALL_TIMEOUT = Duration.ofSeconds(30);
   private static final Metadata.Key<String> AUTHORIZATION =
       Metadata.Key.of("authorization", Metadata.ASCII_STRING_MARSHALLER);
+  /** Stream errors after which the stream is opened again; any other ends it for good. */
+  static final Set<Status.Code> TRANSIENT =
+      Set.of(
+          Status.Code.UNAVAILABLE,
+          Status.Code.UNKNOWN,
+          Status.Code.INTERNAL,
+          Status.Code.CANCELLED,
+          Status.Code.DEADLINE_EXCEEDED,
+          Status.Code.UNAUTHENTICATED);
 
   /** Opens a channel to an endpoint (tests use in-process channels). */
   interface ChannelFactory {
@@ -89,9 +116,21 @@ final class GrpcTransport implements AutoCloseable {
   }
 
   static ManagedChannel plaintextChannel(String endpoint) {
-    return ManagedChannelBuilder.forTarget(endpoint)
-        .usePlaintext()
-        .maxInboundMessageSize(MAX_MESSAGE_BYTES)
+    return channel(endpoint, null);
+  }
+
+  /** A channel to {@code endpoint}, with TLS when {@code tls} is set (never falling back to plaintext). */
+  static ManagedChannel channel(String endpoint, ClientTls tls) {
+    ManagedChannelBuilder<?> b;
+    if (tls == null) {
+      b = ManagedChannelBuilder.forTarget(endpoint).usePlaintext();
+    } else {
+      b = Grpc.newChannelBuilder(endpoint, tls.credentials());
+      if (!tls.serverName().isEmpty()) {
+        b.overrideAuthority(tls.serverName());
+      }
+    }
+    return b.maxInboundMessageSize(MAX_MESSAGE_BYTES)
         // Notice a dead server (and let it notice us) on an idle connection;
         // the server permits pings every 5 s without data.
         .keepAliveTime(10, TimeUnit.SECONDS)
@@ -112,14 +151,15 @@ final class GrpcTransport implements AutoCloseable {
     final DirectoryGrpc.DirectoryStub dirAsync;
     WatchStream watchStream; // guarded by GrpcTransport.this.lock
     volatile String sessionId = "";
-    StreamObserver<HeartbeatRequest> heartbeat; // guarded by itself once set
-    ScheduledFuture<?> beat;
-    Runnable beatNow;
+    volatile StreamObserver<HeartbeatRequest> heartbeat; // sends guarded by the observer itself
+    volatile ScheduledFuture<?> beat;
+    volatile Runnable beatNow;
+    final Backoff sessionBackoff = new Backoff();
 
     Server(String endpoint) {
       this.endpoint = endpoint;
       this.channel = channels.open(endpoint);
-      var auth = MetadataUtils.newAttachHeadersInterceptor(metadata);
+      ClientInterceptor auth = tokenInterceptor();
       this.wm = WorkingMemoryGrpc.newBlockingStub(channel).withInterceptors(auth);
       this.wmAsync = WorkingMemoryGrpc.newStub(channel).withInterceptors(auth);
       this.tm = TaskManagerGrpc.newBlockingStub(channel).withInterceptors(auth);
@@ -129,121 +169,301 @@ final class GrpcTransport implements AutoCloseable {
     }
   }
 
-  /** One Watch call to one server, shared by every watch of the component on that server. */
-  final class WatchStream implements ClientResponseObserver<WatchRequest, WatchResponse> {
+  /** What the client keeps of one watch so that it can be created again after a reconnect. */
+  static final class Watch {
+    final int watchId;
+    final List<cast.v1.ChangeFilter> filters;
+    final Map<String, Long> firstStarts;
+    List<String> sas = List.of(); // the SAs of this server the watch covers (known once created)
+    Map<String, Long> base; // per SA, the revision the watch has seen up to (null until created)
+
+    Watch(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> firstStarts) {
+      this.watchId = watchId;
+      this.filters = List.copyOf(filters);
+      this.firstStarts = Map.copyOf(firstStarts);
+    }
+  }
+
+  /**
+   * The Watch stream to one server, shared by every watch of the component on that
+   * server. When the connection breaks it is opened again with backoff and every
+   * watch is created again from the revision after the last one it got, per SA,
+   * with the server's history id: a server that lost that history refuses the
+   * resume, and the component is told to resynchronise (HistoryExpiredError).
+   */
+  final class WatchStream {
     private final Server server;
+    private final Object mutex = new Object();
+    private final Map<Integer, Watch> watches = new LinkedHashMap<>(); // guarded by mutex
     private final Map<Integer, CompletableFuture<Map<String, Long>>> pending = new ConcurrentHashMap<>();
-    private ClientCallStreamObserver<WatchRequest> requests; // guarded by this
-    private volatile boolean ended;
+    // The newest revision per SA received on this stream: the server moves every watch of an SA
+    // on one stream past the events it sends, so each watch has seen at least this far.
+    private final Map<String, Long> seen = new ConcurrentHashMap<>();
+    private final Backoff backoff = new Backoff();
+    private ClientCallStreamObserver<WatchRequest> requests; // the current call; guarded by mutex
+    private int generation; // numbers the calls; guarded by mutex
+    private volatile String historyId = "";
+    private volatile boolean connected;
+    private volatile boolean dead; // ended for good: a new watch needs a new stream
+    private volatile boolean closed;
+    final AtomicInteger reconnects = new AtomicInteger();
 
     WatchStream(Server server) {
       this.server = server;
-      server.wmAsync.watch(this);
-    }
-
-    @Override
-    public void beforeStart(ClientCallStreamObserver<WatchRequest> requestStream) {
-      synchronized (this) {
-        this.requests = requestStream;
-      }
+      open();
     }
 
     boolean isEnded() {
-      return ended;
+      return dead;
     }
 
-    @Override
-    public void onNext(WatchResponse resp) {
-      // grpc-java calls this serially per call, so events keep the server's order.
-      EventSink s = sink;
-      if (s != null) {
-        for (ChangeEvent e : resp.getEventsList()) {
-          s.event(e);
+    private WatchRequest createRequest(Watch w) {
+      Map<String, Long> starts;
+      String history;
+      if (w.base == null) {
+        starts = w.firstStarts;
+        history = "";
+      } else {
+        starts = new HashMap<>();
+        Map<String, Long> base = new HashMap<>();
+        for (String sa : w.sas) {
+          long upTo = Math.max(w.base.getOrDefault(sa, 0L), seen.getOrDefault(sa, 0L));
+          starts.put(sa, upTo + 1);
+          base.put(sa, upTo); // where the watch now is: a later resume never goes back before it
+        }
+        w.base = base;
+        history = historyId;
+      }
+      return WatchRequest.newBuilder()
+          .setCreate(
+              WatchCreate.newBuilder()
+                  .setWatchId(w.watchId)
+                  .addAllFilters(w.filters)
+                  .putAllStartRevisions(starts)
+                  .setHistoryId(history))
+          .build();
+    }
+
+    /** Send on the current call (under mutex); a call that just ended drops it, the reopen resends. */
+    private void send(WatchRequest req) {
+      if (requests == null) {
+        return;
+      }
+      try {
+        requests.onNext(req);
+      } catch (IllegalStateException e) {
+        LOG.fine("watch request not sent, the call ended: " + e.getMessage());
+      }
+    }
+
+    private void open() {
+      synchronized (mutex) {
+        if (closed || closing.get()) {
+          return;
+        }
+        int gen = ++generation;
+        requests = null;
+        server.wmAsync.watch(new Call(gen)); // beforeStart sets `requests`
+        for (Watch w : watches.values()) {
+          send(createRequest(w));
         }
       }
+    }
+
+    /** The observer of one Watch call. */
+    private final class Call implements ClientResponseObserver<WatchRequest, WatchResponse> {
+      private final int gen;
+
+      Call(int gen) {
+        this.gen = gen;
+      }
+
+      @Override
+      public void beforeStart(ClientCallStreamObserver<WatchRequest> requestStream) {
+        synchronized (mutex) {
+          if (gen == generation) {
+            requests = requestStream;
+          }
+        }
+      }
+
+      @Override
+      public void onNext(WatchResponse resp) {
+        // grpc-java calls this serially per call, so events keep the server's order.
+        if (!connected) {
+          connected = true;
+          backoff.reset();
+        }
+        handle(resp);
+      }
+
+      @Override
+      public void onError(Throwable t) {
+        ended(gen, Status.fromThrowable(t));
+      }
+
+      @Override
+      public void onCompleted() {
+        ended(gen, Status.UNAVAILABLE.withDescription("the server at " + server.endpoint + " ended the watch stream"));
+      }
+    }
+
+    private void handle(WatchResponse resp) {
+      EventSink s = sink;
+      for (ChangeEvent e : resp.getEventsList()) {
+        if (s != null) {
+          s.event(e);
+        }
+        seen.merge(e.getAddress().getSubarchitecture(), e.getRevision(), Math::max);
+      }
       if (resp.hasCreated()) {
-        var f = pending.remove(resp.getCreated().getWatchId());
+        var created = resp.getCreated();
+        if (!created.getHistoryId().isEmpty()) {
+          historyId = created.getHistoryId();
+        }
+        synchronized (mutex) {
+          Watch w = watches.get(created.getWatchId());
+          if (w != null && w.base == null) {
+            Map<String, Long> revisions = created.getRevisionsMap();
+            boolean coversAll = w.filters.stream().anyMatch(f -> f.getSubarchitecture().isEmpty());
+            List<String> sas = new ArrayList<>();
+            Map<String, Long> base = new HashMap<>();
+            for (var r : revisions.entrySet()) {
+              String sa = r.getKey();
+              if (coversAll || w.filters.stream().anyMatch(f -> f.getSubarchitecture().equals(sa))) {
+                sas.add(sa);
+                base.put(sa, w.firstStarts.getOrDefault(sa, r.getValue() + 1) - 1);
+              }
+            }
+            w.sas = sas;
+            w.base = base;
+          }
+        }
+        var f = pending.remove(created.getWatchId());
         if (f != null) {
-          f.complete(resp.getCreated().getRevisionsMap());
+          f.complete(created.getRevisionsMap());
         }
       }
       if (resp.hasFailed()) {
-        var f = pending.remove(resp.getFailed().getWatchId());
+        var failed = resp.getFailed();
+        CastError error = Errors.forCode(failed.getCode(), failed.getMessage());
+        var f = pending.remove(failed.getWatchId());
+        Watch dropped;
+        synchronized (mutex) {
+          dropped = watches.remove(failed.getWatchId());
+        }
         if (f != null) {
-          f.completeExceptionally(Errors.forCode(resp.getFailed().getCode(), resp.getFailed().getMessage()));
+          f.completeExceptionally(error);
+        } else if (dropped != null) {
+          // A resume refused after a reconnect: the history no longer covers it (or the server
+          // lost it): the component must resynchronise.
+          if (!(error instanceof HistoryExpiredError)) {
+            error = new HistoryExpiredError("watch " + failed.getWatchId() + " could not resume: " + failed.getMessage());
+          }
+          onWatchError.accept(error, failed.getWatchId());
         }
       }
     }
 
-    @Override
-    public void onError(Throwable t) {
-      end(Errors.fromThrowable(t));
+    private void ended(int gen, Status status) {
+      synchronized (mutex) {
+        if (gen != generation) {
+          return; // an older call
+        }
+        requests = null;
+      }
+      connected = false;
+      if (closed || closing.get()) {
+        return;
+      }
+      CastError error = Errors.fromStatus(status);
+      if (!TRANSIENT.contains(status.getCode())) {
+        fail(error);
+        return;
+      }
+      reconnects.incrementAndGet();
+      long delay = backoff.nextMillis();
+      LOG.warning(
+          "watch stream to " + server.endpoint + " broke (" + status.getCode() + ": " + status.getDescription()
+              + "); reconnecting in " + delay + " ms");
+      schedule(
+          () -> {
+            server.channel.resetConnectBackoff(); // try the server now, not after gRPC's own (long) backoff
+            open();
+          },
+          delay);
     }
 
-    @Override
-    public void onCompleted() {
-      end(new UnavailableError("the server at " + server.endpoint + " ended the watch stream"));
-    }
-
-    private void end(CastError err) {
-      ended = true;
+    /** End the stream for good (fell behind the history, ...): every watch on it fails. */
+    private void fail(CastError error) {
+      dead = true;
+      synchronized (mutex) {
+        watches.clear();
+      }
       for (Integer id : new ArrayList<>(pending.keySet())) {
         var f = pending.remove(id);
         if (f != null) {
-          f.completeExceptionally(err);
+          f.completeExceptionally(error);
         }
       }
-      if (!closing.get()) {
-        onWatchError.accept(err);
-      }
-    }
-
-    private void send(WatchRequest req) {
-      synchronized (this) {
-        requests.onNext(req);
-      }
+      onWatchError.accept(error, -1);
     }
 
     Map<String, Long> create(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> starts) {
       var done = new CompletableFuture<Map<String, Long>>();
-      pending.put(watchId, done);
-      if (ended) {
-        pending.remove(watchId);
-        throw new UnavailableError("the watch stream to " + server.endpoint + " has ended");
+      Watch w = new Watch(watchId, filters, starts);
+      synchronized (mutex) {
+        if (dead) {
+          throw new UnavailableError("the watch stream to " + server.endpoint + " has ended");
+        }
+        pending.put(watchId, done);
+        watches.put(watchId, w);
+        send(createRequest(w)); // while disconnected, the reopen sends it
       }
-      send(
-          WatchRequest.newBuilder()
-              .setCreate(
-                  WatchCreate.newBuilder()
-                      .setWatchId(watchId)
-                      .addAllFilters(filters)
-                      .putAllStartRevisions(starts))
-              .build());
       try {
         return done.get(callTimeout.toMillis(), TimeUnit.MILLISECONDS);
       } catch (TimeoutException e) {
-        pending.remove(watchId);
+        forget(watchId);
+        if (!connected) {
+          throw new UnavailableError(
+              "server " + server.endpoint + " unreachable: the watch was not created within " + callTimeout);
+        }
         throw new DeadlineExceededError(
             "the server at " + server.endpoint + " did not confirm watch " + watchId + " within " + callTimeout);
       } catch (ExecutionException e) {
+        forget(watchId);
         throw Errors.fromThrowable(e.getCause());
       } catch (InterruptedException e) {
         Thread.currentThread().interrupt();
-        pending.remove(watchId);
+        forget(watchId);
         throw new CastError("CANCELLED", "interrupted while waiting for the server to confirm watch " + watchId);
       }
     }
 
+    private void forget(int watchId) {
+      pending.remove(watchId);
+      synchronized (mutex) {
+        watches.remove(watchId);
+      }
+    }
+
     void cancel(int watchId) {
-      if (!ended) {
+      synchronized (mutex) {
+        watches.remove(watchId);
         send(WatchRequest.newBuilder().setCancel(WatchCancel.newBuilder().setWatchId(watchId)).build());
       }
     }
 
     void close() {
-      synchronized (this) {
-        if (requests != null && !ended) {
-          requests.cancel("component closing", null);
+      closed = true;
+      synchronized (mutex) {
+        if (requests != null) {
+          try {
+            requests.cancel("component closing", null);
+          } catch (RuntimeException e) {
+            LOG.fine("watch call already ended: " + e);
+          }
+          requests = null;
         }
       }
     }
@@ -252,7 +472,7 @@ final class GrpcTransport implements AutoCloseable {
   private final String componentId;
   private final String subarchitecture;
   private final boolean privileged;
-  private final Metadata metadata = new Metadata();
+  private final TokenSource tokens;
   private final Duration callTimeout;
   private final ChannelFactory channels;
   private final Object lock = new Object();
@@ -262,14 +482,20 @@ final class GrpcTransport implements AutoCloseable {
   private volatile SystemDescription system;
   private final Map<Integer, List<Server>> watchServers = new ConcurrentHashMap<>();
   private volatile EventSink sink;
-  private volatile Consumer<CastError> onWatchError =
-      err -> LOG.severe("change delivery stopped: " + err.getMessage());
+  private volatile BiConsumer<CastError, Integer> onWatchError =
+      (err, watchId) -> LOG.severe("change delivery stopped: " + err.getMessage());
   private final AtomicBoolean closing = new AtomicBoolean();
+  // Heartbeats, reconnects and re-registrations (two threads: a re-registration may wait on a call).
   private final ScheduledExecutorService heartbeats;
   private volatile ClientCallStreamObserver<DecisionsRequest> decisions;
+  private final AtomicInteger sessions = new AtomicInteger();
+  private volatile String sessionLanguage = "java";
+  private volatile String sessionKind = "unmanaged";
+  private volatile Supplier<cast.v1.ComponentState> sessionState =
+      () -> cast.v1.ComponentState.COMPONENT_STATE_STARTING;
 
   GrpcTransport(LaunchContract contract) {
-    this(contract, GrpcTransport::plaintextChannel, DEFAULT_CALL_TIMEOUT);
+    this(contract, endpoint -> channel(endpoint, contract.tls()), DEFAULT_CALL_TIMEOUT);
   }
 
   GrpcTransport(LaunchContract contract, ChannelFactory channels, Duration callTimeout) {
@@ -278,14 +504,19 @@ final class GrpcTransport implements AutoCloseable {
     this.privileged = contract.privileged();
     this.callTimeout = callTimeout;
     this.channels = channels;
-    this.metadata.put(AUTHORIZATION, "Bearer " + contract.token());
-    this.heartbeats =
-        Executors.newSingleThreadScheduledExecutor(
+    this.tokens =
+        new TokenSource(
+            contract.token(), contract.tokenFile() == null ? null : java.nio.file.Path.of(contract.tokenFile()));
+    ScheduledThreadPoolExecutor scheduler =
+        new ScheduledThreadPoolExecutor(
+            2,
             r -> {
               Thread t = new Thread(r, "cast-heartbeat-" + contract.componentId());
               t.setDaemon(true);
               return t;
             });
+    scheduler.setRemoveOnCancelPolicy(true);
+    this.heartbeats = scheduler;
     this.directory = new Server(contract.endpoint());
     servers.put(contract.endpoint(), directory);
     try {
@@ -310,24 +541,86 @@ final class GrpcTransport implements AutoCloseable {
 
   // ------------------------------------------------------------------ calls
 
-  private <S extends AbstractStub<S>, R> R call(S stub, Duration timeout, Function<S, R> fn) {
+  /** Adds the current token to every call (re-read from CAST_TOKEN_FILE when it changes). */
+  private ClientInterceptor tokenInterceptor() {
+    return new ClientInterceptor() {
+      @Override
+      public <Q, R> ClientCall<Q, R> interceptCall(MethodDescriptor<Q, R> method, CallOptions options, Channel next) {
+        return new ForwardingClientCall.SimpleForwardingClientCall<Q, R>(next.newCall(method, options)) {
+          @Override
+          public void start(Listener<R> listener, Metadata headers) {
+            headers.put(AUTHORIZATION, "Bearer " + tokens.token());
+            super.start(listener, headers);
+          }
+        };
+      }
+    };
+  }
+
+  private <S extends AbstractStub<S>, R> R attempt(S stub, Duration timeout, Function<S, R> fn) {
+    // A deadline per attempt: every call has one (30 s by default), so nothing hangs forever.
     S s = timeout == null ? stub : stub.withDeadlineAfter(timeout.toNanos(), TimeUnit.NANOSECONDS);
+    return fn.apply(s);
+  }
+
+  private <S extends AbstractStub<S>, R> R call(Server server, S stub, Duration timeout, Function<S, R> fn) {
+    Status status;
     try {
-      return fn.apply(s);
+      return attempt(stub, timeout, fn);
     } catch (StatusRuntimeException e) {
-      throw Errors.fromStatus(e.getStatus());
+      status = e.getStatus();
+    }
+    // A refused token may just have been renewed in its file: read it and try once more
+    // (nothing was applied: the token is checked first).
+    if (status.getCode() == Status.Code.UNAUTHENTICATED && tokens.refresh()) {
+      try {
+        return attempt(stub, timeout, fn);
+      } catch (StatusRuntimeException e) {
+        status = e.getStatus();
+      }
+    }
+    if (status.getCode() == Status.Code.UNAVAILABLE) {
+      server.channel.resetConnectBackoff(); // the next call tries the server at once
+    }
+    throw Errors.fromStatus(status);
+  }
+
+  private <S extends AbstractStub<S>, R> R call(Server server, S stub, Function<S, R> fn) {
+    return call(server, stub, callTimeout, fn);
+  }
+
+  /** Run {@code task} on the scheduler after {@code delayMillis}, unless closing. */
+  void schedule(Runnable task, long delayMillis) {
+    if (closing.get()) {
+      return;
+    }
+    try {
+      heartbeats.schedule(
+          () -> {
+            try {
+              task.run();
+            } catch (RuntimeException e) { // a failed reconnect step is logged; the next one is scheduled by its owner
+              LOG.log(Level.WARNING, "reconnect step failed", e);
+            }
+          },
+          delayMillis,
+          TimeUnit.MILLISECONDS);
+    } catch (java.util.concurrent.RejectedExecutionException e) {
+      // closing
     }
   }
 
-  private <S extends AbstractStub<S>, R> R call(S stub, Function<S, R> fn) {
-    return call(stub, callTimeout, fn);
+  /** How many sessions this transport registered (more than one per server after reconnects). */
+  int sessions() {
+    return sessions.get();
   }
 
   // ---------------------------------------------------------------- routing
 
   /** Ask the directory for the system and route each SA to its server. */
   SystemDescription describe() {
-    SystemDescription desc = call(directory.dir, s -> s.describeSystem(DescribeSystemRequest.getDefaultInstance()));
+    SystemDescription desc =
+        call(directory, directory.dir, s -> s.describeSystem(DescribeSystemRequest.getDefaultInstance()));
     synchronized (lock) {
       Map<String, Server> r = new HashMap<>();
       for (SubarchitectureInfo sa : desc.getSubarchitecturesList()) {
@@ -372,7 +665,7 @@ final class GrpcTransport implements AutoCloseable {
 
   WriteResult add(String sa, String id, Any value) {
     var req = AddRequest.newBuilder().setAddress(addr(sa, id)).setValue(value).build();
-    return result(call(server(sa).wm, s -> s.add(req)));
+    return result(call(server(sa), server(sa).wm, s -> s.add(req)));
   }
 
   WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
@@ -381,7 +674,7 @@ final class GrpcTransport implements AutoCloseable {
       b.setExpectedVersion(expectedVersion);
     }
     var req = b.build();
-    return result(call(server(sa).wm, s -> s.overwrite(req)));
+    return result(call(server(sa), server(sa).wm, s -> s.overwrite(req)));
   }
 
   WriteResult delete(String sa, String id, Long expectedVersion) {
@@ -390,12 +683,12 @@ final class GrpcTransport implements AutoCloseable {
       b.setExpectedVersion(expectedVersion);
     }
     var req = b.build();
-    return result(call(server(sa).wm, s -> s.delete(req)));
+    return result(call(server(sa), server(sa).wm, s -> s.delete(req)));
   }
 
   /** Apply writes in order, all or nothing, on the server of {@code sa}. */
   List<WriteResult> batch(String sa, BatchRequest req) {
-    var resp = call(server(sa).wm, s -> s.batch(req));
+    var resp = call(server(sa), server(sa).wm, s -> s.batch(req));
     List<WriteResult> out = new ArrayList<>();
     for (WriteResponse r : resp.getResultsList()) {
       out.add(result(r));
@@ -407,17 +700,17 @@ final class GrpcTransport implements AutoCloseable {
 
   cast.v1.Entry get(String sa, String id) {
     var req = GetRequest.newBuilder().setAddress(addr(sa, id)).build();
-    return call(server(sa).wm, s -> s.get(req)).getEntry();
+    return call(server(sa), server(sa).wm, s -> s.get(req)).getEntry();
   }
 
   List<cast.v1.Entry> getByType(String sa, String type, int limit) {
     var req = GetByTypeRequest.newBuilder().setSubarchitecture(sa).setType(type).setLimit(limit).build();
-    return call(server(sa).wm, s -> s.getByType(req)).getEntriesList();
+    return call(server(sa), server(sa).wm, s -> s.getByType(req)).getEntriesList();
   }
 
   boolean exists(String sa, String id) {
     var req = ExistsRequest.newBuilder().setAddress(addr(sa, id)).build();
-    return call(server(sa).wm, s -> s.exists(req)).getExists();
+    return call(server(sa), server(sa).wm, s -> s.exists(req)).getExists();
   }
 
   // ------------------------------------------------------------------ locks
@@ -425,12 +718,12 @@ final class GrpcTransport implements AutoCloseable {
   /** Take a lock; a blocking lock waits up to {@code timeout} (null: forever). */
   int lock(String sa, String id, LockMode mode, Duration timeout, boolean noWait) {
     var req = LockRequest.newBuilder().setAddress(addr(sa, id)).setMode(mode.toProto()).setNoWait(noWait).build();
-    return call(server(sa).wm, noWait ? callTimeout : timeout, s -> s.lock(req)).getDepth();
+    return call(server(sa), server(sa).wm, noWait ? callTimeout : timeout, s -> s.lock(req)).getDepth();
   }
 
   int unlock(String sa, String id) {
     var req = UnlockRequest.newBuilder().setAddress(addr(sa, id)).build();
-    return call(server(sa).wm, s -> s.unlock(req)).getDepth();
+    return call(server(sa), server(sa).wm, s -> s.unlock(req)).getDepth();
   }
 
   // ---------------------------------------------------------------- schemas
@@ -439,13 +732,13 @@ final class GrpcTransport implements AutoCloseable {
   void registerSchemas(FileDescriptorSet files) {
     var req = RegisterSchemasRequest.newBuilder().setFiles(files).build();
     for (Server server : allServers()) {
-      call(server.dir, s -> s.registerSchemas(req));
+      call(server, server.dir, s -> s.registerSchemas(req));
     }
   }
 
   // --------------------------------------------------------------- watching
 
-  void setEventSink(EventSink sink, Consumer<CastError> onError) {
+  void setEventSink(EventSink sink, BiConsumer<CastError, Integer> onError) {
     this.sink = sink;
     this.onWatchError = onError;
   }
@@ -525,12 +818,12 @@ final class GrpcTransport implements AutoCloseable {
       b.setData(data);
     }
     var req = b.build();
-    return call(server(subarchitecture).tm, s -> s.propose(req)).getTask();
+    return call(server(subarchitecture), server(subarchitecture).tm, s -> s.propose(req)).getTask();
   }
 
   void retract(String taskId) {
     var req = RetractRequest.newBuilder().setTaskId(taskId).build();
-    call(server(subarchitecture).tm, s -> s.retract(req));
+    call(server(subarchitecture), server(subarchitecture).tm, s -> s.retract(req));
   }
 
   void complete(String taskId, TaskOutcome outcome, String reason) {
@@ -540,92 +833,185 @@ final class GrpcTransport implements AutoCloseable {
             .setOutcome(outcome.toProto())
             .setReason(reason == null ? "" : reason)
             .build();
-    call(server(subarchitecture).tm, s -> s.complete(req));
+    call(server(subarchitecture), server(subarchitecture).tm, s -> s.complete(req));
   }
 
-  /** Open the decision stream of the own SA's task manager; decisions go to {@code sink}. */
+  /**
+   * Open the decision stream of the own SA's task manager; decisions go to {@code sink}.
+   * The stream is opened again (with backoff) after it broke.
+   */
   void openDecisions(Consumer<cast.v1.Task> sink) {
-    server(subarchitecture)
-        .tmAsync
-        .decisions(
-            DecisionsRequest.getDefaultInstance(),
-            new ClientResponseObserver<DecisionsRequest, cast.v1.Task>() {
-              @Override
-              public void beforeStart(ClientCallStreamObserver<DecisionsRequest> call) {
-                decisions = call;
-              }
+    openDecisionStream(sink, new Backoff());
+  }
 
-              @Override
-              public void onNext(cast.v1.Task task) {
-                sink.accept(task);
-              }
+  private void openDecisionStream(Consumer<cast.v1.Task> sink, Backoff backoff) {
+    if (closing.get()) {
+      return;
+    }
+    Server server = server(subarchitecture);
+    server.tmAsync.decisions(
+        DecisionsRequest.getDefaultInstance(),
+        new ClientResponseObserver<DecisionsRequest, cast.v1.Task>() {
+          @Override
+          public void beforeStart(ClientCallStreamObserver<DecisionsRequest> call) {
+            decisions = call;
+          }
 
-              @Override
-              public void onError(Throwable t) {
-                if (!closing.get()) {
-                  onWatchError.accept(Errors.fromThrowable(t));
-                }
-              }
+          @Override
+          public void onNext(cast.v1.Task task) {
+            backoff.reset();
+            sink.accept(task);
+          }
 
-              @Override
-              public void onCompleted() {
-                if (!closing.get()) {
-                  onWatchError.accept(new UnavailableError("the task manager ended the decision stream"));
-                }
-              }
-            });
+          @Override
+          public void onError(Throwable t) {
+            ended(Status.fromThrowable(t));
+          }
+
+          @Override
+          public void onCompleted() {
+            ended(Status.UNAVAILABLE.withDescription("the task manager ended the decision stream"));
+          }
+
+          private void ended(Status status) {
+            if (closing.get()) {
+              return;
+            }
+            if (!TRANSIENT.contains(status.getCode())) {
+              onWatchError.accept(Errors.fromStatus(status), -1);
+              return;
+            }
+            long delay = backoff.nextMillis();
+            LOG.warning("decision stream broke (" + status.getCode() + "); opening it again in " + delay + " ms");
+            schedule(
+                () -> {
+                  server.channel.resetConnectBackoff();
+                  openDecisionStream(sink, backoff);
+                },
+                delay);
+          }
+        });
   }
 
   // --------------------------------------------------------------- sessions
 
-  /** Register with every server and keep the sessions alive with heartbeat streams. */
+  /**
+   * Register with every server and keep the sessions alive with heartbeat streams.
+   * A broken session is registered again with backoff: a new session, since the
+   * server released the locks and tasks of the old one when it ended.
+   */
   void startSession(String language, String kind, Supplier<cast.v1.ComponentState> state) {
+    this.sessionLanguage = language;
+    this.sessionKind = kind;
+    this.sessionState = state;
+    for (Server server : allServers()) {
+      openHeartbeat(server, register(server));
+    }
+  }
+
+  /** Register a session on {@code server}; returns the heartbeat interval in milliseconds. */
+  private long register(Server server) {
     var req =
         RegisterRequest.newBuilder()
-            .setLanguage(language)
-            .setKind(kind)
+            .setLanguage(sessionLanguage)
+            .setKind(sessionKind)
             .setPid(ProcessHandle.current().pid())
             .setHost(hostName())
             .build();
-    for (Server server : allServers()) {
-      RegisterResponse resp = call(server.dir, s -> s.register(req));
-      server.sessionId = resp.getSessionId();
-      long intervalMs = Math.max(50, resp.getLeaseMs() / 3);
-      StreamObserver<HeartbeatRequest> hb =
-          server.dirAsync.heartbeat(
-              new StreamObserver<HeartbeatResponse>() {
-                @Override
-                public void onNext(HeartbeatResponse value) {}
+    RegisterResponse resp = call(server, server.dir, s -> s.register(req));
+    server.sessionId = resp.getSessionId();
+    sessions.incrementAndGet();
+    return Math.max(50, resp.getLeaseMs() / 3);
+  }
 
-                @Override
-                public void onError(Throwable t) {
-                  if (!closing.get()) {
-                    LOG.severe("heartbeat to " + server.endpoint + " failed: " + Errors.fromThrowable(t).getMessage());
-                  }
-                }
+  /** One heartbeat stream of one session; sends are serialised on the object itself. */
+  private final class Heartbeat implements StreamObserver<HeartbeatResponse> {
+    private final Server server;
+    StreamObserver<HeartbeatRequest> requests;
 
-                @Override
-                public void onCompleted() {
-                  if (!closing.get()) {
-                    LOG.severe("the server at " + server.endpoint + " ended the session's heartbeat stream");
-                  }
-                }
-              });
+    Heartbeat(Server server) {
+      this.server = server;
+    }
+
+    @Override
+    public void onNext(HeartbeatResponse value) {
+      server.sessionBackoff.reset();
+    }
+
+    // synchronized: waits until openHeartbeat has recorded the stream (a call may fail at once).
+    @Override
+    public synchronized void onError(Throwable t) {
+      lost(server, requests, Errors.fromThrowable(t).getMessage());
+    }
+
+    @Override
+    public synchronized void onCompleted() {
+      lost(server, requests, "the server ended the heartbeat stream");
+    }
+  }
+
+  private void openHeartbeat(Server server, long intervalMs) {
+    String sessionId = server.sessionId;
+    Heartbeat observer = new Heartbeat(server);
+    synchronized (observer) {
+      StreamObserver<HeartbeatRequest> hb = server.dirAsync.heartbeat(observer);
+      observer.requests = hb;
       server.heartbeat = hb;
       server.beatNow =
           () -> {
             try {
-              var beat = HeartbeatRequest.newBuilder().setSessionId(server.sessionId).setState(state.get()).build();
+              var beat = HeartbeatRequest.newBuilder().setSessionId(sessionId).setState(sessionState.get()).build();
               synchronized (hb) {
-                if (!closing.get()) {
+                if (!closing.get() && server.heartbeat == hb) {
                   hb.onNext(beat);
                 }
               }
             } catch (RuntimeException e) { // keep beating: one failed send must not end the schedule
-              LOG.log(Level.WARNING, "heartbeat to " + server.endpoint + " not sent", e);
+              LOG.log(Level.FINE, "heartbeat to " + server.endpoint + " not sent", e);
             }
           };
-      server.beat = heartbeats.scheduleAtFixedRate(server.beatNow, 0, intervalMs, TimeUnit.MILLISECONDS);
+      try {
+        server.beat = heartbeats.scheduleAtFixedRate(server.beatNow, 0, intervalMs, TimeUnit.MILLISECONDS);
+      } catch (java.util.concurrent.RejectedExecutionException e) {
+        // closing
+      }
+    }
+  }
+
+  /** The heartbeat stream {@code hb} of {@code server} ended: the session is gone; register again. */
+  private void lost(Server server, StreamObserver<HeartbeatRequest> hb, String reason) {
+    synchronized (this) {
+      if (closing.get() || hb == null || server.heartbeat != hb) {
+        return;
+      }
+      server.heartbeat = null;
+      server.beatNow = null;
+    }
+    ScheduledFuture<?> beat = server.beat;
+    if (beat != null) {
+      beat.cancel(false);
+    }
+    LOG.warning(
+        "session with "
+            + server.endpoint
+            + " lost ("
+            + reason
+            + "): its locks and tasks are released; registering again");
+    schedule(() -> reregister(server), server.sessionBackoff.nextMillis());
+  }
+
+  private void reregister(Server server) {
+    if (closing.get()) {
+      return;
+    }
+    server.channel.resetConnectBackoff();
+    try {
+      long interval = register(server);
+      LOG.info("registered again with " + server.endpoint + " (session " + server.sessionId + ")");
+      openHeartbeat(server, interval);
+    } catch (CastError e) {
+      LOG.info("registering with " + server.endpoint + " failed (" + e.getMessage() + "); retrying");
+      schedule(() -> reregister(server), server.sessionBackoff.nextMillis());
     }
   }
 
@@ -678,10 +1064,11 @@ final class GrpcTransport implements AutoCloseable {
       if (server.beat != null) {
         server.beat.cancel(false);
       }
-      if (server.heartbeat != null) {
-        synchronized (server.heartbeat) {
+      StreamObserver<HeartbeatRequest> hb = server.heartbeat;
+      if (hb != null) {
+        synchronized (hb) {
           try {
-            server.heartbeat.onCompleted(); // the server ends the session: locks and tasks are released
+            hb.onCompleted(); // the server ends the session: locks and tasks are released
           } catch (RuntimeException e) {
             LOG.fine("heartbeat stream already closed: " + e);
           }

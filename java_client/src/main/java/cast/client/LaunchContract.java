@@ -19,9 +19,22 @@ import java.util.Map;
  * @param subarchitecture this component's SA
  * @param token the signed token the orchestrator (or {@code cast token}) issued
  * @param args the component's arguments
+ * @param tls TLS settings (CAST_TLS_*), or null for plaintext
+ * @param tokenFile CAST_TOKEN_FILE, the file the orchestrator renews the token in, or null
  */
 public record LaunchContract(
-    String endpoint, String componentId, String subarchitecture, String token, Args args) {
+    String endpoint,
+    String componentId,
+    String subarchitecture,
+    String token,
+    Args args,
+    ClientTls tls,
+    String tokenFile) {
+
+  /** A plaintext contract with a fixed token. */
+  public LaunchContract(String endpoint, String componentId, String subarchitecture, String token, Args args) {
+    this(endpoint, componentId, subarchitecture, token, args, null, null);
+  }
 
   /** The variables that must be set. */
   public static final List<String> REQUIRED =
@@ -48,12 +61,15 @@ public record LaunchContract(
     } catch (InvalidArgumentError e) {
       throw new InvalidArgumentError("CAST_ARGS: " + e.getMessage());
     }
+    String tokenFile = env.get("CAST_TOKEN_FILE");
     return new LaunchContract(
         env.get("CAST_ENDPOINT"),
         env.get("CAST_COMPONENT_ID"),
         env.get("CAST_SUBARCHITECTURE"),
         env.get("CAST_TOKEN"),
-        args);
+        args,
+        ClientTls.fromEnv(env),
+        tokenFile == null || tokenFile.isEmpty() ? null : tokenFile);
   }
 
   /** Read the contract from the process environment. */
@@ -90,6 +106,15 @@ public record LaunchContract(
   @Override
   public String toString() {
     // Never print the token: logs are read by people who should not hold it.
-    return "LaunchContract(" + componentId + "@" + subarchitecture + " via " + endpoint + ", args=" + args + ")";
+    return "LaunchContract("
+        + componentId
+        + "@"
+        + subarchitecture
+        + " via "
+        + endpoint
+        + (tls == null ? "" : " (TLS)")
+        + ", args="
+        + args
+        + ")";
   }
 }

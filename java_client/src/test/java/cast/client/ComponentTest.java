@@ -368,6 +368,57 @@ class ComponentTest {
   }
 
   @Test
+  void aBrokenWatchStreamIsOpenedAgainAndResumesAfterTheLastRevisionSeen() throws Exception {
+    Plain writer = connect(new Plain(), "w", "vision");
+    Plain watcher = connect(new Plain(), "watcher", "vision");
+    List<Long> revisions = Collections.synchronizedList(new ArrayList<>());
+    WatchHandle h = watcher.onChange(Filters.localTypeFilter(Counter.class), ch -> revisions.add(ch.revision()));
+    for (int i = 0; i < 3; i++) {
+      writer.add("a" + i, counter("w", i));
+    }
+    assertTrue(eventually(() -> revisions.size() == 3, Duration.ofSeconds(5)));
+    fake.failWatchStreams(Status.UNAVAILABLE.withDescription("connection reset"));
+    // The client opens the stream again and creates the watch again from revision 4, with the history id.
+    assertTrue(eventually(() -> fake.creates.size() == 2, Duration.ofSeconds(10)), fake.creates.toString());
+    cast.v1.WatchCreate again = fake.creates.get(1);
+    assertEquals(h.watchId(), again.getWatchId());
+    assertEquals(Map.of("vision", 4L), again.getStartRevisionsMap());
+    assertEquals("history-1", again.getHistoryId());
+    assertEquals(fake.creates.get(0).getFiltersList(), again.getFiltersList());
+    writer.add("b", counter("w", 9));
+    assertTrue(eventually(() -> revisions.size() == 4, Duration.ofSeconds(5)));
+    assertEquals(List.of(1L, 2L, 3L, 4L), revisions);
+    assertTrue(h.isActive());
+    assertNull(h.error());
+  }
+
+  @Test
+  void aResumeTheServerRefusesIsTheResynchroniseSignal() throws Exception {
+    Hooks watcher = connect(new Hooks(), "watcher", "vision");
+    WatchHandle h = watcher.onChange(Filters.operationFilter(), ch -> {});
+    fake.historyId = "history-2"; // as if the server restarted without its history
+    fake.failWatchStreams(Status.UNAVAILABLE.withDescription("server restarted"));
+    assertTrue(watcher.watchFailedCalled.await(10, TimeUnit.SECONDS));
+    assertEquals(HistoryExpiredError.class, watcher.failed.get().getClass());
+    assertTrue(watcher.failed.get().getMessage().contains("resynchronise"), watcher.failed.get().getMessage());
+    assertFalse(h.isActive(), "the watch that could not resume is dropped");
+    assertSame(watcher.failed.get(), h.error());
+  }
+
+  @Test
+  void aLostSessionIsRegisteredAgain() throws Exception {
+    Plain c = connect(new Plain(), "c1", "vision");
+    assertEquals(1, fake.registrations.size());
+    fake.failHeartbeats(Status.UNAVAILABLE.withDescription("lease expired"));
+    assertTrue(eventually(() -> fake.registrations.size() == 2, Duration.ofSeconds(10)));
+    String second = name + "-session-2";
+    assertTrue(eventually(() -> fake.beats.stream().anyMatch(b -> b.getSessionId().equals(second)), Duration.ofSeconds(5)));
+    c.close();
+    components.remove(c);
+    assertTrue(eventually(() -> fake.endedSessions.contains(second), Duration.ofSeconds(5)));
+  }
+
+  @Test
   void managedComponentHooksRunOnTheDispatcher() throws Exception {
     Hooks m = connect(new Hooks(), "m", "vision");
     Task t = m.proposeTask("work", counter("m", 7), 3);

@@ -48,6 +48,9 @@ final class FakeCast implements AutoCloseable {
   final List<WatchStream> watchStreams = new CopyOnWriteArrayList<>();
   final List<StreamObserver<cast.v1.Task>> decisionStreams = new CopyOnWriteArrayList<>();
   final AtomicInteger sessions = new AtomicInteger();
+  final List<WatchCreate> creates = new CopyOnWriteArrayList<>();
+  final List<StreamObserver<HeartbeatResponse>> heartbeatStreams = new CopyOnWriteArrayList<>();
+  volatile String historyId = "history-1";
   final AtomicInteger tasks = new AtomicInteger();
   volatile int leaseMs = 300;
   private final Server server;
@@ -128,6 +131,7 @@ final class FakeCast implements AutoCloseable {
 
     @Override
     public StreamObserver<HeartbeatRequest> heartbeat(StreamObserver<HeartbeatResponse> obs) {
+      heartbeatStreams.add(obs);
       return new StreamObserver<>() {
         String session = "";
 
@@ -173,10 +177,28 @@ final class FakeCast implements AutoCloseable {
     @Override
     public void onNext(WatchRequest req) {
       if (req.hasCreate()) {
-        watches.put(req.getCreate().getWatchId(), req.getCreate().getFiltersList());
+        WatchCreate c = req.getCreate();
+        creates.add(c);
+        if (!c.getHistoryId().isEmpty() && !c.getHistoryId().equals(historyId)) {
+          send(
+              WatchResponse.newBuilder()
+                  .setFailed(
+                      WatchFailed.newBuilder()
+                          .setWatchId(c.getWatchId())
+                          .setCode("OUT_OF_RANGE")
+                          .setMessage("history " + c.getHistoryId() + " is gone: resynchronise"))
+                  .build());
+          return;
+        }
+        watches.put(c.getWatchId(), c.getFiltersList());
+        Map<String, Long> now = new HashMap<>();
+        for (String sa : saEndpoints.keySet()) {
+          now.put(sa, revisions.getOrDefault(sa, 0L));
+        }
         send(
             WatchResponse.newBuilder()
-                .setCreated(WatchCreated.newBuilder().setWatchId(req.getCreate().getWatchId()).putAllRevisions(revisions))
+                .setCreated(
+                    WatchCreated.newBuilder().setWatchId(c.getWatchId()).putAllRevisions(now).setHistoryId(historyId))
                 .build());
       } else if (req.hasCancel()) {
         watches.remove(req.getCancel().getWatchId());
@@ -231,6 +253,14 @@ final class FakeCast implements AutoCloseable {
       if (resp.getEventsCount() > 0) {
         s.send(resp.build());
       }
+    }
+  }
+
+  /** End every heartbeat stream with {@code status} (the session is gone). */
+  void failHeartbeats(Status status) {
+    for (var h : heartbeatStreams) {
+      heartbeatStreams.remove(h);
+      h.onError(status.asRuntimeException());
     }
   }
 
