@@ -52,7 +52,7 @@ public record ClientTls(String ca, String cert, String key, String serverName) {
       return b.build();
     } catch (IOException | RuntimeException e) {
       throw new InvalidArgumentError(
-          "cannot use the TLS files (CAST_TLS_CA/CERT/KEY; the key must be PEM PKCS#8): " + e.getMessage());
+          "cannot read a TLS file (CAST_TLS_CA/CERT/KEY; PEM, the key PKCS#8): " + e.getMessage());
     }
   }
 }
