@@ -669,6 +669,10 @@ class GrpcTransport final : public Transport {
           // A stream that ended (server restart, history expired) is
           // replaced, so a component that resynchronises can watch again.
           if (!s->watch || s->watch->dead()) {
+            // The dead stream is kept until close(): destroying it here would
+            // join its reader thread, possibly from the dispatcher thread
+            // that reader is waiting on.
+            if (s->watch) retired_.push_back(s->watch);
             s->watch = std::make_shared<WatchStream>(*s, tokens_, sink_, onError_);
           }
           stream = s->watch;
@@ -804,6 +808,7 @@ class GrpcTransport final : public Transport {
     std::vector<std::shared_ptr<grpc::ClientContext>> contexts;
     {
       std::lock_guard<std::mutex> lock(mu_);
+      streams = retired_;
       for (auto& kv : servers_) {
         if (kv.second->watch) streams.push_back(kv.second->watch);
         if (kv.second->heartbeatContext) contexts.push_back(kv.second->heartbeatContext);
@@ -960,6 +965,7 @@ class GrpcTransport final : public Transport {
   Server* directory_ = nullptr;
   std::map<std::string, Server*> routes_;  // SA -> server
   std::map<std::uint32_t, std::vector<std::pair<Server*, std::shared_ptr<WatchStream>>>> watchStreams_;
+  std::vector<std::shared_ptr<WatchStream>> retired_;  // dead streams, closed by close()
   EventSink sink_;
   ErrorSink onError_;
   std::shared_ptr<grpc::ClientContext> decisionContext_;
