@@ -348,3 +348,17 @@ def test_python_reading_a_cpp_entry_with_the_wrong_class_names_its_type(server: 
     finally:
         py._cast_close()
     assert c.quit() == 0
+
+
+def test_cpp_api_is_safe_to_share_between_threads(server: Any, cpp: Any) -> None:
+    """Eight C++ threads add, read, overwrite, lock and unlock at once; one watch sees each change once."""
+    c = cpp("cstress", "vision")
+    result = c.ok("stress", 8, 40, timeout=120)
+    assert result == {"errors": 0, "first_error": "", "changes": 8 * 40 * 2, "duplicates": 0}, result
+    py = server.connect("pycount", "vision")
+    try:
+        entries = py.get_all(Counter)
+        assert len(entries) == 8 * 40 and all(e.version == 1 and e.author == "cstress" for e in entries)
+    finally:
+        py._cast_close()
+    assert c.quit() == 0
