@@ -362,3 +362,46 @@ def test_cpp_api_is_safe_to_share_between_threads(server: Any, cpp: Any) -> None
     finally:
         py._cast_close()
     assert c.quit() == 0
+
+
+def test_cpp_routes_by_sa_across_two_servers(tmp_path: Any) -> None:
+    """SAs on two servers: C++ reaches each through the directory, and a global watch covers both."""
+    import os
+
+    import yaml
+
+    from tests.interop.cpp_support import CastRun
+
+    config = tmp_path / "two.yaml"
+    config.write_text(yaml.safe_dump({
+        "system": "two",
+        "subarchitectures": {"vision": {}, "motor": {}},
+        "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
+    }))
+    run = CastRun(config, tmp_path / "runtime")
+    probe = None
+    try:
+        servers = run.state()["servers"]
+        assert len({s["endpoint"] for s in servers.values()}) == 2, servers
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+        env.update(CAST_ENDPOINT=run.endpoint(), CAST_COMPONENT_ID="crouter", CAST_SUBARCHITECTURE="vision",
+                   CAST_TOKEN=run.token("crouter", "vision", privileged=True), CAST_ARGS="{}")
+        probe = CppProbe(env)
+        probe.ready()
+        probe.ok("watch", "both", {"filters": [{"kind": "global", "type": COUNTER}]})
+        probe.ok("add", COUNTER, "here", "-", counter_json("crouter", 1))
+        probe.ok("add", COUNTER, "there", "motor", counter_json("crouter", 2))  # on the other server
+        events = probe.ok("events", "both", 2, 10000)["events"]
+        assert sorted((e["sa"], e["id"]) for e in events) == [("motor", "there"), ("vision", "here")]
+        # Each revision counts on its own server: both writes are revision 1 of their WM.
+        assert [e["revision"] for e in events] == [1, 1]
+        py = run.connect("pyrouter", "motor")
+        try:
+            assert py.get("there", Counter).value == 2
+        finally:
+            py._cast_close()
+        assert probe.quit() == 0
+    finally:
+        if probe is not None:
+            probe.close()
+        run.stop()
