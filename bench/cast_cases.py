@@ -15,6 +15,7 @@ import yaml
 from google.protobuf.wrappers_pb2 import BytesValue, StringValue
 
 import cast
+from bench.floors import GAP_S
 from bench.harness import PYTHON, ROOT, latencies_us, percentile, rate, start, summary_us
 from cast.auth import TokenSigner
 from cast.client.component import Component
@@ -115,7 +116,7 @@ print(json.dumps(stamps), flush=True)
 """
 
 
-def m3_latency(server: Server, n: int, gap_s: float = 0.002) -> dict[str, Any]:
+def m3_latency(server: Server, n: int, gap_s: float = GAP_S) -> dict[str, Any]:
     """M3: write -> event latency from a writer (this process) to a watcher in its own process.
 
     Writes are spaced by ``gap_s`` so each sample sees an idle system; both

@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
             "unary_calls_per_s": statistics.median(e["unary_calls_per_s"] for e in echo_runs),
             "unary_p50_us": statistics.median(e["unary"]["p50_us"] for e in echo_runs),
             "stream_ping_pong_p50_us": statistics.median(e["stream_ping_pong"]["p50_us"] for e in echo_runs),
+            "unary_spaced_p50_us": statistics.median(e["unary_spaced"]["p50_us"] for e in echo_runs),
         }
         m1 = {k: statistics.median(r[k] for r in m1_runs) for k in m1_runs[0]}
         log("M2 batch")
@@ -89,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
     unary_cps = echo["unary_calls_per_s"]
     unary_p50 = echo["unary_p50_us"]
+    spaced_p50 = echo["unary_spaced_p50_us"]
     redis_p50 = peer["notification"]["p50_us"]
     rows: list[dict[str, Any]] = [
         {
@@ -108,13 +110,14 @@ def main(argv: list[str] | None = None) -> int:
         {
             "id": "M3",
             "what": "write -> event latency, Python writer -> Python watcher (µs)",
-            "target": "p50 <= 1.5 x grpcio unary p50 and <= 2 x Redis notification p50; p99 <= 3000 µs",
+            "target": "p50 <= 1.5 x grpcio unary p50 (same 2 ms spacing) and <= 2 x Redis notification p50; "
+            "p99 <= 3000 µs",
             "figures": [
-                _fig("p50 (µs)", m3["p50_us"], floor=unary_p50, peer=redis_p50),
+                _fig("p50 (µs)", m3["p50_us"], floor=spaced_p50, peer=redis_p50),
                 _fig("p99 (µs)", m3["p99_us"], peer=peer["notification"]["p99_us"]),
                 _fig("lost", m3["lost"]),
             ],
-            "met": m3["p50_us"] <= 1.5 * unary_p50
+            "met": m3["p50_us"] <= 1.5 * spaced_p50
             and m3["p50_us"] <= 2 * redis_p50
             and m3["p99_us"] <= 3000
             and m3["lost"] == 0,
@@ -163,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     machine = report.machine_info(
         {
             "raw TCP ping-pong p50": f"{tcp['p50_us']} µs ({tcp['round_trips_per_s']} round trips/s)",
-            "grpcio unary echo": f"{unary_cps:.0f} calls/s, p50 {unary_p50} µs",
+            "grpcio unary echo": f"{unary_cps:.0f} calls/s, p50 {unary_p50} µs back to back, "
+            f"{spaced_p50} µs with 2 ms spacing",
             "grpcio bidi-stream ping-pong p50": f"{echo['stream_ping_pong_p50_us']} µs",
             "redis-py SET / GET": f"{peer['set_ops_per_s']} / {peer['get_ops_per_s']} ops/s",
             "Redis SET -> keyspace notification": f"p50 {redis_p50} µs, p99 {peer['notification']['p99_us']} µs",
