@@ -42,7 +42,7 @@ def grpc_echo(n: int) -> dict[str, Any]:
     server = start([PYTHON, "-m", "bench.servers", "grpc"])
     try:
         channel = grpc.insecure_channel(f"127.0.0.1:{server.first_line}")
-        unary = channel.unary_unary("/bench.Echo/Unary")
+        unary = channel.unary_unary("/bench.Echo/Unary", None, None)
         calls = rate(n, lambda i: unary(PAYLOAD, timeout=10))
 
         def rtt(_: int) -> float:
@@ -60,7 +60,7 @@ def grpc_echo(n: int) -> dict[str, Any]:
         # costs wake-ups that back-to-back calls do not pay, so M3 is compared with this.
         spaced_lat = summary_us(latencies_us(n, spaced_rtt))
         requests: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
-        stream = channel.stream_stream("/bench.Echo/Stream")(iter(requests.get, None))
+        stream = channel.stream_stream("/bench.Echo/Stream", None, None)(iter(requests.get, None))
         responses = iter(stream)
 
         def ping(_: int) -> float:

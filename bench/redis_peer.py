@@ -54,7 +54,7 @@ def run(n: int, workdir: Path) -> dict[str, Any]:
         value = b"x" * 100
         sets = rate(n, lambda i: client.set(f"k{i}", value))
         gets = rate(n, lambda i: client.get(f"k{i}"))
-        pubsub = client.pubsub()
+        pubsub = client.pubsub()  # type: ignore[no-untyped-call]
         pubsub.psubscribe("__keyspace@0__:note")
         pubsub.get_message(timeout=1)  # the subscribe confirmation
 

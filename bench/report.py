@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import platform
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,9 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], machine: dict[str, An
                     met=("yes" if row["met"] else "**no**") if i == 0 else "",
                 )
             )
+    notes = [f"- {row['id']}: {row['note']}" for row in rows if row.get("note")]
+    if notes:
+        lines += ["", "Notes:", "", *notes]
     lines += ["", "Floors and peer measured in the same run:", ""]
     for key, value in machine["floors"].items():
         lines.append(f"- {key}: {value}")
@@ -75,7 +79,7 @@ def plot_latency_cdf(path: Path, series: dict[str, list[float]]) -> None:
     plt.close(fig)
 
 
-def plot_xy(path: Path, xs: list[float], ys: list[float], xlabel: str, ylabel: str, title: str) -> None:
+def plot_xy(path: Path, xs: Sequence[float], ys: Sequence[float], xlabel: str, ylabel: str, title: str) -> None:
     """A simple line plot with points."""
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(xs, ys, marker="o")

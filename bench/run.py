@@ -117,6 +117,13 @@ def main(argv: list[str] | None = None) -> int:
                 _fig("p99 (µs)", m3["p99_us"], peer=peer["notification"]["p99_us"]),
                 _fig("lost", m3["lost"]),
             ],
+            "note": (
+                f"2 x Redis's notification p50 is {2 * redis_p50:.0f} µs, below the bare grpcio floors of this "
+                f"stack (unary p50 {unary_p50} µs, stream ping-pong p50 {echo['stream_ping_pong_p50_us']} µs): "
+                "no Python gRPC write -> event path can meet that part; see docs/performance.md"
+            )
+            if 2 * redis_p50 < min(unary_p50, echo["stream_ping_pong_p50_us"])
+            else "",
             "met": m3["p50_us"] <= 1.5 * spaced_p50
             and m3["p50_us"] <= 2 * redis_p50
             and m3["p99_us"] <= 3000
