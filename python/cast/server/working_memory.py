@@ -162,9 +162,11 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         results = self._host.batch(who, ops)
         if self._durable is not None:
             await self._durable()
-        return wm_pb2.BatchResponse(
-            results=[wm_pb2.WriteResponse(revision=r.revision, version=r.version) for r in results]
-        )
+        response = wm_pb2.BatchResponse()
+        add_result = response.results.add
+        for r in results:
+            add_result(revision=r.revision, version=r.version)
+        return response
 
     @stream_rpc
     async def Watch(  # type: ignore[override]  # yields bytes too: see add_to_server
