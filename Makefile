@@ -21,6 +21,7 @@ help:
 	@echo "make lint    ruff and mypy"
 	@echo "make cpp     build the C++ client library, its tests and C++ components (build/cpp, bin/)"
 	@echo "make test-cpp   the C++ unit tests (GoogleTest via ctest)"
+	@echo "make java-demo   the demo's Java components (examples/java-demo/target/cast-demo.jar)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
@@ -54,13 +55,13 @@ $(EXAMPLES_STAMP): $(EXAMPLE_PROTOS) $(VENV)/.installed
 
 examples: $(EXAMPLES_STAMP)
 
-demo: setup proto examples cpp
+demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
 
 test-python: setup proto examples bench-deps
 	$(PY) -m pytest -q tests
 
-test: test-cpp test-java test-python
+test: test-cpp test-java java-demo test-python
 
 # The long variants of tests/reliability (CAST_SOAK=1); figures go to build/reliability-figures.json.
 soak: setup proto examples
@@ -119,6 +120,19 @@ $(JAVA_JAR): $(JAVA_SOURCES) $(PROTOS)
 	touch $@
 
 java: java-deps $(JAVA_JAR)
+
+# The demo's Java colour recogniser (examples/java-demo): a Maven project on cast:cast-client
+# that generates the demo's entry types from examples/proto; configs/demo/colour-java.yaml
+# puts its jar on the component's class path.
+JAVA_DEMO_JAR := examples/java-demo/target/cast-demo.jar
+JAVA_DEMO_SOURCES := examples/java-demo/pom.xml $(shell find examples/java-demo/src -type f 2>/dev/null) $(EXAMPLE_PROTOS)
+.PHONY: java-demo
+
+$(JAVA_DEMO_JAR): $(JAVA_DEMO_SOURCES) $(JAVA_JAR)
+	cd examples/java-demo && $(MVN) -q clean package
+	touch $@
+
+java-demo: java $(JAVA_DEMO_JAR)
 
 # JUnit tests on the classes `make java` compiled, with Surefire's summary.
 test-java: java

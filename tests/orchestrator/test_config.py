@@ -56,8 +56,9 @@ def test_shipped_configurations_pass_cast_check(demo_built: Path, name: str) -> 
 
 
 def test_demo_language_choices_are_valid_files(demo_built: Path) -> None:
-    # The C++ and Java choices only warn while those builds are missing; the files themselves are valid.
-    for sets in (["SEGMENTER_LANGUAGE=cpp"], ["COLOUR_LANGUAGE=java"]):
+    # The C++ and Java choices (the defaults) only warn while those builds are missing; the files are valid.
+    for sets in (["SEGMENTER_LANGUAGE=cpp"], ["COLOUR_LANGUAGE=java"], ["SEGMENTER_LANGUAGE=python"],
+                 ["COLOUR_LANGUAGE=python"]):
         config, found = read_config(demo_built, dict(s.split("=") for s in sets))
         assert config is not None and not found.errors, [str(p) for p in found.items]
 
