@@ -188,8 +188,11 @@ def _run_probe(env: dict[str, str], commands: list[str]) -> tuple[int, str]:
     probe = CppProbe(env)
     try:
         assert probe.proc.stdin is not None
-        probe.proc.stdin.write("".join(c + "\n" for c in commands))
-        probe.proc.stdin.close()  # EOF: the probe stops after the commands
+        try:
+            probe.proc.stdin.write("".join(c + "\n" for c in commands))
+            probe.proc.stdin.close()  # EOF: the probe stops after the commands
+        except BrokenPipeError:
+            pass  # the probe already exited (it could not connect): its status and output say why
         status = probe.wait(60)
         time.sleep(0.1)
         return status, probe.output()
