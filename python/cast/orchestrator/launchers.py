@@ -136,8 +136,14 @@ class JavaLauncher:
         classpath = self.classpath(component, env)
         missing = [e for e in classpath if not e.endswith("*") and not Path(e).exists()]
         if missing:
-            raise LaunchError(f"component '{component.id}': class path entries missing: {', '.join(missing)}: "
-                              "build the Java client first (make java) or set CAST_JAVA_CLASSPATH")
+            # Say which build is missing: the client library, or the component's own jar.
+            client = [e for e in missing if e not in component.classpath]
+            hint = (
+                "build the Java client first (make java) or set CAST_JAVA_CLASSPATH"
+                if client
+                else "build the component's jar (for the demo's: make java-demo)"
+            )
+            raise LaunchError(f"component '{component.id}': class path entries missing: {', '.join(missing)}: {hint}")
         return [self.java(env), "-cp", os.pathsep.join(classpath), JAVA_RUNNER, component.cls]
 
     def environment(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> dict[str, str]:
