@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -174,6 +175,9 @@ print(json.dumps(results), flush=True)
 """
 
 
+_FANOUT_RUNS = itertools.count()
+
+
 def m4_fanout(server: Server, events: int, watchers: int = 16, processes: int = 4) -> dict[str, Any]:
     """M4: one writer, 16 watchers (in 4 processes) each receiving every event."""
     per_proc = watchers // processes
@@ -189,9 +193,10 @@ def m4_fanout(server: Server, events: int, watchers: int = 16, processes: int = 
         assert proc.stdout is not None
         assert proc.stdout.readline().strip() == "ready"
     writer = server.component("fan-writer", "fanout")
+    run = next(_FANOUT_RUNS)  # the scaling runs share one server: fresh ids for each
     start_t = time.time()
     for b in range(0, events, 100):
-        writer.batch([("add", f"f{i}", VALUE) for i in range(b, min(events, b + 100))])
+        writer.batch([("add", f"f{run}-{i}", VALUE) for i in range(b, min(events, b + 100))])
     write_end = time.time()
     states = []
     for proc in procs:
