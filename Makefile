@@ -71,10 +71,10 @@ soak: setup proto examples
 bench-deps:
 	@command -v redis-server >/dev/null || { apt-get update -q && apt-get install -y -q redis-server; }
 
-bench: setup proto bench-deps
+bench: setup proto bench-deps cpp java
 	$(PY) -m bench.run
 
-bench-quick: setup proto bench-deps
+bench-quick: setup proto bench-deps cpp java
 	$(PY) -m bench.run --quick --out bench/results/quick
 
 # The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),

@@ -86,7 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     checkpoints = [1000, 10_000, 100_000] if q else [1000, 10_000, 100_000, 1_000_000]
     m6 = cast_cases.m6_large(work / "big", checkpoints, 500 if q else 2000)
     log("M7 C++ and Java clients")
-    m7 = other_clients.run(work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"])
+    m7 = other_clients.run(
+        work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"], rounds=rounds,
+        jit_warm=5000 if q else 20_000, log=log,
+    )
+    m7_samples: dict[str, list[float]] = m7.pop("samples_us", {})
 
     unary_cps = echo["unary_calls_per_s"]
     unary_p50 = echo["unary_p50_us"]
@@ -184,7 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     command = "make bench-quick" if q else "make bench"
     report.write_markdown(out / "latest.md", rows, machine, command)
     report.write_json(out / "latest.json", rows, machine)
-    report.plot_latency_cdf(out / "latency_cdf.png", {"CAST write -> event (Python -> Python)": m3["samples_us"]})
+    report.plot_latency_cdf(
+        out / "latency_cdf.png",
+        {
+            "CAST write -> event (Python -> Python)": m3["samples_us"],
+            **{f"CAST write -> event ({lang})": s for lang, s in m7_samples.items()},
+        },
+    )
     ws = sorted(scaling)
     report.plot_xy(
         out / "fanout.png",

@@ -1,0 +1,138 @@
+// cast_bench: the C++ client's side of benchmark M7 (bench/other_clients.py),
+// measured like the Python client in bench/cast_cases.py (m1_sequential,
+// m3_latency). Not a component of the library's API: a program that reads the
+// launch contract (CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE,
+// CAST_TOKEN), binds one component and runs one mode:
+//
+//   cast_bench add N            200 warm-up adds, then N sequential adds of a
+//                               100-byte google.protobuf.BytesValue; prints
+//                               {"calls": N, "seconds": S, "per_s": R}
+//   cast_bench watch N          onChange(addressFilter("lat")) in its SA; prints
+//                               "ready" once the watch is confirmed, then after N
+//                               events {"REVISION": NS, ...}, NS the
+//                               steady_clock (CLOCK_MONOTONIC) time in the callback
+//   cast_bench write N GAP_MS   adds "lat", then N-1 overwrites spaced by GAP_MS,
+//                               stamping CLOCK_MONOTONIC just before each one;
+//                               prints {"REVISION": NS, ...} (the overwrites)
+//
+// CLOCK_MONOTONIC is shared by every process of a Linux machine, so the stamps
+// compare with the other process's and with Python's time.perf_counter_ns.
+#include <google/protobuf/wrappers.pb.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <iostream>
+#include <map>
+#include <mutex>
+#include <sstream>
+#include <string>
+#include <thread>
+
+#include "cast/cast.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::int64_t nowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
+}
+
+std::string stampsJson(const std::map<std::uint64_t, std::int64_t>& stamps) {
+  std::ostringstream out;
+  out << "{";
+  bool first = true;
+  for (const auto& [revision, ns] : stamps) {
+    if (!first) out << ", ";
+    first = false;
+    out << "\"" << revision << "\": " << ns;
+  }
+  out << "}";
+  return out.str();
+}
+
+google::protobuf::BytesValue value100() {
+  google::protobuf::BytesValue v;
+  v.set_value(std::string(100, 'x'));
+  return v;
+}
+
+int addMode(cast::Component& c, long n, long warm) {
+  const auto value = value100();
+  // Ids made up front, as the Python benchmark does, so only the call is timed.
+  std::vector<std::string> ids;
+  ids.reserve(static_cast<std::size_t>(warm + n));
+  for (long i = 0; i < warm + n; ++i) ids.push_back(c.componentId() + "-" + std::to_string(i));
+  for (long i = 0; i < warm; ++i) c.add(ids[static_cast<std::size_t>(i)], value);
+  const auto start = Clock::now();
+  for (long i = warm; i < warm + n; ++i) c.add(ids[static_cast<std::size_t>(i)], value);
+  const double seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  std::cout << "{\"calls\": " << n << ", \"seconds\": " << seconds << ", \"per_s\": " << n / seconds << "}"
+            << std::endl;
+  return 0;
+}
+
+int watchMode(cast::Component& c, long n) {
+  std::mutex mu;
+  std::condition_variable done;
+  std::map<std::uint64_t, std::int64_t> stamps;
+  c.onChange(cast::addressFilter("lat"), [&](const cast::WorkingMemoryChange& change) {
+    const std::int64_t t = nowNs();
+    std::lock_guard<std::mutex> lock(mu);
+    stamps[change.revision()] = t;
+    if (static_cast<long>(stamps.size()) >= n) done.notify_all();
+  });
+  std::cout << "ready" << std::endl;
+  std::unique_lock<std::mutex> lock(mu);
+  done.wait_for(lock, std::chrono::seconds(120), [&] { return static_cast<long>(stamps.size()) >= n; });
+  std::cout << stampsJson(stamps) << std::endl;
+  return 0;
+}
+
+int writeMode(cast::Component& c, long n, long gapMs, long warm) {
+  const auto value = value100();
+  std::map<std::uint64_t, std::int64_t> sent;
+  c.add("lat", value);
+  for (long i = 0; i < warm; ++i) c.overwrite("lat", value);
+  for (long i = 0; i < n - 1; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(gapMs));
+    const std::int64_t t0 = nowNs();
+    sent[c.overwrite("lat", value).revision] = t0;
+  }
+  std::cout << stampsJson(sent) << std::endl;
+  c.deleteEntry("lat");  // so that another run on this server can add it again
+  return 0;
+}
+
+int usage() {
+  std::cerr << "usage: cast_bench add N | watch N | write N GAP_MS (with the CAST_* launch environment)\n";
+  return 2;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 3) return usage();
+  const std::string mode = argv[1];
+  const long n = std::strtol(argv[2], nullptr, 10);
+  if (n <= 0 || (mode == "write" && argc < 4)) return usage();
+  try {
+    const auto contract = cast::LaunchContract::fromEnv();
+    cast::UnmanagedComponent component;
+    component.bind(contract.connect());
+    int code;
+    if (mode == "add") code = addMode(component, n, argc > 3 ? std::strtol(argv[3], nullptr, 10) : 200);
+    else if (mode == "watch") code = watchMode(component, n);
+    else if (mode == "write")
+      code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);
+    else return usage();
+    component.close();
+    return code;
+  } catch (const cast::CastError& e) {
+    std::cerr << "cast_bench: " << e.name() << ": " << e.message() << std::endl;
+    return 1;
+  }
+}

@@ -1,0 +1,132 @@
+package cast.bench;
+
+import cast.client.Component;
+import cast.client.LaunchContract;
+import cast.client.Runner;
+import cast.client.UnmanagedComponent;
+import com.google.protobuf.ByteString;
+import com.google.protobuf.BytesValue;
+import java.util.ArrayList;
+import java.util.List;
+import java.util.Map;
+import java.util.TreeMap;
+import java.util.concurrent.CountDownLatch;
+import java.util.concurrent.TimeUnit;
+
+/**
+ * The Java client's side of benchmark M7 (bench/other_clients.py), measured like
+ * the Python client in bench/cast_cases.py (m1_sequential, m3_latency). A test
+ * class, not part of the library: {@code make java} compiles it into
+ * target/test-classes, and the benchmark runs
+ * {@code java -cp target/cast-client-all.jar:target/test-classes cast.bench.Bench MODE ...}
+ * with the launch contract (CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE,
+ * CAST_TOKEN) in its environment. Modes:
+ *
+ * <ul>
+ *   <li>{@code add N}: 200 warm-up adds, then N sequential adds of a 100-byte
+ *       google.protobuf.BytesValue; prints {"calls": N, "seconds": S, "per_s": R}.
+ *   <li>{@code watch N}: onChange(addressFilter("lat")) in its SA; prints "ready" once
+ *       the watch is confirmed, then after N events {"REVISION": NS, ...}, NS the
+ *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
+ *   <li>{@code write N GAP_MS}: adds "lat", then N-1 overwrites spaced by GAP_MS,
+ *       stamping System.nanoTime() just before each; prints {"REVISION": NS, ...}.
+ * </ul>
+ *
+ * <p>On Linux System.nanoTime() reads CLOCK_MONOTONIC, shared by every process of
+ * the machine, so the stamps compare with the other process's and with Python's
+ * time.perf_counter_ns.
+ */
+public final class Bench {
+  private static final BytesValue VALUE =
+      BytesValue.newBuilder().setValue(ByteString.copyFromUtf8("x".repeat(100))).build();
+
+  private Bench() {}
+
+  public static void main(String[] argv) throws Exception {
+    if (argv.length < 2 || (argv[0].equals("write") && argv.length < 3)) {
+      System.err.println("usage: Bench add N | watch N | write N GAP_MS (with the CAST_* launch environment)");
+      System.exit(2);
+    }
+    int n = Integer.parseInt(argv[1]);
+    UnmanagedComponent c = Runner.connect(new UnmanagedComponent() {}, LaunchContract.fromEnv());
+    try {
+      switch (argv[0]) {
+        case "add" -> add(c, n, argv.length > 2 ? Integer.parseInt(argv[2]) : 200);
+        case "watch" -> watch(c, n);
+        case "write" -> write(c, n, Long.parseLong(argv[2]), argv.length > 3 ? Integer.parseInt(argv[3]) : 0);
+        default -> {
+          System.err.println("unknown mode " + argv[0]);
+          System.exit(2);
+        }
+      }
+    } finally {
+      c.close();
+    }
+    System.exit(0);
+  }
+
+  private static void add(Component c, int n, int warm) {
+    // Ids made up front, as the Python benchmark does, so only the call is timed.
+    List<String> ids = new ArrayList<>(warm + n);
+    for (int i = 0; i < warm + n; i++) {
+      ids.add(c.componentId() + "-" + i);
+    }
+    for (int i = 0; i < warm; i++) {
+      c.add(ids.get(i), VALUE);
+    }
+    long start = System.nanoTime();
+    for (int i = warm; i < warm + n; i++) {
+      c.add(ids.get(i), VALUE);
+    }
+    double seconds = (System.nanoTime() - start) / 1e9;
+    System.out.println("{\"calls\": " + n + ", \"seconds\": " + seconds + ", \"per_s\": " + n / seconds + "}");
+  }
+
+  private static void watch(Component c, int n) throws InterruptedException {
+    Map<Long, Long> stamps = new TreeMap<>();
+    CountDownLatch done = new CountDownLatch(1);
+    c.onChange(
+        Component.addressFilter("lat"),
+        change -> {
+          long t = System.nanoTime();
+          synchronized (stamps) {
+            stamps.put(change.revision(), t);
+            if (stamps.size() >= n) {
+              done.countDown();
+            }
+          }
+        });
+    System.out.println("ready");
+    System.out.flush();
+    done.await(120, TimeUnit.SECONDS);
+    synchronized (stamps) {
+      System.out.println(json(stamps));
+    }
+  }
+
+  private static void write(Component c, int n, long gapMs, int warm) throws InterruptedException {
+    Map<Long, Long> sent = new TreeMap<>();
+    c.add("lat", VALUE);
+    for (int i = 0; i < warm; i++) {
+      c.overwrite("lat", VALUE);
+    }
+    for (int i = 0; i < n - 1; i++) {
+      Thread.sleep(gapMs);
+      long t0 = System.nanoTime();
+      sent.put(c.overwrite("lat", VALUE).revision(), t0);
+    }
+    System.out.println(json(sent));
+    c.deleteEntry("lat"); // so that another run on this server can add it again
+  }
+
+  private static String json(Map<Long, Long> stamps) {
+    StringBuilder out = new StringBuilder("{");
+    for (Map.Entry<Long, Long> e : stamps.entrySet()) {
+      if (out.length() > 1) {
+        out.append(", ");
+      }
+      out.append('"').append(e.getKey()).append("\": ").append(e.getValue());
+    }
+    return out.append('}').toString();
+  }
+}
