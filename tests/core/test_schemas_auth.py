@@ -54,6 +54,26 @@ def test_schema_registration_is_idempotent_but_refuses_changed_files() -> None:
     assert reg.files_for("cast.testing.Pose")[-1].name == "cast_testing.proto"
 
 
+def test_the_same_file_from_another_runtime_is_the_same_schema() -> None:
+    # The C++ runtime (protobuf 3.21) sends well-known files without json_name,
+    # Python's and Java's with it: both are one schema, registered once.
+    reg = SchemaRegistry()
+    files = files_of(timestamp_pb2.Timestamp.DESCRIPTOR)
+    reg.register(files)
+    bare = [f.__deepcopy__() for f in files]
+    for f in bare:
+        f.ClearField("source_code_info")
+        for m in f.message_type:
+            for field in m.field:
+                field.ClearField("json_name")
+    assert files != bare  # Python's runtime fills in json_name
+    reg.register(bare)
+    renamed = [f.__deepcopy__() for f in bare]
+    renamed[-1].message_type[0].field[0].name = "renamed"
+    with pytest.raises(InvalidArgumentError, match="already registered with different content"):
+        reg.register(renamed)
+
+
 def test_tokens_verify_and_forgeries_fail() -> None:
     signer = TokenSigner(b"s" * 32)
     token = signer.issue(Identity("comp", "vision", True))

@@ -46,9 +46,7 @@ class SchemaRegistry:
         with self._mutex:
             for name, fd in pending.items():
                 known = self._files.get(name)
-                if known is not None and known.SerializeToString(deterministic=True) != fd.SerializeToString(
-                    deterministic=True
-                ):
+                if known is not None and _canonical(known) != _canonical(fd):
                     raise InvalidArgumentError(
                         f"schema file '{name}' is already registered with different content: entry types "
                         "cannot change while the server runs; give the changed file a new name or package"
@@ -184,3 +182,27 @@ def files_of(descriptor: Descriptor | Any) -> list[descriptor_pb2.FileDescriptor
 
     visit(descriptor.file)
     return out
+
+
+def _clear_json_names(messages: Iterable[descriptor_pb2.DescriptorProto]) -> None:
+    for m in messages:
+        for f in (*m.field, *m.extension):
+            f.ClearField("json_name")
+        _clear_json_names(m.nested_type)
+
+
+def _canonical(fd: descriptor_pb2.FileDescriptorProto) -> bytes:
+    """The parts of a file descriptor that define its types, for comparing registrations.
+
+    Protobuf runtimes differ in what they fill in besides the types: some set
+    every field's ``json_name``, some leave it to be derived, and source info is
+    optional. Two registrations of one file from different languages must
+    compare equal, so those are left out.
+    """
+    copy = descriptor_pb2.FileDescriptorProto()
+    copy.CopyFrom(fd)
+    copy.ClearField("source_code_info")
+    for f in copy.extension:
+        f.ClearField("json_name")
+    _clear_json_names(copy.message_type)
+    return copy.SerializeToString(deterministic=True)
