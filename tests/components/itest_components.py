@@ -87,3 +87,20 @@ class Crasher(cast.UnmanagedComponent):
         self.lock("held", cast.LockMode.ODR)
         self.add("ready", Pose())
         self.wait_for_stop()
+
+
+class SignalUnderLock(cast.UnmanagedComponent):
+    """Calls the runner's SIGTERM handler while holding the lock of its stop event.
+
+    That is the state of the main thread when a second signal arrives during the
+    first one's handling: a handler that takes the lock deadlocks here.
+    """
+
+    def run(self) -> None:
+        import signal
+
+        handler = signal.getsignal(signal.SIGTERM)
+        assert callable(handler)
+        with self._stopping._cond:  # type: ignore[attr-defined]
+            handler(signal.SIGTERM, None)
+        self.add("handled", Pose(label="the handler returned"))

@@ -154,3 +154,14 @@ def test_in_process_component_under_cast_serve(server_factory) -> None:  # type:
     entries = reader.get_all(Counter, subarchitecture="vision")
     assert {e.author for e in entries} == {"inside"} and {e.version for e in entries} == {1}
     reader._cast_close()
+
+
+def test_a_signal_during_signal_handling_does_not_deadlock(server: ServerHandle) -> None:
+    proc = server.spawn("itest_components:SignalUnderLock", "signalled", "vision")
+    try:
+        finish(proc, timeout=30)  # a handler that takes the stop event's lock never returns
+    finally:
+        proc.kill()
+    reader = server.connect("reader", "vision")
+    assert reader.get("handled", Pose).label == "the handler returned"
+    reader._cast_close()

@@ -151,13 +151,20 @@ def run_component(component: Component, transport: Transport, args: dict[str, An
     until it is asked to stop.
     """
     life = _Lifecycle(component, transport, args)
+    signalled: list[int] = []
     if handle_signals:
+        # The handler runs on the main thread, possibly while that thread holds the
+        # lock of the stop Event (inside wait() or set()); setting the Event from
+        # here would deadlock on a second signal. It only records the signal, which
+        # the loop below turns into a stop from ordinary code.
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: component.request_stop())
+            signal.signal(sig, lambda signum, _frame: signalled.append(signum))
     worker = threading.Thread(target=life.run, name=f"cast-run-{component.component_id}", daemon=True)
     worker.start()
     try:
-        while not component.wait_for_stop(0.2):
+        while not component.wait_for_stop(0.1):
+            if signalled:
+                break
             if not worker.is_alive() and life.failed:
                 break
         life.stop()
