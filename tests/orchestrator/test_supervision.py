@@ -203,10 +203,14 @@ def test_a_second_ctrl_c_kills_what_is_still_stopping(tmp_path: Path) -> None:
                                                      "fine": {"class": "orch_components:Recorder"}}}},
     })
     run = start_cast_run(tmp_path, cfg)
-    pids = [c["pid"] for c in run.cli_json("components")]
+    components = run.cli_json("components")
+    pids = [c["pid"] for c in components]
+    fine_pid = next(c["pid"] for c in components if c["id"] == "fine")
     run.process.send_signal(signal.SIGINT)
     wait_for(lambda: "cast: stopping:" in run.output(), what="the orderly stop to begin")
     wait_for(lambda: "fine | stop() called" in run.output(), what="the first component to stop")
+    # Its process ends a few milliseconds after stop() returns; only then is stubborn the one stopping.
+    wait_for(lambda: gone(fine_pid), timeout=10, what="the first component to exit")
     run.process.send_signal(signal.SIGINT)
     assert run.process.wait(120) == 1  # far sooner than the 600 s stop timeout
     assert "stopping now: killing every component" in run.output()
