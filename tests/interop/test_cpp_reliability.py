@@ -15,8 +15,8 @@ import cast
 from cast.core.records import Identity
 from tests.conftest import ServerHandle
 from tests.interop.cpp_support import CastRun, CppProbe
-from tests.reliability.certs import make_ca, make_leaf
-from tests.reliability.conftest import kill9, serve, wait_for, write_config
+from tests.reliability.certs import make_pki
+from tests.reliability.conftest import kill9, serve, serve_tls, wait_for, write_config
 from tests.reliability.proxy import Proxy
 
 COUNTER = "cast.testing.Counter"
@@ -167,21 +167,7 @@ def test_a_cut_connection_releases_cpp_locks_and_the_watch_catches_up(server: Se
 
 @pytest.fixture
 def pki(tmp_path: Path) -> dict[str, Path]:
-    ca, ca_key, ca_cert = make_ca(tmp_path / "pki")
-    server_cert, server_key = make_leaf(tmp_path / "pki", "server", ca_key, ca_cert)
-    client_cert, client_key = make_leaf(tmp_path / "pki", "client", ca_key, ca_cert, client=True)
-    other_ca, _, _ = make_ca(tmp_path / "other", "other-ca")
-    return {"ca": ca, "cert": server_cert, "key": server_key, "client_cert": client_cert,
-            "client_key": client_key, "other_ca": other_ca}
-
-
-def _serve_tls(tmp: Path, pki: dict[str, Path], client_auth: bool = False) -> ServerHandle:
-    config = write_config(tmp / "system.yaml", {
-        "system": "tls",
-        "subarchitectures": {"vision": {}},
-        "tls": {"ca": str(pki["ca"]), "cert": str(pki["cert"]), "key": str(pki["key"]), "client_auth": client_auth},
-    })
-    return serve(config)
+    return make_pki(tmp_path)
 
 
 def _run_probe(env: dict[str, str], commands: list[str]) -> tuple[int, str]:
@@ -201,7 +187,7 @@ def _run_probe(env: dict[str, str], commands: list[str]) -> tuple[int, str]:
 
 
 def test_cpp_component_uses_tls_from_the_launch_contract(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki)
+    handle = serve_tls(tmp_path, pki)
     try:
         env = handle.env("ctls", "vision")
         env["CAST_TLS_CA"] = str(pki["ca"])
@@ -228,7 +214,7 @@ def test_cpp_component_uses_tls_from_the_launch_contract(tmp_path: Path, pki: di
 
 
 def test_cpp_client_certificates_when_the_server_requires_them(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki, client_auth=True)
+    handle = serve_tls(tmp_path, pki, client_auth=True)
     try:
         env = handle.env("cmtls", "vision")
         env["CAST_TLS_CA"] = str(pki["ca"])

@@ -17,8 +17,8 @@ from cast.core.records import Identity
 from cast.v1 import directory_pb2
 from tests.conftest import ServerHandle
 from tests.interop.java_support import TEST_CLASSES, CastRun, JavaComponent, counter_json
-from tests.reliability.certs import make_ca, make_leaf
-from tests.reliability.conftest import kill9, serve, wait_for, write_config
+from tests.reliability.certs import make_pki
+from tests.reliability.conftest import kill9, serve, serve_tls, wait_for, write_config
 from tests.reliability.proxy import Proxy
 
 VISION = [{"kind": "operation", "sa": "vision"}]
@@ -170,21 +170,7 @@ def test_a_cut_connection_releases_java_locks_and_the_watch_catches_up(server: S
 
 @pytest.fixture
 def pki(tmp_path: Path) -> dict[str, Path]:
-    ca, ca_key, ca_cert = make_ca(tmp_path / "pki")
-    server_cert, server_key = make_leaf(tmp_path / "pki", "server", ca_key, ca_cert)
-    client_cert, client_key = make_leaf(tmp_path / "pki", "client", ca_key, ca_cert, client=True)
-    other_ca, _, _ = make_ca(tmp_path / "other", "other-ca")
-    return {"ca": ca, "cert": server_cert, "key": server_key, "client_cert": client_cert,
-            "client_key": client_key, "other_ca": other_ca}
-
-
-def _serve_tls(tmp: Path, pki: dict[str, Path], client_auth: bool = False) -> ServerHandle:
-    config = write_config(tmp / "system.yaml", {
-        "system": "tls",
-        "subarchitectures": {"vision": {}},
-        "tls": {"ca": str(pki["ca"]), "cert": str(pki["cert"]), "key": str(pki["key"]), "client_auth": client_auth},
-    })
-    return serve(config)
+    return make_pki(tmp_path)
 
 
 def _run(env: dict[str, str], commands: list[dict[str, Any]]) -> tuple[int, list[dict[str, Any]], str]:
@@ -206,7 +192,7 @@ def _run(env: dict[str, str], commands: list[dict[str, Any]]) -> tuple[int, list
 
 
 def test_java_component_uses_tls_from_the_launch_contract(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki)
+    handle = serve_tls(tmp_path, pki)
     try:
         env = handle.env("jtls", "vision")
         env["CAST_TLS_CA"] = str(pki["ca"])
@@ -236,7 +222,7 @@ def test_java_component_uses_tls_from_the_launch_contract(tmp_path: Path, pki: d
 
 
 def test_java_client_certificates_when_the_server_requires_them(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki, client_auth=True)
+    handle = serve_tls(tmp_path, pki, client_auth=True)
     try:
         env = handle.env("jmtls", "vision")
         env["CAST_TLS_CA"] = str(pki["ca"])

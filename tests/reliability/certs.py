@@ -71,3 +71,13 @@ def make_leaf(
     cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
     _write_key(key, key_path)
     return cert_path, key_path
+
+
+def make_pki(root: Path) -> dict[str, Path]:
+    """A CA with a server and a client certificate, and an unrelated CA: the files TLS tests use."""
+    ca, ca_key, ca_cert = make_ca(root / "pki")
+    server_cert, server_key = make_leaf(root / "pki", "server", ca_key, ca_cert)
+    client_cert, client_key = make_leaf(root / "pki", "client", ca_key, ca_cert, client=True)
+    other_ca, _, _ = make_ca(root / "other", "other-ca")
+    return {"ca": ca, "cert": server_cert, "key": server_key, "client_cert": client_cert,
+            "client_key": client_key, "other_ca": other_ca}

@@ -70,6 +70,16 @@ def write_config(path: Path, config: dict[str, Any]) -> Path:
     return path
 
 
+def serve_tls(tmp: Path, pki: dict[str, Path], client_auth: bool = False) -> ServerHandle:
+    """`cast serve` of a one-SA system with TLS on, from the files of ``certs.make_pki``."""
+    config = write_config(tmp / "system.yaml", {
+        "system": "tls",
+        "subarchitectures": {"vision": {}},
+        "tls": {"ca": str(pki["ca"]), "cert": str(pki["cert"]), "key": str(pki["key"]), "client_auth": client_auth},
+    })
+    return serve(config)
+
+
 def metadata(handle: ServerHandle, component: str, sa: str, privileged: bool = False) -> tuple[tuple[str, str]]:
     """Call metadata with a valid token."""
     return (("authorization", f"Bearer {handle.token(component, sa, privileged)}"),)

@@ -17,27 +17,13 @@ from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.v1 import directory_pb2, directory_pb2_grpc
 from tests.conftest import PYTHONPATH, ServerHandle
-from tests.reliability.certs import make_ca, make_leaf
-from tests.reliability.conftest import serve, write_config
+from tests.reliability.certs import make_pki
+from tests.reliability.conftest import serve_tls
 
 
 @pytest.fixture
 def pki(tmp_path: Path) -> dict[str, Path]:
-    ca, ca_key, ca_cert = make_ca(tmp_path / "pki")
-    server_cert, server_key = make_leaf(tmp_path / "pki", "server", ca_key, ca_cert)
-    client_cert, client_key = make_leaf(tmp_path / "pki", "client", ca_key, ca_cert, client=True)
-    other_ca, _, _ = make_ca(tmp_path / "other", "other-ca")
-    return {"ca": ca, "cert": server_cert, "key": server_key, "client_cert": client_cert,
-            "client_key": client_key, "other_ca": other_ca}
-
-
-def _serve_tls(tmp: Path, pki: dict[str, Path], client_auth: bool = False) -> ServerHandle:
-    config = write_config(tmp / "system.yaml", {
-        "system": "tls",
-        "subarchitectures": {"vision": {}},
-        "tls": {"ca": str(pki["ca"]), "cert": str(pki["cert"]), "key": str(pki["key"]), "client_auth": client_auth},
-    })
-    return serve(config)
+    return make_pki(tmp_path)
 
 
 def _connect(handle: ServerHandle, tls: ClientTls | None, component: str = "c") -> cast.UnmanagedComponent:
@@ -61,7 +47,7 @@ def _plaintext_status(handle: ServerHandle) -> grpc.StatusCode:
 
 
 def test_tls_client_works_and_plaintext_is_refused(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki)
+    handle = serve_tls(tmp_path, pki)
     try:
         c = _connect(handle, ClientTls(pki["ca"]))
         try:
@@ -82,7 +68,7 @@ def test_tls_client_works_and_plaintext_is_refused(tmp_path: Path, pki: dict[str
 
 
 def test_client_certificates_when_the_server_requires_them(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki, client_auth=True)
+    handle = serve_tls(tmp_path, pki, client_auth=True)
     try:
         with pytest.raises(cast.UnavailableError):
             _connect(handle, ClientTls(pki["ca"]))  # no client certificate
@@ -94,7 +80,7 @@ def test_client_certificates_when_the_server_requires_them(tmp_path: Path, pki: 
 
 
 def test_a_component_process_uses_tls_from_the_launch_contract(tmp_path: Path, pki: dict[str, Path]) -> None:
-    handle = _serve_tls(tmp_path, pki)
+    handle = serve_tls(tmp_path, pki)
     try:
         env = handle.env("writer", "vision", args={"count": 3})
         env.update(CAST_TLS_CA=str(pki["ca"]), PYTHONPATH=PYTHONPATH)
