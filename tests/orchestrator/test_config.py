@@ -237,6 +237,25 @@ def test_bad_values(tmp_path: Path) -> None:
     one(found, 11, "servers.main.listen", "must be HOST:PORT")
 
 
+def test_tls_client_certificate_needs_its_key(tmp_path: Path) -> None:
+    found = problems(tmp_path, """\
+        subarchitectures: {vision: {}}
+        tls: {ca: ca.pem, cert: s.pem, key: s.key, client_auth: true, client_cert: c.pem}
+        """)
+    one(found, 2, "tls.client_key", "give client_cert and client_key together")
+    config, _ = read_config(_write(tmp_path / "ok.yaml", """\
+        subarchitectures: {vision: {}}
+        tls: {ca: ca.pem, cert: s.pem, key: s.key, client_auth: true, client_cert: c.pem, client_key: c.key}
+        """), environ={})
+    assert config is not None and config.tls is not None
+    assert config.tls.component_identity == (tmp_path / "c.pem", tmp_path / "c.key")
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
 def test_every_problem_is_reported_not_just_the_first(tmp_path: Path) -> None:
     path = tmp_path / "system.yaml"
     path.write_text(

@@ -5,6 +5,10 @@ that ``cast run`` writes in its runtime directory. The identity: ``$CAST_TOKEN``
 if set, else a token for ``cast-cli`` (no SA, not privileged: reads only)
 issued from the system's secret: ``--secret-file``, ``$CAST_SECRET``,
 ``$CAST_SECRET_FILE``, the runtime directory's ``secret``, ``.cast/secret``.
+TLS: ``--tls-ca`` (with ``--tls-cert``/``--tls-key`` for servers that require
+client certificates), else the ``$CAST_TLS_*`` variables of the launch
+contract, else the ``tls`` block ``cast run`` records in ``system.json``;
+none of these means plaintext.
 """
 
 from __future__ import annotations
@@ -18,9 +22,10 @@ from typing import Any
 import grpc
 
 from cast.auth import TokenSigner, load_secret
+from cast.client.connection import ClientTls
 from cast.client.grpc_transport import CHANNEL_OPTIONS, map_rpc_error
 from cast.core.records import Identity
-from cast.errors import CastError, NotFoundError
+from cast.errors import CastError, InvalidArgumentError, NotFoundError
 from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
@@ -28,7 +33,10 @@ from cast.v1 import inspection_pb2_grpc as insp_grpc
 from cast.v1 import task_manager_pb2_grpc as tm_grpc
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
-__all__ = ["TOOL_ID", "NoSystemError", "ServerStubs", "SystemClient", "find_endpoint", "find_secret", "tool_token"]
+__all__ = [
+    "TOOL_ID", "NoSystemError", "ServerStubs", "SystemClient", "find_endpoint", "find_secret", "find_tls", "tool_token",
+    "add_tls_options",
+]
 
 TOOL_ID = "cast-cli"
 
@@ -69,6 +77,28 @@ def find_secret(explicit: str | None, runtime: RuntimeDir, env: Mapping[str, str
     return secret
 
 
+def find_tls(args: Any, runtime: RuntimeDir, env: Mapping[str, str]) -> ClientTls | None:
+    """The TLS settings to reach the system with, or None for plaintext."""
+    ca, cert, key = (getattr(args, name, None) for name in ("tls_ca", "tls_cert", "tls_key"))
+    if ca or cert or key:
+        if not ca:
+            raise InvalidArgumentError("--tls-cert/--tls-key given without --tls-ca: give the CA that signed the "
+                                       "server's certificate too")
+        if bool(cert) != bool(key):
+            raise InvalidArgumentError("give both --tls-cert and --tls-key, or neither")
+        return ClientTls(Path(ca), Path(cert) if cert else None, Path(key) if key else None,
+                         getattr(args, "tls_server_name", None) or "")
+    from_env = ClientTls.from_env(env)
+    if from_env is not None:
+        return from_env
+    state = runtime.read_state()
+    recorded = state.get("tls") if state else None
+    if recorded:
+        return ClientTls(Path(recorded["ca"]), Path(recorded["cert"]) if recorded.get("cert") else None,
+                         Path(recorded["key"]) if recorded.get("key") else None)
+    return None
+
+
 def tool_token(secret_file: str | None, runtime: RuntimeDir, env: Mapping[str, str]) -> str:
     """``$CAST_TOKEN``, or a read-only tool token issued from the secret."""
     if env.get("CAST_TOKEN"):
@@ -91,9 +121,11 @@ class ServerStubs:
 class SystemClient:
     """A tool's connection to a running system: the directory and every server it names."""
 
-    def __init__(self, endpoint: str, token: str, timeout: float = 10.0) -> None:
+    def __init__(self, endpoint: str, token: str, timeout: float = 10.0, tls: ClientTls | None = None) -> None:
         self.metadata = (("authorization", f"Bearer {token}"),)
         self.timeout = timeout
+        self.tls = tls
+        self._credentials = tls.credentials() if tls is not None else None
         self._servers: dict[str, ServerStubs] = {}
         self.directory = self._stubs(endpoint)
         self.system = self.call(self.directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
@@ -101,7 +133,11 @@ class SystemClient:
     def _stubs(self, endpoint: str) -> ServerStubs:
         stubs = self._servers.get(endpoint)
         if stubs is None:
-            channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+            if self.tls is None or self._credentials is None:
+                channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+            else:
+                options = [*CHANNEL_OPTIONS, *self.tls.channel_options()]
+                channel = grpc.secure_channel(endpoint, self._credentials, options=options)
             stubs = ServerStubs(
                 endpoint, channel, wm_grpc.WorkingMemoryStub(channel), tm_grpc.TaskManagerStub(channel),
                 dir_grpc.DirectoryStub(channel), insp_grpc.InspectionStub(channel),
@@ -150,13 +186,32 @@ class SystemClient:
 
 
 def connect(args: Any, env: Mapping[str, str] | None = None) -> SystemClient:
-    """A :class:`SystemClient` from the common tool options (--endpoint, --runtime-dir, --secret-file)."""
+    """A :class:`SystemClient` from the common tool options (endpoint, runtime dir, secret, TLS)."""
     env = os.environ if env is None else env
     runtime = RuntimeDir(Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(env))
     endpoint = find_endpoint(args.endpoint, runtime, env)
+    tls = find_tls(args, runtime, env)
     try:
-        return SystemClient(endpoint, tool_token(args.secret_file, runtime, env))
+        return SystemClient(endpoint, tool_token(args.secret_file, runtime, env), tls=tls)
     except CastError as exc:
         if exc.code == "UNAVAILABLE":
-            raise NoSystemError(f"no system answers at {endpoint}: {exc.message}") from None
+            raise NoSystemError(f"no system answers at {endpoint}: {exc.message}{_tls_hint(tls)}") from None
         raise
+
+
+def _tls_hint(tls: ClientTls | None) -> str:
+    # A TLS/plaintext mismatch shows up only as an unavailable server; say which side to check.
+    if tls is None:
+        return (" (this tool spoke plaintext: if the system uses TLS, give --tls-ca CA.pem, or set CAST_TLS_CA)")
+    return (f" (this tool spoke TLS, trusting {tls.ca}: check that the server uses TLS with a certificate signed "
+            "by that CA, and give --tls-cert/--tls-key if it requires client certificates)")
+
+
+def add_tls_options(parser: Any) -> None:
+    """The ``--tls-*`` options of a tool that connects to a running system."""
+    parser.add_argument("--tls-ca", help="PEM of the CA that signed the servers' certificates; turns TLS on "
+                                         "(default: $CAST_TLS_CA, else what the running `cast run` recorded)")
+    parser.add_argument("--tls-cert", help="client certificate (PEM), for servers that require one")
+    parser.add_argument("--tls-key", help="client key (PEM), with --tls-cert")
+    parser.add_argument("--tls-server-name", help="name to check the server certificate against, when it differs "
+                                                  "from the host in the address")

@@ -13,7 +13,7 @@ from typing import Any
 
 import grpc
 
-from cast.cli.connect import ServerStubs, SystemClient, connect
+from cast.cli.connect import ServerStubs, SystemClient, add_tls_options, connect
 from cast.cli.render import SchemaDecoder, iso_time, print_json, print_table
 from cast.client.grpc_transport import map_rpc_error
 from cast.errors import CastError
@@ -244,6 +244,7 @@ def _common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:
     p.add_argument("--runtime-dir", help="runtime directory of the running `cast run` (default: $CAST_RUNTIME_DIR "
                                          "or .cast)")
     p.add_argument("--secret-file", help="token secret (default: $CAST_SECRET, else the runtime directory's)")
+    add_tls_options(p)
     if json_flag:
         p.add_argument("--json", action="store_true", help="JSON for scripts instead of a table")
 

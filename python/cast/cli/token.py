@@ -17,8 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from cast.auth import TokenSigner
-from cast.cli.connect import SystemClient, find_endpoint, find_secret
+from cast.cli.connect import SystemClient, add_tls_options, find_endpoint, find_secret, find_tls
 from cast.cli.options import parse_sets
+from cast.client.connection import ClientTls
 from cast.config import load_config
 from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, NotFoundError
@@ -33,6 +34,7 @@ def _token(args: argparse.Namespace) -> int:
     secret = find_secret(args.secret_file, runtime, env)
     endpoint = find_endpoint(args.endpoint, runtime, env)
     signer = TokenSigner(secret)
+    tls = find_tls(args, runtime, env)
     sa, privileged, comp_args, extra = args.subarchitecture, args.privileged, {}, {}
     if args.config:
         config = load_config(args.config, parse_sets(args.set))
@@ -47,7 +49,7 @@ def _token(args: argparse.Namespace) -> int:
     elif not sa:
         # Ask the running system about a component it expects.
         tool = signer.issue(Identity("cast-cli", "", False), 60)
-        with SystemClient(endpoint, tool) as client:
+        with SystemClient(endpoint, tool, tls=tls) as client:
             info = next((c for c in client.system.components if c.id == args.component), None)
         if info is None:
             raise InvalidArgumentError(
@@ -63,6 +65,7 @@ def _token(args: argparse.Namespace) -> int:
         "CAST_TOKEN": token,
         "CAST_ARGS": json.dumps(comp_args),
         **extra,
+        **_tls_contract(tls),
     }
     if args.json:
         print(json.dumps(values))
@@ -70,6 +73,18 @@ def _token(args: argparse.Namespace) -> int:
         for key, value in values.items():
             print(f"export {key}={shlex.quote(value)}")
     return 0
+
+
+def _tls_contract(tls: ClientTls | None) -> dict[str, str]:
+    # The component needs the same trust as the tool had, or it cannot reach the servers.
+    if tls is None:
+        return {}
+    values = {"CAST_TLS_CA": str(tls.ca.resolve())}
+    if tls.cert and tls.key:
+        values |= {"CAST_TLS_CERT": str(tls.cert.resolve()), "CAST_TLS_KEY": str(tls.key.resolve())}
+    if tls.server_name:
+        values["CAST_TLS_SERVER_NAME"] = tls.server_name
+    return values
 
 
 def add_command(sub: Any) -> None:
@@ -85,4 +100,5 @@ def add_command(sub: Any) -> None:
     token.add_argument("--ttl", type=float, default=0, help="seconds until the token expires (0: never)")
     token.add_argument("--secret-file", help="token secret (default: $CAST_SECRET, else the runtime directory's)")
     token.add_argument("--json", action="store_true", help="print a JSON object instead of shell exports")
+    add_tls_options(token)
     token.set_defaults(fn=_token)

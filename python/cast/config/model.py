@@ -116,14 +116,25 @@ class TlsConfig:
     """TLS for every server of the system and the components' connections.
 
     Servers present ``cert``/``key``; clients verify them against ``ca``. With
-    ``client_auth`` servers also require a client certificate signed by ``ca``
-    (components present ``cert``/``key`` too, or their own via CAST_TLS_CERT/KEY).
+    ``client_auth`` servers also require a client certificate signed by ``ca``:
+    launched components and tools present ``client_cert``/``client_key``, or
+    ``cert``/``key`` when those are not given (a certificate that must then
+    allow client use too).
     """
 
     ca: Path
     cert: Path
     key: Path
     client_auth: bool = False
+    client_cert: Path | None = None
+    client_key: Path | None = None
+
+    @property
+    def component_identity(self) -> tuple[Path, Path]:
+        """The certificate and key launched components present when servers require one."""
+        if self.client_cert is not None and self.client_key is not None:
+            return self.client_cert, self.client_key
+        return self.cert, self.key
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ COMPONENT_KEYS = {
 RESTART_KEYS = {"policy", "max_restarts", "backoff", "max_backoff"}
 SERVER_KEYS = {"listen", "subarchitectures", "persistence"}
 PERSISTENCE_KEYS = {"path", "durability"}
-TLS_KEYS = {"ca", "cert", "key", "client_auth"}
+TLS_KEYS = {"ca", "cert", "key", "client_auth", "client_cert", "client_key"}
 AUTH_KEYS = {"reads_require_token", "token_ttl"}
 ORCHESTRATOR_KEYS = {"connect_timeout", "stop_timeout", "lease_ms"}
 POLICY_OPTIONS = {"always": set(), "exclusive": set(), "fifo": {"max_concurrent", "max_waiting"},
@@ -198,9 +198,17 @@ class _Validator:
         self.keys(raw, TLS_KEYS, "tls.")
         ca, cert, key = (self.one_path(raw, k, f"tls.{k}") for k in ("ca", "cert", "key"))
         client_auth = self.boolean(raw, "client_auth", "tls.client_auth")
+        client_cert = client_key = None
+        if "client_cert" in raw or "client_key" in raw:
+            if "client_cert" not in raw or "client_key" not in raw:
+                missing = "client_key" if "client_cert" in raw else "client_cert"
+                self.p.error(raw.pos, f"tls.{missing}", "give client_cert and client_key together, or neither")
+            else:
+                client_cert = self.one_path(raw, "client_cert", "tls.client_cert")
+                client_key = self.one_path(raw, "client_key", "tls.client_key")
         if ca is None or cert is None or key is None:
             return None
-        return TlsConfig(ca, cert, key, client_auth)
+        return TlsConfig(ca, cert, key, client_auth, client_cert, client_key)
 
     def auth(self) -> AuthConfig:
         raw = self.mapping(self.root, "auth", "auth")

@@ -143,6 +143,7 @@ class Orchestrator:
             "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures}
                         for s in servers.servers},
             "config": str(Path(self.config.source).resolve()),
+            "tls": self._security.tls_state(),  # so `cast ls` & co. reach a TLS system unaided
         })
         self.output.known_components([c.id for c in self.config.components])
         self.output.notice(

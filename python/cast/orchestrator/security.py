@@ -11,7 +11,7 @@ never expire and no file is written.
 
 With ``tls:`` in the configuration, components get ``CAST_TLS_CA`` (to verify
 the servers) and, when servers require client certificates, ``CAST_TLS_CERT``
-and ``CAST_TLS_KEY``.
+and ``CAST_TLS_KEY`` (``tls.client_cert``/``client_key``, else ``cert``/``key``).
 """
 
 from __future__ import annotations
@@ -50,8 +50,19 @@ class LaunchSecurity:
         if tls is not None:
             env["CAST_TLS_CA"] = str(tls.ca)
             if tls.client_auth:
-                env["CAST_TLS_CERT"], env["CAST_TLS_KEY"] = str(tls.cert), str(tls.key)
+                env["CAST_TLS_CERT"], env["CAST_TLS_KEY"] = (str(p) for p in tls.component_identity)
         return env
+
+    def tls_state(self) -> dict[str, str] | None:
+        """The TLS files a tool needs to reach the servers (CA, and client cert/key when required), or None."""
+        tls = self.config.tls
+        if tls is None:
+            return None
+        state = {"ca": str(Path(tls.ca).resolve())}
+        if tls.client_auth:
+            cert, key = tls.component_identity
+            state |= {"cert": str(cert.resolve()), "key": str(key.resolve())}
+        return state
 
     def forget(self, component_id: str) -> None:
         """Stop renewing a component's token (it was removed or stopped for good)."""
