@@ -16,7 +16,7 @@ import yaml
 from google.protobuf.wrappers_pb2 import BytesValue, StringValue
 
 import cast
-from bench.floors import GAP_S
+from bench.floors import GAP_S, EchoFloor
 from bench.harness import PYTHON, ROOT, latencies_us, percentile, rate, start, summary_us
 from cast.auth import TokenSigner
 from cast.client.component import Component
@@ -74,15 +74,38 @@ class Server:
         self.proc.stop()
 
 
-def m1_sequential(server: Server, n: int, prefix: str = "") -> dict[str, Any]:
-    """M1: sequential Add, Get, Overwrite from one client."""
-    c = server.component(f"m1{prefix}", "bench")
-    ids = [f"m1-{prefix}-{i}" for i in range(n + 200)]
-    adds = rate(n, lambda i: c.add(ids[i], VALUE))
-    gets = rate(n, lambda i: c.get(ids[i], BytesValue))
-    overwrites = rate(n, lambda i: c.overwrite(ids[i], VALUE))
+def m1_interleaved(server: Server, echo: EchoFloor, n: int, block: int = 100, prefix: str = "m1") -> dict[str, Any]:
+    """M1: sequential Add, Get, Overwrite from one client, in blocks interleaved with the echo floor's calls.
+
+    Each block of ``block`` echo calls is followed by a block of each of our
+    operations, so a change in the machine's speed (another tenant, frequency)
+    hits the floor and us alike: the ratios compare like with like.
+    """
+    c = server.component(prefix, "bench")
+    ids = [f"{prefix}-{i}" for i in range(n + block)]
+    for i in range(block):  # warm-up: connection, schema registration
+        c.add(ids[n + i], VALUE)
+        c.get(ids[n + i], BytesValue)
+        c.overwrite(ids[n + i], VALUE)
+    seconds = {"echo": 0.0, "add": 0.0, "get": 0.0, "overwrite": 0.0}
+    for start_i in range(0, n, block):
+        span = range(start_i, min(n, start_i + block))
+        seconds["echo"] += echo.block_seconds(len(span))
+        t0 = time.perf_counter()
+        for i in span:
+            c.add(ids[i], VALUE)
+        t1 = time.perf_counter()
+        for i in span:
+            c.get(ids[i], BytesValue)
+        t2 = time.perf_counter()
+        for i in span:
+            c.overwrite(ids[i], VALUE)
+        t3 = time.perf_counter()
+        seconds["add"] += t1 - t0
+        seconds["get"] += t2 - t1
+        seconds["overwrite"] += t3 - t2
     c._cast_close()
-    return {"add_per_s": round(adds), "get_per_s": round(gets), "overwrite_per_s": round(overwrites)}
+    return {f"{k}_per_s": round(n / v) for k, v in seconds.items()}
 
 
 def m2_batch(server: Server, batches: int) -> dict[str, Any]:

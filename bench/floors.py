@@ -9,7 +9,7 @@ from typing import Any
 
 import grpc
 
-from bench.harness import PYTHON, latencies_us, rate, start, summary_us
+from bench.harness import PYTHON, latencies_us, start, summary_us
 
 PAYLOAD = b"x" * 150  # about the size of a small Add request
 GAP_S = 0.002  # spacing of M3's writes (bench/cast_cases.py)
@@ -37,17 +37,33 @@ def tcp(n: int) -> dict[str, Any]:
         server.stop()
 
 
-def grpc_echo(n: int) -> dict[str, Any]:
-    """Bare grpcio: sequential unary calls and ping-pong on one bidi stream."""
-    server = start([PYTHON, "-m", "bench.servers", "grpc"])
-    try:
-        channel = grpc.insecure_channel(f"127.0.0.1:{server.first_line}")
-        unary = channel.unary_unary("/bench.Echo/Unary", None, None)
-        calls = rate(n, lambda i: unary(PAYLOAD, timeout=10))
+class EchoFloor:
+    """A bare grpcio echo server and a client of it, kept up so floor calls can interleave with ours."""
+
+    def __init__(self) -> None:
+        self._server = start([PYTHON, "-m", "bench.servers", "grpc"])
+        self._channel = grpc.insecure_channel(f"127.0.0.1:{self._server.first_line}")
+        self._unary = self._channel.unary_unary("/bench.Echo/Unary", None, None)
+        for _ in range(200):  # warm-up: connection, allocator, caches
+            self.call()
+
+    def call(self) -> None:
+        """One unary echo round trip."""
+        self._unary(PAYLOAD, timeout=10)
+
+    def block_seconds(self, calls: int) -> float:
+        """Seconds taken by ``calls`` back-to-back unary echo calls."""
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            self._unary(PAYLOAD, timeout=10)
+        return time.perf_counter() - t0
+
+    def latencies(self, n: int) -> dict[str, Any]:
+        """Unary round trips back to back and spaced by M3's gap, and bidi-stream ping-pong."""
 
         def rtt(_: int) -> float:
             t0 = time.perf_counter()
-            unary(PAYLOAD, timeout=10)
+            self._unary(PAYLOAD, timeout=10)
             return time.perf_counter() - t0
 
         unary_lat = summary_us(latencies_us(n, rtt))
@@ -60,7 +76,7 @@ def grpc_echo(n: int) -> dict[str, Any]:
         # costs wake-ups that back-to-back calls do not pay, so M3 is compared with this.
         spaced_lat = summary_us(latencies_us(n, spaced_rtt))
         requests: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
-        stream = channel.stream_stream("/bench.Echo/Stream", None, None)(iter(requests.get, None))
+        stream = self._channel.stream_stream("/bench.Echo/Stream", None, None)(iter(requests.get, None))
         responses = iter(stream)
 
         def ping(_: int) -> float:
@@ -71,12 +87,9 @@ def grpc_echo(n: int) -> dict[str, Any]:
 
         stream_lat = summary_us(latencies_us(n, ping))
         requests.put(None)
-        channel.close()
-        return {
-            "unary_calls_per_s": round(calls),
-            "unary": unary_lat,
-            "unary_spaced": spaced_lat,
-            "stream_ping_pong": stream_lat,
-        }
-    finally:
-        server.stop()
+        return {"unary": unary_lat, "unary_spaced": spaced_lat, "stream_ping_pong": stream_lat}
+
+    def close(self) -> None:
+        """Stop the echo server."""
+        self._channel.close()
+        self._server.stop()

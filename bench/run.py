@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import cast_cases, floors, other_clients, redis_peer, report
+from bench import cast_cases, floors, other_clients, redis_peer, report, stalled_watcher
 from bench.harness import ROOT
 
 RESULTS = ROOT / "bench" / "results"
@@ -47,22 +47,19 @@ def main(argv: list[str] | None = None) -> int:
     log("peer: redis")
     peer = redis_peer.run(n, work)
     server = cast_cases.Server(work / "main", ["bench", "fanout"])
+    echo_floor = floors.EchoFloor()
     try:
-        # Floor and M1 alternate, and the medians are compared, so that a
-        # passing load on the machine hits both sides alike.
-        echo_runs, m1_runs = [], []
-        for r in range(rounds):
-            log(f"floor: grpc echo (round {r + 1}/{rounds})")
-            echo_runs.append(floors.grpc_echo(n))
-            log(f"M1 sequential (round {r + 1}/{rounds})")
-            m1_runs.append(cast_cases.m1_sequential(server, n, prefix=f"r{r}"))
+        log("floor: grpc echo latencies")
+        lat_runs = [echo_floor.latencies(n) for _ in range(rounds)]
         echo = {
-            "unary_calls_per_s": statistics.median(e["unary_calls_per_s"] for e in echo_runs),
-            "unary_p50_us": statistics.median(e["unary"]["p50_us"] for e in echo_runs),
-            "stream_ping_pong_p50_us": statistics.median(e["stream_ping_pong"]["p50_us"] for e in echo_runs),
-            "unary_spaced_p50_us": statistics.median(e["unary_spaced"]["p50_us"] for e in echo_runs),
+            "unary_p50_us": statistics.median(e["unary"]["p50_us"] for e in lat_runs),
+            "stream_ping_pong_p50_us": statistics.median(e["stream_ping_pong"]["p50_us"] for e in lat_runs),
+            "unary_spaced_p50_us": statistics.median(e["unary_spaced"]["p50_us"] for e in lat_runs),
         }
-        m1 = {k: statistics.median(r[k] for r in m1_runs) for k in m1_runs[0]}
+        log("M1 sequential, in blocks interleaved with the grpc echo floor")
+        m1_all = cast_cases.m1_interleaved(server, echo_floor, n * rounds)
+        echo["unary_calls_per_s"] = m1_all.pop("echo_per_s")
+        m1 = m1_all
         log("M2 batch")
         m2 = cast_cases.m2_batch(server, 50 if q else 300)
         log("M3 write -> event latency")
@@ -79,12 +76,16 @@ def main(argv: list[str] | None = None) -> int:
                 ]
         scaling[16] = m4["delivered_per_s"]
     finally:
+        echo_floor.close()
         server.stop()
     log("M5 in process")
     m5 = cast_cases.m5_in_process(n)
     log("M6 large WM")
     checkpoints = [1000, 10_000, 100_000] if q else [1000, 10_000, 100_000, 1_000_000]
     m6 = cast_cases.m6_large(work / "big", checkpoints, 500 if q else 2000)
+    stalled_events = 100_000 if q else 1_000_000
+    log(f"R1 writers with a stalled watcher ({stalled_events:,} events per run)")
+    r1 = stalled_watcher.run(work / "stalled", stalled_events, 500 if q else 2000, rounds)
     log("M7 C++ and Java clients")
     m7 = other_clients.run(
         work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"], rounds=rounds,
@@ -173,6 +174,19 @@ def main(argv: list[str] | None = None) -> int:
             "met": m6["server_rss_mib"] <= 1024 and m6["get_all_10_p50_ms"] <= 2 and m6["add_rate_ratio"] >= 0.85,
         },
         m7,
+        {
+            "id": "R1",
+            "what": f"writers while a watcher has stopped reading, {r1['events']:,} events per run (issue 7), "
+            "against the same writes with no watcher",
+            "target": "writers slowed by at most 20% (>= 0.8 x the rate without the watcher)",
+            "figures": [
+                _fig("Batch of 1,000 overwrites, events/s", r1["batch_events_per_s_with"],
+                     floor=r1["batch_events_per_s_without"]),
+                _fig("sequential Overwrite calls/s", r1["sequential_per_s_with"],
+                     floor=r1["sequential_per_s_without"]),
+            ],
+            "met": r1["batch_ratio"] >= 0.8 and r1["sequential_ratio"] >= 0.8,
+        },
     ]
     machine = report.machine_info(
         {

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tests.conftest import ROOT
 
-IDS = ["M1", "M2", "M3", "M4", "M5", "M6", "M7"]
+IDS = ["M1", "M2", "M3", "M4", "M5", "M6", "M7", "R1"]
 
 
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
