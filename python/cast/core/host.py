@@ -235,6 +235,10 @@ class MemoryHost:
         self._after_commit(released)
         return results
 
+    def write(self, who: Identity, op: BatchOp) -> WriteResult:
+        """Apply one write (add, overwrite or delete) described by ``op``; the servicers' single-write path."""
+        return self._write_one(who, op)
+
     def _write_one(self, who: Identity, op: BatchOp) -> WriteResult:
         self._check_args(op)
         with self._mutex:
@@ -575,6 +579,10 @@ class MemoryHost:
         return wm
 
     def _check_id(self, entry_id: str) -> None:
+        # Most ids are short printable ASCII: one C-level test settles those (bytes == characters,
+        # no control characters) before the full check, which every write would otherwise pay.
+        if entry_id.isascii() and entry_id.isprintable() and 0 < len(entry_id) <= self.limits.max_id_bytes:
+            return
         if not entry_id:
             raise InvalidArgumentError("entry id is empty: give an id of 1 to 256 bytes (new_id() makes one)")
         size = len(entry_id.encode("utf-8", "surrogatepass"))

@@ -8,7 +8,7 @@ from collections.abc import AsyncIterator, Callable
 
 import grpc
 
-from cast.convert import any_to_type_data, entry_to_pb, filter_from_pb, watch_events_wire
+from cast.convert import any_to_type_data, fill_entry, filter_from_pb, watch_events_wire
 from cast.core.host import BatchOp
 from cast.core.records import Identity, LockMode, Operation
 from cast.core.system import System
@@ -59,8 +59,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
         who = self._auth.identify(context)
-        op = _op(request)
-        result = self._host.add(who, op.subarchitecture, op.id, op.type, op.data)
+        result = self._host.write(who, _op(request))
         if self._durable is not None:
             await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
@@ -71,8 +70,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
         who = self._auth.identify(context)
-        op = _op(request)
-        result = self._host.overwrite(who, op.subarchitecture, op.id, op.type, op.data, op.expected_version)
+        result = self._host.write(who, _op(request))
         if self._durable is not None:
             await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
@@ -81,8 +79,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
         """Delete an entry."""
         who = self._auth.identify(context)
-        op = _op(request)
-        result = self._host.delete(who, op.subarchitecture, op.id, op.expected_version)
+        result = self._host.write(who, _op(request))
         if self._durable is not None:
             await self._durable()
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
@@ -92,7 +89,9 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         """Read one entry."""
         who = self._auth.identify_read(context)
         record = self._host.get(who, request.address.subarchitecture, request.address.id)
-        return wm_pb2.GetResponse(entry=entry_to_pb(record))
+        response = wm_pb2.GetResponse()
+        fill_entry(response.entry, record)
+        return response
 
     @rpc
     async def GetByType(
@@ -101,7 +100,11 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         """Read the entries of one type, newest first."""
         who = self._auth.identify_read(context)
         records, revision = self._host.get_by_type(who, request.subarchitecture, request.type, request.limit)
-        return wm_pb2.GetByTypeResponse(entries=[entry_to_pb(r) for r in records], revision=revision)
+        response = wm_pb2.GetByTypeResponse(revision=revision)
+        entries = response.entries
+        for record in records:
+            fill_entry(entries.add(), record)
+        return response
 
     @rpc
     async def Exists(self, request: wm_pb2.ExistsRequest, context: Context) -> wm_pb2.ExistsResponse:
