@@ -13,7 +13,7 @@ from typing import Any
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
+from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from cast.auth import TokenSigner
 from cast.config import ServerConfig, SystemConfig, TlsConfig
@@ -187,10 +187,13 @@ async def start_server(
     directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), registrar)
     inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), registrar)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    reflection.enable_server_reflection(
-        (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME),
-        server,
+    foreign: Any = SafeRegistrar(server, wrap=False)  # generic handlers only, deserializers untouched
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, foreign)
+    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(
+        reflection.aio.ReflectionServicer(  # type: ignore[attr-defined]  # public, exported on Python >= 3.6
+            (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
+        ),
+        foreign,
     )
     if settings.tls is not None:
         port = server.add_secure_port(listen, server_credentials(settings.tls))
