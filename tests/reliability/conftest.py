@@ -27,12 +27,13 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, what: str = "c
 
 
 def serve(
-    config_path: Path, listen: str = "127.0.0.1:0", env: dict[str, str] | None = None, cwd: Path | None = None
+    config_path: Path, listen: str = "127.0.0.1:0", env: dict[str, str] | None = None, cwd: Path | None = None,
+    extra: tuple[str, ...] = (),
 ) -> ServerHandle:
-    """Start `cast serve CONFIG` and wait for its `listening on` line."""
+    """Start `cast serve CONFIG [EXTRA...]` and wait for its `listening on` line."""
     full_env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH, **(env or {}))
     proc = subprocess.Popen(
-        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", listen],
+        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", listen, *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,

@@ -9,6 +9,8 @@ the writers saw acknowledged must be there (0 lost for `always` and `batch`).
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -27,6 +29,7 @@ from cast.core.system import TASK_TYPE, System
 from cast.core.watch import EventFilter, Subscription
 from cast.errors import HistoryExpiredError
 from cast.v1 import directory_pb2, directory_pb2_grpc, entry_pb2, working_memory_pb2, working_memory_pb2_grpc
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
 from tests.reliability.conftest import kill9, metadata, serve, wait_for, write_config
 from tests.reliability.figures import record, soak
 
@@ -252,3 +255,47 @@ def test_kill9_under_write_load_loses_no_acknowledged_write(tmp_path: Path, mode
     if mode != "none":
         assert result["lost"] == 0, result
         assert result["revision_after_restart"] >= result["max_acked_revision"]
+
+
+def test_cast_serve_of_one_server_of_several_keeps_its_persistence(tmp_path: Path) -> None:
+    """`cast serve --server NAME` serves that server's SAs with its journal; without it, a
+    configuration whose servers have persistence is refused rather than served in memory."""
+    config = write_config(tmp_path / "two.yaml", {
+        "system": "two",
+        "subarchitectures": {"vision": {}, "language": {}},
+        "servers": {
+            "eyes": {"subarchitectures": ["vision"], "persistence": {"path": "eyes.db", "durability": "always"}},
+            "words": {"subarchitectures": ["language"]},
+        },
+    })
+    cast_bin = str(VENV_BIN / "cast")
+    env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
+    refused = subprocess.run([cast_bin, "serve", str(config), "--listen", "127.0.0.1:0"], env=env,
+                             capture_output=True, text=True, timeout=60)
+    assert refused.returncode != 0 and "--server" in refused.stderr and "eyes" in refused.stderr, refused.stderr
+    unknown = subprocess.run([cast_bin, "serve", str(config), "--server", "ears"], env=env,
+                             capture_output=True, text=True, timeout=60)
+    assert unknown.returncode != 0 and "eyes, words" in unknown.stderr, unknown.stderr
+
+    value = any_pb2.Any()
+    value.Pack(Pose(label="kept"))
+    handle = serve(config, extra=("--server", "eyes"))
+    try:
+        stub = working_memory_pb2_grpc.WorkingMemoryStub(grpc.insecure_channel(handle.endpoint))
+        stub.Add(working_memory_pb2.AddRequest(address=entry_pb2.EntryAddress(id="p", subarchitecture="vision"),
+                                               value=value), metadata=metadata(handle, "a", "vision"), timeout=10)
+        with pytest.raises(grpc.RpcError) as elsewhere:  # language is the other server's
+            stub.Add(working_memory_pb2.AddRequest(
+                address=entry_pb2.EntryAddress(id="q", subarchitecture="language"), value=value),
+                metadata=metadata(handle, "b", "language", privileged=True), timeout=10)
+        assert elsewhere.value.code() == grpc.StatusCode.NOT_FOUND
+    finally:
+        kill9(handle)
+    again = serve(config, extra=("--server", "eyes"))
+    try:
+        stub = working_memory_pb2_grpc.WorkingMemoryStub(grpc.insecure_channel(again.endpoint))
+        got = stub.Get(working_memory_pb2.GetRequest(address=entry_pb2.EntryAddress(id="p", subarchitecture="vision")),
+                       metadata=metadata(again, "a", "vision"), timeout=10)
+        assert got.entry.version == 0 and got.entry.revision == 1
+    finally:
+        again.stop()
