@@ -435,13 +435,13 @@ class GrpcTransport:
                 write = item.overwrite
             else:
                 write = item.delete
-            write.address.id = op.id
-            write.address.subarchitecture = op.subarchitecture
+            if isinstance(write, wm_pb2.DeleteRequest):
+                write.address.id = op.id
+                write.address.subarchitecture = op.subarchitecture
+            else:
+                _fill_write(write, op.subarchitecture, op.id, op.type, op.data)
             if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
                 write.expected_version = op.expected_version
-            if not isinstance(write, wm_pb2.DeleteRequest):
-                write.value.type_url = TYPE_URL_PREFIX + op.type
-                write.value.value = op.data
         resp = self._call(self._server(ops[0].subarchitecture).wm.Batch, request)
         return [WriteResult(r.revision, r.version) for r in resp.results]
 

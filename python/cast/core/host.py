@@ -187,7 +187,7 @@ class MemoryHost:
 
     def add(self, who: Identity, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry: version 0, or last version + 1 after a delete."""
-        return self._write_one(who, BatchOp(Operation.ADD, sa, entry_id, type_name, data))
+        return self.write(who, BatchOp(Operation.ADD, sa, entry_id, type_name, data))
 
     def overwrite(
         self,
@@ -199,11 +199,11 @@ class MemoryHost:
         expected_version: int | None = None,
     ) -> WriteResult:
         """Replace an entry's value; version + 1."""
-        return self._write_one(who, BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, data, expected_version))
+        return self.write(who, BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, data, expected_version))
 
     def delete(self, who: Identity, sa: str, entry_id: str, expected_version: int | None = None) -> WriteResult:
         """Delete an entry and release every lock on it."""
-        return self._write_one(who, BatchOp(Operation.DELETE, sa, entry_id, expected_version=expected_version))
+        return self.write(who, BatchOp(Operation.DELETE, sa, entry_id, expected_version=expected_version))
 
     def batch(self, who: Identity, ops: Sequence[BatchOp]) -> list[WriteResult]:
         """Apply writes in order, all or nothing.
@@ -236,10 +236,7 @@ class MemoryHost:
         return results
 
     def write(self, who: Identity, op: BatchOp) -> WriteResult:
-        """Apply one write (add, overwrite or delete) described by ``op``; the servicers' single-write path."""
-        return self._write_one(who, op)
-
-    def _write_one(self, who: Identity, op: BatchOp) -> WriteResult:
+        """Apply one write (add, overwrite or delete) described by ``op``."""
         self._check_args(op)
         with self._mutex:
             planned = self._plan(who, op, None, None)
