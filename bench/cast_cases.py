@@ -99,14 +99,21 @@ def m1_interleaved(server: Server, echo: EchoFloor, n: int, block: int = 100, pr
     for start_i in range(0, n, block):
         span = ids[start_i:min(n, start_i + block)]
         for name, op in ops.items():
-            seconds["echo"] += echo.block_seconds(len(span))
-            t0 = time.perf_counter()
-            for entry_id in span:
-                op(entry_id)
-            seconds[name] += time.perf_counter() - t0
+            floor, ours = _after_floor_block(echo, span, op)
+            seconds["echo"] += floor
+            seconds[name] += ours
     c._cast_close()
     return {"echo_per_s": round(n * len(ops) / seconds["echo"]),
             **{f"{k}_per_s": round(n / seconds[k]) for k in ops}}
+
+
+def _after_floor_block(echo: EchoFloor, items: list[str], op: Callable[[str], object]) -> tuple[float, float]:
+    """One interleaved pair: seconds of ``len(items)`` echo calls, then seconds of ``op`` over ``items``."""
+    floor = echo.block_seconds(len(items))
+    t0 = time.perf_counter()
+    for item in items:
+        op(item)
+    return floor, time.perf_counter() - t0
 
 
 def m2_batch(server: Server, batches: int) -> dict[str, Any]:
@@ -291,6 +298,7 @@ def m6_large(workdir: Path, checkpoints: list[int], probe: int, echo: EchoFloor,
         done = 10
         rates: dict[int, float] = {}
         relative: dict[int, float] = {}  # add rate / echo floor rate, measured together
+        blocks = max(1, probe // block)
         counter = iter(range(10**9))
         for size in checkpoints:
             while done < size:
@@ -300,15 +308,13 @@ def m6_large(workdir: Path, checkpoints: list[int], probe: int, echo: EchoFloor,
             for _ in range(block):  # warm-up after the bulk load
                 c.add(f"probe-{next(counter)}", VALUE)
             ours = floor = 0.0
-            for _ in range(max(1, probe // block)):
-                floor += echo.block_seconds(block)
-                t0 = time.perf_counter()
-                for _ in range(block):
-                    c.add(f"probe-{next(counter)}", VALUE)
-                ours += time.perf_counter() - t0
-            rates[size] = max(1, probe // block) * block / ours
+            for _ in range(blocks):
+                ids = [f"probe-{next(counter)}" for _ in range(block)]
+                pair = _after_floor_block(echo, ids, lambda entry_id: c.add(entry_id, VALUE))
+                floor, ours = floor + pair[0], ours + pair[1]
+            rates[size] = blocks * block / ours
             relative[size] = floor / ours
-            done += block + max(1, probe // block) * block
+            done += block + blocks * block
         get_all = latencies_us(200, lambda i: _timed(lambda: c.get_all(StringValue)))
         assert len(c.get_all(StringValue)) == 10
         rss = server.rss_bytes()
