@@ -19,7 +19,6 @@ from typing import Any
 from cast.auth import TokenSigner
 from cast.cli.connect import SystemClient, add_tls_options, find_endpoint, find_secret, find_tls
 from cast.cli.options import parse_sets
-from cast.client.connection import ClientTls
 from cast.config import load_config
 from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, NotFoundError
@@ -65,7 +64,8 @@ def _token(args: argparse.Namespace) -> int:
         "CAST_TOKEN": token,
         "CAST_ARGS": json.dumps(comp_args),
         **extra,
-        **_tls_contract(tls),
+        # The component needs the same trust as the tool had, or it cannot reach the servers.
+        **(tls.env() if tls is not None else {}),
     }
     if args.json:
         print(json.dumps(values))
@@ -73,18 +73,6 @@ def _token(args: argparse.Namespace) -> int:
         for key, value in values.items():
             print(f"export {key}={shlex.quote(value)}")
     return 0
-
-
-def _tls_contract(tls: ClientTls | None) -> dict[str, str]:
-    # The component needs the same trust as the tool had, or it cannot reach the servers.
-    if tls is None:
-        return {}
-    values = {"CAST_TLS_CA": str(tls.ca.resolve())}
-    if tls.cert and tls.key:
-        values |= {"CAST_TLS_CERT": str(tls.cert.resolve()), "CAST_TLS_KEY": str(tls.key.resolve())}
-    if tls.server_name:
-        values["CAST_TLS_SERVER_NAME"] = tls.server_name
-    return values
 
 
 def add_command(sub: Any) -> None:

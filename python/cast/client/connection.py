@@ -52,6 +52,15 @@ class ClientTls:
         return cls(Path(ca), Path(cert) if cert else None, Path(key) if key else None,
                    env.get("CAST_TLS_SERVER_NAME", ""))
 
+    def env(self) -> dict[str, str]:
+        """The ``CAST_TLS_*`` variables that :meth:`from_env` reads back, with absolute paths."""
+        values = {"CAST_TLS_CA": str(self.ca.resolve())}
+        if self.cert is not None and self.key is not None:
+            values |= {"CAST_TLS_CERT": str(self.cert.resolve()), "CAST_TLS_KEY": str(self.key.resolve())}
+        if self.server_name:
+            values["CAST_TLS_SERVER_NAME"] = self.server_name
+        return values
+
     def credentials(self) -> grpc.ChannelCredentials:
         """Channel credentials for gRPC; InvalidArgumentError naming a file that cannot be read."""
         try:

@@ -22,6 +22,7 @@ import os
 from pathlib import Path
 
 from cast.auth import TokenSigner
+from cast.client.connection import ClientTls
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.core.records import Identity
 
@@ -46,22 +47,26 @@ class LaunchSecurity:
         if self.ttl:
             env["CAST_TOKEN_FILE"] = str(self._write(comp.id, token))
             self._issued[comp.id] = comp
-        tls = self.config.tls
-        if tls is not None:
-            env["CAST_TLS_CA"] = str(tls.ca)
-            if tls.client_auth:
-                env["CAST_TLS_CERT"], env["CAST_TLS_KEY"] = (str(p) for p in tls.component_identity)
+        client = self._client_tls()
+        if client is not None:
+            env |= client.env()
         return env
 
-    def tls_state(self) -> dict[str, str] | None:
-        """The TLS files a tool needs to reach the servers (CA, and client cert/key when required), or None."""
+    def _client_tls(self) -> ClientTls | None:
+        """What launched components and tools use: the CA, and the client identity when servers require one."""
         tls = self.config.tls
         if tls is None:
             return None
-        state = {"ca": str(Path(tls.ca).resolve())}
-        if tls.client_auth:
-            cert, key = tls.component_identity
-            state |= {"cert": str(cert.resolve()), "key": str(key.resolve())}
+        return ClientTls(tls.ca, *tls.component_identity) if tls.client_auth else ClientTls(tls.ca)
+
+    def tls_state(self) -> dict[str, str] | None:
+        """The TLS files a tool needs to reach the servers (CA, and client cert/key when required), or None."""
+        client = self._client_tls()
+        if client is None:
+            return None
+        state = {"ca": str(client.ca.resolve())}
+        if client.cert is not None and client.key is not None:
+            state |= {"cert": str(client.cert.resolve()), "key": str(client.key.resolve())}
         return state
 
     def forget(self, component_id: str) -> None:
