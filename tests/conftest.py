@@ -168,3 +168,11 @@ def server_factory(tmp_path: Path) -> Iterator[Any]:
     yield make
     for handle in started:
         handle.stop()
+
+
+@pytest.fixture
+def pki(tmp_path: Path) -> dict[str, Path]:
+    """A CA with server and client certificates, and an unrelated CA, made for this test (TLS suites)."""
+    from tests.reliability.certs import make_pki  # cryptography is needed only by the TLS tests
+
+    return make_pki(tmp_path)

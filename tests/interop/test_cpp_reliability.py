@@ -8,39 +8,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-import pytest
 from cast_testing_pb2 import Counter
 
-import cast
 from cast.core.records import Identity
 from tests.conftest import ServerHandle
 from tests.interop.cpp_support import CastRun, CppProbe
-from tests.reliability.certs import make_pki
+from tests.interop.restart_support import restart_config, write_until
 from tests.reliability.conftest import kill9, serve, serve_tls, wait_for, write_config
 from tests.reliability.proxy import Proxy
 
 COUNTER = "cast.testing.Counter"
 ALL_VISION = {"filters": [{"kind": "operation", "ops": [], "sa": "local"}]}
-
-
-def _config(tmp: Path, persistence: bool) -> Path:
-    config: dict[str, Any] = {"system": "rc", "subarchitectures": {"vision": {}, "language": {}}}
-    if persistence:
-        config["persistence"] = {"path": str(tmp / "wm.db"), "durability": "batch"}
-    return write_config(tmp / "system.yaml", config)
-
-
-def _write_until(c: Any, prefix: str, n: int) -> None:
-    """Write n entries, retrying those refused while the server is away."""
-    for i in range(n):
-        while True:
-            try:
-                c.add(f"{prefix}-{i}", Counter(value=i))
-                break
-            except cast.UnavailableError:
-                time.sleep(0.05)
-            except cast.AlreadyExistsError:
-                break  # applied before the connection broke, acknowledgement lost
 
 
 def _revisions(probe: CppProbe, count: int, timeout_ms: int = 20000) -> tuple[list[int], str]:
@@ -62,7 +40,7 @@ def _session(handle: ServerHandle, component: str) -> tuple[int, str]:
 
 
 def test_cpp_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=True)
+    config = restart_config(tmp_path, persistence=True)
     server = serve(config)
     port = server.endpoint.rpartition(":")[2]
     probe = CppProbe(server.env("cwatcher", "vision"))
@@ -71,7 +49,7 @@ def test_cpp_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_p
         probe.ready()
         probe.ok("watch", "all", ALL_VISION)
         writer = server.connect("writer", "vision")
-        _write_until(writer, "a", 50)
+        write_until(writer, "a", 50)
         assert _revisions(probe, 50)[0] == list(range(1, 51))
         kill9(server)
         # While the server is away a C++ call fails promptly with a clear error; it does not hang.
@@ -79,7 +57,7 @@ def test_cpp_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_p
         err = probe.fails("UnavailableError", "get", COUNTER, "a-0", "-", timeout=40)
         assert "unavailable" in err["message"] and time.monotonic() - started < 35, err
         server = serve(config, listen=f"127.0.0.1:{port}")
-        _write_until(writer, "b", 50)
+        write_until(writer, "b", 50)
         top = writer.get_entry("b-49", Counter).revision
         revs, error = _revisions(probe, top, 30000)
         assert revs == list(range(1, top + 1)), "gap or duplicate"
@@ -97,7 +75,7 @@ def test_cpp_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_p
 
 
 def test_a_server_restarted_without_its_history_gives_cpp_the_resync_signal(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=False)
+    config = restart_config(tmp_path, persistence=False)
     server = serve(config)
     port = server.endpoint.rpartition(":")[2]
     probe = CppProbe(server.env("cwatcher", "vision"))
@@ -106,12 +84,12 @@ def test_a_server_restarted_without_its_history_gives_cpp_the_resync_signal(tmp_
         probe.ready()
         probe.ok("watch", "all", ALL_VISION)
         writer = server.connect("writer", "vision")
-        _write_until(writer, "a", 5)
+        write_until(writer, "a", 5)
         assert _revisions(probe, 5)[0] == [1, 2, 3, 4, 5]
         kill9(server)
         server = serve(config, listen=f"127.0.0.1:{port}")
         # The new server starts at revision 0 again: resuming at 6 would silently mix two histories.
-        _write_until(writer, "b", 10)
+        write_until(writer, "b", 10)
         deadline = time.monotonic() + 30
         while _revisions(probe, 0, 0)[1] == "" and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -163,11 +141,6 @@ def test_a_cut_connection_releases_cpp_locks_and_the_watch_catches_up(server: Se
 
 
 # ------------------------------------------------------------------ TLS
-
-
-@pytest.fixture
-def pki(tmp_path: Path) -> dict[str, Path]:
-    return make_pki(tmp_path)
 
 
 def _run_probe(env: dict[str, str], commands: list[str]) -> tuple[int, str]:

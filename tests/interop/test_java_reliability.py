@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import pytest
 import yaml
 from cast_testing_pb2 import Counter
 
@@ -17,31 +16,11 @@ from cast.core.records import Identity
 from cast.v1 import directory_pb2
 from tests.conftest import ServerHandle
 from tests.interop.java_support import TEST_CLASSES, CastRun, JavaComponent, counter_json
-from tests.reliability.certs import make_pki
-from tests.reliability.conftest import kill9, serve, serve_tls, wait_for, write_config
+from tests.interop.restart_support import restart_config, write_until
+from tests.reliability.conftest import kill9, serve, serve_tls, wait_for
 from tests.reliability.proxy import Proxy
 
 VISION = [{"kind": "operation", "sa": "vision"}]
-
-
-def _config(tmp: Path, persistence: bool) -> Path:
-    config: dict[str, Any] = {"system": "rc", "subarchitectures": {"vision": {}, "language": {}}}
-    if persistence:
-        config["persistence"] = {"path": str(tmp / "wm.db"), "durability": "batch"}
-    return write_config(tmp / "system.yaml", config)
-
-
-def _write_until(c: Any, prefix: str, n: int) -> None:
-    """Write n entries, retrying those refused while the server is away."""
-    for i in range(n):
-        while True:
-            try:
-                c.add(f"{prefix}-{i}", Counter(value=i))
-                break
-            except cast.UnavailableError:
-                time.sleep(0.05)
-            except cast.AlreadyExistsError:
-                break  # applied before the connection broke, acknowledgement lost
 
 
 def _revisions(jc: JavaComponent, watch: int, count: int, timeout_ms: int = 20000) -> list[int]:
@@ -62,7 +41,7 @@ def _info(handle: ServerHandle, component: str) -> Any:
 
 
 def test_java_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=True)
+    config = restart_config(tmp_path, persistence=True)
     server = serve(config)
     port = server.endpoint.rpartition(":")[2]
     jc = JavaComponent(server.env("jwatcher", "vision"))
@@ -71,7 +50,7 @@ def test_java_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_
         jc.ready()
         watch = jc.ok("watch", filters=VISION)["watch"]
         writer = server.connect("writer", "vision")
-        _write_until(writer, "a", 50)
+        write_until(writer, "a", 50)
         assert _revisions(jc, watch, 50) == list(range(1, 51))
         kill9(server)
         # While the server is away a call fails promptly with a clear error; it does not hang.
@@ -80,7 +59,7 @@ def test_java_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_
         assert "unavailable" in err["message"] and "retry" in err["message"], err
         assert time.monotonic() - started < 25
         server = serve(config, listen=f"127.0.0.1:{port}")
-        _write_until(writer, "b", 50)
+        write_until(writer, "b", 50)
         top = writer.get_entry("b-49", Counter).revision
         revs = _revisions(jc, watch, top)
         assert revs == list(range(1, top + 1)), "gap or duplicate"
@@ -99,7 +78,7 @@ def test_java_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_
 
 
 def test_a_server_restarted_without_its_history_gives_java_the_resync_signal(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=False)
+    config = restart_config(tmp_path, persistence=False)
     server = serve(config)
     port = server.endpoint.rpartition(":")[2]
     jc = JavaComponent(server.env("jwatcher", "vision"))
@@ -108,12 +87,12 @@ def test_a_server_restarted_without_its_history_gives_java_the_resync_signal(tmp
         jc.ready()
         watch = jc.ok("watch", filters=VISION)["watch"]
         writer = server.connect("writer", "vision")
-        _write_until(writer, "a", 5)
+        write_until(writer, "a", 5)
         assert _revisions(jc, watch, 5) == [1, 2, 3, 4, 5]
         kill9(server)
         server = serve(config, listen=f"127.0.0.1:{port}")
         # The new server starts at revision 0 again: resuming at 6 would silently mix two histories.
-        _write_until(writer, "b", 10)
+        write_until(writer, "b", 10)
         failed = jc.wait_event("watch_failed", timeout=30)
         assert failed["error"] == "HistoryExpiredError", failed
         assert "resynchronise" in failed["message"], failed
@@ -166,11 +145,6 @@ def test_a_cut_connection_releases_java_locks_and_the_watch_catches_up(server: S
 
 
 # ------------------------------------------------------------------ TLS
-
-
-@pytest.fixture
-def pki(tmp_path: Path) -> dict[str, Path]:
-    return make_pki(tmp_path)
 
 
 def _run(env: dict[str, str], commands: list[dict[str, Any]]) -> tuple[int, list[dict[str, Any]], str]:

@@ -17,13 +17,7 @@ from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.v1 import directory_pb2, directory_pb2_grpc
 from tests.conftest import PYTHONPATH, ServerHandle
-from tests.reliability.certs import make_pki
 from tests.reliability.conftest import serve_tls
-
-
-@pytest.fixture
-def pki(tmp_path: Path) -> dict[str, Path]:
-    return make_pki(tmp_path)
 
 
 def _connect(handle: ServerHandle, tls: ClientTls | None, component: str = "c") -> cast.UnmanagedComponent:

@@ -8,7 +8,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from cast_testing_pb2 import Counter
 
 import cast
@@ -18,13 +17,7 @@ from cast.core.records import Identity
 from tests.conftest import PYTHONPATH, SECRET, ServerHandle
 from tests.orchestrator.conftest import CAST, COMPONENTS, start_cast_run, wait_for
 from tests.orchestrator.conftest import write_config as write_orch_config  # puts the test components on python_path
-from tests.reliability.certs import make_pki
 from tests.reliability.conftest import serve_tls
-
-
-@pytest.fixture
-def pki(tmp_path: Path) -> dict[str, Path]:
-    return make_pki(tmp_path)
 
 
 def _tool(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
