@@ -126,6 +126,7 @@ class SystemClient:
         self.timeout = timeout
         self.tls = tls
         self._credentials = tls.credentials() if tls is not None else None
+        self._options = [*CHANNEL_OPTIONS, *(tls.channel_options() if tls is not None else [])]
         self._servers: dict[str, ServerStubs] = {}
         self.directory = self._stubs(endpoint)
         self.system = self.call(self.directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
@@ -133,11 +134,10 @@ class SystemClient:
     def _stubs(self, endpoint: str) -> ServerStubs:
         stubs = self._servers.get(endpoint)
         if stubs is None:
-            if self.tls is None or self._credentials is None:
-                channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+            if self._credentials is None:
+                channel = grpc.insecure_channel(endpoint, options=self._options)
             else:
-                options = [*CHANNEL_OPTIONS, *self.tls.channel_options()]
-                channel = grpc.secure_channel(endpoint, self._credentials, options=options)
+                channel = grpc.secure_channel(endpoint, self._credentials, options=self._options)
             stubs = ServerStubs(
                 endpoint, channel, wm_grpc.WorkingMemoryStub(channel), tm_grpc.TaskManagerStub(channel),
                 dir_grpc.DirectoryStub(channel), insp_grpc.InspectionStub(channel),
