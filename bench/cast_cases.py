@@ -97,14 +97,13 @@ def m1_interleaved(server: Server, echo: EchoFloor, n: int, block: int = 100, pr
     }
     seconds = {"echo": 0.0, **dict.fromkeys(ops, 0.0)}
     for start_i in range(0, n, block):
-        span = ids[start_i:min(n, start_i + block)]
+        span = ids[start_i : min(n, start_i + block)]
         for name, op in ops.items():
             floor, ours = _after_floor_block(echo, span, op)
             seconds["echo"] += floor
             seconds[name] += ours
     c._cast_close()
-    return {"echo_per_s": round(n * len(ops) / seconds["echo"]),
-            **{f"{k}_per_s": round(n / seconds[k]) for k in ops}}
+    return {"echo_per_s": round(n * len(ops) / seconds["echo"]), **{f"{k}_per_s": round(n / seconds[k]) for k in ops}}
 
 
 def _after_floor_block(echo: EchoFloor, items: list[str], op: Callable[[str], object]) -> tuple[float, float]:
@@ -167,6 +166,7 @@ def m3_latency(server: Server, n: int, gap_s: float = GAP_S) -> dict[str, Any]:
         t0 = time.perf_counter()
         sent[writer.overwrite("lat", VALUE).revision] = t0
     out, _ = watcher.communicate(timeout=120)
+    writer.delete("lat")  # so that another run on this server (M7's) can add it again
     writer._cast_close()
     arrived = {int(k): v for k, v in json.loads(out.strip().splitlines()[-1]).items()}
     samples = [(arrived[r] - t0) * 1e6 for r, t0 in sent.items() if r in arrived and r != first]

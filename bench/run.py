@@ -92,8 +92,13 @@ def main(argv: list[str] | None = None) -> int:
     r1 = stalled_watcher.run(work / "stalled", stalled_events, 500 if q else 2000, rounds)
     log("M7 C++ and Java clients")
     m7 = other_clients.run(
-        work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"], rounds=rounds,
-        jit_warm=5000 if q else 20_000, log=log,
+        work / "m7",
+        n,
+        python_add_per_s=m1["add_per_s"],
+        python_latency_p50=m3["p50_us"],
+        rounds=rounds,
+        jit_warm=5000 if q else 20_000,
+        log=log,
     )
     m7_samples: dict[str, list[float]] = m7.pop("samples_us", {})
 
@@ -177,8 +182,9 @@ def main(argv: list[str] | None = None) -> int:
                 _fig("get_all of 10 p50 (ms)", m6["get_all_10_p50_ms"]),
                 _fig("Add/s at 1k entries", m6["add_per_s_at_small"]),
                 _fig(f"Add/s at {m6['entries']:,} entries", m6["add_per_s_at_full"], floor=m6["add_per_s_at_small"]),
-                _fig("Add at full size / at 1k, each relative to the echo floor measured with it",
-                     m6["add_rate_ratio"]),
+                _fig(
+                    "Add at full size / at 1k, each relative to the echo floor measured with it", m6["add_rate_ratio"]
+                ),
             ],
             "met": m6["server_rss_mib"] <= 1024 and m6["get_all_10_p50_ms"] <= 2 and m6["add_rate_ratio"] >= 0.85,
         },
@@ -189,10 +195,12 @@ def main(argv: list[str] | None = None) -> int:
             "against the same writes with no watcher",
             "target": "writers slowed by at most 20% (>= 0.8 x the rate without the watcher)",
             "figures": [
-                _fig("Batch of 1,000 overwrites, events/s", r1["batch_events_per_s_with"],
-                     floor=r1["batch_events_per_s_without"]),
-                _fig("sequential Overwrite calls/s", r1["sequential_per_s_with"],
-                     floor=r1["sequential_per_s_without"]),
+                _fig(
+                    "Batch of 1,000 overwrites, events/s",
+                    r1["batch_events_per_s_with"],
+                    floor=r1["batch_events_per_s_without"],
+                ),
+                _fig("sequential Overwrite calls/s", r1["sequential_per_s_with"], floor=r1["sequential_per_s_without"]),
             ],
             "met": r1["batch_ratio"] >= 0.8 and r1["sequential_ratio"] >= 0.8,
         },

@@ -39,8 +39,12 @@ class _Writer:
         self.stub, self.md = stub, md
         self.value = any_pb2.Any()
         self.value.Pack(Int64Value(value=7))
-        ops = [working_memory_pb2.BatchOperation(overwrite=working_memory_pb2.OverwriteRequest(
-            address=_address(i), value=self.value)) for i in range(BATCH)]
+        ops = [
+            working_memory_pb2.BatchOperation(
+                overwrite=working_memory_pb2.OverwriteRequest(address=_address(i), value=self.value)
+            )
+            for i in range(BATCH)
+        ]
         self.batch = working_memory_pb2.BatchRequest(operations=ops)
         self.single = [working_memory_pb2.OverwriteRequest(address=_address(i), value=self.value) for i in range(IDS)]
 
@@ -68,8 +72,11 @@ class _StalledWatcher:
         next(self.stream)  # WatchCreated; from here on the watcher reads nothing
 
     def _requests(self) -> Iterator[working_memory_pb2.WatchRequest]:
-        yield working_memory_pb2.WatchRequest(create=working_memory_pb2.WatchCreate(
-            watch_id=1, filters=[entry_pb2.ChangeFilter(subarchitecture="stall", include_entry=True)]))
+        yield working_memory_pb2.WatchRequest(
+            create=working_memory_pb2.WatchCreate(
+                watch_id=1, filters=[entry_pb2.ChangeFilter(subarchitecture="stall", include_entry=True)]
+            )
+        )
         self._release.wait()
 
     def close(self) -> None:

@@ -7,6 +7,11 @@
 //   cast_bench add N            200 warm-up adds, then N sequential adds of a
 //                               100-byte google.protobuf.BytesValue; prints
 //                               {"calls": N, "seconds": S, "per_s": R}
+//   cast_bench blocks WARM      WARM warm-up adds, then prints "ready" and reads
+//                               stdin: for each line B, B sequential adds, then
+//                               one line with the seconds they took; ends at EOF
+//                               (bench/other_clients.py interleaves these blocks
+//                               with the other languages')
 //   cast_bench watch N          onChange(addressFilter("lat")) in its SA; prints
 //                               "ready" once the watch is confirmed, then after N
 //                               events {"REVISION": NS, ...}, NS the
@@ -30,6 +35,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "cast/cast.h"
 
@@ -75,6 +81,26 @@ int addMode(cast::Component& c, long n, long warm) {
   return 0;
 }
 
+int blocksMode(cast::Component& c, long warm) {
+  const auto value = value100();
+  long next = 0;
+  auto id = [&] { return c.componentId() + "-" + std::to_string(next++); };
+  for (long i = 0; i < warm; ++i) c.add(id(), value);
+  std::cout << "ready" << std::endl;
+  std::string line;
+  while (std::getline(std::cin, line)) {
+    const long b = std::strtol(line.c_str(), nullptr, 10);
+    // Ids made before the clock starts, so only the calls are timed.
+    std::vector<std::string> ids;
+    ids.reserve(static_cast<std::size_t>(b));
+    for (long i = 0; i < b; ++i) ids.push_back(id());
+    const auto start = Clock::now();
+    for (const auto& entryId : ids) c.add(entryId, value);
+    std::cout << std::chrono::duration<double>(Clock::now() - start).count() << std::endl;
+  }
+  return 0;
+}
+
 int watchMode(cast::Component& c, long n) {
   std::mutex mu;
   std::condition_variable done;
@@ -108,7 +134,7 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 }
 
 int usage() {
-  std::cerr << "usage: cast_bench add N | watch N | write N GAP_MS (with the CAST_* launch environment)\n";
+  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS (with the CAST_* launch environment)\n";
   return 2;
 }
 
@@ -125,6 +151,7 @@ int main(int argc, char** argv) {
     component.bind(contract.connect());
     int code;
     if (mode == "add") code = addMode(component, n, argc > 3 ? std::strtol(argv[3], nullptr, 10) : 200);
+    else if (mode == "blocks") code = blocksMode(component, n);
     else if (mode == "watch") code = watchMode(component, n);
     else if (mode == "write")
       code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);

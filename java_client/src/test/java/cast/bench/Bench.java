@@ -6,6 +6,10 @@ import cast.client.Runner;
 import cast.client.UnmanagedComponent;
 import com.google.protobuf.ByteString;
 import com.google.protobuf.BytesValue;
+import java.io.BufferedReader;
+import java.io.IOException;
+import java.io.InputStreamReader;
+import java.nio.charset.StandardCharsets;
 import java.util.ArrayList;
 import java.util.List;
 import java.util.Map;
@@ -25,6 +29,9 @@ import java.util.concurrent.TimeUnit;
  * <ul>
  *   <li>{@code add N}: 200 warm-up adds, then N sequential adds of a 100-byte
  *       google.protobuf.BytesValue; prints {"calls": N, "seconds": S, "per_s": R}.
+ *   <li>{@code blocks WARM}: WARM warm-up adds, then prints "ready" and reads stdin: for
+ *       each line B, B sequential adds, then one line with the seconds they took; ends at
+ *       EOF (bench/other_clients.py interleaves these blocks with the other languages').
  *   <li>{@code watch N}: onChange(addressFilter("lat")) in its SA; prints "ready" once
  *       the watch is confirmed, then after N events {"REVISION": NS, ...}, NS the
  *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
@@ -44,7 +51,7 @@ public final class Bench {
 
   public static void main(String[] argv) throws Exception {
     if (argv.length < 2 || (argv[0].equals("write") && argv.length < 3)) {
-      System.err.println("usage: Bench add N | watch N | write N GAP_MS (with the CAST_* launch environment)");
+      System.err.println("usage: Bench add N | blocks WARM | watch N | write N GAP_MS (with the CAST_* launch environment)");
       System.exit(2);
     }
     int n = Integer.parseInt(argv[1]);
@@ -52,6 +59,7 @@ public final class Bench {
     try {
       switch (argv[0]) {
         case "add" -> add(c, n, argv.length > 2 ? Integer.parseInt(argv[2]) : 200);
+        case "blocks" -> blocks(c, n);
         case "watch" -> watch(c, n);
         case "write" -> write(c, n, Long.parseLong(argv[2]), argv.length > 3 ? Integer.parseInt(argv[3]) : 0);
         default -> {
@@ -80,6 +88,30 @@ public final class Bench {
     }
     double seconds = (System.nanoTime() - start) / 1e9;
     System.out.println("{\"calls\": " + n + ", \"seconds\": " + seconds + ", \"per_s\": " + n / seconds + "}");
+  }
+
+  private static void blocks(Component c, int warm) throws IOException {
+    long next = 0;
+    for (int i = 0; i < warm; i++) {
+      c.add(c.componentId() + "-" + next++, VALUE);
+    }
+    System.out.println("ready");
+    System.out.flush();
+    BufferedReader in = new BufferedReader(new InputStreamReader(System.in, StandardCharsets.UTF_8));
+    for (String line = in.readLine(); line != null; line = in.readLine()) {
+      int b = Integer.parseInt(line.trim());
+      // Ids made before the clock starts, so only the calls are timed.
+      List<String> ids = new ArrayList<>(b);
+      for (int i = 0; i < b; i++) {
+        ids.add(c.componentId() + "-" + next++);
+      }
+      long start = System.nanoTime();
+      for (String id : ids) {
+        c.add(id, VALUE);
+      }
+      System.out.println((System.nanoTime() - start) / 1e9);
+      System.out.flush();
+    }
   }
 
   private static void watch(Component c, int n) throws InterruptedException {
