@@ -31,5 +31,10 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     m7 = doc["results"]["M7"]
     names = {f["name"] for f in m7["figures"]}
     assert {"C++ Add (calls/s)", "Java Add (calls/s)"} <= names, m7.get("note")
+    # Java's steady-state Add comes from the interleaved blocks (cast.bench.Bench's `blocks` mode).
+    assert any(n.startswith("Java Add after") and n.endswith("judged") for n in names), names
+    # M5 measures its floor (the dispatcher's handoff alone) with it.
+    m5_first = doc["results"]["M5"]["figures"][0]
+    assert m5_first["name"] == "add -> callback p50 (µs)" and m5_first["floor"] > 0, m5_first
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"
