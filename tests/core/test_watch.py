@@ -63,6 +63,26 @@ def test_a_new_watch_sees_only_later_changes_unless_it_resumes() -> None:
     assert [(m.event.id, m.watch_ids) for m in replay] == [("old", [2]), ("new", [2])]
 
 
+def test_watches_added_and_cancelled_between_polls_take_effect_at_the_next_poll() -> None:
+    # poll keeps an index of the watches per WM; adding or cancelling one must refresh it.
+    host, sub, _ = make()
+    sub.add_watch(1, [EventFilter(subarchitecture="vision")])
+    host.add(V, "vision", "a", "t.T", b"")
+    assert [(m.event.id, m.watch_ids) for m in sub.poll()] == [("a", [1])]
+    sub.add_watch(2, [EventFilter(subarchitecture="language")])  # a WM no watch covered before
+    sub.add_watch(3, [EventFilter(subarchitecture="vision")])
+    host.add(L, "language", "b", "t.T", b"")
+    host.add(V, "vision", "c", "t.T", b"")
+    assert [(m.event.id, m.watch_ids) for m in sub.poll()] == [("b", [2]), ("c", [1, 3])]
+    assert sub.cancel(1) and sub.cancel(2)
+    host.add(L, "language", "d", "t.T", b"")
+    host.add(V, "vision", "e", "t.T", b"")
+    assert [(m.event.id, m.watch_ids) for m in sub.poll()] == [("e", [3])]
+    assert sub.cancel(3)
+    host.add(V, "vision", "f", "t.T", b"")
+    assert sub.poll() == []
+
+
 def test_resume_older_than_history_is_refused_with_resync_advice() -> None:
     host, sub, _ = make(Limits(history_events=4))
     for i in range(10):

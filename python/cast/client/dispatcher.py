@@ -25,7 +25,12 @@ class Dispatcher:
     def __init__(self, name: str, capacity: int = 10_000) -> None:
         self._queue: queue.SimpleQueue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name=f"cast-dispatch-{name}", daemon=True)
-        self._idle = threading.Condition()
+        # A plain lock, taken directly on the common paths: the writer submits and
+        # the dispatcher thread finishes a callback at nearly the same moment for
+        # every event, and each extra step under the lock widens that meeting.
+        self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)
+        self._waiters = 0  # threads in _idle.wait_for (blocked submitters, drain); under _lock
         self._pending = 0
         self.capacity = capacity
         self.on_space: Callable[[], None] | None = None
@@ -34,7 +39,10 @@ class Dispatcher:
 
     def room(self) -> int:
         """How many more calls fit before the queue is full."""
-        with self._idle:
+        room = self.capacity - self._pending  # read without the lock: a budget, stale by at most a few calls
+        if room > 0:
+            return room
+        with self._lock:  # full: flag it under the lock, so the dispatcher thread sees it when it frees room
             room = self.capacity - self._pending
             if room <= 0:
                 self._was_full = True
@@ -47,12 +55,20 @@ class Dispatcher:
 
     def submit(self, fn: Callable[..., object], *args: object, block: bool = True) -> None:
         """Queue ``fn(*args)``; with ``block``, first wait while the queue is full."""
-        with self._idle:
+        with self._lock:
             if block and self._pending >= self.capacity and threading.current_thread() is not self._thread:
                 self._was_full = True
-                self._idle.wait_for(lambda: self._pending < self.capacity)
+                self._wait_for(lambda: self._pending < self.capacity)
             self._pending += 1
         self._queue.put((fn, args))
+
+    def _wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
+        # Called with _lock held.
+        self._waiters += 1
+        try:
+            return self._idle.wait_for(predicate, timeout)
+        finally:
+            self._waiters -= 1
 
     def _run(self) -> None:
         while True:
@@ -65,9 +81,10 @@ class Dispatcher:
             except Exception:
                 log.exception("callback %s failed", getattr(fn, "__qualname__", fn))
             finally:
-                with self._idle:
+                with self._lock:
                     self._pending -= 1
-                    self._idle.notify_all()
+                    if self._waiters:
+                        self._idle.notify_all()
                     resume = self._was_full and self._pending <= self.capacity // 2
                     if resume:
                         self._was_full = False
@@ -76,8 +93,8 @@ class Dispatcher:
 
     def drain(self, timeout: float | None = None) -> bool:
         """Wait until every queued call has run; False on timeout."""
-        with self._idle:
-            return self._idle.wait_for(lambda: self._pending == 0, timeout)
+        with self._lock:
+            return self._wait_for(lambda: self._pending == 0, timeout)
 
     def stop(self, timeout: float | None = 5.0) -> None:
         """Run what is queued, then end the thread."""

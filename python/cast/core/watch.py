@@ -10,7 +10,7 @@ the order the host applied them.
 from __future__ import annotations
 
 import heapq
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from cast.core.host import MemoryHost
@@ -76,6 +76,9 @@ class Subscription:
         self._host = host
         self._wake = wake
         self._watches: dict[int, _Watch] = {}
+        # The watches of each WM, WMs in name order: poll runs on every write a consumer
+        # watches (on the writer's thread in process), watches change rarely.
+        self._by_sa: dict[str, list[_Watch]] | None = None
         self.behind = False  # the last poll stopped at its budget with events left
         host.add_listener(wake)
 
@@ -124,12 +127,14 @@ class Subscription:
             self._host.events_since(sa, start)  # raises HistoryExpiredError if too old
         nxt = {sa: starts.get(sa, revisions[sa] + 1) for sa in sas}
         self._watches[watch_id] = _Watch(watch_id, tuple(filters), frozenset(sas), nxt)
+        self._by_sa = None
         if starts:
             self._wake()  # history to replay
         return revisions
 
     def cancel(self, watch_id: int) -> bool:
         """Remove a watch; False if there was none with that id."""
+        self._by_sa = None
         return self._watches.pop(watch_id, None) is not None
 
     def poll(self, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
@@ -140,17 +145,17 @@ class Subscription:
         more is pending. HistoryExpiredError if a watch fell behind the history.
         """
         self.behind = False
-        if not self._watches:
-            return []
+        by_sa = self._by_sa
+        if by_sa is None:
+            by_sa = self._by_sa = self._index()
         per_sa: list[list[Match]] = []
         budget_events, budget_bytes = max_events, max_bytes
         exhausted = False
-        for sa in self._sas():
+        for sa, watches in by_sa.items():
             if exhausted:
                 self.behind = True  # conservative: a wake-up with nothing pending costs little
                 break
-            watches = [w for w in self._watches.values() if sa in w.sas]
-            start = min(w.next[sa] for w in watches)
+            start = watches[0].next[sa] if len(watches) == 1 else min(w.next[sa] for w in watches)
             events = self._host.events_since(sa, start)
             if not events:
                 continue
@@ -190,13 +195,14 @@ class Subscription:
         """Next revision per SA of every watch (for resuming elsewhere)."""
         return {wid: dict(w.next) for wid, w in self._watches.items()}
 
-    def _sas(self) -> Iterable[str]:
-        seen: set[str] = set()
+    def _index(self) -> dict[str, list[_Watch]]:
+        sas: set[str] = set()
         for w in self._watches.values():
-            seen |= w.sas
-        return sorted(seen)
+            sas |= w.sas
+        return {sa: [w for w in self._watches.values() if sa in w.sas] for sa in sorted(sas)}
 
     def close(self) -> None:
         """Stop being woken; drop every watch."""
         self._host.remove_listener(self._wake)
         self._watches.clear()
+        self._by_sa = None
