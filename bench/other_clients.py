@@ -171,10 +171,10 @@ class Blocks:
         self._errors.seek(0)
         return self._errors.read()[-800:]
 
-    def seconds(self, calls: int) -> float:
-        """Seconds that ``calls`` sequential adds took in the client process."""
+    def seconds(self, calls: int, warm: int = 0) -> float:
+        """Seconds that ``calls`` sequential adds took in the client process, after ``warm`` untimed ones."""
         assert self._proc.stdin is not None
-        self._proc.stdin.write(f"{calls}\n")
+        self._proc.stdin.write(f"{calls} {warm}\n")
         self._proc.stdin.flush()
         line = self._line()
         try:
@@ -203,8 +203,10 @@ class PythonBlocks:
         for _ in range(warm):
             self._c.add(f"m7-python-{next(self._counter)}", VALUE)
 
-    def seconds(self, calls: int) -> float:
-        """Seconds that ``calls`` sequential adds took."""
+    def seconds(self, calls: int, warm: int = 0) -> float:
+        """Seconds that ``calls`` sequential adds took, after ``warm`` untimed ones."""
+        for _ in range(warm):
+            self._c.add(f"m7-python-{next(self._counter)}", VALUE)
         ids = [f"m7-python-{next(self._counter)}" for _ in range(calls)]
         t0 = time.perf_counter()
         for entry_id in ids:
@@ -216,12 +218,18 @@ class PythonBlocks:
         self._c._cast_close()
 
 
-def interleaved_add_rates(clients: dict[str, Blocks | PythonBlocks], calls: int, block: int = 100) -> dict[str, float]:
+def interleaved_add_rates(
+    clients: dict[str, Blocks | PythonBlocks], calls: int, block: int = 100, warm: int = 20
+) -> dict[str, float]:
     """Sequential Add calls/s of each client, measured in blocks taken in turn.
 
     The order of the turn rotates every cycle, so each client follows each other
     one equally often; a change in the machine's speed, which between two runs of
     a few seconds each moves a rate by 10% or more here, hits every client alike.
+    Each block starts with ``warm`` untimed calls: a client whose process sat idle
+    while the others took their turns is slow for its first calls (grpcio's
+    Python client much more than gRPC C++: see docs/performance.md), and the
+    figure is the sequential rate, not the cost of waking up.
     """
     labels = list(clients)
     seconds = dict.fromkeys(labels, 0.0)
@@ -229,7 +237,7 @@ def interleaved_add_rates(clients: dict[str, Blocks | PythonBlocks], calls: int,
     for k in range(cycles):
         shift = k % len(labels)
         for label in labels[shift:] + labels[:shift]:
-            seconds[label] += clients[label].seconds(block)
+            seconds[label] += clients[label].seconds(block, warm)
     return {label: cycles * block / s for label, s in seconds.items()}
 
 

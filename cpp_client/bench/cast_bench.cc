@@ -8,8 +8,9 @@
 //                               100-byte google.protobuf.BytesValue; prints
 //                               {"calls": N, "seconds": S, "per_s": R}
 //   cast_bench blocks WARM      WARM warm-up adds, then prints "ready" and reads
-//                               stdin: for each line B, B sequential adds, then
-//                               one line with the seconds they took; ends at EOF
+//                               stdin: for each line "B W", W untimed adds, then
+//                               B sequential adds and one line with the seconds
+//                               they took; ends at EOF
 //                               (bench/other_clients.py interleaves these blocks
 //                               with the other languages')
 //   cast_bench watch N          onChange(addressFilter("lat")) in its SA; prints
@@ -89,7 +90,10 @@ int blocksMode(cast::Component& c, long warm) {
   std::cout << "ready" << std::endl;
   std::string line;
   while (std::getline(std::cin, line)) {
-    const long b = std::strtol(line.c_str(), nullptr, 10);
+    char* rest = nullptr;
+    const long b = std::strtol(line.c_str(), &rest, 10);
+    const long w = std::strtol(rest, nullptr, 10);  // 0 when the line has no second number
+    for (long i = 0; i < w; ++i) c.add(id(), value);
     // Ids made before the clock starts, so only the calls are timed.
     std::vector<std::string> ids;
     ids.reserve(static_cast<std::size_t>(b));

@@ -30,8 +30,9 @@ import java.util.concurrent.TimeUnit;
  *   <li>{@code add N}: 200 warm-up adds, then N sequential adds of a 100-byte
  *       google.protobuf.BytesValue; prints {"calls": N, "seconds": S, "per_s": R}.
  *   <li>{@code blocks WARM}: WARM warm-up adds, then prints "ready" and reads stdin: for
- *       each line B, B sequential adds, then one line with the seconds they took; ends at
- *       EOF (bench/other_clients.py interleaves these blocks with the other languages').
+ *       each line "B W", W untimed adds, then B sequential adds and one line with the seconds
+ *       they took; ends at EOF (bench/other_clients.py interleaves these blocks with the
+ *       other languages').
  *   <li>{@code watch N}: onChange(addressFilter("lat")) in its SA; prints "ready" once
  *       the watch is confirmed, then after N events {"REVISION": NS, ...}, NS the
  *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
@@ -99,7 +100,12 @@ public final class Bench {
     System.out.flush();
     BufferedReader in = new BufferedReader(new InputStreamReader(System.in, StandardCharsets.UTF_8));
     for (String line = in.readLine(); line != null; line = in.readLine()) {
-      int b = Integer.parseInt(line.trim());
+      String[] words = line.trim().split("\\s+");
+      int b = Integer.parseInt(words[0]);
+      int w = words.length > 1 ? Integer.parseInt(words[1]) : 0;
+      for (int i = 0; i < w; i++) {
+        c.add(c.componentId() + "-" + next++, VALUE);
+      }
       // Ids made before the clock starts, so only the calls are timed.
       List<String> ids = new ArrayList<>(b);
       for (int i = 0; i < b; i++) {
