@@ -1,10 +1,11 @@
-"""C++ and Python components in one system over a real server: reads, writes, watches, permissions, errors."""
+"""C++ and Python components in one system over a real server: reads, writes, watches, permissions, errors.
+
+The scenarios both probes can play are shared with Java (tests/interop/scenarios_interop.py)."""
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
 from typing import Any
 
 import grpc
@@ -14,126 +15,40 @@ from cast_testing_pb2 import Counter, Pose
 import cast
 from cast.errors import ConsistencyError, NotFoundError
 from cast.v1 import directory_pb2, directory_pb2_grpc
+from tests.interop import scenarios_interop as s
 from tests.interop.cpp_support import CppProbe
+from tests.interop.probes import counter_json
 
 COUNTER = "cast.testing.Counter"
 
 
-def counter_json(writer: str, value: int) -> dict[str, Any]:
-    """A Counter as protobuf JSON (int64 as a string)."""
-    return {"writer": writer, "value": str(value)}
+# Probes in their own language's commands, and behind the shared driver (for the shared scenarios).
+cpp = s.starter_fixture("cpp", raw=True)
+cpp_driver = s.starter_fixture("cpp")
 
 
-@pytest.fixture
-def cpp(server: Any) -> Iterator[Callable[..., CppProbe]]:
-    """Start cast_probe components on ``server``; all are killed at the end."""
-    started: list[CppProbe] = []
-
-    def start(component_id: str, sa: str = "vision", privileged: bool = False) -> CppProbe:
-        probe = CppProbe(server.env(component_id, sa, privileged))
-        started.append(probe)
-        assert probe.ready()["id"] == component_id
-        return probe
-
-    yield start
-    for probe in started:
-        probe.close()
+def test_cpp_writes_python_reads(server: Any, cpp_driver: s.Start) -> None:
+    s.probe_writes_python_reads(server, cpp_driver, "cwriter")
 
 
-def test_cpp_writes_python_reads(server: Any, cpp: Any) -> None:
-    c = cpp("cwriter")
-    for i in range(5):
-        r = c.ok("add", COUNTER, f"c{i}", "-", counter_json("cwriter", i))
-        assert r["version"] == 0
-    assert c.ok("overwrite", COUNTER, "c1", "-", 0, counter_json("cwriter", 100))["version"] == 1
-    c.fails("ConsistencyError", "overwrite", COUNTER, "c1", "-", 0, counter_json("cwriter", 101))
-    c.ok("delete", "c4", "-", 0)
-    c.ok("add", "Pose", "p", "-", {"x": 1.5, "y": -2.0, "label": "gauche ü", "tags": ["a", "é"]})
-
-    py = server.connect("pyreader", "vision")
-    try:
-        assert py.get("c0", Counter) == Counter(writer="cwriter", value=0)
-        entry = py.get_entry("c1", Counter)
-        assert entry.value == Counter(writer="cwriter", value=100)
-        assert entry.version == 1
-        assert entry.author == "cwriter"
-        assert not py.exists("c4")
-        assert [e.id for e in py.get_all(Counter)] == ["c1", "c3", "c2", "c0"]  # newest first
-        assert py.get("p", Pose) == Pose(x=1.5, y=-2.0, label="gauche ü", tags=["a", "é"])
-    finally:
-        py._cast_close()
-
-    # The C++ client registered the schemas of what it wrote, so tools render them as JSON.
-    with grpc.insecure_channel(server.endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
-        for type_name in ("cast.testing.Counter", "cast.testing.Pose"):
-            schema = stub.GetSchema(directory_pb2.GetSchemaRequest(type=type_name), metadata=md)
-            assert [f.name for f in schema.files.file] == ["cast_testing.proto"]
-    assert c.quit() == 0
-
-
-def test_python_writes_cpp_reads(server: Any, cpp: Any) -> None:
-    py = server.connect("pywriter", "language")
-    try:
-        py.add("a", Counter(writer="pywriter", value=-(2**63)))
-        py.add("b", Counter(writer="pywriter", value=2**63 - 1))
-        py.overwrite("b", Counter(writer="pywriter", value=7), expected_version=0)
-        py.add("pose", Pose(x=0.25, label="ünïcödé", tags=["x"]))
-    finally:
-        py._cast_close()
-    c = cpp("creader", "vision")
-    r = c.ok("get", COUNTER, "a", "language")
-    assert r["value"] == counter_json("pywriter", -(2**63))
-    assert r["author"] == "pywriter" and r["version"] == 0
-    r = c.ok("get", COUNTER, "b", "language")
-    assert r["value"] == counter_json("pywriter", 7) and r["version"] == 1
-    assert c.ok("get", "Pose", "pose", "language")["value"] == {"x": 0.25, "label": "ünïcödé", "tags": ["x"]}
-    entries = c.ok("getall", COUNTER, "language", 0)["entries"]
-    assert [e["id"] for e in entries] == ["b", "a"]
-    assert [e["id"] for e in c.ok("getall", COUNTER, "language", 1)["entries"]] == ["b"]
-    assert c.ok("exists", "a", "language") == {"exists": True}
-    assert c.ok("exists", "a", "-") == {"exists": False}
-    # The C++ reader decodes with the class it asks for, and says so when it is the wrong one.
-    err = c.fails("InvalidArgumentError", "get", "Pose", "a", "language")
+def test_python_writes_cpp_reads(server: Any, cpp_driver: s.Start) -> None:
+    c = s.python_writes_probe_reads(server, cpp_driver, "creader")
+    assert isinstance(c, CppProbe)
+    # Only the C++ probe takes a limit on type reads, and reads a Counter as a Pose on request.
+    assert [e["id"] for e in CppProbe.ok(c, "getall", COUNTER, "language", 1)["entries"]] == ["b"]
+    err = CppProbe.fails(c, "InvalidArgumentError", "get", "Pose", "a", "language")
     assert err["message"] == (
         "entry 'a' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class"
     )
     assert c.quit() == 0
 
 
-def test_errors_reach_cpp_by_name(server: Any, cpp: Any) -> None:
-    c = cpp("cerr", "vision")
-    c.ok("add", COUNTER, "x", "-", counter_json("cerr", 1))
-    assert "already exists" in c.fails("AlreadyExistsError", "add", COUNTER, "x", "-", {})["message"]
-    assert c.fails("NotFoundError", "get", COUNTER, "nope", "-")["code"] == "NOT_FOUND"
-    assert c.fails("NotFoundError", "overwrite", COUNTER, "nope", "-", "-", {})["code"] == "NOT_FOUND"
-    assert c.fails("ConsistencyError", "delete", "x", "-", 3)["code"] == "ABORTED"
-    missing_sa = c.fails("NotFoundError", "get", COUNTER, "x", "atlantis")
-    assert "atlantis" in missing_sa["message"] and "vision" in missing_sa["message"], missing_sa
-    c.fails("InvalidArgumentError", "add", COUNTER, "", "-", {})  # ids are 1 to 256 bytes
-    c.fails("LockedError", "unlock", "x", "-")  # not held
-    assert c.quit() == 0
+def test_errors_reach_cpp_by_name(cpp_driver: s.Start) -> None:
+    s.errors_reach_the_probe_by_name(cpp_driver, "cerr")
 
 
-def test_unprivileged_cross_sa_write_is_refused(server: Any, cpp: Any) -> None:
-    c = cpp("cvision", "vision")
-    err = c.fails("PermissionDeniedError", "add", COUNTER, "goal", "language", counter_json("cvision", 1))
-    assert err["code"] == "PERMISSION_DENIED"
-    # The message names the component, its SA and the target SA.
-    for word in ("cvision", "vision", "language"):
-        assert word in err["message"], err
-    py = server.connect("pylang", "language")
-    try:
-        py.add("goal", Counter(writer="pylang", value=1))
-        c.fails("PermissionDeniedError", "overwrite", COUNTER, "goal", "language", "-", counter_json("cvision", 2))
-        c.fails("PermissionDeniedError", "delete", "goal", "language", "-")
-        assert py.get("goal", Counter).value == 1, "a refused write changes nothing"
-        # Reads are open to everyone.
-        assert c.ok("get", COUNTER, "goal", "language")["value"] == counter_json("pylang", 1)
-    finally:
-        py._cast_close()
-    assert c.quit() == 0
+def test_unprivileged_cross_sa_write_is_refused(server: Any, cpp_driver: s.Start) -> None:
+    s.unprivileged_cross_sa_write_is_refused(server, cpp_driver, "cvision")
 
 
 def test_privileged_cpp_component_writes_every_sa(server: Any, cpp: Any) -> None:

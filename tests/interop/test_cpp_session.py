@@ -11,22 +11,12 @@ from typing import Any
 
 import grpc
 import pytest
-import yaml
-from cast_testing_pb2 import Counter
 
 import cast
 from cast.v1 import directory_pb2, directory_pb2_grpc, task_manager_pb2, task_manager_pb2_grpc
 from tests.interop.cpp_support import CastRun, CppProbe, CppProcess, cpp_executable
-
-
-def wait_for(predicate: Any, timeout: float = 30.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    return None
+from tests.interop.restart_support import PyWorker, holder_config, readable
+from tests.interop.restart_support import eventually as wait_for
 
 
 def components(endpoint: str, token: str) -> dict[str, directory_pb2.ComponentInfo]:
@@ -43,26 +33,6 @@ def live_tasks(endpoint: str, token: str, sa: str) -> list[task_manager_pb2.Task
         resp = stub.ListTasks(task_manager_pb2.ListTasksRequest(subarchitecture=sa),
                               metadata=(("authorization", f"Bearer {token}"),))
     return list(resp.tasks)
-
-
-def readable(component: Any, entry_id: str) -> bool:
-    """Whether ``entry_id`` can be read (no other component holds an ODR lock on it)."""
-    try:
-        component.get(entry_id, Counter)
-    except cast.LockedError:
-        return False
-    return True
-
-
-class PyWorker(cast.ManagedComponent):
-    def __init__(self) -> None:
-        super().__init__()
-        self.adopted: list[cast.Task] = []
-        self.adopted_event = threading.Event()
-
-    def task_adopted(self, task: cast.Task) -> None:
-        self.adopted.append(task)
-        self.adopted_event.set()
 
 
 # ------------------------------------------------------------------ SIGKILL, server side
@@ -182,18 +152,10 @@ def test_help_needs_no_environment() -> None:
 
 def test_sigkilled_cpp_component_is_restarted_by_the_orchestrator(tmp_path: Path) -> None:
     cpp_executable("cast_test_tasker")  # fails the test if the C++ build is missing
-    config = tmp_path / "system.yaml"
-    config.write_text(yaml.safe_dump({
-        "system": "restart",
-        "subarchitectures": {"vision": {
-            "task_manager": {"policy": "fifo", "max_concurrent": 1},
-            "components": {"holder": {
-                "language": "cpp", "kind": "managed", "run": "cast_test_tasker",
-                "args": {"tasks": 1, "work_ms": 600000, "hold": "held", "prefix": "cpp-"},
-                "restart": {"policy": "on-failure", "backoff": 0.2},
-            }},
-        }},
-    }, sort_keys=False))
+    config = holder_config(tmp_path, {
+        "language": "cpp", "run": "cast_test_tasker",
+        "args": {"tasks": 1, "work_ms": 600000, "hold": "held", "prefix": "cpp-"},
+    })
     run = CastRun(config, tmp_path / "runtime")
     py = None
     try:

@@ -4,66 +4,32 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
-import time
 from pathlib import Path
 from typing import Any
 
-import yaml
 from cast_testing_pb2 import Counter
 
 import cast
 from cast.v1 import directory_pb2
 from tests.interop.java_support import TEST_CLASSES, CastRun, java_classpath
+from tests.interop.restart_support import PyWorker, holder_config, readable
+from tests.interop.restart_support import eventually as wait_for
 
 
 def components(run: CastRun) -> dict[str, directory_pb2.ComponentInfo]:
     return dict(run.components())
 
 
-def wait_for(predicate: Any, timeout: float = 30.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    return None
-
-
 def locked_by_other(component: Any) -> bool:
-    """Whether another component holds an ODR lock on "held" (a read probe: it takes no lock)."""
-    try:
-        component.get("held", Counter)
-    except cast.LockedError:
-        return True
-    return False
-
-
-class PyWorker(cast.ManagedComponent):
-    def __init__(self) -> None:
-        super().__init__()
-        self.adopted: list[cast.Task] = []
-        self.adopted_event = threading.Event()
-
-    def task_adopted(self, task: cast.Task) -> None:
-        self.adopted.append(task)
-        self.adopted_event.set()
+    """Whether another component holds an ODR lock on "held"."""
+    return not readable(component, "held")
 
 
 def test_sigkilled_java_component_releases_locks_and_tasks_and_is_restarted(tmp_path: Path) -> None:
     java_classpath()  # fails the test if the Java build is missing
-    config = tmp_path / "system.yaml"
-    config.write_text(yaml.safe_dump({
-        "system": "restart",
-        "subarchitectures": {"vision": {
-            "task_manager": {"policy": "fifo", "max_concurrent": 1},
-            "components": {"holder": {
-                "language": "java", "kind": "managed", "class": "cast.itest.Holder",
-                "classpath": [str(TEST_CLASSES)], "restart": {"policy": "on-failure", "backoff": 0.2},
-            }},
-        }},
-    }, sort_keys=False))
+    config = holder_config(tmp_path, {
+        "language": "java", "class": "cast.itest.Holder", "classpath": [str(TEST_CLASSES)],
+    })
     run = CastRun(config, tmp_path / "runtime", tmp_path)
     py = None
     try:
