@@ -269,14 +269,19 @@ def renewed_token_file_keeps_the_component_working(lang: str, server: ServerHand
     env.update(CAST_TOKEN=path.read_text().strip(), CAST_TOKEN_FILE=str(path))
     renewed = start(lang, env)
     fixed_env = server.env(fixed_id, "vision")
-    fixed_env["CAST_TOKEN"] = server.signer.issue(Identity(fixed_id, "vision"), ttl_seconds=2)
+    # Long enough for a JVM to start and make its first write on a loaded machine (2 s was not),
+    # short enough to run out within the test.
+    fixed_ttl = 6.0
+    fixed_expiry = time.time() + fixed_ttl
+    fixed_env["CAST_TOKEN"] = server.signer.issue(Identity(fixed_id, "vision"), ttl_seconds=fixed_ttl)
     fixed = start(lang, fixed_env)
     try:
         renewed.ready()
         fixed.ready()
         renewed.ok("add", id="r", type=COUNTER, value=counter_json(renewed_id, 0))
         fixed.ok("add", id="f", type=COUNTER, value=counter_json(fixed_id, 0))
-        deadline = time.monotonic() + 4.5  # well past the first tokens' expiry
+        # Well past the first renewed token's expiry and the fixed token's (whole seconds, rounded up).
+        deadline = time.monotonic() + max(4.5, fixed_expiry + 1.5 - time.time())
         i = 0
         while time.monotonic() < deadline:
             i += 1
