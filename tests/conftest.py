@@ -9,6 +9,7 @@ import sys
 import tempfile
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -176,3 +177,25 @@ def pki(tmp_path: Path) -> dict[str, Path]:
     from tests.reliability.certs import make_pki  # cryptography is needed only by the TLS tests
 
     return make_pki(tmp_path)
+
+
+@contextmanager
+def renewing_token_file(signer: TokenSigner, identity: Identity, path: Path, ttl: float = 2.0) -> Iterator[Path]:
+    """A token file for ``identity`` rewritten every 0.5 s with a fresh ``ttl``-second token, as the
+    orchestrator renews launched components' tokens (cast.orchestrator.security), until the block ends."""
+    path.write_text(signer.issue(identity, ttl_seconds=ttl))
+    stop = threading.Event()
+
+    def renewer() -> None:
+        while not stop.wait(0.5):
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(signer.issue(identity, ttl_seconds=ttl))
+            tmp.replace(path)  # readers see the old token or the new one, never half a file
+
+    thread = threading.Thread(target=renewer, daemon=True)
+    thread.start()
+    try:
+        yield path
+    finally:
+        stop.set()
+        thread.join(5)

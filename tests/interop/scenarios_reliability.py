@@ -4,7 +4,6 @@ through CAST_TOKEN_FILE. test_cpp_reliability.py and test_java_reliability.py ru
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,7 @@ from cast_testing_pb2 import Counter, Pose
 
 from cast.core.records import Identity
 from cast.v1 import directory_pb2
-from tests.conftest import ServerHandle
+from tests.conftest import ServerHandle, renewing_token_file
 from tests.interop.probes import COUNTER, DRIVERS, counter_json, local_type, run_script, start, vision_ops
 from tests.interop.restart_support import restart_config, write_until
 from tests.reliability.conftest import kill9, serve, serve_tls, wait_for
@@ -253,44 +252,34 @@ def renewed_token_file_keeps_the_component_working(lang: str, server: ServerHand
     """A component whose short-lived token is renewed through CAST_TOKEN_FILE keeps working past its
     expiry; one with a fixed token is refused once it has expired."""
     renewed_id, fixed_id = f"{prefix}renewed", f"{prefix}fixed"
-    identity = Identity(renewed_id, "vision")
-    path = tmp_path / f"{renewed_id}.token"
-    path.write_text(server.signer.issue(identity, ttl_seconds=2))
-    stop = threading.Event()
-
-    def renewer() -> None:  # what the orchestrator does (cast.orchestrator.security)
-        while not stop.wait(0.5):
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(server.signer.issue(identity, ttl_seconds=2))
-            tmp.replace(path)
-
-    threading.Thread(target=renewer, daemon=True).start()
-    env = server.env(renewed_id, "vision")
-    env.update(CAST_TOKEN=path.read_text().strip(), CAST_TOKEN_FILE=str(path))
-    renewed = start(lang, env)
-    fixed_env = server.env(fixed_id, "vision")
-    # Long enough for a JVM to start and make its first write on a loaded machine (2 s was not),
-    # short enough to run out within the test.
-    fixed_ttl = 6.0
-    fixed_expiry = time.time() + fixed_ttl
-    fixed_env["CAST_TOKEN"] = server.signer.issue(Identity(fixed_id, "vision"), ttl_seconds=fixed_ttl)
-    fixed = start(lang, fixed_env)
-    try:
-        renewed.ready()
-        fixed.ready()
-        renewed.ok("add", id="r", type=COUNTER, value=counter_json(renewed_id, 0))
-        fixed.ok("add", id="f", type=COUNTER, value=counter_json(fixed_id, 0))
-        # Well past the first renewed token's expiry and the fixed token's (whole seconds, rounded up).
-        deadline = time.monotonic() + max(4.5, fixed_expiry + 1.5 - time.time())
-        i = 0
-        while time.monotonic() < deadline:
-            i += 1
-            renewed.ok("overwrite", id="r", type=COUNTER, value=counter_json(renewed_id, i))
-            time.sleep(0.1)
-        err = fixed.fails("UnauthenticatedError", "overwrite", id="f", type=COUNTER, value=counter_json(fixed_id, 1))
-        assert "expired" in err["message"], err
-        assert renewed.quit() == 0
-    finally:
-        stop.set()
-        renewed.close()
-        fixed.close()
+    with renewing_token_file(server.signer, Identity(renewed_id, "vision"), tmp_path / f"{renewed_id}.token") as path:
+        env = server.env(renewed_id, "vision")
+        env.update(CAST_TOKEN=path.read_text().strip(), CAST_TOKEN_FILE=str(path))
+        renewed = start(lang, env)
+        fixed_env = server.env(fixed_id, "vision")
+        # Long enough for a JVM to start and make its first write on a loaded machine (2 s was not),
+        # short enough to run out within the test.
+        fixed_ttl = 6.0
+        fixed_expiry = time.time() + fixed_ttl
+        fixed_env["CAST_TOKEN"] = server.signer.issue(Identity(fixed_id, "vision"), ttl_seconds=fixed_ttl)
+        fixed = start(lang, fixed_env)
+        try:
+            renewed.ready()
+            fixed.ready()
+            renewed.ok("add", id="r", type=COUNTER, value=counter_json(renewed_id, 0))
+            fixed.ok("add", id="f", type=COUNTER, value=counter_json(fixed_id, 0))
+            # Well past the first renewed token's expiry and the fixed token's (whole seconds, rounded up).
+            deadline = time.monotonic() + max(4.5, fixed_expiry + 1.5 - time.time())
+            i = 0
+            while time.monotonic() < deadline:
+                i += 1
+                renewed.ok("overwrite", id="r", type=COUNTER, value=counter_json(renewed_id, i))
+                time.sleep(0.1)
+            err = fixed.fails(
+                "UnauthenticatedError", "overwrite", id="f", type=COUNTER, value=counter_json(fixed_id, 1)
+            )
+            assert "expired" in err["message"], err
+            assert renewed.quit() == 0
+        finally:
+            renewed.close()
+            fixed.close()

@@ -3,7 +3,6 @@ reads may be opened by configuration; expiring tokens are renewed by the orchest
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +27,7 @@ from cast.v1 import (
     working_memory_pb2,
     working_memory_pb2_grpc,
 )
-from tests.conftest import ServerHandle
+from tests.conftest import ServerHandle, renewing_token_file
 from tests.orchestrator.conftest import Embedded, embedded  # noqa: F401 - the fixture, used below
 from tests.orchestrator.conftest import write_config as write_orch_config
 from tests.reliability.conftest import wait_for
@@ -148,38 +147,26 @@ def test_an_expiring_token_renewed_through_its_file_keeps_the_component_working(
     server: ServerHandle, tmp_path: Path
 ) -> None:
     identity = Identity("renewed", "vision")
-    path = tmp_path / "renewed.token"
-    path.write_text(server.signer.issue(identity, ttl_seconds=2))
-    stop = threading.Event()
-
-    def renewer() -> None:  # what the orchestrator does (cast.orchestrator.security)
-        while not stop.wait(0.5):
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(server.signer.issue(identity, ttl_seconds=2))
-            tmp.replace(path)
-
-    threading.Thread(target=renewer, daemon=True).start()
-    renewed = cast.UnmanagedComponent()
-    renewed._cast_bind(GrpcTransport(server.endpoint, TokenSource(path.read_text(), path, 0.2), identity))
-    fixed = cast.UnmanagedComponent()
     fixed_id = Identity("fixed", "vision")
-    fixed._cast_bind(GrpcTransport(server.endpoint, server.signer.issue(fixed_id, ttl_seconds=2), fixed_id))
-    try:
-        renewed.add("r", Counter(value=0))
-        fixed.add("f", Counter(value=0))
-        deadline = time.monotonic() + 4.5  # well past the first tokens' expiry
-        i = 0
-        while time.monotonic() < deadline:
-            i += 1
-            renewed.overwrite("r", Counter(value=i))
-            time.sleep(0.1)
-        with pytest.raises(cast.UnauthenticatedError, match="expired"):
-            fixed.overwrite("f", Counter(value=1))
-    finally:
-        stop.set()
-        renewed._cast_close()
-        fixed._cast_close()
-
+    with renewing_token_file(server.signer, identity, tmp_path / "renewed.token") as path:
+        renewed = cast.UnmanagedComponent()
+        renewed._cast_bind(GrpcTransport(server.endpoint, TokenSource(path.read_text(), path, 0.2), identity))
+        fixed = cast.UnmanagedComponent()
+        fixed._cast_bind(GrpcTransport(server.endpoint, server.signer.issue(fixed_id, ttl_seconds=2), fixed_id))
+        try:
+            renewed.add("r", Counter(value=0))
+            fixed.add("f", Counter(value=0))
+            deadline = time.monotonic() + 4.5  # well past the first tokens' expiry
+            i = 0
+            while time.monotonic() < deadline:
+                i += 1
+                renewed.overwrite("r", Counter(value=i))
+                time.sleep(0.1)
+            with pytest.raises(cast.UnauthenticatedError, match="expired"):
+                fixed.overwrite("f", Counter(value=1))
+        finally:
+            renewed._cast_close()
+            fixed._cast_close()
 
 def test_the_orchestrator_renews_expiring_tokens_of_the_components_it_runs(
     tmp_path: Path, embedded: Any  # noqa: F811 - the fixture imported above
