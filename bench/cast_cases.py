@@ -264,31 +264,26 @@ def m5_in_process(n: int, block: int = 100) -> dict[str, Any]:
     arrived = threading.Event()
     stamp = [0.0]
 
-    def on_change(change: cast.WorkingMemoryChange) -> None:
+    def arrive() -> None:
         stamp[0] = time.perf_counter()
         arrived.set()
 
-    def bare() -> None:
-        stamp[0] = time.perf_counter()
-        arrived.set()
-
-    c.on_change(cast.local_type_filter(StringValue), on_change)
+    c.on_change(cast.local_type_filter(StringValue), lambda change: arrive())
     counter = iter(range(10**9))
     value = StringValue(value="x" * 100)
 
-    def add_to_callback() -> float:
+    def until_callback(begin: Callable[[], object]) -> float:
         arrived.clear()
         t0 = time.perf_counter()
-        c.add(f"e{next(counter)}", value)
+        begin()
         arrived.wait(10)
         return stamp[0] - t0
 
     def handoff() -> float:
-        arrived.clear()
-        t0 = time.perf_counter()
-        c._dispatcher.submit(bare)
-        arrived.wait(10)
-        return stamp[0] - t0
+        return until_callback(lambda: c._dispatcher.submit(arrive))
+
+    def add_to_callback() -> float:
+        return until_callback(lambda: c.add(f"e{next(counter)}", value))
 
     for _ in range(block):  # warm-up
         handoff()
