@@ -1,10 +1,16 @@
-"""One test body, two transports: remote over gRPC and in-process without gRPC."""
+"""One test body, two transports (remote over gRPC, in process without gRPC), two kinds of server.
+
+Each body runs against a memory-only server and against one whose journal
+writers wait for (``batch``), where a write becomes visible only once durable:
+the rules a component sees must not depend on either choice.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import threading
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -13,6 +19,7 @@ from cast.auth import TokenSigner
 from cast.client.component import Component
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.local_transport import LocalTransport
+from cast.core.journal import Journal
 from cast.core.policies import make_policy
 from cast.core.records import Identity, Limits
 from cast.core.system import System
@@ -48,21 +55,23 @@ class ThreadServer:
         self.thread.join(5)
 
 
-@pytest.fixture(params=["grpc", "in-process"])
-def make_component(request: pytest.FixtureRequest) -> Iterator[Factory]:
+@pytest.fixture(params=["grpc", "in-process", "grpc-journal", "in-process-journal"])
+def make_component(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Factory]:
     """``make_component(cls, id, sa, privileged=False)``: a bound component of class ``cls``."""
+    journal = Journal(tmp_path / "wm.db", "batch", 64) if request.param.endswith("-journal") else None
     system = System(
         "t",
         ["vision", "language"],
         {"vision": make_policy("fifo", {"max_concurrent": 1})},
         Limits(history_events=64),
+        journal=journal,
     )
     server = ThreadServer(system)
     made: list[Component] = []
 
     def make(cls: type[Component], component_id: str, sa: str = "vision", privileged: bool = False) -> Any:
         identity = Identity(component_id, sa, privileged)
-        if request.param == "grpc":
+        if request.param.startswith("grpc"):
             assert server.running is not None
             transport: Any = GrpcTransport(server.running.endpoint, server.signer.issue(identity), identity)
         else:
@@ -78,3 +87,4 @@ def make_component(request: pytest.FixtureRequest) -> Iterator[Factory]:
     for component in made:
         component._cast_close()
     server.stop()
+    system.close()

@@ -22,21 +22,24 @@ def wait_for(predicate: Any, timeout: float = 10.0) -> None:
 
 def test_write_read_and_versions(make_component: Any) -> None:
     c = make_component(cast.UnmanagedComponent, "c")
+    # A new journal starts versions at 0; a memory-only server at its epoch floor (cast.core.versions).
+    v0 = make_component.system.host.version_floor
+    assert (v0 == 0) == make_component.mode.endswith("-journal")
     entry_id = c.new_id()
-    assert c.add(entry_id, Pose(x=1, label="cup")) == cast.WriteResult(1, 0)
+    assert c.add(entry_id, Pose(x=1, label="cup")) == cast.WriteResult(1, v0)
     assert c.exists(entry_id)
-    assert c.overwrite(entry_id, Pose(x=2, label="cup")).version == 1
+    assert c.overwrite(entry_id, Pose(x=2, label="cup")).version == v0 + 1
     entry = c.get_entry(entry_id, Pose)
-    assert (entry.value.x, entry.version, entry.author, entry.address) == (2, 1, "c", (entry_id, "vision"))
-    with pytest.raises(cast.ConsistencyError, match="at version 1, expected 0"):
-        c.overwrite(entry_id, Pose(), expected_version=0)
+    assert (entry.value.x, entry.version, entry.author, entry.address) == (2, v0 + 1, "c", (entry_id, "vision"))
+    with pytest.raises(cast.ConsistencyError, match=f"at version {v0 + 1}, expected {v0}"):
+        c.overwrite(entry_id, Pose(), expected_version=v0)
     with pytest.raises(cast.AlreadyExistsError):
         c.add(entry_id, Pose())
-    assert c.delete_entry(entry_id, expected_version=1).version == 1
+    assert c.delete_entry(entry_id, expected_version=v0 + 1).version == v0 + 1
     assert not c.exists(entry_id)
     with pytest.raises(cast.NotFoundError):
         c.get(entry_id, Pose)
-    assert c.add(entry_id, Pose()).version == 2  # re-add continues
+    assert c.add(entry_id, Pose()).version == v0 + 2  # re-add continues
 
 
 def test_new_ids_are_unique(make_component: Any) -> None:
@@ -91,7 +94,8 @@ def test_batch(make_component: Any) -> None:
     results = c.batch(
         [("add", "a", Pose()), ("add", "b", Pose()), ("overwrite", "a", Pose(x=1)), ("delete", "b", None)]
     )
-    assert [r.version for r in results] == [0, 0, 1, 0]
+    v0 = make_component.system.host.version_floor
+    assert [r.version - v0 for r in results] == [0, 0, 1, 0]
     with pytest.raises(cast.AlreadyExistsError, match="batch operation 1"):
         c.batch([("add", "c", Pose()), ("add", "a", Pose())])
     assert not c.exists("c")

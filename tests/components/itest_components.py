@@ -16,15 +16,15 @@ class Writer(cast.UnmanagedComponent):
         self.count = int(args.get("count", 10))
 
     def run(self) -> None:
-        ids = []
+        added = []
         for i in range(self.count):
             entry_id = self.new_id()
-            ids.append(entry_id)
-            self.add(entry_id, Counter(writer=self.component_id, value=i))
-        for i, entry_id in enumerate(ids):
-            self.overwrite(entry_id, Counter(writer=self.component_id, value=i + 1000), expected_version=0)
+            added.append((entry_id, self.add(entry_id, Counter(writer=self.component_id, value=i)).version))
+        for i, (entry_id, version) in enumerate(added):
+            version = self.overwrite(entry_id, Counter(writer=self.component_id, value=i + 1000),
+                                     expected_version=version).version
             if i % 3 == 0:
-                self.delete(entry_id, expected_version=1)
+                self.delete(entry_id, expected_version=version)
         self.request_stop()
 
 

@@ -194,3 +194,31 @@ def test_batch_limit() -> None:
     ops = [BatchOp(Operation.ADD, "vision", f"e{i}", "t.T", b"") for i in range(4)]
     with pytest.raises(InvalidArgumentError, match="4 operations, over the limit of 3"):
         host.batch(A, ops)
+
+
+def test_a_version_floor_starts_every_entry_there_and_versions_go_on_from_it() -> None:
+    floor = 1_700_000_000_000_000
+    host = MemoryHost(["vision"], clock=lambda: (floor + 10_000) * 1000, version_floor=floor)
+    assert host.add(A, "vision", "x", "t.T", b"1").version == floor
+    assert host.overwrite(A, "vision", "x", "t.T", b"2").version == floor + 1
+    assert host.delete(A, "vision", "x").version == floor + 1
+    assert host.add(A, "vision", "x", "t.T", b"3").version == floor + 2  # re-add continues
+    # An entry restored from before the floor (a journal of an earlier run) jumps to it on its next write.
+    host.restore("vision", [], {"old": 7}, host.revision("vision"), [])
+    assert host.add(A, "vision", "old", "t.T", b"").version == floor
+
+
+def test_a_floored_version_may_not_outrun_the_clock_in_microseconds() -> None:
+    floor = 1_700_000_000_000_000
+    now_us = floor + 2
+    host = MemoryHost(["vision"], clock=lambda: now_us * 1000, version_floor=floor)
+    host.add(A, "vision", "x", "t.T", b"")
+    host.overwrite(A, "vision", "x", "t.T", b"")
+    host.overwrite(A, "vision", "x", "t.T", b"")  # version floor + 2 == now
+    before = snapshot(host)
+    with pytest.raises(ResourceExhaustedError, match="past the server's clock"):
+        host.overwrite(A, "vision", "x", "t.T", b"")
+    with pytest.raises(ResourceExhaustedError, match="batch operation 1: .*past the server's clock"):
+        host.batch(A, [BatchOp(Operation.ADD, "vision", "y", "t.T", b""),
+                       BatchOp(Operation.OVERWRITE, "vision", "x", "t.T", b"")])
+    assert snapshot(host) == before

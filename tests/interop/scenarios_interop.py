@@ -59,12 +59,17 @@ def starter_fixture(lang: str, raw: bool = False) -> Any:
 def probe_writes_python_reads(server: Any, start_ready: Start, writer: str) -> None:
     """Adds, a checked overwrite, a delete and a Pose written by the probe read back in Python."""
     c = start_ready(writer)
-    for i in range(5):
-        assert c.ok("add", id=f"c{i}", type=COUNTER, value=counter_json(writer, i))["version"] == 0
-    assert c.ok("overwrite", id="c1", type=COUNTER, value=counter_json(writer, 100), expected_version=0)["version"] == 1
+    # A memory-only server starts versions at its epoch floor (microseconds, past 2**50): the
+    # probe carries them as 64-bit numbers both ways.
+    v0 = c.ok("add", id="c0", type=COUNTER, value=counter_json(writer, 0))["version"]
+    assert v0 > 2**50
+    for i in range(1, 5):
+        assert c.ok("add", id=f"c{i}", type=COUNTER, value=counter_json(writer, i))["version"] == v0
+    assert c.ok("overwrite", id="c1", type=COUNTER, value=counter_json(writer, 100),
+                expected_version=v0)["version"] == v0 + 1
     c.fails("ConsistencyError", "overwrite", id="c1", type=COUNTER, value=counter_json(writer, 101),
-            expected_version=0)
-    c.ok("delete", id="c4", expected_version=0)
+            expected_version=v0)
+    c.ok("delete", id="c4", expected_version=v0)
     c.ok("add", id="p", type=POSE, value={"x": 1.5, "y": -2.0, "label": "gauche ü", "tags": ["a", "é"]})
 
     py = server.connect("pyreader", "vision")
@@ -72,7 +77,7 @@ def probe_writes_python_reads(server: Any, start_ready: Start, writer: str) -> N
         assert py.get("c0", Counter) == Counter(writer=writer, value=0)
         entry = py.get_entry("c1", Counter)
         assert entry.value == Counter(writer=writer, value=100)
-        assert entry.version == 1
+        assert entry.version == v0 + 1
         assert entry.author == writer
         assert not py.exists("c4")
         assert [e.id for e in py.get_all(Counter)] == ["c1", "c3", "c2", "c0"]  # newest first
@@ -97,18 +102,18 @@ def python_writes_probe_reads(server: Any, start_ready: Start, reader: str) -> D
     """
     py = server.connect("pywriter", "language")
     try:
-        py.add("a", Counter(writer="pywriter", value=-(2**63)))
-        py.add("b", Counter(writer="pywriter", value=2**63 - 1))
-        py.overwrite("b", Counter(writer="pywriter", value=7), expected_version=0)
+        a = py.add("a", Counter(writer="pywriter", value=-(2**63))).version
+        b = py.add("b", Counter(writer="pywriter", value=2**63 - 1)).version
+        py.overwrite("b", Counter(writer="pywriter", value=7), expected_version=b)
         py.add("pose", Pose(x=0.25, label="ünïcödé", tags=["x"]))
     finally:
         py._cast_close()
     c = start_ready(reader, "vision")
     r = c.ok("get", id="a", type=COUNTER, sa="language")
     assert r["value"] == counter_json("pywriter", -(2**63))
-    assert r["version"] == 0 and r["author"] == "pywriter" and r["type"] == COUNTER
+    assert r["version"] == a and r["author"] == "pywriter" and r["type"] == COUNTER
     r = c.ok("get", id="b", type=COUNTER, sa="language")
-    assert r["value"] == counter_json("pywriter", 7) and r["version"] == 1
+    assert r["value"] == counter_json("pywriter", 7) and r["version"] == b + 1
     assert c.ok("get", id="pose", type=POSE, sa="language")["value"] == {"x": 0.25, "label": "ünïcödé", "tags": ["x"]}
     assert [e["id"] for e in c.ok("get_all", type=COUNTER, sa="language")["entries"]] == ["b", "a"]
     assert c.ok("exists", id="a", sa="language")["exists"] is True

@@ -101,7 +101,7 @@ def test_a_token_of_a_cannot_touch_the_session_tasks_or_locks_of_b(server: Serve
         addr = entry_pb2.EntryAddress(id="doc", subarchitecture="vision")
         value = any_pb2.Any()
         value.Pack(Counter(value=1))
-        wmb.Add(working_memory_pb2.AddRequest(address=addr, value=value), metadata=mdb)
+        added = wmb.Add(working_memory_pb2.AddRequest(address=addr, value=value), metadata=mdb).version
         wmb.Lock(working_memory_pb2.LockRequest(address=addr, mode=LockMode.OD), metadata=mdb)
         fp = grpc.StatusCode.FAILED_PRECONDITION
         assert _code(wma.Unlock, working_memory_pb2.UnlockRequest(address=addr), metadata=mda) == fp
@@ -109,10 +109,10 @@ def test_a_token_of_a_cannot_touch_the_session_tasks_or_locks_of_b(server: Serve
         assert _code(wma.Delete, working_memory_pb2.DeleteRequest(address=addr), metadata=mda) == fp
         lock_req = working_memory_pb2.LockRequest(address=addr, mode=LockMode.O, no_wait=True)
         assert _code(wma.Lock, lock_req, metadata=mda) == fp
-        # Nothing changed: B still holds the lock at depth 1, the entry is at version 0.
+        # Nothing changed: B still holds the lock at depth 1, the entry is at the version it was added with.
         assert wmb.Unlock(working_memory_pb2.UnlockRequest(address=addr), metadata=mdb).depth == 0
         got = wmb.Get(working_memory_pb2.GetRequest(address=addr), metadata=mdb).entry
-        assert (got.version, got.author) == (0, "b")
+        assert (got.version, got.author) == (added, "b")
     finally:
         cha.close()
         chb.close()
@@ -130,8 +130,8 @@ def test_reads_without_a_token_when_the_configuration_opens_them(server_factory:
         value.Pack(Counter(value=3))
         assert _code(wm.Add, working_memory_pb2.AddRequest(address=addr, value=value)) == \
             grpc.StatusCode.UNAUTHENTICATED  # writes still need a token
-        wm.Add(working_memory_pb2.AddRequest(address=addr, value=value), metadata=md)
-        assert wm.Get(working_memory_pb2.GetRequest(address=addr)).entry.version == 0
+        added = wm.Add(working_memory_pb2.AddRequest(address=addr, value=value), metadata=md).version
+        assert wm.Get(working_memory_pb2.GetRequest(address=addr)).entry.version == added
         assert wm.Exists(working_memory_pb2.ExistsRequest(address=addr)).exists
         directory_pb2_grpc.DirectoryStub(ch).DescribeSystem(directory_pb2.DescribeSystemRequest())
         bad = (("authorization", "Bearer forged.token"),)

@@ -26,12 +26,12 @@ def _tool(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None
                           capture_output=True, text=True, timeout=60)
 
 
-def _write(handle: ServerHandle, tls: ClientTls, entry_id: str) -> None:
+def _write(handle: ServerHandle, tls: ClientTls, entry_id: str) -> int:
     writer = cast.UnmanagedComponent()
     writer._cast_bind(GrpcTransport(handle.endpoint, handle.token("writer", "vision"), Identity("writer", "vision"),
                                     5.0, tls))
     try:
-        writer.add(entry_id, Counter(value=5))
+        return writer.add(entry_id, Counter(value=5)).version
     finally:
         writer._cast_close()
 
@@ -44,12 +44,12 @@ def _ids(out: subprocess.CompletedProcess[str]) -> list[str]:
 def test_tools_speak_tls_with_flags_or_the_launch_variables(tmp_path: Path, pki: dict[str, Path]) -> None:
     handle = serve_tls(tmp_path, pki)
     try:
-        _write(handle, ClientTls(pki["ca"]), "seen")
+        version = _write(handle, ClientTls(pki["ca"]), "seen")
         where = ("--endpoint", handle.endpoint)
         assert _ids(_tool("ls", "vision", *where, "--json", "--tls-ca", str(pki["ca"]))) == ["seen"]
         assert _ids(_tool("ls", "vision", *where, "--json", env={"CAST_TLS_CA": str(pki["ca"])})) == ["seen"]
         got = _tool("get", "vision", "seen", *where, "--json", "--tls-ca", str(pki["ca"]))
-        assert got.returncode == 0 and json.loads(got.stdout)["version"] == 0, got.stderr
+        assert got.returncode == 0 and json.loads(got.stdout)["version"] == version, got.stderr
         # Plaintext against a TLS server: refused, and the error says what to give.
         plain = _tool("ls", *where)
         assert plain.returncode != 0 and "--tls-ca" in plain.stderr and "plaintext" in plain.stderr, plain.stderr

@@ -398,12 +398,12 @@ class Probe : public cast::ManagedComponent {
             cast::testing::Counter c;
             c.set_writer("stress-" + std::to_string(t));
             c.set_value(i);
-            add(id, c);
+            const std::uint64_t added = add(id, c).version;
             if (get<cast::testing::Counter>(id).value() != i) throw std::runtime_error("read back a wrong value");
             c.set_value(i + 1);
             {
               cast::LockGuard guard = lock(id, cast::LockMode::OD);
-              overwrite(id, c, "", 0u);
+              overwrite(id, c, "", added);
             }
             if (!tryLock(id, cast::LockMode::O)) throw std::runtime_error("could not lock an entry of its own");
             unlock(id);

@@ -45,6 +45,7 @@ class LocalTransport:
         self._decision_sink: Callable[[TaskRecord], None] | None = None
         self._session_id = ""
         self._closing = threading.Event()
+        self._settle = system.settle_sync
 
     def system_name(self) -> str:
         """The system's name."""
@@ -54,31 +55,28 @@ class LocalTransport:
         """The system's SA names."""
         return self._host.subarchitectures
 
+    # Calls on the latest state answer once it is durable, refusals included, as over gRPC
+    # (System.settle_sync); reads see only the visible state and never wait.
+
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        result = self._host.add(self.identity, sa, entry_id, type_name, data)
-        self._system.durable_sync()  # acknowledged only once durable, as over gRPC
-        return result
+        return self._settle(lambda: self._host.add(self.identity, sa, entry_id, type_name, data))
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        result = self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
-        self._system.durable_sync()
-        return result
+        return self._settle(
+            lambda: self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
+        )
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
-        result = self._host.delete(self.identity, sa, entry_id, expected_version)
-        self._system.durable_sync()
-        return result
+        return self._settle(lambda: self._host.delete(self.identity, sa, entry_id, expected_version))
 
     def batch(self, ops: Sequence[BatchOp]) -> list[WriteResult]:
         """Apply writes in order, all or nothing."""
-        results = self._host.batch(self.identity, ops)
-        self._system.durable_sync()
-        return results
+        return self._settle(lambda: self._host.batch(self.identity, ops))
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry (records are immutable, so sharing one is safe)."""
@@ -97,7 +95,7 @@ class LocalTransport:
         end = None if timeout is None else time.monotonic() + timeout
         while True:
             try:
-                return self._host.try_lock(self.identity, sa, entry_id, mode)
+                return self._settle(lambda: self._host.try_lock(self.identity, sa, entry_id, mode))
             except LockedError as exc:
                 if no_wait:
                     raise
@@ -113,7 +111,7 @@ class LocalTransport:
 
     def unlock(self, sa: str, entry_id: str) -> int:
         """Release one level of a lock."""
-        return self._host.unlock(self.identity, sa, entry_id)
+        return self._settle(lambda: self._host.unlock(self.identity, sa, entry_id))
 
     def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
         """Register entry types with the in-process server."""
@@ -175,7 +173,8 @@ class LocalTransport:
 
     def propose(self, name: str, data_type: str, data: bytes, priority: int) -> TaskRecord:
         """Propose a task to the own SA's task manager."""
-        return self._copy(self._system.tasks.propose(self.identity, name, data_type, data, priority))
+        tasks = self._system.tasks
+        return self._copy(self._settle(lambda: tasks.propose(self.identity, name, data_type, data, priority)))
 
     @staticmethod
     def _copy(task: TaskRecord) -> TaskRecord:
@@ -183,11 +182,11 @@ class LocalTransport:
 
     def retract(self, task_id: str) -> None:
         """Withdraw a task."""
-        self._system.tasks.retract(self.identity, task_id)
+        self._settle(lambda: self._system.tasks.retract(self.identity, task_id))
 
     def complete(self, task_id: str, outcome: TaskOutcome, reason: str) -> None:
         """Report an adopted task's outcome."""
-        self._system.tasks.complete(self.identity, task_id, outcome, reason)
+        self._settle(lambda: self._system.tasks.complete(self.identity, task_id, outcome, reason))
 
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
         """Where task decisions go."""

@@ -7,75 +7,42 @@ mutex, held only for the dictionary work of a call. Waiting (for a lock, for
 new events) never happens under the mutex: the host calls back listeners after
 the mutex is released, and the caller decides how to wait (asyncio or thread).
 
-Order of checks for a write, so that the most useful error wins and a failed
-call changes nothing: arguments (INVALID_ARGUMENT), subarchitecture
-(NOT_FOUND), permission (PERMISSION_DENIED), existence (NOT_FOUND /
-ALREADY_EXISTS), lock (FAILED_PRECONDITION), version (ABORTED), limits
-(RESOURCE_EXHAUSTED), value schema (INVALID_ARGUMENT).
+With a journal that writers wait for (``always``, ``batch``), a write is
+committed in two steps: under the mutex it is checked against the latest
+state, numbered and queued for the journal (it is then *pending*); once the
+journal has made it durable, :meth:`MemoryHost.apply_durable` moves it into
+the visible state that reads, watchers and task policies see. So nobody
+observes a write that a crash could undo (see :mod:`cast.core.memory`).
+Calls that check the latest state (writes, locks) answer only once it is
+durable; the transports wait for that (:meth:`cast.core.system.System.settle`).
+
+The checks of a write, and their order, are in :mod:`cast.core.planning`.
 """
 
 from __future__ import annotations
 
 import itertools
-import re
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple
 
-from cast.core.memory import LockState, WorkingMemory
+from cast.core.checks import check_id, check_sa_name, locked_message, missing_message
+from cast.core.memory import LockState, Pending, WorkingMemory
+from cast.core.planning import BatchOp, Overlay, Planned, ValueValidator, WritePlanner
 from cast.core.records import ChangeEvent, EntryRecord, Identity, Limits, LockMode, Operation, WriteResult
 from cast.errors import (
-    AlreadyExistsError,
     CastError,
-    ConsistencyError,
     InvalidArgumentError,
     LockedError,
     NotFoundError,
-    PermissionDeniedError,
     ResourceExhaustedError,
 )
 
 __all__ = ["BatchOp", "MemoryHost", "ValueValidator"]
 
-ValueValidator = Callable[[str, bytes], None]
-"""Called with (type, bytes) before a write; raises InvalidArgumentError if the bytes do not parse."""
+log = logging.getLogger("cast.host")
 
-_TYPE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\Z")
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
-
-
-class BatchOp(NamedTuple):
-    """One write of a batch: ``data``/``type`` are ignored for DELETE."""
-
-    operation: Operation
-    subarchitecture: str
-    id: str
-    type: str = ""
-    data: bytes = b""
-    expected_version: int | None = None
-
-
-class _Planned:
-    """A write that passed every check, ready to be committed."""
-
-    __slots__ = ("old", "op", "record", "who", "wm")
-
-    def __init__(
-        self, wm: WorkingMemory, op: Operation, record: EntryRecord | None, old: EntryRecord | None, who: Identity
-    ) -> None:
-        self.wm = wm
-        self.op = op
-        self.record = record  # new record (revision filled at commit); None for DELETE
-        self.old = old
-        self.who = who
-
-
-class _Slot(NamedTuple):
-    """State of one address after the earlier operations of a batch."""
-
-    record: EntryRecord | None  # None: deleted in this batch
-    deleted_version: int | None  # version it had when deleted
 
 
 class MemoryHost:
@@ -87,27 +54,51 @@ class MemoryHost:
         limits: Limits | None = None,
         validator: ValueValidator | None = None,
         clock: Callable[[], int] = time.time_ns,
+        version_floor: int = 0,
     ) -> None:
         self.limits = limits or Limits()
-        self._validator = validator
         self._clock = clock
+        self._planner = WritePlanner(self.limits, validator, clock, version_floor)
         self._mutex = threading.Lock()
         self._wms: dict[str, WorkingMemory] = {}
         for name in subarchitectures:
-            _check_sa_name(name)
+            check_sa_name(name)
             if name in self._wms:
                 raise InvalidArgumentError(f"subarchitecture '{name}' is named twice")
             self._wms[name] = WorkingMemory(name, self.limits.history_events, self.limits.history_bytes)
         self._seq = itertools.count(1)
         self._seq_floor = 0  # highest event sequence number restored from a journal
         self._listeners: list[Callable[[], None]] = []
+        self._watchers = 0  # listeners that are watchers (limits.max_watchers)
         self._lock_waiters: dict[tuple[str, str], list[Callable[[], None]]] = {}
         self._waiter_count = 0
         self._held: dict[str, set[tuple[str, str]]] = {}  # component -> locked addresses
-        self._good_types: set[str] = set()  # type names that passed _check_type
         # Called under the mutex with the events of each commit (cast.core.journal.Journal.append):
         # it only queues them, so durability never holds the mutex for I/O. None: memory only.
         self.journal: Callable[[list[ChangeEvent]], None] | None = None
+        # True while writes become visible only once the journal made them durable (apply_durable).
+        self.deferred = False
+
+    def attach_journal(self, append: Callable[[list[ChangeEvent]], None], deferred: bool) -> None:
+        """Journal every commit from now on; ``deferred``: show a write only once it is durable.
+
+        With ``deferred`` the journal must call :meth:`apply_durable` with the
+        events of every commit it made durable, in the order it was given them.
+        """
+        with self._mutex:
+            self.journal = append
+            self.deferred = deferred
+
+    def detach_journal(self) -> None:
+        """Stop journaling (the journal is closing: it has applied everything it was given)."""
+        with self._mutex:
+            self.journal = None
+            self.deferred = False
+
+    @property
+    def version_floor(self) -> int:
+        """The lowest version any write of this run may give (cast.core.versions)."""
+        return self._planner.version_floor
 
     # ----------------------------------------------------------------- queries
 
@@ -117,36 +108,43 @@ class MemoryHost:
         return list(self._wms)
 
     def revision(self, sa: str) -> int:
-        """Current revision of one WM."""
+        """Visible revision of one WM."""
         return self._wm(sa).revision
 
     def revisions(self) -> dict[str, int]:
-        """Current revision of every WM."""
+        """Visible revision of every WM."""
         with self._mutex:
             return {name: wm.revision for name, wm in self._wms.items()}
 
     def entry_count(self, sa: str) -> int:
-        """Number of entries in one WM."""
+        """Number of visible entries in one WM."""
         return len(self._wm(sa).entries)
 
+    def pending_writes(self, sa: str = "") -> int:
+        """Writes of one WM (default: all) committed in memory and waiting for the journal (0 unless deferred)."""
+        with self._mutex:
+            wms = [self._wm(sa)] if sa else self._wms.values()
+            return sum(wm.assigned - wm.revision for wm in wms)
+
     def type_counts(self, sa: str) -> dict[str, int]:
-        """Entries per type in one WM."""
+        """Visible entries per type in one WM."""
         with self._mutex:
             return self._wm(sa).type_counts()
 
     # ------------------------------------------------------------------ reads
+    # Reads see the visible state only: nothing a crash could undo.
 
     def get(self, who: Identity, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry. NOT_FOUND if missing, FAILED_PRECONDITION if ODR-locked by another."""
-        self._check_id(entry_id)
+        check_id(entry_id, self.limits)
         with self._mutex:
             wm = self._wm(sa)
             record = wm.entries.get(entry_id)
             if record is None:
-                raise NotFoundError(_missing(sa, entry_id))
+                raise NotFoundError(missing_message(sa, entry_id))
             lock = wm.locks.get(entry_id)
             if lock is not None and lock.mode is LockMode.ODR and lock.holder != who.component_id:
-                raise LockedError(_locked_msg(sa, entry_id, lock, "read"))
+                raise LockedError(locked_message(sa, entry_id, lock, "read"))
             return record
 
     def get_by_type(self, who: Identity, sa: str, type_name: str, limit: int = 0) -> tuple[list[EntryRecord], int]:
@@ -155,7 +153,7 @@ class MemoryHost:
         Entries that another component holds ODR-locked are left out: a type
         read must not fail because one entry of many is being modified.
         """
-        self._check_type(type_name)
+        self._planner.check_type(type_name)
         if limit < 0:
             raise InvalidArgumentError(f"limit must be 0 (no cap) or positive, got {limit}")
         with self._mutex:
@@ -174,7 +172,7 @@ class MemoryHost:
 
     def exists(self, who: Identity, sa: str, entry_id: str) -> bool:
         """Whether the entry exists (existence is not content: no ODR check)."""
-        self._check_id(entry_id)
+        check_id(entry_id, self.limits)
         with self._mutex:
             return entry_id in self._wm(sa).entries
 
@@ -218,15 +216,15 @@ class MemoryHost:
                 "split it into several batches"
             )
         for op in ops:
-            self._check_args(op)
+            self._planner.check_args(op)
         with self._mutex:
-            overlay: dict[tuple[str, str], _Slot] = {}
+            overlay: Overlay = {}
             counts: dict[str, int] = {}
             planned = []
             now = self._clock()  # the operations of one batch share their time
             for index, op in enumerate(ops):
                 try:
-                    planned.append(self._plan(who, op, overlay, counts, now))
+                    planned.append(self._planner.plan(self._wm(op.subarchitecture), who, op, overlay, counts, now))
                 except CastError as exc:
                     exc.message = f"batch operation {index}: {exc.message}"
                     exc.args = (exc.message,)
@@ -237,121 +235,51 @@ class MemoryHost:
 
     def write(self, who: Identity, op: BatchOp) -> WriteResult:
         """Apply one write (add, overwrite or delete) described by ``op``."""
-        self._check_args(op)
+        self._planner.check_args(op)
         with self._mutex:
-            planned = self._plan(who, op, None, None)
+            planned = self._planner.plan(self._wm(op.subarchitecture), who, op, None, None)
             results, released = self._commit([planned])
         self._after_commit(released)
         return results[0]
 
-    def _check_args(self, op: BatchOp) -> None:
-        self._check_id(op.id)
-        if op.operation is not Operation.DELETE:
-            self._check_type(op.type)
-            if len(op.data) > self.limits.max_value_bytes:
-                raise InvalidArgumentError(
-                    f"value of entry '{op.id}' is {len(op.data)} bytes, over the limit of "
-                    f"{self.limits.max_value_bytes} bytes (limits.max_value_bytes): store large data "
-                    "elsewhere and keep a reference, or raise the limit in the configuration"
-                )
-        if op.expected_version is not None and op.expected_version < 0:
-            raise InvalidArgumentError(f"expected_version must be >= 0, got {op.expected_version}")
-
-    def _plan(
-        self,
-        who: Identity,
-        op: BatchOp,
-        overlay: dict[tuple[str, str], _Slot] | None,
-        counts: dict[str, int] | None,
-        now: int = 0,
-    ) -> _Planned:
-        wm = self._wm(op.subarchitecture)
-        sa, entry_id = op.subarchitecture, op.id
-        if sa != who.subarchitecture and not who.privileged:
-            raise PermissionDeniedError(
-                f"{who.describe()} may not {op.operation.name.lower()} in subarchitecture '{sa}': "
-                "only privileged components write outside their own SA (set privileged: true in the "
-                "configuration if this component coordinates other SAs)"
-            )
-        key = (sa, entry_id)
-        slot = overlay.get(key) if overlay is not None else None
-        current = slot.record if slot is not None else wm.entries.get(entry_id)
-        lock = wm.locks.get(entry_id)
-        if slot is not None and slot.record is None:
-            lock = None  # deleted earlier in this batch: its lock went with it
-        now = now or self._clock()
-        if op.operation is Operation.ADD:
-            if current is not None:
-                raise AlreadyExistsError(
-                    f"entry '{entry_id}' already exists in subarchitecture '{sa}' (version {current.version}, "
-                    f"type {current.type}): use overwrite to change it, or new_id() for a fresh id"
-                )
-            delta = counts.get(sa, 0) if counts is not None else 0
-            if len(wm.entries) + delta >= self.limits.max_entries:
-                raise ResourceExhaustedError(
-                    f"subarchitecture '{sa}' holds {len(wm.entries) + delta} entries, the limit "
-                    f"(limits.max_entries = {self.limits.max_entries}): delete entries or raise the limit"
-                )
-            if self._validator is not None:
-                self._validator(op.type, op.data)
-            prev = slot.deleted_version if slot is not None else wm.last_versions.get(entry_id)
-            version = 0 if prev is None else prev + 1
-            record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
-            planned = _Planned(wm, Operation.ADD, record, None, who)
-            if counts is not None:
-                counts[sa] = delta + 1
-        else:
-            if current is None:
-                raise NotFoundError(_missing(sa, entry_id) + f": cannot {op.operation.name.lower()} it")
-            if lock is not None and lock.holder != who.component_id:
-                if op.operation is Operation.OVERWRITE or lock.mode is not LockMode.O:
-                    raise LockedError(_locked_msg(sa, entry_id, lock, op.operation.name.lower()))
-            if op.expected_version is not None and op.expected_version != current.version:
-                raise ConsistencyError(
-                    f"entry '{entry_id}' in subarchitecture '{sa}' is at version {current.version}, "
-                    f"expected {op.expected_version}: it was changed by '{current.author}'; read it again "
-                    "and retry"
-                )
-            if op.operation is Operation.OVERWRITE:
-                if self._validator is not None:
-                    self._validator(op.type, op.data)
-                record = EntryRecord(sa, entry_id, op.type, op.data, current.version + 1, who.component_id, now, 0)
-                planned = _Planned(wm, Operation.OVERWRITE, record, current, who)
-            else:
-                planned = _Planned(wm, Operation.DELETE, None, current, who)
-                if counts is not None:
-                    counts[sa] = counts.get(sa, 0) - 1
-        if overlay is not None:
-            deleted = current.version if planned.record is None and current is not None else None
-            overlay[key] = _Slot(planned.record, deleted)
-        return planned
-
-    def _commit(self, planned: list[_Planned]) -> tuple[list[WriteResult], list[tuple[str, str]]]:
+    def _commit(self, planned: list[Planned]) -> tuple[list[WriteResult], list[tuple[str, str]]]:
         results = []
         released: list[tuple[str, str]] = []
         journal = self.journal
+        deferred = self.deferred
         journaled: list[ChangeEvent] = []
         for p in planned:
             wm = p.wm
-            revision = wm.revision + 1
+            revision = wm.assigned = wm.assigned + 1
             entry_id = (p.record or p.old).id  # type: ignore[union-attr]
             lock = wm.locks.get(entry_id)
             odr_holder = lock.holder if lock is not None and lock.mode is LockMode.ODR else None
+            seq = next(self._seq)
             if p.record is not None:
                 record = p.record
                 record.revision = revision
-                wm.put(record)
                 event_entry = record
-                version = record.version
+                time_ns = record.modified_ns
+                if deferred:
+                    wm.pending[entry_id] = Pending(record, None, seq)
+                    wm.pending_delta += p.op is Operation.ADD
+                else:
+                    wm.put(record)
             else:
-                old = wm.remove(entry_id)
+                event_entry = p.old  # type: ignore[assignment]
+                time_ns = self._clock()
+                if deferred:
+                    wm.pending[entry_id] = Pending(None, event_entry.version, seq)
+                    wm.pending_delta -= 1
+                else:
+                    wm.remove(entry_id)
+                # Locks follow the latest state: the delete releases them now, durable or not.
                 if lock is not None:
+                    del wm.locks[entry_id]
                     self._forget_lock(lock.holder, wm.name, entry_id)
                     released.append((wm.name, entry_id))
-                event_entry = old
-                version = old.version
             event = ChangeEvent(
-                next(self._seq),
+                seq,
                 revision,
                 p.op,
                 wm.name,
@@ -359,24 +287,54 @@ class MemoryHost:
                 event_entry.type,
                 p.who.component_id,
                 p.who.subarchitecture,
-                version,
-                event_entry.modified_ns if p.record is not None else self._clock(),
+                event_entry.version,
+                time_ns,
                 event_entry,
                 odr_holder,
             )
-            wm.history.append(event)
+            if not deferred:
+                wm.history.append(event)
             if journal is not None:
                 journaled.append(event)
-            results.append(WriteResult(revision, version))
+            results.append(WriteResult(revision, event_entry.version))
         if journal is not None:
             journal(journaled)
         return results, released
 
     def _after_commit(self, released: list[tuple[str, str]]) -> None:
-        for listener in list(self._listeners):
-            listener()
+        if not self.deferred:
+            self._notify()
         for key in released:
             self._wake_lock_waiters(key)
+
+    def _notify(self) -> None:
+        for listener in list(self._listeners):
+            try:
+                listener()
+            except Exception:  # one broken watcher must not stop the writer or the journal
+                log.exception("a change listener failed")
+
+    def apply_durable(self, events: Sequence[ChangeEvent]) -> None:
+        """Make writes visible that the journal has made durable (in commit order).
+
+        Called by the journal's committer thread before it releases the
+        writers waiting for these events; watchers are woken on that thread.
+        """
+        with self._mutex:
+            for event in events:
+                wm = self._wms[event.subarchitecture]
+                if event.operation is Operation.DELETE:
+                    wm.remove(event.id)
+                    wm.pending_delta += 1
+                else:
+                    assert event.entry is not None  # the host always keeps the record with the event
+                    wm.put(event.entry)
+                    wm.pending_delta -= event.operation is Operation.ADD
+                wm.history.append(event)
+                latest = wm.pending.get(event.id)
+                if latest is not None and latest.seq == event.seq:
+                    del wm.pending[event.id]
+        self._notify()
 
     def system_write(self, author: Identity, op: BatchOp) -> WriteResult:
         """A write by the server itself (task records): no permission or lock checks."""
@@ -385,7 +343,7 @@ class MemoryHost:
             wm = self._wm(op.subarchitecture)
             saved = wm.locks.pop(op.id, None)
             try:
-                planned = self._plan(privileged, op, None, None)
+                planned = self._planner.plan(wm, privileged, op, None, None)
             finally:
                 if saved is not None:
                     wm.locks[op.id] = saved
@@ -420,6 +378,7 @@ class MemoryHost:
             wm.history.reset((kept[0].revision - 1) if contiguous else revision)
             for event in kept if contiguous else ():
                 wm.history.append(event)
+            wm.assigned = revision
             top = max((e.seq for e in kept), default=0)
             self._seq = itertools.count(max(top, self._seq_floor) + 1)
             self._seq_floor = max(top, self._seq_floor)
@@ -429,32 +388,33 @@ class MemoryHost:
     def try_lock(self, who: Identity, sa: str, entry_id: str, mode: LockMode) -> int:
         """Take (or re-enter) a lock at once; return the depth. FAILED_PRECONDITION if held by another.
 
-        Re-entering keeps the stronger of the held and requested modes.
+        Re-entering keeps the stronger of the held and requested modes. Locks
+        are taken on the latest state (the one writes are checked against).
         """
-        self._check_id(entry_id)
+        check_id(entry_id, self.limits)
         mode = LockMode(mode)
         with self._mutex:
             wm = self._wm(sa)
-            if entry_id not in wm.entries:
-                raise NotFoundError(_missing(sa, entry_id) + ": cannot lock it")
+            if wm.latest(entry_id)[0] is None:
+                raise NotFoundError(missing_message(sa, entry_id) + ": cannot lock it")
             lock = wm.locks.get(entry_id)
             if lock is None:
                 wm.locks[entry_id] = LockState(who.component_id, mode)
                 self._held.setdefault(who.component_id, set()).add((sa, entry_id))
                 return 1
             if lock.holder != who.component_id:
-                raise LockedError(_locked_msg(sa, entry_id, lock, "lock"))
+                raise LockedError(locked_message(sa, entry_id, lock, "lock"))
             lock.depth += 1
             lock.mode = max(lock.mode, mode)
             return lock.depth
 
     def unlock(self, who: Identity, sa: str, entry_id: str) -> int:
         """Release one level of the caller's lock; return the remaining depth."""
-        self._check_id(entry_id)
+        check_id(entry_id, self.limits)
         with self._mutex:
             wm = self._wm(sa)
-            if entry_id not in wm.entries:
-                raise NotFoundError(_missing(sa, entry_id) + ": cannot unlock it")
+            if wm.latest(entry_id)[0] is None:
+                raise NotFoundError(missing_message(sa, entry_id) + ": cannot unlock it")
             lock = wm.locks.get(entry_id)
             if lock is None:
                 raise LockedError(f"entry '{entry_id}' in subarchitecture '{sa}' is not locked: nothing to unlock")
@@ -540,20 +500,29 @@ class MemoryHost:
 
     # -------------------------------------------------------------- watching
 
-    def add_listener(self, listener: Callable[[], None]) -> None:
-        """Call ``listener()`` after every commit (no mutex held, on the writer's thread)."""
-        self._listeners.append(listener)
+    def add_listener(self, listener: Callable[[], None], watcher: bool = True) -> None:
+        """Call ``listener()`` whenever writes become visible (no mutex held).
 
-    def remove_listener(self, listener: Callable[[], None]) -> None:
+        It runs on the writer's thread, or with a deferring journal on the
+        journal's committer thread, so it must only wake someone, never block.
+        ``watcher``: it counts against ``limits.max_watchers``.
+        """
+        with self._mutex:
+            self._listeners.append(listener)
+            self._watchers += watcher
+
+    def remove_listener(self, listener: Callable[[], None], watcher: bool = True) -> None:
         """Stop calling a listener added by :meth:`add_listener`."""
-        try:
-            self._listeners.remove(listener)
-        except ValueError:
-            pass
+        with self._mutex:
+            try:
+                self._listeners.remove(listener)
+            except ValueError:
+                return
+            self._watchers -= watcher
 
     def listener_count(self) -> int:
-        """Number of registered listeners (watch streams and in-process watchers)."""
-        return len(self._listeners)
+        """Number of registered watchers (watch streams and in-process watchers)."""
+        return self._watchers
 
     def events_since(self, sa: str, next_revision: int) -> list[ChangeEvent]:
         """Events of one WM from ``next_revision`` on; HistoryExpiredError if some are gone."""
@@ -574,52 +543,3 @@ class MemoryHost:
             known = ", ".join(sorted(self._wms)) or "none"
             raise NotFoundError(f"no subarchitecture '{sa}' on this server (known: {known})")
         return wm
-
-    def _check_id(self, entry_id: str) -> None:
-        # Most ids are short printable ASCII: one C-level test settles those (bytes == characters,
-        # no control characters) before the full check, which every write would otherwise pay.
-        if entry_id.isascii() and entry_id.isprintable() and 0 < len(entry_id) <= self.limits.max_id_bytes:
-            return
-        if not entry_id:
-            raise InvalidArgumentError("entry id is empty: give an id of 1 to 256 bytes (new_id() makes one)")
-        size = len(entry_id.encode("utf-8", "surrogatepass"))
-        if size > self.limits.max_id_bytes:
-            raise InvalidArgumentError(
-                f"entry id '{entry_id[:40]}...' is {size} bytes, over the limit of {self.limits.max_id_bytes} "
-                "bytes: use a shorter id"
-            )
-        if _CONTROL.search(entry_id):
-            raise InvalidArgumentError(f"entry id {entry_id!r} contains control characters: use printable text")
-
-    def _check_type(self, type_name: str) -> None:
-        if type_name in self._good_types:
-            return
-        if not type_name:
-            raise InvalidArgumentError(
-                "entry type is empty: the value must be a google.protobuf.Any whose type_url names a message"
-            )
-        if len(type_name) > self.limits.max_type_bytes or not _TYPE_NAME.match(type_name):
-            raise InvalidArgumentError(
-                f"entry type {type_name[:80]!r} is not a full protobuf message name such as 'pkg.Message' "
-                f"(letters, digits, '_' and '.', at most {self.limits.max_type_bytes} characters)"
-            )
-        if len(self._good_types) < 10_000:
-            self._good_types.add(type_name)
-
-
-def _check_sa_name(name: str) -> None:
-    if not name or not re.fullmatch(r"[A-Za-z0-9_.\-]{1,128}", name):
-        raise InvalidArgumentError(
-            f"subarchitecture name {name!r} is invalid: use 1 to 128 letters, digits, '_', '-' or '.'"
-        )
-
-
-def _missing(sa: str, entry_id: str) -> str:
-    return f"no entry '{entry_id}' in subarchitecture '{sa}'"
-
-
-def _locked_msg(sa: str, entry_id: str, lock: LockState, action: str) -> str:
-    return (
-        f"cannot {action} entry '{entry_id}' in subarchitecture '{sa}': it is locked ({lock.mode.name}) by "
-        f"component '{lock.holder}'; wait for the unlock (lock() blocks until then) or try again later"
-    )

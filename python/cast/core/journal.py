@@ -15,6 +15,20 @@ A caller that must not acknowledge a write before it is durable takes
 loop). Tickets are a counter of appended commits, so waiting for the current
 ticket covers the caller's own commit and perhaps a few more of the same group.
 
+After each transaction, and before it releases the waiters, the committer hands
+the events it made durable to :attr:`Journal.on_durable` (the host's
+``apply_durable``): in ``always`` and ``batch`` that is when a write becomes
+visible. A journal that fails makes nothing more visible.
+
+The file also keeps the version floor (:mod:`cast.core.versions`): unchanged
+across restarts that lose nothing, raised to an epoch floor when a crash in
+``none`` may have lost writes that others saw.
+
+Fault injection for tests: :meth:`Journal.hold` keeps the committer from
+writing until :meth:`Journal.release`; with ``CAST_FAILPOINT_JOURNAL_HOLD=PATH``
+in the environment it also waits while that file exists (for a server in
+another process).
+
 The file holds the state (entries, last versions of deleted entries, revision
 counters, registered schemas) and the last ``history_events`` events per WM,
 so that after a restart the revision counters continue and a watcher may resume
@@ -28,14 +42,17 @@ import asyncio
 import contextlib
 import enum
 import logging
+import os
 import secrets
 import sqlite3
 import threading
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from cast.core.records import ChangeEvent, EntryRecord, Operation
+from cast.core.versions import epoch_floor
 from cast.errors import InternalError
 
 __all__ = ["Durability", "Journal", "StoredState", "WMState"]
@@ -85,6 +102,7 @@ class StoredState:
     wms: dict[str, WMState]
     schemas: list[bytes]  # serialised FileDescriptorProto, in registration order
     clean: bool  # the previous run closed the journal (no crash)
+    version_floor: int = 0  # the lowest version this run may give (cast.core.versions)
 
 
 _Item = tuple[str, object]  # ("events", list[ChangeEvent]) or ("schemas", list[(name, bytes)])
@@ -115,21 +133,44 @@ class Journal:
         self._since_trim = 0
         self._last_rev: dict[str, int] = {}
         self.commits = 0  # transactions made (for tests and figures)
-        row = self._db.execute("SELECT value FROM meta WHERE key = 'history_id'").fetchone()
-        clean = self._db.execute("SELECT value FROM meta WHERE key = 'clean'").fetchone()
+        self.on_durable: Callable[[list[ChangeEvent]], None] | None = None
+        self._held = False
+        self._hold_file = os.environ.get("CAST_FAILPOINT_JOURNAL_HOLD", "")
+        self._open_run()
+        self._thread = threading.Thread(target=self._run, name="cast-journal", daemon=True)
+        self._thread.start()
+
+    def _open_run(self) -> None:
+        """Decide this run's history id and version floor, and mark the file in use (durably)."""
+        db = self._db
+        row = db.execute("SELECT value FROM meta WHERE key = 'history_id'").fetchone()
+        clean = db.execute("SELECT value FROM meta WHERE key = 'clean'").fetchone()
+        floor_row = db.execute("SELECT value FROM meta WHERE key = 'version_floor'").fetchone()
         self.was_clean = clean is None or clean[0] == "1"
-        if row is None or (self.durability is Durability.NONE and not self.was_clean):
+        self.version_floor = int(floor_row[0]) if floor_row is not None else 0
+        lost = self.durability is Durability.NONE and not self.was_clean
+        if row is None or lost:
             # A new file, or a crash in a mode that may have lost acknowledged writes: watchers
             # that saw those writes must not resume into a history that no longer has them.
             self.history_id = secrets.token_hex(8)
         else:
             self.history_id = str(row[0])
-        self._db.execute("BEGIN")
-        self._db.execute("INSERT OR REPLACE INTO meta VALUES ('history_id', ?)", (self.history_id,))
-        self._db.execute("INSERT OR REPLACE INTO meta VALUES ('clean', '0')")
-        self._db.execute("COMMIT")
-        self._thread = threading.Thread(target=self._run, name="cast-journal", daemon=True)
-        self._thread.start()
+        if lost:
+            # Versions the lost writes gave were seen: start above them, and above every stored one.
+            (stored,) = db.execute(
+                "SELECT max(v) FROM (SELECT max(version) AS v FROM entries UNION ALL "
+                "SELECT max(version) FROM deleted)"
+            ).fetchone()
+            self.version_floor = epoch_floor(above=max(self.version_floor, stored or 0))
+        # The floor must be on disk before any version above it is given, whatever the mode.
+        db.execute("PRAGMA synchronous=FULL")
+        db.execute("BEGIN")
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('history_id', ?)", (self.history_id,))
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('version_floor', ?)", (str(self.version_floor),))
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('clean', '0')")
+        db.execute("COMMIT")
+        if self.durability is Durability.NONE:
+            db.execute("PRAGMA synchronous=OFF")
 
     # ------------------------------------------------------------- reading
 
@@ -160,7 +201,7 @@ class Journal:
         schemas = [bytes(d) for (d,) in db.execute("SELECT data FROM schemas ORDER BY rowid")]
         for sa, state in wms.items():
             self._last_rev[sa] = state.revision
-        return StoredState(self.history_id, wms, schemas, self.was_clean)
+        return StoredState(self.history_id, wms, schemas, self.was_clean, self.version_floor)
 
     # ------------------------------------------------------------- writing
 
@@ -185,6 +226,17 @@ class Journal:
     def durable(self) -> int:
         """The newest ticket that is on disk."""
         return self._durable
+
+    def hold(self) -> None:
+        """Fault injection: stop writing (appends queue up, waiters wait) until :meth:`release`."""
+        with self._cond:
+            self._held = True
+
+    def release(self) -> None:
+        """Undo :meth:`hold`."""
+        with self._cond:
+            self._held = False
+            self._cond.notify_all()
 
     def wait(self, ticket: int, timeout: float | None = None) -> None:
         """Block until ``ticket`` is durable; InternalError if the journal failed."""
@@ -216,16 +268,20 @@ class Journal:
     def _run(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: bool(self._queue) or self._closing)
+                self._cond.wait_for(lambda: (bool(self._queue) and not self._held) or self._closing)
                 if not self._queue and self._closing:
                     return
+            self._wait_hold_file()
+            with self._cond:
                 if self.durability is Durability.ALWAYS:
                     items = [self._queue.pop(0)]
                 else:
                     items, self._queue = self._queue, []
             try:
-                self._write(items)
-            except Exception as exc:  # every waiter is told; the server keeps serving
+                if self._failure is None:
+                    self._write(items)
+                    self._made_durable(items)
+            except Exception as exc:  # every waiter is told; the server keeps serving reads
                 log.exception("journal %s failed", self.path)
                 with self._cond:
                     self._failure = exc
@@ -239,6 +295,21 @@ class Journal:
             for _, loop, fut in ready:
                 with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits any more
                     loop.call_soon_threadsafe(_settle, fut, failure)
+
+    def _wait_hold_file(self) -> None:
+        # Fault injection across processes (see the module docstring); a poll is enough for tests.
+        while self._hold_file and os.path.exists(self._hold_file) and not self._closing:
+            time.sleep(0.005)
+
+    def _made_durable(self, items: list[_Item]) -> None:
+        if self.on_durable is None:
+            return
+        events: list[ChangeEvent] = []
+        for kind, payload in items:
+            if kind == "events":
+                events.extend(payload)  # type: ignore[arg-type]
+        if events:
+            self.on_durable(events)
 
     def _write(self, items: list[_Item]) -> None:
         db = self._db

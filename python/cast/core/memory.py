@@ -3,6 +3,17 @@
 This module only holds data and keeps its indexes consistent; every check
 (permissions, locks, versions, limits) is made by :mod:`cast.core.host`
 before it calls :meth:`WorkingMemory.put` or :meth:`WorkingMemory.remove`.
+
+A WM has two states when its server waits for a journal (``always``,
+``batch``): the *visible* state (``entries``, the type index,
+``last_versions``, ``history``), which holds only durable writes and is all
+that reads, watchers and task policies see, and the *latest* state, which is
+the visible one plus ``pending``: the writes committed in memory whose
+journal transaction has not yet been made durable. Writes are checked
+against the latest state (so versions and order stay right while a group
+commit is in flight); the host moves a write from ``pending`` to the visible
+state once the journal says it is durable. Without such a journal
+``pending`` stays empty and both states are one.
 """
 
 from __future__ import annotations
@@ -10,11 +21,20 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from cast.core.history import History
 from cast.core.records import EntryRecord, LockMode
 
-__all__ = ["LockState", "WorkingMemory"]
+__all__ = ["LockState", "Pending", "WorkingMemory"]
+
+
+class Pending(NamedTuple):
+    """The latest state of one id while a write of it waits for the journal."""
+
+    record: EntryRecord | None  # None: deleted
+    deleted_version: int | None  # the version it had when deleted
+    seq: int  # the event that made this the latest state: once it is visible, so is this
 
 
 @dataclass
@@ -29,7 +49,8 @@ class LockState:
 class WorkingMemory:
     """Entries of one subarchitecture, indexed by id and by type (newest first)."""
 
-    __slots__ = ("_by_type", "entries", "history", "last_versions", "locks", "name")
+    __slots__ = ("_by_type", "assigned", "entries", "history", "last_versions", "locks", "name", "pending",
+                 "pending_delta")
 
     def __init__(self, name: str, history_events: int, history_bytes: int) -> None:
         self.name = name
@@ -40,12 +61,28 @@ class WorkingMemory:
         # Last version of deleted entries, so a re-add continues the numbering.
         self.last_versions: dict[str, int] = {}
         self.history = History(name, history_events, history_bytes)
+        # Locks belong to the latest state: writes are checked against it.
         self.locks: dict[str, LockState] = {}
+        self.pending: dict[str, Pending] = {}
+        self.pending_delta = 0  # entries added minus deleted by pending writes
+        self.assigned = 0  # the newest revision given to a write, visible or pending
 
     @property
     def revision(self) -> int:
-        """The WM's current revision (0 before any write)."""
+        """The WM's visible revision (0 before any write)."""
         return self.history.last
+
+    def latest(self, entry_id: str) -> tuple[EntryRecord | None, int | None]:
+        """(record, version it had when deleted) of an id in the latest state."""
+        pending = self.pending.get(entry_id)
+        if pending is not None:
+            return pending.record, pending.deleted_version
+        record = self.entries.get(entry_id)
+        return record, None if record is not None else self.last_versions.get(entry_id)
+
+    def latest_count(self) -> int:
+        """Number of entries in the latest state (for the entries limit)."""
+        return len(self.entries) + self.pending_delta
 
     def put(self, record: EntryRecord) -> EntryRecord | None:
         """Store ``record`` (add or overwrite); return the record it replaced."""
@@ -58,11 +95,14 @@ class WorkingMemory:
         return old
 
     def remove(self, entry_id: str) -> EntryRecord:
-        """Delete an entry (which must exist), remembering its version; drop its lock."""
+        """Delete an entry (which must exist), remembering its version.
+
+        Its lock is the host's to drop: locks follow the latest state, which a
+        delete reaches before it is visible.
+        """
         old = self.entries.pop(entry_id)
         self._unindex(old)
         self.last_versions[entry_id] = old.version
-        self.locks.pop(entry_id, None)
         return old
 
     def _unindex(self, record: EntryRecord) -> None:

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import TypeVar
 
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
@@ -17,10 +18,14 @@ from cast.core.records import Identity, Limits, Operation
 from cast.core.schemas import SchemaRegistry, files_of
 from cast.core.sessions import ComponentInfo, SessionTable
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
+from cast.core.versions import epoch_floor
+from cast.errors import CastError
 
 __all__ = ["TASK_TYPE", "System"]
 
 TASK_TYPE = "cast.v1.Task"
+
+_T = TypeVar("_T")
 
 
 class System:
@@ -34,6 +39,7 @@ class System:
         limits: Limits | None = None,
         lease_ms: int = 10_000,
         journal: Journal | None = None,
+        version_floor: int | None = None,
     ) -> None:
         # Imported here so that importing the core does not require generated code.
         from cast.v1 import task_manager_pb2
@@ -41,7 +47,11 @@ class System:
         self.name = name
         self.schemas = SchemaRegistry()
         self.schemas.register(files_of(task_manager_pb2.Task.DESCRIPTOR))
-        self.host = MemoryHost(subarchitectures, limits, validator=self.schemas.validate)
+        if version_floor is None:
+            # Memory only: an earlier run of this server may have given versions nobody can know of
+            # now, so this run starts above them (cast.core.versions); a journal knows its floor.
+            version_floor = journal.version_floor if journal is not None else epoch_floor()
+        self.host = MemoryHost(subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor)
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         self.endpoints: dict[str, str] = {sa: "" for sa in subarchitectures}
@@ -70,7 +80,10 @@ class System:
         for sa, state in stored.wms.items():
             if sa in self.endpoints:  # an SA no longer configured keeps its rows but is not served
                 self.host.restore(sa, state.entries, state.deleted, state.revision, state.events)
-        self.host.journal = journal.append
+        # In always and batch a write becomes visible once durable (cast.core.host); in none at once.
+        if journal.waits:
+            journal.on_durable = self.host.apply_durable
+        self.host.attach_journal(journal.append, deferred=journal.waits)
         self.schemas.on_added = journal.append_schemas
         # Task entries of the previous run: every session ended with it, so its tasks did too. Delete
         # them as the task manager would, so watchers see a DELETE, not an entry that silently vanished.
@@ -81,25 +94,56 @@ class System:
             for record in state.entries:
                 if record.type == TASK_TYPE:
                     self.host.system_write(author, BatchOp(Operation.DELETE, sa, record.id))
+        self.durable_sync()  # serve nobody before those deletes are visible
 
     async def durable(self) -> None:
-        """Return once every write made so far is durable (at once without a waiting journal)."""
+        """Return once every write made so far is durable (and visible), at once without a waiting journal.
+
+        Every call that writes or checks the latest state (writes and their
+        refusals, locks, task calls) answers only after this, so that what it
+        tells its caller can no longer be undone by a crash.
+        """
         journal = self.journal
         if journal is not None and journal.waits:
             await journal.wait_async(journal.ticket())
 
     def durable_sync(self) -> None:
-        """Block until every write made so far is durable (for callers on their own threads)."""
+        """:meth:`durable` for callers on their own threads (in-process components)."""
         journal = self.journal
         if journal is not None and journal.waits:
             journal.wait(journal.ticket())
 
+    async def settle(self, call: Callable[[], _T]) -> _T:
+        """Run a call that writes or checks the latest state; return or raise once that is durable.
+
+        The rule for every such call, over gRPC and in process: its result and
+        its refusals (which name versions, holders, task states) reach the
+        caller only when a crash can no longer undo what they tell.
+        """
+        try:
+            result = call()
+        except CastError:
+            await self.durable()
+            raise
+        await self.durable()
+        return result
+
+    def settle_sync(self, call: Callable[[], _T]) -> _T:
+        """:meth:`settle` for callers on their own threads (in-process components)."""
+        try:
+            result = call()
+        except CastError:
+            self.durable_sync()
+            raise
+        self.durable_sync()
+        return result
+
     def close(self) -> None:
         """Flush and close the journal (a clean shutdown); the System must not be written after."""
         if self.journal is not None:
-            self.host.journal = None
             self.schemas.on_added = None
-            self.journal.close()
+            self.journal.close()  # applies what it writes on the way
+            self.host.detach_journal()
 
     def expect(self, info: ComponentInfo) -> None:
         """Record a configured component so the directory lists it before it connects."""
@@ -109,16 +153,17 @@ class System:
         self.host.release_component(component_id)
         self.tasks.release_component(component_id)
 
-    def _publish_task(self, task: TaskRecord) -> None:
+    def _publish_task(self, task: TaskRecord) -> int:
+        """Write a task's state into its SA's WM; return the revision of the last write."""
         from cast.convert import task_to_pb
 
         author = Identity(f"{task.subarchitecture}.task_manager", task.subarchitecture, True)
         data = task_to_pb(task).SerializeToString()
         sa, tid = task.subarchitecture, task.task_id
         if task.state is TaskState.WAITING:
-            self.host.system_write(author, BatchOp(Operation.ADD, sa, tid, TASK_TYPE, data))
-            return
-        self.host.system_write(author, BatchOp(Operation.OVERWRITE, sa, tid, TASK_TYPE, data))
+            return self.host.system_write(author, BatchOp(Operation.ADD, sa, tid, TASK_TYPE, data)).revision
+        result = self.host.system_write(author, BatchOp(Operation.OVERWRITE, sa, tid, TASK_TYPE, data))
         if task.state not in (TaskState.WAITING, TaskState.ADOPTED):
             # Ended tasks leave the WM; their final state is the overwrite just before.
-            self.host.system_write(author, BatchOp(Operation.DELETE, sa, tid))
+            result = self.host.system_write(author, BatchOp(Operation.DELETE, sa, tid))
+        return result.revision

@@ -4,6 +4,9 @@ The board keeps every live task, asks the SA's policy for decisions after each
 change, queues decisions for the proposing component, and publishes every
 state change through ``publish`` (the server writes it into the SA's WM as a
 ``cast.v1.Task`` entry, so decisions are change events any tool can watch).
+A decision is handed to its component only once that write is visible, that
+is durable when the server waits for its journal: no component acts on a
+decision that a crash could undo.
 """
 
 from __future__ import annotations
@@ -78,7 +81,8 @@ class _WMView:
         return self._host.entry_count(self._sa)
 
 
-Publisher = Callable[[TaskRecord], None]
+Publisher = Callable[[TaskRecord], int]
+"""Writes a task's new state into its SA's WM; returns the revision of that write."""
 
 
 class TaskBoard:
@@ -101,8 +105,10 @@ class TaskBoard:
         self._mutex = threading.RLock()
         self._ids = itertools.count(1)
         self._live: dict[str, TaskRecord] = {}  # insertion order = proposal order
-        self._decisions: dict[str, list[TaskRecord]] = {}
+        # Per component: (decision, SA, revision of its write), handed out once the revision is visible.
+        self._decisions: dict[str, list[tuple[TaskRecord, str, int]]] = {}
         self._listeners: list[Callable[[str], None]] = []
+        host.add_listener(self._visible, watcher=False)
         self.counters: dict[str, dict[str, int]] = {
             sa: {"proposed": 0, "adopted": 0, "rejected": 0, "retracted": 0, "completed": 0}
             for sa in host.subarchitectures
@@ -179,9 +185,31 @@ class TaskBoard:
             return [t.task_id for t in mine]
 
     def take_decisions(self, component_id: str) -> list[TaskRecord]:
-        """Drain the decisions queued for a component (adopted, rejected), oldest first."""
+        """Drain the decisions queued for a component (adopted, rejected) whose writes are visible, oldest first."""
         with self._mutex:
-            return self._decisions.pop(component_id, [])
+            queued = self._decisions.get(component_id)
+            if not queued:
+                return []
+            ready = 0
+            for _, sa, revision in queued:
+                if revision > self._host.revision(sa):
+                    break
+                ready += 1
+            taken = [task for task, _, _ in queued[:ready]]
+            del queued[:ready]
+            if not queued:
+                del self._decisions[component_id]
+            return taken
+
+    def _visible(self) -> None:
+        # Writes became visible: tell the components whose decisions may now be handed out.
+        if not self._decisions:
+            return
+        with self._mutex:
+            waiting = list(self._decisions)
+        for component_id in waiting:
+            for listener in list(self._listeners):
+                listener(component_id)
 
     def tasks(self, sa: str = "") -> list[TaskRecord]:
         """Live tasks (waiting or adopted), oldest first, of one SA or all."""
@@ -225,10 +253,9 @@ class TaskBoard:
                 self._emit(task, queue=True)
 
     def _emit(self, task: TaskRecord, queue: bool) -> None:
-        if self._publish is not None:
-            self._publish(task)
+        revision = self._publish(task) if self._publish is not None else 0
         if queue:
             snapshot = TaskRecord(**vars(task))
-            self._decisions.setdefault(task.component, []).append(snapshot)
+            self._decisions.setdefault(task.component, []).append((snapshot, task.subarchitecture, revision))
             for listener in list(self._listeners):
                 listener(task.component)

@@ -37,7 +37,8 @@ class InspectionServicer(insp_grpc.InspectionServicer):
             pb = entry_to_pb(record)
             pb.ClearField("value")  # a listing never carries content (ODR locks stay honoured)
             entries.append(pb)
-        return insp_pb2.ListEntriesResponse(entries=entries, revision=revision)
+        pending = host.pending_writes(request.subarchitecture)
+        return insp_pb2.ListEntriesResponse(entries=entries, revision=revision, pending_writes=pending)
 
     @rpc
     async def TaskStatistics(

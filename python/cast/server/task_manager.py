@@ -32,8 +32,8 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         """Propose a task to the caller's SA."""
         who = self._auth.identify(context)
         data_type, data = any_to_type_data(request.data, "task data") if request.HasField("data") else ("", b"")
-        task = self._tasks.propose(who, request.name, data_type, data, request.priority)
-        await self._system.durable()
+        name, priority = request.name, request.priority
+        task = await self._system.settle(lambda: self._tasks.propose(who, name, data_type, data, priority))
         return tm_pb2.ProposeResponse(task=task_to_pb(task))
 
     @rpc
@@ -42,8 +42,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
     ) -> tm_pb2.RetractResponse:
         """Withdraw a task."""
         who = self._auth.identify(context)
-        self._tasks.retract(who, request.task_id)
-        await self._system.durable()
+        await self._system.settle(lambda: self._tasks.retract(who, request.task_id))
         return tm_pb2.RetractResponse()
 
     @rpc
@@ -58,8 +57,7 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
             raise InvalidArgumentError(f"unknown task outcome {request.outcome}") from None
         if outcome is TaskOutcome.UNSPECIFIED:
             raise InvalidArgumentError("a completed task needs an outcome: SUCCEEDED, FAILED or ABANDONED")
-        self._tasks.complete(who, request.task_id, outcome, request.reason)
-        await self._system.durable()
+        await self._system.settle(lambda: self._tasks.complete(who, request.task_id, outcome, request.reason))
         return tm_pb2.CompleteResponse()
 
     @rpc
@@ -68,7 +66,9 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
     ) -> tm_pb2.ListTasksResponse:
         """The live tasks of one SA or all."""
         self._auth.identify_read(context)
-        return tm_pb2.ListTasksResponse(tasks=[task_to_pb(t) for t in self._tasks.tasks(request.subarchitecture)])
+        tasks = [task_to_pb(t) for t in self._tasks.tasks(request.subarchitecture)]
+        await self._system.durable()  # the task states listed are durable before anyone sees them
+        return tm_pb2.ListTasksResponse(tasks=tasks)
 
     @stream_rpc
     async def Decisions(

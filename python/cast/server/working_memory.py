@@ -52,37 +52,29 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self._system = system
         self._host = system.host
         self._auth = auth
-        # With a journal that makes writers wait, a write is acknowledged only once durable.
-        self._durable = system.durable if system.journal is not None and system.journal.waits else None
+        # Calls on the latest state answer once it is durable (System.settle), refusals included.
+        self._settle = system.settle
+
+    async def _write(self, who: Identity, op: BatchOp) -> wm_pb2.WriteResponse:
+        result = await self._settle(lambda: self._host.write(who, op))
+        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
-        who = self._auth.identify(context)
-        result = self._host.write(who, _op(request))
-        if self._durable is not None:
-            await self._durable()
-        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+        return await self._write(self._auth.identify(context), _op(request))
 
     @rpc
     async def Overwrite(
         self, request: wm_pb2.OverwriteRequest, context: Context
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
-        who = self._auth.identify(context)
-        result = self._host.write(who, _op(request))
-        if self._durable is not None:
-            await self._durable()
-        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+        return await self._write(self._auth.identify(context), _op(request))
 
     @rpc
     async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
         """Delete an entry."""
-        who = self._auth.identify(context)
-        result = self._host.write(who, _op(request))
-        if self._durable is not None:
-            await self._durable()
-        return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
+        return await self._write(self._auth.identify(context), _op(request))
 
     @rpc
     async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
@@ -120,7 +112,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         loop = asyncio.get_running_loop()
         while True:
             try:
-                return wm_pb2.LockResponse(depth=self._host.try_lock(who, sa, entry_id, mode))
+                depth = await self._settle(lambda: self._host.try_lock(who, sa, entry_id, mode))
+                return wm_pb2.LockResponse(depth=depth)
             except LockedError as exc:
                 if request.no_wait:
                     raise
@@ -146,7 +139,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Unlock(self, request: wm_pb2.UnlockRequest, context: Context) -> wm_pb2.UnlockResponse:
         """Release one level of the caller's lock."""
         who = self._auth.identify(context)
-        depth = self._host.unlock(who, request.address.subarchitecture, request.address.id)
+        address = request.address
+        depth = await self._settle(lambda: self._host.unlock(who, address.subarchitecture, address.id))
         return wm_pb2.UnlockResponse(depth=depth)
 
     @rpc
@@ -162,9 +156,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
                 ops.append(_op(getattr(item, kind)))
             except CastError as exc:
                 raise type(exc)(f"batch operation {index}: {exc.message}") from None
-        results = self._host.batch(who, ops)
-        if self._durable is not None:
-            await self._durable()
+        results = await self._settle(lambda: self._host.batch(who, ops))
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
@@ -199,7 +191,6 @@ class _WatchStream:
         self._wake = asyncio.Event()
         self._sub = Subscription(system.host, self._notify)
         self._system = system
-        self._durable = system.durable if system.journal is not None and system.journal.waits else None
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
@@ -255,10 +246,8 @@ class _WatchStream:
                     yield self._control.pop(0)
                 if self._error is not None:
                     raise self._error
+                # The history holds only visible writes, so these are durable (cast.core.host).
                 matches = self._sub.poll(_BATCH_EVENTS, _BATCH_BYTES)
-                if matches and self._durable is not None:
-                    # Send only durable events: a watcher must never see a write a crash then undoes.
-                    await self._durable()
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
