@@ -33,11 +33,19 @@ VALUE = BytesValue(value=b"x" * 100)
 class Server:
     """`cast serve` on a free port, as users run it."""
 
-    def __init__(self, workdir: Path, sas: list[str], limits: dict[str, int] | None = None) -> None:
+    def __init__(
+        self,
+        workdir: Path,
+        sas: list[str],
+        limits: dict[str, int] | None = None,
+        persistence: dict[str, str] | None = None,
+    ) -> None:
         workdir.mkdir(parents=True, exist_ok=True)
         config: dict[str, Any] = {"system": "bench", "subarchitectures": {sa: {} for sa in sas}}
         if limits:
             config["limits"] = limits
+        if persistence:
+            config["persistence"] = persistence
         path = workdir / "bench.yaml"
         path.write_text(yaml.safe_dump(config, sort_keys=False))
         self.proc = start(

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import cast_cases, floors, other_clients, redis_peer, report, stalled_watcher
+from bench import cast_cases, durability, floors, other_clients, redis_peer, report, stalled_watcher
 from bench.harness import ROOT
 
 RESULTS = ROOT / "bench" / "results"
@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     stalled_events = 100_000 if q else 1_000_000
     log(f"R1 writers with a stalled watcher ({stalled_events:,} events per run)")
     r1 = stalled_watcher.run(work / "stalled", stalled_events, 500 if q else 2000, rounds)
+    d1 = durability.run(work / "d1", n, 50 if q else 300, n, log)
     log("M7 C++ and Java clients")
     m7 = other_clients.run(
         work / "m7",
@@ -197,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
             "met": m6["server_rss_mib"] <= 1024 and m6["get_all_10_p50_ms"] <= 2 and m6["add_rate_ratio"] >= 0.85,
         },
         m7,
+        _durability_row(d1),
         {
             "id": "R1",
             "what": f"writers while a watcher has stopped reading, {r1['events']:,} events per run (issue 7), "
@@ -255,6 +257,34 @@ def main(argv: list[str] | None = None) -> int:
     log(f"wrote {out / 'latest.md'}")
     print((out / "latest.md").read_text())
     return 0
+
+
+def _durability_row(d1: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """D1: each durable mode's figures against memory only, measured with them in turns."""
+    memory = d1["memory"]
+    figures = []
+    for mode in ("none", "batch", "always"):
+        fig = d1[mode]
+        figures += [
+            _fig(f"{mode}: Add (calls/s)", fig["add_per_s"], floor=memory["add_per_s"]),
+            _fig(f"{mode}: Get (calls/s)", fig["get_per_s"], floor=memory["get_per_s"]),
+            _fig(f"{mode}: Overwrite (calls/s)", fig["overwrite_per_s"], floor=memory["overwrite_per_s"]),
+            _fig(f"{mode}: Batch of 100 adds (entries/s)", fig["batch_entries_per_s"],
+                 floor=memory["batch_entries_per_s"]),
+            _fig(f"{mode}: write -> event p50 (µs)", fig["p50_us"], floor=memory["p50_us"]),
+        ]
+    gets_ok = all(d1[mode]["get_per_s"] >= 0.9 * memory["get_per_s"] for mode in ("none", "batch", "always"))
+    return {
+        "id": "D1",
+        "what": "durability modes (issue 12): M1, M2, M3 against a server per mode, taking turns; the floor "
+        "column is memory only",
+        "target": "no target for writes (the cost is shown); reads never wait for the journal: Get >= 0.9 x "
+        "memory only in every mode; no event lost",
+        "figures": figures,
+        "note": "in always and batch a write is answered, and becomes visible to anyone, once its transaction "
+        "is fsynced; always makes one transaction per write call, batch one per group of concurrent ones",
+        "met": gets_ok and all(d1[mode]["lost"] == 0 for mode in d1),
+    }
 
 
 if __name__ == "__main__":
