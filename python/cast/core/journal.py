@@ -27,7 +27,8 @@ across restarts that lose nothing, raised to an epoch floor when a crash in
 Fault injection for tests: :meth:`Journal.hold` keeps the committer from
 writing until :meth:`Journal.release`; with ``CAST_FAILPOINT_JOURNAL_HOLD=PATH``
 in the environment it also waits while that file exists (for a server in
-another process).
+another process), and ``CAST_FAILPOINT_JOURNAL_DELAY_MS=N`` makes it wait N ms
+before each transaction, as a slow disk would.
 
 The file holds the state (entries, last versions of deleted entries, revision
 counters, registered schemas) and the last ``history_events`` events per WM,
@@ -136,6 +137,7 @@ class Journal:
         self.on_durable: Callable[[list[ChangeEvent]], None] | None = None
         self._held = False
         self._hold_file = os.environ.get("CAST_FAILPOINT_JOURNAL_HOLD", "")
+        self._delay_s = float(os.environ.get("CAST_FAILPOINT_JOURNAL_DELAY_MS") or 0) / 1000
         self._open_run()
         self._thread = threading.Thread(target=self._run, name="cast-journal", daemon=True)
         self._thread.start()
@@ -271,7 +273,7 @@ class Journal:
                 self._cond.wait_for(lambda: (bool(self._queue) and not self._held) or self._closing)
                 if not self._queue and self._closing:
                     return
-            self._wait_hold_file()
+            self._failpoints()
             with self._cond:
                 if self.durability is Durability.ALWAYS:
                     items = [self._queue.pop(0)]
@@ -296,10 +298,12 @@ class Journal:
                 with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits any more
                     loop.call_soon_threadsafe(_settle, fut, failure)
 
-    def _wait_hold_file(self) -> None:
+    def _failpoints(self) -> None:
         # Fault injection across processes (see the module docstring); a poll is enough for tests.
         while self._hold_file and os.path.exists(self._hold_file) and not self._closing:
             time.sleep(0.005)
+        if self._delay_s:
+            time.sleep(self._delay_s)
 
     def _made_durable(self, items: list[_Item]) -> None:
         if self.on_durable is None:
