@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tests.conftest import ROOT
 
-IDS = ["M1", "M2", "M3", "M4", "M5", "M6", "M7", "R1"]
+IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "R1"]
 
 
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
@@ -33,6 +33,10 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     assert {"C++ Add (calls/s)", "Java Add (calls/s)"} <= names, m7.get("note")
     # Java's steady-state Add comes from the interleaved blocks (cast.bench.Bench's `blocks` mode).
     assert any(n.startswith("Java Add after") and n.endswith("judged") for n in names), names
+    # D1 measured every durability mode against memory only (the floor column).
+    d1 = doc["results"]["D1"]["figures"]
+    for mode in ("none", "batch", "always"):
+        assert any(f["name"] == f"{mode}: Get (calls/s)" and f["floor"] > 0 for f in d1), d1
     # M5 measures its floor (the dispatcher's handoff alone) with it.
     m5_first = doc["results"]["M5"]["figures"][0]
     assert m5_first["name"] == "add -> callback p50 (µs)" and m5_first["floor"] > 0, m5_first
