@@ -1,11 +1,12 @@
-"""Component tokens: signed statements of a component's identity.
+"""Component tokens: signed statements of a component's identity, as standard JWTs.
 
-A token is ``<payload>.<signature>``, both base64url without padding; the
-payload is JSON ``{"c": component id, "s": SA, "p": privileged, "iat": issued,
-"exp": expiry or 0}`` and the signature is HMAC-SHA256 of the payload with the
-system's secret. The orchestrator (or ``cast token``) holds the secret and
+A token is a JSON Web Token (RFC 7519) signed with HS256 (HMAC-SHA256) and the
+system's secret, so any language's JWT library reads it. Its claims:
+``{"c": component id, "s": SA, "p": privileged, "iat": issued}`` and, when it
+expires, ``"exp"``. The orchestrator (or ``cast token``) holds the secret and
 issues tokens; the server verifies them on every call. Identity therefore never
-comes from a request field.
+comes from a request field. Tokens of the format before JWTs
+(``<payload>.<signature>``) are refused with a message that says to re-issue them.
 
 The secret is found, in order: an explicit path, ``$CAST_SECRET`` (the secret
 itself), ``$CAST_SECRET_FILE``, then ``.cast/secret`` in the working directory,
@@ -15,8 +16,6 @@ which :func:`load_or_create_secret` creates (mode 0600) on first use.
 from __future__ import annotations
 
 import base64
-import hashlib
-import hmac
 import json
 import math
 import os
@@ -24,6 +23,8 @@ import secrets
 import time
 from collections import OrderedDict
 from pathlib import Path
+
+import jwt
 
 from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, UnauthenticatedError
@@ -37,10 +38,8 @@ __all__ = [
 ]
 
 DEFAULT_SECRET_PATH = Path(".cast") / "secret"
-
-
-def _b64(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode("ascii")
+_ALGORITHM = "HS256"
+_MIN_SECRET = 32
 
 
 def _unb64(text: str) -> bytes:
@@ -51,27 +50,29 @@ class TokenSigner:
     """Issues and verifies tokens with one secret; caches verified tokens."""
 
     def __init__(self, secret: bytes) -> None:
-        if len(secret) < 16:
-            raise InvalidArgumentError("the token secret must be at least 16 bytes")
+        if len(secret) < _MIN_SECRET:
+            # RFC 7518 (3.2): an HS256 key must be at least as long as the hash, 256 bits.
+            raise InvalidArgumentError(
+                f"the token secret is {len(secret)} bytes, shorter than {_MIN_SECRET}: HS256 needs at least "
+                "32 bytes; make one with `python -c 'import secrets; print(secrets.token_urlsafe(32))'`, or let "
+                "`cast serve`/`cast run` create it"
+            )
         self._secret = secret
         self._cache: OrderedDict[str, tuple[Identity, float]] = OrderedDict()
 
     def issue(self, identity: Identity, ttl_seconds: float = 0) -> str:
         """A token for ``identity``; it expires after ``ttl_seconds`` (0: never)."""
         now = time.time()
-        payload = {
+        claims: dict[str, object] = {
             "c": identity.component_id,
             "s": identity.subarchitecture,
             "p": identity.privileged,
             "iat": int(now),
-            # Rounded up, so that a token lives at least ttl_seconds (renewal schedules rely on it).
-            "exp": math.ceil(now + ttl_seconds) if ttl_seconds else 0,
         }
-        body = _b64(json.dumps(payload, separators=(",", ":"), sort_keys=True).encode())
-        return f"{body}.{self._sign(body)}"
-
-    def _sign(self, body: str) -> str:
-        return _b64(hmac.new(self._secret, body.encode("ascii"), hashlib.sha256).digest())
+        if ttl_seconds:
+            # Rounded up, so that a token lives at least ttl_seconds (renewal schedules rely on it).
+            claims["exp"] = math.ceil(now + ttl_seconds)
+        return jwt.encode(claims, self._secret, algorithm=_ALGORITHM)
 
     def verify(self, token: str) -> Identity:
         """The identity a token states; UNAUTHENTICATED if it is malformed, forged or expired."""
@@ -80,28 +81,49 @@ class TokenSigner:
             identity, expiry = cached
             if not expiry or expiry > time.time():
                 return identity
-        body, dot, signature = token.partition(".")
-        if not dot or not body or not signature:
-            raise UnauthenticatedError("malformed token: expected '<payload>.<signature>'; get one from `cast token`")
-        if not hmac.compare_digest(self._sign(body), signature):
+        if token.count(".") == 1:
+            raise UnauthenticatedError(
+                "token in the format before JWTs ('<payload>.<signature>'): tokens are JSON Web Tokens now; "
+                "re-issue it with `cast token` (or restart the component under `cast run`)"
+            )
+        try:
+            claims = jwt.decode(
+                token, self._secret, algorithms=[_ALGORITHM], options={"require": ["c", "s", "p", "iat"]}
+            )
+        except jwt.ExpiredSignatureError:
+            claimed = peek(token)
+            who = f" of component '{claimed.component_id}'" if claimed else ""
+            raise UnauthenticatedError(f"token{who} expired: get a new one (`cast token`)") from None
+        except jwt.InvalidSignatureError:
             raise UnauthenticatedError(
                 "token signature does not match: the token was forged, altered, or issued for another system "
                 "(another secret); get one from `cast token` for this system"
-            )
-        try:
-            payload = json.loads(_unb64(body))
-            identity = Identity(str(payload["c"]), str(payload["s"]), bool(payload["p"]))
-            expiry = float(payload.get("exp", 0))
-        except (ValueError, KeyError, TypeError) as exc:
-            raise UnauthenticatedError(f"malformed token payload: {exc}") from exc
-        if expiry and expiry <= time.time():
+            ) from None
+        except jwt.InvalidTokenError as exc:
             raise UnauthenticatedError(
-                f"token of component '{identity.component_id}' expired at {time.ctime(expiry)}: get a new one"
-            )
+                f"malformed token ({exc}): expected a JWT signed with HS256; get one from `cast token`"
+            ) from None
+        try:
+            identity = Identity(_text(claims["c"]), _text(claims["s"]), _flag(claims["p"]))
+        except (TypeError, ValueError) as exc:
+            raise UnauthenticatedError(f"malformed token claims: {exc}") from None
+        expiry = float(claims.get("exp", 0))
         self._cache[token] = (identity, expiry)
         if len(self._cache) > 4096:
             self._cache.popitem(last=False)
         return identity
+
+
+def _text(value: object) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"expected a string, got {type(value).__name__}")
+    return value
+
+
+def _flag(value: object) -> bool:
+    if not isinstance(value, bool):
+        raise TypeError(f"'p' must be true or false, got {value!r}")
+    return value
 
 
 def load_secret(path: str | os.PathLike[str] | None = None) -> bytes | None:
@@ -139,7 +161,7 @@ def load_or_create_secret(path: str | os.PathLike[str] | None = None) -> bytes:
 def peek(token: str) -> Identity | None:
     """The identity a token claims, without verifying it (clients use it to learn their own flags)."""
     try:
-        payload = json.loads(_unb64(token.partition(".")[0]))
-        return Identity(str(payload["c"]), str(payload["s"]), bool(payload["p"]))
-    except (ValueError, KeyError, TypeError):
+        claims = json.loads(_unb64(token.split(".")[1]))
+        return Identity(str(claims["c"]), str(claims["s"]), bool(claims["p"]))
+    except (ValueError, KeyError, TypeError, IndexError):
         return None

@@ -33,7 +33,7 @@ class ThreadServer:
 
     def __init__(self, system: System) -> None:
         self.system = system
-        self.signer = TokenSigner(b"client-test-secret-0123456789")
+        self.signer = TokenSigner(b"client-test-secret-0123456789abcdef")
         self.loop = asyncio.new_event_loop()
         started = threading.Event()
         self.running: RunningServer | None = None

@@ -82,12 +82,34 @@ def test_tokens_verify_and_forgeries_fail() -> None:
     other = TokenSigner(b"t" * 32)
     with pytest.raises(UnauthenticatedError, match="signature does not match"):
         other.verify(token)
-    _, _, sig = token.partition(".")
-    forged_body = TokenSigner(b"t" * 32).issue(Identity("comp", "vision", True)).partition(".")[0]
-    with pytest.raises(UnauthenticatedError):
-        signer.verify(f"{forged_body}x.{sig}")
+    header, _, sig = token.split(".")
+    # Claims of another identity under the real signature: refused.
+    forged = TokenSigner(b"t" * 32).issue(Identity("boss", "vision", True)).split(".")[1]
+    with pytest.raises(UnauthenticatedError, match="signature does not match"):
+        signer.verify(f"{header}.{forged}.{sig}")
     with pytest.raises(UnauthenticatedError, match="malformed"):
         signer.verify("garbage")
     expired = signer.issue(Identity("comp", "vision"), ttl_seconds=-10)
     with pytest.raises(UnauthenticatedError, match="expired"):
         signer.verify(expired)
+
+
+def test_tokens_are_standard_jwts_and_the_old_format_is_refused_with_advice() -> None:
+    import jwt
+
+    secret = b"s" * 32
+    token = TokenSigner(secret).issue(Identity("comp", "vision", True), ttl_seconds=60)
+    # Any JWT library reads it with the system's secret.
+    claims = jwt.decode(token, secret, algorithms=["HS256"])
+    assert (claims["c"], claims["s"], claims["p"]) == ("comp", "vision", True) and claims["exp"] > claims["iat"]
+    assert "exp" not in jwt.decode(TokenSigner(secret).issue(Identity("comp", "vision")), secret, ["HS256"])
+    # A token made by a JWT library with the same claims is accepted.
+    made = jwt.encode({"c": "other", "s": "language", "p": False, "iat": 0}, secret, algorithm="HS256")
+    assert TokenSigner(secret).verify(made) == Identity("other", "language", False)
+    # "alg": "none" (unsigned) is refused.
+    unsigned = jwt.encode({"c": "x", "s": "vision", "p": True, "iat": 0}, None, algorithm="none")
+    with pytest.raises(UnauthenticatedError):
+        TokenSigner(secret).verify(unsigned)
+    # A token of the old '<payload>.<signature>' format: told to re-issue it.
+    with pytest.raises(UnauthenticatedError, match="re-issue it with `cast token`"):
+        TokenSigner(secret).verify("eyJjIjoiYyJ9.c2lnbmF0dXJl")

@@ -122,7 +122,7 @@ def test_forged_and_missing_tokens_are_unauthenticated(server: ServerHandle) -> 
     from cast.core.records import Identity
     from cast.v1 import entry_pb2, working_memory_pb2, working_memory_pb2_grpc
 
-    forged = TokenSigner(b"not-the-system-secret-000000").issue(Identity("evil", "vision", True))
+    forged = TokenSigner(b"not-the-system-secret-0000000000000000").issue(Identity("evil", "vision", True))
     with pytest.raises(cast.UnauthenticatedError, match="signature does not match"):
         GrpcTransport(server.endpoint, forged, Identity("evil", "vision", True))
     channel = grpc.insecure_channel(server.endpoint)
