@@ -20,6 +20,7 @@ __all__ = [
     "NotFoundError",
     "PermissionDeniedError",
     "ResourceExhaustedError",
+    "SchemaConflictError",
     "UnauthenticatedError",
     "UnavailableError",
     "error_for_code",
@@ -67,6 +68,14 @@ class LockedError(CastError):
     """
 
     code = "FAILED_PRECONDITION"
+
+
+class SchemaConflictError(LockedError):
+    """A schema file registered again with other types (FAILED_PRECONDITION).
+
+    Clients see it as their FAILED_PRECONDITION error (LockedError): the
+    status code, not the class, travels.
+    """
 
 
 class InvalidArgumentError(CastError):

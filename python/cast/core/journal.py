@@ -214,6 +214,11 @@ class Journal:
             self._appended += 1
             self._cond.notify()
 
+    def forget_schemas(self, names: Iterable[str]) -> None:
+        """Delete stored schema files the registry no longer loads (call before any append)."""
+        with self._cond:
+            self._db.executemany("DELETE FROM schemas WHERE name = ?", [(name,) for name in names])
+
     def append_schemas(self, files: Iterable[tuple[str, bytes]]) -> None:
         """Queue newly registered schema files ``(name, serialised FileDescriptorProto)``."""
         with self._cond:

@@ -15,7 +15,7 @@ from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
 from cast.core.policies import TaskPolicy
 from cast.core.records import Identity, Limits, Operation
-from cast.core.schemas import SchemaRegistry, files_of
+from cast.core.schemas import SchemaRegistry
 from cast.core.sessions import ComponentInfo, SessionTable
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
 from cast.core.versions import epoch_floor
@@ -42,11 +42,12 @@ class System:
         version_floor: int | None = None,
     ) -> None:
         # Imported here so that importing the core does not require generated code.
-        from cast.v1 import task_manager_pb2
+        from cast.v1 import directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2
 
         self.name = name
-        self.schemas = SchemaRegistry()
-        self.schemas.register(files_of(task_manager_pb2.Task.DESCRIPTOR))
+        # The system's own files are the server's, like the well-known ones: client copies are ignored.
+        own = (directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2)
+        self.schemas = SchemaRegistry(own=[module.DESCRIPTOR for module in own])
         if version_floor is None:
             # Memory only: an earlier run of this server may have given versions nobody can know of
             # now, so this run starts above them (cast.core.versions); a journal knows its floor.
@@ -71,12 +72,10 @@ class System:
 
     def _restore(self, journal: Journal) -> None:
         """Load the journal's state, then start journaling every commit and schema."""
-        from google.protobuf import descriptor_pb2
-
         stored = journal.load()
-        if stored.schemas:
-            files = [descriptor_pb2.FileDescriptorProto.FromString(data) for data in stored.schemas]
-            self.schemas.register(files)
+        dropped = self.schemas.restore(stored.schemas)
+        if dropped:
+            journal.forget_schemas(dropped)
         for sa, state in stored.wms.items():
             if sa in self.endpoints:  # an SA no longer configured keeps its rows but is not served
                 self.host.restore(sa, state.entries, state.deleted, state.revision, state.events)
