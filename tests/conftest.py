@@ -111,6 +111,17 @@ class ServerHandle:
                 self.process.wait()
 
 
+def register_session(channel: Any, metadata: Any) -> str:
+    """Register a session for a raw-stub caller, as every client library does before it locks or proposes.
+
+    The session lives for the server's lease (10 s by default) without heartbeats: enough for a test's calls.
+    """
+    from cast.v1 import directory_pb2, directory_pb2_grpc
+
+    request = directory_pb2.RegisterRequest(language="raw", kind="unmanaged", pid=os.getpid(), host="test")
+    return str(directory_pb2_grpc.DirectoryStub(channel).Register(request, metadata=metadata, timeout=10).session_id)
+
+
 def start_server(tmp: Path, config: dict[str, Any], extra_args: list[str] | None = None) -> ServerHandle:
     """Write ``config`` as YAML and start `cast serve` on port 0; wait for its first line."""
     tmp.mkdir(parents=True, exist_ok=True)

@@ -17,6 +17,7 @@ __all__ = [
     "InternalError",
     "InvalidArgumentError",
     "LockedError",
+    "NoSessionError",
     "NotFoundError",
     "PermissionDeniedError",
     "ResourceExhaustedError",
@@ -75,6 +76,14 @@ class SchemaConflictError(LockedError):
 
     Clients see it as their FAILED_PRECONDITION error (LockedError): the
     status code, not the class, travels.
+    """
+
+
+class NoSessionError(LockedError):
+    """A lock or a task asked for by a component with no live session (FAILED_PRECONDITION).
+
+    Locks and tasks end with the session that took them; without one, nothing
+    would ever release them.
     """
 
 

@@ -248,3 +248,29 @@ def test_a_slow_component_lags_without_blocking_writers_and_is_told_past_the_his
     wait_for(lambda: errors, timeout=20)
     assert isinstance(errors[0], cast.HistoryExpiredError)
     assert seen == sorted(seen) and len(set(seen)) == len(seen)  # what did arrive: in order, once
+
+
+def test_task_entries_are_the_servers_readable_by_all_written_by_no_component(make_component: Any) -> None:
+    from cast.v1.task_manager_pb2 import Task as TaskPb
+
+    m = make_component(Manager, "m")
+    m.start()
+    other = make_component(cast.UnmanagedComponent, "other")
+    boss = make_component(cast.UnmanagedComponent, "boss", "language", privileged=True)
+    task = m.propose_task("work")
+    wait_for(lambda: len(m.decisions) == 1)
+    before = other.get_entry(task.task_id, TaskPb)
+    assert before.value.name == "work"
+    for who in (other, boss, m):  # same SA, privileged, and the task's own proposer
+        with pytest.raises(cast.PermissionDeniedError, match="cast.v1.Task entries belong to the server"):
+            who.overwrite(task.task_id, Pose(label="forged"), subarchitecture="vision")
+        with pytest.raises(cast.PermissionDeniedError, match="belong to the server"):
+            who.delete_entry(task.task_id, subarchitecture="vision")
+        with pytest.raises(cast.PermissionDeniedError, match="belong to the server"):
+            who.try_lock(task.task_id, cast.LockMode.O, subarchitecture="vision")
+        with pytest.raises(cast.PermissionDeniedError, match="belong to the server"):
+            who.add(who.new_id(), TaskPb(name="fake"), subarchitecture="vision")
+        with pytest.raises(cast.PermissionDeniedError, match="batch operation 0: .*belong to the server"):
+            who.batch([("delete", task.task_id, None)], subarchitecture="vision")
+    after = other.get_entry(task.task_id, TaskPb)
+    assert (after.version, after.value) == (before.version, before.value)

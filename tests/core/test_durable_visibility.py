@@ -34,6 +34,8 @@ T = "t.T"
 def system(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[System]:
     journal = Journal(tmp_path / "wm.db", request.param)
     s = System("t", ["vision"], {"vision": make_policy("fifo", {"max_concurrent": 1})}, journal=journal)
+    for who in (W, R):  # locks and tasks need a live session
+        s.sessions.register(who, "python", "unmanaged", 0, "")
     yield s
     assert s.journal is not None
     s.journal.release()

@@ -9,7 +9,7 @@ import pytest
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.records import Identity, Limits, LockMode, Operation
 from cast.core.system import System
-from cast.errors import LockedError, NotFoundError, ResourceExhaustedError
+from cast.errors import LockedError, NoSessionError, NotFoundError, ResourceExhaustedError
 
 HOLDER = Identity("holder", "vision")
 SNEAK = Identity("sneak", "vision")
@@ -149,3 +149,25 @@ def test_waiters_limit() -> None:
 def test_lock_of_missing_entry_is_not_found(host: MemoryHost) -> None:
     with pytest.raises(NotFoundError, match="cannot lock"):
         host.try_lock(HOLDER, "vision", "nope", LockMode.O)
+
+
+def test_a_component_without_a_live_session_may_not_lock() -> None:
+    system = System("t", ["vision"])
+    system.host.add(HOLDER, "vision", "x", "t.T", b"")
+    with pytest.raises(NoSessionError, match="component 'holder' .* has no live session, so it may not lock entry 'x'"):
+        system.host.try_lock(HOLDER, "vision", "x", LockMode.O)
+    assert system.host.lock_holder("vision", "x") is None
+    session = system.sessions.register(HOLDER, "python", "unmanaged", 1, "h")
+    assert system.host.try_lock(HOLDER, "vision", "x", LockMode.O) == 1
+    system.sessions.end(session)
+    assert system.host.lock_holder("vision", "x") is None
+
+
+def test_a_session_that_ends_while_a_lock_is_taken_leaves_no_lock() -> None:
+    system = System("t", ["vision"])
+    system.host.add(HOLDER, "vision", "x", "t.T", b"")
+    checks = iter([True, False])
+    system.host.session_live = lambda component: next(checks)
+    with pytest.raises(NoSessionError):
+        system.host.try_lock(HOLDER, "vision", "x", LockMode.OD)
+    assert system.host.lock_holder("vision", "x") is None and system.host.locks_of("holder") == []

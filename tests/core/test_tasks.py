@@ -10,14 +10,17 @@ from cast.core.policies import Decision, TaskPolicy, make_policy
 from cast.core.records import Identity
 from cast.core.system import TASK_TYPE, System
 from cast.core.tasks import TaskOutcome, TaskState
-from cast.errors import InvalidArgumentError, LockedError, NotFoundError, PermissionDeniedError
+from cast.errors import InvalidArgumentError, LockedError, NoSessionError, NotFoundError, PermissionDeniedError
 
 A = Identity("a", "vision")
 B = Identity("b", "vision")
 
 
 def system(policy: str = "always", **options: Any) -> System:
-    return System("t", ["vision"], {"vision": make_policy(policy, options)})
+    sys = System("t", ["vision"], {"vision": make_policy(policy, options)})
+    for who in (A, B):  # tasks need a live session
+        sys.sessions.register(who, "python", "managed", 1, "h")
+    return sys
 
 
 def states(sys: System, who: Identity) -> list[tuple[str, TaskState]]:
@@ -97,6 +100,7 @@ class OnlyNamed(TaskPolicy):
 def test_user_policy_class_by_module_path() -> None:
     policy = make_policy(f"{__name__}:OnlyNamed")
     sys = System("t", ["vision"], {"vision": policy})
+    sys.sessions.register(A, "python", "managed", 1, "h")
     assert sys.tasks.propose(A, "ok").state is TaskState.ADOPTED
     assert sys.tasks.propose(A, "nope").state is TaskState.REJECTED
 
@@ -139,3 +143,26 @@ def test_task_errors() -> None:
 def test_bad_policies(policy: str, options: dict[str, Any], words: str) -> None:
     with pytest.raises(InvalidArgumentError, match=words):
         make_policy(policy, options)
+
+
+def test_a_component_without_a_live_session_may_not_propose_and_nothing_is_left_behind() -> None:
+    sys = System("t", ["vision"], {"vision": make_policy("fifo", {"max_concurrent": 1})})
+    with pytest.raises(NoSessionError, match="component 'a' .* has no live session, so it may not propose task"):
+        sys.tasks.propose(A, "work")
+    assert sys.tasks.tasks() == [] and sys.host.get_by_type(A, "vision", TASK_TYPE)[0] == []
+    session = sys.sessions.register(A, "python", "managed", 1, "h")
+    task = sys.tasks.propose(A, "work")
+    assert task.state is TaskState.ADOPTED
+    sys.sessions.end(session)  # its end releases the task, so the one slot is free again
+    assert sys.tasks.tasks() == []
+    with pytest.raises(NoSessionError):
+        sys.tasks.propose(A, "again")
+
+
+def test_a_session_that_ends_while_a_task_is_proposed_leaves_no_task() -> None:
+    sys = system("fifo", max_concurrent=1)
+    checks = iter([True, False])  # live when asked first, ended by the time the task exists
+    sys.tasks.session_live = lambda component: next(checks)
+    with pytest.raises(NoSessionError):
+        sys.tasks.propose(A, "raced")
+    assert sys.tasks.tasks() == []

@@ -21,7 +21,7 @@ from cast.v1 import (
 from cast.v1 import (
     working_memory_pb2 as wm,
 )
-from tests.conftest import ServerHandle
+from tests.conftest import ServerHandle, register_session
 
 
 class Raw:
@@ -32,6 +32,7 @@ class Raw:
         self.wm = working_memory_pb2_grpc.WorkingMemoryStub(self.channel)
         self.directory = directory_pb2_grpc.DirectoryStub(self.channel)
         self.md = (("authorization", f"Bearer {server.token(component, sa)}"),)
+        register_session(self.channel, self.md)  # locks need a live session
 
     def call(self, method, request):  # type: ignore[no-untyped-def]
         return method(request, metadata=self.md, timeout=10)

@@ -21,7 +21,10 @@ def system_for(tmp_path: Path, task_manager: dict[str, object]) -> System:
     """A system (as the orchestrator builds it) whose one SA has this task manager configuration."""
     cfg = write_config(tmp_path / "tm.yaml", {"subarchitectures": {"sa": {"task_manager": task_manager}}})
     config = load_config(cfg, environ={})
-    return build_system(config, config.servers[0])
+    system = build_system(config, config.servers[0])
+    for who in (ALICE, BOB):  # tasks need a live session
+        system.sessions.register(who, "python", "managed", 1, "h")
+    return system
 
 
 def states(system: System, *tasks: TaskRecord) -> list[str]:

@@ -89,7 +89,8 @@ def test_a_token_of_a_cannot_touch_the_session_tasks_or_locks_of_b(server: Serve
         session = dir_b.Register(directory_pb2.RegisterRequest(language="python"), metadata=mdb).session_id
         beats = dir_a.Heartbeat(iter([directory_pb2.HeartbeatRequest(session_id=session)]), metadata=mda)
         assert _code(list, beats) == grpc.StatusCode.PERMISSION_DENIED
-        # B's task: A can neither retract nor complete it.
+        # B's task (B's session is live: A's refused heartbeat did not end it): A can neither retract nor
+        # complete it.
         task = tmb.Propose(task_manager_pb2.ProposeRequest(name="b-work"), metadata=mdb).task
         assert _code(tma.Retract, task_manager_pb2.RetractRequest(task_id=task.task_id), metadata=mda) == \
             grpc.StatusCode.PERMISSION_DENIED

@@ -65,6 +65,7 @@ def test_clean_restart_keeps_entries_versions_revisions_and_schemas(tmp_path: Pa
     h.overwrite(A, "vision", "gone", "cast.testing.Pose", b"")
     h.delete(A, "vision", "gone")
     h.batch(B, [BatchOp(Operation.ADD, "language", f"l{i}", "cast.testing.Counter", b"") for i in range(3)])
+    s.sessions.register(A, "python", "managed", 1, "h")
     task = s.tasks.propose(A, "work")  # live task: its session ends with the server
     s.durable_sync()
     before = state(s)

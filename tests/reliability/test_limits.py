@@ -11,6 +11,7 @@ from google.protobuf import any_pb2
 
 from cast.core.records import Limits, LockMode
 from cast.v1 import entry_pb2, working_memory_pb2, working_memory_pb2_grpc
+from tests.conftest import register_session
 from tests.reliability.conftest import wait_for
 
 LIMITS = {"max_value_bytes": 64, "max_entries": 3, "max_watchers": 2, "max_lock_waiters": 1,
@@ -38,6 +39,8 @@ def test_each_configured_limit_is_a_clear_refusal_over_the_wire(server_factory: 
     md = (("authorization", f"Bearer {handle.token('a', 'vision')}"),)
     md_b = (("authorization", f"Bearer {handle.token('b', 'vision')}"),)
     md_c = (("authorization", f"Bearer {handle.token('c', 'vision')}"),)
+    for m in (md, md_b, md_c):
+        register_session(ch, m)  # locks need a live session
 
     def addr(i: str) -> entry_pb2.EntryAddress:
         return entry_pb2.EntryAddress(id=i, subarchitecture="vision")

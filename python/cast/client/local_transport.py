@@ -23,7 +23,7 @@ from cast.core.sessions import ComponentState
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Subscription
-from cast.errors import CastError, DeadlineExceededError, LockedError
+from cast.errors import CastError, DeadlineExceededError, LockedError, NoSessionError
 
 __all__ = ["LocalTransport"]
 
@@ -97,7 +97,7 @@ class LocalTransport:
             try:
                 return self._settle(lambda: self._host.try_lock(self.identity, sa, entry_id, mode))
             except LockedError as exc:
-                if no_wait:
+                if no_wait or isinstance(exc, NoSessionError):
                     raise
                 blocked = exc
             released = threading.Event()

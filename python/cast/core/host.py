@@ -30,12 +30,25 @@ from collections.abc import Callable, Iterable, Sequence
 from cast.core.checks import check_id, check_sa_name, locked_message, missing_message
 from cast.core.memory import LockState, Pending, WorkingMemory
 from cast.core.planning import BatchOp, Overlay, Planned, ValueValidator, WritePlanner
-from cast.core.records import ChangeEvent, EntryRecord, Identity, Limits, LockMode, Operation, WriteResult
+from cast.core.records import (
+    SYSTEM_TYPES,
+    ChangeEvent,
+    EntryRecord,
+    Identity,
+    Limits,
+    LockMode,
+    Operation,
+    WriteResult,
+    no_session,
+    system_entry,
+)
 from cast.errors import (
     CastError,
     InvalidArgumentError,
     LockedError,
+    NoSessionError,
     NotFoundError,
+    PermissionDeniedError,
     ResourceExhaustedError,
 )
 
@@ -78,6 +91,8 @@ class MemoryHost:
         self.journal: Callable[[list[ChangeEvent]], None] | None = None
         # True while writes become visible only once the journal made them durable (apply_durable).
         self.deferred = False
+        # Whether a component has a live session (cast.core.sessions); None: no sessions (bare core).
+        self.session_live: Callable[[str], bool] | None = None
 
     def attach_journal(self, append: Callable[[list[ChangeEvent]], None], deferred: bool) -> None:
         """Journal every commit from now on; ``deferred``: show a write only once it is durable.
@@ -343,7 +358,7 @@ class MemoryHost:
             wm = self._wm(op.subarchitecture)
             saved = wm.locks.pop(op.id, None)
             try:
-                planned = self._planner.plan(wm, privileged, op, None, None)
+                planned = self._planner.plan(wm, privileged, op, None, None, system=True)
             finally:
                 if saved is not None:
                     wm.locks[op.id] = saved
@@ -393,10 +408,24 @@ class MemoryHost:
         """
         check_id(entry_id, self.limits)
         mode = LockMode(mode)
+        live = self.session_live
+        if live is not None and not live(who.component_id):
+            raise NoSessionError(no_session(who, f"lock entry '{entry_id}' in subarchitecture '{sa}'"))
+        depth = self._take_lock(who, sa, entry_id, mode)
+        if live is not None and not live(who.component_id):
+            # The session ended while the lock was being taken, after it released what it held.
+            self.release_component(who.component_id)
+            raise NoSessionError(no_session(who, f"lock entry '{entry_id}' in subarchitecture '{sa}'"))
+        return depth
+
+    def _take_lock(self, who: Identity, sa: str, entry_id: str, mode: LockMode) -> int:
         with self._mutex:
             wm = self._wm(sa)
-            if wm.latest(entry_id)[0] is None:
+            current = wm.latest(entry_id)[0]
+            if current is None:
                 raise NotFoundError(missing_message(sa, entry_id) + ": cannot lock it")
+            if current.type in SYSTEM_TYPES:
+                raise PermissionDeniedError(system_entry(who, sa, entry_id, current.type, "lock"))
             lock = wm.locks.get(entry_id)
             if lock is None:
                 wm.locks[entry_id] = LockState(who.component_id, mode)

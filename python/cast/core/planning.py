@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 from cast.core.checks import TypeChecker, check_id, locked_message, missing_message
 from cast.core.memory import WorkingMemory
-from cast.core.records import EntryRecord, Identity, Limits, LockMode, Operation
+from cast.core.records import SYSTEM_TYPES, EntryRecord, Identity, Limits, LockMode, Operation, system_entry
 from cast.core.versions import check_outran, next_version
 from cast.errors import (
     AlreadyExistsError,
@@ -110,10 +110,12 @@ class WritePlanner:
         overlay: Overlay | None,
         counts: dict[str, int] | None,
         now: int = 0,
+        system: bool = False,
     ) -> Planned:
         """Check ``op`` against the latest state of ``wm`` (after ``overlay``); the write it makes.
 
-        ``counts`` tracks a batch's entry count changes per SA.
+        ``counts`` tracks a batch's entry count changes per SA; ``system``: a
+        write by the server itself, which alone writes system entries.
         """
         sa, entry_id = op.subarchitecture, op.id
         if sa != who.subarchitecture and not who.privileged:
@@ -128,6 +130,12 @@ class WritePlanner:
             current, deleted_version = slot.record, slot.deleted_version
         else:
             current, deleted_version = wm.latest(entry_id)
+        if not system:
+            for type_name in (op.type if op.operation is not Operation.DELETE else "", current and current.type):
+                if type_name in SYSTEM_TYPES:
+                    raise PermissionDeniedError(
+                        system_entry(who, sa, entry_id, str(type_name), op.operation.name.lower())
+                    )
         lock = wm.locks.get(entry_id)
         if slot is not None and slot.record is None:
             lock = None  # deleted earlier in this batch: its lock went with it

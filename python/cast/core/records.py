@@ -18,7 +18,11 @@ __all__ = [
     "Limits",
     "LockMode",
     "Operation",
+    "SYSTEM_TYPES",
+    "TASK_TYPE",
     "WriteResult",
+    "no_session",
+    "system_entry",
 ]
 
 
@@ -152,6 +156,31 @@ class ChangeEvent:
             f"ChangeEvent({self.operation.name} {self.subarchitecture}/{self.id} rev={self.revision} "
             f"v={self.version} type={self.type} by={self.source_component})"
         )
+
+
+TASK_TYPE = "cast.v1.Task"
+"""The type of the entries a task manager keeps of its tasks."""
+
+SYSTEM_TYPES = frozenset({TASK_TYPE})
+"""Types of entries the server itself writes: readable by all, written by no component."""
+
+
+def system_entry(who: Identity, sa: str, entry_id: str, type_name: str, action: str) -> str:
+    """Why ``who`` may not ``action`` a system entry, and what to do instead."""
+    return (
+        f"{who.describe()} may not {action} entry '{entry_id}' in subarchitecture '{sa}': {type_name} entries belong "
+        f"to the server (the task manager of '{sa}' writes them); read or watch them, and use the task calls "
+        "(propose, retract, complete) to change a task"
+    )
+
+
+def no_session(who: Identity, what: str) -> str:
+    """Why ``who`` may not ``what`` without a session, and what to do."""
+    return (
+        f"{who.describe()} has no live session, so it may not {what}: locks and tasks end with the session that "
+        "took them, and without one nothing would release them; register a session first (Directory.Register, "
+        "then keep its Heartbeat stream open: the client libraries do this when a component starts)"
+    )
 
 
 @dataclass(frozen=True)

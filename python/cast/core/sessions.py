@@ -130,6 +130,12 @@ class SessionTable:
                 ended.append(component_id)
         return ended
 
+    def has_live(self, component_id: str) -> bool:
+        """Whether a component has a live session (it may take locks and propose tasks)."""
+        with self._mutex:
+            info = self._components.get(component_id)
+            return info is not None and bool(info.session_id) and info.session_id in self._sessions
+
     def is_live(self, session_id: str) -> bool:
         """Whether a session is still live."""
         with self._mutex:

@@ -14,7 +14,7 @@ from typing import TypeVar
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
 from cast.core.policies import TaskPolicy
-from cast.core.records import Identity, Limits, Operation
+from cast.core.records import TASK_TYPE, Identity, Limits, Operation
 from cast.core.schemas import SchemaRegistry
 from cast.core.sessions import ComponentInfo, SessionTable
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
@@ -22,8 +22,6 @@ from cast.core.versions import epoch_floor
 from cast.errors import CastError
 
 __all__ = ["TASK_TYPE", "System"]
-
-TASK_TYPE = "cast.v1.Task"
 
 _T = TypeVar("_T")
 
@@ -55,6 +53,8 @@ class System:
         self.host = MemoryHost(subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor)
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
+        # Locks and tasks need a live session: its end is what releases them.
+        self.host.session_live = self.tasks.session_live = self.sessions.has_live
         self.endpoints: dict[str, str] = {sa: "" for sa in subarchitectures}
         # SAs of the same system served by other servers (set by the orchestrator), so that this
         # server's directory routes components to them.

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 from cast.core.host import MemoryHost
 from cast.core.policies import AlwaysPolicy, TaskPolicy
-from cast.core.records import EntryRecord, Identity
-from cast.errors import InvalidArgumentError, LockedError, NotFoundError, PermissionDeniedError
+from cast.core.records import EntryRecord, Identity, no_session
+from cast.errors import InvalidArgumentError, LockedError, NoSessionError, NotFoundError, PermissionDeniedError
 
 __all__ = ["TaskBoard", "TaskOutcome", "TaskRecord", "TaskState"]
 
@@ -109,6 +109,8 @@ class TaskBoard:
         self._decisions: dict[str, list[tuple[TaskRecord, str, int]]] = {}
         self._listeners: list[Callable[[str], None]] = []
         host.add_listener(self._visible, watcher=False)
+        # Whether a component has a live session (cast.core.sessions); None: no sessions (bare core).
+        self.session_live: Callable[[str], bool] | None = None
         self.counters: dict[str, dict[str, int]] = {
             sa: {"proposed": 0, "adopted": 0, "rejected": 0, "retracted": 0, "completed": 0}
             for sa in host.subarchitectures
@@ -138,6 +140,18 @@ class TaskBoard:
             raise InvalidArgumentError("task name must be 1 to 256 bytes")
         sa = who.subarchitecture
         self._host.revision(sa)
+        live = self.session_live
+        if live is not None and not live(who.component_id):
+            raise NoSessionError(no_session(who, f"propose task '{name}'"))
+        task = self._propose(who, name, data_type, data, priority)
+        if live is not None and not live(who.component_id):
+            # The session ended while the task was being proposed, after it released what it held.
+            self.release_component(who.component_id)
+            raise NoSessionError(no_session(who, f"propose task '{name}'"))
+        return task
+
+    def _propose(self, who: Identity, name: str, data_type: str, data: bytes, priority: int) -> TaskRecord:
+        sa = who.subarchitecture
         with self._mutex:
             task = TaskRecord(
                 f"task-{next(self._ids)}",

@@ -76,8 +76,10 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
             async for beat in request_iterator:
                 if session_id and beat.session_id != session_id:
                     raise InvalidArgumentError("one heartbeat stream serves one session")
+                # Checked before the stream adopts the session: a stream that names another
+                # component's session must not end that session when it is refused.
+                sessions.heartbeat(who, beat.session_id, component_state(beat.state))
                 session_id = beat.session_id
-                sessions.heartbeat(who, session_id, component_state(beat.state))
                 yield dir_pb2.HeartbeatResponse(lease_ms=sessions.lease_ms)
         finally:
             # The component is gone (or its stream broke): release what it held.

@@ -13,7 +13,14 @@ from cast.core.host import BatchOp
 from cast.core.records import Identity, LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
-from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, InvalidArgumentError, LockedError
+from cast.errors import (
+    CastError,
+    DeadlineExceededError,
+    HistoryExpiredError,
+    InvalidArgumentError,
+    LockedError,
+    NoSessionError,
+)
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
@@ -115,7 +122,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
                 depth = await self._settle(lambda: self._host.try_lock(who, sa, entry_id, mode))
                 return wm_pb2.LockResponse(depth=depth)
             except LockedError as exc:
-                if request.no_wait:
+                if request.no_wait or isinstance(exc, NoSessionError):
                     raise
                 blocked = exc
             released = loop.create_future()

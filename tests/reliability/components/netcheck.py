@@ -13,12 +13,14 @@ import time
 
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity, LockMode
+from cast.core.sessions import ComponentState
 from cast.errors import CastError, LockedError
 
 
 def main() -> int:
     endpoint, token, mode = sys.argv[1:4]
     t = GrpcTransport(endpoint, token, Identity("checker", "vision"), call_timeout=5)
+    t.start_session("python", "unmanaged", lambda: ComponentState.RUNNING)  # locks need a live session
     try:
         if mode == "released":
             deadline = time.monotonic() + 30
