@@ -22,6 +22,7 @@ help:
 	@echo "make cpp     build the C++ client library, its tests and C++ components (build/cpp, bin/)"
 	@echo "make test-cpp   the C++ unit tests (GoogleTest via ctest)"
 	@echo "make java-demo   the demo's Java components (examples/java-demo/target/cast-demo.jar)"
+	@echo "make node    the Node.js example component's runtime, packages and schema (examples/node)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
@@ -58,7 +59,7 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
 
-test-python: setup proto examples bench-deps
+test-python: setup proto examples bench-deps node
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java java-demo test-python
@@ -138,9 +139,33 @@ java-demo: java $(JAVA_DEMO_JAR)
 test-java: java
 	cd java_client && $(MVN) surefire:test
 
+# The Node.js example component (examples/node): Debian's nodejs and npm when node or npm is
+# missing (apt-get update only then), its packages with `npm ci` (again when package-lock.json
+# changes), and the schema it registers: a FileDescriptorSet of the .proto files of the types it
+# writes, made by protoc (the one `make setup` installed with grpcio-tools).
+NODE_DIR := examples/node
+NODE_STAMP := $(NODE_DIR)/node_modules/.cast-installed
+NODE_SCHEMAS := $(NODE_DIR)/generated/entry-types.binpb
+.PHONY: node node-deps
+
+node-deps:
+	@command -v node >/dev/null && command -v npm >/dev/null || { \
+	  echo "installing Node.js and npm"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q nodejs npm; }
+
+$(NODE_STAMP): $(NODE_DIR)/package.json $(NODE_DIR)/package-lock.json | node-deps
+	cd $(NODE_DIR) && npm ci --no-audit --no-fund
+	touch $@
+
+$(NODE_SCHEMAS): $(VENV)/.installed
+	mkdir -p $(@D)
+	$(PY) -m grpc_tools.protoc --include_imports --descriptor_set_out=$@ google/protobuf/wrappers.proto
+
+node: $(NODE_STAMP) $(NODE_SCHEMAS)
+
 lint: setup proto
 	$(VENV)/bin/ruff check python tests
 	$(VENV)/bin/mypy
 
 clean:
-	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache
+	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache $(NODE_DIR)/generated

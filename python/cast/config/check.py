@@ -45,7 +45,7 @@ def deep_check(
             try:
                 launcher_for(comp.language).command(comp, config, env)
             except CastError as exc:
-                key = "run" if comp.language == "cpp" else "class"
+                key = "run" if comp.language in ("cpp", "other") else "class"
                 message = exc.message.removeprefix(f"component '{comp.id}': ")
                 if builds_required:
                     problems.error(comp.at(key), f"{where}.{key}", message)

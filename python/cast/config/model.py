@@ -26,7 +26,7 @@ __all__ = [
     "TlsConfig",
 ]
 
-LANGUAGES = ("python", "cpp", "java")
+LANGUAGES = ("python", "cpp", "java", "other")  # other: any program speaking the gRPC API, started by run:
 KINDS = ("unmanaged", "managed")
 RESTART_MODES = ("never", "on-failure", "always")
 DURABILITY_MODES = ("always", "batch", "none")
@@ -61,8 +61,9 @@ class ComponentConfig:
     subarchitecture: str
     language: str = "python"
     kind: str = "unmanaged"
-    cls: str = ""  # python: module:Class; java: fully.qualified.Class
-    run: str = ""  # cpp: executable (absolute, relative to base_dir, or a bare name looked up)
+    cls: str = ""  # python: module:Class; java: fully.qualified.Class; other: unused (ignored)
+    run: str = ""  # cpp: executable (absolute, relative to base_dir, or a bare name looked up); other: as written
+    command: list[str] = field(default_factory=list)  # other: run: as words, the first resolved like cpp's run:
     args: dict[str, Any] = field(default_factory=dict)
     privileged: bool = False
     in_process: bool = False

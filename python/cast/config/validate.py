@@ -13,6 +13,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
+from cast.config.commands import component_run
 from cast.config.model import (
     DEFAULT_LISTEN,
     DURABILITY_MODES,
@@ -287,7 +288,7 @@ class _Validator:
         language = self.choice(raw, "language", f"{where}.language", LANGUAGES, "python")
         kind = self.choice(raw, "kind", f"{where}.kind", KINDS, "unmanaged")
         cls = self.string(raw, "class", f"{where}.class")
-        run = self.string(raw, "run", f"{where}.run")
+        run, command = component_run(raw, language, pos, where, self.p)
         args = self.mapping(raw, "args", f"{where}.args")
         in_process = self.boolean(raw, "in_process", f"{where}.in_process")
         manual = self.boolean(raw, "manual", f"{where}.manual")
@@ -298,11 +299,11 @@ class _Validator:
             not_this = f", not {cls!r}" if cls else ""
             self.p.error(raw.value_at("class") if cls else pos, f"{where}.class",
                          f"a java component needs 'class: fully.qualified.ClassName'{not_this}")
-        if language == "cpp" and not run:
-            self.p.error(pos, f"{where}.run", "a cpp component needs 'run: EXECUTABLE' (a path, or a name looked up "
-                                              "in $CAST_CPP_BIN_DIR, then PATH)")
         if in_process and language != "python":
-            self.p.error(raw.at("in_process"), f"{where}.in_process", "only python components can run in process")
+            self.p.error(raw.at("in_process"), f"{where}.in_process",
+                         f"only python components can run in process; one of language {language} is its own "
+                         f"process ({'its run: command' if language == 'other' else 'started by cast run'}): "
+                         "remove 'in_process: true'")
         if in_process and manual:
             self.p.error(raw.at("manual"), f"{where}.manual", "a component is either in_process or manual, not both")
         base_dir = Path(raw.pos.file).resolve().parent
@@ -314,6 +315,7 @@ class _Validator:
             kind=kind,
             cls=cls,
             run=run,
+            command=command,
             args=_plain(args) if args is not None else {},
             privileged=self.boolean(raw, "privileged", f"{where}.privileged"),
             in_process=in_process,

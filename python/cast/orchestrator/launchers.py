@@ -13,7 +13,12 @@ plug in without changes here:
 - java: ``java -cp <classpath> cast.client.Runner <class>``, the class path being
   ``$CAST_JAVA_CLASSPATH`` (default ``<repo>/java_client/target/cast-client-all.jar``)
   plus the component's ``classpath:`` entries; ``java`` is ``$JAVA_HOME/bin/java``
-  if set, else found on ``PATH``.
+  if set, else found on ``PATH``;
+- other: the ``run:`` command line, its first word resolved like cpp's ``run:``
+  (but a bare name only on ``PATH``), run in the directory of the file that
+  declares it so that relative paths among its arguments mean the same.
+
+Launchers give the working directory too (None: the orchestrator's).
 """
 
 from __future__ import annotations
@@ -35,9 +40,11 @@ __all__ = [
     "JavaLauncher",
     "LaunchError",
     "Launcher",
+    "OtherLauncher",
     "PythonLauncher",
     "launcher_for",
     "register_launcher",
+    "resolve_executable",
 ]
 
 # python/cast/orchestrator/launchers.py -> the repository (for an editable install, where builds live).
@@ -58,6 +65,9 @@ class Launcher(Protocol):
     def environment(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> dict[str, str]:
         """Variables to add to the component's environment (besides the launch contract)."""
 
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """Where the process starts (None: the orchestrator's working directory)."""
+
 
 class PythonLauncher:
     """``python -m cast.run module:Class``."""
@@ -74,10 +84,38 @@ class PythonLauncher:
         # Unbuffered, so that output reaches the log files and the status view line by line.
         return {"PYTHONPATH": os.pathsep.join(parts), "PYTHONUNBUFFERED": "1"} if parts else {"PYTHONUNBUFFERED": "1"}
 
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """The orchestrator's."""
+        return None
+
 
 def cpp_bin_dir(env: Mapping[str, str]) -> Path:
     """Where bare ``run:`` names are looked up first."""
     return Path(env.get("CAST_CPP_BIN_DIR") or REPO_ROOT / "build" / "cpp" / "bin")
+
+
+def resolve_executable(
+    component: ComponentConfig, name: str, env: Mapping[str, str], hint: str, first: tuple[Path, str] | None = None
+) -> Path:
+    """``name`` as an executable file; :class:`LaunchError` ending with ``hint`` (what to do) if there is none.
+
+    A name with a slash is a path (absolute, or relative to the component's
+    file); a bare name is looked up in ``first`` (a directory and the variable
+    that sets it), then on ``PATH``.
+    """
+    if os.sep in name or (os.altsep and os.altsep in name):
+        path = Path(name) if Path(name).is_absolute() else component.base_dir / name
+        if not (path.is_file() and os.access(path, os.X_OK)):
+            raise LaunchError(f"component '{component.id}': executable '{path}' does not exist or is not "
+                              f"executable: {hint}")
+        return path
+    if first is not None and (first[0] / name).is_file() and os.access(first[0] / name, os.X_OK):
+        return first[0] / name
+    found = shutil.which(name, path=env.get("PATH"))
+    if found:
+        return Path(found)
+    searched = f"in {first[0]} ({first[1]}) nor on PATH" if first is not None else "on PATH"
+    raise LaunchError(f"component '{component.id}': executable '{name}' is not {searched}: {hint}")
 
 
 class CppLauncher:
@@ -89,26 +127,42 @@ class CppLauncher:
 
     def resolve(self, component: ComponentConfig, env: Mapping[str, str]) -> Path:
         """The executable's path; LaunchError if there is none."""
-        run = component.run
-        if os.sep in run or (os.altsep and os.altsep in run):
-            path = Path(run) if Path(run).is_absolute() else component.base_dir / run
-            if not (path.is_file() and os.access(path, os.X_OK)):
-                raise LaunchError(f"component '{component.id}': executable '{path}' does not exist or is not "
-                                  "executable: build it first (make cpp)")
-            return path
-        bin_dir = cpp_bin_dir(env)
-        candidate = bin_dir / run
-        if candidate.is_file() and os.access(candidate, os.X_OK):
-            return candidate
-        found = shutil.which(run, path=env.get("PATH"))
-        if found:
-            return Path(found)
-        raise LaunchError(f"component '{component.id}': executable '{run}' is not in {bin_dir} "
-                          "($CAST_CPP_BIN_DIR) nor on PATH: build the C++ components first (make cpp)")
+        return resolve_executable(component, component.run, env, "build the C++ components first (make cpp)",
+                                  (cpp_bin_dir(env), "$CAST_CPP_BIN_DIR"))
 
     def environment(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> dict[str, str]:
         """Nothing beyond the launch contract."""
         return {}
+
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """The orchestrator's."""
+        return None
+
+
+class OtherLauncher:
+    """A program in any language that speaks the gRPC API itself: the ``run:`` command line.
+
+    It gets the launch contract like every component. It runs in the directory
+    of the file that declares it, so that every relative path in the command
+    line (the program's, and its arguments such as a script) is relative to
+    that file, as the first word is for cpp's ``run:``.
+    """
+
+    def command(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> list[str]:
+        """The command's words, the first resolved to an executable file."""
+        if not component.command:
+            raise LaunchError(f"component '{component.id}': no run: command to start")
+        program, *arguments = component.command
+        hint = "install it, or give its path in run: (relative paths are relative to the file that declares it)"
+        return [str(resolve_executable(component, program, env, hint)), *arguments]
+
+    def environment(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> dict[str, str]:
+        """Nothing beyond the launch contract."""
+        return {}
+
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """The directory of the file that declares the component."""
+        return component.base_dir
 
 
 class JavaLauncher:
@@ -150,8 +204,14 @@ class JavaLauncher:
         """Nothing beyond the launch contract."""
         return {}
 
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """The orchestrator's."""
+        return None
 
-LAUNCHERS: dict[str, Launcher] = {"python": PythonLauncher(), "cpp": CppLauncher(), "java": JavaLauncher()}
+
+LAUNCHERS: dict[str, Launcher] = {
+    "python": PythonLauncher(), "cpp": CppLauncher(), "java": JavaLauncher(), "other": OtherLauncher(),
+}
 
 
 def register_launcher(language: str, launcher: Launcher) -> None:

@@ -108,7 +108,8 @@ class Supervisor:
             sup.error = exc.message
             return False
         env = {**self._env, **launcher.environment(comp, self.config, self._env), **self._contract(comp)}
-        process = ComponentProcess(comp.id, argv, env, self._logs / f"{comp.id}.log", self._sink)
+        process = ComponentProcess(comp.id, argv, env, self._logs / f"{comp.id}.log", self._sink,
+                                   launcher.working_directory(comp))
         try:
             await process.start()
         except OSError as exc:
