@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import subprocess
@@ -260,3 +261,13 @@ def test_the_example_system_runs_node_next_to_python(tmp_path: Path) -> None:
     assert (greeter["language"], greeter["sessions"]) == ("node", 1)
     greetings = next(sa for sa in summary["subarchitectures"] if sa["name"] == "greetings")
     assert greetings["counters"]["completed"] == 1
+
+
+def test_readme_shows_the_example_as_it_is() -> None:
+    readme = (ROOT / "README.md").read_text()
+    start = readme.index("## Components in other languages\n")
+    section = readme[start:readme.index("\n## ", start + 1)]
+    commands = [line.split("#")[0].strip() for line in re.findall(r"```sh\n(.*?)```", section, re.S)[0].splitlines()]
+    assert commands == ["make node", "cast run examples/node/system.yaml --for 10"]
+    yaml_block = re.findall(r"```yaml\n(.*?)```", section, re.S)[0]
+    assert yaml_block in (EXAMPLE / "system.yaml").read_text()
