@@ -222,3 +222,45 @@ def test_a_floored_version_may_not_outrun_the_clock_in_microseconds() -> None:
         host.batch(A, [BatchOp(Operation.ADD, "vision", "y", "t.T", b""),
                        BatchOp(Operation.OVERWRITE, "vision", "x", "t.T", b"")])
     assert snapshot(host) == before
+
+
+def test_a_runaway_writer_is_refused_at_the_wm_bound_and_others_go_on() -> None:
+    host = MemoryHost(["vision", "language"], Limits(max_total_bytes=10_000))
+    big = b"x" * 1000
+    for i in range(9):
+        host.add(A, "vision", f"a{i}", "t.T", big)
+    before = snapshot(host)
+    with pytest.raises(ResourceExhaustedError) as err:
+        host.add(A, "vision", "a9", "t.T", big)
+    message = err.value.message
+    assert "limits.max_total_bytes" in message and "'a1' 9,018 bytes in 9 entries" in message, message
+    with pytest.raises(ResourceExhaustedError, match="max_total_bytes"):
+        host.batch(B, [BatchOp(Operation.DELETE, "vision", "a0"), BatchOp(Operation.ADD, "vision", "b", "t.T", big * 2)])
+    assert snapshot(host) == before
+    host.add(B, "vision", "small", "t.T", b"ok")  # room left for small writes
+    host.add(Identity("l1", "language"), "language", "elsewhere", "t.T", big)  # another WM has its own bound
+    host.overwrite(A, "vision", "a0", "t.T", b"")  # shrinking always passes
+    host.batch(B, [BatchOp(Operation.DELETE, "vision", "a1"), BatchOp(Operation.ADD, "vision", "b", "t.T", big)])
+    assert host.usage("vision")["b1"] == (2, 1000 + 1 + 2 + 5)
+    assert host.total_bytes("vision") == sum(b for _, b in host.usage("vision").values())
+
+
+def test_component_quotas_count_entries_and_bytes_over_every_wm() -> None:
+    from cast.core.records import Quota
+
+    boss = Identity("boss", "vision", privileged=True)
+    host = MemoryHost(["vision", "language"], quotas={"boss": Quota(entries=3, bytes=250)})
+    host.add(boss, "vision", "x", "t.T", b"v" * 100)
+    host.add(boss, "language", "y", "t.T", b"v" * 100)
+    with pytest.raises(ResourceExhaustedError, match=r"holds 2 entries .*components.boss.quota") as err:
+        host.add(boss, "vision", "z", "t.T", b"v" * 100)
+    assert "'boss' 202 bytes in 2 entries" in err.value.message, err.value.message
+    host.add(boss, "vision", "z", "t.T", b"v" * 10)  # fits in bytes
+    with pytest.raises(ResourceExhaustedError, match="entries 3"):
+        host.add(boss, "vision", "w", "t.T", b"")
+    host.add(B, "vision", "b", "t.T", b"v" * 500)  # others are not bound by boss's quota
+    host.overwrite(boss, "vision", "x", "t.T", b"")  # shrinking passes
+    # Overwriting another's entry moves it to the writer, so it counts against the writer's quota.
+    with pytest.raises(ResourceExhaustedError, match="components.boss.quota"):
+        host.overwrite(boss, "vision", "b", "t.T", b"")
+    assert host.usage()["boss"] == (3, 1 + 101 + 11)

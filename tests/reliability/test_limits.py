@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 import grpc
 from cast_testing_pb2 import Counter
 from google.protobuf import any_pb2
+from google.protobuf.wrappers_pb2 import BytesValue
 
 from cast.core.records import Limits, LockMode
 from cast.v1 import entry_pb2, working_memory_pb2, working_memory_pb2_grpc
-from tests.conftest import register_session
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, register_session
 from tests.reliability.conftest import wait_for
+
+COMPONENTS = Path(__file__).parent / "components"
 
 LIMITS = {"max_value_bytes": 64, "max_entries": 3, "max_watchers": 2, "max_lock_waiters": 1,
           "max_batch_operations": 4}
@@ -99,3 +107,33 @@ def test_default_limits_are_far_from_ordinary_use() -> None:
     d = Limits()
     assert d.max_value_bytes >= 8 * 1024 * 1024 and d.max_entries >= 1_000_000
     assert d.max_watchers >= 10_000 and d.max_lock_waiters >= 10_000 and d.max_batch_operations >= 10_000
+
+
+def test_a_runaway_writer_is_refused_at_the_bound_while_the_server_and_others_go_on(server_factory: Any) -> None:
+    handle = server_factory({"system": "run", "subarchitectures": {"vision": {}},
+                             "limits": {"max_total_bytes": 4 << 20}})
+    runaway = subprocess.Popen([sys.executable, "-m", "cast.run", "rel_components:Runaway"],
+                               env={**handle.env("runaway", "vision"), "PYTHONPATH": f"{PYTHONPATH}:{COMPONENTS}"},
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    other = handle.connect("other", "vision")
+    try:
+        out, _ = runaway.communicate(timeout=120)
+        refused = [line for line in out.splitlines() if line.startswith("REFUSED")]
+        assert refused, out
+        assert "limits.max_total_bytes = 4.0 MiB" in refused[0] and "'runaway'" in refused[0], refused[0]
+        # The server and the other components go on: a small write, reads, and room freed by a delete.
+        version = other.add("note", Counter(value=1)).version
+        assert other.get_entry("note", Counter).version == version
+        held = [e for e in other.get_all(BytesValue) if e.author == "runaway"]
+        assert 50 <= len(held) <= 64
+        boss = handle.connect("boss", "vision", privileged=True)
+        boss.delete_entry(held[0].id)
+        boss.add("fits", BytesValue(value=b"b" * 65536))
+        boss._cast_close()
+        out = subprocess.run([str(VENV_BIN / "cast"), "components", "--json", "--endpoint", handle.endpoint],
+                             env={**os.environ, "CAST_SECRET": SECRET}, capture_output=True, text=True, timeout=60)
+        usage = {c["id"]: (c["entries"], c["bytes"]) for c in json.loads(out.stdout)}
+        assert usage["runaway"][0] == len(held) - 1 and usage["runaway"][1] > (len(held) - 1) * 65536, usage
+    finally:
+        runaway.kill()
+        other._cast_close()

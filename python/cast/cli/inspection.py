@@ -16,6 +16,7 @@ import grpc
 from cast.cli.connect import ServerStubs, SystemClient, add_tls_options, connect
 from cast.cli.render import SchemaDecoder, iso_time, print_json, print_table
 from cast.client.grpc_transport import map_rpc_error
+from cast.core.room import mib
 from cast.errors import CastError
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import entry_pb2
@@ -51,15 +52,17 @@ def _ls(args: argparse.Namespace) -> int:
     with connect(args) as client:
         sas = [args.subarchitecture] if args.subarchitecture else client.subarchitectures
         rows: list[dict[str, Any]] = []
+        held: list[str] = []
         for sa in sas:
             server = client.server(sa)
             req = insp_pb2.ListEntriesRequest(subarchitecture=sa, type=args.type or "", limit=args.limit)
             resp = client.call(server.inspection.ListEntries, req)
             rows.extend(_entry_json(e) for e in resp.entries)
+            held.append(f"{sa} holds {mib(resp.bytes)} of {mib(resp.max_bytes)}")
     if args.json:
         print_json(rows)
     else:
-        print_table(f"{len(rows)} entries", ["SA", "id", "type", "version", "author"],
+        print_table(f"{len(rows)} entries ({'; '.join(held)})", ["SA", "id", "type", "version", "author"],
                     [[r["subarchitecture"], r["id"], r["type"], r["version"], r["author"]] for r in rows],
                     numeric=["version"])
     return 0
@@ -188,19 +191,30 @@ def _watch(args: argparse.Namespace) -> int:
 def _components(args: argparse.Namespace) -> int:
     with connect(args) as client:
         desc = client.call(client.directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+        # What each component holds, summed over every server of the system.
+        held: dict[str, list[int]] = {}
+        for server, _ in client.servers():
+            other = client.call(server.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+            for c in other.components:
+                usage = held.setdefault(c.id, [0, 0])
+                usage[0] += c.entries
+                usage[1] += c.bytes
     rows = [{
         "id": c.id, "subarchitecture": c.subarchitecture, "language": c.language, "kind": c.kind,
         "privileged": c.privileged, "state": _enum(dir_pb2.ComponentState.Name(c.state), "COMPONENT_STATE_"),
         "pid": c.pid, "host": c.host, "sessions": c.sessions,
+        "entries": held.get(c.id, [0, 0])[0], "bytes": held.get(c.id, [0, 0])[1],
     } for c in desc.components]
     if args.json:
         print_json(rows)
     else:
         print_table(f"system '{desc.name}': {len(rows)} components",
-                    ["id", "SA", "language", "kind", "privileged", "state", "pid", "host", "sessions"],
+                    ["id", "SA", "language", "kind", "privileged", "state", "pid", "host", "sessions", "entries",
+                     "holds"],
                     [[r["id"], r["subarchitecture"], r["language"], r["kind"], "yes" if r["privileged"] else "",
-                      r["state"], r["pid"] or "", r["host"], r["sessions"]] for r in rows],
-                    numeric=["pid", "sessions"])
+                      r["state"], r["pid"] or "", r["host"], r["sessions"], r["entries"], mib(r["bytes"])]
+                     for r in rows],
+                    numeric=["pid", "sessions", "entries", "holds"])
     return 0
 
 

@@ -25,7 +25,7 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 from cast.core.checks import check_id, check_sa_name, locked_message, missing_message
 from cast.core.memory import LockState, Pending, WorkingMemory
@@ -38,10 +38,12 @@ from cast.core.records import (
     Limits,
     LockMode,
     Operation,
+    Quota,
     WriteResult,
     no_session,
     system_entry,
 )
+from cast.core.room import Room, Tally
 from cast.errors import (
     CastError,
     InvalidArgumentError,
@@ -68,10 +70,12 @@ class MemoryHost:
         validator: ValueValidator | None = None,
         clock: Callable[[], int] = time.time_ns,
         version_floor: int = 0,
+        quotas: Mapping[str, Quota] | None = None,
     ) -> None:
         self.limits = limits or Limits()
         self._clock = clock
-        self._planner = WritePlanner(self.limits, validator, clock, version_floor)
+        room = Room(self.limits, quotas or {}, self._usage_locked)
+        self._planner = WritePlanner(self.limits, validator, clock, version_floor, room)
         self._mutex = threading.Lock()
         self._wms: dict[str, WorkingMemory] = {}
         for name in subarchitectures:
@@ -134,6 +138,27 @@ class MemoryHost:
     def entry_count(self, sa: str) -> int:
         """Number of visible entries in one WM."""
         return len(self._wm(sa).entries)
+
+    def usage(self, sa: str = "") -> dict[str, tuple[int, int]]:
+        """(entries, bytes) each component holds in one WM (default: all), in the latest state."""
+        with self._mutex:
+            if sa:
+                return {author: (e, b) for author, (e, b) in self._wm(sa).usage.items()}
+            return {author: (e, b) for author, (e, b) in self._usage_locked().items()}
+
+    def total_bytes(self, sa: str) -> int:
+        """Bytes of values and ids one WM holds in the latest state (limits.max_total_bytes)."""
+        with self._mutex:
+            return self._wm(sa).total_bytes
+
+    def _usage_locked(self) -> dict[str, list[int]]:
+        total: dict[str, list[int]] = {}
+        for wm in self._wms.values():
+            for author, (entries, size) in wm.usage.items():
+                held = total.setdefault(author, [0, 0])
+                held[0] += entries
+                held[1] += size
+        return total
 
     def pending_writes(self, sa: str = "") -> int:
         """Writes of one WM (default: all) committed in memory and waiting for the journal (0 unless deferred)."""
@@ -234,12 +259,12 @@ class MemoryHost:
             self._planner.check_args(op)
         with self._mutex:
             overlay: Overlay = {}
-            counts: dict[str, int] = {}
+            tally = Tally()
             planned = []
             now = self._clock()  # the operations of one batch share their time
             for index, op in enumerate(ops):
                 try:
-                    planned.append(self._planner.plan(self._wm(op.subarchitecture), who, op, overlay, counts, now))
+                    planned.append(self._planner.plan(self._wm(op.subarchitecture), who, op, overlay, tally, now))
                 except CastError as exc:
                     exc.message = f"batch operation {index}: {exc.message}"
                     exc.args = (exc.message,)
@@ -267,6 +292,7 @@ class MemoryHost:
             wm = p.wm
             revision = wm.assigned = wm.assigned + 1
             entry_id = (p.record or p.old).id  # type: ignore[union-attr]
+            wm.account(p.old, p.record)
             lock = wm.locks.get(entry_id)
             odr_holder = lock.holder if lock is not None and lock.mode is LockMode.ODR else None
             seq = next(self._seq)
@@ -385,6 +411,7 @@ class MemoryHost:
             wm = self._wm(sa)
             for record in entries:
                 wm.put(record)
+                wm.account(None, record)
             wm.last_versions.update(deleted)
             kept = list(events)
             contiguous = bool(kept) and kept[-1].revision == revision and all(

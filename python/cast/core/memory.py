@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from cast.core.history import History
-from cast.core.records import EntryRecord, LockMode
+from cast.core.records import EntryRecord, LockMode, entry_size
 
 __all__ = ["LockState", "Pending", "WorkingMemory"]
 
@@ -50,7 +50,7 @@ class WorkingMemory:
     """Entries of one subarchitecture, indexed by id and by type (newest first)."""
 
     __slots__ = ("_by_type", "assigned", "entries", "history", "last_versions", "locks", "name", "pending",
-                 "pending_delta")
+                 "pending_delta", "total_bytes", "usage")
 
     def __init__(self, name: str, history_events: int, history_bytes: int) -> None:
         self.name = name
@@ -66,6 +66,9 @@ class WorkingMemory:
         self.pending: dict[str, Pending] = {}
         self.pending_delta = 0  # entries added minus deleted by pending writes
         self.assigned = 0  # the newest revision given to a write, visible or pending
+        # Of the latest state: the bytes held (limits.max_total_bytes), and per author [entries, bytes].
+        self.total_bytes = 0
+        self.usage: dict[str, list[int]] = {}
 
     @property
     def revision(self) -> int:
@@ -79,6 +82,23 @@ class WorkingMemory:
             return pending.record, pending.deleted_version
         record = self.entries.get(entry_id)
         return record, None if record is not None else self.last_versions.get(entry_id)
+
+    def account(self, old: EntryRecord | None, new: EntryRecord | None) -> None:
+        """Move the latest state's usage from ``old`` (replaced or deleted) to ``new``."""
+        if old is not None:
+            size = entry_size(old)
+            self.total_bytes -= size
+            held = self.usage[old.author]
+            held[0] -= 1
+            held[1] -= size
+            if not held[0]:
+                del self.usage[old.author]
+        if new is not None:
+            size = entry_size(new)
+            self.total_bytes += size
+            held = self.usage.setdefault(new.author, [0, 0])
+            held[0] += 1
+            held[1] += size
 
     def latest_count(self) -> int:
         """Number of entries in the latest state (for the entries limit)."""

@@ -17,6 +17,7 @@ from typing import NamedTuple
 from cast.core.checks import TypeChecker, check_id, locked_message, missing_message
 from cast.core.memory import WorkingMemory
 from cast.core.records import SYSTEM_TYPES, EntryRecord, Identity, Limits, LockMode, Operation, system_entry
+from cast.core.room import Room, Tally
 from cast.core.versions import check_outran, next_version
 from cast.errors import (
     AlreadyExistsError,
@@ -75,9 +76,15 @@ class WritePlanner:
     """The checks of a write, and the record it makes; holds no state of its own but the type cache."""
 
     def __init__(
-        self, limits: Limits, validator: ValueValidator | None, clock: Callable[[], int], version_floor: int
+        self,
+        limits: Limits,
+        validator: ValueValidator | None,
+        clock: Callable[[], int],
+        version_floor: int,
+        room: Room,
     ) -> None:
         self.limits = limits
+        self.room = room
         self._validator = validator
         self._clock = clock
         # The lowest version any write of this run may give (cast.core.versions).
@@ -108,13 +115,13 @@ class WritePlanner:
         who: Identity,
         op: BatchOp,
         overlay: Overlay | None,
-        counts: dict[str, int] | None,
+        tally: Tally | None,
         now: int = 0,
         system: bool = False,
     ) -> Planned:
         """Check ``op`` against the latest state of ``wm`` (after ``overlay``); the write it makes.
 
-        ``counts`` tracks a batch's entry count changes per SA; ``system``: a
+        ``tally`` tracks what a batch's earlier operations add; ``system``: a
         write by the server itself, which alone writes system entries.
         """
         sa, entry_id = op.subarchitecture, op.id
@@ -146,7 +153,7 @@ class WritePlanner:
                     f"entry '{entry_id}' already exists in subarchitecture '{sa}' (version {current.version}, "
                     f"type {current.type}): use overwrite to change it, or new_id() for a fresh id"
                 )
-            delta = counts.get(sa, 0) if counts is not None else 0
+            delta = tally.entries.get(sa, 0) if tally is not None else 0
             if wm.latest_count() + delta >= self.limits.max_entries:
                 raise ResourceExhaustedError(
                     f"subarchitecture '{sa}' holds {wm.latest_count() + delta} entries, the limit "
@@ -158,8 +165,8 @@ class WritePlanner:
             check_outran(version, self.version_floor, now, sa, entry_id)
             record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
             planned = Planned(wm, Operation.ADD, record, None, who)
-            if counts is not None:
-                counts[sa] = delta + 1
+            if tally is not None:
+                tally.entries[sa] = delta + 1
         else:
             if current is None:
                 raise NotFoundError(missing_message(sa, entry_id) + f": cannot {op.operation.name.lower()} it")
@@ -181,8 +188,9 @@ class WritePlanner:
                 planned = Planned(wm, Operation.OVERWRITE, record, current, who)
             else:
                 planned = Planned(wm, Operation.DELETE, None, current, who)
-                if counts is not None:
-                    counts[sa] = counts.get(sa, 0) - 1
+                if tally is not None:
+                    tally.entries[sa] = tally.entries.get(sa, 0) - 1
+        self.room.check(wm, who, planned.old, planned.record, tally)
         if overlay is not None:
             deleted = current.version if planned.record is None and current is not None else None
             overlay[key] = Slot(planned.record, deleted)

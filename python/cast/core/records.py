@@ -18,9 +18,11 @@ __all__ = [
     "Limits",
     "LockMode",
     "Operation",
+    "Quota",
     "SYSTEM_TYPES",
     "TASK_TYPE",
     "WriteResult",
+    "entry_size",
     "no_session",
     "system_entry",
 ]
@@ -184,6 +186,23 @@ def no_session(who: Identity, what: str) -> str:
 
 
 @dataclass(frozen=True)
+class Quota:
+    """What one component may hold on a server, over all its WMs (0: no bound).
+
+    A component holds the entries it wrote last: overwriting another's entry
+    moves it (and its bytes) to the writer.
+    """
+
+    entries: int = 0
+    bytes: int = 0
+
+
+def entry_size(record: EntryRecord) -> int:
+    """The bytes an entry counts for: its value and its id."""
+    return len(record.data) + len(record.id)
+
+
+@dataclass(frozen=True)
 class Limits:
     """Limits a server enforces; every refusal names the limit and how to change it."""
 
@@ -191,6 +210,8 @@ class Limits:
     max_type_bytes: int = 512
     max_value_bytes: int = 8 * 1024 * 1024
     max_entries: int = 10_000_000
+    # Bytes of values and ids one WM may hold; 1 GiB fits the machines robots carry with a few SAs.
+    max_total_bytes: int = 1 << 30
     history_events: int = 65_536
     history_bytes: int = 256 * 1024 * 1024
     max_watchers: int = 10_000

@@ -14,7 +14,7 @@ from typing import TypeVar
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
 from cast.core.policies import TaskPolicy
-from cast.core.records import TASK_TYPE, Identity, Limits, Operation
+from cast.core.records import TASK_TYPE, Identity, Limits, Operation, Quota
 from cast.core.schemas import SchemaRegistry
 from cast.core.sessions import ComponentInfo, SessionTable
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
@@ -38,6 +38,7 @@ class System:
         lease_ms: int = 10_000,
         journal: Journal | None = None,
         version_floor: int | None = None,
+        quotas: Mapping[str, Quota] | None = None,
     ) -> None:
         # Imported here so that importing the core does not require generated code.
         from cast.v1 import directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2
@@ -50,7 +51,9 @@ class System:
             # Memory only: an earlier run of this server may have given versions nobody can know of
             # now, so this run starts above them (cast.core.versions); a journal knows its floor.
             version_floor = journal.version_floor if journal is not None else epoch_floor()
-        self.host = MemoryHost(subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor)
+        self.host = MemoryHost(
+            subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor, quotas=quotas
+        )
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         # Locks and tasks need a live session: its end is what releases them.

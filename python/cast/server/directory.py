@@ -19,6 +19,12 @@ __all__ = ["DirectoryServicer", "describe"]
 def describe(system: System) -> dir_pb2.SystemDescription:
     """The wire description of a system."""
     revisions = system.host.revisions()
+    usage = system.host.usage()
+    components = []
+    for info in system.sessions.components():
+        pb = component_to_pb(info)
+        pb.entries, pb.bytes = usage.get(info.id, (0, 0))
+        components.append(pb)
     return dir_pb2.SystemDescription(
         name=system.name,
         subarchitectures=[
@@ -28,11 +34,13 @@ def describe(system: System) -> dir_pb2.SystemDescription:
                 task_manager_policy=system.tasks.policy(sa).describe(),
                 revision=revisions[sa],
                 entries=system.host.entry_count(sa),
+                bytes=system.host.total_bytes(sa),
+                max_bytes=system.host.limits.max_total_bytes,
             )
             for sa in system.host.subarchitectures
         ]
         + [dir_pb2.SubarchitectureInfo(name=sa, endpoint=ep) for sa, ep in system.remote_endpoints.items()],
-        components=[component_to_pb(c) for c in system.sessions.components()],
+        components=components,
         endpoint=next(iter(system.endpoints.values()), ""),
     )
 

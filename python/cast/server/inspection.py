@@ -37,8 +37,11 @@ class InspectionServicer(insp_grpc.InspectionServicer):
             pb = entry_to_pb(record)
             pb.ClearField("value")  # a listing never carries content (ODR locks stay honoured)
             entries.append(pb)
-        pending = host.pending_writes(request.subarchitecture)
-        return insp_pb2.ListEntriesResponse(entries=entries, revision=revision, pending_writes=pending)
+        sa = request.subarchitecture
+        return insp_pb2.ListEntriesResponse(
+            entries=entries, revision=revision, pending_writes=host.pending_writes(sa), bytes=host.total_bytes(sa),
+            max_bytes=host.limits.max_total_bytes,
+        )
 
     @rpc
     async def TaskStatistics(

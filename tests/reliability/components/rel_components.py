@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 
-from google.protobuf.wrappers_pb2 import Int64Value, StringValue
+from google.protobuf.wrappers_pb2 import BytesValue, Int64Value, StringValue
 
 import cast
 
@@ -144,3 +144,18 @@ class Auditor(cast.UnmanagedComponent):
         self.add("audit", StringValue(value="0 0"))
         while not self.wait_for_stop(0.2):
             self.overwrite("audit", StringValue(value=f"{self.checked} {self.violations}"))
+
+
+class Runaway(cast.UnmanagedComponent):
+    """Adds 64 KiB entries and never deletes them, until the server refuses; prints REFUSED with the reason."""
+
+    def run(self) -> None:
+        added = 0
+        while not self.wait_for_stop(0):
+            try:
+                self.add(self.new_id(), BytesValue(value=b"r" * 65536))
+                added += 1
+            except cast.ResourceExhaustedError as exc:
+                print(f"REFUSED after {added}: {exc.message}", flush=True)
+                self.request_stop()
+                return
