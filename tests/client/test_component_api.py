@@ -10,7 +10,7 @@ import pytest
 from cast_testing_pb2 import Counter, Pose
 
 import cast
-from cast.core.records import Operation
+from cast.core.records import Identity, Operation
 
 
 def wait_for(predicate: Any, timeout: float = 10.0) -> None:
@@ -274,3 +274,25 @@ def test_task_entries_are_the_servers_readable_by_all_written_by_no_component(ma
             who.batch([("delete", task.task_id, None)], subarchitecture="vision")
     after = other.get_entry(task.task_id, TaskPb)
     assert (after.version, after.value) == (before.version, before.value)
+
+
+def test_a_value_that_does_not_decode_is_an_invalid_argument_error_naming_the_entry(make_component: Any) -> None:
+    # Stored before anyone registered its type (so the server could not check it): no protobuf error
+    # reaches the component, whichever way it reads the entry.
+    writer = Identity("raw", "vision")
+    make_component.system.host.add(writer, "vision", "bad", "cast.testing.Counter", b"\xff\xff\xff\xff")
+    make_component.system.durable_sync()
+    c = make_component(cast.UnmanagedComponent, "c")
+    changes: list[cast.WorkingMemoryChange] = []
+    c.on_change(cast.local_type_filter(Counter, include_entry=True), changes.append)
+    pattern = r"entry 'bad' in subarchitecture 'vision' does not parse as cast.testing.Counter"
+    with pytest.raises(cast.InvalidArgumentError, match=pattern):
+        c.get("bad", Counter)
+    with pytest.raises(cast.InvalidArgumentError, match=pattern):
+        c.get_entry("bad", Counter)
+    with pytest.raises(cast.InvalidArgumentError, match=pattern):
+        c.get_all(Counter)
+    make_component.system.host.overwrite(writer, "vision", "bad", "cast.testing.Counter", b"\x0a\x05ab")
+    wait_for(lambda: len(changes) == 1)
+    with pytest.raises(cast.InvalidArgumentError, match=pattern):
+        changes[0].entry(Counter)

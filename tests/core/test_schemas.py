@@ -137,3 +137,14 @@ def test_after_a_durable_restart_the_same_rules_hold_and_stored_copies_of_own_fi
     stored = [FileProto.FromString(d).name for d in s3.journal.load().schemas]
     assert "google/protobuf/wrappers.proto" not in stored and "cast_testing.proto" in stored
     s3.close()
+
+
+def test_a_file_that_defines_a_type_another_file_defines_is_refused_not_an_internal_error() -> None:
+    # What proto-loader makes up: one file per package, 'google_protobuf.proto', with the wrappers in it.
+    reg = SchemaRegistry()
+    made_up = FileProto(name="google_protobuf.proto", package="google.protobuf")
+    made_up.message_type.add(name="DoubleValue").field.add(name="value", number=1, type=1, label=1)
+    with pytest.raises(InvalidArgumentError, match="defines google.protobuf.DoubleValue, which "
+                                                   "'google/protobuf/wrappers.proto' already defines"):
+        reg.register([made_up])
+    assert not reg.known_file("google_protobuf.proto")

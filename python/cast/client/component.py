@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, NamedTuple, TypeVar
 
-from google.protobuf.message import Message
+from google.protobuf.message import DecodeError, Message
 
 from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
@@ -58,7 +58,14 @@ def _decode(cls: type[M], type_name_: str, data: bytes, what: str) -> M:
     expected = cls.DESCRIPTOR.full_name
     if type_name_ != expected:
         raise InvalidArgumentError(f"{what} has type {type_name_}, not {expected}: read it with the right class")
-    return cls.FromString(data)
+    try:
+        return cls.FromString(data)
+    except (DecodeError, RuntimeError) as exc:
+        # A value stored corrupt (or with another schema) is the caller's error to see, not a protobuf crash.
+        raise InvalidArgumentError(
+            f"{what} does not parse as {expected} ({exc}): it was written corrupt or with another schema; "
+            "overwrite or delete it"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -83,7 +90,7 @@ def _entry(cls: type[M], record: EntryRecord) -> Entry[M]:
     return Entry(
         WorkingMemoryAddress(record.id, record.subarchitecture),
         record.type,
-        _decode(cls, record.type, record.data, f"entry '{record.id}'"),
+        _decode(cls, record.type, record.data, f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'"),
         record.version,
         record.author,
         record.revision,
@@ -363,7 +370,8 @@ class Component:
     def get(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> M:
         """The value of an entry, as a new ``cls`` object; NotFoundError if missing."""
         record = self._transport.get(self._sa(subarchitecture), entry_id)
-        return _decode(cls, record.type, record.data, f"entry '{entry_id}'")
+        where = f"entry '{entry_id}' in subarchitecture '{record.subarchitecture}'"
+        return _decode(cls, record.type, record.data, where)
 
     def get_entry(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> Entry[M]:
         """An entry with its version and author (for versioned overwrites)."""

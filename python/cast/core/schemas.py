@@ -195,6 +195,16 @@ class SchemaRegistry:
         for fd in ordered:
             for dep in fd.dependency:
                 visit(dep)
+            prefix = f"{fd.package}." if fd.package else ""
+            for name in (*_message_names(prefix, fd.message_type), *(prefix + e.name for e in fd.enum_type)):
+                try:
+                    owner = self._pool.FindFileContainingSymbol(name).name
+                except KeyError:
+                    continue
+                raise InvalidArgumentError(
+                    f"schema file '{fd.name}' defines {name}, which '{owner}' already defines: send the file that "
+                    "defines it (protoc's, under its real name) or import it"
+                )
         try:
             for fd in (*needed, *ordered):
                 scratch.Add(fd)
