@@ -235,7 +235,8 @@ def test_a_runaway_writer_is_refused_at_the_wm_bound_and_others_go_on() -> None:
     message = err.value.message
     assert "limits.max_total_bytes" in message and "'a1' 9,018 bytes in 9 entries" in message, message
     with pytest.raises(ResourceExhaustedError, match="max_total_bytes"):
-        host.batch(B, [BatchOp(Operation.DELETE, "vision", "a0"), BatchOp(Operation.ADD, "vision", "b", "t.T", big * 2)])
+        host.batch(B, [BatchOp(Operation.DELETE, "vision", "a0"),
+                       BatchOp(Operation.ADD, "vision", "b", "t.T", big * 2)])
     assert snapshot(host) == before
     host.add(B, "vision", "small", "t.T", b"ok")  # room left for small writes
     host.add(Identity("l1", "language"), "language", "elsewhere", "t.T", big)  # another WM has its own bound
