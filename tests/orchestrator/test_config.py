@@ -397,3 +397,28 @@ def test_servers_map_subarchitectures(tmp_path: Path) -> None:
         """))
     one(found, 4, "servers.b.subarchitectures", "already hosted by server 'a'")
     one(found, 2, "servers", "no server hosts subarchitecture 'motor'")
+
+
+def test_component_quotas_reach_the_server(tmp_path: Path) -> None:
+    from cast.core.records import Identity, Quota
+    from cast.errors import ResourceExhaustedError
+    from cast.server.app import system_from_config
+
+    path = _write(tmp_path / "system.yaml", """\
+        subarchitectures:
+          v:
+            components:
+              small: {class: "m:C", quota: {entries: 1, bytes: 100}}
+              free: {class: "m:C"}
+        """)
+    config = load_config(path, environ={})
+    assert config.subarchitectures["v"].components["small"].quota == Quota(1, 100)
+    system = system_from_config(config)
+    system.host.add(Identity("small", "v"), "v", "a", "t.T", b"")
+    with pytest.raises(ResourceExhaustedError, match="components.small.quota"):
+        system.host.add(Identity("small", "v"), "v", "b", "t.T", b"")
+    system.host.add(Identity("free", "v"), "v", "b", "t.T", b"x" * 1000)
+    found = problems(tmp_path, "subarchitectures:\n  v:\n    components:\n      c: {class: 'm:C', quota: {entries: -1, "
+                               "byts: 3}}\n")
+    assert {p.key for p in found} == {"subarchitectures.v.components.c.quota.entries",
+                                      "subarchitectures.v.components.c.quota.byts"}, found

@@ -8,7 +8,7 @@ from typing import Any
 
 from cast.config.problems import Position
 from cast.core.policies import TaskPolicy, make_policy
-from cast.core.records import Limits
+from cast.core.records import Limits, Quota
 
 __all__ = [
     "DURABILITY_MODES",
@@ -69,6 +69,7 @@ class ComponentConfig:
     in_process: bool = False
     manual: bool = False  # started by hand (`cast token`), not by the orchestrator
     restart: RestartPolicy = field(default_factory=RestartPolicy)
+    quota: Quota | None = None  # what it may hold on each server (entries, bytes; 0: unbounded)
     classpath: list[str] = field(default_factory=list)  # java: extra entries, absolute
     base_dir: Path = field(default_factory=Path.cwd)  # directory of the file that defines it
     position: Position = field(default_factory=lambda: Position("<config>"))

@@ -34,7 +34,7 @@ from cast.config.problems import Position, Problems, closest, did_you_mean
 from cast.config.source import SourceTree, YList, YMap
 from cast.config.syspath import extended_sys_path
 from cast.core.policies import BUILTIN_POLICIES, make_policy
-from cast.core.records import Limits
+from cast.core.records import Limits, Quota
 from cast.errors import InvalidArgumentError
 
 __all__ = ["build_config"]
@@ -46,7 +46,9 @@ TOP_KEYS = {
 SA_KEYS = {"task_manager", "components"}
 COMPONENT_KEYS = {
     "language", "kind", "class", "run", "args", "privileged", "in_process", "manual", "restart", "classpath",
+    "quota",
 }
+QUOTA_KEYS = {"entries", "bytes"}
 RESTART_KEYS = {"policy", "max_restarts", "backoff", "max_backoff"}
 SERVER_KEYS = {"listen", "subarchitectures", "persistence"}
 PERSISTENCE_KEYS = {"path", "durability"}
@@ -321,10 +323,21 @@ class _Validator:
             in_process=in_process,
             manual=manual,
             restart=self.restart(raw, where),
+            quota=self.quota(raw, where),
             classpath=[str(p) for p in classpath],
             base_dir=base_dir,
             position=pos,
             positions=dict(raw.value_pos),
+        )
+
+    def quota(self, raw: YMap, where: str) -> Quota | None:
+        value = self.mapping(raw, "quota", f"{where}.quota")
+        if value is None:
+            return None
+        self.keys(value, QUOTA_KEYS, f"{where}.quota.")
+        return Quota(
+            entries=int(self.number(value, "entries", f"{where}.quota.entries", 0, True)),
+            bytes=int(self.number(value, "bytes", f"{where}.quota.bytes", 0, True)),
         )
 
     def restart(self, raw: YMap, where: str) -> RestartPolicy:

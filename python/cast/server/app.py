@@ -91,6 +91,7 @@ def system_from_config(
         config.limits,
         lease_ms=lease_ms,
         journal=journal,
+        quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
     )
     system.settings = ServerSettings(config.tls, config.auth.reads_require_token)
     for comp in config.components:
