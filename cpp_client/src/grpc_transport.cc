@@ -502,7 +502,7 @@ class WatchStream {
 class GrpcTransport final : public Transport {
  public:
   GrpcTransport(const std::string& endpoint, const std::string& token, Identity identity,
-                const ConnectOptions& options)
+                const TransportOptions& options)
       : identity_(std::move(identity)),
         tokens_(std::make_shared<TokenSource>(token, options.tokenFile)),
         tls_(options.tls),
@@ -976,7 +976,7 @@ class GrpcTransport final : public Transport {
 }  // namespace detail
 
 std::shared_ptr<detail::Transport> connectGrpc(const std::string& endpoint, const std::string& token,
-                                               const Identity& identity, const ConnectOptions& options) {
+                                               const Identity& identity, const TransportOptions& options) {
   return std::make_shared<detail::GrpcTransport>(endpoint, token, identity, options);
 }
 

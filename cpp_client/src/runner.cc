@@ -1,8 +1,5 @@
 #include "cast/runner.h"
 
-#include <google/protobuf/struct.pb.h>
-#include <google/protobuf/util/json_util.h>
-
 #include <atomic>
 #include <csignal>
 #include <cstdlib>
@@ -13,14 +10,13 @@
 
 #include "cast/grpc_transport.h"
 #include "cast/log.h"
+#include "process_env.h"
 
 extern char** environ;
 
 namespace cast {
 
-namespace {
-
-std::map<std::string, std::string> processEnv() {
+std::map<std::string, std::string> detail::processEnv() {
   std::map<std::string, std::string> env;
   for (char** e = environ; e != nullptr && *e != nullptr; ++e) {
     const char* eq = std::strchr(*e, '=');
@@ -29,29 +25,7 @@ std::map<std::string, std::string> processEnv() {
   return env;
 }
 
-// base64url without padding, as the token issuer writes it.
-std::optional<std::string> base64UrlDecode(const std::string& in) {
-  std::string out;
-  unsigned value = 0;
-  int bits = 0;
-  for (char ch : in) {
-    int d;
-    if (ch >= 'A' && ch <= 'Z') d = ch - 'A';
-    else if (ch >= 'a' && ch <= 'z') d = ch - 'a' + 26;
-    else if (ch >= '0' && ch <= '9') d = ch - '0' + 52;
-    else if (ch == '-' || ch == '+') d = 62;
-    else if (ch == '_' || ch == '/') d = 63;
-    else if (ch == '=') break;
-    else return std::nullopt;
-    value = (value << 6) | static_cast<unsigned>(d);
-    bits += 6;
-    if (bits >= 8) {
-      bits -= 8;
-      out.push_back(static_cast<char>((value >> bits) & 0xffu));
-    }
-  }
-  return out;
-}
+namespace {
 
 // Set from the signal handler; polled by the main thread. A lock-free atomic
 // is the only thing a handler may safely touch.
@@ -83,7 +57,7 @@ std::string describe(const std::exception_ptr& ep) {
 
 }  // namespace
 
-LaunchContract LaunchContract::fromEnv() { return fromEnv(processEnv()); }
+LaunchContract LaunchContract::fromEnv() { return fromEnv(detail::processEnv()); }
 
 LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>& env) {
   auto get = [&](const char* name) {
@@ -109,28 +83,13 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   return c;
 }
 
-std::optional<Identity> peekToken(const std::string& token) {
-  const auto dot = token.find('.');
-  if (dot == std::string::npos) return std::nullopt;
-  auto payload = base64UrlDecode(token.substr(0, dot));
-  if (!payload) return std::nullopt;
-  google::protobuf::Struct claims;
-  if (!google::protobuf::util::JsonStringToMessage(*payload, &claims).ok()) return std::nullopt;
-  const auto& f = claims.fields();
-  Identity id;
-  if (auto it = f.find("c"); it != f.end()) id.componentId = it->second.string_value();
-  if (auto it = f.find("s"); it != f.end()) id.subarchitecture = it->second.string_value();
-  if (auto it = f.find("p"); it != f.end()) id.privileged = it->second.bool_value();
-  return id;
-}
-
 Identity LaunchContract::identity() const {
   auto claimed = peekToken(token);
   return Identity{componentId, subarchitecture, claimed && claimed->privileged};
 }
 
 std::shared_ptr<detail::Transport> LaunchContract::connect() const {
-  ConnectOptions options;
+  TransportOptions options;
   options.tokenFile = tokenFile;
   options.tls = tls;
   return connectGrpc(endpoint, token, identity(), options);

@@ -3,10 +3,12 @@
 
 #include "cast/args.h"
 #include "cast/component.h"
+#include "cast/connect.h"
 #include "cast/errors.h"
 #include "cast/filters.h"
 #include "cast/grpc_transport.h"
 #include "cast/log.h"
 #include "cast/runner.h"
 #include "cast/schemas.h"
+#include "cast/token.h"
 #include "cast/types.h"

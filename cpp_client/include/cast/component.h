@@ -177,11 +177,11 @@ class Component {
 
   // ------------------------------------------------------------ WM: read
   // The value of an entry as a new T; NotFoundError if missing,
-  // InvalidArgumentError if the entry has another type.
+  // InvalidArgumentError if the entry has another type or its stored bytes
+  // do not parse as T.
   template <class T>
   T get(const std::string& id, const std::string& subarchitecture = "") {
-    detail::EntryRecord r = readEntry(id, subarchitecture);
-    return detail::decode<T>(r.type, r.data, "entry '" + id + "'");
+    return detail::decodeEntry<T>(readEntry(id, subarchitecture));
   }
   // An entry with its version and author (for versioned overwrites).
   template <class T>

@@ -62,7 +62,9 @@ class TokenSource {
   std::pair<long long, long long> stamp_{-1, -1};  // mtime ns, size
 };
 
-struct ConnectOptions {
+// How connectGrpc talks to the system (the runner fills it from the launch
+// contract; cast::connect from its ConnectOptions, see cast/connect.h).
+struct TransportOptions {
   // Bounds every unary call except blocking locks.
   std::chrono::milliseconds callTimeout{30000};
   // TLS; plaintext without.
@@ -76,6 +78,6 @@ struct ConnectOptions {
 // UnauthenticatedError if the token is refused, InvalidArgumentError for
 // unreadable TLS files.
 std::shared_ptr<detail::Transport> connectGrpc(const std::string& endpoint, const std::string& token,
-                                               const Identity& identity, const ConnectOptions& options = {});
+                                               const Identity& identity, const TransportOptions& options = {});
 
 }  // namespace cast

@@ -22,6 +22,7 @@
 #include "cast/args.h"
 #include "cast/component.h"
 #include "cast/grpc_transport.h"
+#include "cast/token.h"  // peekToken, which identity() uses
 #include "cast/transport.h"
 
 namespace cast {
@@ -48,10 +49,6 @@ struct LaunchContract {
   // A gRPC connection to the system.
   std::shared_ptr<detail::Transport> connect() const;
 };
-
-// What a token says about its holder, read without verifying it; nullopt if
-// it is not a CAST token.
-std::optional<Identity> peekToken(const std::string& token);
 
 // Runs a bound-to-be component to the end and returns the exit code (0 ok,
 // 1 failed). run() executes on a worker thread so that a signal can call

@@ -93,10 +93,14 @@ struct EventRecord {
   std::optional<EntryRecord> entry;
 };
 
-// Parses `data` as T after checking the declared type; "what" names the
-// thing read in the error (entry 'x', task 't' data).
+// Parses `data` as T after checking the declared type. `what` names the thing
+// read in errors ("entry 'x'"), `sa` the subarchitecture it is in, and `why`
+// says how bytes that do not parse got there and what to do about them.
+// Stored bytes that do not parse are an InvalidArgumentError like a wrong
+// type, never a bare protobuf failure, so callers handle one kind of error.
 template <class T>
-T decode(const std::string& declaredType, const std::string& data, const std::string& what) {
+T decode(const std::string& declaredType, const std::string& data, const std::string& what, const std::string& sa,
+         const std::string& why) {
   const std::string& expected = typeName<T>();
   if (declaredType != expected) {
     throw InvalidArgumentError(what + " has type " + declaredType + ", not " + expected +
@@ -104,9 +108,17 @@ T decode(const std::string& declaredType, const std::string& data, const std::st
   }
   T value;
   if (!value.ParseFromString(data)) {
-    throw InvalidArgumentError(what + " does not parse as " + expected + ": it was written with another type");
+    throw InvalidArgumentError(what + " in subarchitecture '" + sa + "' does not parse as " + expected + " (" +
+                               std::to_string(data.size()) + " stored bytes): " + why);
   }
   return value;
+}
+
+// The value of an entry as T (see decode).
+template <class T>
+T decodeEntry(const EntryRecord& r) {
+  return decode<T>(r.type, r.data, "entry '" + r.address.id + "'", r.address.subarchitecture,
+                   "it was written corrupt or with another schema; overwrite or delete it");
 }
 
 }  // namespace detail
@@ -128,8 +140,7 @@ struct Entry {
 namespace detail {
 template <class T>
 Entry<T> toEntry(const EntryRecord& r) {
-  return Entry<T>{r.address, r.type, decode<T>(r.type, r.data, "entry '" + r.address.id + "'"),
-                  r.version, r.author, r.revision, r.modifiedNs};
+  return Entry<T>{r.address, r.type, decodeEntry<T>(r), r.version, r.author, r.revision, r.modifiedNs};
 }
 }  // namespace detail
 
@@ -199,7 +210,8 @@ class Task {
   template <class T>
   std::optional<T> data() const {
     if (rec_.dataType.empty()) return std::nullopt;
-    return detail::decode<T>(rec_.dataType, rec_.data, "task '" + rec_.taskId + "' data");
+    return detail::decode<T>(rec_.dataType, rec_.data, "task '" + rec_.taskId + "' data", rec_.subarchitecture,
+                             "it was proposed corrupt or with another schema; complete or retract the task");
   }
 
  private:

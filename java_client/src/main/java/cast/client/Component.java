@@ -280,7 +280,7 @@ public abstract class Component implements AutoCloseable {
 
   // -------------------------------------------------------------- WM: read
 
-  /** The value of an entry of the own SA, as a new {@code cls} object; NotFoundError if missing. */
+  /** The value of an entry of the own SA as a new {@code cls} object; NotFoundError, InvalidArgumentError. */
   public <T extends Message> T get(String id, Class<T> cls) {
     return get(id, cls, null);
   }
@@ -288,8 +288,7 @@ public abstract class Component implements AutoCloseable {
   /** The value of an entry of {@code subarchitecture}. */
   public <T extends Message> T get(String id, Class<T> cls, String subarchitecture) {
     Types.defaultInstance(cls); // a bad class fails before the call
-    cast.v1.Entry e = t().get(sa(subarchitecture), id);
-    return Types.decode(cls, e.getType(), e.getValue().getValue(), "entry '" + id + "'");
+    return Types.decodeEntry(cls, t().get(sa(subarchitecture), id));
   }
 
   /** An entry of the own SA with its version and author (for versioned overwrites). */

@@ -30,9 +30,9 @@ public record Entry<T extends Message>(
     return address.id();
   }
 
-  /** Decode a wire entry into {@code cls}; InvalidArgumentError if its type is another. */
+  /** Decode a wire entry into {@code cls}; InvalidArgumentError if its type is another or its bytes do not parse. */
   static <T extends Message> Entry<T> fromProto(cast.v1.Entry pb, Class<T> cls) {
-    T value = Types.decode(cls, pb.getType(), pb.getValue().getValue(), "entry '" + pb.getAddress().getId() + "'");
+    T value = Types.decodeEntry(cls, pb);
     return new Entry<>(
         new WorkingMemoryAddress(pb.getAddress().getId(), pb.getAddress().getSubarchitecture()),
         pb.getType(),

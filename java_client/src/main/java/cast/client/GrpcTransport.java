@@ -1036,7 +1036,7 @@ final class GrpcTransport implements AutoCloseable {
     }
   }
 
-  private static String hostName() {
+  static String hostName() {
     try {
       return InetAddress.getLocalHost().getHostName();
     } catch (Exception e) {

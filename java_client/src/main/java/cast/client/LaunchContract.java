@@ -1,11 +1,6 @@
 package cast.client;
 
-import com.google.protobuf.Struct;
-import com.google.protobuf.Value;
-import com.google.protobuf.util.JsonFormat;
-import java.nio.charset.StandardCharsets;
 import java.util.ArrayList;
-import java.util.Base64;
 import java.util.List;
 import java.util.Map;
 
@@ -85,22 +80,10 @@ public record LaunchContract(
     return tokenClaimsPrivileged(token);
   }
 
-  /** The "p" claim of a token's payload; false if the token cannot be read. */
+  /** The "p" claim of a token (a JWT); false if the token cannot be read. */
   static boolean tokenClaimsPrivileged(String token) {
-    if (token == null) {
-      return false;
-    }
-    int dot = token.indexOf('.');
-    String body = dot < 0 ? token : token.substring(0, dot);
-    try {
-      String json = new String(Base64.getUrlDecoder().decode(body), StandardCharsets.UTF_8);
-      Struct.Builder b = Struct.newBuilder();
-      JsonFormat.parser().merge(json, b);
-      Value p = b.getFieldsOrDefault("p", null);
-      return p != null && p.getKindCase() == Value.KindCase.BOOL_VALUE && p.getBoolValue();
-    } catch (Exception e) { // not our token format: claim nothing, the server decides
-      return false;
-    }
+    Identity claimed = Tokens.peek(token);
+    return claimed != null && claimed.privileged();
   }
 
   @Override

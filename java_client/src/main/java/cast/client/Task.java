@@ -56,7 +56,12 @@ public final class Task {
       return null;
     }
     return Types.decode(
-        cls, Types.typeOf(task.getData()), task.getData().getValue(), "task '" + taskId() + "' data");
+        cls,
+        Types.typeOf(task.getData()),
+        task.getData().getValue(),
+        "task '" + taskId() + "' data",
+        subarchitecture(),
+        "it was proposed corrupt or with another schema; complete or retract the task");
   }
 
   /** The wire record. */

@@ -41,8 +41,16 @@ public final class Types {
     return defaultInstance(cls).getDescriptorForType().getFullName();
   }
 
-  /** Parse {@code data} as {@code cls}, after checking that {@code typeName} is that class's type. */
-  static <T extends Message> T decode(Class<T> cls, String typeName, ByteString data, String what) {
+  /**
+   * Parse {@code data} as {@code cls}, after checking that {@code typeName} is that
+   * class's type. {@code what} names the thing read in errors ("entry 'x'"), {@code sa}
+   * the subarchitecture it is in, and {@code why} says how bytes that do not parse got
+   * there and what to do about them. Bytes that do not parse are an
+   * InvalidArgumentError like a wrong type, never a bare protobuf exception, so
+   * callers handle one kind of error.
+   */
+  static <T extends Message> T decode(
+      Class<T> cls, String typeName, ByteString data, String what, String sa, String why) {
     T proto = defaultInstance(cls);
     String expected = proto.getDescriptorForType().getFullName();
     if (!expected.equals(typeName)) {
@@ -53,9 +61,21 @@ public final class Types {
       @SuppressWarnings("unchecked")
       T value = (T) proto.getParserForType().parseFrom(data);
       return value;
-    } catch (InvalidProtocolBufferException e) {
-      throw new InvalidArgumentError(what + " does not parse as " + expected + ": " + e.getMessage());
+    } catch (InvalidProtocolBufferException | RuntimeException e) {
+      throw new InvalidArgumentError(
+          what + " in subarchitecture '" + sa + "' does not parse as " + expected + " (" + e.getMessage() + "): " + why);
     }
+  }
+
+  /** The value of a wire entry as {@code cls} (see {@link #decode}). */
+  static <T extends Message> T decodeEntry(Class<T> cls, cast.v1.Entry e) {
+    return decode(
+        cls,
+        e.getType(),
+        e.getValue().getValue(),
+        "entry '" + e.getAddress().getId() + "'",
+        e.getAddress().getSubarchitecture(),
+        "it was written corrupt or with another schema; overwrite or delete it");
   }
 
   /** A value as the Any a write sends. */

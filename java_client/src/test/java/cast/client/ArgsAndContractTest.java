@@ -2,8 +2,6 @@ package cast.client;
 
 import static org.junit.jupiter.api.Assertions.*;
 
-import java.nio.charset.StandardCharsets;
-import java.util.Base64;
 import java.util.HashMap;
 import java.util.List;
 import java.util.Map;
@@ -77,14 +75,11 @@ class ArgsAndContractTest {
     assertTrue(bad.getMessage().startsWith("CAST_ARGS"), bad.getMessage());
   }
 
-  static String token(String payload) {
-    return Base64.getUrlEncoder().withoutPadding().encodeToString(payload.getBytes(StandardCharsets.UTF_8)) + ".c2ln";
-  }
-
   @Test
-  void privilegeIsReadFromTheTokensClaim() {
-    assertTrue(LaunchContract.tokenClaimsPrivileged(token("{\"c\":\"p\",\"s\":\"v\",\"p\":true,\"iat\":1,\"exp\":0}")));
-    assertFalse(LaunchContract.tokenClaimsPrivileged(token("{\"c\":\"p\",\"s\":\"v\",\"p\":false}")));
+  void privilegeIsReadFromTheTokensClaims() {
+    // PyJWT: {"c": "planner", "s": "coordination", "p": true, "iat": 1700000000, "exp": 1700003600}.
+    assertTrue(LaunchContract.tokenClaimsPrivileged(TokensTest.PLANNER_TOKEN));
+    assertFalse(LaunchContract.tokenClaimsPrivileged(TokensTest.WORKER_TOKEN));
     assertFalse(LaunchContract.tokenClaimsPrivileged("not-a-token"));
     assertFalse(LaunchContract.tokenClaimsPrivileged(null));
   }

@@ -21,11 +21,11 @@ class TypesTest {
   @Test
   void decodingChecksTheType() {
     Counter c = Counter.newBuilder().setWriter("w").setValue(3).build();
-    assertEquals(c, Types.decode(Counter.class, "cast.testing.Counter", c.toByteString(), "entry 'x'"));
+    assertEquals(c, Types.decode(Counter.class, "cast.testing.Counter", c.toByteString(), "entry 'x'", "vision", ""));
     InvalidArgumentError e =
         assertThrows(
             InvalidArgumentError.class,
-            () -> Types.decode(Pose.class, "cast.testing.Counter", c.toByteString(), "entry 'x'"));
+            () -> Types.decode(Pose.class, "cast.testing.Counter", c.toByteString(), "entry 'x'", "vision", ""));
     assertEquals(
         "entry 'x' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class", e.getMessage());
   }

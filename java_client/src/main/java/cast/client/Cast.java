@@ -1,0 +1,54 @@
+package cast.client;
+
+import java.time.Instant;
+
+/** Entry points of the library for plain programs: {@link #connect()}. */
+public final class Cast {
+  private Cast() {}
+
+  /**
+   * Connects to the running system found from the environment and the runtime
+   * directory (see {@link ConnectOptions} for the order); the twin of Python's
+   * {@code cast.connect()} and C++'s {@code cast::connect()}.
+   */
+  public static Connection connect() {
+    return connect(new ConnectOptions());
+  }
+
+  /**
+   * Connects as {@code options} say, looking up what they leave unset.
+   * InvalidArgumentError saying what to give when something cannot be found,
+   * UnavailableError when nothing answers at the endpoint, UnauthenticatedError
+   * when the token is refused.
+   */
+  public static Connection connect(ConnectOptions options) {
+    ConnectResolver.Resolved found =
+        ConnectResolver.resolve(options, System.getenv(), Instant.now().getEpochSecond());
+    LaunchContract contract = found.contract();
+    GrpcTransport transport;
+    try {
+      transport =
+          new GrpcTransport(
+              contract, endpoint -> GrpcTransport.channel(endpoint, contract.tls()), options.callTimeout());
+    } catch (UnavailableError e) {
+      // Say where the address came from: a stale system.json or CAST_ENDPOINT is the usual cause.
+      throw new UnavailableError(
+          "no CAST system answers at "
+              + contract.endpoint()
+              + " (from "
+              + found.endpointSource()
+              + (contract.tls() == null ? ", spoken to in plaintext" : ", spoken to with TLS")
+              + "): "
+              + e.getMessage());
+    } catch (IllegalArgumentException e) { // an endpoint grpc cannot parse as host:port
+      throw new InvalidArgumentError(
+          "bad endpoint '" + contract.endpoint() + "' (from " + found.endpointSource() + "): " + e.getMessage());
+    }
+    try {
+      return new Connection(transport);
+    } catch (RuntimeException e) {
+      transport.close();
+      throw e;
+    }
+  }
+}

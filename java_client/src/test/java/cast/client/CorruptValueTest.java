@@ -1,0 +1,108 @@
+package cast.client;
+
+import static org.junit.jupiter.api.Assertions.*;
+
+import cast.testing.CastTesting.Counter;
+import com.google.protobuf.Any;
+import com.google.protobuf.ByteString;
+import java.util.Map;
+import java.util.concurrent.CompletableFuture;
+import java.util.concurrent.TimeUnit;
+import org.junit.jupiter.api.AfterEach;
+import org.junit.jupiter.api.BeforeEach;
+import org.junit.jupiter.api.Test;
+
+/**
+ * A stored value whose bytes do not parse as its declared type (written corrupt, or
+ * with another schema) is an InvalidArgumentError naming the entry's id, SA and type,
+ * wherever the library decodes one: get, getEntry, getAll, the entry of a change
+ * event, the data of a task.
+ */
+class CorruptValueTest {
+  /** Field 1 (writer, a string) said to be 5 bytes long, with 2 left: no Counter. */
+  static final Any CORRUPT =
+      Any.newBuilder()
+          .setTypeUrl(Types.TYPE_URL_PREFIX + "cast.testing.Counter")
+          .setValue(ByteString.copyFrom(new byte[] {0x0a, 0x05, 'a', 'b'}))
+          .build();
+
+  static final String PREFIX = "entry 'bad' in subarchitecture 'vision' does not parse as cast.testing.Counter (";
+  static final String SUFFIX = "): it was written corrupt or with another schema; overwrite or delete it";
+
+  static int counter;
+  String name;
+  FakeCast fake;
+
+  @BeforeEach
+  void setUp() throws Exception {
+    name = "corrupt-" + (++counter) + "-" + System.nanoTime();
+    fake = new FakeCast(name, Map.of("vision", ""));
+  }
+
+  @AfterEach
+  void tearDown() {
+    fake.close();
+  }
+
+  static void assertNamesTheEntry(String message) {
+    assertTrue(message.startsWith(PREFIX) && message.endsWith(SUFFIX), message);
+  }
+
+  @Test
+  void getGetEntryAndGetAllSayWhichEntry() {
+    try (UnmanagedComponent c = FakeCast.connect(new UnmanagedComponent() {}, name, "reader", "vision")) {
+      // Straight through the transport: the component API always writes valid values.
+      c.transportForTasks().add("vision", "bad", CORRUPT);
+      assertNamesTheEntry(assertThrows(InvalidArgumentError.class, () -> c.get("bad", Counter.class)).getMessage());
+      assertNamesTheEntry(
+          assertThrows(InvalidArgumentError.class, () -> c.getEntry("bad", Counter.class)).getMessage());
+      assertNamesTheEntry(assertThrows(InvalidArgumentError.class, () -> c.getAll(Counter.class)).getMessage());
+    }
+  }
+
+  @Test
+  void theEntryOfAChangeEventSaysWhichEntry() throws Exception {
+    try (UnmanagedComponent c = FakeCast.connect(new UnmanagedComponent() {}, name, "reader", "vision")) {
+      CompletableFuture<String> seen = new CompletableFuture<>();
+      c.onChange(
+          Filters.localTypeFilter(Counter.class).withEntry(),
+          change -> {
+            try {
+              change.entry(Counter.class);
+              seen.complete("(no error)");
+            } catch (InvalidArgumentError e) {
+              seen.complete(e.getMessage());
+            }
+          });
+      c.transportForTasks().add("vision", "bad", CORRUPT);
+      assertNamesTheEntry(seen.get(10, TimeUnit.SECONDS));
+    }
+  }
+
+  /** Hands the error of reading each adopted task's data to the test. */
+  static final class Tasks extends ManagedComponent {
+    final CompletableFuture<String> seen = new CompletableFuture<>();
+
+    @Override
+    public void taskAdopted(Task task) {
+      try {
+        task.data(Counter.class);
+        seen.complete("(no error)");
+      } catch (InvalidArgumentError e) {
+        seen.complete(e.getMessage());
+      }
+    }
+  }
+
+  @Test
+  void theDataOfATaskSaysWhichTask() throws Exception {
+    try (Tasks c = FakeCast.connect(new Tasks(), name, "worker", "vision")) {
+      c.transportForTasks().propose("work", CORRUPT, 0);
+      String message = c.seen.get(10, TimeUnit.SECONDS);
+      assertTrue(message.startsWith("task 't1' data in subarchitecture '"), message);
+      assertTrue(message.contains("' does not parse as cast.testing.Counter ("), message);
+      assertTrue(
+          message.endsWith("): it was proposed corrupt or with another schema; complete or retract the task"), message);
+    }
+  }
+}
