@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 import sys
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import Any
 
 from google.protobuf import descriptor_pool, json_format, message_factory, timestamp_pb2
+from google.protobuf.message import DecodeError
 from rich.console import Console
 from rich.table import Table
 
@@ -63,15 +65,43 @@ class SchemaDecoder:
                 except (TypeError, ValueError):
                     pass  # already known under the same name (e.g. a well-known type)
                 self._files.add(fd.name)
+        try:
+            self._pool.FindMessageTypeByName(type_name)
+        except KeyError:
+            return False
         return True
 
     def to_json(self, server: ServerStubs, type_name: str, data: bytes) -> Any:
-        """The value as JSON; ``{"@bytes": base64}`` if no schema is registered for its type."""
-        try:
-            desc = self._pool.FindMessageTypeByName(type_name)
-        except KeyError:
-            if not self._load(server, type_name):
-                return {"@type": type_name, "@bytes": base64.b64encode(data).decode("ascii")}
-            desc = self._pool.FindMessageTypeByName(type_name)
-        msg = message_factory.GetMessageClass(desc).FromString(data)
-        return json_format.MessageToDict(msg, preserving_proto_field_name=True, descriptor_pool=self._pool)
+        """The value as JSON; ``{"@type", "@bytes": base64, "@error": why}`` when it cannot be rendered.
+
+        Values inside ``Any`` fields (a task's data) are rendered through their
+        own registered schemas, fetched as they are met. Nothing here raises: a
+        tool shows what it can and says why, never a traceback.
+        """
+        for _ in range(_MAX_NESTED_TYPES):
+            try:
+                desc = self._pool.FindMessageTypeByName(type_name)
+            except KeyError:
+                if not self._load(server, type_name):
+                    return _raw(type_name, data, "no schema registered for this type")
+                continue
+            try:
+                msg = message_factory.GetMessageClass(desc).FromString(data)
+            except (DecodeError, RuntimeError) as exc:
+                return _raw(type_name, data, f"the bytes do not parse as {type_name}: {exc}")
+            try:
+                return json_format.MessageToDict(msg, preserving_proto_field_name=True, descriptor_pool=self._pool)
+            except (TypeError, KeyError, json_format.Error) as exc:
+                # An Any inside names a type whose schema is not loaded yet: fetch it and try again.
+                inner = _ANY_TYPE.search(str(exc))
+                if inner is None or not self._load(server, inner.group(1)):
+                    return _raw(type_name, data, f"cannot render it as JSON: {exc}")
+        return _raw(type_name, data, f"nested types more than {_MAX_NESTED_TYPES} deep")
+
+
+_MAX_NESTED_TYPES = 16
+_ANY_TYPE = re.compile(r"type_url:?\s*\S*/([\w.]+)")
+
+
+def _raw(type_name: str, data: bytes, why: str) -> dict[str, str]:
+    return {"@type": type_name, "@bytes": base64.b64encode(data).decode("ascii"), "@error": why}
