@@ -145,6 +145,15 @@ def test_bad_input_gets_its_status_and_changes_nothing(raw: Raw) -> None:
             grpc.StatusCode.INVALID_ARGUMENT,
             "over the limit of 8388608 bytes",
         ),
+        (  # a well-known type is known to every server without a registration: its bytes are checked
+            raw.wm.Add,
+            wm.AddRequest(
+                address=addr("corrupt"),
+                value=any_pb2.Any(type_url="type.googleapis.com/google.protobuf.StringValue", value=b"\xff" * 4),
+            ),
+            grpc.StatusCode.INVALID_ARGUMENT,
+            "does not parse as google.protobuf.StringValue",
+        ),
     ]
     for method, request, code, words in cases:
         got_code, details = raw.status(method, request)
