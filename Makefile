@@ -59,7 +59,7 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
 
-test-python: setup proto examples bench-deps node
+test-python: setup proto examples bench-deps node grpcurl
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java java-demo test-python
@@ -162,6 +162,19 @@ $(NODE_SCHEMAS): $(VENV)/.installed
 	$(PY) -m grpc_tools.protoc --include_imports --descriptor_set_out=$@ google/protobuf/wrappers.proto
 
 node: $(NODE_STAMP) $(NODE_SCHEMAS)
+
+# grpcurl, the generic gRPC tool the reflection tests use (tests/integration/test_reflection.py),
+# built from the Go module proxy into build/bin with the machine's Go (1.25 or newer: grpcurl
+# v1.9.4 needs it; Debian's golang-go is older, so a missing or old Go is said, not installed).
+GRPCURL := build/bin/grpcurl
+GRPCURL_VERSION := v1.9.4
+.PHONY: grpcurl
+
+$(GRPCURL):
+	@command -v go >/dev/null || { echo "make grpcurl: no Go toolchain found; install Go 1.25 or newer (https://go.dev/dl/) and run make again"; exit 1; }
+	GOBIN=$(abspath build/bin) GOFLAGS=-mod=mod go install github.com/fullstorydev/grpcurl/cmd/grpcurl@$(GRPCURL_VERSION)
+
+grpcurl: $(GRPCURL)
 
 lint: setup proto
 	$(VENV)/bin/ruff check python tests

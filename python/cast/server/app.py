@@ -13,7 +13,6 @@ from typing import Any
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection, reflection_pb2_grpc
 
 from cast.auth import TokenSigner
 from cast.config import ServerConfig, SystemConfig, TlsConfig
@@ -23,6 +22,7 @@ from cast.core.system import System
 from cast.server.directory import DirectoryServicer
 from cast.server.inspection import InspectionServicer
 from cast.server.malformed import SafeRegistrar
+from cast.server.reflection import add_reflection
 from cast.server.rpc import Authenticator
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.working_memory import WorkingMemoryServicer
@@ -190,12 +190,8 @@ async def start_server(
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     foreign: Any = SafeRegistrar(server, wrap=False)  # generic handlers only, deserializers untouched
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, foreign)
-    reflection_pb2_grpc.add_ServerReflectionServicer_to_server(
-        reflection.aio.ReflectionServicer(  # type: ignore[attr-defined]  # public, exported on Python >= 3.6
-            (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME)
-        ),
-        foreign,
-    )
+    health_name = health_pb2.DESCRIPTOR.services_by_name["Health"].full_name
+    add_reflection(foreign, system.schemas, (*SERVICE_NAMES, health_name))
     if settings.tls is not None:
         port = server.add_secure_port(listen, server_credentials(settings.tls))
     else:
