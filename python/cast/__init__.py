@@ -23,6 +23,7 @@ from cast.client.filters import (
     operation_filter,
     source_filter,
 )
+from cast.client.script import Connection, connect
 from cast.core.policies import Decision, TaskPolicy
 from cast.core.records import LockMode, Operation, WriteResult
 from cast.core.tasks import TaskOutcome, TaskState
@@ -47,6 +48,7 @@ __all__ = [
     "CastError",
     "ChangeFilter",
     "Component",
+    "Connection",
     "ConsistencyError",
     "DeadlineExceededError",
     "Decision",
@@ -74,6 +76,7 @@ __all__ = [
     "WorkingMemoryChange",
     "WriteResult",
     "address_filter",
+    "connect",
     "global_type_filter",
     "local_type_filter",
     "operation_filter",

@@ -1,0 +1,76 @@
+"""``cast.connect`` from a plain script: launch environment, runtime directory of `cast run`, explicit token."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from google.protobuf.wrappers_pb2 import StringValue
+
+import cast
+from tests.conftest import PYTHONPATH, SECRET, ServerHandle
+
+SCRIPT = textwrap.dedent("""
+    import json, sys, threading
+    from google.protobuf.wrappers_pb2 import StringValue
+    import cast
+
+    seen = threading.Event()
+    with cast.connect() as wm:
+        wm.on_change(cast.address_filter("from-script"), lambda change: seen.set())
+        result = wm.add("from-script", StringValue(value="hi"))
+        with wm.lock("from-script"):
+            wm.overwrite("from-script", StringValue(value="hi again"), expected_version=result.version)
+        assert seen.wait(10)
+        print(json.dumps({"id": wm.component_id, "sa": wm.subarchitecture}))
+""")
+
+
+def _run_script(env: dict[str, str], cwd: Path) -> dict[str, str]:
+    full = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+    full.update(env, PYTHONPATH=PYTHONPATH)
+    done = subprocess.run([sys.executable, "-c", SCRIPT], env=full, cwd=cwd, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    return dict(json.loads(done.stdout.strip().splitlines()[-1]))
+
+
+def test_a_script_connects_from_the_launch_environment(server: ServerHandle, tmp_path: Path) -> None:
+    out = _run_script(server.env("notebook", "language"), tmp_path)
+    assert out == {"id": "notebook", "sa": "language"}
+    reader = server.connect("reader", "vision")
+    assert reader.get("from-script", StringValue, subarchitecture="language").value == "hi again"
+    reader._cast_close()
+
+
+def test_a_script_connects_through_the_runtime_directory_of_cast_run(server: ServerHandle, tmp_path: Path) -> None:
+    runtime = tmp_path / "rt"
+    runtime.mkdir()
+    (runtime / "system.json").write_text(json.dumps({
+        "system": "test", "endpoint": server.endpoint, "pid": os.getpid(),
+        "servers": {"main": {"endpoint": server.endpoint, "subarchitectures": ["motor", "vision"]}}, "tls": None,
+    }))
+    (runtime / "secret").write_text(SECRET + "\n")
+    out = _run_script({"CAST_RUNTIME_DIR": str(runtime)}, tmp_path)
+    assert out["sa"] == "motor" and out["id"].startswith("script-")
+    # Made from the secret, the script's token is privileged: it may write any SA.
+    with cast.connect(runtime_dir=runtime, env={}, component_id="nb", subarchitecture="vision") as wm:
+        assert (wm.component_id, wm.subarchitecture) == ("nb", "vision")
+        wm.add("x", StringValue(value="v"), subarchitecture="language")
+        assert wm.get("from-script", StringValue, subarchitecture="motor").value == "hi again"
+
+
+def test_connect_with_an_explicit_token_and_what_it_says_when_nothing_is_found(
+    server: ServerHandle, tmp_path: Path
+) -> None:
+    with cast.connect(server.endpoint, server.token("explicit", "vision"), env={}) as wm:
+        assert wm.component_id == "explicit"
+        with pytest.raises(cast.PermissionDeniedError):  # not privileged: its own SA only
+            wm.add("y", StringValue(), subarchitecture="language")
+    with pytest.raises(cast.NotFoundError, match="no running system found"):
+        cast.connect(env={}, runtime_dir=tmp_path / "none")
