@@ -6,6 +6,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,7 @@ import psutil
 
 from cast.core.records import Identity
 from cast.orchestrator.supervisor import Phase
-from tests.orchestrator.conftest import CAST, Embedded, start_cast_run, wait_for, write_config
+from tests.orchestrator.conftest import CAST, COMPONENTS, Embedded, start_cast_run, wait_for, write_config
 
 
 def gone(pid: int) -> bool:
@@ -234,3 +235,24 @@ def test_a_component_that_cannot_start_is_not_restarted(tmp_path: Path, embedded
     assert sup.components["ghost"].restarts == 1 and sup.components["ghost"].crashes == [-9, 2]
     assert "ghost could not start (exit code 2" in run.text()
     assert run.stop().exit_code == 1
+
+
+def test_a_component_that_finishes_before_the_connect_check_is_reported_as_finished_not_missing(
+    tmp_path: Path,
+) -> None:
+    # `fine` connects only after a pause, so the check happens once `quick` has surely exited.
+    late = f"import time, runpy, sys; time.sleep(3); sys.argv = ['cast.run', 'orch_components:Producer']; " \
+           f"sys.path.insert(0, {str(COMPONENTS)!r}); runpy.run_module('cast.run', run_name='__main__')"
+    cfg = write_config(tmp_path / "quick.yaml", {
+        "subarchitectures": {"work": {"components": {
+            "quick": {"class": "orch_components:Quick", "restart": "never"},
+            "broken": {"class": "orch_components:Failing", "restart": "never"},
+            "fine": {"language": "other", "run": [sys.executable, "-c", late]},
+        }}},
+        "orchestrator": {"connect_timeout": 30},
+    })
+    out = subprocess.run([CAST, "run", str(cfg), "--for", "1", "--no-status", "--runtime-dir", str(tmp_path / "rt")],
+                         capture_output=True, text=True, timeout=120)
+    assert "1 of 3 components running after" in out.stdout, out.stdout
+    assert "finished already (exit code 0): quick; failed: broken" in out.stdout, out.stdout
+    assert "not running" not in out.stdout

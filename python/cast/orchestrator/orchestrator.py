@@ -174,11 +174,17 @@ class Orchestrator:
                     self.connected.set()
                     connect_seconds = time.monotonic() - started
                     count = sum(1 for c in self.config.components if not c.manual)
-                    down = [cid for cid, sup in supervisor.components.items()
-                            if sup.phase in (Phase.FAILED, Phase.EXITED)]
-                    if down:
-                        self.output.notice(f"{count - len(down)} of {count} components connected in "
-                                           f"{connect_seconds:.2f} s; not running: {', '.join(down)}")
+                    finished = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.EXITED]
+                    failed = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.FAILED]
+                    if finished or failed:
+                        # A component that did its work and exited 0 is not a failure to connect: say which is which.
+                        parts = [f"{count - len(finished) - len(failed)} of {count} components running after "
+                                 f"{connect_seconds:.2f} s"]
+                        if finished:
+                            parts.append(f"finished already (exit code 0): {', '.join(finished)}")
+                        if failed:
+                            parts.append(f"failed: {', '.join(failed)}")
+                        self.output.notice("; ".join(parts))
                     else:
                         self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
                 if self.options.run_for is not None and not self._stop.is_set():

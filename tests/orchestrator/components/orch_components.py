@@ -173,3 +173,11 @@ class Recorder(cast.UnmanagedComponent):
 
     def stop(self) -> None:
         print("stop() called", flush=True)
+
+
+class Quick(cast.UnmanagedComponent):
+    """Does its one write and stops by itself, before the orchestrator looks."""
+
+    def run(self) -> None:
+        self.add(self.new_id(), Int64Value(value=1))
+        self.request_stop()
