@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from cast_testing_pb2 import Counter, Pose
@@ -104,3 +105,14 @@ class SignalUnderLock(cast.UnmanagedComponent):
         with self._stopping._cond:  # type: ignore[attr-defined]
             handler(signal.SIGTERM, None)
         self.add("handled", Pose(label="the handler returned"))
+
+
+class Announcer(cast.UnmanagedComponent):
+    """Takes a second to start (its first heartbeat says STARTING), says RUNNING as run() begins, waits."""
+
+    def start(self) -> None:
+        time.sleep(1.0)
+
+    def run(self) -> None:
+        print("RUNNING", flush=True)
+        self.wait_for_stop()

@@ -11,6 +11,7 @@ import pytest
 from cast_testing_pb2 import Counter, Pose
 
 import cast
+from cast.v1 import directory_pb2
 from tests.conftest import ServerHandle
 
 
@@ -166,3 +167,25 @@ def test_a_signal_during_signal_handling_does_not_deadlock(server: ServerHandle)
     reader = server.connect("reader", "vision")
     assert reader.get("handled", Pose).label == "the handler returned"
     reader._cast_close()
+
+
+def test_the_directory_shows_a_component_running_as_soon_as_its_run_begins(server_factory) -> None:  # type: ignore[no-untyped-def]
+    # A lease of 60 s: the next regular heartbeat would come 20 s later; the state is reported at once.
+    handle = server_factory({"system": "states", "subarchitectures": {"vision": {}}}, ["--lease-ms", "60000"])
+    proc = handle.spawn("itest_components:Announcer", "announcer", "vision")
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "RUNNING"
+        reader = handle.connect("reader", "vision")
+        try:
+            def state() -> str:
+                desc = reader._transport.describe()
+                info = next(c for c in desc.components if c.id == "announcer")
+                return directory_pb2.ComponentState.Name(info.state)
+
+            wait_until(lambda: state() == "COMPONENT_STATE_RUNNING", timeout=10, what="RUNNING in the directory")
+        finally:
+            reader._cast_close()
+    finally:
+        proc.terminate()
+        proc.wait(10)

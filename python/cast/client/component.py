@@ -256,6 +256,11 @@ class Component:
         transport.set_event_sink(self._on_event, self._on_watch_error, self._dispatcher.room)
         transport.start_session(language, self.kind, lambda: self._state)
 
+    def _set_state(self, state: ComponentState) -> None:
+        """Change the life stage the directory shows, and report it at once."""
+        self._state = state
+        self._transport.report_state()
+
     def _cast_close(self) -> None:
         self._dispatcher.stop()
         self._transport.close()

@@ -113,6 +113,7 @@ class _Server:
         self.watch_stream: _WatchStream | None = None
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server
+        self.beat_now = threading.Event()  # the component's state changed: send a heartbeat at once
 
     def close(self) -> None:
         self.channel.close()
@@ -613,7 +614,9 @@ class GrpcTransport:
             def beats(session_id: str = session_id, every: float = interval) -> Iterator[dir_pb2.HeartbeatRequest]:
                 while True:
                     yield dir_pb2.HeartbeatRequest(session_id=session_id, state=int(state()))  # type: ignore[arg-type]
-                    if self._closing.wait(every):
+                    server.beat_now.wait(every)
+                    server.beat_now.clear()
+                    if self._closing.is_set():
                         return
 
             try:
@@ -639,9 +642,16 @@ class GrpcTransport:
                 except CastError as err:
                     log.info("registering with %s failed (%s); retrying", server.endpoint, err.message)
 
+    def report_state(self) -> None:
+        """Send the component's state to every server now, not at the next heartbeat."""
+        for server in self._servers.values():
+            server.beat_now.set()
+
     def close(self) -> None:
         """End sessions and streams, close channels."""
         self._closing.set()
+        for server in self._servers.values():
+            server.beat_now.set()
         for server in self._servers.values():
             if server.watch_stream is not None:
                 server.watch_stream.close()

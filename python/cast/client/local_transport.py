@@ -46,6 +46,7 @@ class LocalTransport:
         self._session_id = ""
         self._closing = threading.Event()
         self._settle = system.settle_sync
+        self._state: Callable[[], ComponentState] | None = None
 
     def system_name(self) -> str:
         """The system's name."""
@@ -203,6 +204,7 @@ class LocalTransport:
     def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
         """Register and keep the session alive from a timer thread."""
         sessions = self._system.sessions
+        self._state = state
         self._session_id = sessions.register(self.identity, language, kind, os.getpid(), socket.gethostname())
         interval = max(0.05, sessions.lease_ms / 3000)
 
@@ -216,6 +218,14 @@ class LocalTransport:
 
         sessions.heartbeat(self.identity, self._session_id, state())
         threading.Thread(target=beat, name="cast-heartbeat", daemon=True).start()
+
+    def report_state(self) -> None:
+        """Record the component's state in its session now."""
+        if self._session_id and self._state is not None:
+            try:
+                self._system.sessions.heartbeat(self.identity, self._session_id, self._state())
+            except CastError:
+                pass  # the session ended: nothing to report to
 
     def close(self) -> None:
         """End the session; stop watching."""

@@ -118,7 +118,7 @@ class _Lifecycle:
             if self._stop_called:
                 return
             self._stop_called = True
-        self.component._state = ComponentState.STOPPING
+        self.component._set_state(ComponentState.STOPPING)
         self.component.request_stop()
         try:
             self.component.stop()
@@ -132,7 +132,7 @@ class _Lifecycle:
         try:
             c.configure(self.args)
             c.start()
-            c._state = ComponentState.RUNNING
+            c._set_state(ComponentState.RUNNING)
             c.run()
         except Exception:
             log.exception("%s failed", c.component_id)

@@ -93,7 +93,7 @@ def connect(
         tls = find_tls(None, runtime, env)
     connection = Connection()
     connection._cast_bind(GrpcTransport(address, tokens, claimed, call_timeout, tls), language="python")
-    connection._state = ComponentState.RUNNING
+    connection._set_state(ComponentState.RUNNING)
     return connection
 
 

@@ -110,6 +110,9 @@ class Transport(Protocol):
     def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
         """Register and keep a session alive (heartbeats report ``state()``)."""
 
+    def report_state(self) -> None:
+        """Tell the server the component's state now, not at the next heartbeat."""
+
     def system_name(self) -> str:
         """The system's name."""
 
