@@ -265,3 +265,8 @@ def test_component_quotas_count_entries_and_bytes_over_every_wm() -> None:
     with pytest.raises(ResourceExhaustedError, match="components.boss.quota"):
         host.overwrite(boss, "vision", "b", "t.T", b"")
     assert host.usage()["boss"] == (3, 1 + 101 + 11)
+
+
+def test_a_type_read_without_a_type_names_the_type_field(host: MemoryHost) -> None:
+    with pytest.raises(InvalidArgumentError, match="GetByType's type field"):
+        host.get_by_type(A, "vision", "")

@@ -89,6 +89,13 @@ def connect(
         raise UnauthenticatedError(
             "the token is not a CAST token (a JWT with claims c, s, p): get one from `cast token`"
         )
+    for option, wanted, has in (("component_id", component_id, claimed.component_id),
+                                ("subarchitecture", subarchitecture, claimed.subarchitecture)):
+        if wanted and wanted != has:
+            raise InvalidArgumentError(
+                f"{option}='{wanted}' contradicts the token, which is for {option} '{has}': the token decides "
+                f"the identity; leave {option} out, or give a token for it"
+            )
     if tls is None:
         tls = find_tls(None, runtime, env)
     connection = Connection()

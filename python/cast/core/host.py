@@ -193,6 +193,11 @@ class MemoryHost:
         Entries that another component holds ODR-locked are left out: a type
         read must not fail because one entry of many is being modified.
         """
+        if not type_name:
+            raise InvalidArgumentError(
+                "no type to read: give the full message name of the entries (GetByType's type field, "
+                "e.g. 'google.protobuf.StringValue')"
+            )
         self._planner.check_type(type_name)
         if limit < 0:
             raise InvalidArgumentError(f"limit must be 0 (no cap) or positive, got {limit}")
