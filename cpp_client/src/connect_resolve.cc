@@ -121,13 +121,14 @@ std::optional<std::pair<std::string, std::string>> findSecret(const std::map<std
   return std::nullopt;
 }
 
-// The identity a given token states; InvalidArgumentError if it is no CAST
-// token or contradicts the options.
+// The identity a given token states; UnauthenticatedError if it is no CAST
+// token (the server would refuse it so), InvalidArgumentError if it
+// contradicts the options.
 Identity claimsOf(const std::string& token, const std::string& source, const ConnectOptions& options) {
   auto claimed = peekToken(token);
   if (!claimed) {
     const bool oldFormat = token.find('.') != std::string::npos && token.find('.') == token.rfind('.');
-    throw InvalidArgumentError("the token from " + source + " is not a CAST token" +
+    throw UnauthenticatedError("the token from " + source + " is not a CAST token" +
                                (oldFormat ? " (it has the format before JWTs)" : " (a JWT with the claims c, s, p)") +
                                ": get one with `cast token COMPONENT_ID --sa SA`");
   }
@@ -175,7 +176,7 @@ ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::st
     plan.endpoint = system().endpoint;
     plan.endpointSource = system().path;
   } else {
-    throw InvalidArgumentError("no CAST system to connect to: " + system().why +
+    throw NotFoundError("no CAST system to connect to: " + system().why +
                                "; start one with `cast run CONFIG`, give ConnectOptions::runtimeDir (or "
                                "CAST_RUNTIME_DIR) where it runs, or give ConnectOptions::endpoint (or CAST_ENDPOINT)");
   }
@@ -203,7 +204,7 @@ ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::st
   } else {
     auto secret = findSecret(env, dir);
     if (!secret) {
-      throw InvalidArgumentError("no token and no secret to mint one: give ConnectOptions::token, set CAST_TOKEN or "
+      throw NotFoundError("no token and no secret to mint one: give ConnectOptions::token, set CAST_TOKEN or "
                                  "CAST_TOKEN_FILE (`cast token` prints a token), or set CAST_SECRET or "
                                  "CAST_SECRET_FILE to the system's secret (" + dir +
                                  "/secret, which a running `cast run` writes, does not exist)");

@@ -24,8 +24,10 @@ struct ConnectPlan {
 };
 
 // Resolves `options` against `env` and the runtime directory; a minted token
-// is issued at `now` (seconds since the epoch). InvalidArgumentError saying
-// what to give when something cannot be found.
+// is issued at `now` (seconds since the epoch). NotFoundError (no system, no
+// token or secret) or InvalidArgumentError (no SA for a minted token, options
+// that contradict the token) saying what to give; UnauthenticatedError for a
+// token that is no CAST token.
 ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::string, std::string>& env,
                            std::int64_t now);
 

@@ -100,7 +100,7 @@ def test_a_script_connects_from_a_runtime_directory(server: Any, lang: str, tmp_
 def test_a_script_without_a_system_is_told_what_to_give(lang: str, tmp_path: Path) -> None:
     status, out = run_script(lang, "x", no_cast_env(), tmp_path)
     assert status == 1
-    assert out["error"] == "InvalidArgumentError", out
+    assert out["error"] == "NotFoundError", out
     assert out["message"].startswith("no CAST system to connect to: there is no .cast/system.json"), out
     assert "CAST_ENDPOINT" in out["message"] and "`cast run CONFIG`" in out["message"], out
 

@@ -93,9 +93,10 @@ class Connection final : private UnmanagedComponent {
 };
 
 // Connects to the running system found as described at the top of this file.
-// InvalidArgumentError saying what to give when something cannot be found,
-// UnavailableError when nothing answers at the endpoint, UnauthenticatedError
-// when the token is refused.
+// NotFoundError saying what to give when no system or token can be found
+// (InvalidArgumentError for a missing subarchitecture or options that
+// contradict the token), UnavailableError when nothing answers at the
+// endpoint, UnauthenticatedError when the token is refused.
 std::unique_ptr<Connection> connect(const ConnectOptions& options = {});
 
 // A connection over a transport made by the caller (connectGrpc with options

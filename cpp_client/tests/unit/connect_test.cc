@@ -55,13 +55,15 @@ cast::ConnectOptions inDir(const RuntimeDir& dir) {
   return options;
 }
 
+// The message of the error E that fn throws (another error fails the test).
+template <class E = cast::InvalidArgumentError>
 std::string errorOf(const std::function<void()>& fn) {
   try {
     fn();
-  } catch (const cast::InvalidArgumentError& e) {
+  } catch (const E& e) {
     return e.message();
   }
-  return "(no InvalidArgumentError)";
+  return "(no such error)";
 }
 
 // The parts of a JWT.
@@ -99,7 +101,7 @@ TEST(ConnectResolve, TheRuntimeDirComesFromTheEnvironmentToo) {
 TEST(ConnectResolve, NoSystemSaysWhatToGive) {
   RuntimeDir dir;
   auto options = inDir(dir);
-  const std::string message = errorOf([&] { cast::detail::resolveConnect(options, {}, 0); });
+  const std::string message = errorOf<cast::NotFoundError>([&] { cast::detail::resolveConnect(options, {}, 0); });
   EXPECT_NE(message.find("no CAST system to connect to: there is no " + dir.path + "/system.json"), std::string::npos)
       << message;
   EXPECT_NE(message.find("`cast run CONFIG`"), std::string::npos) << message;
@@ -109,7 +111,8 @@ TEST(ConnectResolve, NoSystemSaysWhatToGive) {
 TEST(ConnectResolve, SystemJsonOfAProcessThatIsGoneIsIgnored) {
   RuntimeDir dir;
   dir.system("", 999999999);  // above any pid_max
-  const std::string message = errorOf([&] { cast::detail::resolveConnect(inDir(dir), {}, 0); });
+  const std::string message =
+      errorOf<cast::NotFoundError>([&] { cast::detail::resolveConnect(inDir(dir), {}, 0); });
   EXPECT_NE(message.find("was written by process 999999999, which is no longer running"), std::string::npos)
       << message;
 }
@@ -148,7 +151,7 @@ TEST(ConnectResolve, ATokenThatCannotBeUsedIsNamed) {
   EXPECT_NE(errorOf([&] { cast::detail::resolveConnect(inDir(dir), {{"CAST_TOKEN_FILE", dir.path + "/none"}}, 0); })
                 .find("CAST_TOKEN_FILE names " + dir.path + "/none, which cannot be read"),
             std::string::npos);
-  const std::string oldFormat = errorOf(
+  const std::string oldFormat = errorOf<cast::UnauthenticatedError>(
       [&] { cast::detail::resolveConnect(inDir(dir), {{"CAST_TOKEN", "eyJjIjoicCJ9.c2ln"}}, 0); });
   EXPECT_NE(oldFormat.find("the token from CAST_TOKEN is not a CAST token (it has the format before JWTs)"),
             std::string::npos)
@@ -208,7 +211,7 @@ TEST(ConnectResolve, MintingNeedsASubarchitectureAndASecret) {
   RuntimeDir dir;
   auto options = inDir(dir);
   options.endpoint = "127.0.0.1:7001";
-  const std::string noSecret = errorOf([&] { cast::detail::resolveConnect(options, {}, 0); });
+  const std::string noSecret = errorOf<cast::NotFoundError>([&] { cast::detail::resolveConnect(options, {}, 0); });
   EXPECT_NE(noSecret.find("no token and no secret to mint one: give ConnectOptions::token"), std::string::npos)
       << noSecret;
   EXPECT_NE(noSecret.find(dir.path + "/secret"), std::string::npos) << noSecret;

@@ -16,10 +16,10 @@ public final class Cast {
   }
 
   /**
-   * Connects as {@code options} say, looking up what they leave unset.
-   * InvalidArgumentError saying what to give when something cannot be found,
-   * UnavailableError when nothing answers at the endpoint, UnauthenticatedError
-   * when the token is refused.
+   * Connects as {@code options} say, looking up what they leave unset. NotFoundError
+   * saying what to give when no system or token can be found (InvalidArgumentError for
+   * a missing subarchitecture or options that contradict the token), UnavailableError
+   * when nothing answers at the endpoint, UnauthenticatedError when the token is refused.
    */
   public static Connection connect(ConnectOptions options) {
     ConnectResolver.Resolved found =

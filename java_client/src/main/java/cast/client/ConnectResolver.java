@@ -36,8 +36,10 @@ final class ConnectResolver {
 
   /**
    * Resolves {@code options} against {@code env} and the runtime directory; a minted
-   * token is issued at {@code now} (seconds since the epoch). InvalidArgumentError
-   * saying what to give when something cannot be found.
+   * token is issued at {@code now} (seconds since the epoch). NotFoundError (no system,
+   * no token or secret) or InvalidArgumentError (no SA for a minted token, options that
+   * contradict the token) saying what to give; UnauthenticatedError for a token that is
+   * no CAST token.
    */
   static Resolved resolve(ConnectOptions options, Map<String, String> env, long now) {
     String dirName = firstOf(options.runtimeDir(), env.get("CAST_RUNTIME_DIR"), ".cast");
@@ -64,7 +66,7 @@ final class ConnectResolver {
       endpoint = system.get().endpoint();
       endpointSource = system.get().path().toString();
     } else {
-      throw new InvalidArgumentError(
+      throw new NotFoundError(
           "no CAST system to connect to: "
               + system.get().why()
               + "; start one with `cast run CONFIG`, give ConnectOptions.runtimeDir (or CAST_RUNTIME_DIR) where it"
@@ -92,7 +94,7 @@ final class ConnectResolver {
     } else {
       String[] secret = findSecret(env, dir);
       if (secret == null) {
-        throw new InvalidArgumentError(
+        throw new NotFoundError(
             "no token and no secret to mint one: give ConnectOptions.token, set CAST_TOKEN or CAST_TOKEN_FILE"
                 + " (`cast token` prints a token), or set CAST_SECRET or CAST_SECRET_FILE to the system's secret ("
                 + dir.resolve("secret")
@@ -192,12 +194,12 @@ final class ConnectResolver {
     }
   }
 
-  /** The identity a given token states; InvalidArgumentError if it is no CAST token or contradicts the options. */
+  /** The identity a given token states; UnauthenticatedError if it is no CAST token, InvalidArgumentError if it contradicts the options. */
   private static Identity claimsOf(String token, String source, ConnectOptions options) {
     Identity claimed = Tokens.peek(token);
     if (claimed == null) {
       boolean oldFormat = token.indexOf('.') >= 0 && token.indexOf('.') == token.lastIndexOf('.');
-      throw new InvalidArgumentError(
+      throw new UnauthenticatedError(
           "the token from "
               + source
               + " is not a CAST token"

@@ -41,7 +41,12 @@ class ConnectResolverTest {
   }
 
   static String errorOf(ConnectOptions options, Map<String, String> env) {
-    return assertThrows(InvalidArgumentError.class, () -> ConnectResolver.resolve(options, env, 0)).getMessage();
+    return errorOf(InvalidArgumentError.class, options, env);
+  }
+
+  /** The message of the error {@code type} that resolving throws (another error fails the test). */
+  static String errorOf(Class<? extends CastError> type, ConnectOptions options, Map<String, String> env) {
+    return assertThrows(type, () -> ConnectResolver.resolve(options, env, 0)).getMessage();
   }
 
   static LaunchContract resolve(ConnectOptions options, Map<String, String> env, long now) {
@@ -69,7 +74,7 @@ class ConnectResolverTest {
 
   @Test
   void noSystemSaysWhatToGive() {
-    String message = errorOf(inDir(), Map.of());
+    String message = errorOf(NotFoundError.class, inDir(), Map.of());
     assertTrue(message.startsWith("no CAST system to connect to: there is no " + dir.resolve("system.json")), message);
     assertTrue(message.contains("`cast run CONFIG`"), message);
     assertTrue(message.contains("ConnectOptions.endpoint (or CAST_ENDPOINT)"), message);
@@ -78,7 +83,7 @@ class ConnectResolverTest {
   @Test
   void systemJsonOfAProcessThatIsGoneIsIgnored() throws IOException {
     system("", 999_999_999L); // above any pid_max
-    String message = errorOf(inDir(), Map.of());
+    String message = errorOf(NotFoundError.class, inDir(), Map.of());
     assertTrue(message.contains("was written by process 999999999, which is no longer running"), message);
   }
 
@@ -115,7 +120,7 @@ class ConnectResolverTest {
     assertTrue(
         errorOf(inDir(), Map.of("CAST_TOKEN_FILE", none.toString()))
             .startsWith("CAST_TOKEN_FILE names " + none + ", which cannot be read"));
-    String oldFormat = errorOf(inDir(), Map.of("CAST_TOKEN", "eyJjIjoicCJ9.c2ln"));
+    String oldFormat = errorOf(UnauthenticatedError.class, inDir(), Map.of("CAST_TOKEN", "eyJjIjoicCJ9.c2ln"));
     assertTrue(
         oldFormat.startsWith("the token from CAST_TOKEN is not a CAST token (it has the format before JWTs)"), oldFormat);
     String conflict = errorOf(inDir().token(TokensTest.PLANNER_TOKEN).subarchitecture("vision"), Map.of());
@@ -167,7 +172,7 @@ class ConnectResolverTest {
   @Test
   void mintingNeedsASubarchitectureAndASecret() {
     ConnectOptions options = inDir().endpoint("127.0.0.1:7001");
-    String noSecret = errorOf(options, Map.of());
+    String noSecret = errorOf(NotFoundError.class, options, Map.of());
     assertTrue(noSecret.startsWith("no token and no secret to mint one: give ConnectOptions.token"), noSecret);
     assertTrue(noSecret.contains(dir.resolve("secret").toString()), noSecret);
 
