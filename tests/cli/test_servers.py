@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from cast.auth import peek
+from cast.core.records import Identity
 from tests.orchestrator.conftest import CAST, CastRun, start_cast_run, wait_for, write_config
 
 
@@ -62,3 +64,15 @@ def test_endpoint_and_secret_given_explicitly(two_servers: CastRun, tmp_path: Pa
     out = subprocess.run([CAST, "ls", "--json"], cwd=tmp_path, env={**env, "CAST_SECRET": "x" * 32},
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "token signature does not match" in out.stderr
+
+
+def test_a_secret_file_on_the_command_line_beats_cast_token_in_the_environment(tmp_path: Path) -> None:
+    from cast.cli.connect import tool_token
+    from cast.orchestrator.runtime import RuntimeDir
+
+    secret = tmp_path / "secret"
+    secret.write_text("s" * 40 + "\n")
+    made = tool_token(str(secret), RuntimeDir(tmp_path / "rt"), {"CAST_TOKEN": "from-the-environment"})
+    assert made != "from-the-environment" and peek(made) == Identity("cast-cli", "", False)
+    assert tool_token(None, RuntimeDir(tmp_path / "rt"), {"CAST_TOKEN": "from-the-environment"}) == \
+        "from-the-environment"

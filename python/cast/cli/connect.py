@@ -43,8 +43,12 @@ TOOL_ID = "cast-cli"
 
 
 def tool_token(secret_file: str | None, runtime: RuntimeDir, env: Mapping[str, str]) -> str:
-    """``$CAST_TOKEN``, or a read-only tool token issued from the secret."""
-    if env.get("CAST_TOKEN"):
+    """The tool's token: made from ``--secret-file``, else ``$CAST_TOKEN``, else made from the system's secret.
+
+    A flag on the command line beats the environment; a token made from a
+    secret is a read-only ``cast-cli`` one for an hour.
+    """
+    if env.get("CAST_TOKEN") and not secret_file:
         return env["CAST_TOKEN"]
     return TokenSigner(find_secret(secret_file, runtime, env)).issue(Identity(TOOL_ID, "", False), 3600)
 
