@@ -28,10 +28,10 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 from cast.core.checks import check_id, check_sa_name, locked_message, missing_message
-from cast.core.memory import LockState, Pending, WorkingMemory
+from cast.core.locks import Locking
+from cast.core.memory import Pending, WorkingMemory
 from cast.core.planning import BatchOp, Overlay, Planned, ValueValidator, WritePlanner
 from cast.core.records import (
-    SYSTEM_TYPES,
     ChangeEvent,
     EntryRecord,
     Identity,
@@ -40,27 +40,16 @@ from cast.core.records import (
     Operation,
     Quota,
     WriteResult,
-    no_session,
-    system_entry,
 )
 from cast.core.room import Room, Tally
-from cast.errors import (
-    CastError,
-    InvalidArgumentError,
-    LockedError,
-    NoSessionError,
-    NotFoundError,
-    PermissionDeniedError,
-    ResourceExhaustedError,
-)
+from cast.errors import CastError, InvalidArgumentError, LockedError, NotFoundError
 
 __all__ = ["BatchOp", "MemoryHost", "ValueValidator"]
 
 log = logging.getLogger("cast.host")
 
 
-
-class MemoryHost:
+class MemoryHost(Locking):
     """Working memories of several subarchitectures behind one mutex."""
 
     def __init__(
@@ -87,16 +76,12 @@ class MemoryHost:
         self._seq_floor = 0  # highest event sequence number restored from a journal
         self._listeners: list[Callable[[], None]] = []
         self._watchers = 0  # listeners that are watchers (limits.max_watchers)
-        self._lock_waiters: dict[tuple[str, str], list[Callable[[], None]]] = {}
-        self._waiter_count = 0
-        self._held: dict[str, set[tuple[str, str]]] = {}  # component -> locked addresses
+        self._init_locks()
         # Called under the mutex with the events of each commit (cast.core.journal.Journal.append):
         # it only queues them, so durability never holds the mutex for I/O. None: memory only.
         self.journal: Callable[[list[ChangeEvent]], None] | None = None
         # True while writes become visible only once the journal made them durable (apply_durable).
         self.deferred = False
-        # Whether a component has a live session (cast.core.sessions); None: no sessions (bare core).
-        self.session_live: Callable[[str], bool] | None = None
 
     def attach_journal(self, append: Callable[[list[ChangeEvent]], None], deferred: bool) -> None:
         """Journal every commit from now on; ``deferred``: show a write only once it is durable.
@@ -429,135 +414,6 @@ class MemoryHost:
             top = max((e.seq for e in kept), default=0)
             self._seq = itertools.count(max(top, self._seq_floor) + 1)
             self._seq_floor = max(top, self._seq_floor)
-
-    # ------------------------------------------------------------------ locks
-
-    def try_lock(self, who: Identity, sa: str, entry_id: str, mode: LockMode) -> int:
-        """Take (or re-enter) a lock at once; return the depth. FAILED_PRECONDITION if held by another.
-
-        Re-entering keeps the stronger of the held and requested modes. Locks
-        are taken on the latest state (the one writes are checked against).
-        """
-        check_id(entry_id, self.limits)
-        mode = LockMode(mode)
-        live = self.session_live
-        if live is not None and not live(who.component_id):
-            raise NoSessionError(no_session(who, f"lock entry '{entry_id}' in subarchitecture '{sa}'"))
-        depth = self._take_lock(who, sa, entry_id, mode)
-        if live is not None and not live(who.component_id):
-            # The session ended while the lock was being taken, after it released what it held.
-            self.release_component(who.component_id)
-            raise NoSessionError(no_session(who, f"lock entry '{entry_id}' in subarchitecture '{sa}'"))
-        return depth
-
-    def _take_lock(self, who: Identity, sa: str, entry_id: str, mode: LockMode) -> int:
-        with self._mutex:
-            wm = self._wm(sa)
-            current = wm.latest(entry_id)[0]
-            if current is None:
-                raise NotFoundError(missing_message(sa, entry_id) + ": cannot lock it")
-            if current.type in SYSTEM_TYPES:
-                raise PermissionDeniedError(system_entry(who, sa, entry_id, current.type, "lock"))
-            lock = wm.locks.get(entry_id)
-            if lock is None:
-                wm.locks[entry_id] = LockState(who.component_id, mode)
-                self._held.setdefault(who.component_id, set()).add((sa, entry_id))
-                return 1
-            if lock.holder != who.component_id:
-                raise LockedError(locked_message(sa, entry_id, lock, "lock"))
-            lock.depth += 1
-            lock.mode = max(lock.mode, mode)
-            return lock.depth
-
-    def unlock(self, who: Identity, sa: str, entry_id: str) -> int:
-        """Release one level of the caller's lock; return the remaining depth."""
-        check_id(entry_id, self.limits)
-        with self._mutex:
-            wm = self._wm(sa)
-            if wm.latest(entry_id)[0] is None:
-                raise NotFoundError(missing_message(sa, entry_id) + ": cannot unlock it")
-            lock = wm.locks.get(entry_id)
-            if lock is None:
-                raise LockedError(f"entry '{entry_id}' in subarchitecture '{sa}' is not locked: nothing to unlock")
-            if lock.holder != who.component_id:
-                raise LockedError(
-                    f"entry '{entry_id}' in subarchitecture '{sa}' is locked by '{lock.holder}', not by "
-                    f"{who.describe()}: only the holder may unlock it"
-                )
-            lock.depth -= 1
-            if lock.depth > 0:
-                return lock.depth
-            del wm.locks[entry_id]
-            self._forget_lock(who.component_id, sa, entry_id)
-        self._wake_lock_waiters((sa, entry_id))
-        return 0
-
-    def lock_holder(self, sa: str, entry_id: str) -> tuple[str, LockMode, int] | None:
-        """(holder, mode, depth) of the lock on an entry, or None."""
-        with self._mutex:
-            lock = self._wm(sa).locks.get(entry_id)
-            return None if lock is None else (lock.holder, lock.mode, lock.depth)
-
-    def locks_of(self, component_id: str) -> list[tuple[str, str]]:
-        """Addresses the component holds locks on."""
-        with self._mutex:
-            return sorted(self._held.get(component_id, ()))
-
-    def release_component(self, component_id: str) -> list[tuple[str, str]]:
-        """Release every lock a component holds (its session ended); return the addresses."""
-        with self._mutex:
-            keys = sorted(self._held.pop(component_id, ()))
-            for sa, entry_id in keys:
-                self._wms[sa].locks.pop(entry_id, None)
-        for key in keys:
-            self._wake_lock_waiters(key)
-        return keys
-
-    def _forget_lock(self, holder: str, sa: str, entry_id: str) -> None:
-        held = self._held.get(holder)
-        if held is not None:
-            held.discard((sa, entry_id))
-            if not held:
-                del self._held[holder]
-
-    def wait_for_unlock(self, sa: str, entry_id: str, callback: Callable[[], None]) -> Callable[[], None]:
-        """Call ``callback`` once when the entry's lock is released (or the entry deleted).
-
-        Returns a function that cancels the wait. RESOURCE_EXHAUSTED past
-        ``limits.max_lock_waiters``. The callback runs on the releasing thread
-        with no mutex held; it should only wake the waiter, which then retries.
-        """
-        key = (sa, entry_id)
-        with self._mutex:
-            if self._waiter_count >= self.limits.max_lock_waiters:
-                raise ResourceExhaustedError(
-                    f"{self._waiter_count} lock waiters are pending, the limit (limits.max_lock_waiters = "
-                    f"{self.limits.max_lock_waiters}): use try_lock, or raise the limit"
-                )
-            self._lock_waiters.setdefault(key, []).append(callback)
-            self._waiter_count += 1
-            lock = self._wms[sa].locks.get(entry_id) if sa in self._wms else None
-        if lock is None:
-            # Released between the caller's try and this registration: wake at once.
-            self._wake_lock_waiters(key)
-
-        def cancel() -> None:
-            with self._mutex:
-                waiters = self._lock_waiters.get(key)
-                if waiters is not None and callback in waiters:
-                    waiters.remove(callback)
-                    self._waiter_count -= 1
-                    if not waiters:
-                        del self._lock_waiters[key]
-
-        return cancel
-
-    def _wake_lock_waiters(self, key: tuple[str, str]) -> None:
-        with self._mutex:
-            waiters = self._lock_waiters.pop(key, [])
-            self._waiter_count -= len(waiters)
-        for wake in waiters:
-            wake()
 
     # -------------------------------------------------------------- watching
 
