@@ -81,7 +81,7 @@ class NetLocker(cast.ManagedComponent):
 
 
 class Churner(cast.ManagedComponent):
-    """Read-modify-write under a lock: ``shared-<k>`` gets value = version + 1, checked by version.
+    """Read-modify-write under a lock: ``shared-<k>``'s value counts its overwrites, checked by version.
 
     Proposes a task now and then and holds each adopted task for a while, so a kill finds
     locks and tasks to release.
@@ -105,7 +105,7 @@ class Churner(cast.ManagedComponent):
             try:
                 with self.lock(key, cast.LockMode.OD, timeout=5):
                     entry = self.get_entry(key, Int64Value)
-                    self.overwrite(key, Int64Value(value=entry.version + 1), expected_version=entry.version)
+                    self.overwrite(key, Int64Value(value=entry.value.value + 1), expected_version=entry.version)
                 if i % 20 == 0:
                     self.propose_task(f"job-{i}")
             except cast.CastError as exc:
@@ -123,22 +123,33 @@ class Churner(cast.ManagedComponent):
 
 
 class Auditor(cast.UnmanagedComponent):
-    """Checks every change of a ``shared-*`` entry: its value must equal its version."""
+    """Checks every change of a ``shared-*`` entry: its value advances exactly as its version does.
+
+    Each overwrite adds 1 to both, so a lost update (two writers both overwriting the value they
+    read) shows as a version step without a value step. Versions start at the server's version
+    floor, not at 0, so only steps are compared.
+    """
 
     def start(self) -> None:
         self.checked = 0
         self.violations = 0
+        self.last: dict[str, tuple[int, int]] = {}  # id -> (value, version) of the last change seen
         self.on_change(cast.local_type_filter(Int64Value, include_entry=True), self.check)
 
     def check(self, change: cast.WorkingMemoryChange) -> None:
         if not change.id.startswith("shared-") or change.operation is cast.Operation.DELETE:
             return
         entry = change.entry(Int64Value)
+        seen = (entry.value.value, entry.version)
+        last = self.last.get(change.id)
+        self.last[change.id] = seen
+        if last is None:
+            return
         self.checked += 1
-        if entry.value.value != entry.version:
+        if seen[0] - last[0] != seen[1] - last[1]:
             self.violations += 1
-            self.log.error("inconsistent entry %s: value %d at version %d", change.id, entry.value.value,
-                           entry.version)
+            self.log.error("inconsistent entry %s: value %d -> %d while version %d -> %d", change.id, last[0],
+                           seen[0], last[1], seen[1])
 
     def run(self) -> None:
         self.add("audit", StringValue(value="0 0"))
