@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from cast.core.history import History
-from cast.core.records import EntryRecord, LockMode, entry_size
+from cast.core.records import EntryRecord, LockMode
 
 __all__ = ["LockState", "Pending", "WorkingMemory"]
 
@@ -85,20 +85,22 @@ class WorkingMemory:
 
     def account(self, old: EntryRecord | None, new: EntryRecord | None) -> None:
         """Move the latest state's usage from ``old`` (replaced or deleted) to ``new``."""
+        usage = self.usage
         if old is not None:
-            size = entry_size(old)
-            self.total_bytes -= size
-            held = self.usage[old.author]
+            self.total_bytes -= old.size
+            held = usage[old.author]
             held[0] -= 1
-            held[1] -= size
+            held[1] -= old.size
             if not held[0]:
-                del self.usage[old.author]
+                del usage[old.author]
         if new is not None:
-            size = entry_size(new)
-            self.total_bytes += size
-            held = self.usage.setdefault(new.author, [0, 0])
-            held[0] += 1
-            held[1] += size
+            self.total_bytes += new.size
+            mine = usage.get(new.author)
+            if mine is None:
+                usage[new.author] = [1, new.size]
+            else:
+                mine[0] += 1
+                mine[1] += new.size
 
     def latest_count(self) -> int:
         """Number of entries in the latest state (for the entries limit)."""

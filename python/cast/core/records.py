@@ -22,7 +22,6 @@ __all__ = [
     "SYSTEM_TYPES",
     "TASK_TYPE",
     "WriteResult",
-    "entry_size",
     "no_session",
     "system_entry",
 ]
@@ -67,7 +66,7 @@ class WriteResult(NamedTuple):
 class EntryRecord:
     """One entry as stored: never mutated after creation."""
 
-    __slots__ = ("author", "data", "id", "modified_ns", "revision", "subarchitecture", "type", "version")
+    __slots__ = ("author", "data", "id", "modified_ns", "revision", "size", "subarchitecture", "type", "version")
 
     def __init__(
         self,
@@ -88,6 +87,8 @@ class EntryRecord:
         self.author = author
         self.modified_ns = modified_ns
         self.revision = revision
+        # The bytes it counts for against memory bounds (cast.core.room): its value and its id.
+        self.size = len(data) + len(id)
 
     def __repr__(self) -> str:
         return (
@@ -195,11 +196,6 @@ class Quota:
 
     entries: int = 0
     bytes: int = 0
-
-
-def entry_size(record: EntryRecord) -> int:
-    """The bytes an entry counts for: its value and its id."""
-    return len(record.data) + len(record.id)
 
 
 @dataclass(frozen=True)

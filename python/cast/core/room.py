@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from cast.core.memory import WorkingMemory
-from cast.core.records import EntryRecord, Identity, Limits, Quota, entry_size
+from cast.core.records import EntryRecord, Identity, Limits, Quota
 from cast.errors import ResourceExhaustedError
 
 __all__ = ["Room", "Tally", "mib"]
@@ -57,9 +57,11 @@ class Room:
     ) -> None:
         """RESOURCE_EXHAUSTED if replacing ``old`` by ``new`` (None: absent) passes a bound."""
         sa = wm.name
-        old_size = entry_size(old) if old is not None else 0
-        new_size = entry_size(new) if new is not None else 0
+        old_size = old.size if old is not None else 0
+        new_size = new.size if new is not None else 0
         grows = new_size - old_size
+        if tally is None and not self.quotas and wm.total_bytes + grows <= self.limits.max_total_bytes:
+            return  # the common case: one write, no quotas, room left
         batch_bytes = tally.bytes.get(sa, 0) if tally is not None else 0
         if grows > 0 and wm.total_bytes + batch_bytes + grows > self.limits.max_total_bytes:
             raise ResourceExhaustedError(

@@ -85,6 +85,7 @@ class System:
         # In always and batch a write becomes visible once durable (cast.core.host); in none at once.
         if journal.waits:
             journal.on_durable = self.host.apply_durable
+            self.host.add_listener(self.tasks.writes_visible, watcher=False)
         self.host.attach_journal(journal.append, deferred=journal.waits)
         self.schemas.on_added = journal.append_schemas
         # Task entries of the previous run: every session ended with it, so its tasks did too. Delete

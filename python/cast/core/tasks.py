@@ -108,7 +108,6 @@ class TaskBoard:
         # Per component: (decision, SA, revision of its write), handed out once the revision is visible.
         self._decisions: dict[str, list[tuple[TaskRecord, str, int]]] = {}
         self._listeners: list[Callable[[str], None]] = []
-        host.add_listener(self._visible, watcher=False)
         # Whether a component has a live session (cast.core.sessions); None: no sessions (bare core).
         self.session_live: Callable[[str], bool] | None = None
         self.counters: dict[str, dict[str, int]] = {
@@ -215,8 +214,12 @@ class TaskBoard:
                 del self._decisions[component_id]
             return taken
 
-    def _visible(self) -> None:
-        # Writes became visible: tell the components whose decisions may now be handed out.
+    def writes_visible(self) -> None:
+        """Writes became visible: tell the components whose decisions may now be handed out.
+
+        Only needed when writes become visible after they are made (a journal that writers
+        wait for): the host calls it then (``System`` registers it).
+        """
         if not self._decisions:
             return
         with self._mutex:
