@@ -69,7 +69,8 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         sessions = self._system.sessions
         session_id = sessions.register(who, request.language, request.kind, request.pid, request.host)
         return dir_pb2.RegisterResponse(
-            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system)
+            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system),
+            component_id=who.component_id, subarchitecture=who.subarchitecture, privileged=who.privileged,
         )
 
     @stream_rpc
