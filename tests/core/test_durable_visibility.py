@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+from cast.core.access import Access, run_sync
 from cast.core.host import BatchOp
 from cast.core.journal import Journal
 from cast.core.policies import make_policy
@@ -36,6 +37,7 @@ def system(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[System]:
     s = System("t", ["vision"], {"vision": make_policy("fifo", {"max_concurrent": 1})}, journal=journal)
     for who in (W, R):  # locks and tasks need a live session
         s.sessions.register(who, "python", "unmanaged", 0, "")
+    _SYSTEM[:] = [s]
     yield s
     assert s.journal is not None
     s.journal.release()
@@ -70,6 +72,15 @@ class Call:
         return self.result
 
 
+def _write(who: Identity, op: Operation, entry_id: str, data: bytes = b"", expected: int | None = None) -> Call:
+    """A write by ``who`` through its Access, on its own thread."""
+    system = _SYSTEM[0]
+    return Call(lambda: run_sync(system, Access(system, who).write(BatchOp(op, "vision", entry_id, T, data, expected))))
+
+
+_SYSTEM: list[System] = []
+
+
 def _held(system: System) -> Journal:
     assert system.journal is not None
     system.journal.hold()
@@ -86,7 +97,7 @@ def test_a_held_write_is_invisible_to_reads_watchers_and_refusals(system: System
     revision = host.revision("vision")
     journal = _held(system)
 
-    write = Call(lambda: system.settle_sync(lambda: host.overwrite(W, "vision", "x", T, b"v1")))
+    write = _write(W, Operation.OVERWRITE, "x", b"v1")
     assert write.pending(), "the writer was answered before its write was durable"
     # Committed in memory, not durable: nobody else sees it.
     assert host.pending_writes() == 1
@@ -98,8 +109,8 @@ def test_a_held_write_is_invisible_to_reads_watchers_and_refusals(system: System
     assert seen == []
     # A compare-and-set against the held write is refused, but only once it is durable, and
     # its refusal names the durable version then; a lock on it waits the same way.
-    cas = Call(lambda: system.settle_sync(lambda: host.overwrite(R, "vision", "x", T, b"r", expected_version=0)))
-    lock = Call(lambda: system.settle_sync(lambda: host.try_lock(R, "vision", "x", LockMode.O)))
+    cas = _write(R, Operation.OVERWRITE, "x", b"r", expected=0)
+    lock = Call(lambda: run_sync(system, Access(system, R).lock("vision", "x", LockMode.O, no_wait=True)))
     assert cas.pending() and lock.pending()
     assert host.get(R, "vision", "x").data == b"v0"
 
@@ -119,8 +130,8 @@ def test_a_held_add_and_delete_are_invisible(system: System) -> None:
     host.add(W, "vision", "gone", T, b"g")
     system.durable_sync()
     journal = _held(system)
-    add = Call(lambda: system.settle_sync(lambda: host.add(W, "vision", "new", T, b"n")))
-    delete = Call(lambda: system.settle_sync(lambda: host.delete(W, "vision", "gone")))
+    add = _write(W, Operation.ADD, "new", b"n")
+    delete = _write(W, Operation.DELETE, "gone")
     assert add.pending() and delete.pending()
     assert not host.exists(R, "vision", "new")
     assert host.exists(R, "vision", "gone")
@@ -129,8 +140,8 @@ def test_a_held_add_and_delete_are_invisible(system: System) -> None:
     assert host.get(R, "vision", "gone").data == b"g"
     assert host.entry_count("vision") == 1
     # A second write of the held entry is checked against the latest state: the versions go on.
-    again = Call(lambda: system.settle_sync(lambda: host.overwrite(W, "vision", "new", T, b"n2")))
-    readd = Call(lambda: system.settle_sync(lambda: host.add(W, "vision", "gone", T, b"g2")))
+    again = _write(W, Operation.OVERWRITE, "new", b"n2")
+    readd = _write(W, Operation.ADD, "gone", b"g2")
     assert again.pending() and readd.pending()
     journal.release()
     assert add.done().version == 0
@@ -145,7 +156,7 @@ def test_a_held_batch_is_all_invisible_then_all_visible(system: System) -> None:
     host = system.host
     journal = _held(system)
     ops = [BatchOp(Operation.ADD, "vision", f"b{i}", T, b"x") for i in range(3)]
-    batch = Call(lambda: system.settle_sync(lambda: host.batch(W, ops)))
+    batch = Call(lambda: run_sync(system, Access(system, W).batch(ops)))
     assert batch.pending()
     assert [host.exists(R, "vision", f"b{i}") for i in range(3)] == [False] * 3
     journal.release()
@@ -157,7 +168,7 @@ def test_a_task_decision_is_handed_out_only_once_its_write_is_durable(system: Sy
     decided: list[str] = []
     system.tasks.add_listener(lambda comp: decided.extend(t.task_id for t in system.tasks.take_decisions(comp)))
     journal = _held(system)
-    propose = Call(lambda: system.settle_sync(lambda: system.tasks.propose(W, "work")))
+    propose = Call(lambda: run_sync(system, Access(system, W).propose("work")))
     assert propose.pending()
     assert decided == []
     assert system.host.get_by_type(R, "vision", TASK_TYPE)[0] == []
@@ -179,5 +190,5 @@ def test_a_failed_journal_makes_nothing_more_visible(system: System) -> None:
 
     journal._write = broken  # type: ignore[method-assign]
     with pytest.raises(CastError, match="could not store it"):
-        system.settle_sync(lambda: host.overwrite(W, "vision", "x", T, b"v1"))
+        run_sync(system, Access(system, W).write(BatchOp(Operation.OVERWRITE, "vision", "x", T, b"v1")))
     assert host.get(R, "vision", "x").data == b"v0"

@@ -1,9 +1,11 @@
 """Reaching working memories in the same process: direct calls on the core, no gRPC.
 
 Used for components that run inside the server's process (``in_process: true``).
-Semantics are the remote ones: the same checks, the same errors, values still
-copied (the component serialises on write and parses on read), events in the
-same order; only the network and the protobuf envelopes are gone.
+Every call goes through the component's :class:`cast.core.access.Access`, the
+rulebook the gRPC servicers use too, so the rules are the remote ones: the same
+checks, waits and errors, the same events (an entry only when asked for and
+not under another's ODR lock), values still copied (the component serialises
+on write and parses on read); only the network and the envelopes are gone.
 """
 
 from __future__ import annotations
@@ -11,19 +13,19 @@ from __future__ import annotations
 import os
 import socket
 import threading
-import time
 from collections.abc import Callable, Sequence
 
 from google.protobuf import descriptor_pb2
 
 from cast.client.transport import EventSink
+from cast.core.access import Access, event_for, run_sync
 from cast.core.host import BatchOp
-from cast.core.records import EntryRecord, Identity, LockMode, WriteResult
+from cast.core.records import EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Subscription
-from cast.errors import CastError, DeadlineExceededError, LockedError, NoSessionError
+from cast.errors import CastError
 
 __all__ = ["LocalTransport"]
 
@@ -45,7 +47,7 @@ class LocalTransport:
         self._decision_sink: Callable[[TaskRecord], None] | None = None
         self._session_id = ""
         self._closing = threading.Event()
-        self._settle = system.settle_sync
+        self._access = Access(system, identity)
         self._state: Callable[[], ComponentState] | None = None
 
     def system_name(self) -> str:
@@ -56,67 +58,49 @@ class LocalTransport:
         """The system's SA names."""
         return self._host.subarchitectures
 
-    # Calls on the latest state answer once it is durable, refusals included, as over gRPC
-    # (System.settle_sync); reads see only the visible state and never wait.
-
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        return self._settle(lambda: self._host.add(self.identity, sa, entry_id, type_name, data))
+        return run_sync(self._system, self._access.write(BatchOp(Operation.ADD, sa, entry_id, type_name, data)))
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        return self._settle(
-            lambda: self._host.overwrite(self.identity, sa, entry_id, type_name, data, expected_version)
-        )
+        op = BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, data, expected_version)
+        return run_sync(self._system, self._access.write(op))
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
-        return self._settle(lambda: self._host.delete(self.identity, sa, entry_id, expected_version))
+        op = BatchOp(Operation.DELETE, sa, entry_id, expected_version=expected_version)
+        return run_sync(self._system, self._access.write(op))
 
     def batch(self, ops: Sequence[BatchOp]) -> list[WriteResult]:
         """Apply writes in order, all or nothing."""
-        return self._settle(lambda: self._host.batch(self.identity, ops))
+        return run_sync(self._system, self._access.batch(ops))
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry (records are immutable, so sharing one is safe)."""
-        return self._host.get(self.identity, sa, entry_id)
+        return self._access.get(sa, entry_id)
 
     def get_by_type(self, sa: str, type_name: str, limit: int) -> list[EntryRecord]:
         """Read the entries of one type, newest first."""
-        return self._host.get_by_type(self.identity, sa, type_name, limit)[0]
+        return self._access.get_by_type(sa, type_name, limit)[0]
 
     def exists(self, sa: str, entry_id: str) -> bool:
         """Whether an entry exists."""
-        return self._host.exists(self.identity, sa, entry_id)
+        return self._access.exists(sa, entry_id)
 
     def lock(self, sa: str, entry_id: str, mode: LockMode, timeout: float | None, no_wait: bool) -> int:
         """Take a lock, waiting on this thread for its release up to ``timeout`` seconds."""
-        end = None if timeout is None else time.monotonic() + timeout
-        while True:
-            try:
-                return self._settle(lambda: self._host.try_lock(self.identity, sa, entry_id, mode))
-            except LockedError as exc:
-                if no_wait or isinstance(exc, NoSessionError):
-                    raise
-                blocked = exc
-            released = threading.Event()
-            cancel = self._host.wait_for_unlock(sa, entry_id, released.set)
-            try:
-                remaining = None if end is None else max(0.0, end - time.monotonic())
-                if not released.wait(remaining):
-                    raise DeadlineExceededError(f"deadline passed while waiting: {blocked.message}")
-            finally:
-                cancel()
+        return run_sync(self._system, self._access.lock(sa, entry_id, mode, no_wait), timeout)
 
     def unlock(self, sa: str, entry_id: str) -> int:
         """Release one level of a lock."""
-        return self._settle(lambda: self._host.unlock(self.identity, sa, entry_id))
+        return run_sync(self._system, self._access.unlock(sa, entry_id))
 
     def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
         """Register entry types with the in-process server."""
-        self._system.schemas.register(files)
+        run_sync(self._system, self._access.register_schemas(files))
 
     def set_event_sink(
         self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
@@ -148,7 +132,7 @@ class LocalTransport:
                     self._on_error(exc)
                     return
                 for m in matches:
-                    self._sink(m.event, m.watch_ids)
+                    self._sink(event_for(self._access, m), m.watch_ids)
                 if not self._sub.behind:
                     return
 
@@ -161,7 +145,7 @@ class LocalTransport:
         with self._sub_lock:
             if self._sub is None:
                 self._sub = Subscription(self._host, self._wake)
-            revisions = self._sub.add_watch(watch_id, filters, start_revisions)
+            revisions = self._access.watch(self._sub, watch_id, filters, start_revisions)
         if start_revisions:
             self._wake()
         return revisions
@@ -174,8 +158,7 @@ class LocalTransport:
 
     def propose(self, name: str, data_type: str, data: bytes, priority: int) -> TaskRecord:
         """Propose a task to the own SA's task manager."""
-        tasks = self._system.tasks
-        return self._copy(self._settle(lambda: tasks.propose(self.identity, name, data_type, data, priority)))
+        return self._copy(run_sync(self._system, self._access.propose(name, data_type, data, priority)))
 
     @staticmethod
     def _copy(task: TaskRecord) -> TaskRecord:
@@ -183,11 +166,11 @@ class LocalTransport:
 
     def retract(self, task_id: str) -> None:
         """Withdraw a task."""
-        self._settle(lambda: self._system.tasks.retract(self.identity, task_id))
+        run_sync(self._system, self._access.retract(task_id))
 
     def complete(self, task_id: str, outcome: TaskOutcome, reason: str) -> None:
         """Report an adopted task's outcome."""
-        self._settle(lambda: self._system.tasks.complete(self.identity, task_id, outcome, reason))
+        run_sync(self._system, self._access.complete(task_id, outcome, reason))
 
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
         """Where task decisions go."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import TypeVar
 
 from cast.core.host import BatchOp, MemoryHost
@@ -19,7 +19,6 @@ from cast.core.schemas import SchemaRegistry
 from cast.core.sessions import ComponentInfo, SessionTable
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
 from cast.core.versions import epoch_floor
-from cast.errors import CastError
 
 __all__ = ["TASK_TYPE", "System"]
 
@@ -104,7 +103,7 @@ class System:
 
         Every call that writes or checks the latest state (writes and their
         refusals, locks, task calls) answers only after this, so that what it
-        tells its caller can no longer be undone by a crash.
+        tells its caller can no longer be undone by a crash (cast.core.access).
         """
         journal = self.journal
         if journal is not None and journal.waits:
@@ -115,31 +114,6 @@ class System:
         journal = self.journal
         if journal is not None and journal.waits:
             journal.wait(journal.ticket())
-
-    async def settle(self, call: Callable[[], _T]) -> _T:
-        """Run a call that writes or checks the latest state; return or raise once that is durable.
-
-        The rule for every such call, over gRPC and in process: its result and
-        its refusals (which name versions, holders, task states) reach the
-        caller only when a crash can no longer undo what they tell.
-        """
-        try:
-            result = call()
-        except CastError:
-            await self.durable()
-            raise
-        await self.durable()
-        return result
-
-    def settle_sync(self, call: Callable[[], _T]) -> _T:
-        """:meth:`settle` for callers on their own threads (in-process components)."""
-        try:
-            result = call()
-        except CastError:
-            self.durable_sync()
-            raise
-        self.durable_sync()
-        return result
 
     def close(self) -> None:
         """Flush and close the journal (a clean shutdown); the System must not be written after."""

@@ -176,8 +176,14 @@ class TaskBoard:
             self._finish(task, TaskState.RETRACTED, TaskOutcome.UNSPECIFIED, "retracted by its proposer")
             return task
 
-    def complete(self, who: Identity, task_id: str, outcome: TaskOutcome, reason: str = "") -> TaskRecord:
-        """Report the outcome of an adopted task of the caller."""
+    def complete(self, who: Identity, task_id: str, outcome: TaskOutcome | int, reason: str = "") -> TaskRecord:
+        """Report the outcome of an adopted task of the caller: SUCCEEDED, FAILED or ABANDONED."""
+        try:
+            outcome = TaskOutcome(outcome)
+        except ValueError:
+            raise InvalidArgumentError(f"unknown task outcome {outcome}: give SUCCEEDED, FAILED or ABANDONED") from None
+        if outcome is TaskOutcome.UNSPECIFIED:
+            raise InvalidArgumentError("a completed task needs an outcome: SUCCEEDED, FAILED or ABANDONED")
         with self._mutex:
             task = self._own(who, task_id)
             if task.state is not TaskState.ADOPTED:

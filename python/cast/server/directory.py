@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from google.protobuf import descriptor_pb2
 
 from cast.convert import component_state, component_to_pb
+from cast.core.access import Access, run_async
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
@@ -100,9 +101,8 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         self, request: dir_pb2.RegisterSchemasRequest, context: Context
     ) -> dir_pb2.RegisterSchemasResponse:
         """Store entry type descriptors."""
-        self._auth.identify(context)
-        types = self._system.schemas.register(request.files.file)
-        await self._system.durable()
+        access = Access(self._system, self._auth.identify(context))
+        types = await run_async(self._system, access.register_schemas(list(request.files.file)))
         return dir_pb2.RegisterSchemasResponse(types=types)
 
     @rpc

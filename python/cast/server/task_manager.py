@@ -7,9 +7,8 @@ import threading
 from collections.abc import AsyncIterator
 
 from cast.convert import any_to_type_data, task_to_pb
+from cast.core.access import Access, run_async
 from cast.core.system import System
-from cast.core.tasks import TaskOutcome
-from cast.errors import InvalidArgumentError
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import task_manager_pb2_grpc as tm_grpc
@@ -18,7 +17,7 @@ __all__ = ["TaskManagerServicer"]
 
 
 class TaskManagerServicer(tm_grpc.TaskManagerServicer):
-    """Serves the task managers of one :class:`System`."""
+    """Serves the task managers of one :class:`System`: translates requests to the caller's :class:`Access`."""
 
     def __init__(self, system: System, auth: Authenticator) -> None:
         self._tasks = system.tasks
@@ -30,10 +29,9 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self, request: tm_pb2.ProposeRequest, context: Context
     ) -> tm_pb2.ProposeResponse:
         """Propose a task to the caller's SA."""
-        who = self._auth.identify(context)
+        access = Access(self._system, self._auth.identify(context))
         data_type, data = any_to_type_data(request.data, "task data") if request.HasField("data") else ("", b"")
-        name, priority = request.name, request.priority
-        task = await self._system.settle(lambda: self._tasks.propose(who, name, data_type, data, priority))
+        task = await run_async(self._system, access.propose(request.name, data_type, data, request.priority))
         return tm_pb2.ProposeResponse(task=task_to_pb(task))
 
     @rpc
@@ -41,8 +39,8 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self, request: tm_pb2.RetractRequest, context: Context
     ) -> tm_pb2.RetractResponse:
         """Withdraw a task."""
-        who = self._auth.identify(context)
-        await self._system.settle(lambda: self._tasks.retract(who, request.task_id))
+        access = Access(self._system, self._auth.identify(context))
+        await run_async(self._system, access.retract(request.task_id))
         return tm_pb2.RetractResponse()
 
     @rpc
@@ -50,14 +48,8 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self, request: tm_pb2.CompleteRequest, context: Context
     ) -> tm_pb2.CompleteResponse:
         """Report the outcome of an adopted task."""
-        who = self._auth.identify(context)
-        try:
-            outcome = TaskOutcome(request.outcome)
-        except ValueError:
-            raise InvalidArgumentError(f"unknown task outcome {request.outcome}") from None
-        if outcome is TaskOutcome.UNSPECIFIED:
-            raise InvalidArgumentError("a completed task needs an outcome: SUCCEEDED, FAILED or ABANDONED")
-        await self._system.settle(lambda: self._tasks.complete(who, request.task_id, outcome, request.reason))
+        access = Access(self._system, self._auth.identify(context))
+        await run_async(self._system, access.complete(request.task_id, request.outcome, request.reason))
         return tm_pb2.CompleteResponse()
 
     @rpc
@@ -65,10 +57,9 @@ class TaskManagerServicer(tm_grpc.TaskManagerServicer):
         self, request: tm_pb2.ListTasksRequest, context: Context
     ) -> tm_pb2.ListTasksResponse:
         """The live tasks of one SA or all."""
-        self._auth.identify_read(context)
-        tasks = [task_to_pb(t) for t in self._tasks.tasks(request.subarchitecture)]
-        await self._system.durable()  # the task states listed are durable before anyone sees them
-        return tm_pb2.ListTasksResponse(tasks=tasks)
+        access = Access(self._system, self._auth.identify_read(context))
+        tasks = await run_async(self._system, access.tasks(request.subarchitecture))
+        return tm_pb2.ListTasksResponse(tasks=[task_to_pb(t) for t in tasks])
 
     @stream_rpc
     async def Decisions(

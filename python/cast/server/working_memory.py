@@ -4,23 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 
 import grpc
 
 from cast.convert import any_to_type_data, fill_entry, filter_from_pb, watch_events_wire
+from cast.core.access import Access, run_async
 from cast.core.host import BatchOp
-from cast.core.records import Identity, LockMode, Operation
+from cast.core.records import LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
-from cast.errors import (
-    CastError,
-    DeadlineExceededError,
-    HistoryExpiredError,
-    InvalidArgumentError,
-    LockedError,
-    NoSessionError,
-)
+from cast.errors import CastError, InvalidArgumentError
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
@@ -53,41 +47,40 @@ def _op(req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest)
 
 
 class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
-    """Serves every WM of one :class:`System`."""
+    """Serves every WM of one :class:`System`: translates requests to the caller's :class:`Access`."""
 
     def __init__(self, system: System, auth: Authenticator) -> None:
         self._system = system
-        self._host = system.host
         self._auth = auth
-        # Calls on the latest state answer once it is durable (System.settle), refusals included.
-        self._settle = system.settle
 
-    async def _write(self, who: Identity, op: BatchOp) -> wm_pb2.WriteResponse:
-        result = await self._settle(lambda: self._host.write(who, op))
+    def _access(self, context: Context, read: bool = False) -> Access:
+        return Access(self._system, self._auth.identify_read(context) if read else self._auth.identify(context))
+
+    async def _write(self, access: Access, op: BatchOp) -> wm_pb2.WriteResponse:
+        result = await run_async(self._system, access.write(op))
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
-        return await self._write(self._auth.identify(context), _op(request))
+        return await self._write(self._access(context), _op(request))  # who, before what
 
     @rpc
     async def Overwrite(
         self, request: wm_pb2.OverwriteRequest, context: Context
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
-        return await self._write(self._auth.identify(context), _op(request))
+        return await self._write(self._access(context), _op(request))  # who, before what
 
     @rpc
     async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
         """Delete an entry."""
-        return await self._write(self._auth.identify(context), _op(request))
+        return await self._write(self._access(context), _op(request))  # who, before what
 
     @rpc
     async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
         """Read one entry."""
-        who = self._auth.identify_read(context)
-        record = self._host.get(who, request.address.subarchitecture, request.address.id)
+        record = self._access(context, read=True).get(request.address.subarchitecture, request.address.id)
         response = wm_pb2.GetResponse()
         fill_entry(response.entry, record)
         return response
@@ -97,8 +90,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         self, request: wm_pb2.GetByTypeRequest, context: Context
     ) -> wm_pb2.GetByTypeResponse:
         """Read the entries of one type, newest first."""
-        who = self._auth.identify_read(context)
-        records, revision = self._host.get_by_type(who, request.subarchitecture, request.type, request.limit)
+        access = self._access(context, read=True)
+        records, revision = access.get_by_type(request.subarchitecture, request.type, request.limit)
         response = wm_pb2.GetByTypeResponse(revision=revision)
         entries = response.entries
         for record in records:
@@ -108,52 +101,28 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     @rpc
     async def Exists(self, request: wm_pb2.ExistsRequest, context: Context) -> wm_pb2.ExistsResponse:
         """Whether an entry exists."""
-        who = self._auth.identify_read(context)
-        return wm_pb2.ExistsResponse(exists=self._host.exists(who, request.address.subarchitecture, request.address.id))
+        address = request.address
+        exists = self._access(context, read=True).exists(address.subarchitecture, address.id)
+        return wm_pb2.ExistsResponse(exists=exists)
 
     @rpc
     async def Lock(self, request: wm_pb2.LockRequest, context: Context) -> wm_pb2.LockResponse:
         """Take a lock, waiting up to the call's deadline unless no_wait."""
-        who = self._auth.identify(context)
-        sa, entry_id, mode = request.address.subarchitecture, request.address.id, _lock_mode(request.mode)
-        loop = asyncio.get_running_loop()
-        while True:
-            try:
-                depth = await self._settle(lambda: self._host.try_lock(who, sa, entry_id, mode))
-                return wm_pb2.LockResponse(depth=depth)
-            except LockedError as exc:
-                if request.no_wait or isinstance(exc, NoSessionError):
-                    raise
-                blocked = exc
-            released = loop.create_future()
-
-            def resolve(fut: asyncio.Future[None] = released) -> None:
-                if not fut.done():
-                    fut.set_result(None)
-
-            def wake(resolve: Callable[[], None] = resolve) -> None:
-                loop.call_soon_threadsafe(resolve)
-
-            cancel = self._host.wait_for_unlock(sa, entry_id, wake)
-            try:
-                await asyncio.wait_for(released, timeout=context.time_remaining())
-            except TimeoutError:
-                raise DeadlineExceededError(f"deadline passed while waiting: {blocked.message}") from None
-            finally:
-                cancel()
+        steps = self._access(context).lock(
+            request.address.subarchitecture, request.address.id, _lock_mode(request.mode), request.no_wait
+        )
+        return wm_pb2.LockResponse(depth=await run_async(self._system, steps, context.time_remaining()))
 
     @rpc
     async def Unlock(self, request: wm_pb2.UnlockRequest, context: Context) -> wm_pb2.UnlockResponse:
         """Release one level of the caller's lock."""
-        who = self._auth.identify(context)
-        address = request.address
-        depth = await self._settle(lambda: self._host.unlock(who, address.subarchitecture, address.id))
-        return wm_pb2.UnlockResponse(depth=depth)
+        steps = self._access(context).unlock(request.address.subarchitecture, request.address.id)
+        return wm_pb2.UnlockResponse(depth=await run_async(self._system, steps))
 
     @rpc
     async def Batch(self, request: wm_pb2.BatchRequest, context: Context) -> wm_pb2.BatchResponse:
         """Apply many writes in order, all or nothing."""
-        who = self._auth.identify(context)
+        access = self._access(context)
         ops = []
         for index, item in enumerate(request.operations):
             kind = item.WhichOneof("operation")
@@ -163,7 +132,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
                 ops.append(_op(getattr(item, kind)))
             except CastError as exc:
                 raise type(exc)(f"batch operation {index}: {exc.message}") from None
-        results = await self._settle(lambda: self._host.batch(who, ops))
+        results = await run_async(self._system, access.batch(ops))
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
@@ -179,8 +148,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         Event batches are yielded already encoded (bytes); :func:`add_to_server`
         registers a serializer that passes them through.
         """
-        who = self._auth.identify_read(context)
-        stream = _WatchStream(self._system, who)
+        stream = _WatchStream(self._access(context, read=True))
         try:
             async for response in stream.run(request_iterator):
                 yield response
@@ -191,13 +159,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 class _WatchStream:
     """One Watch call: reads create/cancel requests, writes control messages and event batches."""
 
-    def __init__(self, system: System, who: Identity) -> None:
-        self._who = who
+    def __init__(self, access: Access) -> None:
+        self._access = access
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
-        self._sub = Subscription(system.host, self._notify)
-        self._system = system
+        self._sub = Subscription(access.system.host, self._notify)
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
@@ -227,20 +194,17 @@ class _WatchStream:
         self._wake.set()
 
     def _create(self, create: wm_pb2.WatchCreate) -> wm_pb2.WatchResponse:
-        history_id = self._system.history_id
         try:
-            if create.history_id and create.start_revisions and create.history_id != history_id:
-                raise HistoryExpiredError(
-                    f"this server's history ({history_id}) is not the one the watch resumes from "
-                    f"({create.history_id}): the server restarted without it (no persistence, or writes lost in "
-                    "a crash); resynchronise: read the current state, then watch from the current revision"
-                )
             filters = [filter_from_pb(f) for f in create.filters]
-            revisions = self._sub.add_watch(create.watch_id, filters, dict(create.start_revisions))
+            revisions = self._access.watch(
+                self._sub, create.watch_id, filters, dict(create.start_revisions), create.history_id
+            )
         except CastError as exc:
             failed = wm_pb2.WatchFailed(watch_id=create.watch_id, code=exc.code, message=exc.message)
             return wm_pb2.WatchResponse(failed=failed)
-        created = wm_pb2.WatchCreated(watch_id=create.watch_id, revisions=revisions, history_id=history_id)
+        created = wm_pb2.WatchCreated(
+            watch_id=create.watch_id, revisions=revisions, history_id=self._access.system.history_id
+        )
         return wm_pb2.WatchResponse(created=created)
 
     async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
@@ -266,14 +230,8 @@ class _WatchStream:
 
     def _events(self, matches: list[Match]) -> bytes:
         """The batch as an encoded WatchResponse (see :func:`cast.convert.watch_events_wire`)."""
-        me = self._who.component_id
-        # An entry written under another component's ODR lock is not sent to others.
-        return watch_events_wire(
-            [
-                (m.event, m.watch_ids, m.include_entry and (m.event.odr_holder is None or m.event.odr_holder == me))
-                for m in matches
-            ]
-        )
+        carries = self._access.carries_entry
+        return watch_events_wire([(m.event, m.watch_ids, carries(m)) for m in matches])
 
     def close(self) -> None:
         self._sub.close()

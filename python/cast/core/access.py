@@ -1,0 +1,237 @@
+"""One rulebook for every caller: what a component may do and see, over gRPC and in process alike.
+
+:class:`Access` is one caller (an identity) in front of one :class:`System`.
+Every rule a caller meets is here or below it: identity and permissions,
+waiting for a lock (blocking with a deadline, or not at all), answering only
+once what a call saw is durable, task validation, creating a watch (the
+history check included) and what an event may carry for this caller (no
+entry written under another's ODR lock, no entry it did not ask for). The
+gRPC servicers and the in-process transport only translate to and from it.
+
+Calls that may wait are written once, as *steps*: a generator that yields
+what it waits for (:class:`Durable`, :class:`Unlocked`) and returns the
+result. :func:`run_sync` drives them on the caller's thread (in process),
+:func:`run_async` on an event loop (the servicers); neither holds a mutex
+while it waits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable, Generator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TypeVar
+
+from cast.core.host import BatchOp
+from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
+from cast.core.system import System
+from cast.core.tasks import TaskOutcome, TaskRecord
+from cast.core.watch import EventFilter, Match, Subscription
+from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, LockedError, NoSessionError
+
+__all__ = ["DURABLE", "Access", "Durable", "Steps", "Unlocked", "event_for", "run_async", "run_sync"]
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Durable:
+    """Wait until every write made so far is durable (at once without a journal writers wait for)."""
+
+
+@dataclass(frozen=True)
+class Unlocked:
+    """Wait until the lock on (sa, id) is released; ``blocked`` says why, for the deadline's error."""
+
+    sa: str
+    entry_id: str
+    blocked: LockedError
+
+
+Steps = Generator[Durable | Unlocked, None, T]
+"""A call that may wait: yields what it waits for, returns its result."""
+
+DURABLE = Durable()
+"""The one :class:`Durable` step (every write yields it: no allocation per call)."""
+
+
+class Access:
+    """The calls of one caller, with every rule it is subject to."""
+
+    def __init__(self, system: System, who: Identity) -> None:
+        self.system = system
+        self.who = who
+        self._host = system.host
+
+    # ------------------------------------------------------------------ reads
+    # Reads see durable state only and never wait (cast.core.host).
+
+    def get(self, sa: str, entry_id: str) -> EntryRecord:
+        """One entry; NOT_FOUND, or FAILED_PRECONDITION if another holds it ODR-locked."""
+        return self._host.get(self.who, sa, entry_id)
+
+    def get_by_type(self, sa: str, type_name: str, limit: int = 0) -> tuple[list[EntryRecord], int]:
+        """Entries of one type, newest first (ODR-locked ones of others left out), and the revision read."""
+        return self._host.get_by_type(self.who, sa, type_name, limit)
+
+    def exists(self, sa: str, entry_id: str) -> bool:
+        """Whether an entry exists."""
+        return self._host.exists(self.who, sa, entry_id)
+
+    # ----------------------------------------------------------------- writes
+    # Answered, refusals included, only once what they saw is durable.
+
+    def write(self, op: BatchOp) -> Steps[WriteResult]:
+        """One add, overwrite or delete."""
+        return self._settled(lambda: self._host.write(self.who, op))
+
+    def batch(self, ops: Sequence[BatchOp]) -> Steps[list[WriteResult]]:
+        """Writes in order, all or nothing."""
+        return self._settled(lambda: self._host.batch(self.who, ops))
+
+    def register_schemas(self, files: Sequence[object]) -> Steps[list[str]]:
+        """Register entry types (see cast.core.schemas); the message types they define."""
+        return self._settled(lambda: self.system.schemas.register(files))  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------ locks
+
+    def lock(self, sa: str, entry_id: str, mode: LockMode, no_wait: bool = False) -> Steps[int]:
+        """Take a lock (re-entrant); wait for another holder unless ``no_wait``; the depth."""
+        while True:
+            try:
+                return (yield from self._settled(lambda: self._host.try_lock(self.who, sa, entry_id, mode)))
+            except LockedError as exc:
+                if no_wait or isinstance(exc, NoSessionError):
+                    raise
+                yield Unlocked(sa, entry_id, exc)
+
+    def unlock(self, sa: str, entry_id: str) -> Steps[int]:
+        """Release one level of the caller's lock; the remaining depth."""
+        return self._settled(lambda: self._host.unlock(self.who, sa, entry_id))
+
+    # ------------------------------------------------------------------ tasks
+
+    def propose(self, name: str, data_type: str = "", data: bytes = b"", priority: int = 0) -> Steps[TaskRecord]:
+        """Propose a task to the caller's SA's task manager."""
+        tasks = self.system.tasks
+        return self._settled(lambda: tasks.propose(self.who, name, data_type, data, priority))
+
+    def retract(self, task_id: str) -> Steps[TaskRecord]:
+        """Withdraw a waiting or adopted task of the caller."""
+        return self._settled(lambda: self.system.tasks.retract(self.who, task_id))
+
+    def complete(self, task_id: str, outcome: TaskOutcome | int, reason: str = "") -> Steps[TaskRecord]:
+        """Report the outcome of an adopted task of the caller."""
+        return self._settled(lambda: self.system.tasks.complete(self.who, task_id, outcome, reason))
+
+    def tasks(self, sa: str = "") -> Steps[list[TaskRecord]]:
+        """The live tasks of one SA or all, once their states are durable."""
+        return self._settled(lambda: self.system.tasks.tasks(sa))
+
+    # ---------------------------------------------------------------- watches
+
+    def watch(
+        self,
+        sub: Subscription,
+        watch_id: int,
+        filters: Sequence[EventFilter],
+        start_revisions: Mapping[str, int] | None = None,
+        history_id: str = "",
+    ) -> dict[str, int]:
+        """Add a watch to ``sub``; every WM's revision. A resume into another history is refused."""
+        if history_id and start_revisions and history_id != self.system.history_id:
+            raise HistoryExpiredError(
+                f"this server's history ({self.system.history_id}) is not the one the watch resumes from "
+                f"({history_id}): the server restarted without it (no persistence, or writes lost in a crash); "
+                "resynchronise: read the current state, then watch from the current revision"
+            )
+        return sub.add_watch(watch_id, filters, dict(start_revisions or {}))
+
+    def carries_entry(self, match: Match) -> bool:
+        """Whether an event goes to this caller with its entry: asked for, and not under another's ODR lock."""
+        holder = match.event.odr_holder
+        return match.include_entry and (holder is None or holder == self.who.component_id)
+
+    # ---------------------------------------------------------------- helpers
+
+    def _settled(self, call: Callable[[], T]) -> Steps[T]:
+        try:
+            result = call()
+        except CastError:
+            yield DURABLE  # a refusal names versions and holders: only durable ones
+            raise
+        yield DURABLE
+        return result
+
+
+def event_for(access: Access, match: Match) -> ChangeEvent:
+    """The event as this caller may see it: without its entry unless :meth:`Access.carries_entry`."""
+    ev = match.event
+    if ev.entry is None or access.carries_entry(match):
+        return ev
+    return ChangeEvent(ev.seq, ev.revision, ev.operation, ev.subarchitecture, ev.id, ev.type, ev.source_component,
+                       ev.source_subarchitecture, ev.version, ev.time_ns, None, ev.odr_holder)
+
+
+# ------------------------------------------------------------------ drivers
+
+
+def run_sync(system: System, steps: Steps[T], timeout: float | None = None) -> T:
+    """Drive ``steps`` on this thread; a lock wait gives up after ``timeout`` seconds."""
+    end = None if timeout is None else time.monotonic() + timeout
+    journal = system.journal if system.journal is not None and system.journal.waits else None
+    try:
+        step = next(steps)
+        while True:
+            if step is DURABLE:
+                if journal is not None:
+                    journal.wait(journal.ticket())
+            else:
+                assert isinstance(step, Unlocked)
+                released = threading.Event()
+                cancel = system.host.wait_for_unlock(step.sa, step.entry_id, released.set)
+                try:
+                    remaining = None if end is None else max(0.0, end - time.monotonic())
+                    if not released.wait(remaining):
+                        steps.throw(DeadlineExceededError(f"deadline passed while waiting: {step.blocked.message}"))
+                finally:
+                    cancel()
+            step = steps.send(None)
+    except StopIteration as done:
+        return done.value  # type: ignore[no-any-return]
+
+
+async def run_async(system: System, steps: Steps[T], timeout: float | None = None) -> T:
+    """Drive ``steps`` on the running event loop; a lock wait gives up after ``timeout`` seconds."""
+    loop = asyncio.get_running_loop()
+    end = None if timeout is None else loop.time() + timeout
+    try:
+        step = next(steps)
+        while True:
+            if step is DURABLE:
+                await system.durable()
+            else:
+                assert isinstance(step, Unlocked)
+                released: asyncio.Future[None] = loop.create_future()
+
+                def resolve(fut: asyncio.Future[None] = released) -> None:
+                    if not fut.done():
+                        fut.set_result(None)
+
+                def wake(resolve: Callable[[], None] = resolve) -> None:
+                    loop.call_soon_threadsafe(resolve)
+
+                cancel = system.host.wait_for_unlock(step.sa, step.entry_id, wake)
+                try:
+                    remaining = None if end is None else max(0.0, end - loop.time())
+                    await asyncio.wait_for(released, timeout=remaining)
+                except TimeoutError:
+                    steps.throw(DeadlineExceededError(f"deadline passed while waiting: {step.blocked.message}"))
+                finally:
+                    cancel()
+            step = steps.send(None)
+    except StopIteration as done:
+        return done.value  # type: ignore[no-any-return]
+
