@@ -9,7 +9,7 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "cast/token.h"
+#include "cast/credentials.h"
 #include "json_value.h"
 
 namespace cast::detail {

@@ -1,13 +1,22 @@
-#include "cast/token.h"
+// Credentials (cast/credentials.h): tokens fixed or renewed through a file,
+// reading and minting JWTs, TLS settings and the channel credentials built
+// from them. Mirrors the Python client's client/credentials.py.
+#include "cast/credentials.h"
 
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
 #include <openssl/evp.h>
 #include <openssl/hmac.h>
+#include <sys/stat.h>
 
 #include <cstdio>
+#include <fstream>
+#include <iterator>
+#include <sstream>
 
 #include "cast/errors.h"
+#include "grpc_server.h"
 
 namespace cast {
 
@@ -44,6 +53,97 @@ std::string jsonString(const std::string& text) {
 }
 
 }  // namespace
+
+// ------------------------------------------------------------ TLS
+
+std::optional<ClientTls> ClientTls::fromEnv(const std::map<std::string, std::string>& env) {
+  auto get = [&](const char* name) {
+    auto it = env.find(name);
+    return it == env.end() ? std::string() : it->second;
+  };
+  ClientTls tls{get("CAST_TLS_CA"), get("CAST_TLS_CERT"), get("CAST_TLS_KEY"), get("CAST_TLS_SERVER_NAME")};
+  if (tls.ca.empty()) {
+    if (!tls.cert.empty() || !tls.key.empty()) {
+      throw InvalidArgumentError("CAST_TLS_CERT/CAST_TLS_KEY given without CAST_TLS_CA: set the CA too");
+    }
+    return std::nullopt;
+  }
+  if (tls.cert.empty() != tls.key.empty()) {
+    throw InvalidArgumentError("set both CAST_TLS_CERT and CAST_TLS_KEY, or neither");
+  }
+  return tls;
+}
+
+namespace detail {
+
+namespace {
+
+std::string readTlsFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InvalidArgumentError("cannot read a TLS file (CAST_TLS_CA/CERT/KEY): " + path);
+  std::ostringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+}  // namespace
+
+std::shared_ptr<grpc::ChannelCredentials> channelCredentials(const std::optional<ClientTls>& tls,
+                                                             grpc::ChannelArguments& args) {
+  if (!tls) return grpc::InsecureChannelCredentials();
+  grpc::SslCredentialsOptions ssl;
+  ssl.pem_root_certs = readTlsFile(tls->ca);
+  if (!tls->cert.empty()) {
+    ssl.pem_cert_chain = readTlsFile(tls->cert);
+    ssl.pem_private_key = readTlsFile(tls->key);
+  }
+  if (!tls->serverName.empty()) args.SetSslTargetNameOverride(tls->serverName);
+  return grpc::SslCredentials(ssl);
+}
+
+}  // namespace detail
+
+// ------------------------------------------------------------ tokens from a file
+
+TokenSource::TokenSource(std::string token, std::string path, std::chrono::milliseconds checkInterval)
+    : token_(std::move(token)), path_(std::move(path)), interval_(checkInterval) {
+  if (!path_.empty()) reload(true);
+}
+
+void TokenSource::reload(bool force) {
+  // Called with mu_ held.
+  const auto now = std::chrono::steady_clock::now();
+  if (!force && now - checked_ < interval_) return;
+  checked_ = now;
+  struct stat st {};
+  if (::stat(path_.c_str(), &st) != 0) return;  // keep the last token: the file may be being replaced
+  const std::pair<long long, long long> stamp{
+      static_cast<long long>(st.st_mtim.tv_sec) * 1000000000LL + st.st_mtim.tv_nsec,
+      static_cast<long long>(st.st_size)};
+  if (stamp == stamp_) return;
+  std::ifstream in(path_);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto first = text.find_first_not_of(" \t\r\n");
+  const auto last = text.find_last_not_of(" \t\r\n");
+  if (first != std::string::npos) token_ = text.substr(first, last - first + 1);
+  stamp_ = stamp;
+}
+
+std::string TokenSource::token() {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (!path_.empty()) reload(false);
+  return token_;
+}
+
+bool TokenSource::refresh() {
+  if (path_.empty()) return false;
+  std::lock_guard<std::mutex> lock(mu_);
+  const std::string before = token_;
+  reload(true);
+  return token_ != before;
+}
+
+// ------------------------------------------------------------ JWTs
 
 namespace detail {
 

@@ -13,54 +13,14 @@
 #pragma once
 
 #include <chrono>
-#include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
+#include "cast/credentials.h"  // ClientTls and TokenSource, declared here before
 #include "cast/transport.h"
 
 namespace cast {
-
-// TLS settings of a client (CAST_TLS_CA, CAST_TLS_CERT, CAST_TLS_KEY,
-// CAST_TLS_SERVER_NAME): PEM files of the CA that signed the servers'
-// certificates, and optionally the client's own certificate and key.
-struct ClientTls {
-  std::string ca;
-  std::string cert;
-  std::string key;
-  std::string serverName;  // name to verify the server certificate against, if not the host
-
-  // The settings in the environment; nullopt without CAST_TLS_CA (plaintext).
-  // InvalidArgumentError for an incomplete set.
-  static std::optional<ClientTls> fromEnv(const std::map<std::string, std::string>& env);
-};
-
-// The component's current token: fixed, or re-read from a file that the
-// orchestrator rewrites before the token expires (CAST_TOKEN_FILE). The file
-// is checked at most every `checkInterval` (one stat) and re-read only when
-// it changed; an empty or unreadable file keeps the last token.
-class TokenSource {
- public:
-  explicit TokenSource(std::string token, std::string path = "",
-                       std::chrono::milliseconds checkInterval = std::chrono::milliseconds(1000));
-  // The token to send now.
-  std::string token();
-  // Re-reads the file now (after the server refused the token); true if the
-  // token changed.
-  bool refresh();
-  const std::string& path() const { return path_; }
-
- private:
-  void reload(bool force);
-  std::mutex mu_;
-  std::string token_;
-  std::string path_;
-  std::chrono::milliseconds interval_;
-  std::chrono::steady_clock::time_point checked_{};
-  std::pair<long long, long long> stamp_{-1, -1};  // mtime ns, size
-};
 
 // How connectGrpc talks to the system (the runner fills it from the launch
 // contract; cast::connect from its ConnectOptions, see cast/connect.h).

@@ -43,6 +43,21 @@ TEST(LaunchContract, ArgsAreOptionalButMustBeAnObject) {
   EXPECT_THROW(cast::LaunchContract::fromEnv(env), cast::InvalidArgumentError);
 }
 
+TEST(LaunchContract, TokenFileAndTlsArePartOfIt) {
+  std::map<std::string, std::string> env = {{"CAST_ENDPOINT", "h:1"},
+                                            {"CAST_COMPONENT_ID", "c"},
+                                            {"CAST_SUBARCHITECTURE", "s"},
+                                            {"CAST_TOKEN", "t"},
+                                            {"CAST_TOKEN_FILE", "/run/c.token"},
+                                            {"CAST_TLS_CA", "ca.pem"}};
+  auto contract = cast::LaunchContract::fromEnv(env);
+  EXPECT_EQ(contract.tokenFile, "/run/c.token");
+  ASSERT_TRUE(contract.tls.has_value());
+  EXPECT_EQ(contract.tls->ca, "ca.pem");
+  env["CAST_TLS_KEY"] = "k.pem";
+  EXPECT_THROW(cast::LaunchContract::fromEnv(env), cast::InvalidArgumentError);
+}
+
 // The contract reads its privilege from the token's claims (cast::peekToken,
 // tested in token_test.cc).
 TEST(LaunchContract, PrivilegeComesFromTheToken) {

@@ -1,0 +1,47 @@
+// Wire messages <-> the library's types (docs/client-protocol.md gives the
+// messages): the only place that knows both, so the transport's calls and
+// streams never build or read a message field by field themselves.
+#pragma once
+
+#include <google/protobuf/any.pb.h>
+#include <google/protobuf/timestamp.pb.h>
+
+#include <cstdint>
+#include <string>
+
+#include "cast/filters.h"
+#include "cast/types.h"
+#include "cast/v1/task_manager.pb.h"
+#include "cast/v1/working_memory.pb.h"
+
+namespace cast::detail {
+
+// An entry's address on the wire.
+v1::EntryAddress addressPb(const std::string& sa, const std::string& id);
+
+// Fills an Any with serialised bytes of `type` (a full protobuf name): the
+// library never parses values on the way out, it only labels them.
+void setAny(google::protobuf::Any* any, const std::string& type, const std::string& data);
+
+// The type name of an Any's type URL (what follows the last '/').
+std::string typeFromUrl(const std::string& url);
+
+// A timestamp as nanoseconds since the epoch.
+std::int64_t nanos(const google::protobuf::Timestamp& t);
+
+// An entry as the component model holds it (value bytes kept serialised).
+EntryRecord entryFromPb(const v1::Entry& e);
+
+// A change event; its entry only if the server sent one (include_entry).
+EventRecord eventFromPb(const v1::ChangeEvent& e);
+
+// A task; data type and bytes only if the task carries data.
+TaskRecord taskFromPb(const v1::Task& t);
+
+// A filter as the Watch call's create request carries it.
+void filterToPb(const ChangeFilter& f, v1::ChangeFilter* pb);
+
+// The revision and version a write got.
+WriteResult writeResult(const v1::WriteResponse& r);
+
+}  // namespace cast::detail

@@ -1,0 +1,100 @@
+// The Watch bidi stream to one server (docs/client-protocol.md, "Watching"
+// and "Reconnecting"): private to the gRPC transport, which keeps one per
+// server and fans each onChange out to the streams of the servers involved.
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "backoff.h"
+#include "cast/log.h"
+#include "cast/transport.h"
+#include "grpc_server.h"
+
+namespace cast::detail {
+
+// One Watch call to one server, shared by every watch of the component there.
+//
+// When the connection breaks the stream is opened again with backoff and
+// every watch is created again from the revision after the last one it got
+// (per SA): no gap and no duplicate. The server's history id goes along, so a
+// server that lost that history (restarted without persistence) refuses the
+// resume, and the component is told to resynchronise (watchFailed with
+// HistoryExpiredError).
+class WatchStream {
+ public:
+  // Starts the reader thread, which opens the stream (and reopens it after a
+  // break). `sink` gets every event, `onError` a failure that ends watches.
+  WatchStream(Server& server, std::shared_ptr<TokenSource> tokens, EventSink sink, ErrorSink onError);
+  ~WatchStream();
+  WatchStream(const WatchStream&) = delete;
+  WatchStream& operator=(const WatchStream&) = delete;
+
+  // True once the stream ended for good (an error that is not transient):
+  // the transport then opens a new one for later watches.
+  bool dead();
+  // Creates watch `watchId` on this server and waits up to `timeout` for the
+  // server to confirm it; returns the revision per SA it starts after.
+  std::map<std::string, std::uint64_t> create(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
+                                              const std::map<std::string, std::uint64_t>& starts, Millis timeout);
+  // Forgets a watch and tells the server (if the stream is open).
+  void cancel(std::uint32_t watchId);
+  // Ends the stream and joins the reader; creates still waiting fail with CANCELLED.
+  void close();
+
+ private:
+  // A create waiting for the server's created or failed.
+  struct Pending {
+    bool done = false;
+    std::map<std::string, std::uint64_t> revisions;
+    std::shared_ptr<CastError> error;
+  };
+
+  // What the client keeps of one watch to create it again after a reconnect.
+  struct Watch {
+    std::uint32_t watchId = 0;
+    std::vector<ChangeFilter> filters;
+    std::map<std::string, std::uint64_t> firstStarts;
+    std::vector<std::string> sas;  // the SAs of this server the watch covers (known once created)
+    // Per SA, the revision the watch is known to have seen up to (unset until created).
+    std::optional<std::map<std::string, std::uint64_t>> base;
+  };
+
+  v1::WatchRequest createRequest(Watch& w);
+  bool write(const v1::WatchRequest& request);
+  void resolve(std::uint32_t watchId, std::map<std::string, std::uint64_t> revisions,
+               std::shared_ptr<CastError> error);
+  void run();
+  void handle(const v1::WatchResponse& response);
+  void fail(const std::shared_ptr<CastError>& error);
+
+  Server& server_;
+  std::shared_ptr<TokenSource> tokens_;
+  EventSink sink_;
+  ErrorSink onError_;
+  Logger log_;
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::shared_ptr<grpc::ClientContext> context_;
+  std::shared_ptr<grpc::ClientReaderWriter<v1::WatchRequest, v1::WatchResponse>> stream_;
+  std::map<std::uint32_t, std::shared_ptr<Watch>> watches_;
+  std::map<std::uint32_t, std::shared_ptr<Pending>> pending_;
+  std::map<std::string, std::uint64_t> seen_;  // newest revision per SA received on this stream
+  std::string historyId_;
+  std::atomic<bool> connected_{false};
+  bool dead_ = false;
+  bool closed_ = false;
+  std::shared_ptr<CastError> deathError_;
+  Closing closing_;
+  std::thread thread_;
+};
+
+}  // namespace cast::detail
