@@ -36,7 +36,7 @@ WHO = {
 
 @dataclass
 class Model:
-    """What DESIGN.md section 4 says the state is."""
+    """What docs/design.md section 4 says the state is."""
 
     entries: dict[tuple[str, str], tuple[int, bytes]] = field(default_factory=dict)  # -> (version, data)
     last: dict[tuple[str, str], int] = field(default_factory=dict)  # deleted -> last version

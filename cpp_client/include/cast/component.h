@@ -1,4 +1,4 @@
-// The component model (DESIGN.md section 5): base classes and the working
+// The component model (docs/design.md section 5): base classes and the working
 // memory vocabulary, in C++ casing (docs/client-protocol.md, "The vocabulary").
 //
 // A component subclasses cast::UnmanagedComponent or cast::ManagedComponent

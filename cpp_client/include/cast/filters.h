@@ -1,4 +1,4 @@
-// Change filters and their helpers (DESIGN.md section 5).
+// Change filters and their helpers (docs/design.md section 5).
 //
 // A ChangeFilter says which change events a callback wants: every set field
 // must match, an empty field matches anything, several filters given to one

@@ -1,4 +1,4 @@
-// Running a component: the launch contract (DESIGN.md section 6) and the
+// Running a component: the launch contract (docs/design.md section 6) and the
 // lifecycle (docs/client-protocol.md, "Start-up").
 //
 //   class Segmenter : public cast::UnmanagedComponent { ... };

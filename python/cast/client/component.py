@@ -1,4 +1,4 @@
-"""The component model (DESIGN.md section 5): base classes and the WM vocabulary.
+"""The component model (docs/design.md section 5): base classes and the WM vocabulary.
 
 A component subclasses :class:`UnmanagedComponent` or :class:`ManagedComponent`
 and overrides lifecycle hooks. Every working-memory call is addressed to the
@@ -344,7 +344,7 @@ class Component:
 
         ``delete_entry`` is the name in every language (``deleteEntry`` in C++
         and Java), since ``delete`` is a C++ keyword; :meth:`delete` is the
-        same call under its DESIGN.md name.
+        same call under its original name (docs/design.md section 5).
         """
         return self._transport.delete(self._sa(subarchitecture), entry_id, expected_version)
 

@@ -1,4 +1,4 @@
-"""Change filters and their helpers (DESIGN.md section 5).
+"""Change filters and their helpers (docs/design.md section 5).
 
 A :class:`ChangeFilter` says which change events a callback wants. "Local"
 filters match the component's own subarchitecture; the SA is filled in when

@@ -1,4 +1,4 @@
-"""Running a component: the launch contract (DESIGN.md section 6) and the lifecycle.
+"""Running a component: the launch contract (docs/design.md section 6) and the lifecycle.
 
 Every component process gets ``CAST_ENDPOINT``, ``CAST_COMPONENT_ID``,
 ``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object), and

@@ -1,4 +1,4 @@
-"""The WM core: every working memory of one server, and every guarantee of DESIGN.md section 4.
+"""The WM core: every working memory of one server, and every guarantee of docs/design.md section 4.
 
 :class:`MemoryHost` is plain Python with no gRPC in it. Its public methods are
 called from the server's servicers (on the event loop) and directly from

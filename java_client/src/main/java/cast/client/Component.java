@@ -18,7 +18,7 @@ import java.util.logging.Level;
 import java.util.logging.Logger;
 
 /**
- * What every component can do (DESIGN.md section 5); subclass
+ * What every component can do (docs/design.md section 5); subclass
  * {@link UnmanagedComponent} or {@link ManagedComponent} and override the hooks.
  *
  * <p>Every working-memory call is addressed to the component's own

@@ -4,7 +4,7 @@ import com.google.protobuf.Message;
 import java.util.EnumSet;
 
 /**
- * The filter helpers of the component model (DESIGN.md section 5). Every
+ * The filter helpers of the component model (docs/design.md section 5). Every
  * component has the same methods as statics, so a component writes
  * {@code onChange(localTypeFilter(Pose.class, Operation.ADD), this::onPose)}.
  */

@@ -5,7 +5,7 @@ import java.util.List;
 import java.util.Map;
 
 /**
- * The environment a component process is started with (DESIGN.md section 6):
+ * The environment a component process is started with (docs/design.md section 6):
  * CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
  * CAST_ARGS (a JSON object).
  *

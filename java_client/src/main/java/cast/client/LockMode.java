@@ -1,6 +1,6 @@
 package cast.client;
 
-/** What a lock keeps other components from doing (DESIGN.md section 4). */
+/** What a lock keeps other components from doing (docs/design.md section 4). */
 public enum LockMode {
   /** Others may not overwrite. */
   O(cast.v1.LockMode.LOCK_MODE_O),

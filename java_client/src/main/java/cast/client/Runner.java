@@ -13,7 +13,7 @@ import java.util.logging.Level;
 import java.util.logging.Logger;
 
 /**
- * Runs one component process from the launch contract (DESIGN.md section 6):
+ * Runs one component process from the launch contract (docs/design.md section 6):
  *
  * <pre>java -cp cast-client-all.jar:&lt;component classes&gt; cast.client.Runner com.example.MyComponent</pre>
  *
