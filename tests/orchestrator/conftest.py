@@ -21,10 +21,10 @@ import yaml
 from rich.console import Console
 
 from cast.config import load_config
-from cast.config.check import deep_check
 from cast.config.problems import Problems
 from cast.orchestrator.orchestrator import Orchestrator, RunOptions, RunResult
 from cast.orchestrator.output import Output
+from cast.orchestrator.preflight import preflight
 from tests.conftest import ROOT
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
@@ -84,7 +84,7 @@ def embedded(tmp_path: Path) -> Iterator[Callable[..., Embedded]]:
     def start(config_path: Path, sets: dict[str, str] | None = None, wait: bool = True) -> Embedded:
         config = load_config(config_path, sets)
         problems = Problems()
-        deep_check(config, problems, builds_required=True)
+        preflight(config, problems, builds_required=True)
         problems.raise_if_errors()
         buffer = io.StringIO()
         output = Output(Console(file=buffer, width=200, highlight=False), live_status=False)

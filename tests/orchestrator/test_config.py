@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from cast.config import ConfigError, Problem, load_config, parse_config, read_config
-from cast.config.check import deep_check
+from cast.orchestrator.preflight import preflight
 from tests.conftest import ROOT
 from tests.orchestrator.conftest import CAST, COMPONENTS
 
@@ -34,7 +34,7 @@ def problems(tmp_path: Path, text: str, deep: bool = False, **others: str) -> li
     path.write_text(textwrap.dedent(text))
     config, found = read_config(path, environ={})
     if deep and config is not None and not found.errors:
-        deep_check(config, found)
+        preflight(config, found)
     return found.items
 
 
@@ -77,7 +77,7 @@ def test_a_good_file_gives_the_model(tmp_path: Path) -> None:
     assert [(s.name, s.subarchitectures) for s in config.servers] == [("main", ["vision", "language"])]
     found: list[Problem] = []
     problems_obj = read_config(path, environ={})[1]
-    deep_check(config, problems_obj)
+    preflight(config, problems_obj)
     found = problems_obj.items
     assert found == []
 

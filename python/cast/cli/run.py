@@ -14,8 +14,8 @@ from rich.console import Console
 
 from cast.cli.options import parse_sets
 from cast.config import SystemConfig, read_config
-from cast.config.check import deep_check
 from cast.config.problems import Problems
+from cast.orchestrator.preflight import preflight
 
 __all__ = ["add_commands"]
 
@@ -23,7 +23,7 @@ __all__ = ["add_commands"]
 def _validated(args: argparse.Namespace, builds_required: bool) -> tuple[SystemConfig | None, Problems]:
     config, problems = read_config(args.config, parse_sets(args.set))
     if config is not None and not problems.errors:
-        deep_check(config, problems, builds_required=builds_required)
+        preflight(config, problems, builds_required=builds_required)
     for problem in sorted(problems.items, key=lambda p: (p.warning, p.position.file, p.position.line)):
         print(problem, file=sys.stderr)
     return (None if problems.errors else config), problems

@@ -1,9 +1,11 @@
 """System configuration: the YAML file that describes subarchitectures and components.
 
 :func:`load_config` reads, substitutes variables, follows includes and
-validates, raising :class:`ConfigError` with one line per problem (file, line,
-key). ``cast check`` adds :func:`cast.config.check.deep_check` (classes import,
-executables exist) on top.
+validates against the configuration's JSON Schema (``system.schema.json``) and
+the rules a schema cannot say, raising :class:`ConfigError` with one line per
+problem (file, line, key). ``cast check`` adds the orchestrator's preflight
+(:func:`cast.orchestrator.preflight.preflight`: classes import, executables
+exist) on top. This package depends on ``cast.core`` and nothing above it.
 """
 
 from __future__ import annotations

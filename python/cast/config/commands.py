@@ -24,7 +24,11 @@ CPP_NEEDS_RUN = "a cpp component needs 'run: EXECUTABLE' (a path, or a name look
 
 
 def component_run(raw: YMap, language: str, pos: Position, where: str, problems: Problems) -> tuple[str, list[str]]:
-    """``run:`` as written (text) and, for ``other``, as the words of the command; problems added to ``problems``."""
+    """``run:`` as written (text) and, for ``other``, as the words of the command; problems added to ``problems``.
+
+    The schema has already refused a ``run:`` that is no command line (a mapping, a word that is not text);
+    what each language needs of it is checked here.
+    """
     key = f"{where}.run"
     value = raw.get("run")
     if language == "other":
@@ -35,11 +39,10 @@ def component_run(raw: YMap, language: str, pos: Position, where: str, problems:
             problems.error(raw.value_at("run") if "run" in raw else pos, key, OTHER_NEEDS_RUN)
             return "", []
         return (value if isinstance(value, str) else shlex.join(words)), words
-    if isinstance(value, (YMap, YList)) or isinstance(value, bool):
+    if isinstance(value, YList):
         if language == "cpp":
-            what = "a list" if isinstance(value, YList) else "a mapping" if isinstance(value, YMap) else repr(value)
             problems.error(raw.value_at("run"), key,
-                           f"a cpp component's run: is one executable (a path or a name), not {what}; "
+                           "a cpp component's run: is one executable (a path or a name), not a list; "
                            "for a command line with arguments use language: other")
         return "", []  # not used by this language
     run = "" if value is None else str(value)
@@ -49,22 +52,12 @@ def component_run(raw: YMap, language: str, pos: Position, where: str, problems:
 
 
 def _words(raw: YMap, key: str, problems: Problems) -> list[str] | None:
-    """The command's words; None (a problem recorded) if ``run:`` cannot be read as a command."""
+    """The command's words; None (a problem recorded) if ``run:`` cannot be split into words."""
     value = raw.get("run")
     if value is None:
         return []
     if isinstance(value, YList):
-        words: list[str] = []
-        for item, item_pos in zip(value, value.item_pos, strict=True):
-            if isinstance(item, (YMap, YList)) or item is None:
-                what = "empty" if item is None else "a list" if isinstance(item, YList) else "a mapping"
-                problems.error(item_pos, key, f"each word of the command must be text, not {what}")
-                return None
-            words.append(str(item))
-        return words
-    if isinstance(value, YMap):
-        problems.error(raw.value_at("run"), key, "must be a command line (text or a list of words), not a mapping")
-        return None
+        return [str(item) for item in value]
     try:
         return shlex.split(str(value))
     except ValueError as exc:

@@ -1,8 +1,10 @@
-"""Checks beyond the file itself: whether the classes import and the executables exist.
+"""The preflight: checks beyond the file itself, whether the classes import and the executables exist.
 
 Used by ``cast check`` (a missing C++ or Java build is a warning there: the
 file is fine, it just cannot run yet) and by ``cast run`` (where it is an
-error, since the component could not be started).
+error, since the component could not be started). It lives here, not in
+``cast.config``, because it asks the launchers and the Python runner: the
+configuration package depends on nothing above it (a test checks that).
 """
 
 from __future__ import annotations
@@ -10,21 +12,20 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
+from cast.client.runner import load_component_class
 from cast.config.model import SystemConfig
 from cast.config.problems import Problems
 from cast.config.syspath import extended_sys_path
 from cast.errors import CastError
+from cast.orchestrator.launchers import launcher_for
 
-__all__ = ["deep_check"]
+__all__ = ["preflight"]
 
 
-def deep_check(
+def preflight(
     config: SystemConfig, problems: Problems, builds_required: bool = False, env: Mapping[str, str] | None = None
 ) -> None:
-    """Add a problem for each component that cannot be loaded or launched."""
-    from cast.client.runner import load_component_class
-    from cast.orchestrator.launchers import launcher_for
-
+    """Add a problem for each component that cannot be loaded or launched (an error if ``builds_required``)."""
     env = dict(os.environ if env is None else env)
     with extended_sys_path(config.python_path):
         for comp in config.components:
