@@ -24,6 +24,7 @@ from cast.core.policies import make_policy
 from cast.core.records import Identity, Limits
 from cast.core.system import System
 from cast.server.app import RunningServer, start_server
+from cast.server.wire import wire_system
 
 Factory = Callable[..., Any]
 
@@ -59,11 +60,11 @@ class ThreadServer:
 def make_component(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Factory]:
     """``make_component(cls, id, sa, privileged=False)``: a bound component of class ``cls``."""
     journal = Journal(tmp_path / "wm.db", "batch", 64) if request.param.endswith("-journal") else None
-    system = System(
+    system = wire_system(
         "t",
         ["vision", "language"],
-        {"vision": make_policy("fifo", {"max_concurrent": 1})},
-        Limits(history_events=64),
+        policies={"vision": make_policy("fifo", {"max_concurrent": 1})},
+        limits=Limits(history_events=64),
         journal=journal,
     )
     server = ThreadServer(system)

@@ -18,10 +18,9 @@ from typing import Any
 import pytest
 
 from cast.core.access import Access, run_sync
-from cast.core.host import BatchOp
 from cast.core.journal import Journal
 from cast.core.policies import make_policy
-from cast.core.records import Identity, LockMode, Operation
+from cast.core.records import BatchOp, Identity, LockMode, Operation
 from cast.core.system import TASK_TYPE, System
 from cast.core.watch import EventFilter, Subscription
 from cast.errors import CastError, ConsistencyError, NotFoundError

@@ -193,7 +193,7 @@ def test_servers_split_subarchitectures_and_route_components(
     who = Identity("test", "")
     wait_for(lambda: main.system.host.exists(who, "vision", "report"), what="the report on the main server")
     assert motion.system.host.entry_count("motor") == 3
-    assert main.system.remote_endpoints == {"motor": motion.endpoint}
+    assert main.running.routes.remote == {"motor": motion.endpoint}
     assert run.stop().exit_code == 0
 
 

@@ -21,9 +21,8 @@ import pytest
 from cast_testing_pb2 import Counter, Pose
 from google.protobuf import any_pb2
 
-from cast.core.host import BatchOp
 from cast.core.journal import Journal
-from cast.core.records import Identity, Limits, Operation
+from cast.core.records import BatchOp, Identity, Limits, Operation
 from cast.core.schemas import files_of
 from cast.core.system import TASK_TYPE, System
 from cast.core.watch import EventFilter, Subscription

@@ -17,7 +17,7 @@ __all__ = ["add_command"]
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from cast.server.app import RunningServer, serve_forever, system_from_config
+    from cast.server.app import RunningServer, serve_forever, settings_from_config, system_from_config
     from cast.server.in_process import InProcessComponents
 
     config = load_config(args.config, parse_sets(args.set))
@@ -33,7 +33,7 @@ def _serve(args: argparse.Namespace) -> int:
                 in_process.start(comp)
         running.on_stop(in_process.stop_all)
 
-    asyncio.run(serve_forever(system, signer, args.listen, started))
+    asyncio.run(serve_forever(system, signer, args.listen, started, settings_from_config(config)))
     return 0
 
 

@@ -23,8 +23,7 @@ from google.protobuf.message import DecodeError, Message
 from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
 from cast.client.transport import Transport
-from cast.core.host import BatchOp
-from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, Operation, WriteResult
+from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.schemas import files_of
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord, TaskState

@@ -16,8 +16,7 @@ from google.protobuf import any_pb2, descriptor_pb2
 from cast.client.connection import Backoff, ClientTls, TokenSource
 from cast.client.transport import EventSink
 from cast.convert import TYPE_URL_PREFIX, entry_from_pb, event_from_pb, filter_to_pb, task_from_pb
-from cast.core.host import BatchOp
-from cast.core.records import EntryRecord, Identity, LockMode, Operation, WriteResult
+from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter

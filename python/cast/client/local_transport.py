@@ -19,8 +19,7 @@ from google.protobuf import descriptor_pb2
 
 from cast.client.transport import EventSink
 from cast.core.access import Access, event_for, run_sync
-from cast.core.host import BatchOp
-from cast.core.records import EntryRecord, Identity, LockMode, Operation, WriteResult
+from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord

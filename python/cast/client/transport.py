@@ -13,8 +13,7 @@ from typing import Protocol
 
 from google.protobuf import descriptor_pb2
 
-from cast.core.host import BatchOp
-from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
+from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter

@@ -24,8 +24,7 @@ from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-from cast.core.host import BatchOp
-from cast.core.records import ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
+from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Match, Subscription

@@ -30,8 +30,9 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from cast.core.checks import check_id, check_sa_name, locked_message, missing_message
 from cast.core.locks import Locking
 from cast.core.memory import Pending, WorkingMemory
-from cast.core.planning import BatchOp, Overlay, Planned, ValueValidator, WritePlanner
+from cast.core.planning import Overlay, Planned, ValueValidator, WritePlanner
 from cast.core.records import (
+    BatchOp,
     ChangeEvent,
     EntryRecord,
     Identity,

@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 from cast.core.checks import TypeChecker, check_id, locked_message, missing_message
 from cast.core.memory import WorkingMemory
-from cast.core.records import SYSTEM_TYPES, EntryRecord, Identity, Limits, LockMode, Operation, system_entry
+from cast.core.records import SYSTEM_TYPES, BatchOp, EntryRecord, Identity, Limits, LockMode, Operation, system_entry
 from cast.core.room import Room, Tally
 from cast.core.versions import check_outran, next_version
 from cast.errors import (
@@ -29,21 +29,10 @@ from cast.errors import (
     ResourceExhaustedError,
 )
 
-__all__ = ["BatchOp", "Overlay", "Planned", "ValueValidator", "WritePlanner"]
+__all__ = ["Overlay", "Planned", "ValueValidator", "WritePlanner"]
 
 ValueValidator = Callable[[str, bytes], None]
 """Called with (type, bytes) before a write; raises InvalidArgumentError if the bytes do not parse."""
-
-
-class BatchOp(NamedTuple):
-    """One write of a batch: ``data``/``type`` are ignored for DELETE."""
-
-    operation: Operation
-    subarchitecture: str
-    id: str
-    type: str = ""
-    data: bytes = b""
-    expected_version: int | None = None
 
 
 class Planned:

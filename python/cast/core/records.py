@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 __all__ = [
+    "BatchOp",
     "ChangeEvent",
     "EntryRecord",
     "Identity",
@@ -54,6 +55,17 @@ class Identity(NamedTuple):
         """Human form used in error messages: ``component 'x' (SA 'vision')``."""
         sa = self.subarchitecture or "no SA"
         return f"component '{self.component_id}' (SA '{sa}')"
+
+
+class BatchOp(NamedTuple):
+    """One write of a batch: ``data``/``type`` are ignored for DELETE."""
+
+    operation: Operation
+    subarchitecture: str
+    id: str
+    type: str = ""
+    data: bytes = b""
+    expected_version: int | None = None
 
 
 class WriteResult(NamedTuple):

@@ -1,15 +1,19 @@
 """A whole CAST node without the network: WMs, task managers, sessions, schemas.
 
 The server wraps a :class:`System` in gRPC servicers; in-process components
-call it directly. Either way the same objects enforce the same guarantees.
+call it directly; either way every caller goes through its
+:class:`cast.core.access.Access`. What the wire adds (its own .proto files, a
+task's bytes) is handed in by the server layer (:mod:`cast.server.wire`).
 """
 
 from __future__ import annotations
 
 import secrets
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import TypeVar
+
+from google.protobuf.descriptor import FileDescriptor
 
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
@@ -38,14 +42,20 @@ class System:
         journal: Journal | None = None,
         version_floor: int | None = None,
         quotas: Mapping[str, Quota] | None = None,
+        own_files: Sequence[FileDescriptor] = (),
+        encode_task: Callable[[TaskRecord], bytes] | None = None,
     ) -> None:
-        # Imported here so that importing the core does not require generated code.
-        from cast.v1 import directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2
+        """Wire the parts together.
 
+        ``own_files`` (the wire's .proto files, preloaded like the well-known
+        ones) and ``encode_task`` (a task's bytes in its ``cast.v1.Task``
+        entry) come from the server layer (cast.server.wire), so that the core
+        knows nothing of the wire.
+        """
         self.name = name
         # The system's own files are the server's, like the well-known ones: client copies are ignored.
-        own = (directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2)
-        self.schemas = SchemaRegistry(own=[module.DESCRIPTOR for module in own])
+        self.schemas = SchemaRegistry(own=own_files)
+        self._encode_task = encode_task
         if version_floor is None:
             # Memory only: an earlier run of this server may have given versions nobody can know of
             # now, so this run starts above them (cast.core.versions); a journal knows its floor.
@@ -57,14 +67,7 @@ class System:
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         # Locks and tasks need a live session: its end is what releases them.
         self.host.session_live = self.tasks.session_live = self.sessions.has_live
-        self.endpoints: dict[str, str] = {sa: "" for sa in subarchitectures}
-        # SAs of the same system served by other servers (set by the orchestrator), so that this
-        # server's directory routes components to them.
-        self.remote_endpoints: dict[str, str] = {}
         self.started_ns = time.time_ns()
-        # Server settings from the configuration (cast.server.app.ServerSettings: TLS, token rules),
-        # carried here so that whoever starts the server from this System applies them.
-        self.settings: object | None = None
         self.journal = journal
         # Identifies this history of revisions: watchers resume only into the history they saw. A
         # journal keeps it across restarts; without one every start is a new history.
@@ -78,8 +81,9 @@ class System:
         dropped = self.schemas.restore(stored.schemas)
         if dropped:
             journal.forget_schemas(dropped)
+        hosted = set(self.host.subarchitectures)
         for sa, state in stored.wms.items():
-            if sa in self.endpoints:  # an SA no longer configured keeps its rows but is not served
+            if sa in hosted:  # an SA no longer configured keeps its rows but is not served
                 self.host.restore(sa, state.entries, state.deleted, state.revision, state.events)
         # In always and batch a write becomes visible once durable (cast.core.host); in none at once.
         if journal.waits:
@@ -90,7 +94,7 @@ class System:
         # Task entries of the previous run: every session ended with it, so its tasks did too. Delete
         # them as the task manager would, so watchers see a DELETE, not an entry that silently vanished.
         for sa, state in stored.wms.items():
-            if sa not in self.endpoints:
+            if sa not in hosted:
                 continue
             author = Identity(f"{sa}.task_manager", sa, True)
             for record in state.entries:
@@ -132,10 +136,8 @@ class System:
 
     def _publish_task(self, task: TaskRecord) -> int:
         """Write a task's state into its SA's WM; return the revision of the last write."""
-        from cast.convert import task_to_pb
-
         author = Identity(f"{task.subarchitecture}.task_manager", task.subarchitecture, True)
-        data = task_to_pb(task).SerializeToString()
+        data = self._encode_task(task) if self._encode_task is not None else b""
         sa, tid = task.subarchitecture, task.task_id
         if task.state is TaskState.WAITING:
             return self.host.system_write(author, BatchOp(Operation.ADD, sa, tid, TASK_TYPE, data)).revision

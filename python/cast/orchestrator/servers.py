@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, ServerConfig, SystemConfig
 from cast.core.system import System
-from cast.server.app import RunningServer, start_server, system_from_config
+from cast.server.app import RunningServer, settings_from_config, start_server, system_from_config
 from cast.server.in_process import InProcessComponents
 
 __all__ = ["HostedServer", "ServerGroup", "build_system"]
@@ -58,7 +58,9 @@ class ServerGroup:
         try:
             for server_config in self.config.servers:
                 system = build_system(self.config, server_config)
-                running = await start_server(system, self.signer, server_config.listen)
+                running = await start_server(
+                    system, self.signer, server_config.listen, settings_from_config(self.config)
+                )
                 self.servers.append(HostedServer(server_config, system, running))
         except BaseException:
             await self.stop()
@@ -67,7 +69,7 @@ class ServerGroup:
             for other in self.servers:
                 if other is not server:
                     for sa in other.config.subarchitectures:
-                        server.system.remote_endpoints[sa] = other.endpoint
+                        server.running.routes.remote[sa] = other.endpoint
 
     @property
     def directory(self) -> HostedServer:

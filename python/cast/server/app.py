@@ -23,8 +23,10 @@ from cast.server.directory import DirectoryServicer
 from cast.server.inspection import InspectionServicer
 from cast.server.malformed import SafeRegistrar
 from cast.server.reflection import add_reflection
+from cast.server.routes import Routes
 from cast.server.rpc import Authenticator
 from cast.server.task_manager import TaskManagerServicer
+from cast.server.wire import wire_system
 from cast.server.working_memory import WorkingMemoryServicer
 from cast.server.working_memory import add_to_server as add_working_memory
 from cast.v1 import (
@@ -41,6 +43,7 @@ __all__ = [
     "RunningServer",
     "ServerSettings",
     "serve_forever",
+    "settings_from_config",
     "server_credentials",
     "start_server",
     "system_from_config",
@@ -65,6 +68,11 @@ class ServerSettings:
     reads_require_token: bool = True
 
 
+def settings_from_config(config: SystemConfig) -> ServerSettings:
+    """The TLS files and token rules of the configuration's servers."""
+    return ServerSettings(config.tls, config.auth.reads_require_token)
+
+
 def system_from_config(
     config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None
 ) -> System:
@@ -73,8 +81,8 @@ def system_from_config(
     The server's ``persistence`` opens its journal and restores what it holds;
     without ``server`` the single configured server's persistence is used (a
     configuration with several servers run as one by ``cast serve`` keeps
-    memory only). TLS and token rules travel in ``system.settings`` to
-    :func:`start_server`.
+    memory only). TLS and token rules are the server's
+    (:func:`settings_from_config`), given to :func:`start_server`.
     """
     if server is None:
         hosted = list(config.subarchitectures)
@@ -84,16 +92,15 @@ def system_from_config(
     journal = None
     if persistence is not None:
         journal = Journal(persistence.path, persistence.durability, config.limits.history_events)
-    system = System(
+    system = wire_system(
         config.name,
         hosted,
-        {name: config.subarchitectures[name].make_policy() for name in hosted},
-        config.limits,
+        policies={name: config.subarchitectures[name].make_policy() for name in hosted},
+        limits=config.limits,
         lease_ms=lease_ms,
         journal=journal,
         quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
     )
-    system.settings = ServerSettings(config.tls, config.auth.reads_require_token)
     for comp in config.components:
         system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind))
     return system
@@ -118,6 +125,7 @@ class RunningServer:
     system: System
     host: str
     port: int
+    routes: Routes
     _tasks: list[asyncio.Task[None]] = field(default_factory=list)
     _on_stop: list[Callable[[], None]] = field(default_factory=list)
 
@@ -163,12 +171,13 @@ async def start_server(
 ) -> RunningServer:
     """Start serving ``system`` on ``listen`` (HOST:PORT; port 0 picks a free one).
 
-    ``settings`` default to ``system.settings`` (from the configuration), else
-    plaintext with tokens required for every call. With TLS only a TLS port is
-    opened: a plaintext client fails its handshake.
+    ``settings`` (:func:`settings_from_config`) default to plaintext with
+    tokens required for every call. With TLS only a TLS port is opened: a
+    plaintext client fails its handshake.
     """
     if settings is None:
-        settings = system.settings if isinstance(system.settings, ServerSettings) else ServerSettings()
+        settings = ServerSettings()
+    routes = Routes.of(system.host.subarchitectures)
     host, _ = _split_listen(listen)
     options: Sequence[tuple[str, int]] = (
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
@@ -185,7 +194,7 @@ async def start_server(
     registrar: Any = SafeRegistrar(server)
     add_working_memory(WorkingMemoryServicer(system, auth), registrar)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), registrar)
-    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth), registrar)
+    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth, routes), registrar)
     inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), registrar)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     foreign: Any = SafeRegistrar(server, wrap=False)  # generic handlers only, deserializers untouched
@@ -200,11 +209,10 @@ async def start_server(
         raise OSError(f"cannot listen on {listen}: address in use or not available")
     await server.start()
     advertised = "127.0.0.1" if host in ("0.0.0.0", "[::]", "::") else host
-    for sa in system.endpoints:
-        system.endpoints[sa] = f"{advertised}:{port}"
+    routes.listening(f"{advertised}:{port}")
     for name in ("", *SERVICE_NAMES):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
-    running = RunningServer(server, system, advertised, port)
+    running = RunningServer(server, system, advertised, port, routes)
     running._tasks.append(asyncio.ensure_future(_expire_sessions(system)))
     return running
 
@@ -214,9 +222,10 @@ async def serve_forever(
     signer: TokenSigner,
     listen: str,
     on_started: Callable[[RunningServer], None] | None = None,
+    settings: ServerSettings | None = None,
 ) -> None:
     """Serve until SIGINT or SIGTERM, printing ``listening on HOST:PORT`` first."""
-    running = await start_server(system, signer, listen)
+    running = await start_server(system, signer, listen, settings)
     print(f"listening on {running.endpoint}", flush=True)
     if on_started is not None:
         on_started(running)

@@ -10,6 +10,7 @@ from cast.convert import component_state, component_to_pb
 from cast.core.access import Access, run_async
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
+from cast.server.routes import Routes
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
@@ -17,8 +18,8 @@ from cast.v1 import directory_pb2_grpc as dir_grpc
 __all__ = ["DirectoryServicer", "describe"]
 
 
-def describe(system: System) -> dir_pb2.SystemDescription:
-    """The wire description of a system."""
+def describe(system: System, routes: Routes) -> dir_pb2.SystemDescription:
+    """The wire description of a system, with where each of its SAs is served."""
     revisions = system.host.revisions()
     usage = system.host.usage()
     components = []
@@ -31,7 +32,7 @@ def describe(system: System) -> dir_pb2.SystemDescription:
         subarchitectures=[
             dir_pb2.SubarchitectureInfo(
                 name=sa,
-                endpoint=system.endpoints.get(sa, ""),
+                endpoint=routes.local.get(sa, ""),
                 task_manager_policy=system.tasks.policy(sa).describe(),
                 revision=revisions[sa],
                 entries=system.host.entry_count(sa),
@@ -40,18 +41,19 @@ def describe(system: System) -> dir_pb2.SystemDescription:
             )
             for sa in system.host.subarchitectures
         ]
-        + [dir_pb2.SubarchitectureInfo(name=sa, endpoint=ep) for sa, ep in system.remote_endpoints.items()],
+        + [dir_pb2.SubarchitectureInfo(name=sa, endpoint=ep) for sa, ep in routes.remote.items()],
         components=components,
-        endpoint=next(iter(system.endpoints.values()), ""),
+        endpoint=routes.endpoint,
     )
 
 
 class DirectoryServicer(dir_grpc.DirectoryServicer):
     """Serves the directory of one :class:`System`."""
 
-    def __init__(self, system: System, auth: Authenticator) -> None:
+    def __init__(self, system: System, auth: Authenticator, routes: Routes) -> None:
         self._system = system
         self._auth = auth
+        self._routes = routes
 
     @rpc
     async def DescribeSystem(
@@ -59,7 +61,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
     ) -> dir_pb2.SystemDescription:
         """Describe SAs, endpoints and components."""
         self._auth.identify_read(context)
-        return describe(self._system)
+        return describe(self._system, self._routes)
 
     @rpc
     async def Register(
@@ -70,7 +72,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         sessions = self._system.sessions
         session_id = sessions.register(who, request.language, request.kind, request.pid, request.host)
         return dir_pb2.RegisterResponse(
-            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system),
+            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system, self._routes),
             component_id=who.component_id, subarchitecture=who.subarchitecture, privileged=who.privileged,
         )
 

@@ -10,8 +10,7 @@ import grpc
 
 from cast.convert import any_to_type_data, fill_entry, filter_from_pb, watch_events_wire
 from cast.core.access import Access, run_async
-from cast.core.host import BatchOp
-from cast.core.records import LockMode, Operation
+from cast.core.records import BatchOp, LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError

@@ -1,0 +1,45 @@
+"""The core knows nothing above it: no gRPC, no generated wire code, no server, client or tool.
+
+Every import in every module under python/cast/core (function-level ones too) is
+read from the source; the allowed packages are the standard library, protobuf's
+runtime (descriptors and messages, for schemas) and the core itself, with the
+errors it raises.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from tests.conftest import ROOT
+
+CORE = ROOT / "python" / "cast" / "core"
+FORBIDDEN = ("grpc", "grpc_health", "grpc_reflection", "cast.v1", "cast.convert", "cast.server", "cast.client",
+             "cast.cli", "cast.orchestrator", "cast.config", "cast.auth")
+
+
+def imports(path: Path) -> list[tuple[int, str]]:
+    tree = ast.parse(path.read_text(), str(path))
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.extend((node.lineno, alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.lineno, node.module))
+    return found
+
+
+def test_the_core_imports_nothing_above_it() -> None:
+    offending = [
+        f"{path.relative_to(ROOT)}:{line}: imports {name}"
+        for path in sorted(CORE.glob("*.py"))
+        for line, name in imports(path)
+        if any(name == bad or name.startswith(bad + ".") for bad in FORBIDDEN)
+    ]
+    assert not offending, "\n".join(offending)
+
+
+def test_the_check_reads_real_imports() -> None:
+    # The scan itself must see what it looks for, or the test above could never fail.
+    found = imports(ROOT / "python" / "cast" / "server" / "working_memory.py")
+    assert any(name == "grpc" for _, name in found) and any(name.startswith("cast.v1") for _, name in found)
