@@ -14,7 +14,7 @@ from pathlib import Path
 from tests.conftest import ROOT
 
 CORE = ROOT / "python" / "cast" / "core"
-FORBIDDEN = ("grpc", "grpc_health", "grpc_reflection", "cast.v1", "cast.convert", "cast.server", "cast.client",
+FORBIDDEN = ("grpc", "grpc_health", "grpc_reflection", "cast.v1", "cast.server", "cast.client",
              "cast.cli", "cast.orchestrator", "cast.config", "cast.auth")
 
 

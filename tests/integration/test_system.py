@@ -189,3 +189,30 @@ def test_the_directory_shows_a_component_running_as_soon_as_its_run_begins(serve
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_the_server_says_who_a_component_is_and_a_launch_environment_that_disagrees_stops_it(
+    server: ServerHandle,
+) -> None:
+    import subprocess
+    import sys
+
+    env = server.env("writer", "vision")
+    env["CAST_COMPONENT_ID"] = "somebody-else"  # the token is for 'writer'
+    done = subprocess.run([sys.executable, "-m", "cast.run", "itest_components:Writer"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "the token is for component 'writer' in SA 'vision'" in done.stderr
+    assert "told component 'somebody-else' in SA 'vision'" in done.stderr
+    # A privileged token makes a privileged component, as the server says (the client decodes nothing).
+    from cast.client.grpc_transport import GrpcTransport
+    from cast.core.records import Identity
+
+    boss = cast.UnmanagedComponent()
+    told = Identity("boss", "vision", False)  # what a launch environment can say: no privilege flag
+    boss._cast_bind(GrpcTransport(server.endpoint, server.token("boss", "vision", privileged=True), told))
+    try:
+        assert boss.privileged
+        boss.add("from-boss", Counter(), subarchitecture="language")
+    finally:
+        boss._cast_close()

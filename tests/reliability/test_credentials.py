@@ -15,7 +15,7 @@ from google.protobuf import any_pb2
 
 import cast
 from cast.auth import TokenSigner
-from cast.client.connection import TokenSource
+from cast.client.credentials import TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity, LockMode
 from cast.v1 import (

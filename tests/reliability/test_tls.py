@@ -12,7 +12,7 @@ import pytest
 from cast_testing_pb2 import Counter
 
 import cast
-from cast.client.connection import ClientTls, TokenSource
+from cast.client.credentials import ClientTls, TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.v1 import directory_pb2, directory_pb2_grpc

@@ -11,7 +11,7 @@ from pathlib import Path
 from cast_testing_pb2 import Counter
 
 import cast
-from cast.client.connection import ClientTls
+from cast.client.credentials import ClientTls
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from tests.conftest import PYTHONPATH, SECRET, ServerHandle

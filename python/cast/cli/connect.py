@@ -22,7 +22,7 @@ from typing import Any
 import grpc
 
 from cast.auth import TokenSigner
-from cast.client.connection import ClientTls
+from cast.client.credentials import ClientTls
 from cast.client.discovery import NoSystemError, find_endpoint, find_secret, find_tls
 from cast.client.grpc_transport import CHANNEL_OPTIONS, map_rpc_error
 from cast.core.records import Identity

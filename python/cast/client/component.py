@@ -239,6 +239,9 @@ class Component:
     def _cast_bind(self, transport: Transport, language: str = "python") -> None:
         """Attach to a working memory system (done by the runner, not by users)."""
         self._transport = transport
+        self._state = ComponentState.STARTING
+        # Registering first: the server's answer says who this component is (cast.client.session).
+        transport.start_session(language, self.kind, lambda: self._state)
         self._identity: Identity = transport.identity
         self._dispatcher = Dispatcher(self._identity.component_id, self.max_pending_callbacks)
         self._dispatcher.on_space = transport.pump
@@ -249,11 +252,9 @@ class Component:
         self._stopping = threading.Event()
         # In process, events arrive on the writer's thread, which must never block.
         self._block_on_full = not transport.delivers_on_writer_thread
-        self._state = ComponentState.STARTING
         self._id_prefix = f"{self._identity.component_id}:{secrets.token_hex(3)}:"
         self._id_counter = itertools.count(1)
         transport.set_event_sink(self._on_event, self._on_watch_error, self._dispatcher.room)
-        transport.start_session(language, self.kind, lambda: self._state)
 
     def _set_state(self, state: ComponentState) -> None:
         """Change the life stage the directory shows, and report it at once."""

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from cast.auth import load_secret
-from cast.client.connection import ClientTls
+from cast.client.credentials import ClientTls
 from cast.errors import InvalidArgumentError, NotFoundError
 from cast.orchestrator.runtime import RuntimeDir
 

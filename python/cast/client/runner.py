@@ -2,7 +2,7 @@
 
 Every component process gets ``CAST_ENDPOINT``, ``CAST_COMPONENT_ID``,
 ``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object), and
-optionally ``CAST_TOKEN_FILE`` and ``CAST_TLS_*`` (see :mod:`cast.client.connection`).
+optionally ``CAST_TOKEN_FILE`` and ``CAST_TLS_*`` (see :mod:`cast.client.credentials`).
 The runner connects, calls configure(args), start(), run(), and stop() once
 on SIGINT/SIGTERM, on ``request_stop()``, or when run() raised.
 """
@@ -20,9 +20,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from cast.auth import peek
 from cast.client.component import Component
-from cast.client.connection import ClientTls, TokenSource
+from cast.client.credentials import ClientTls, TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.transport import Transport
 from cast.core.records import Identity
@@ -74,9 +73,13 @@ class LaunchContract:
         )
 
     def identity(self) -> Identity:
-        """The component's identity (privileged as the token claims; the server verifies it)."""
-        claimed = peek(self.token)
-        return Identity(self.component_id, self.subarchitecture, bool(claimed and claimed.privileged))
+        """The identity the launch environment gives; the server's answer to Register completes it.
+
+        Whether the component is privileged, and that the token really is for
+        this id and SA, come from the server (cast.client.session), not from
+        decoding the token here.
+        """
+        return Identity(self.component_id, self.subarchitecture, False)
 
     def connect(self) -> GrpcTransport:
         """A gRPC connection to the system."""
@@ -190,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         contract = LaunchContract.from_env()
         component = cls()
         transport = contract.connect()
+        # Binding registers the session; a token for another component is refused here, naming both.
+        return run_component(component, transport, contract.args)
     except CastError as exc:
         print(f"cast.run: {exc.message}", file=sys.stderr)
         return 2
-    return run_component(component, transport, contract.args)

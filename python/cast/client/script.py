@@ -34,14 +34,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 
-from cast.auth import TokenSigner, peek
+from cast.auth import TokenSigner
 from cast.client.component import UnmanagedComponent
-from cast.client.connection import ClientTls, TokenSource
+from cast.client.credentials import ClientTls, TokenSource
 from cast.client.discovery import find_endpoint, find_secret, find_tls, first_subarchitecture
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.core.sessions import ComponentState
-from cast.errors import InvalidArgumentError, UnauthenticatedError
+from cast.errors import InvalidArgumentError
 from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
 
 __all__ = ["Connection", "connect"]
@@ -83,37 +83,27 @@ def connect(
     env = os.environ if env is None else env
     runtime = RuntimeDir(Path(runtime_dir) if runtime_dir is not None else default_runtime_dir(env))
     address = find_endpoint(endpoint, runtime, env)
-    tokens = _tokens(token, component_id, subarchitecture, runtime, env)
-    claimed = peek(tokens.token())
-    if claimed is None:
-        raise UnauthenticatedError(
-            "the token is not a CAST token (a JWT with claims c, s, p): get one from `cast token`"
-        )
-    for option, wanted, has in (("component_id", component_id, claimed.component_id),
-                                ("subarchitecture", subarchitecture, claimed.subarchitecture)):
-        if wanted and wanted != has:
-            raise InvalidArgumentError(
-                f"{option}='{wanted}' contradicts the token, which is for {option} '{has}': the token decides "
-                f"the identity; leave {option} out, or give a token for it"
-            )
+    tokens, told = _tokens(token, component_id, subarchitecture, runtime, env)
     if tls is None:
         tls = find_tls(None, runtime, env)
     connection = Connection()
-    connection._cast_bind(GrpcTransport(address, tokens, claimed, call_timeout, tls), language="python")
+    # The server's answer to Register completes (and checks) the identity: cast.client.session.
+    connection._cast_bind(GrpcTransport(address, tokens, told, call_timeout, tls), language="python")
     connection._set_state(ComponentState.RUNNING)
     return connection
 
 
 def _tokens(
     token: str | None, component_id: str | None, sa: str | None, runtime: RuntimeDir, env: Mapping[str, str]
-) -> TokenSource:
+) -> tuple[TokenSource, Identity]:
+    """The token to send, and who the connection was told it is (empty parts: left to the token)."""
     if token:
-        return TokenSource(token)
+        return TokenSource(token), Identity(component_id or "", sa or "", False)
+    told = Identity(component_id or env.get("CAST_COMPONENT_ID", ""), sa or env.get("CAST_SUBARCHITECTURE", ""))
     if env.get("CAST_TOKEN_FILE"):
-        path = env["CAST_TOKEN_FILE"]
-        return TokenSource(env.get("CAST_TOKEN", ""), path)
+        return TokenSource(env.get("CAST_TOKEN", ""), env["CAST_TOKEN_FILE"]), told
     if env.get("CAST_TOKEN"):
-        return TokenSource(env["CAST_TOKEN"])
+        return TokenSource(env["CAST_TOKEN"]), told
     secret = find_secret(None, runtime, env)
     sa = sa or first_subarchitecture(runtime)
     if not sa:
@@ -122,4 +112,4 @@ def _tokens(
             f"in {runtime.state_path})"
         )
     who = Identity(component_id or f"script-{socket.gethostname()}-{os.getpid()}", sa, True)
-    return TokenSource(TokenSigner(secret).issue(who))
+    return TokenSource(TokenSigner(secret).issue(who)), who

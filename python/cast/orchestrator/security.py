@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 
 from cast.auth import TokenSigner
-from cast.client.connection import ClientTls
+from cast.client.credentials import ClientTls
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.core.records import Identity
 

@@ -6,10 +6,10 @@ from collections.abc import AsyncIterator
 
 from google.protobuf import descriptor_pb2
 
-from cast.convert import component_state, component_to_pb
 from cast.core.access import Access, run_async
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
+from cast.server.conversions import component_state, component_to_pb
 from cast.server.routes import Routes
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import directory_pb2 as dir_pb2

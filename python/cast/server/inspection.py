@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from cast.convert import entry_to_pb
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
+from cast.server.conversions import entry_to_pb
 from cast.server.rpc import Authenticator, Context, rpc
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc

@@ -6,9 +6,10 @@ import asyncio
 import threading
 from collections.abc import AsyncIterator
 
-from cast.convert import any_to_type_data, task_to_pb
+from cast.client.conversions import any_to_type_data
 from cast.core.access import Access, run_async
 from cast.core.system import System
+from cast.server.conversions import task_to_pb
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import task_manager_pb2_grpc as tm_grpc

@@ -11,9 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from cast.convert import task_to_pb
 from cast.core.system import System
 from cast.core.tasks import TaskRecord
+from cast.server.conversions import task_to_pb
 from cast.v1 import directory_pb2, entry_pb2, inspection_pb2, task_manager_pb2, working_memory_pb2
 
 __all__ = ["WIRE_FILES", "encode_task", "wire_system"]

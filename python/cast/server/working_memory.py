@@ -8,12 +8,13 @@ from collections.abc import AsyncIterator
 
 import grpc
 
-from cast.convert import any_to_type_data, fill_entry, filter_from_pb, watch_events_wire
+from cast.client.conversions import any_to_type_data
 from cast.core.access import Access, run_async
 from cast.core.records import BatchOp, LockMode, Operation
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError
+from cast.server.conversions import fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc

@@ -15,7 +15,6 @@ These are the pieces of the launch contract beyond the address and identity:
 from __future__ import annotations
 
 import os
-import random
 import threading
 import time
 from collections.abc import Mapping
@@ -26,7 +25,7 @@ import grpc
 
 from cast.errors import InvalidArgumentError
 
-__all__ = ["Backoff", "ClientTls", "TokenSource"]
+__all__ = ["ClientTls", "TokenSource"]
 
 
 @dataclass(frozen=True)
@@ -134,22 +133,3 @@ class TokenSource:
     def metadata(self) -> tuple[tuple[str, str]]:
         """Call metadata carrying the current token."""
         return (("authorization", f"Bearer {self.token()}"),)
-
-
-class Backoff:
-    """Exponential backoff with jitter for reconnecting: 0.1 s doubling to 3 s by default."""
-
-    def __init__(self, initial: float = 0.1, maximum: float = 3.0) -> None:
-        self.initial = initial
-        self.maximum = maximum
-        self._next = initial
-
-    def reset(self) -> None:
-        """Back to the initial delay (after a successful connection)."""
-        self._next = self.initial
-
-    def next(self) -> float:
-        """The delay before the next attempt (grows each time)."""
-        delay = self._next * random.uniform(0.8, 1.2)
-        self._next = min(self.maximum, self._next * 2)
-        return delay

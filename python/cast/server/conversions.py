@@ -1,63 +1,31 @@
-"""Translation between wire messages (cast.v1) and the core's records.
+"""Conversions of the server: the core's records to wire messages (cast.v1), and requests' filters back.
 
-Used by the servicers (core -> wire) and by the client library (wire -> the
-same record types), so an in-process component and a remote one see
-identical objects. Protobuf only; no gRPC here.
+Event encodings are cached on the event and reused for every stream (see
+:func:`watch_events_wire`). Protobuf only; no gRPC here. The client's
+direction is :mod:`cast.client.conversions`.
 """
 
 from __future__ import annotations
 
-from google.protobuf import any_pb2, timestamp_pb2
-
+from cast.client.conversions import TYPE_URL_PREFIX, any_of, timestamp
 from cast.core.records import ChangeEvent, EntryRecord, Operation
 from cast.core.sessions import ComponentInfo, ComponentState
-from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
+from cast.core.tasks import TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import InvalidArgumentError
 from cast.v1 import directory_pb2, entry_pb2, task_manager_pb2
 
 __all__ = [
-    "TYPE_URL_PREFIX",
-    "any_to_type_data",
+    "component_state",
     "component_to_pb",
-    "entry_from_pb",
     "entry_to_pb",
-    "fill_entry",
-    "event_from_pb",
     "event_to_pb",
     "event_wire",
+    "fill_entry",
     "filter_from_pb",
-    "filter_to_pb",
-    "task_from_pb",
     "task_to_pb",
-    "timestamp",
     "watch_events_wire",
 ]
-
-TYPE_URL_PREFIX = "type.googleapis.com/"
-
-
-def timestamp(ns: int) -> timestamp_pb2.Timestamp:
-    """A Timestamp from nanoseconds since the epoch."""
-    return timestamp_pb2.Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
-
-
-def _ns(ts: timestamp_pb2.Timestamp) -> int:
-    return ts.seconds * 1_000_000_000 + ts.nanos
-
-
-def any_to_type_data(value: any_pb2.Any, what: str = "value") -> tuple[str, bytes]:
-    """(type name, bytes) of an Any; INVALID_ARGUMENT if it names no type."""
-    url = value.type_url
-    if not url:
-        raise InvalidArgumentError(
-            f"{what} has no type_url: pack a protobuf message into the Any (Any.Pack) so the entry has a type"
-        )
-    return url[url.rfind("/") + 1 :], value.value
-
-
-def _any(type_name: str, data: bytes) -> any_pb2.Any:
-    return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
 
 
 def entry_to_pb(record: EntryRecord) -> entry_pb2.Entry:
@@ -82,20 +50,6 @@ def fill_entry(pb: entry_pb2.Entry, record: EntryRecord) -> None:
     pb.author = record.author
     pb.modified.seconds, pb.modified.nanos = divmod(record.modified_ns, 1_000_000_000)
     pb.revision = record.revision
-
-
-def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:
-    """Record form of a wire entry (client side)."""
-    return EntryRecord(
-        entry.address.subarchitecture,
-        entry.address.id,
-        entry.type,
-        entry.value.value,
-        entry.version,
-        entry.author,
-        _ns(entry.modified),
-        entry.revision,
-    )
 
 
 def event_to_pb(ev: ChangeEvent, watch_ids: list[int], include_entry: bool) -> entry_pb2.ChangeEvent:
@@ -156,23 +110,6 @@ def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool]]) -> byte
     return b"".join(parts)
 
 
-def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
-    """Record form of a wire event (client side); ``seq`` is 0."""
-    return ChangeEvent(
-        0,
-        pb.revision,
-        Operation(pb.operation),
-        pb.address.subarchitecture,
-        pb.address.id,
-        pb.type,
-        pb.source_component,
-        pb.source_subarchitecture,
-        pb.version,
-        _ns(pb.time),
-        entry_from_pb(pb.entry) if pb.HasField("entry") else None,
-    )
-
-
 def filter_from_pb(pb: entry_pb2.ChangeFilter) -> EventFilter:
     """Core filter from a wire filter; INVALID_ARGUMENT for an unknown operation."""
     ops = set()
@@ -194,19 +131,6 @@ def filter_from_pb(pb: entry_pb2.ChangeFilter) -> EventFilter:
     )
 
 
-def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:
-    """Wire filter from a core filter."""
-    return entry_pb2.ChangeFilter(
-        operations=sorted(int(op) for op in f.operations),  # type: ignore[misc]
-        type=f.type,
-        id=f.id,
-        subarchitecture=f.subarchitecture,
-        source_component=f.source_component,
-        source_subarchitecture=f.source_subarchitecture,
-        include_entry=f.include_entry,
-    )
-
-
 def task_to_pb(task: TaskRecord) -> task_manager_pb2.Task:
     """Wire form of a task."""
     pb = task_manager_pb2.Task(
@@ -221,29 +145,10 @@ def task_to_pb(task: TaskRecord) -> task_manager_pb2.Task:
         proposed=timestamp(task.proposed_ns),
     )
     if task.data_type:
-        pb.data.CopyFrom(_any(task.data_type, task.data))
+        pb.data.CopyFrom(any_of(task.data_type, task.data))
     if task.decided_ns:
         pb.decided.CopyFrom(timestamp(task.decided_ns))
     return pb
-
-
-def task_from_pb(pb: task_manager_pb2.Task) -> TaskRecord:
-    """Record form of a wire task (client side)."""
-    data_type, data = any_to_type_data(pb.data) if pb.HasField("data") else ("", b"")
-    return TaskRecord(
-        pb.task_id,
-        pb.name,
-        pb.subarchitecture,
-        pb.component,
-        data_type,
-        data,
-        pb.priority,
-        TaskState(pb.state),
-        _ns(pb.proposed),
-        TaskOutcome(pb.outcome),
-        pb.reason,
-        _ns(pb.decided) if pb.HasField("decided") else 0,
-    )
 
 
 def component_to_pb(info: ComponentInfo) -> directory_pb2.ComponentInfo:

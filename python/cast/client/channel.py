@@ -1,0 +1,101 @@
+"""One link to one server: its channel with the client's options, its stubs, errors and reconnect backoff.
+
+Shared by the gRPC transport, the watch stream and the session, so that every
+stream and call to a server goes through the same channel and the same error
+mapping.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+from typing import TYPE_CHECKING
+
+import grpc
+
+from cast.client.credentials import ClientTls
+from cast.errors import CastError, UnavailableError, error_for_code
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import task_manager_pb2_grpc as tm_grpc
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
+
+if TYPE_CHECKING:
+    from cast.client.watch_stream import WatchStream
+
+__all__ = ["CHANNEL_OPTIONS", "TRANSIENT", "Backoff", "ServerLink", "map_rpc_error"]
+
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+CHANNEL_OPTIONS = (
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    # Try again soon after the server went away (gRPC's default backoff grows to two minutes),
+    # so a restarted server is found within a few seconds.
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 2_000),
+)
+
+# Errors after which a stream is opened again (the server went away, or the connection broke);
+# any other error ends the stream for good and is reported.
+TRANSIENT = ("UNAVAILABLE", "UNKNOWN", "INTERNAL", "CANCELLED", "DEADLINE_EXCEEDED", "UNAUTHENTICATED")
+
+
+def map_rpc_error(exc: grpc.RpcError) -> CastError:
+    """The named CAST error for a failed call."""
+    code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+    details = exc.details() if hasattr(exc, "details") else str(exc)
+    name = code.name if code is not None else "UNKNOWN"
+    if name == "UNAVAILABLE":
+        return UnavailableError(
+            f"server unavailable ({details}): a write made by this call may or may not have been applied; the "
+            "client reconnects by itself, retry the call later"
+        )
+    return error_for_code(name, details or name)
+
+
+
+class ServerLink:
+    """One server endpoint: its channel and stubs."""
+
+    def __init__(self, endpoint: str, tls: ClientTls | None = None) -> None:
+        self.endpoint = endpoint
+        if tls is None:
+            self.channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
+        else:
+            options = [*CHANNEL_OPTIONS, *tls.channel_options()]
+            self.channel = grpc.secure_channel(endpoint, tls.credentials(), options=options)
+        self.wm = wm_grpc.WorkingMemoryStub(self.channel)
+        self.tm = tm_grpc.TaskManagerStub(self.channel)
+        self.directory = dir_grpc.DirectoryStub(self.channel)
+        self.watch_stream: WatchStream | None = None
+        self.session_id = ""
+        self.registered = threading.Event()  # a session is open on this server
+        self.beat_now = threading.Event()  # the component's state changed: send a heartbeat at once
+
+    def close(self) -> None:
+        """Close the channel (every stream on it ends)."""
+        self.channel.close()
+
+
+
+
+class Backoff:
+    """Exponential backoff with jitter for reconnecting: 0.1 s doubling to 3 s by default."""
+
+    def __init__(self, initial: float = 0.1, maximum: float = 3.0) -> None:
+        self.initial = initial
+        self.maximum = maximum
+        self._next = initial
+
+    def reset(self) -> None:
+        """Back to the initial delay (after a successful connection)."""
+        self._next = self.initial
+
+    def next(self) -> float:
+        """The delay before the next attempt (grows each time)."""
+        delay = self._next * random.uniform(0.8, 1.2)
+        self._next = min(self.maximum, self._next * 2)
+        return delay

@@ -1,0 +1,139 @@
+"""Conversions of the Python client library: wire messages (cast.v1) to the records it hands out.
+
+The same record types the core uses, so that a component in process and one
+over gRPC see identical objects; and the few wire helpers both sides share
+(type URLs, timestamps). Protobuf only; no gRPC here. The server's direction
+is :mod:`cast.server.conversions`.
+"""
+
+from __future__ import annotations
+
+from google.protobuf import any_pb2, timestamp_pb2
+
+from cast.core.records import ChangeEvent, EntryRecord, Operation
+from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
+from cast.core.watch import EventFilter
+from cast.errors import InvalidArgumentError
+from cast.v1 import entry_pb2, task_manager_pb2
+from cast.v1 import working_memory_pb2 as wm_pb2
+
+__all__ = [
+    "TYPE_URL_PREFIX",
+    "address",
+    "any_of",
+    "any_to_type_data",
+    "entry_from_pb",
+    "event_from_pb",
+    "fill_write",
+    "filter_to_pb",
+    "ns",
+    "task_from_pb",
+    "timestamp",
+]
+
+TYPE_URL_PREFIX = "type.googleapis.com/"
+
+
+def timestamp(ns: int) -> timestamp_pb2.Timestamp:
+    """A Timestamp from nanoseconds since the epoch."""
+    return timestamp_pb2.Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+
+
+def ns(ts: timestamp_pb2.Timestamp) -> int:
+    """Nanoseconds since the epoch of a Timestamp."""
+    return ts.seconds * 1_000_000_000 + ts.nanos
+
+
+def any_to_type_data(value: any_pb2.Any, what: str = "value") -> tuple[str, bytes]:
+    """(type name, bytes) of an Any; INVALID_ARGUMENT if it names no type."""
+    url = value.type_url
+    if not url:
+        raise InvalidArgumentError(
+            f"{what} has no type_url: pack a protobuf message into the Any (Any.Pack) so the entry has a type"
+        )
+    return url[url.rfind("/") + 1 :], value.value
+
+
+def any_of(type_name: str, data: bytes) -> any_pb2.Any:
+    """An Any holding ``data`` of type ``type_name``."""
+    return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
+
+
+def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:
+    """Record form of a wire entry (client side)."""
+    return EntryRecord(
+        entry.address.subarchitecture,
+        entry.address.id,
+        entry.type,
+        entry.value.value,
+        entry.version,
+        entry.author,
+        ns(entry.modified),
+        entry.revision,
+    )
+
+
+def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
+    """Record form of a wire event (client side); ``seq`` is 0."""
+    return ChangeEvent(
+        0,
+        pb.revision,
+        Operation(pb.operation),
+        pb.address.subarchitecture,
+        pb.address.id,
+        pb.type,
+        pb.source_component,
+        pb.source_subarchitecture,
+        pb.version,
+        ns(pb.time),
+        entry_from_pb(pb.entry) if pb.HasField("entry") else None,
+    )
+
+
+def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:
+    """Wire filter from a core filter."""
+    return entry_pb2.ChangeFilter(
+        operations=sorted(int(op) for op in f.operations),  # type: ignore[misc]
+        type=f.type,
+        id=f.id,
+        subarchitecture=f.subarchitecture,
+        source_component=f.source_component,
+        source_subarchitecture=f.source_subarchitecture,
+        include_entry=f.include_entry,
+    )
+
+
+def task_from_pb(pb: task_manager_pb2.Task) -> TaskRecord:
+    """Record form of a wire task (client side)."""
+    data_type, data = any_to_type_data(pb.data) if pb.HasField("data") else ("", b"")
+    return TaskRecord(
+        pb.task_id,
+        pb.name,
+        pb.subarchitecture,
+        pb.component,
+        data_type,
+        data,
+        pb.priority,
+        TaskState(pb.state),
+        ns(pb.proposed),
+        TaskOutcome(pb.outcome),
+        pb.reason,
+        ns(pb.decided) if pb.HasField("decided") else 0,
+    )
+
+
+def fill_write(req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest, sa: str, entry_id: str, type_name: str,
+                data: bytes) -> None:
+    """Fill an Add or Overwrite request in place.
+
+    In place: about a third of the cost of building the nested messages and copying them in.
+    """
+    req.address.id = entry_id
+    req.address.subarchitecture = sa
+    req.value.type_url = TYPE_URL_PREFIX + type_name
+    req.value.value = data
+
+
+def address(sa: str, entry_id: str) -> entry_pb2.EntryAddress:
+    """The wire address of an entry."""
+    return entry_pb2.EntryAddress(id=entry_id, subarchitecture=sa)

@@ -1,0 +1,224 @@
+"""The Watch stream of one component to one server: watches created, events delivered, resumed after a reconnect."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import grpc
+
+from cast.client.channel import TRANSIENT, Backoff, ServerLink, map_rpc_error
+from cast.client.conversions import event_from_pb, filter_to_pb
+from cast.client.credentials import TokenSource
+from cast.client.transport import EventSink
+from cast.core.watch import EventFilter
+from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
+from cast.v1 import working_memory_pb2 as wm_pb2
+
+__all__ = ["WatchStream"]
+
+log = logging.getLogger("cast.client")
+
+
+class _Watch:
+    """What the client keeps of one watch so that it can be created again after a reconnect."""
+
+    __slots__ = ("base", "filters", "first_starts", "sas", "watch_id")
+
+    def __init__(self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int]) -> None:
+        self.watch_id = watch_id
+        self.filters = list(filters)
+        self.first_starts = starts
+        self.sas: list[str] = []  # the SAs of this server the watch covers (known once created)
+        # Per SA, the revision the watch is known to have seen up to (None until created).
+        self.base: dict[str, int] | None = None
+
+
+class WatchStream:
+    """One Watch call to one server, shared by every watch of the component on that server.
+
+    When the connection breaks the stream is opened again with backoff and every
+    watch is created again from the revision after the last one it got (per SA):
+    no gap and no duplicate. The server's history id comes along, so a server that
+    lost that history (restarted without persistence) refuses the resume, and the
+    component is told to resynchronise (``watch_failed`` with HistoryExpiredError).
+    """
+
+    def __init__(
+        self,
+        server: ServerLink,
+        tokens: TokenSource,
+        sink: EventSink,
+        on_error: Callable[[CastError], None],
+        closing: threading.Event,
+    ) -> None:
+        self._server = server
+        self._tokens = tokens
+        self._sink = sink
+        self._on_error = on_error
+        self._closing = closing
+        self._mutex = threading.Lock()
+        self._watches: dict[int, _Watch] = {}
+        self._pending: dict[int, tuple[threading.Event, list[Any]]] = {}
+        # The newest revision per SA received on this stream: the server moves every watch of an SA
+        # on one stream past the events it sends, so each watch has seen at least this far.
+        self._seen: dict[str, int] = {}
+        self.history_id = ""
+        self.connected = False
+        self.dead = False  # ended for good (e.g. fell behind the history): a new watch needs a new stream
+        self.reconnects = 0
+        self._closed = False
+        self._requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] | None = None
+        self._call: Any = None
+        self._opened = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"cast-watch-{server.endpoint}", daemon=True)
+        self._thread.start()
+        self._opened.wait()
+
+    # ------------------------------------------------------------ requests
+
+    def _create_request(self, w: _Watch) -> wm_pb2.WatchRequest:
+        if w.base is None:
+            starts, history_id = w.first_starts, ""
+        else:
+            starts = {sa: max(w.base.get(sa, 0), self._seen.get(sa, 0)) + 1 for sa in w.sas}
+            # What is sent is where the watch now is: a later resume never goes back before it.
+            w.base = {sa: start - 1 for sa, start in starts.items()}
+            history_id = self.history_id
+        create = wm_pb2.WatchCreate(
+            watch_id=w.watch_id, filters=[filter_to_pb(f) for f in w.filters], start_revisions=starts,
+            history_id=history_id,
+        )
+        return wm_pb2.WatchRequest(create=create)
+
+    def _open(self) -> Any:
+        with self._mutex:
+            requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] = queue.SimpleQueue()
+            self._requests = requests
+            for w in self._watches.values():
+                requests.put(self._create_request(w))
+            self._call = self._server.wm.Watch(iter(requests.get, None), metadata=self._tokens.metadata())
+            return self._call
+
+    # -------------------------------------------------------------- reader
+
+    def _run(self) -> None:
+        backoff = Backoff()
+        first = True
+        while not self._closed:
+            call = self._open()
+            if first:
+                self._opened.set()
+                first = False
+            try:
+                for resp in call:
+                    if not self.connected:
+                        self.connected = True
+                        backoff.reset()
+                    self._handle(resp)
+                error: CastError = UnavailableError(f"the watch stream to {self._server.endpoint} ended")
+            except grpc.RpcError as exc:
+                error = map_rpc_error(exc)
+            self.connected = False
+            if self._closed or self._closing.is_set():
+                return
+            if error.code not in TRANSIENT:
+                self._fail(error)
+                return
+            log.warning("watch stream to %s broke (%s); reconnecting", self._server.endpoint, error.message)
+            self.reconnects += 1
+            if self._closing.wait(backoff.next()):
+                return
+
+    def _handle(self, resp: wm_pb2.WatchResponse) -> None:
+        if resp.events:
+            for pb in resp.events:
+                event = event_from_pb(pb)
+                self._sink(event, pb.watch_ids)
+                if event.revision > self._seen.get(event.subarchitecture, 0):
+                    self._seen[event.subarchitecture] = event.revision
+        if resp.HasField("created"):
+            created = resp.created
+            self.history_id = created.history_id or self.history_id
+            w = self._watches.get(created.watch_id)
+            if w is not None and w.base is None:
+                revisions = dict(created.revisions)
+                covers_all = any(not f.subarchitecture for f in w.filters)
+                w.sas = [sa for sa in revisions if covers_all or any(f.subarchitecture == sa for f in w.filters)]
+                w.base = {sa: w.first_starts.get(sa, revisions[sa] + 1) - 1 for sa in w.sas}
+            self._resolve(created.watch_id, dict(created.revisions))
+        if resp.HasField("failed"):
+            failed = resp.failed
+            error = error_for_code(failed.code, failed.message)
+            if failed.watch_id in self._pending:
+                self._resolve(failed.watch_id, error)
+            elif self._watches.pop(failed.watch_id, None) is not None:
+                # A resume refused after a reconnect: the history no longer covers it (or the server
+                # lost it): the component must resynchronise.
+                if not isinstance(error, HistoryExpiredError):
+                    error = HistoryExpiredError(f"watch {failed.watch_id} could not resume: {failed.message}")
+                self._on_error(error)
+
+    def _fail(self, error: CastError) -> None:
+        self.dead = True
+        with self._mutex:
+            self._watches.clear()
+        for wid in list(self._pending):
+            self._resolve(wid, error)
+        self._on_error(error)
+
+    def _resolve(self, watch_id: int, result: Any) -> None:
+        pending = self._pending.pop(watch_id, None)
+        if pending is not None:
+            pending[1].append(result)
+            pending[0].set()
+
+    # ---------------------------------------------------------------- API
+
+    def create(
+        self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], timeout: float
+    ) -> dict[str, int]:
+        """Create a watch and wait (up to ``timeout``) for the server to confirm it; every WM's revision."""
+        done = threading.Event()
+        box: list[Any] = []
+        w = _Watch(watch_id, filters, starts)
+        with self._mutex:
+            self._pending[watch_id] = (done, box)
+            self._watches[watch_id] = w
+            if self._requests is not None:
+                self._requests.put(self._create_request(w))
+        if not done.wait(timeout):
+            self._pending.pop(watch_id, None)
+            self._watches.pop(watch_id, None)
+            if not self.connected:
+                raise UnavailableError(
+                    f"server {self._server.endpoint} unreachable: the watch was not created within {timeout} s"
+                )
+            raise DeadlineExceededError(f"the server did not confirm watch {watch_id} within {timeout} s")
+        result = box[0]
+        if isinstance(result, CastError):
+            self._watches.pop(watch_id, None)
+            raise result
+        return dict(result)
+
+    def cancel(self, watch_id: int) -> None:
+        """Stop a watch (the server stops sending its events)."""
+        with self._mutex:
+            self._watches.pop(watch_id, None)
+            if self._requests is not None:
+                self._requests.put(wm_pb2.WatchRequest(cancel=wm_pb2.WatchCancel(watch_id=watch_id)))
+
+    def close(self) -> None:
+        """End the stream and its thread."""
+        self._closed = True
+        with self._mutex:
+            if self._requests is not None:
+                self._requests.put(None)
+            call = self._call
+        if call is not None:
+            call.cancel()
+
+
