@@ -1,4 +1,4 @@
-"""The README's C++ example is the example's files, builds with exactly its CMake, and runs.
+"""The C++ example of docs/cpp.md is the example's files, builds with exactly its CMake, and runs.
 
 Also the demo with its C++ segmenter.
 """
@@ -14,22 +14,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
+
+from tests.docs.pages import fenced, section, shown
 from tests.interop.cpp_support import ROOT, CppProcess, cpp_executable
 
-README = (ROOT / "README.md").read_text()
+PAGE = "docs/cpp.md"
+SECTION = "A project of your own: CMake"
 EXAMPLE = ROOT / "examples" / "cpp" / "hello"
 CAST = str(Path(sys.executable).parent / "cast")
 
 
-def section(title: str) -> str:
-    start = README.index(f"## {title}\n")
-    end = README.find("\n## ", start + 1)
-    return README[start : end if end != -1 else None]
-
-
 def block(lang: str, index: int = 0) -> str:
-    found = re.findall(rf"```{lang}\n(.*?)```", section("C++ components"), re.S)
-    assert len(found) > index, f"no ```{lang} block number {index} in the README's C++ section"
+    found = fenced(section(PAGE, SECTION), lang)
+    assert len(found) > index, f"no ```{lang} block number {index} in {PAGE}, {SECTION!r}"
     return str(found[index])
 
 
@@ -40,18 +38,18 @@ def clean_env() -> dict[str, str]:
     return env
 
 
-def test_readme_snippets_are_the_example_files() -> None:
+def test_page_snippets_are_the_example_files() -> None:
     assert block("cpp") == (EXAMPLE / "hello.cc").read_text()
     assert block("proto") == (EXAMPLE / "greeting.proto").read_text()
     assert block("cmake") == (EXAMPLE / "CMakeLists.txt").read_text()
-    assert block("yaml") == (EXAMPLE / "system.yaml").read_text()
+    assert block("yaml") == shown("examples/cpp/hello/system.yaml")
 
 
 def expected_lines() -> list[str]:
     return [re.sub(r":[0-9a-f]{6}:", ":X:", line.strip()) for line in block("text").strip().splitlines()]
 
 
-def test_readme_commands_run_the_example(tmp_path: Path) -> None:
+def test_page_commands_run_the_example(tmp_path: Path) -> None:
     commands = block("sh").strip().splitlines()
     assert commands == ["make cpp", "cast run examples/cpp/hello/system.yaml --for 2"]
     cpp_executable("hello_cpp")  # `make cpp` ran before the tests (make test); fail, never skip, if not
@@ -67,8 +65,9 @@ def test_readme_commands_run_the_example(tmp_path: Path) -> None:
     assert "every component ran and stopped cleanly" in out.stdout
 
 
+@pytest.mark.timeout(900)  # it builds the whole library from scratch: minutes on a busy 2-core machine
 def test_the_example_builds_on_its_own_with_its_cmake(tmp_path: Path, server_factory: Any) -> None:
-    """A user's project: the example directory alone, configured and built with the README's CMake."""
+    """A user's project: the example directory alone, configured and built with the page's CMake."""
     cmake = shutil.which("cmake")
     assert cmake, "cmake is not installed: run `make cpp` (it installs the build tools)"
     build = tmp_path / "build"

@@ -1,4 +1,4 @@
-"""The README's Java component: the text is the example's files, and the example builds and runs under `cast run`."""
+"""The Java component of docs/java.md: the page shows the example's files, and it builds and runs under `cast run`."""
 
 from __future__ import annotations
 
@@ -12,30 +12,25 @@ from pathlib import Path
 
 import pytest
 
+from tests.docs.pages import fenced, section, shown
 from tests.interop.java_support import ROOT, CastRun, java_classpath
 
 EXAMPLE = ROOT / "examples" / "java"
-README = (ROOT / "README.md").read_text()
-
-
-def section(title: str) -> str:
-    start = README.index(f"## {title}\n")
-    end = README.find("\n## ", start + 1)
-    return README[start : end if end != -1 else None]
+PAGE = "docs/java.md"
 
 
 def blocks(lang: str) -> list[str]:
-    return re.findall(rf"```{lang}\n(.*?)```", section("Java components"), re.S)
+    return fenced(section(PAGE, "A project of your own: Maven"), lang)
 
 
 def squeeze(text: str) -> str:
     return re.sub(r"\s+", " ", text).strip()
 
 
-def test_readme_shows_the_example_files() -> None:
+def test_page_shows_the_example_files() -> None:
     assert blocks("java") == [(EXAMPLE / "src/main/java/cast/examples/MyComponent.java").read_text()]
     assert blocks("proto") == [(EXAMPLE / "src/main/proto/greeting.proto").read_text()]
-    assert blocks("yaml") == [(EXAMPLE / "system.yaml").read_text()]
+    assert blocks("yaml") == [shown("examples/java/system.yaml")]
     [pom_snippet] = blocks("xml")
     assert squeeze(pom_snippet) in squeeze((EXAMPLE / "pom.xml").read_text())
     assert "{language: java, kind: managed, class: cast.examples.MyComponent" in blocks("yaml")[0]
