@@ -9,6 +9,7 @@ same exception whether its WM is in-process or remote.
 from __future__ import annotations
 
 __all__ = [
+    "ERROR_TRAILER",
     "AlreadyExistsError",
     "CastError",
     "ConsistencyError",
@@ -22,6 +23,7 @@ __all__ = [
     "PermissionDeniedError",
     "ResourceExhaustedError",
     "SchemaConflictError",
+    "TaskStateError",
     "UnauthenticatedError",
     "UnavailableError",
     "error_for_code",
@@ -76,6 +78,14 @@ class SchemaConflictError(LockedError):
 
     Clients see it as their FAILED_PRECONDITION error (LockedError): the
     status code, not the class, travels.
+    """
+
+
+class TaskStateError(LockedError):
+    """A task call its task's state does not allow, e.g. completing a task that is still waiting.
+
+    FAILED_PRECONDITION on the wire, with the class named in the ``cast-error``
+    trailer so that a client tells it from a lock refusal.
     """
 
 
@@ -152,9 +162,25 @@ _BY_CODE: dict[str, type[CastError]] = {
 }
 
 
-def error_for_code(code_name: str, message: str) -> CastError:
-    """Return the named error for a gRPC status code name (``"NOT_FOUND"``, ...)."""
+ERROR_TRAILER = "cast-error"
+"""Trailing metadata key naming the error's class when a status code is shared by several."""
+
+
+_BY_NAME: dict[str, type[CastError]] = {
+    cls.__name__: cls for cls in (SchemaConflictError, TaskStateError, NoSessionError)
+}
+
+
+def error_for_code(code_name: str, message: str, name: str = "") -> CastError:
+    """Return the named error for a gRPC status code name (``"NOT_FOUND"``, ...).
+
+    ``name`` (the ``cast-error`` trailer) picks a more precise class of that
+    code, such as TaskStateError for FAILED_PRECONDITION; an unknown one is ignored.
+    """
     cls = _BY_CODE.get(code_name, CastError)
+    precise = _BY_NAME.get(name)
+    if precise is not None and precise.code == code_name:
+        cls = precise
     err = cls(message)
     if cls is CastError:
         err.code = code_name

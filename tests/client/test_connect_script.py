@@ -72,7 +72,7 @@ def test_connect_with_an_explicit_token_and_what_it_says_when_nothing_is_found(
         assert wm.component_id == "explicit"
         with pytest.raises(cast.PermissionDeniedError):  # not privileged: its own SA only
             wm.add("y", StringValue(), subarchitecture="language")
-    with pytest.raises(cast.InvalidArgumentError, match="the token is for component .explicit. .* told component .other."):
+    with pytest.raises(cast.InvalidArgumentError, match="token is for component .explicit. .* told component .other."):
         cast.connect(server.endpoint, server.token("explicit", "vision"), component_id="other", env={})
     with pytest.raises(cast.NotFoundError, match="no running system found"):
         cast.connect(env={}, runtime_dir=tmp_path / "none")

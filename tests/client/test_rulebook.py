@@ -188,6 +188,23 @@ def bad_input_is_refused_by_name(make: Any) -> None:
         a.add("dup", Counter())
 
 
+
+
+@rule
+def completing_a_waiting_task_is_a_task_state_error_over_any_transport(make: Any) -> None:
+    from cast.errors import TaskStateError
+
+    m = make(Manager, "m")
+    m.start()
+    first = m.propose_task("first")
+    second = m.propose_task("second")  # fifo, one at a time: it waits
+    wait_for(lambda: len(m.decisions) == 1)
+    with pytest.raises(TaskStateError, match="waiting, not adopted") as err:
+        m.task_complete(second)
+    assert isinstance(err.value, cast.LockedError)  # and still the FAILED_PRECONDITION family
+    m.task_complete(first)
+
+
 @pytest.mark.parametrize("name", sorted(RULES))
 def test_rule_holds_in_every_transport(make_component: Any, name: str) -> None:
     RULES[name](make_component)

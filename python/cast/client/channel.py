@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import random
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import grpc
 
 from cast.client.credentials import ClientTls
-from cast.errors import CastError, UnavailableError, error_for_code
+from cast.errors import ERROR_TRAILER, CastError, UnavailableError, error_for_code
 from cast.v1 import directory_pb2_grpc as dir_grpc
 from cast.v1 import task_manager_pb2_grpc as tm_grpc
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
@@ -53,7 +53,12 @@ def map_rpc_error(exc: grpc.RpcError) -> CastError:
             f"server unavailable ({details}): a write made by this call may or may not have been applied; the "
             "client reconnects by itself, retry the call later"
         )
-    return error_for_code(name, details or name)
+    trailer = ""
+    metadata: Any = exc.trailing_metadata() if hasattr(exc, "trailing_metadata") else None
+    for key, value in metadata or ():
+        if key == ERROR_TRAILER:
+            trailer = value if isinstance(value, str) else value.decode()
+    return error_for_code(name, details or name, trailer)
 
 
 

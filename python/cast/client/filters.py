@@ -7,7 +7,7 @@ the filter is registered with ``on_change``, so helpers need no component.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from google.protobuf.message import Message
 
@@ -39,29 +39,19 @@ def type_name(t: TypeLike) -> str:
 
 
 @dataclass(frozen=True)
-class ChangeFilter:
-    """Which events to deliver: every set field must match (empty matches anything)."""
+class ChangeFilter(EventFilter):
+    """Which events to deliver: the core's :class:`EventFilter`, whose SA may be "the component's own".
 
-    operations: frozenset[Operation] = frozenset()
-    type: str = ""
-    id: str = ""
-    subarchitecture: str = ""
-    source_component: str = ""
-    source_subarchitecture: str = ""
-    include_entry: bool = False
+    Every set field must match; empty fields match anything. The fields are the
+    core's, so a filter means the same in process and over the wire.
+    """
 
     def resolve(self, own_subarchitecture: str) -> EventFilter:
         """The core filter, with a local SA placeholder replaced by ``own_subarchitecture``."""
-        sa = own_subarchitecture if self.subarchitecture == LOCAL else self.subarchitecture
-        return EventFilter(
-            self.operations,
-            self.type,
-            self.id,
-            sa,
-            self.source_component,
-            self.source_subarchitecture,
-            self.include_entry,
-        )
+        values = {f.name: getattr(self, f.name) for f in fields(EventFilter)}
+        if self.subarchitecture == LOCAL:
+            values["subarchitecture"] = own_subarchitecture
+        return EventFilter(**values)
 
     def with_entry(self) -> ChangeFilter:
         """The same filter, asking for the entry in each event."""

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from cast.core.host import MemoryHost
 from cast.core.policies import AlwaysPolicy, TaskPolicy
 from cast.core.records import EntryRecord, Identity, no_session
-from cast.errors import InvalidArgumentError, LockedError, NoSessionError, NotFoundError, PermissionDeniedError
+from cast.errors import InvalidArgumentError, NoSessionError, NotFoundError, PermissionDeniedError, TaskStateError
 
 __all__ = ["TaskBoard", "TaskOutcome", "TaskRecord", "TaskState"]
 
@@ -187,7 +187,7 @@ class TaskBoard:
         with self._mutex:
             task = self._own(who, task_id)
             if task.state is not TaskState.ADOPTED:
-                raise LockedError(
+                raise TaskStateError(
                     f"task '{task_id}' is {task.state.name.lower()}, not adopted: only adopted tasks complete "
                     "(retract a waiting one instead)"
                 )

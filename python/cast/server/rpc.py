@@ -11,7 +11,7 @@ import grpc
 
 from cast.auth import TokenSigner
 from cast.core.records import Identity
-from cast.errors import CastError, UnauthenticatedError
+from cast.errors import ERROR_TRAILER, CastError, UnauthenticatedError, error_for_code
 
 __all__ = ["ANONYMOUS", "Authenticator", "Context", "rpc", "stream_rpc"]
 
@@ -61,8 +61,18 @@ class Authenticator:
         )
 
 
+# The classes a status code maps to by itself: no trailer needed.
+_PLAIN = frozenset(type(error_for_code(code, "")).__name__ for code in (
+    "ALREADY_EXISTS", "NOT_FOUND", "ABORTED", "PERMISSION_DENIED", "FAILED_PRECONDITION", "INVALID_ARGUMENT",
+    "UNAUTHENTICATED", "DEADLINE_EXCEEDED", "OUT_OF_RANGE", "RESOURCE_EXHAUSTED", "UNAVAILABLE", "INTERNAL",
+))
+
+
 async def _abort(context: Context, exc: BaseException) -> None:
     if isinstance(exc, CastError):
+        if type(exc).__name__ not in _PLAIN:
+            # Several errors share a status code: name the class, so clients raise the same one.
+            context.set_trailing_metadata(((ERROR_TRAILER, type(exc).__name__),))
         await context.abort(grpc.StatusCode[exc.code], exc.message)
     log.exception("internal error in %s", context)
     await context.abort(grpc.StatusCode.INTERNAL, f"internal server error: {type(exc).__name__}: {exc}")
