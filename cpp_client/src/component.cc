@@ -111,6 +111,31 @@ std::shared_ptr<CastError> WatchHandle::error() const {
 
 // ---------------------------------------------------------------- Component
 
+namespace {
+
+// Takes the privilege from the identity the server verified at Register (its
+// word, not the token's claims: it is what the server enforces). Returns the
+// error message when the server verified the token as another component or
+// SA than the one the component was started as; nullopt otherwise, also when
+// the transport does not say (the component then keeps what it was given).
+std::optional<std::string> adoptVerifiedIdentity(ComponentCore& c) {
+  const std::optional<Identity> verified = c.transport_->verifiedIdentity();
+  if (!verified) return std::nullopt;
+  const Identity& started = c.identity;
+  if (verified->componentId != started.componentId || verified->subarchitecture != started.subarchitecture) {
+    return "this component was started as '" + started.componentId + "' in subarchitecture '" +
+           started.subarchitecture + "' (CAST_COMPONENT_ID, CAST_SUBARCHITECTURE), but the server verified its " +
+           "token as '" + verified->componentId + "' in subarchitecture '" + verified->subarchitecture +
+           "': the token was issued for another component; give it a token for '" + started.componentId +
+           "' (`cast token " + started.componentId + " --sa " + started.subarchitecture +
+           "`), or start it with `cast run CONFIG`";
+  }
+  c.identity.privileged = verified->privileged;
+  return std::nullopt;
+}
+
+}  // namespace
+
 Component::Component() : core_(std::make_shared<ComponentCore>(this)) {}
 
 Component::~Component() {
@@ -226,6 +251,12 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
     auto core = weakState.lock();
     return core ? core->state.load() : ComponentState::Stopping;
   });
+  if (auto mismatch = adoptVerifiedIdentity(c)) {
+    // Nothing may act under an identity that is not the component's: the
+    // connection closes now, before any hook runs.
+    close();
+    throw detail::IdentityMismatchError(*mismatch);
+  }
   onBound();
 }
 

@@ -15,6 +15,16 @@
 
 namespace cast::detail {
 
+// The server verified the token as another component (or SA) than the one
+// the component was started as. An InvalidArgumentError to whoever catches
+// it; its own type only so that the runner can tell it from a failed start
+// and exit 2, as for any other launch-contract error.
+class IdentityMismatchError : public InvalidArgumentError {
+ public:
+  using InvalidArgumentError::InvalidArgumentError;
+  [[noreturn]] void raise() const override { throw *this; }
+};
+
 class ComponentCore {
  public:
   explicit ComponentCore(Component* owner) : owner(owner) {}

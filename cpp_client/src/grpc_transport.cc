@@ -308,8 +308,13 @@ class GrpcTransport final : public Transport {
   // ---------------------------------------------------------------- sessions
 
   void startSession(const std::string& language, const std::string& kind, StateSource state) override {
-    session_.start(allServers(), language, kind, std::move(state));
+    std::vector<Server*> servers = allServers();
+    // The directory first: the component learns who it is from the server it dialled.
+    std::stable_partition(servers.begin(), servers.end(), [this](Server* s) { return s == directory_; });
+    session_.start(servers, language, kind, std::move(state));
   }
+
+  std::optional<Identity> verifiedIdentity() const override { return session_.verifiedIdentity(); }
 
   void stateChanged() override { session_.stateChanged(); }
 

@@ -10,6 +10,7 @@
 
 #include "cast/grpc_transport.h"
 #include "cast/log.h"
+#include "component_core.h"
 #include "process_env.h"
 
 extern char** environ;
@@ -83,10 +84,7 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   return c;
 }
 
-Identity LaunchContract::identity() const {
-  auto claimed = peekToken(token);
-  return Identity{componentId, subarchitecture, claimed && claimed->privileged};
-}
+Identity LaunchContract::identity() const { return Identity{componentId, subarchitecture, false}; }
 
 std::shared_ptr<detail::Transport> LaunchContract::connect() const {
   TransportOptions options;
@@ -183,6 +181,11 @@ int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc
   }
   try {
     return runComponent(*component, std::move(transport), contract.args);
+  } catch (const detail::IdentityMismatchError& e) {
+    // bind() found that the token is another component's: the launch
+    // environment is wrong, not the component (bind already closed the connection).
+    std::cerr << "cast: " << e.message() << std::endl;
+    return 2;
   } catch (...) {
     // bind() failing (Register refused, server gone) ends here.
     std::cerr << "cast: " << contract.componentId << ": " << describe(std::current_exception()) << std::endl;

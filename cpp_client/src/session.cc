@@ -29,6 +29,11 @@ void Session::start(const std::vector<Server*>& servers, const std::string& lang
   }
 }
 
+std::optional<Identity> Session::verifiedIdentity() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return verified_;
+}
+
 void Session::stateChanged() {
   {
     std::lock_guard<std::mutex> lock(mu_);
@@ -68,6 +73,11 @@ Millis Session::registerWith(Link& link, const std::string& language, const std:
       *tokens_, timeout_, [&](auto* ctx, auto* r) { return s.dir->Register(ctx, req, r); });
   std::lock_guard<std::mutex> lock(mu_);
   link.sessionId = resp.session_id();
+  // The first answer is kept: every server verifies the same token, and a
+  // registration after a reconnect must not change who a running component is.
+  if (!verified_ && !resp.component_id().empty()) {
+    verified_ = Identity{resp.component_id(), resp.subarchitecture(), resp.privileged()};
+  }
   return Millis(std::max<std::int64_t>(50, resp.lease_ms() / 3));
 }
 

@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -27,11 +28,16 @@ class Session {
   Session(const Session&) = delete;
   Session& operator=(const Session&) = delete;
 
-  // Registers with each of `servers` in turn and starts its heartbeat; throws
+  // Registers with each of `servers` in turn (the directory first: its answer
+  // says who the component is) and starts its heartbeat; throws
   // what a refused or failed Register throws (heartbeats already started end
   // with close()).
   void start(const std::vector<Server*>& servers, const std::string& language, const std::string& kind,
              StateSource state);
+  // The identity the first server registered with verified from the token
+  // (RegisterResponse); nullopt before start() or if that server does not
+  // say (one older than RegisterResponse's identity fields).
+  std::optional<Identity> verifiedIdentity() const;
   // Reports the component's state now rather than at the next heartbeat.
   void stateChanged();
   // Ends every session and joins the heartbeat threads. Ending a heartbeat
@@ -56,12 +62,13 @@ class Session {
   std::shared_ptr<TokenSource> tokens_;
   Millis timeout_;
   Logger log_;
-  std::mutex mu_;
+  mutable std::mutex mu_;
   std::condition_variable wake_;  // a state change or close(): heartbeat at once
   bool closing_ = false;          // guarded by mu_; closingEvent_ is the same, for interruptible waits
   Closing closingEvent_;
   std::uint64_t stateVersion_ = 0;  // bumped by stateChanged(); guarded by mu_
   std::vector<std::unique_ptr<Link>> links_;  // guarded by mu_
+  std::optional<Identity> verified_;          // guarded by mu_
 };
 
 }  // namespace cast::detail

@@ -115,6 +115,30 @@ def test_refused_token_and_unreachable_server_exit_2(server: Any) -> None:
     assert status == 2 and "server unavailable" in out, out
 
 
+def test_a_token_for_another_component_exits_2_naming_both(server: Any) -> None:
+    # The server says whom it verified the token for when the component registers;
+    # a launch environment that says otherwise is refused before any hook runs.
+    env = server.env("cwriter", "vision")
+    env["CAST_TOKEN"] = server.token("cother", "vision")
+    status, out = run_once(env)
+    assert status == 2, out
+    assert "started as 'cwriter' in subarchitecture 'vision'" in out, out
+    assert "verified its token as 'cother' in subarchitecture 'vision'" in out, out
+    assert '"ready"' not in out, "start() ran under another component's identity"
+    env["CAST_TOKEN"] = server.token("cwriter", "language")
+    status, out = run_once(env)
+    assert status == 2, out
+    assert "verified its token as 'cwriter' in subarchitecture 'language'" in out, out
+    # Registering is how it learnt the verified identity, so the server saw a session
+    # under the token's identity; it never got further than STARTING (it ends with its
+    # heartbeat stream, or at lease expiry if the refusal came before that stream opened).
+    tool = server.token("tool", "vision")
+    for component_id in ("cother", "cwriter"):
+        info = components(server.endpoint, tool).get(component_id)
+        assert info is None or info.state in (directory_pb2.COMPONENT_STATE_STARTING,
+                                              directory_pb2.COMPONENT_STATE_DISCONNECTED), info
+
+
 def test_a_failing_hook_exits_1(server: Any) -> None:
     env = server.env("cfail", "vision", args={"mode": "nonsense"})
     status, out = run_once(env, "cast_test_fidelity")

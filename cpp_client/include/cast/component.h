@@ -141,8 +141,11 @@ class Component {
   virtual const char* kind() const { return "unmanaged"; }
 
   // ------------------------------------------------------------ identity
+  // Who the component is (from bind() on): its id and SA, which the server
+  // verified from the token to be the ones it was started as.
   const std::string& componentId() const;
   const std::string& subarchitecture() const;
+  // Whether it may write every SA, as the server verified it at Register.
   bool privileged() const;
   // A logger named after the component (cast.component.<id>).
   const Logger& log() const;
@@ -231,7 +234,11 @@ class Component {
 
   // ------------------------------------------------------------ binding
   // Attaches the component to a working memory system (the runner does this;
-  // tests and embedding programs may too). Starts the session.
+  // tests and embedding programs may too). Starts the session, and takes the
+  // component's privilege from the identity the server verified; if the
+  // server verified the token as another component or SA than the
+  // transport's identity(), closes the connection and throws
+  // InvalidArgumentError naming both.
   void bind(std::shared_ptr<detail::Transport> transport, const std::string& language = "cpp");
   // Ends the session and stops the dispatcher (after running what is queued).
   // Idempotent; the destructor calls it too, but call it before a derived

@@ -6,11 +6,13 @@
 //
 // makes an executable that reads CAST_ENDPOINT, CAST_COMPONENT_ID,
 // CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), and
-// optionally CAST_TOKEN_FILE and CAST_TLS_* (see cast/grpc_transport.h), connects,
+// optionally CAST_TOKEN_FILE and CAST_TLS_* (see cast/credentials.h), connects,
 // calls configure(args), start(), run(), and stop() once on SIGINT/SIGTERM,
 // on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
-// failed, 2 bad launch environment (missing variables, bad CAST_ARGS, or a
-// system that refuses the token or cannot be reached at start).
+// failed, 2 bad launch environment (missing variables, bad CAST_ARGS, a
+// system that refuses the token or cannot be reached at start, or a token the
+// server verified as another component or SA than CAST_COMPONENT_ID and
+// CAST_SUBARCHITECTURE name).
 #pragma once
 
 #include <functional>
@@ -21,8 +23,8 @@
 
 #include "cast/args.h"
 #include "cast/component.h"
+#include "cast/credentials.h"
 #include "cast/grpc_transport.h"
-#include "cast/token.h"  // peekToken, which identity() uses
 #include "cast/transport.h"
 
 namespace cast {
@@ -43,8 +45,10 @@ struct LaunchContract {
   // The same from a given environment (for tests).
   static LaunchContract fromEnv(const std::map<std::string, std::string>& env);
 
-  // The component's identity; privileged as the token claims (the server
-  // verifies the token, the client only reads it).
+  // The component's identity as the environment states it, not privileged:
+  // the token is not decoded here. Component::bind learns the privilege from
+  // the server, which verifies the token at Register, and refuses to start
+  // if the server's identity is another (the runner then exits 2).
   Identity identity() const;
   // A gRPC connection to the system.
   std::shared_ptr<detail::Transport> connect() const;

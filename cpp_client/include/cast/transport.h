@@ -90,6 +90,12 @@ class Transport {
 
   // Registers the component's session(s) and keeps them alive.
   virtual void startSession(const std::string& language, const std::string& kind, StateSource state) = 0;
+  // Who the server says the component is, having verified its token at
+  // Register (RegisterResponse): Component::bind compares it with identity()
+  // and takes the privilege from it, so no client decodes its token to learn
+  // who it is. nullopt before startSession, and from a transport or server
+  // that does not say (bind then keeps identity()).
+  virtual std::optional<Identity> verifiedIdentity() const { return std::nullopt; }
   // The component's state changed: report it now rather than at the next
   // heartbeat, so tools see RUNNING / STOPPING when it happens.
   virtual void stateChanged() {}

@@ -209,6 +209,13 @@ class FakeTransport : public detail::Transport {
     sessionLanguage = language;
     sessionKind = kind;
     state_ = std::move(state);
+    sessionStarted_ = true;
+  }
+
+  // What `verified` says, once the session is registered (as a server answers Register).
+  std::optional<Identity> verifiedIdentity() const override {
+    std::lock_guard<std::mutex> lock(mu_);
+    return sessionStarted_ ? verified : std::nullopt;
   }
 
   ComponentState reportedState() {
@@ -236,6 +243,8 @@ class FakeTransport : public detail::Transport {
   std::string sessionLanguage;
   std::string sessionKind;
   bool closed = false;
+  // The identity the fake server "verified from the token"; nullopt: it does not say.
+  std::optional<Identity> verified;
 
  private:
   static bool matches(const ChangeFilter& f, Operation op, const detail::EntryRecord& r, const Identity& who) {
@@ -278,7 +287,8 @@ class FakeTransport : public detail::Transport {
   }
 
   Identity identity_;
-  std::mutex mu_;
+  mutable std::mutex mu_;
+  bool sessionStarted_ = false;
   std::map<std::string, detail::EntryRecord> entries_;
   std::map<std::string, std::uint32_t> locks_;
   std::map<std::uint32_t, std::vector<ChangeFilter>> watches_;

@@ -1,4 +1,4 @@
-// The launch contract and token reading of the runner.
+// The launch contract of the runner: what it reads from the environment.
 #include <gtest/gtest.h>
 
 #include "cast/runner.h"
@@ -58,17 +58,19 @@ TEST(LaunchContract, TokenFileAndTlsArePartOfIt) {
   EXPECT_THROW(cast::LaunchContract::fromEnv(env), cast::InvalidArgumentError);
 }
 
-// The contract reads its privilege from the token's claims (cast::peekToken,
-// tested in token_test.cc).
-TEST(LaunchContract, PrivilegeComesFromTheToken) {
+// The contract does not decode the token: its identity is the environment's,
+// and the privilege comes from the server at Register (session_test.cc).
+TEST(LaunchContract, TheIdentityIsTheEnvironmentsNotTheTokens) {
   auto env = fullEnv();
   // PyJWT: {"c": "planner", "s": "coordination", "p": true, "iat": 1700000000, "exp": 1700003600}.
   env["CAST_TOKEN"] =
       "eyJhbGciOiJIUzI1NiIsInR5cCI6IkpXVCJ9."
       "eyJjIjoicGxhbm5lciIsInMiOiJjb29yZGluYXRpb24iLCJwIjp0cnVlLCJpYXQiOjE3MDAwMDAwMDAsImV4cCI6MTcwMDAwMzYwMH0."
       "mON1cpsY000YjhzfewPiFgGFw69BHVWWsbe6zfS8uGs";
-  EXPECT_TRUE(cast::LaunchContract::fromEnv(env).identity().privileged);
-  EXPECT_FALSE(cast::LaunchContract::fromEnv(fullEnv()).identity().privileged);  // "abc.def" claims nothing
+  const cast::Identity identity = cast::LaunchContract::fromEnv(env).identity();
+  EXPECT_EQ(identity.componentId, "segmenter");
+  EXPECT_EQ(identity.subarchitecture, "vision");
+  EXPECT_FALSE(identity.privileged);
 }
 
 }  // namespace
