@@ -190,10 +190,11 @@ from cast.client.runner import LaunchContract
 from google.protobuf.wrappers_pb2 import BytesValue
 n_watchers, expected = int(sys.argv[1]), int(sys.argv[2])
 base = LaunchContract.from_env()
+tokens = json.loads(sys.argv[3])  # one per watcher: each is its own component
 done = threading.Event()
 results = []
 for w in range(n_watchers):
-    contract = LaunchContract(base.endpoint, f"{base.component_id}-{w}", base.subarchitecture, base.token, {})
+    contract = LaunchContract(base.endpoint, f"{base.component_id}-{w}", base.subarchitecture, tokens[w], {})
     c = cast.UnmanagedComponent()
     c._cast_bind(contract.connect())
     state = {"count": 0, "last": 0, "out_of_order": 0, "duplicates": 0, "end": 0.0}
@@ -223,9 +224,11 @@ def m4_fanout(server: Server, events: int, watchers: int = 16, processes: int = 
     procs = []
     for p in range(processes):
         env = {**os.environ, **server.env(f"fan{p}", "fanout"), "PYTHONPATH": str(ROOT / "python")}
-        # Tokens name the component; each watcher in a process uses the process's token (same SA, reads only).
+        # Tokens name the component (the server checks them at Register): one per watcher of the process.
+        tokens = [server.signer.issue(Identity(f"fan{p}-{w}", "fanout")) for w in range(per_proc)]
         proc = subprocess.Popen(
-            [PYTHON, "-c", FANOUT_WATCHER, str(per_proc), str(events)], env=env, stdout=subprocess.PIPE, text=True
+            [PYTHON, "-c", FANOUT_WATCHER, str(per_proc), str(events), json.dumps(tokens)], env=env,
+            stdout=subprocess.PIPE, text=True,
         )
         procs.append(proc)
     for proc in procs:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from cast.core.checks import TypeChecker, check_id, locked_message, missing_message
-from cast.core.memory import WorkingMemory
+from cast.core.memory import LockState, WorkingMemory
 from cast.core.records import SYSTEM_TYPES, BatchOp, EntryRecord, Identity, Limits, LockMode, Operation, system_entry
 from cast.core.room import Room, Tally
 from cast.core.versions import check_outran, next_version
@@ -140,52 +140,9 @@ class WritePlanner:
             lock = None  # deleted earlier in this batch: its lock went with it
         now = now or self._clock()
         if op.operation is Operation.ADD:
-            if current is not None:
-                raise AlreadyExistsError(
-                    f"entry '{entry_id}' already exists in subarchitecture '{sa}' (version {current.version}, "
-                    f"type {current.type}): use overwrite to change it, or new_id() for a fresh id"
-                )
-            delta = tally.entries.get(sa, 0) if tally is not None else 0
-            if wm.latest_count() + delta >= self.limits.max_entries:
-                raise ResourceExhaustedError(
-                    f"subarchitecture '{sa}' holds {wm.latest_count() + delta} entries, the limit "
-                    f"(limits.max_entries = {self.limits.max_entries}): delete entries or raise the limit"
-                )
-            if self._validator is not None:
-                self._validator(op.type, op.data)
-            version = next_version(deleted_version, self.version_floor)
-            if version * 1000 > now:  # only a floored version can be near the clock (cast.core.versions)
-                check_outran(version, self.version_floor, now, sa, entry_id)
-            record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
-            planned = Planned(wm, Operation.ADD, record, None, who)
-            if tally is not None:
-                tally.entries[sa] = delta + 1
+            planned = self._plan_add(wm, who, op, current, deleted_version, tally, now)
         else:
-            if current is None:
-                raise NotFoundError(missing_message(sa, entry_id) + f": cannot {op.operation.name.lower()} it")
-            if lock is not None and lock.holder != who.component_id:
-                if op.operation is Operation.OVERWRITE or lock.mode is not LockMode.O:
-                    raise LockedError(locked_message(sa, entry_id, lock, op.operation.name.lower()))
-            if op.expected_version is not None and op.expected_version != current.version:
-                raise ConsistencyError(
-                    f"entry '{entry_id}' in subarchitecture '{sa}' is at version {current.version}, "
-                    f"expected {op.expected_version}: it was changed by '{current.author}'; read it again "
-                    "and retry"
-                )
-            if op.operation is Operation.OVERWRITE:
-                if self._validator is not None:
-                    self._validator(op.type, op.data)
-                version = current.version + 1
-                if version < self.version_floor:
-                    version = self.version_floor
-                if version * 1000 > now:
-                    check_outran(version, self.version_floor, now, sa, entry_id)
-                record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
-                planned = Planned(wm, Operation.OVERWRITE, record, current, who)
-            else:
-                planned = Planned(wm, Operation.DELETE, None, current, who)
-                if tally is not None:
-                    tally.entries[sa] = tally.entries.get(sa, 0) - 1
+            planned = self._plan_change(wm, who, op, current, lock, tally, now)
         room = self.room
         grows = (planned.record.size if planned.record is not None else 0) - (current.size if current else 0)
         if tally is not None or room.quotas or wm.total_bytes + grows > room.limits.max_total_bytes:
@@ -194,3 +151,60 @@ class WritePlanner:
             deleted = current.version if planned.record is None and current is not None else None
             overlay[key] = Slot(planned.record, deleted)
         return planned
+
+    def _plan_add(
+        self, wm: WorkingMemory, who: Identity, op: BatchOp, current: EntryRecord | None,
+        deleted_version: int | None, tally: Tally | None, now: int,
+    ) -> Planned:
+        sa, entry_id = op.subarchitecture, op.id
+        if current is not None:
+            raise AlreadyExistsError(
+                f"entry '{entry_id}' already exists in subarchitecture '{sa}' (version {current.version}, "
+                f"type {current.type}): use overwrite to change it, or new_id() for a fresh id"
+            )
+        delta = tally.entries.get(sa, 0) if tally is not None else 0
+        if wm.latest_count() + delta >= self.limits.max_entries:
+            raise ResourceExhaustedError(
+                f"subarchitecture '{sa}' holds {wm.latest_count() + delta} entries, the limit "
+                f"(limits.max_entries = {self.limits.max_entries}): delete entries or raise the limit"
+            )
+        if self._validator is not None:
+            self._validator(op.type, op.data)
+        version = next_version(deleted_version, self.version_floor)
+        if version * 1000 > now:  # only a floored version can be near the clock (cast.core.versions)
+            check_outran(version, self.version_floor, now, sa, entry_id)
+        if tally is not None:
+            tally.entries[sa] = delta + 1
+        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
+        return Planned(wm, Operation.ADD, record, None, who)
+
+    def _plan_change(
+        self, wm: WorkingMemory, who: Identity, op: BatchOp, current: EntryRecord | None, lock: LockState | None,
+        tally: Tally | None, now: int,
+    ) -> Planned:
+        """An overwrite or a delete: the entry must exist, no other's lock stop it, the version match."""
+        sa, entry_id, action = op.subarchitecture, op.id, op.operation.name.lower()
+        if current is None:
+            raise NotFoundError(missing_message(sa, entry_id) + f": cannot {action} it")
+        if lock is not None and lock.holder != who.component_id:
+            if op.operation is Operation.OVERWRITE or lock.mode is not LockMode.O:
+                raise LockedError(locked_message(sa, entry_id, lock, action))
+        if op.expected_version is not None and op.expected_version != current.version:
+            raise ConsistencyError(
+                f"entry '{entry_id}' in subarchitecture '{sa}' is at version {current.version}, "
+                f"expected {op.expected_version}: it was changed by '{current.author}'; read it again "
+                "and retry"
+            )
+        if op.operation is Operation.DELETE:
+            if tally is not None:
+                tally.entries[sa] = tally.entries.get(sa, 0) - 1
+            return Planned(wm, Operation.DELETE, None, current, who)
+        if self._validator is not None:
+            self._validator(op.type, op.data)
+        version = current.version + 1
+        if version < self.version_floor:
+            version = self.version_floor
+        if version * 1000 > now:
+            check_outran(version, self.version_floor, now, sa, entry_id)
+        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
+        return Planned(wm, Operation.OVERWRITE, record, current, who)

@@ -114,22 +114,11 @@ class Orchestrator:
 
     async def run(self) -> RunResult:
         """Run the system; return when it has shut down."""
-        self.runtime.claim()
-        secret = self.env.get("CAST_SECRET", "").encode() or None
-        if secret:
-            self.runtime.write_secret(secret)
-        else:
-            secret = self.runtime.new_secret()
-        self._signer = TokenSigner(secret)
-        self._security = LaunchSecurity(self.config, self._signer, self.runtime.path)
-        # User policy classes and in-process components import from python_path.
-        sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
+        self._prepare()
         loop = self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            # Not in the main thread (an orchestrator embedded in a test): the caller stops it.
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.add_signal_handler(sig, self._on_signal)
+        self._handle_signals(loop, install=True)
+        assert self._signer is not None and self._security is not None
         servers = self._servers = ServerGroup(self.config, self._signer)
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
@@ -137,20 +126,7 @@ class Orchestrator:
             self.config, self._contract, self.runtime.logs, self.output.component_line, self.output.notice, child_env
         )
         tracker = StatusTracker(self.config, servers, supervisor)
-        self.runtime.write_state({
-            "system": self.config.name,
-            "endpoint": servers.directory.endpoint,
-            "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures}
-                        for s in servers.servers},
-            "config": str(Path(self.config.source).resolve()),
-            "tls": self._security.tls_state(),  # so `cast ls` & co. reach a TLS system unaided
-        })
-        self.output.known_components([c.id for c in self.config.components])
-        self.output.notice(
-            f"system '{self.config.name}': {len(self.config.subarchitectures)} SAs on "
-            + ", ".join(f"{s.config.name} {s.endpoint}" for s in servers.servers)
-            + f"; runtime directory {self.runtime.path}"
-        )
+        self._publish(servers)
         failures: list[str] = []
         connect_seconds: float | None = None
         snapshot: Snapshot | None = None
@@ -173,20 +149,7 @@ class Orchestrator:
                 else:
                     self.connected.set()
                     connect_seconds = time.monotonic() - started
-                    count = sum(1 for c in self.config.components if not c.manual)
-                    finished = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.EXITED]
-                    failed = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.FAILED]
-                    if finished or failed:
-                        # A component that did its work and exited 0 is not a failure to connect: say which is which.
-                        parts = [f"{count - len(finished) - len(failed)} of {count} components running after "
-                                 f"{connect_seconds:.2f} s"]
-                        if finished:
-                            parts.append(f"finished already (exit code 0): {', '.join(finished)}")
-                        if failed:
-                            parts.append(f"failed: {', '.join(failed)}")
-                        self.output.notice("; ".join(parts))
-                    else:
-                        self.output.notice(f"all {count} components connected in {connect_seconds:.2f} s")
+                    self._report_connected(supervisor, connect_seconds)
                 if self.options.run_for is not None and not self._stop.is_set():
                     loop.call_later(self.options.run_for, self._stop.set)
                 await self._stop.wait()
@@ -203,25 +166,69 @@ class Orchestrator:
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
             await servers.stop()
             self.runtime.release()
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                    loop.remove_signal_handler(sig)
-        for sup in supervisor.components.values():
-            cid = sup.config.id
-            if sup.crashes:
-                codes = ", ".join(str(c) for c in sup.crashes)
-                failures.append(f"{cid} crashed {len(sup.crashes)} time(s) (exit codes {codes})")
-            if sup.phase is Phase.FAILED and sup.error:
-                failures.append(f"{cid}: {sup.error}")
-            if sup.stop_code not in (None, 0):
-                failures.append(f"{cid} exited with code {sup.stop_code} when stopped"
-                                + (" (killed)" if sup.process is not None and sup.process.killed else ""))
+            self._handle_signals(loop, install=False)
+        failures.extend(_component_failures(supervisor))
         if snapshot is not None:
             self.output.show(render_summary(snapshot, failures))
             if self.options.summary_json is not None:
                 data = {**snapshot.to_json(), "failures": failures, "connect_seconds": connect_seconds}
                 self.options.summary_json.write_text(json.dumps(data, indent=2))
         return RunResult(failures, snapshot, connect_seconds)
+
+    def _prepare(self) -> None:
+        """Claim the runtime directory, make the secret and the launch security, extend sys.path."""
+        self.runtime.claim()
+        secret = self.env.get("CAST_SECRET", "").encode() or None
+        if secret:
+            self.runtime.write_secret(secret)
+        else:
+            secret = self.runtime.new_secret()
+        self._signer = TokenSigner(secret)
+        self._security = LaunchSecurity(self.config, self._signer, self.runtime.path)
+        # User policy classes and in-process components import from python_path.
+        sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
+
+    def _handle_signals(self, loop: asyncio.AbstractEventLoop, install: bool) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            # Not in the main thread (an orchestrator embedded in a test): the caller stops it.
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                if install:
+                    loop.add_signal_handler(sig, self._on_signal)
+                else:
+                    loop.remove_signal_handler(sig)
+
+    def _publish(self, servers: ServerGroup) -> None:
+        """Record the running system in the runtime directory (for the tools) and say where it runs."""
+        assert self._security is not None
+        self.runtime.write_state({
+            "system": self.config.name,
+            "endpoint": servers.directory.endpoint,
+            "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures}
+                        for s in servers.servers},
+            "config": str(Path(self.config.source).resolve()),
+            "tls": self._security.tls_state(),  # so `cast ls` & co. reach a TLS system unaided
+        })
+        self.output.known_components([c.id for c in self.config.components])
+        self.output.notice(
+            f"system '{self.config.name}': {len(self.config.subarchitectures)} SAs on "
+            + ", ".join(f"{s.config.name} {s.endpoint}" for s in servers.servers)
+            + f"; runtime directory {self.runtime.path}"
+        )
+
+    def _report_connected(self, supervisor: Supervisor, seconds: float) -> None:
+        count = sum(1 for c in self.config.components if not c.manual)
+        finished = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.EXITED]
+        failed = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.FAILED]
+        if not finished and not failed:
+            self.output.notice(f"all {count} components connected in {seconds:.2f} s")
+            return
+        # A component that did its work and exited 0 is not a failure to connect: say which is which.
+        parts = [f"{count - len(finished) - len(failed)} of {count} components running after {seconds:.2f} s"]
+        if finished:
+            parts.append(f"finished already (exit code 0): {', '.join(finished)}")
+        if failed:
+            parts.append(f"failed: {', '.join(failed)}")
+        self.output.notice("; ".join(parts))
 
     async def _wait_connected(self, servers: ServerGroup, supervisor: Supervisor) -> list[str]:
         expected = [c.id for c in self.config.components if not c.manual]
@@ -244,3 +251,19 @@ class Orchestrator:
         while True:
             self.output.update_status(render_status(tracker.snapshot()))
             await asyncio.sleep(self.options.status_interval)
+
+
+def _component_failures(supervisor: Supervisor) -> list[str]:
+    """What went wrong with each component: crashes, start failures, unclean stops."""
+    failures = []
+    for sup in supervisor.components.values():
+        cid = sup.config.id
+        if sup.crashes:
+            codes = ", ".join(str(c) for c in sup.crashes)
+            failures.append(f"{cid} crashed {len(sup.crashes)} time(s) (exit codes {codes})")
+        if sup.phase is Phase.FAILED and sup.error:
+            failures.append(f"{cid}: {sup.error}")
+        if sup.stop_code not in (None, 0):
+            failures.append(f"{cid} exited with code {sup.stop_code} when stopped"
+                            + (" (killed)" if sup.process is not None and sup.process.killed else ""))
+    return failures
