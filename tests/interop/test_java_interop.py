@@ -4,14 +4,30 @@ The scenarios both probes can play are shared with C++ (tests/interop/scenarios_
 
 from __future__ import annotations
 
+import json
+import os
 import threading
+from pathlib import Path
 from typing import Any
 
+import grpc
+import yaml
 from cast_testing_pb2 import Counter, Pose
 
 import cast
+from cast.v1 import directory_pb2, directory_pb2_grpc
 from tests.interop import scenarios_interop as s
-from tests.interop.java_support import counter_json
+from tests.interop.java_support import CastRun, JavaComponent, counter_json, java_classpath
+
+
+def components(server: Any) -> dict[str, directory_pb2.ComponentInfo]:
+    """The components the server knows, by id."""
+    with grpc.insecure_channel(server.endpoint) as channel:
+        stub = directory_pb2_grpc.DirectoryStub(channel)
+        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
+        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
+    return {c.id: c for c in desc.components}
+
 
 # Probes in their own language's commands, and behind the shared driver (for the shared scenarios).
 java = s.starter_fixture("java", raw=True)
@@ -129,3 +145,61 @@ def test_python_sees_java_changes_through_its_own_watch(server: Any, java: Any) 
         assert jc.quit() == 0
     finally:
         py._cast_close()
+
+
+def test_java_component_shows_up_in_the_directory_running_at_once(server: Any, java: Any) -> None:
+    """RUNNING is reported when start() returned, not at the next heartbeat (a third of the lease, seconds)."""
+    import time
+
+    jc = java("jdir", sa="motor")
+    deadline = time.monotonic() + 2
+    while True:
+        info = components(server)["jdir"]
+        if info.state == directory_pb2.COMPONENT_STATE_RUNNING or time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    assert (info.language, info.kind, info.subarchitecture, info.pid) == ("java", "managed", "motor", jc.proc.pid)
+    assert info.state == directory_pb2.COMPONENT_STATE_RUNNING
+    assert jc.quit() == 0
+    assert components(server)["jdir"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+
+
+def test_java_routes_by_sa_across_two_servers(tmp_path: Path) -> None:
+    """SAs on two servers: Java reaches each through the directory, and a global watch covers both."""
+    config = tmp_path / "two.yaml"
+    config.write_text(yaml.safe_dump({
+        "system": "two",
+        "subarchitectures": {"vision": {}, "motor": {}},
+        "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
+    }))
+    java_classpath()  # fails the test if the Java build is missing
+    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    jc = None
+    try:
+        state = json.loads((tmp_path / "runtime" / "system.json").read_text())
+        assert len({s["endpoint"] for s in state["servers"].values()}) == 2, state
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+        env.update(CAST_ENDPOINT=run.endpoint(), CAST_COMPONENT_ID="jrouter", CAST_SUBARCHITECTURE="vision",
+                   CAST_TOKEN=run.token("jrouter", "vision", privileged=True), CAST_ARGS="{}")
+        jc = JavaComponent(env)
+        jc.ready()
+        watch = jc.ok("watch", filters=[{"kind": "global_type", "type": "cast.testing.Counter"}])["watch"]
+        jc.ok("add", id="here", type="cast.testing.Counter", value=counter_json("jrouter", 1))
+        jc.ok("add", id="there", type="cast.testing.Counter", value=counter_json("jrouter", 2), sa="motor")
+        events = jc.ok("watch_stats", watch=watch, expected=2, timeout_ms=10000)["events"]
+        assert sorted((e["sa"], e["id"]) for e in events) == [("motor", "there"), ("vision", "here")]
+        # Each revision counts on its own server: both writes are revision 1 of their WM.
+        assert [int(e["revision"]) for e in events] == [1, 1]
+        py = run.connect("pyrouter", "motor")
+        try:
+            assert py.get("there", Counter).value == 2
+            assert py.get("here", Counter, subarchitecture="vision").value == 1
+        finally:
+            py._cast_close()
+        # A session on each server: both list the component.
+        assert "jrouter" in run.cli("components").stdout
+        assert jc.quit() == 0
+    finally:
+        if jc is not None:
+            jc.close()
+        run.stop()

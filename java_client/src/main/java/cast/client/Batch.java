@@ -1,11 +1,7 @@
 package cast.client;
 
-import cast.v1.AddRequest;
-import cast.v1.BatchOperation;
-import cast.v1.BatchRequest;
-import cast.v1.DeleteRequest;
-import cast.v1.OverwriteRequest;
 import com.google.protobuf.Message;
+import java.util.ArrayList;
 import java.util.List;
 
 /**
@@ -16,22 +12,16 @@ import java.util.List;
 public final class Batch {
   private final Component component;
   private final String subarchitecture;
-  private final BatchRequest.Builder request = BatchRequest.newBuilder();
+  private final List<Transport.Write> writes = new ArrayList<>();
 
   Batch(Component component, String subarchitecture) {
     this.component = component;
     this.subarchitecture = subarchitecture;
   }
 
-  private cast.v1.EntryAddress addr(String id) {
-    return new WorkingMemoryAddress(id, subarchitecture).toProto();
-  }
-
   /** Add an entry. */
   public Batch add(String id, Message value) {
-    request.addOperations(
-        BatchOperation.newBuilder()
-            .setAdd(AddRequest.newBuilder().setAddress(addr(id)).setValue(component.serialise(value))));
+    writes.add(new Transport.Write(Operation.ADD, id, component.serialise(value), null));
     return this;
   }
 
@@ -42,11 +32,7 @@ public final class Batch {
 
   /** Overwrite an entry if its version is {@code expectedVersion} (null: any version). */
   public Batch overwrite(String id, Message value, Long expectedVersion) {
-    var b = OverwriteRequest.newBuilder().setAddress(addr(id)).setValue(component.serialise(value));
-    if (expectedVersion != null) {
-      b.setExpectedVersion(expectedVersion);
-    }
-    request.addOperations(BatchOperation.newBuilder().setOverwrite(b));
+    writes.add(new Transport.Write(Operation.OVERWRITE, id, component.serialise(value), expectedVersion));
     return this;
   }
 
@@ -57,24 +43,20 @@ public final class Batch {
 
   /** Delete an entry if its version is {@code expectedVersion} (null: any version). */
   public Batch deleteEntry(String id, Long expectedVersion) {
-    var b = DeleteRequest.newBuilder().setAddress(addr(id));
-    if (expectedVersion != null) {
-      b.setExpectedVersion(expectedVersion);
-    }
-    request.addOperations(BatchOperation.newBuilder().setDelete(b));
+    writes.add(new Transport.Write(Operation.DELETE, id, null, expectedVersion));
     return this;
   }
 
   /** How many writes are queued. */
   public int size() {
-    return request.getOperationsCount();
+    return writes.size();
   }
 
   /** Apply the writes; one result per write, in order. */
   public List<WriteResult> apply() {
-    if (request.getOperationsCount() == 0) {
+    if (writes.isEmpty()) {
       return List.of();
     }
-    return component.applyBatch(subarchitecture, request.build());
+    return component.applyBatch(subarchitecture, List.copyOf(writes));
   }
 }

@@ -18,8 +18,9 @@ public final class Cast {
   /**
    * Connects as {@code options} say, looking up what they leave unset. NotFoundError
    * saying what to give when no system or token can be found (InvalidArgumentError for
-   * a missing subarchitecture or options that contradict the token), UnavailableError
-   * when nothing answers at the endpoint, UnauthenticatedError when the token is refused.
+   * a missing subarchitecture, or options that contradict whom the server says the token
+   * was issued to), UnavailableError when nothing answers at the endpoint,
+   * UnauthenticatedError when the token is refused (not a CAST token, expired, forged).
    */
   public static Connection connect(ConnectOptions options) {
     ConnectResolver.Resolved found =
@@ -43,12 +44,26 @@ public final class Cast {
     } catch (IllegalArgumentException e) { // an endpoint grpc cannot parse as host:port
       throw new InvalidArgumentError(
           "bad endpoint '" + contract.endpoint() + "' (from " + found.endpointSource() + "): " + e.getMessage());
+    } catch (UnauthenticatedError e) { // a system whose reads need a token refused it already
+      throw refused(found, e);
     }
     try {
-      return new Connection(transport);
+      return new Connection(transport, found::verify);
+    } catch (UnauthenticatedError e) {
+      throw refused(found, e);
     } catch (RuntimeException e) {
       transport.close();
       throw e;
     }
+  }
+
+  /** The server's refusal of the token, saying where the token came from and how to get one. */
+  private static UnauthenticatedError refused(ConnectResolver.Resolved found, UnauthenticatedError e) {
+    return new UnauthenticatedError(
+        "the server refused the token from "
+            + found.tokenSource()
+            + ": "
+            + e.getMessage()
+            + " (`cast token COMPONENT_ID --sa SA` prints one)");
   }
 }

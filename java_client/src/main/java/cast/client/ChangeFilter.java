@@ -117,22 +117,6 @@ public final class ChangeFilter {
     return new ChangeFilter(operations, type, id, subarchitecture, sourceComponent, sa, includeEntry);
   }
 
-  /** The wire filter, with a local SA resolved to {@code ownSubarchitecture}. */
-  public cast.v1.ChangeFilter toProto(String ownSubarchitecture) {
-    cast.v1.ChangeFilter.Builder b =
-        cast.v1.ChangeFilter.newBuilder()
-            .setType(type)
-            .setId(id)
-            .setSubarchitecture(subarchitecture == null ? ownSubarchitecture : subarchitecture)
-            .setSourceComponent(sourceComponent)
-            .setSourceSubarchitecture(sourceSubarchitecture)
-            .setIncludeEntry(includeEntry);
-    for (Operation op : operations) {
-      b.addOperations(op.toProto());
-    }
-    return b.build();
-  }
-
   @Override
   public boolean equals(Object o) {
     if (!(o instanceof ChangeFilter)) {

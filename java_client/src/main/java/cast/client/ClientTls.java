@@ -1,9 +1,5 @@
 package cast.client;
 
-import io.grpc.ChannelCredentials;
-import io.grpc.TlsChannelCredentials;
-import java.io.File;
-import java.io.IOException;
 import java.util.Map;
 
 /**
@@ -40,19 +36,5 @@ public record ClientTls(String ca, String cert, String key, String serverName) {
 
   private static String blankToNull(String s) {
     return s == null || s.isEmpty() ? null : s;
-  }
-
-  /** gRPC channel credentials; InvalidArgumentError naming a file that cannot be read. */
-  ChannelCredentials credentials() {
-    try {
-      TlsChannelCredentials.Builder b = TlsChannelCredentials.newBuilder().trustManager(new File(ca));
-      if (cert != null) {
-        b.keyManager(new File(cert), new File(key));
-      }
-      return b.build();
-    } catch (IOException | RuntimeException e) {
-      throw new InvalidArgumentError(
-          "cannot read a TLS file (CAST_TLS_CA/CERT/KEY; PEM, the key PKCS#8): " + e.getMessage());
-    }
   }
 }

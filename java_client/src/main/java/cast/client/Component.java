@@ -7,14 +7,10 @@ import java.time.Duration;
 import java.util.ArrayList;
 import java.util.HexFormat;
 import java.util.List;
-import java.util.Map;
-import java.util.Set;
-import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
-import java.util.concurrent.atomic.AtomicInteger;
 import java.util.concurrent.atomic.AtomicLong;
-import java.util.logging.Level;
+import java.util.function.Consumer;
 import java.util.logging.Logger;
 
 /**
@@ -32,18 +28,14 @@ import java.util.logging.Logger;
 public abstract class Component implements AutoCloseable {
   private static final SecureRandom RANDOM = new SecureRandom();
 
-  private GrpcTransport transport;
+  private Transport transport;
+  private Identity identity; // as the server verified it from the token
   private Dispatcher dispatcher;
   private String idPrefix;
   private final AtomicLong idCounter = new AtomicLong();
-  private final AtomicInteger watchIds = new AtomicInteger();
-  private final Map<Integer, Registration> callbacks = new ConcurrentHashMap<>();
-  private final Set<String> registeredTypes = ConcurrentHashMap.newKeySet();
-  private final Object schemaLock = new Object();
+  private final Schemas.Registered schemas = new Schemas.Registered();
   private final CountDownLatch stopping = new CountDownLatch(1);
-  private volatile cast.v1.ComponentState state = cast.v1.ComponentState.COMPONENT_STATE_STARTING;
-
-  private record Registration(ChangeCallback callback, WatchHandle handle) {}
+  private volatile ComponentState state = ComponentState.STARTING;
 
   // ------------------------------------------------------------- lifecycle
 
@@ -66,20 +58,34 @@ public abstract class Component implements AutoCloseable {
 
   // --------------------------------------------------------------- binding
 
-  /** Attach to a system (done by the runner, not by users). */
-  void bind(GrpcTransport transport) {
+  /**
+   * Attach to a system (done by the runner, not by users): start the session, learn
+   * from the server who this component is, and let {@code verify} refuse that identity
+   * (InvalidArgumentError when the launch environment says otherwise). On failure the
+   * transport is closed and the component stays unconnected.
+   */
+  void bind(Transport transport, Consumer<Identity> verify) {
     if (this.transport != null) {
       throw new IllegalStateException("component " + componentId() + " is already connected");
     }
-    this.transport = transport;
-    this.dispatcher = new Dispatcher(transport.componentId(), maxPendingCallbacks());
+    Identity who;
+    try {
+      who = transport.startSession("java", kind(), () -> state);
+      verify.accept(who);
+    } catch (RuntimeException e) {
+      transport.close(); // ends the session the server opened for the token's holder
+      throw e;
+    }
+    this.identity = who;
+    this.dispatcher =
+        new Dispatcher(who.componentId(), maxPendingCallbacks(), Logger.getLogger("cast.component." + who.componentId()));
     byte[] salt = new byte[3];
     RANDOM.nextBytes(salt);
     // Unique across components (the id) and across restarts of one component (the salt).
-    this.idPrefix = transport.componentId() + ":" + HexFormat.of().formatHex(salt) + ":";
-    transport.setEventSink(this::onEvent, this::onWatchError);
+    this.idPrefix = who.componentId() + ":" + HexFormat.of().formatHex(salt) + ":";
+    transport.setEventSink(dispatcher::deliver, this::onWatchError);
+    this.transport = transport;
     bindExtra(transport);
-    transport.startSession("java", kind(), () -> state);
   }
 
   /**
@@ -93,18 +99,19 @@ public abstract class Component implements AutoCloseable {
     return 10_000;
   }
 
-  /** Subclasses open their extra streams here (before the session starts). */
-  void bindExtra(GrpcTransport transport) {}
+  /** Subclasses open their extra streams here (after the session started). */
+  void bindExtra(Transport transport) {}
 
-  void setState(cast.v1.ComponentState state) {
+  /** Report a new life stage to the server at once. */
+  void setState(ComponentState state) {
     this.state = state;
     if (transport != null) {
       transport.stateChanged();
     }
   }
 
-  private GrpcTransport t() {
-    GrpcTransport tr = transport;
+  private Transport t() {
+    Transport tr = transport;
     if (tr == null) {
       throw new IllegalStateException(
           getClass().getName()
@@ -115,7 +122,8 @@ public abstract class Component implements AutoCloseable {
     return tr;
   }
 
-  GrpcTransport transportForTasks() {
+  /** The transport, for the task calls of managed components (and tests). */
+  Transport transport() {
     return t();
   }
 
@@ -130,19 +138,22 @@ public abstract class Component implements AutoCloseable {
     }
   }
 
-  /** This component's id. */
+  /** This component's id, as the server verified it from the token. */
   public String componentId() {
-    return t().componentId();
+    t(); // an unconnected component says how to connect it
+    return identity.componentId();
   }
 
-  /** This component's own subarchitecture. */
+  /** This component's own subarchitecture, as the server verified it from the token. */
   public String subarchitecture() {
-    return t().subarchitecture();
+    t();
+    return identity.subarchitecture();
   }
 
-  /** Whether this component may write every SA (as its token claims; the server checks). */
+  /** Whether this component may write every SA, as the server verified it from the token. */
   public boolean isPrivileged() {
-    return t().privileged();
+    t();
+    return identity.privileged();
   }
 
   /** False once the component has been asked to stop. */
@@ -172,11 +183,7 @@ public abstract class Component implements AutoCloseable {
 
   /** The names of the system's SAs, as the directory described them at connection. */
   public List<String> subarchitectures() {
-    List<String> names = new ArrayList<>();
-    for (cast.v1.SubarchitectureInfo sa : t().system().getSubarchitecturesList()) {
-      names.add(sa.getName());
-    }
-    return names;
+    return t().subarchitectures();
   }
 
   // ------------------------------------------------------------- WM: write
@@ -193,20 +200,7 @@ public abstract class Component implements AutoCloseable {
 
   /** The value as it goes on the wire, after registering its type's schema once. */
   Any serialise(Message value) {
-    if (value == null) {
-      throw new InvalidArgumentError("entry values are protobuf messages, got null");
-    }
-    String name = value.getDescriptorForType().getFullName();
-    if (!registeredTypes.contains(name)) {
-      synchronized (schemaLock) {
-        if (!registeredTypes.contains(name)) {
-          // Tools render the type as JSON, and the server checks the bytes, from now on.
-          t().registerSchemas(Schemas.filesOf(value.getDescriptorForType()));
-          registeredTypes.add(name);
-        }
-      }
-    }
-    return Types.pack(value);
+    return schemas.pack(value, t());
   }
 
   /** Create an entry in the own SA; AlreadyExistsError if the id is taken. */
@@ -274,8 +268,8 @@ public abstract class Component implements AutoCloseable {
     return new Batch(this, sa(subarchitecture));
   }
 
-  List<WriteResult> applyBatch(String sa, cast.v1.BatchRequest req) {
-    return t().batch(sa, req);
+  List<WriteResult> applyBatch(String sa, List<Transport.Write> writes) {
+    return t().batch(sa, writes);
   }
 
   // -------------------------------------------------------------- WM: read
@@ -299,7 +293,7 @@ public abstract class Component implements AutoCloseable {
   /** An entry of {@code subarchitecture} with its metadata. */
   public <T extends Message> Entry<T> getEntry(String id, Class<T> cls, String subarchitecture) {
     Types.defaultInstance(cls);
-    return Entry.fromProto(t().get(sa(subarchitecture), id), cls);
+    return Entry.decode(t().get(sa(subarchitecture), id), cls);
   }
 
   /** Every entry of type {@code cls} in the own SA, newest first. */
@@ -319,8 +313,8 @@ public abstract class Component implements AutoCloseable {
     }
     String type = Types.typeName(cls);
     List<Entry<T>> out = new ArrayList<>();
-    for (cast.v1.Entry e : t().getByType(sa(subarchitecture), type, limit)) {
-      out.add(Entry.fromProto(e, cls));
+    for (Transport.StoredEntry e : t().getByType(sa(subarchitecture), type, limit)) {
+      out.add(Entry.decode(e, cls));
     }
     return out;
   }
@@ -412,86 +406,21 @@ public abstract class Component implements AutoCloseable {
     if (callback == null) {
       throw new InvalidArgumentError("onChange needs a callback");
     }
-    GrpcTransport tr = t();
-    List<cast.v1.ChangeFilter> wire = new ArrayList<>();
+    Transport tr = t();
+    List<ChangeFilter> resolved = new ArrayList<>();
     for (ChangeFilter f : filters) {
       if (f == null) {
         throw new InvalidArgumentError("onChange filters must not be null");
       }
-      wire.add(f.toProto(tr.subarchitecture()));
+      // "Local" means this component's own SA, which only the component knows.
+      resolved.add(f.isLocal() ? f.inSubarchitecture(subarchitecture()) : f);
     }
-    int watchId = watchIds.incrementAndGet();
-    WatchHandle handle = new WatchHandle(this, watchId);
-    // Registered before the create is sent: events may arrive before the confirmation.
-    callbacks.put(watchId, new Registration(callback, handle));
-    try {
-      tr.watch(watchId, wire, Map.of());
-    } catch (RuntimeException e) {
-      callbacks.remove(watchId);
-      throw e;
-    }
-    return handle;
-  }
-
-  boolean hasWatch(int watchId) {
-    return callbacks.containsKey(watchId);
-  }
-
-  void cancelWatch(int watchId) {
-    if (callbacks.remove(watchId) != null) {
-      t().cancelWatch(watchId);
-    }
-  }
-
-  private void onEvent(cast.v1.ChangeEvent event) {
-    WorkingMemoryChange change = null;
-    for (int wid : event.getWatchIdsList()) {
-      if (callbacks.containsKey(wid)) {
-        if (change == null) {
-          try {
-            change = new WorkingMemoryChange(event);
-          } catch (CastError e) {
-            // An event this library cannot represent must not break the stream for the others.
-            log().severe("dropping change event revision " + event.getRevision() + ": " + e.getMessage());
-            return;
-          }
-        }
-        WorkingMemoryChange c = change;
-        try {
-          // Waits while the queue is full: the stream's reader stops, the server holds the rest.
-          dispatcher.submitBlocking(() -> deliver(wid, c));
-        } catch (InterruptedException e) {
-          Thread.currentThread().interrupt();
-          return;
-        }
-      }
-    }
-  }
-
-  private void deliver(int watchId, WorkingMemoryChange change) {
-    Registration r = callbacks.get(watchId);
-    if (r == null) {
-      return; // cancelled while queued: dropped, as promised by WatchHandle.cancel
-    }
-    try {
-      r.callback().onChange(change);
-    } catch (Exception e) {
-      log().log(Level.SEVERE, "change callback failed on " + change, e);
-    }
+    return dispatcher.watch(tr, resolved, callback);
   }
 
   /** Change delivery stopped: for one watch ({@code watchId} >= 0, which is dropped) or for all. */
   private void onWatchError(CastError error, int watchId) {
-    if (watchId >= 0) {
-      Registration r = callbacks.remove(watchId);
-      if (r != null) {
-        r.handle().setError(error);
-      }
-    } else {
-      for (Registration r : callbacks.values()) {
-        r.handle().setError(error);
-      }
-    }
+    dispatcher.stopped(error, watchId);
     submit(() -> watchFailed(error));
   }
 
@@ -508,21 +437,8 @@ public abstract class Component implements AutoCloseable {
   }
 
   /** Run a hook on the dispatcher thread, logging its failure. */
-  void submit(HookCall call) {
-    dispatcher.submit(
-        () -> {
-          try {
-            call.run();
-          } catch (Exception e) {
-            log().log(Level.SEVERE, "hook failed", e);
-          }
-        });
-  }
-
-  /** A hook invocation that may throw. */
-  @FunctionalInterface
-  interface HookCall {
-    void run() throws Exception;
+  void submit(Dispatcher.Hook hook) {
+    dispatcher.submitHook(hook);
   }
 
   /** Wait until every callback queued so far has run (tests, orderly shutdown); false on timeout. */

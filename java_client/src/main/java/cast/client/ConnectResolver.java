@@ -20,12 +20,29 @@ final class ConnectResolver {
   private ConnectResolver() {}
 
   /**
-   * What was found: the contract to connect with, and where the endpoint came from.
+   * What was found: the contract to connect with, and where the endpoint and the token
+   * came from.
    *
-   * @param contract endpoint, identity, token (and the file it is renewed in), TLS
+   * @param contract endpoint, identity (of a given token: only what the options say,
+   *     null otherwise), token (and the file it is renewed in), TLS
    * @param endpointSource where the endpoint came from, for error messages
+   * @param tokenSource where the token came from ("a token minted from ..." for a minted one)
    */
-  record Resolved(LaunchContract contract, String endpointSource) {}
+  record Resolved(LaunchContract contract, String endpointSource, String tokenSource) {
+    /**
+     * A given token decides the identity: InvalidArgumentError naming both when the
+     * componentId or subarchitecture option contradicts what the server verified from it.
+     */
+    void verify(Identity verified) {
+      Session.requireVerified(
+          verified,
+          contract.componentId(),
+          "ConnectOptions.componentId",
+          contract.subarchitecture(),
+          "ConnectOptions.subarchitecture",
+          "the token from " + tokenSource + " decides the identity; drop the option, or give a token for it");
+    }
+  }
 
   /** What {@code <runtime dir>/system.json} says, when a running {@code cast run} wrote it. */
   private record Recorded(boolean usable, Path path, String why, String endpoint, String firstSa, ClientTls tls) {
@@ -37,9 +54,9 @@ final class ConnectResolver {
   /**
    * Resolves {@code options} against {@code env} and the runtime directory; a minted
    * token is issued at {@code now} (seconds since the epoch). NotFoundError (no system,
-   * no token or secret) or InvalidArgumentError (no SA for a minted token, options that
-   * contradict the token) saying what to give; UnauthenticatedError for a token that is
-   * no CAST token.
+   * no token or secret) or InvalidArgumentError (no SA for a minted token) saying what to
+   * give. A given token is not decoded: the server says whom it was issued to
+   * ({@link Resolved#verify}), and refuses one that is no CAST token.
    */
   static Resolved resolve(ConnectOptions options, Map<String, String> env, long now) {
     String dirName = firstOf(options.runtimeDir(), env.get("CAST_RUNTIME_DIR"), ".cast");
@@ -90,7 +107,8 @@ final class ConnectResolver {
 
     Identity identity;
     if (token != null) {
-      identity = claimsOf(token, source, options);
+      // Who the token is for is the server's answer to Register; the options are checked against it.
+      identity = new Identity(blankToNull(options.componentId()), blankToNull(options.subarchitecture()), false);
     } else {
       String[] secret = findSecret(env, dir);
       if (secret == null) {
@@ -113,6 +131,7 @@ final class ConnectResolver {
       }
       // Whoever holds the secret could mint any token: it is trusted.
       identity = new Identity(firstOf(options.componentId(), null, defaultScriptId()), sa, true);
+      source = secret[1] + " (a token minted with the system's secret)";
       try {
         token = Tokens.mint(secret[0].getBytes(StandardCharsets.UTF_8), identity, now);
       } catch (InvalidArgumentError e) {
@@ -142,17 +161,21 @@ final class ConnectResolver {
     LaunchContract contract =
         new LaunchContract(
             endpoint, identity.componentId(), identity.subarchitecture(), token, Args.empty(), tls, tokenFile);
-    return new Resolved(contract, endpointSource);
+    return new Resolved(contract, endpointSource, source);
   }
 
   /** The component id of a minted token when none is given: script-&lt;host&gt;-&lt;pid&gt;. */
   static String defaultScriptId() {
-    String host = GrpcTransport.hostName();
+    String host = Session.hostName();
     return "script-" + (host.isEmpty() ? "localhost" : host) + "-" + ProcessHandle.current().pid();
   }
 
   private static boolean given(String s) {
     return s != null && !s.isEmpty();
+  }
+
+  private static String blankToNull(String s) {
+    return given(s) ? s : null;
   }
 
   private static String firstOf(String a, String b, String otherwise) {
@@ -192,41 +215,6 @@ final class ConnectResolver {
     } catch (IOException e) {
       return null;
     }
-  }
-
-  /** The identity a given token states; UnauthenticatedError if it is no CAST token, InvalidArgumentError if it contradicts the options. */
-  private static Identity claimsOf(String token, String source, ConnectOptions options) {
-    Identity claimed = Tokens.peek(token);
-    if (claimed == null) {
-      boolean oldFormat = token.indexOf('.') >= 0 && token.indexOf('.') == token.lastIndexOf('.');
-      throw new UnauthenticatedError(
-          "the token from "
-              + source
-              + " is not a CAST token"
-              + (oldFormat ? " (it has the format before JWTs)" : " (a JWT with the claims c, s, p)")
-              + ": get one with `cast token COMPONENT_ID --sa SA`");
-    }
-    if (given(options.componentId()) && !options.componentId().equals(claimed.componentId())) {
-      throw new InvalidArgumentError(
-          "ConnectOptions.componentId is '"
-              + options.componentId()
-              + "' but the token from "
-              + source
-              + " is for '"
-              + claimed.componentId()
-              + "': a token decides the identity; drop componentId, or give a token for it");
-    }
-    if (given(options.subarchitecture()) && !options.subarchitecture().equals(claimed.subarchitecture())) {
-      throw new InvalidArgumentError(
-          "ConnectOptions.subarchitecture is '"
-              + options.subarchitecture()
-              + "' but the token from "
-              + source
-              + " is for '"
-              + claimed.subarchitecture()
-              + "': a token decides the identity; drop subarchitecture, or give a token for it");
-    }
-    return claimed;
   }
 
   private static Recorded readSystemJson(Path dir) {

@@ -20,9 +20,12 @@ package cast.client;
  * ends its session (releasing its locks) and closes its channels.
  */
 public final class Connection extends UnmanagedComponent {
-  /** Binds to {@code transport} and starts the session (reported RUNNING at once: nothing else will run). */
-  Connection(GrpcTransport transport) {
-    bind(transport);
-    setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
+  /**
+   * Binds to {@code transport} and starts the session (reported RUNNING at once: nothing
+   * else will run); {@code verify} refuses an identity the options contradict.
+   */
+  Connection(Transport transport, java.util.function.Consumer<Identity> verify) {
+    bind(transport, verify);
+    setState(ComponentState.RUNNING);
   }
 }

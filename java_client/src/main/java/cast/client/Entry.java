@@ -30,16 +30,10 @@ public record Entry<T extends Message>(
     return address.id();
   }
 
-  /** Decode a wire entry into {@code cls}; InvalidArgumentError if its type is another or its bytes do not parse. */
-  static <T extends Message> Entry<T> fromProto(cast.v1.Entry pb, Class<T> cls) {
-    T value = Types.decodeEntry(cls, pb);
+  /** Decode a stored entry into {@code cls}; InvalidArgumentError if its type is another or its bytes do not parse. */
+  static <T extends Message> Entry<T> decode(Transport.StoredEntry stored, Class<T> cls) {
+    T value = Types.decodeEntry(cls, stored);
     return new Entry<>(
-        new WorkingMemoryAddress(pb.getAddress().getId(), pb.getAddress().getSubarchitecture()),
-        pb.getType(),
-        value,
-        pb.getVersion(),
-        pb.getAuthor(),
-        pb.getRevision(),
-        Instant.ofEpochSecond(pb.getModified().getSeconds(), pb.getModified().getNanos()));
+        stored.address(), stored.type(), value, stored.version(), stored.author(), stored.revision(), stored.modified());
   }
 }

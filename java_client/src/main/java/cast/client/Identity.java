@@ -1,9 +1,10 @@
 package cast.client;
 
 /**
- * Who a component is, as its token states it: its id, its own subarchitecture,
- * and whether it may write every subarchitecture. Identity comes only from the
- * token, which the server verifies on every call.
+ * Who a component is: its id, its own subarchitecture, and whether it may write
+ * every subarchitecture. Identity comes only from the token, which the server
+ * verifies on every call; a component learns its identity from the server's answer
+ * to its registration, not by decoding the token.
  *
  * @param componentId the component's id
  * @param subarchitecture its own SA

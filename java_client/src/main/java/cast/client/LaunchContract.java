@@ -10,8 +10,9 @@ import java.util.Map;
  * CAST_ARGS (a JSON object).
  *
  * @param endpoint the directory's address, host:port
- * @param componentId this component's id
- * @param subarchitecture this component's SA
+ * @param componentId this component's id; the server's answer to Register must agree
+ *     (null: any, as for a script connecting with a token)
+ * @param subarchitecture this component's SA; the server's answer must agree (null: any)
  * @param token the signed token the orchestrator (or {@code cast token}) issued
  * @param args the component's arguments
  * @param tls TLS settings (CAST_TLS_*), or null for plaintext
@@ -72,27 +73,13 @@ public record LaunchContract(
     return fromEnv(System.getenv());
   }
 
-  /**
-   * Whether the token claims the component is privileged. The client only reads
-   * the claim (to know what it may try); the server verifies the signature.
-   */
-  public boolean privileged() {
-    return tokenClaimsPrivileged(token);
-  }
-
-  /** The "p" claim of a token (a JWT); false if the token cannot be read. */
-  static boolean tokenClaimsPrivileged(String token) {
-    Identity claimed = Tokens.peek(token);
-    return claimed != null && claimed.privileged();
-  }
-
   @Override
   public String toString() {
     // Never print the token: logs are read by people who should not hold it.
     return "LaunchContract("
-        + componentId
+        + (componentId == null ? "<the token's id>" : componentId)
         + "@"
-        + subarchitecture
+        + (subarchitecture == null ? "<the token's SA>" : subarchitecture)
         + " via "
         + endpoint
         + (tls == null ? "" : " (TLS)")

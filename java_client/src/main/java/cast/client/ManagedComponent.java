@@ -14,12 +14,11 @@ public abstract class ManagedComponent extends Component {
   }
 
   @Override
-  void bindExtra(GrpcTransport transport) {
+  void bindExtra(Transport transport) {
     transport.openDecisions(this::onDecision);
   }
 
-  private void onDecision(cast.v1.Task record) {
-    Task task = new Task(record);
+  private void onDecision(Task task) {
     switch (task.state()) {
       case ADOPTED:
         submit(() -> taskAdopted(task));
@@ -47,7 +46,7 @@ public abstract class ManagedComponent extends Component {
     if (name == null || name.isEmpty()) {
       throw new InvalidArgumentError("a task needs a name");
     }
-    return new Task(transportForTasks().propose(name, data == null ? null : serialise(data), priority));
+    return transport().propose(name, data == null ? null : serialise(data), priority);
   }
 
   /** Withdraw a waiting or adopted task. */
@@ -57,7 +56,7 @@ public abstract class ManagedComponent extends Component {
 
   /** Withdraw a waiting or adopted task by id. */
   public void retractTask(String taskId) {
-    transportForTasks().retract(taskId);
+    transport().retract(taskId);
   }
 
   /** Report that an adopted task succeeded. */
@@ -77,7 +76,7 @@ public abstract class ManagedComponent extends Component {
 
   /** Report that an adopted task (by id) ended with {@code outcome}, and why. */
   public void taskComplete(String taskId, TaskOutcome outcome, String reason) {
-    transportForTasks().complete(taskId, outcome == null ? TaskOutcome.SUCCEEDED : outcome, reason);
+    transport().complete(taskId, outcome == null ? TaskOutcome.SUCCEEDED : outcome, reason);
   }
 
   /** Hook: the task manager adopted {@code task}; do the work, then call taskComplete. */

@@ -9,6 +9,7 @@ import java.util.Map;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicBoolean;
+import java.util.function.Function;
 import java.util.logging.Level;
 import java.util.logging.Logger;
 
@@ -39,6 +40,12 @@ public final class Runner {
 
   /** Run a component from a command line and an environment; returns the exit status. */
   static int run(String[] argv, Map<String, String> env, boolean handleSignals) {
+    return run(argv, env, handleSignals, GrpcTransport::new);
+  }
+
+  /** The same, connecting through {@code transports} (tests give an in-memory one). */
+  static int run(
+      String[] argv, Map<String, String> env, boolean handleSignals, Function<LaunchContract, Transport> transports) {
     if (argv.length != 1 || argv[0].equals("-h") || argv[0].equals("--help")) {
       System.err.println(USAGE);
       return 2;
@@ -57,7 +64,7 @@ public final class Runner {
       return 1;
     }
     try {
-      connect(component, contract);
+      component.bind(transports.apply(contract), who -> verifyLaunchIdentity(contract, who));
     } catch (CastError e) {
       System.err.println(
           "cast.client.Runner: cannot join the system at " + contract.endpoint() + ": " + e.getMessage());
@@ -124,8 +131,31 @@ public final class Runner {
    * {@link Component#close()}.
    */
   public static <C extends Component> C connect(C component, LaunchContract contract) {
-    component.bind(new GrpcTransport(contract));
+    component.bind(new GrpcTransport(contract), who -> verifyLaunchIdentity(contract, who));
     return component;
+  }
+
+  /**
+   * InvalidArgumentError naming both when CAST_COMPONENT_ID or CAST_SUBARCHITECTURE
+   * is not the identity the server verified from CAST_TOKEN: a component must not act
+   * under one name while the system knows it under another.
+   */
+  static void verifyLaunchIdentity(LaunchContract contract, Identity verified) {
+    Session.requireVerified(
+        verified,
+        contract.componentId(),
+        "CAST_COMPONENT_ID",
+        contract.subarchitecture(),
+        "CAST_SUBARCHITECTURE",
+        "the launch environment and the token disagree; give the component a token for '"
+            + contract.componentId()
+            + "' in '"
+            + contract.subarchitecture()
+            + "' (`cast token "
+            + contract.componentId()
+            + " --sa "
+            + contract.subarchitecture()
+            + "`), or the launch environment of its token");
   }
 
   /** Drives one component through configure, start, run and stop. */
@@ -145,7 +175,7 @@ public final class Runner {
       if (!stopCalled.compareAndSet(false, true)) {
         return;
       }
-      component.setState(cast.v1.ComponentState.COMPONENT_STATE_STOPPING);
+      component.setState(ComponentState.STOPPING);
       component.requestStop();
       try {
         component.stop();
@@ -160,7 +190,7 @@ public final class Runner {
       try {
         component.configure(args);
         component.start();
-        component.setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
+        component.setState(ComponentState.RUNNING);
         component.run();
       } catch (Throwable e) {
         LOG.log(Level.SEVERE, component.componentId() + " failed", e);

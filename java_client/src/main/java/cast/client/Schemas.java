@@ -1,16 +1,44 @@
 package cast.client;
 
+import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
 import com.google.protobuf.Descriptors.Descriptor;
 import com.google.protobuf.Descriptors.FileDescriptor;
+import com.google.protobuf.Message;
 import java.util.ArrayDeque;
 import java.util.Deque;
 import java.util.LinkedHashMap;
 import java.util.Map;
+import java.util.Set;
+import java.util.concurrent.ConcurrentHashMap;
 
 /** The schemas a client registers for the entry types it writes (docs/client-protocol.md). */
 public final class Schemas {
   private Schemas() {}
+
+  /** The types one connection registered: each is registered once, before its first write. */
+  static final class Registered {
+    private final Set<String> types = ConcurrentHashMap.newKeySet();
+    private final Object lock = new Object();
+
+    /** {@code value} as a write sends it, after registering its type through {@code transport} if not yet done. */
+    Any pack(Message value, Transport transport) {
+      if (value == null) {
+        throw new InvalidArgumentError("entry values are protobuf messages, got null");
+      }
+      String name = value.getDescriptorForType().getFullName();
+      if (!types.contains(name)) {
+        synchronized (lock) {
+          if (!types.contains(name)) {
+            // Tools render the type as JSON, and the server checks the bytes, from now on.
+            transport.registerSchemas(filesOf(value.getDescriptorForType()));
+            types.add(name);
+          }
+        }
+      }
+      return Types.pack(value);
+    }
+  }
 
   /**
    * The .proto file defining {@code type} and every file it imports, transitively

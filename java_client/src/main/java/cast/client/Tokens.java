@@ -1,8 +1,5 @@
 package cast.client;
 
-import com.google.gson.JsonElement;
-import com.google.gson.JsonObject;
-import com.google.gson.JsonParser;
 import java.nio.charset.StandardCharsets;
 import java.security.GeneralSecurityException;
 import java.util.Base64;
@@ -14,9 +11,10 @@ import javax.crypto.spec.SecretKeySpec;
  * Tokens signed with HS256 and the system's secret,
  * {@code base64url({"alg":"HS256","typ":"JWT"}).base64url(claims).base64url(HMAC-SHA256)},
  * with the claims {@code {"c": component id, "s": SA, "p": privileged, "iat": issued}}
- * and {@code "exp"} when the token expires. The server verifies every token; a
- * client only reads the claims to learn its own identity, and mints one itself
- * only when it holds the system's secret ({@link Cast#connect} from a script).
+ * and {@code "exp"} when the token expires. The server verifies every token and
+ * says whom it was issued to when a component registers; a client never decodes
+ * one, and mints one itself only when it holds the system's secret
+ * ({@link Cast#connect} from a script).
  */
 public final class Tokens {
   /** The header every CAST token has, already encoded: {"alg":"HS256","typ":"JWT"}. */
@@ -25,37 +23,6 @@ public final class Tokens {
   static final int MIN_SECRET = 32;
 
   private Tokens() {}
-
-  /**
-   * What a token says about its holder, read without verifying it; null if it is
-   * not a CAST token (a JWT whose claims carry "c", "s" and "p").
-   */
-  public static Identity peek(String token) {
-    if (token == null) {
-      return null;
-    }
-    String[] parts = token.split("\\.", -1);
-    if (parts.length != 3) {
-      return null; // the claims of a JWT are its middle part of three
-    }
-    try {
-      String json = new String(Base64.getUrlDecoder().decode(parts[1]), StandardCharsets.UTF_8);
-      JsonObject claims = JsonParser.parseString(json).getAsJsonObject();
-      JsonElement c = claims.get("c");
-      JsonElement s = claims.get("s");
-      JsonElement p = claims.get("p");
-      if (!isString(c) || !isString(s) || p == null || !p.isJsonPrimitive() || !p.getAsJsonPrimitive().isBoolean()) {
-        return null;
-      }
-      return new Identity(c.getAsString(), s.getAsString(), p.getAsBoolean());
-    } catch (RuntimeException e) { // not base64url, not JSON, not an object: not our token
-      return null;
-    }
-  }
-
-  private static boolean isString(JsonElement e) {
-    return e != null && e.isJsonPrimitive() && e.getAsJsonPrimitive().isString();
-  }
 
   /**
    * A token for {@code identity} signed with {@code secret}, issued at {@code issuedAt}

@@ -67,14 +67,14 @@ public final class Types {
     }
   }
 
-  /** The value of a wire entry as {@code cls} (see {@link #decode}). */
-  static <T extends Message> T decodeEntry(Class<T> cls, cast.v1.Entry e) {
+  /** The value of a stored entry as {@code cls} (see {@link #decode}). */
+  static <T extends Message> T decodeEntry(Class<T> cls, Transport.StoredEntry e) {
     return decode(
         cls,
-        e.getType(),
-        e.getValue().getValue(),
-        "entry '" + e.getAddress().getId() + "'",
-        e.getAddress().getSubarchitecture(),
+        e.type(),
+        e.value(),
+        "entry '" + e.address().id() + "'",
+        e.address().subarchitecture(),
         "it was written corrupt or with another schema; overwrite or delete it");
   }
 

@@ -2,12 +2,14 @@ package cast.client;
 
 /** Returned by {@code onChange}; {@link #cancel()} stops the callback. */
 public final class WatchHandle {
-  private final Component component;
+  private final Dispatcher dispatcher;
+  private final Transport transport;
   private final int watchId;
   private volatile CastError error;
 
-  WatchHandle(Component component, int watchId) {
-    this.component = component;
+  WatchHandle(Dispatcher dispatcher, Transport transport, int watchId) {
+    this.dispatcher = dispatcher;
+    this.transport = transport;
     this.watchId = watchId;
   }
 
@@ -18,7 +20,7 @@ public final class WatchHandle {
 
   /** Whether the callback is still registered. */
   public boolean isActive() {
-    return component.hasWatch(watchId);
+    return dispatcher.isRegistered(watchId);
   }
 
   /** Why delivery stopped (e.g. HistoryExpiredError), or null while it goes on. */
@@ -35,7 +37,10 @@ public final class WatchHandle {
    * for it and not yet delivered are dropped.
    */
   public void cancel() {
-    component.cancelWatch(watchId);
+    // Unregistered first: what is queued for it is dropped; the server is told once.
+    if (dispatcher.unregister(watchId)) {
+      transport.cancelWatch(watchId);
+    }
   }
 
   @Override

@@ -11,8 +11,4 @@ public record WorkingMemoryAddress(String id, String subarchitecture) {
   public String toString() {
     return subarchitecture + "/" + id;
   }
-
-  cast.v1.EntryAddress toProto() {
-    return cast.v1.EntryAddress.newBuilder().setId(id).setSubarchitecture(subarchitecture).build();
-  }
 }

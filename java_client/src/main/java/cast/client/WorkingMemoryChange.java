@@ -5,86 +5,79 @@ import java.time.Instant;
 
 /** One change event as delivered to an {@code onChange} callback. */
 public final class WorkingMemoryChange {
-  private final cast.v1.ChangeEvent event;
-  private final Operation operation;
+  private final Transport.Change change;
 
-  WorkingMemoryChange(cast.v1.ChangeEvent event) {
-    this.event = event;
-    this.operation = Operation.fromProto(event.getOperation());
+  WorkingMemoryChange(Transport.Change change) {
+    this.change = change;
   }
 
   /** ADD, OVERWRITE or DELETE. */
   public Operation operation() {
-    return operation;
+    return change.operation();
   }
 
   /** The working memory's revision of the change (1, 2, 3, ... per SA). */
   public long revision() {
-    return event.getRevision();
+    return change.revision();
   }
 
   /** Full message name of the entry's value. */
   public String type() {
-    return event.getType();
+    return change.type();
   }
 
   /** The entry's version after the change (for DELETE: the version it had). */
   public long version() {
-    return event.getVersion();
+    return change.version();
   }
 
   /** Id of the component that made the change. */
   public String sourceComponent() {
-    return event.getSourceComponent();
+    return change.sourceComponent();
   }
 
   /** SA of the component that made the change. */
   public String sourceSubarchitecture() {
-    return event.getSourceSubarchitecture();
+    return change.sourceSubarchitecture();
   }
 
   /** Server time of the change. */
   public Instant time() {
-    return Instant.ofEpochSecond(event.getTime().getSeconds(), event.getTime().getNanos());
+    return change.time();
   }
 
   /** The entry changed. */
   public WorkingMemoryAddress address() {
-    return new WorkingMemoryAddress(event.getAddress().getId(), event.getAddress().getSubarchitecture());
+    return change.address();
   }
 
   /** The changed entry's id. */
   public String id() {
-    return event.getAddress().getId();
+    return change.address().id();
   }
 
   /** The SA whose working memory changed. */
   public String subarchitecture() {
-    return event.getAddress().getSubarchitecture();
+    return change.address().subarchitecture();
   }
 
   /** Whether the event carries the entry (its filter asked for it with {@code withEntry()}). */
   public boolean hasEntry() {
-    return event.hasEntry();
+    return change.entry() != null;
   }
 
   /** The entry carried by the event (after the write; for DELETE, as it was). */
   public <T extends Message> Entry<T> entry(Class<T> cls) {
-    if (!event.hasEntry()) {
+    if (change.entry() == null) {
       throw new InvalidArgumentError("this change carries no entry: ask for it with filter.withEntry()");
     }
-    return Entry.fromProto(event.getEntry(), cls);
-  }
-
-  /** The wire event (a copy is not needed: protobuf messages are immutable). */
-  public cast.v1.ChangeEvent toProto() {
-    return event;
+    return Entry.decode(change.entry(), cls);
   }
 
   @Override
   public String toString() {
     return "WorkingMemoryChange("
-        + operation
+        + operation()
         + " "
         + address()
         + " type="

@@ -74,13 +74,4 @@ class ArgsAndContractTest {
     InvalidArgumentError bad = assertThrows(InvalidArgumentError.class, () -> LaunchContract.fromEnv(env("[]")));
     assertTrue(bad.getMessage().startsWith("CAST_ARGS"), bad.getMessage());
   }
-
-  @Test
-  void privilegeIsReadFromTheTokensClaims() {
-    // PyJWT: {"c": "planner", "s": "coordination", "p": true, "iat": 1700000000, "exp": 1700003600}.
-    assertTrue(LaunchContract.tokenClaimsPrivileged(TokensTest.PLANNER_TOKEN));
-    assertFalse(LaunchContract.tokenClaimsPrivileged(TokensTest.WORKER_TOKEN));
-    assertFalse(LaunchContract.tokenClaimsPrivileged("not-a-token"));
-    assertFalse(LaunchContract.tokenClaimsPrivileged(null));
-  }
 }

@@ -4,72 +4,40 @@ import static org.junit.jupiter.api.Assertions.*;
 
 import cast.testing.CastTesting.Counter;
 import cast.testing.CastTesting.Pose;
-import io.grpc.Status;
 import java.time.Duration;
 import java.util.ArrayList;
-import java.util.Collections;
 import java.util.HashSet;
 import java.util.List;
-import java.util.Map;
 import java.util.Set;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.ExecutorService;
 import java.util.concurrent.Executors;
 import java.util.concurrent.Future;
 import java.util.concurrent.TimeUnit;
-import java.util.concurrent.atomic.AtomicReference;
 import org.junit.jupiter.api.AfterEach;
-import org.junit.jupiter.api.BeforeEach;
 import org.junit.jupiter.api.Test;
 
-/** The component API against an in-process fake server (no real semantics needed here). */
+/**
+ * The working-memory calls of the component API (writes, reads, ids, schemas, locks,
+ * batches) against the in-memory fake transport: what the component sends and how it
+ * turns the answers and refusals into values and named errors. The server's own rules
+ * are tested against a real server in tests/interop.
+ */
 class ComponentTest {
   static final class Plain extends UnmanagedComponent {}
 
-  static final class Hooks extends ManagedComponent {
-    final List<String> seen = Collections.synchronizedList(new ArrayList<>());
-    final AtomicReference<CastError> failed = new AtomicReference<>();
-    final CountDownLatch watchFailedCalled = new CountDownLatch(1);
-
-    @Override
-    public void taskAdopted(Task task) {
-      seen.add("adopted " + task.name() + " " + task.data(Counter.class));
-      taskComplete(task, TaskOutcome.FAILED, "because");
-    }
-
-    @Override
-    public void taskRejected(Task task) {
-      seen.add("rejected " + task.name());
-    }
-
-    @Override
-    public void watchFailed(CastError error) {
-      failed.set(error);
-      watchFailedCalled.countDown();
-    }
-  }
-
-  static int counter;
-  String name;
-  FakeCast fake;
+  final FakeTransport.Memory memory = new FakeTransport.Memory("vision", "motor");
   final List<Component> components = new ArrayList<>();
-
-  @BeforeEach
-  void setUp() throws Exception {
-    name = "fake-" + (++counter) + "-" + System.nanoTime();
-    fake = new FakeCast(name, Map.of("vision", "", "motor", ""));
-  }
 
   @AfterEach
   void tearDown() {
     for (Component c : components) {
       c.close();
     }
-    fake.close();
   }
 
   <C extends Component> C connect(C c, String id, String sa) {
-    components.add(FakeCast.connect(c, name, id, sa));
+    components.add(FakeTransport.connect(c, memory, id, sa));
     return c;
   }
 
@@ -165,19 +133,19 @@ class ComponentTest {
   @Test
   void schemasAreRegisteredOncePerTypeBeforeTheFirstWrite() {
     Plain c = connect(new Plain(), "c1", "vision");
-    assertTrue(fake.schemaRequests.isEmpty());
+    assertTrue(memory.schemaRequests.isEmpty());
     c.add("a", counter("c1", 1));
-    assertEquals(1, fake.schemaRequests.size());
-    assertEquals("cast_testing.proto", fake.schemaRequests.get(0).getFiles().getFile(0).getName());
+    assertEquals(1, memory.schemaRequests.size());
+    assertEquals("cast_testing.proto", memory.schemaRequests.get(0).getFile(0).getName());
     c.overwrite("a", counter("c1", 2));
     c.add("b", counter("c1", 3));
-    assertEquals(1, fake.schemaRequests.size(), "once per type per connection");
+    assertEquals(1, memory.schemaRequests.size(), "once per type per connection");
     c.add("p", Pose.getDefaultInstance());
-    assertEquals(2, fake.schemaRequests.size());
-    int registrationsBeforeRead = fake.schemaRequests.size();
+    assertEquals(2, memory.schemaRequests.size());
+    int registrationsBeforeRead = memory.schemaRequests.size();
     c.get("a", Counter.class);
     c.getAll(Counter.class);
-    assertEquals(registrationsBeforeRead, fake.schemaRequests.size(), "reads register nothing");
+    assertEquals(registrationsBeforeRead, memory.schemaRequests.size(), "reads register nothing");
   }
 
   @Test
@@ -210,9 +178,9 @@ class ComponentTest {
       f.get(30, TimeUnit.SECONDS);
     }
     pool.shutdown();
-    assertEquals(1, fake.schemaRequests.size(), "the schema is registered once, before the first write");
+    assertEquals(1, memory.schemaRequests.size(), "the schema is registered once, before the first write");
     assertEquals(threads * each, c.getAll(Counter.class).size());
-    assertTrue(fake.lockHolders.isEmpty());
+    assertTrue(memory.lockHolders.isEmpty());
   }
 
   @Test
@@ -244,10 +212,10 @@ class ComponentTest {
     }
     assertTrue(kept.isReleased());
     kept.close(); // idempotent: no second Unlock
-    assertEquals(1, fake.calls.stream().filter(s -> s.startsWith("Unlock vision/e")).count());
-    assertTrue(fake.calls.contains("Lock vision/e LOCK_MODE_ODR"), fake.calls.toString());
+    assertEquals(1, memory.calls.stream().filter(s -> s.startsWith("Unlock vision/e")).count());
+    assertTrue(memory.calls.contains("Lock vision/e ODR"), memory.calls.toString());
     assertTrue(other.tryLock("e", LockMode.O));
-    assertTrue(fake.calls.contains("Lock vision/e LOCK_MODE_O nowait"), fake.calls.toString());
+    assertTrue(memory.calls.contains("Lock vision/e O nowait"), memory.calls.toString());
   }
 
   @Test
@@ -262,7 +230,7 @@ class ComponentTest {
             throw new IllegalStateException("boom");
           }
         });
-    assertNull(fake.lockHolders.get("vision/e"));
+    assertNull(memory.lockHolders.get("vision/e"));
   }
 
   @Test
@@ -278,201 +246,6 @@ class ComponentTest {
   }
 
   @Test
-  void callbacksRunOnOneDispatcherThreadInOrder() throws Exception {
-    Plain writer = connect(new Plain(), "w", "vision");
-    Plain watcher = connect(new Plain(), "watcher", "vision");
-    List<Long> values = Collections.synchronizedList(new ArrayList<>());
-    List<Counter> deleted = Collections.synchronizedList(new ArrayList<>());
-    Set<Thread> threads = Collections.synchronizedSet(new HashSet<>());
-    List<Boolean> onDispatcher = Collections.synchronizedList(new ArrayList<>());
-    watcher.onChange(
-        Filters.localTypeFilter(Counter.class).withEntry(),
-        ch -> {
-          if (ch.operation() == Operation.ADD) {
-            values.add(ch.entry(Counter.class).value().getValue());
-          } else {
-            deleted.add(ch.entry(Counter.class).value()); // for a DELETE: the entry as it was
-          }
-          threads.add(Thread.currentThread());
-          onDispatcher.add(watcher.onDispatcherThread());
-        });
-    List<String> ops = Collections.synchronizedList(new ArrayList<>());
-    watcher.onChange(Filters.operationFilter(Operation.DELETE), ch -> ops.add(ch.operation() + " " + ch.id()));
-    for (int i = 0; i < 50; i++) {
-      writer.add("c" + i, counter("w", i));
-    }
-    writer.deleteEntry("c0");
-    writer.add("other", Pose.getDefaultInstance());
-    // Events travel on the watch stream, not with the write's answer: wait for them.
-    assertTrue(
-        eventually(() -> ops.size() == 1 && values.size() == 50 && deleted.size() == 1, Duration.ofSeconds(5)),
-        values.toString());
-    assertEquals(List.of(counter("w", 0)), deleted);
-    assertTrue(watcher.drain(Duration.ofSeconds(5)));
-    List<Long> expected = new ArrayList<>();
-    for (long i = 0; i < 50; i++) {
-      expected.add(i);
-    }
-    assertEquals(expected, values);
-    assertEquals(1, threads.size());
-    assertFalse(onDispatcher.contains(false));
-    assertEquals(List.of("DELETE c0"), ops);
-  }
-
-  @Test
-  void cancelStopsDeliveryAndDropsQueuedCallbacks() throws Exception {
-    Plain writer = connect(new Plain(), "w", "vision");
-    Plain watcher = connect(new Plain(), "watcher", "vision");
-    CountDownLatch blocked = new CountDownLatch(1);
-    CountDownLatch release = new CountDownLatch(1);
-    List<String> got = Collections.synchronizedList(new ArrayList<>());
-    // A first callback holds the dispatcher so that the second watch's events queue up.
-    watcher.onChange(
-        Filters.addressFilter("gate"),
-        ch -> {
-          blocked.countDown();
-          release.await(5, TimeUnit.SECONDS);
-        });
-    WatchHandle h = watcher.onChange(Filters.localTypeFilter(Counter.class), ch -> got.add(ch.id()));
-    assertTrue(h.isActive());
-    writer.add("gate", Pose.getDefaultInstance());
-    assertTrue(blocked.await(5, TimeUnit.SECONDS));
-    writer.add("queued", counter("w", 1));
-    // The gate callback runs; the event for "queued" must be waiting behind it before the cancel.
-    assertTrue(eventually(() -> watcher.pendingCallbacks() == 2, Duration.ofSeconds(5)));
-    h.cancel();
-    h.cancel(); // idempotent
-    assertFalse(h.isActive());
-    release.countDown();
-    writer.add("after", counter("w", 2));
-    assertTrue(watcher.drain(Duration.ofSeconds(5)));
-    assertEquals(List.of(), got, "a cancelled watch delivers nothing, not even what was queued");
-  }
-
-  @Test
-  void aStreamEndingWithOutOfRangeCallsWatchFailed() throws Exception {
-    Hooks watcher = connect(new Hooks(), "watcher", "vision");
-    WatchHandle h = watcher.onChange(Filters.operationFilter(), ch -> {});
-    fake.failWatchStreams(Status.OUT_OF_RANGE.withDescription("revision 3 is older than the history"));
-    assertTrue(watcher.watchFailedCalled.await(5, TimeUnit.SECONDS));
-    assertEquals(HistoryExpiredError.class, watcher.failed.get().getClass());
-    assertEquals("revision 3 is older than the history", watcher.failed.get().getMessage());
-    assertSame(watcher.failed.get(), h.error());
-    // Resynchronising: a new onChange opens a new stream.
-    Plain writer = connect(new Plain(), "w", "vision");
-    List<String> got = Collections.synchronizedList(new ArrayList<>());
-    watcher.onChange(Filters.localTypeFilter(Counter.class), ch -> got.add(ch.id()));
-    writer.add("again", counter("w", 1));
-    assertTrue(eventually(() -> got.size() == 1, Duration.ofSeconds(5)));
-    assertEquals(List.of("again"), got);
-  }
-
-  @Test
-  void aBrokenWatchStreamIsOpenedAgainAndResumesAfterTheLastRevisionSeen() throws Exception {
-    Plain writer = connect(new Plain(), "w", "vision");
-    Plain watcher = connect(new Plain(), "watcher", "vision");
-    List<Long> revisions = Collections.synchronizedList(new ArrayList<>());
-    WatchHandle h = watcher.onChange(Filters.localTypeFilter(Counter.class), ch -> revisions.add(ch.revision()));
-    for (int i = 0; i < 3; i++) {
-      writer.add("a" + i, counter("w", i));
-    }
-    assertTrue(eventually(() -> revisions.size() == 3, Duration.ofSeconds(5)));
-    fake.failWatchStreams(Status.UNAVAILABLE.withDescription("connection reset"));
-    // The client opens the stream again and creates the watch again from revision 4, with the history id.
-    assertTrue(eventually(() -> fake.creates.size() == 2, Duration.ofSeconds(10)), fake.creates.toString());
-    cast.v1.WatchCreate again = fake.creates.get(1);
-    assertEquals(h.watchId(), again.getWatchId());
-    assertEquals(Map.of("vision", 4L), again.getStartRevisionsMap());
-    assertEquals("history-1", again.getHistoryId());
-    assertEquals(fake.creates.get(0).getFiltersList(), again.getFiltersList());
-    writer.add("b", counter("w", 9));
-    assertTrue(eventually(() -> revisions.size() == 4, Duration.ofSeconds(5)));
-    assertEquals(List.of(1L, 2L, 3L, 4L), revisions);
-    assertTrue(h.isActive());
-    assertNull(h.error());
-  }
-
-  @Test
-  void aResumeTheServerRefusesIsTheResynchroniseSignal() throws Exception {
-    Hooks watcher = connect(new Hooks(), "watcher", "vision");
-    WatchHandle h = watcher.onChange(Filters.operationFilter(), ch -> {});
-    fake.historyId = "history-2"; // as if the server restarted without its history
-    fake.failWatchStreams(Status.UNAVAILABLE.withDescription("server restarted"));
-    assertTrue(watcher.watchFailedCalled.await(10, TimeUnit.SECONDS));
-    assertEquals(HistoryExpiredError.class, watcher.failed.get().getClass());
-    assertTrue(watcher.failed.get().getMessage().contains("resynchronise"), watcher.failed.get().getMessage());
-    assertFalse(h.isActive(), "the watch that could not resume is dropped");
-    assertSame(watcher.failed.get(), h.error());
-  }
-
-  @Test
-  void aLostSessionIsRegisteredAgain() throws Exception {
-    Plain c = connect(new Plain(), "c1", "vision");
-    assertEquals(1, fake.registrations.size());
-    fake.failHeartbeats(Status.UNAVAILABLE.withDescription("lease expired"));
-    assertTrue(eventually(() -> fake.registrations.size() == 2, Duration.ofSeconds(10)));
-    String second = name + "-session-2";
-    assertTrue(eventually(() -> fake.beats.stream().anyMatch(b -> b.getSessionId().equals(second)), Duration.ofSeconds(5)));
-    c.close();
-    components.remove(c);
-    assertTrue(eventually(() -> fake.endedSessions.contains(second), Duration.ofSeconds(5)));
-  }
-
-  @Test
-  void managedComponentHooksRunOnTheDispatcher() throws Exception {
-    Hooks m = connect(new Hooks(), "m", "vision");
-    Task t = m.proposeTask("work", counter("m", 7), 3);
-    assertEquals(TaskState.WAITING, t.state());
-    assertEquals(7, t.data(Counter.class).getValue());
-    m.proposeTask("reject-me");
-    long deadline = System.nanoTime() + TimeUnit.SECONDS.toNanos(5);
-    while (m.seen.size() < 2 && System.nanoTime() < deadline) {
-      Thread.sleep(10);
-    }
-    assertTrue(m.drain(Duration.ofSeconds(5)));
-    assertEquals(2, m.seen.size(), m.seen.toString());
-    assertTrue(m.seen.get(0).startsWith("adopted work "), m.seen.toString());
-    assertEquals("rejected reject-me", m.seen.get(1));
-    assertTrue(fake.calls.contains("Complete t1 TASK_OUTCOME_FAILED because"), fake.calls.toString());
-    m.retractTask(t);
-    assertTrue(fake.calls.contains("Retract t1"));
-    assertThrows(InvalidArgumentError.class, () -> m.proposeTask(""));
-  }
-
-  @Test
-  void aSessionIsRegisteredKeptAliveAndEndedOnClose() throws Exception {
-    Plain c = connect(new Plain(), "c1", "vision");
-    assertEquals(1, fake.registrations.size());
-    assertEquals("java", fake.registrations.get(0).getLanguage());
-    assertEquals("unmanaged", fake.registrations.get(0).getKind());
-    assertEquals(ProcessHandle.current().pid(), fake.registrations.get(0).getPid());
-    // lease 300 ms: a beat every 100 ms
-    Thread.sleep(450);
-    assertTrue(fake.beats.size() >= 3, "beats: " + fake.beats.size());
-    assertEquals(cast.v1.ComponentState.COMPONENT_STATE_STARTING, fake.beats.get(0).getState());
-    c.setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
-    Thread.sleep(250);
-    assertEquals(cast.v1.ComponentState.COMPONENT_STATE_RUNNING, fake.beats.get(fake.beats.size() - 1).getState());
-    c.close();
-    components.remove(c);
-    long deadline = System.nanoTime() + TimeUnit.SECONDS.toNanos(3);
-    while (fake.endedSessions.isEmpty() && System.nanoTime() < deadline) {
-      Thread.sleep(10);
-    }
-    assertEquals(List.of(name + "-session-1"), fake.endedSessions);
-  }
-
-  @Test
-  void aStateChangeIsReportedAtOnce() throws Exception {
-    fake.leaseMs = 60_000; // scheduled beats every 20 s: only the first one comes by schedule
-    Plain c = connect(new Plain(), "c1", "vision");
-    assertTrue(eventually(() -> fake.beats.size() == 1, Duration.ofSeconds(5)));
-    c.setState(cast.v1.ComponentState.COMPONENT_STATE_RUNNING);
-    assertTrue(eventually(() -> fake.beats.size() == 2, Duration.ofSeconds(5)));
-    assertEquals(cast.v1.ComponentState.COMPONENT_STATE_RUNNING, fake.beats.get(1).getState());
-  }
-
-  @Test
   void anUnconnectedComponentSaysHowToConnectIt() {
     IllegalStateException e = assertThrows(IllegalStateException.class, () -> new Plain().newId());
     assertTrue(e.getMessage().contains("cast.client.Runner"), e.getMessage());
@@ -482,11 +255,21 @@ class ComponentTest {
   void batchesApplyInOneCall() {
     Plain c = connect(new Plain(), "c1", "vision");
     assertEquals(List.of(), c.batch().apply());
+    assertTrue(FakeTransport.of(c).batches.isEmpty(), "an empty batch sends nothing");
     c.add("x", counter("c1", 0));
-    Batch b = c.batch().add("y", counter("c1", 1)).overwrite("x", counter("c1", 2)).deleteEntry("x");
+    Batch b = c.batch().add("y", counter("c1", 1)).overwrite("x", counter("c1", 2), 0L).deleteEntry("x");
     assertEquals(3, b.size());
-    // The fake has no Batch: the real one is tested in tests/interop; here the call reaches the server.
-    CastError e = assertThrows(CastError.class, b::apply);
-    assertEquals("UNIMPLEMENTED", e.code());
+    List<WriteResult> results = b.apply();
+    // One call with the writes in order, each value registered and packed like a single write's.
+    List<Transport.Write> sent = FakeTransport.of(c).batches.get(0);
+    assertEquals(1, FakeTransport.of(c).batches.size());
+    assertEquals(
+        List.of(Operation.ADD, Operation.OVERWRITE, Operation.DELETE), sent.stream().map(Transport.Write::operation).toList());
+    assertEquals(List.of("y", "x", "x"), sent.stream().map(Transport.Write::id).toList());
+    assertEquals(Types.pack(counter("c1", 2)), sent.get(1).value());
+    assertEquals(0L, sent.get(1).expectedVersion());
+    assertNull(sent.get(2).value());
+    assertEquals(List.of(0L, 1L, 1L), results.stream().map(WriteResult::version).toList());
+    assertEquals(List.of("y"), c.getAll(Counter.class).stream().map(Entry::id).toList());
   }
 }

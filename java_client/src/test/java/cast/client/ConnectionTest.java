@@ -3,51 +3,23 @@ package cast.client;
 import static org.junit.jupiter.api.Assertions.*;
 
 import cast.testing.CastTesting.Counter;
-import java.time.Duration;
-import java.util.Map;
+import java.util.List;
 import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.TimeUnit;
-import org.junit.jupiter.api.AfterEach;
-import org.junit.jupiter.api.BeforeEach;
 import org.junit.jupiter.api.Test;
 
-/** A Connection has the calls of a component and ends its session on close (against the in-process fake). */
+/** A Connection has the calls of a component and ends its session on close (against the in-memory fake). */
 class ConnectionTest {
-  static int counter;
-  String name;
-  FakeCast fake;
-
-  @BeforeEach
-  void setUp() throws Exception {
-    name = "connection-" + (++counter) + "-" + System.nanoTime();
-    fake = new FakeCast(name, Map.of("vision", ""));
-  }
-
-  @AfterEach
-  void tearDown() {
-    fake.close();
-  }
-
-  Connection open() {
-    // The fake takes the token for the component id.
-    LaunchContract contract = new LaunchContract(name, "script-x", "vision", "script-x", Args.empty());
-    return new Connection(new GrpcTransport(contract, FakeCast.channels(), Duration.ofSeconds(5)));
-  }
+  final FakeTransport.Memory memory = new FakeTransport.Memory("vision");
 
   @Test
   void hasTheCallsOfAComponentAndEndsItsSessionOnClose() throws Exception {
-    try (Connection wm = open()) {
+    FakeTransport fake = new FakeTransport(memory, new Identity("script-x", "vision", true));
+    try (Connection wm = new Connection(fake, who -> {})) {
       assertEquals("script-x", wm.componentId());
       assertEquals("vision", wm.subarchitecture());
-      assertEquals("unmanaged", fake.registrations.get(0).getKind());
-      assertEquals("java", fake.registrations.get(0).getLanguage());
-      assertTrue(
-          ComponentTest.eventually(
-              () ->
-                  fake.beats.stream()
-                      .anyMatch(b -> b.getState() == cast.v1.ComponentState.COMPONENT_STATE_RUNNING),
-              Duration.ofSeconds(5)),
-          "a connection is reported RUNNING from the start");
+      assertEquals(List.of("java unmanaged"), fake.sessions);
+      assertEquals(List.of(ComponentState.RUNNING), fake.reported, "a connection is reported RUNNING from the start");
 
       CompletableFuture<String> seen = new CompletableFuture<>();
       wm.onChange(
@@ -60,14 +32,13 @@ class ConnectionTest {
       assertTrue(wm.exists(id));
       assertEquals("script", seen.get(10, TimeUnit.SECONDS));
       try (LockGuard guard = wm.lock(id, LockMode.O)) {
-        assertEquals("script-x", fake.lockHolders.get("vision/" + id));
+        assertEquals("script-x", memory.lockHolders.get("vision/" + id));
       }
-      assertNull(fake.lockHolders.get("vision/" + id));
+      assertNull(memory.lockHolders.get("vision/" + id));
       wm.deleteEntry(id);
       assertFalse(wm.exists(id));
+      assertFalse(fake.closed);
     }
-    assertTrue(
-        ComponentTest.eventually(() -> fake.endedSessions.size() == 1, Duration.ofSeconds(5)),
-        "closing ends the session");
+    assertTrue(fake.closed, "closing ends the session");
   }
 }

@@ -5,11 +5,8 @@ import static org.junit.jupiter.api.Assertions.*;
 import cast.testing.CastTesting.Counter;
 import com.google.protobuf.Any;
 import com.google.protobuf.ByteString;
-import java.util.Map;
 import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.TimeUnit;
-import org.junit.jupiter.api.AfterEach;
-import org.junit.jupiter.api.BeforeEach;
 import org.junit.jupiter.api.Test;
 
 /**
@@ -29,20 +26,7 @@ class CorruptValueTest {
   static final String PREFIX = "entry 'bad' in subarchitecture 'vision' does not parse as cast.testing.Counter (";
   static final String SUFFIX = "): it was written corrupt or with another schema; overwrite or delete it";
 
-  static int counter;
-  String name;
-  FakeCast fake;
-
-  @BeforeEach
-  void setUp() throws Exception {
-    name = "corrupt-" + (++counter) + "-" + System.nanoTime();
-    fake = new FakeCast(name, Map.of("vision", ""));
-  }
-
-  @AfterEach
-  void tearDown() {
-    fake.close();
-  }
+  final FakeTransport.Memory memory = new FakeTransport.Memory("vision");
 
   static void assertNamesTheEntry(String message) {
     assertTrue(message.startsWith(PREFIX) && message.endsWith(SUFFIX), message);
@@ -50,9 +34,9 @@ class CorruptValueTest {
 
   @Test
   void getGetEntryAndGetAllSayWhichEntry() {
-    try (UnmanagedComponent c = FakeCast.connect(new UnmanagedComponent() {}, name, "reader", "vision")) {
+    try (UnmanagedComponent c = FakeTransport.connect(new UnmanagedComponent() {}, memory, "reader", "vision")) {
       // Straight through the transport: the component API always writes valid values.
-      c.transportForTasks().add("vision", "bad", CORRUPT);
+      c.transport().add("vision", "bad", CORRUPT);
       assertNamesTheEntry(assertThrows(InvalidArgumentError.class, () -> c.get("bad", Counter.class)).getMessage());
       assertNamesTheEntry(
           assertThrows(InvalidArgumentError.class, () -> c.getEntry("bad", Counter.class)).getMessage());
@@ -62,7 +46,7 @@ class CorruptValueTest {
 
   @Test
   void theEntryOfAChangeEventSaysWhichEntry() throws Exception {
-    try (UnmanagedComponent c = FakeCast.connect(new UnmanagedComponent() {}, name, "reader", "vision")) {
+    try (UnmanagedComponent c = FakeTransport.connect(new UnmanagedComponent() {}, memory, "reader", "vision")) {
       CompletableFuture<String> seen = new CompletableFuture<>();
       c.onChange(
           Filters.localTypeFilter(Counter.class).withEntry(),
@@ -74,7 +58,7 @@ class CorruptValueTest {
               seen.complete(e.getMessage());
             }
           });
-      c.transportForTasks().add("vision", "bad", CORRUPT);
+      c.transport().add("vision", "bad", CORRUPT);
       assertNamesTheEntry(seen.get(10, TimeUnit.SECONDS));
     }
   }
@@ -96,8 +80,8 @@ class CorruptValueTest {
 
   @Test
   void theDataOfATaskSaysWhichTask() throws Exception {
-    try (Tasks c = FakeCast.connect(new Tasks(), name, "worker", "vision")) {
-      c.transportForTasks().propose("work", CORRUPT, 0);
+    try (Tasks c = FakeTransport.connect(new Tasks(), memory, "worker", "vision")) {
+      c.transport().propose("work", CORRUPT, 0);
       String message = c.seen.get(10, TimeUnit.SECONDS);
       assertTrue(message.startsWith("task 't1' data in subarchitecture '"), message);
       assertTrue(message.contains("' does not parse as cast.testing.Counter ("), message);

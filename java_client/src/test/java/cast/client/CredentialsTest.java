@@ -8,12 +8,13 @@ import java.util.Map;
 import org.junit.jupiter.api.Test;
 import org.junit.jupiter.api.io.TempDir;
 
-class TokenSourceTest {
+/** The token a call carries (fixed, or renewed through its file) and the TLS settings. */
+class CredentialsTest {
   @TempDir Path dir;
 
   @Test
   void aFixedTokenNeverChanges() {
-    TokenSource t = new TokenSource("fixed", null);
+    Credentials t = new Credentials("fixed", null);
     assertEquals("fixed", t.token());
     assertFalse(t.refresh());
   }
@@ -22,7 +23,7 @@ class TokenSourceTest {
   void theFileWinsOverTheEnvironmentAndIsReReadWhenItChanges() throws Exception {
     Path file = dir.resolve("token");
     Files.writeString(file, "from-file\n");
-    TokenSource t = new TokenSource("from-env", file, 60_000_000_000L);
+    Credentials t = new Credentials("from-env", file, 60_000_000_000L);
     assertEquals("from-file", t.token());
     Files.writeString(file, "renewed-and-longer");
     assertEquals("from-file", t.token(), "checked at most once per interval");
@@ -35,13 +36,13 @@ class TokenSourceTest {
   void anEmptyOrMissingFileKeepsTheLastToken() throws Exception {
     Path file = dir.resolve("token");
     Files.writeString(file, "first");
-    TokenSource t = new TokenSource("env", file, 0);
+    Credentials t = new Credentials("env", file, 0);
     assertEquals("first", t.token());
     Files.writeString(file, "");
     assertEquals("first", t.token());
     Files.delete(file);
     assertEquals("first", t.token());
-    assertEquals("env", new TokenSource("env", dir.resolve("missing"), 0).token());
+    assertEquals("env", new Credentials("env", dir.resolve("missing"), 0).token());
   }
 
   @Test
@@ -56,7 +57,7 @@ class TokenSourceTest {
         assertThrows(InvalidArgumentError.class, () -> ClientTls.fromEnv(Map.of("CAST_TLS_CA", "a", "CAST_TLS_CERT", "c")));
     assertTrue(half.getMessage().contains("set both CAST_TLS_CERT and CAST_TLS_KEY"));
     InvalidArgumentError unreadable =
-        assertThrows(InvalidArgumentError.class, () -> new ClientTls(dir.resolve("none.pem").toString(), null, null, "").credentials());
+        assertThrows(InvalidArgumentError.class, () -> Credentials.channelCredentials(new ClientTls(dir.resolve("none.pem").toString(), null, null, "")));
     assertTrue(unreadable.getMessage().contains("CAST_TLS_CA"), unreadable.getMessage());
   }
 }

@@ -9,12 +9,15 @@ import java.util.List;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicBoolean;
+import java.util.logging.Logger;
 import org.junit.jupiter.api.Test;
 
 class DispatcherTest {
+  static final Logger LOG = Logger.getLogger("cast.test");
+
   @Test
   void runsCallsInOrderOnOneThreadAndSurvivesFailures() throws Exception {
-    Dispatcher d = new Dispatcher("t", 100);
+    Dispatcher d = new Dispatcher("t", 100, LOG);
     List<Integer> seen = Collections.synchronizedList(new ArrayList<>());
     List<Thread> threads = Collections.synchronizedList(new ArrayList<>());
     for (int i = 0; i < 50; i++) {
@@ -41,7 +44,7 @@ class DispatcherTest {
 
   @Test
   void aFullQueueHoldsUpBlockingSubmitsUntilThereIsRoom() throws Exception {
-    Dispatcher d = new Dispatcher("full", 2);
+    Dispatcher d = new Dispatcher("full", 2, LOG);
     CountDownLatch gate = new CountDownLatch(1);
     d.submit(
         () -> {
@@ -78,7 +81,7 @@ class DispatcherTest {
 
   @Test
   void theDispatcherThreadNeverWaitsForItself() throws Exception {
-    Dispatcher d = new Dispatcher("self", 1);
+    Dispatcher d = new Dispatcher("self", 1, LOG);
     CountDownLatch done = new CountDownLatch(1);
     List<Boolean> drained = new ArrayList<>();
     d.submit(
@@ -96,6 +99,6 @@ class DispatcherTest {
 
   @Test
   void capacityMustBePositive() {
-    assertThrows(InvalidArgumentError.class, () -> new Dispatcher("bad", 0));
+    assertThrows(InvalidArgumentError.class, () -> new Dispatcher("bad", 0, LOG));
   }
 }

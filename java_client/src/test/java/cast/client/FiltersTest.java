@@ -8,12 +8,18 @@ import java.util.List;
 import java.util.Set;
 import org.junit.jupiter.api.Test;
 
+/** The filter helpers, and the filters as they go on the wire (the own SA filled in, then Conversions). */
 class FiltersTest {
+  /** What a component sends for {@code f}: a local filter gets the own SA {@code own}, then the wire form. */
+  static cast.v1.ChangeFilter wire(ChangeFilter f, String own) {
+    return Conversions.filter(f.isLocal() ? f.inSubarchitecture(own) : f);
+  }
+
   @Test
   void localTypeFilterWatchesTheOwnSubarchitecture() {
     ChangeFilter f = Filters.localTypeFilter(Counter.class, Operation.ADD);
     assertTrue(f.isLocal());
-    cast.v1.ChangeFilter pb = f.toProto("vision");
+    cast.v1.ChangeFilter pb = wire(f, "vision");
     assertEquals("cast.testing.Counter", pb.getType());
     assertEquals("vision", pb.getSubarchitecture());
     assertEquals(List.of(cast.v1.Operation.OPERATION_ADD), pb.getOperationsList());
@@ -22,7 +28,7 @@ class FiltersTest {
 
   @Test
   void globalTypeFilterWatchesEverySubarchitecture() {
-    cast.v1.ChangeFilter pb = Filters.globalTypeFilter(Pose.class).toProto("vision");
+    cast.v1.ChangeFilter pb = wire(Filters.globalTypeFilter(Pose.class), "vision");
     assertEquals("cast.testing.Pose", pb.getType());
     assertEquals("", pb.getSubarchitecture(), "empty SA means every SA on the wire");
     assertTrue(pb.getOperationsList().isEmpty(), "no operations means every operation");
@@ -38,21 +44,21 @@ class FiltersTest {
 
   @Test
   void addressFilterDefaultsToTheOwnSubarchitecture() {
-    cast.v1.ChangeFilter own = Filters.addressFilter("e1", Operation.OVERWRITE, Operation.DELETE).toProto("motor");
+    cast.v1.ChangeFilter own = wire(Filters.addressFilter("e1", Operation.OVERWRITE, Operation.DELETE), "motor");
     assertEquals("e1", own.getId());
     assertEquals("motor", own.getSubarchitecture());
     assertEquals(
         Set.of(cast.v1.Operation.OPERATION_OVERWRITE, cast.v1.Operation.OPERATION_DELETE),
         Set.copyOf(own.getOperationsList()));
     cast.v1.ChangeFilter other =
-        Filters.addressFilter(new WorkingMemoryAddress("e2", "language")).toProto("motor");
+        wire(Filters.addressFilter(new WorkingMemoryAddress("e2", "language")), "motor");
     assertEquals("e2", other.getId());
     assertEquals("language", other.getSubarchitecture());
   }
 
   @Test
   void sourceFilterMatchesAComponentEverywhere() {
-    cast.v1.ChangeFilter pb = Filters.sourceFilter("planner").toProto("vision");
+    cast.v1.ChangeFilter pb = wire(Filters.sourceFilter("planner"), "vision");
     assertEquals("planner", pb.getSourceComponent());
     assertEquals("", pb.getSubarchitecture());
     assertEquals("", pb.getType());
@@ -61,10 +67,10 @@ class FiltersTest {
   @Test
   void operationFilterIsGlobalUnlessMadeLocal() {
     ChangeFilter deletes = Filters.operationFilter(Operation.DELETE);
-    assertEquals("", deletes.toProto("vision").getSubarchitecture());
-    assertEquals("vision", deletes.local().toProto("vision").getSubarchitecture());
-    assertEquals("motor", deletes.inSubarchitecture("motor").toProto("vision").getSubarchitecture());
-    assertEquals(List.of(cast.v1.Operation.OPERATION_DELETE), deletes.toProto("x").getOperationsList());
+    assertEquals("", wire(deletes, "vision").getSubarchitecture());
+    assertEquals("vision", wire(deletes.local(), "vision").getSubarchitecture());
+    assertEquals("motor", wire(deletes.inSubarchitecture("motor"), "vision").getSubarchitecture());
+    assertEquals(List.of(cast.v1.Operation.OPERATION_DELETE), wire(deletes, "x").getOperationsList());
   }
 
   @Test
@@ -75,7 +81,7 @@ class FiltersTest {
     assertTrue(f.operations().isEmpty());
     assertTrue(g.includeEntry());
     assertEquals(Set.of(Operation.ADD), g.operations());
-    cast.v1.ChangeFilter pb = g.toProto("vision");
+    cast.v1.ChangeFilter pb = wire(g, "vision");
     assertTrue(pb.getIncludeEntry());
     assertEquals("language", pb.getSourceSubarchitecture());
     assertNotEquals(f, g);

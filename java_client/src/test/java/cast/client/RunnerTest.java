@@ -3,6 +3,7 @@ package cast.client;
 import static org.junit.jupiter.api.Assertions.*;
 
 import java.util.HashMap;
+import java.util.List;
 import java.util.Map;
 import org.junit.jupiter.api.Test;
 
@@ -88,21 +89,19 @@ class RunnerTest {
   }
 
   @Test
-  void runComponentCallsTheHooksInOrderAndStopOnce() throws Exception {
-    String name = "runner-" + System.nanoTime();
-    try (FakeCast fake = new FakeCast(name, Map.of("vision", ""))) {
-      Lifecycle ok = FakeCast.connect(new Lifecycle(false), name, "ok", "vision");
-      assertEquals(0, Runner.runComponent(ok, Args.fromJson("{\"n\": 4}"), false));
-      assertEquals("configure(4) start run stop", ok.calls.toString());
-      Lifecycle bad = FakeCast.connect(new Lifecycle(true), name, "bad", "vision");
-      assertEquals(1, Runner.runComponent(bad, Args.empty(), false));
-      assertEquals("configure(0) start run stop", bad.calls.toString());
-      // Both sessions ended when the runner closed the components.
-      long deadline = System.nanoTime() + 3_000_000_000L;
-      while (fake.endedSessions.size() < 2 && System.nanoTime() < deadline) {
-        Thread.sleep(10);
-      }
-      assertEquals(2, fake.endedSessions.size());
-    }
+  void runComponentCallsTheHooksInOrderAndStopOnce() {
+    FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+    Lifecycle ok = FakeTransport.connect(new Lifecycle(false), memory, "ok", "vision");
+    FakeTransport okSession = FakeTransport.of(ok);
+    assertEquals(0, Runner.runComponent(ok, Args.fromJson("{\"n\": 4}"), false));
+    assertEquals("configure(4) start run stop", ok.calls.toString());
+    // RUNNING once start() returned, STOPPING when stop() is called, each reported at once.
+    assertEquals(List.of(ComponentState.RUNNING, ComponentState.STOPPING), okSession.reported);
+    Lifecycle bad = FakeTransport.connect(new Lifecycle(true), memory, "bad", "vision");
+    FakeTransport badSession = FakeTransport.of(bad);
+    assertEquals(1, Runner.runComponent(bad, Args.empty(), false));
+    assertEquals("configure(0) start run stop", bad.calls.toString());
+    // Both sessions ended when the runner closed the components.
+    assertTrue(okSession.closed && badSession.closed);
   }
 }

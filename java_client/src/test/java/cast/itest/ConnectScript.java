@@ -2,6 +2,7 @@ package cast.itest;
 
 import cast.client.Cast;
 import cast.client.CastError;
+import cast.client.ConnectOptions;
 import cast.client.Connection;
 import cast.client.Entry;
 import cast.client.Filters;
@@ -19,7 +20,9 @@ import java.util.concurrent.TimeoutException;
  * script would (environment, runtime directory), watches the entry ID, adds it, reads
  * it back, waits for its change, and prints one JSON line
  * {"component", "subarchitecture", "privileged", "version", "event", "writer"}. Exit 0
- * on success; 1 with {"error": name, "message": ...} on a CastError.
+ * on success; 1 with {"error": name, "message": ...} on a CastError. CONNECT_OPTION_COMPONENT_ID
+ * and CONNECT_OPTION_SUBARCHITECTURE, when set, are given as ConnectOptions (tests of options
+ * that contradict the token, tests/interop/test_java_identity.py).
  *
  * <pre>java -cp cast-client-all.jar:test-classes cast.itest.ConnectScript ID</pre>
  */
@@ -35,7 +38,14 @@ public final class ConnectScript {
     String id = argv[0];
     JsonObject out = new JsonObject();
     int status = 0;
-    try (Connection wm = Cast.connect()) {
+    ConnectOptions options = new ConnectOptions();
+    if (System.getenv("CONNECT_OPTION_COMPONENT_ID") != null) {
+      options.componentId(System.getenv("CONNECT_OPTION_COMPONENT_ID"));
+    }
+    if (System.getenv("CONNECT_OPTION_SUBARCHITECTURE") != null) {
+      options.subarchitecture(System.getenv("CONNECT_OPTION_SUBARCHITECTURE"));
+    }
+    try (Connection wm = Cast.connect(options)) {
       CompletableFuture<String> changed = new CompletableFuture<>();
       WatchHandle watch =
           wm.onChange(Filters.addressFilter(id, Operation.ADD), change -> changed.complete(change.operation().name()));

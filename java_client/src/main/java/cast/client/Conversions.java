@@ -1,0 +1,220 @@
+package cast.client;
+
+import cast.v1.AddRequest;
+import cast.v1.BatchOperation;
+import cast.v1.BatchRequest;
+import cast.v1.CompleteRequest;
+import cast.v1.DeleteRequest;
+import cast.v1.EntryAddress;
+import cast.v1.LockRequest;
+import cast.v1.OverwriteRequest;
+import cast.v1.ProposeRequest;
+import cast.v1.RegisterResponse;
+import cast.v1.WriteResponse;
+import com.google.protobuf.Any;
+import com.google.protobuf.Timestamp;
+import java.time.Instant;
+import java.util.List;
+
+/**
+ * Wire messages ({@code cast.v1}) to and from the library's types: the only place
+ * besides the gRPC transport's own files that knows the generated classes, so that
+ * none of them appears in the public API (the twin of
+ * python/cast/client/conversions.py and cpp_client/src/conversions.cc).
+ */
+final class Conversions {
+  private Conversions() {}
+
+  // ------------------------------------------------------------- to the wire
+
+  static EntryAddress address(String sa, String id) {
+    return EntryAddress.newBuilder().setId(id).setSubarchitecture(sa).build();
+  }
+
+  /** A filter whose SA is known ("" for every SA); a local one must have been resolved first. */
+  static cast.v1.ChangeFilter filter(ChangeFilter f) {
+    if (f.isLocal()) {
+      // The component fills in its own SA; reaching here without it would watch every SA.
+      throw new IllegalArgumentException("a local filter must be given its SA before it is sent: " + f);
+    }
+    cast.v1.ChangeFilter.Builder b =
+        cast.v1.ChangeFilter.newBuilder()
+            .setType(f.type())
+            .setId(f.id())
+            .setSubarchitecture(f.subarchitecture())
+            .setSourceComponent(f.sourceComponent())
+            .setSourceSubarchitecture(f.sourceSubarchitecture())
+            .setIncludeEntry(f.includeEntry());
+    for (Operation op : f.operations()) {
+      b.addOperations(operation(op));
+    }
+    return b.build();
+  }
+
+  static cast.v1.Operation operation(Operation op) {
+    return switch (op) {
+      case ADD -> cast.v1.Operation.OPERATION_ADD;
+      case OVERWRITE -> cast.v1.Operation.OPERATION_OVERWRITE;
+      case DELETE -> cast.v1.Operation.OPERATION_DELETE;
+    };
+  }
+
+  static cast.v1.LockMode lockMode(LockMode mode) {
+    return switch (mode) {
+      case O -> cast.v1.LockMode.LOCK_MODE_O;
+      case OD -> cast.v1.LockMode.LOCK_MODE_OD;
+      case ODR -> cast.v1.LockMode.LOCK_MODE_ODR;
+    };
+  }
+
+  static cast.v1.TaskOutcome outcome(TaskOutcome outcome) {
+    return switch (outcome) {
+      case SUCCEEDED -> cast.v1.TaskOutcome.TASK_OUTCOME_SUCCEEDED;
+      case FAILED -> cast.v1.TaskOutcome.TASK_OUTCOME_FAILED;
+      case ABANDONED -> cast.v1.TaskOutcome.TASK_OUTCOME_ABANDONED;
+    };
+  }
+
+  static cast.v1.ComponentState state(ComponentState state) {
+    return switch (state) {
+      case STARTING -> cast.v1.ComponentState.COMPONENT_STATE_STARTING;
+      case RUNNING -> cast.v1.ComponentState.COMPONENT_STATE_RUNNING;
+      case STOPPING -> cast.v1.ComponentState.COMPONENT_STATE_STOPPING;
+    };
+  }
+
+  static AddRequest add(String sa, String id, Any value) {
+    return AddRequest.newBuilder().setAddress(address(sa, id)).setValue(value).build();
+  }
+
+  /** An overwrite, checking the version unless {@code expectedVersion} is null. */
+  static OverwriteRequest overwrite(String sa, String id, Any value, Long expectedVersion) {
+    var b = OverwriteRequest.newBuilder().setAddress(address(sa, id)).setValue(value);
+    if (expectedVersion != null) {
+      b.setExpectedVersion(expectedVersion);
+    }
+    return b.build();
+  }
+
+  /** A delete, checking the version unless {@code expectedVersion} is null. */
+  static DeleteRequest delete(String sa, String id, Long expectedVersion) {
+    var b = DeleteRequest.newBuilder().setAddress(address(sa, id));
+    if (expectedVersion != null) {
+      b.setExpectedVersion(expectedVersion);
+    }
+    return b.build();
+  }
+
+  /** The writes of a batch, in order, all in {@code sa}. */
+  static BatchRequest batch(String sa, List<Transport.Write> writes) {
+    BatchRequest.Builder req = BatchRequest.newBuilder();
+    for (Transport.Write w : writes) {
+      BatchOperation.Builder op = BatchOperation.newBuilder();
+      switch (w.operation()) {
+        case ADD -> op.setAdd(add(sa, w.id(), w.value()));
+        case OVERWRITE -> op.setOverwrite(overwrite(sa, w.id(), w.value(), w.expectedVersion()));
+        case DELETE -> op.setDelete(delete(sa, w.id(), w.expectedVersion()));
+      }
+      req.addOperations(op);
+    }
+    return req.build();
+  }
+
+  static LockRequest lock(String sa, String id, LockMode mode, boolean noWait) {
+    return LockRequest.newBuilder().setAddress(address(sa, id)).setMode(lockMode(mode)).setNoWait(noWait).build();
+  }
+
+  static ProposeRequest propose(String name, Any data, int priority) {
+    var b = ProposeRequest.newBuilder().setName(name).setPriority(priority);
+    if (data != null) {
+      b.setData(data);
+    }
+    return b.build();
+  }
+
+  static CompleteRequest complete(String taskId, TaskOutcome outcome, String reason) {
+    return CompleteRequest.newBuilder()
+        .setTaskId(taskId)
+        .setOutcome(outcome(outcome))
+        .setReason(reason == null ? "" : reason)
+        .build();
+  }
+
+  // ----------------------------------------------------------- from the wire
+
+  static WorkingMemoryAddress address(EntryAddress a) {
+    return new WorkingMemoryAddress(a.getId(), a.getSubarchitecture());
+  }
+
+  static Instant time(Timestamp t) {
+    return Instant.ofEpochSecond(t.getSeconds(), t.getNanos());
+  }
+
+  static WriteResult result(WriteResponse r) {
+    return new WriteResult(r.getRevision(), r.getVersion());
+  }
+
+  static Transport.StoredEntry entry(cast.v1.Entry e) {
+    return new Transport.StoredEntry(
+        address(e.getAddress()),
+        e.getType(),
+        e.getValue().getValue(),
+        e.getVersion(),
+        e.getAuthor(),
+        e.getRevision(),
+        time(e.getModified()));
+  }
+
+  /** InvalidArgumentError for UNSPECIFIED or a value this library does not know. */
+  static Operation operation(cast.v1.Operation op) {
+    return switch (op) {
+      case OPERATION_ADD -> Operation.ADD;
+      case OPERATION_OVERWRITE -> Operation.OVERWRITE;
+      case OPERATION_DELETE -> Operation.DELETE;
+      default -> throw new InvalidArgumentError("unknown operation " + op + " in a change event");
+    };
+  }
+
+  /** An event; InvalidArgumentError for one this library cannot represent (an unknown operation). */
+  static Transport.Change change(cast.v1.ChangeEvent e) {
+    return new Transport.Change(
+        e.getRevision(),
+        operation(e.getOperation()),
+        address(e.getAddress()),
+        e.getType(),
+        e.getVersion(),
+        e.getSourceComponent(),
+        e.getSourceSubarchitecture(),
+        time(e.getTime()),
+        e.hasEntry() ? entry(e.getEntry()) : null,
+        List.copyOf(e.getWatchIdsList()));
+  }
+
+  static TaskState taskState(cast.v1.TaskState state) {
+    return switch (state) {
+      case TASK_STATE_WAITING -> TaskState.WAITING;
+      case TASK_STATE_ADOPTED -> TaskState.ADOPTED;
+      case TASK_STATE_REJECTED -> TaskState.REJECTED;
+      case TASK_STATE_RETRACTED -> TaskState.RETRACTED;
+      case TASK_STATE_COMPLETED -> TaskState.COMPLETED;
+      default -> TaskState.UNSPECIFIED;
+    };
+  }
+
+  static Task task(cast.v1.Task t) {
+    return new Task(
+        t.getTaskId(),
+        t.getName(),
+        t.getSubarchitecture(),
+        t.getComponent(),
+        t.getPriority(),
+        taskState(t.getState()),
+        t.getReason(),
+        t.hasData() ? t.getData() : null);
+  }
+
+  /** Who the server says the caller is, verified from its token. */
+  static Identity identity(RegisterResponse r) {
+    return new Identity(r.getComponentId(), r.getSubarchitecture(), r.getPrivileged());
+  }
+}

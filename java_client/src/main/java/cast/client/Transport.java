@@ -1,0 +1,176 @@
+package cast.client;
+
+import com.google.protobuf.Any;
+import com.google.protobuf.ByteString;
+import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
+import java.time.Duration;
+import java.time.Instant;
+import java.util.List;
+import java.util.Map;
+import java.util.function.BiConsumer;
+import java.util.function.Consumer;
+import java.util.function.Supplier;
+
+/**
+ * The boundary between the component API and the way it reaches the working
+ * memories: everything a component does to working memories, its task manager and
+ * its session, in the library's own types (no generated {@code cast.v1} message
+ * crosses it). {@link GrpcTransport} speaks gRPC to the servers; the unit tests use
+ * an in-memory fake. The twin of python/cast/client/transport.py and
+ * cpp_client/src/transport.h.
+ *
+ * <p>Every call except {@link #startSession} is made after {@link #startSession}
+ * returned. Calls that name an SA go to the server of that SA; task calls go to the
+ * task manager of the component's own SA, as the server verified it.
+ */
+interface Transport extends AutoCloseable {
+
+  /**
+   * An entry as stored, its value still bytes: the transport does not know the class
+   * the caller will read it as.
+   *
+   * @param address where the entry lives
+   * @param type full protobuf name of the value's type
+   * @param value the serialised value
+   * @param version the entry's version
+   * @param author id of the component that made the last write
+   * @param revision the working memory's revision of the last write
+   * @param modified server time of the last write
+   */
+  record StoredEntry(
+      WorkingMemoryAddress address,
+      String type,
+      ByteString value,
+      long version,
+      String author,
+      long revision,
+      Instant modified) {}
+
+  /**
+   * One change event, once, with the ids of every watch of this component it matched.
+   *
+   * @param revision the working memory's revision of the change
+   * @param operation ADD, OVERWRITE or DELETE
+   * @param address the entry changed
+   * @param type full name of the entry's type
+   * @param version the entry's version after the change (DELETE: the version it had)
+   * @param sourceComponent id of the writer
+   * @param sourceSubarchitecture SA of the writer
+   * @param time server time of the change
+   * @param entry the entry (after the write; DELETE: as it was), or null when no filter asked for it
+   * @param watchIds the matching watches of this component
+   */
+  record Change(
+      long revision,
+      Operation operation,
+      WorkingMemoryAddress address,
+      String type,
+      long version,
+      String sourceComponent,
+      String sourceSubarchitecture,
+      Instant time,
+      StoredEntry entry,
+      List<Integer> watchIds) {}
+
+  /**
+   * One write of a batch.
+   *
+   * @param operation what to do
+   * @param id the entry's id (in the batch's SA)
+   * @param value the value to write (null for DELETE)
+   * @param expectedVersion the version the entry must have, or null for any
+   */
+  record Write(Operation operation, String id, Any value, Long expectedVersion) {}
+
+  /** Receives change events, in the order each server sent them (revision order per WM). */
+  interface EventSink {
+    /** One event; may block while the component's queue is full (the stream then waits). */
+    void event(Change change);
+  }
+
+  // ---------------------------------------------------------------- session
+
+  /**
+   * Register with every server and keep the sessions alive, reporting {@code state()};
+   * returns the identity the server verified from the token (the component is that,
+   * whatever its launch environment says).
+   */
+  Identity startSession(String language, String kind, Supplier<ComponentState> state);
+
+  /** Report the state now rather than at the next heartbeat. */
+  void stateChanged();
+
+  /** The names of the system's SAs, as the directory described them. */
+  List<String> subarchitectures();
+
+  // ----------------------------------------------------------------- writes
+
+  /** Create an entry; AlreadyExistsError if the id is taken. */
+  WriteResult add(String sa, String id, Any value);
+
+  /** Replace an entry's value, checking its version unless {@code expectedVersion} is null. */
+  WriteResult overwrite(String sa, String id, Any value, Long expectedVersion);
+
+  /** Delete an entry, checking its version unless {@code expectedVersion} is null. */
+  WriteResult delete(String sa, String id, Long expectedVersion);
+
+  /** Apply writes to one SA in order, all or nothing; one result per write. */
+  List<WriteResult> batch(String sa, List<Write> writes);
+
+  /** Register entry types (their files and every import) with every server. */
+  void registerSchemas(FileDescriptorSet files);
+
+  // ------------------------------------------------------------------ reads
+
+  /** One entry; NotFoundError if there is none. */
+  StoredEntry get(String sa, String id);
+
+  /** The newest {@code limit} entries (0: all) of a type, newest first. */
+  List<StoredEntry> getByType(String sa, String type, int limit);
+
+  /** Whether an entry exists. */
+  boolean exists(String sa, String id);
+
+  // ------------------------------------------------------------------ locks
+
+  /** Take a lock, waiting up to {@code timeout} (null: forever) unless {@code noWait}; returns its depth. */
+  int lock(String sa, String id, LockMode mode, Duration timeout, boolean noWait);
+
+  /** Release one level of a lock; returns the remaining depth. */
+  int unlock(String sa, String id);
+
+  // --------------------------------------------------------------- watching
+
+  /**
+   * Where events go, and where a watch's end goes: {@code onError(error, watchId)} for
+   * one watch that could not resume (it is dropped), {@code watchId} -1 for all of them.
+   */
+  void setEventSink(EventSink sink, BiConsumer<CastError, Integer> onError);
+
+  /**
+   * Create a watch (filters with their SA filled in; "" for every SA); returns once the
+   * servers confirmed it, with each SA's revision when it took effect.
+   */
+  Map<String, Long> watch(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions);
+
+  /** Remove a watch. */
+  void cancelWatch(int watchId);
+
+  // ------------------------------------------------------------------ tasks
+
+  /** Propose a task (data may be null) to the own SA's task manager. */
+  Task propose(String name, Any data, int priority);
+
+  /** Withdraw a task. */
+  void retract(String taskId);
+
+  /** Report an adopted task's outcome. */
+  void complete(String taskId, TaskOutcome outcome, String reason);
+
+  /** Deliver every decision about this component's tasks to {@code sink}, from now on. */
+  void openDecisions(Consumer<Task> sink);
+
+  /** End the sessions (locks and tasks released) and every stream (idempotent). */
+  @Override
+  void close();
+}

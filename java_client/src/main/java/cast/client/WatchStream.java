@@ -1,0 +1,482 @@
+package cast.client;
+
+import cast.v1.ChangeEvent;
+import cast.v1.WatchCancel;
+import cast.v1.WatchCreate;
+import cast.v1.WatchRequest;
+import cast.v1.WatchResponse;
+import io.grpc.Status;
+import io.grpc.stub.ClientCallStreamObserver;
+import io.grpc.stub.ClientResponseObserver;
+import java.util.ArrayList;
+import java.util.HashMap;
+import java.util.LinkedHashMap;
+import java.util.List;
+import java.util.Map;
+import java.util.concurrent.CompletableFuture;
+import java.util.concurrent.ConcurrentHashMap;
+import java.util.concurrent.ExecutionException;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.TimeoutException;
+import java.util.concurrent.atomic.AtomicInteger;
+import java.util.function.BiConsumer;
+import java.util.logging.Logger;
+
+/**
+ * The Watch stream to one server, shared by every watch of the component on that
+ * server (docs/client-protocol.md, "Watching" and "Reconnection"). When the
+ * connection breaks it is opened again with backoff and every watch is created
+ * again from the revision after the last one it got, per SA, with the server's
+ * history id: a server that lost that history refuses the resume, and the component
+ * is told to resynchronise (HistoryExpiredError). Any other end is for good: every
+ * watch on the stream fails, and the next {@code onChange} opens a new stream
+ * ({@link Streams}: the component's streams, one per server). The twin of
+ * python/cast/client/watch_stream.py and cpp_client/src/watch_stream.cc.
+ */
+final class WatchStream {
+  private static final Logger LOG = Logger.getLogger("cast.client");
+
+  /** What the client keeps of one watch so that it can be created again after a reconnect. */
+  static final class Watch {
+    final int watchId;
+    final List<cast.v1.ChangeFilter> filters;
+    final Map<String, Long> firstStarts;
+    private List<String> sas = List.of(); // the SAs of this server the watch covers (known once created)
+    private Map<String, Long> base; // per SA, the revision the watch has seen up to (null until created)
+
+    Watch(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> firstStarts) {
+      this.watchId = watchId;
+      this.filters = List.copyOf(filters);
+      this.firstStarts = Map.copyOf(firstStarts);
+    }
+
+    /** Whether the server confirmed the watch (a later create of it is a resume). */
+    boolean isCreated() {
+      return base != null;
+    }
+
+    /**
+     * The server confirmed the watch at {@code revisions} (every SA of the server): the
+     * watch has seen up to the revision before its start, per SA it covers.
+     */
+    void created(Map<String, Long> revisions) {
+      if (base != null) {
+        return; // a resume's confirmation: the watch already knows where it is
+      }
+      boolean coversAll = filters.stream().anyMatch(f -> f.getSubarchitecture().isEmpty());
+      List<String> covered = new ArrayList<>();
+      Map<String, Long> upTo = new HashMap<>();
+      for (var r : revisions.entrySet()) {
+        String sa = r.getKey();
+        if (coversAll || filters.stream().anyMatch(f -> f.getSubarchitecture().equals(sa))) {
+          covered.add(sa);
+          upTo.put(sa, firstStarts.getOrDefault(sa, r.getValue() + 1) - 1);
+        }
+      }
+      sas = covered;
+      base = upTo;
+    }
+
+    /**
+     * Where a create of this watch starts, per SA: its first start revisions until the
+     * server confirmed it; after that (a resume) the revision after the newest one the
+     * watch or its stream ({@code seen}) got, and the watch moves up to there, so a
+     * later resume never goes back before it.
+     */
+    Map<String, Long> starts(Map<String, Long> seen) {
+      if (base == null) {
+        return firstStarts;
+      }
+      Map<String, Long> starts = new HashMap<>();
+      Map<String, Long> upTo = new HashMap<>();
+      for (String sa : sas) {
+        long revision = Math.max(base.getOrDefault(sa, 0L), seen.getOrDefault(sa, 0L));
+        starts.put(sa, revision + 1);
+        upTo.put(sa, revision);
+      }
+      base = upTo;
+      return starts;
+    }
+  }
+
+  /**
+   * The component's Watch streams, one per server, and which watch is on which: a watch
+   * goes to every server whose SAs its filters can match, all or nothing. A stream that
+   * ended for good is replaced by the next watch, so {@code watchFailed} can register
+   * the component's callbacks again.
+   */
+  static final class Streams {
+    private final GrpcTransport transport;
+    private final Object lock = new Object();
+    private final Map<GrpcTransport.Server, WatchStream> streams = new HashMap<>(); // guarded by lock
+    private boolean closed; // guarded by lock
+    private final Map<Integer, List<GrpcTransport.Server>> placed = new ConcurrentHashMap<>();
+    private volatile Transport.EventSink sink;
+    private volatile BiConsumer<CastError, Integer> onError =
+        (err, watchId) -> LOG.severe("change delivery stopped: " + err.getMessage());
+
+    Streams(GrpcTransport transport) {
+      this.transport = transport;
+    }
+
+    void setSink(Transport.EventSink sink, BiConsumer<CastError, Integer> onError) {
+      this.sink = sink;
+      this.onError = onError;
+    }
+
+    BiConsumer<CastError, Integer> errors() {
+      return onError;
+    }
+
+    /** Create the watch on every server its filters can match; the revisions at creation, per SA. */
+    Map<String, Long> create(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions) {
+      if (sink == null) {
+        throw new IllegalStateException("setEventSink must be called before watch");
+      }
+      List<cast.v1.ChangeFilter> wire = new ArrayList<>();
+      List<GrpcTransport.Server> targets = new ArrayList<>();
+      for (ChangeFilter f : filters) {
+        wire.add(Conversions.filter(f));
+        for (GrpcTransport.Server s :
+            f.subarchitecture().isEmpty() ? transport.allServers() : List.of(transport.server(f.subarchitecture()))) {
+          if (!targets.contains(s)) {
+            targets.add(s);
+          }
+        }
+      }
+      Map<String, Long> revisions = new HashMap<>();
+      List<WatchStream> created = new ArrayList<>();
+      try {
+        for (GrpcTransport.Server server : targets) {
+          WatchStream stream;
+          synchronized (lock) {
+            if (closed || transport.isClosing()) {
+              throw new UnavailableError("the component's connection is closed");
+            }
+            // A stream that ended (server restart, history expired) is replaced.
+            stream = streams.get(server);
+            if (stream == null || stream.isEnded()) {
+              stream = new WatchStream(transport, server, this);
+              streams.put(server, stream);
+            }
+          }
+          Map<String, Long> mine = new HashMap<>();
+          startRevisions.forEach((sa, rev) -> {
+            if (transport.server(sa) == server) {
+              mine.put(sa, rev);
+            }
+          });
+          revisions.putAll(stream.create(watchId, wire, mine));
+          created.add(stream);
+        }
+      } catch (RuntimeException e) {
+        // All or nothing: do not leave half a watch behind on the servers that accepted it.
+        for (WatchStream s : created) {
+          s.cancel(watchId);
+        }
+        throw e;
+      }
+      placed.put(watchId, targets);
+      return revisions;
+    }
+
+    /** Remove the watch from every server it is on. */
+    void cancel(int watchId) {
+      List<GrpcTransport.Server> targets = placed.remove(watchId);
+      if (targets == null) {
+        return;
+      }
+      for (GrpcTransport.Server server : targets) {
+        WatchStream stream;
+        synchronized (lock) {
+          stream = streams.get(server);
+        }
+        if (stream != null) {
+          stream.cancel(watchId);
+        }
+      }
+    }
+
+    /** End every stream (the component is closing); no new one opens. */
+    void close() {
+      List<WatchStream> all;
+      synchronized (lock) {
+        closed = true;
+        all = new ArrayList<>(streams.values());
+      }
+      for (WatchStream s : all) {
+        s.close();
+      }
+    }
+  }
+
+  private final GrpcTransport transport;
+  private final GrpcTransport.Server server;
+  private final Streams streams;
+  private final Object mutex = new Object();
+  private final Map<Integer, Watch> watches = new LinkedHashMap<>(); // guarded by mutex
+  private final Map<Integer, CompletableFuture<Map<String, Long>>> pending = new ConcurrentHashMap<>();
+  // The newest revision per SA received on this stream: the server moves every watch of an SA
+  // on one stream past the events it sends, so each watch has seen at least this far.
+  private final Map<String, Long> seen = new ConcurrentHashMap<>();
+  private final Backoff backoff = new Backoff();
+  private ClientCallStreamObserver<WatchRequest> requests; // the current call; guarded by mutex
+  private int generation; // numbers the calls; guarded by mutex
+  private volatile String historyId = "";
+  private volatile boolean connected;
+  private volatile boolean dead; // ended for good: a new watch needs a new stream
+  private volatile boolean closed;
+  final AtomicInteger reconnects = new AtomicInteger();
+
+  /** Opens the stream to {@code server}; events and failures go where {@code streams} says. */
+  WatchStream(GrpcTransport transport, GrpcTransport.Server server, Streams streams) {
+    this.transport = transport;
+    this.server = server;
+    this.streams = streams;
+    open();
+  }
+
+  /** Whether the stream ended for good (a new watch needs a new stream). */
+  boolean isEnded() {
+    return dead;
+  }
+
+  private WatchRequest createRequest(Watch w) {
+    // The history id guards a resume only: a first create starts wherever the server is.
+    String history = w.isCreated() ? historyId : "";
+    Map<String, Long> starts = w.starts(seen);
+    return WatchRequest.newBuilder()
+        .setCreate(
+            WatchCreate.newBuilder()
+                .setWatchId(w.watchId)
+                .addAllFilters(w.filters)
+                .putAllStartRevisions(starts)
+                .setHistoryId(history))
+        .build();
+  }
+
+  /** Send on the current call (under mutex); a call that just ended drops it, the reopen resends. */
+  private void send(WatchRequest req) {
+    if (requests == null) {
+      return;
+    }
+    try {
+      requests.onNext(req);
+    } catch (IllegalStateException e) {
+      LOG.fine("watch request not sent, the call ended: " + e.getMessage());
+    }
+  }
+
+  private void open() {
+    synchronized (mutex) {
+      if (closed || transport.isClosing()) {
+        return;
+      }
+      int gen = ++generation;
+      requests = null;
+      server.wmAsync.watch(new Call(gen)); // beforeStart sets `requests`
+      for (Watch w : watches.values()) {
+        send(createRequest(w));
+      }
+    }
+  }
+
+  /** The observer of one Watch call. */
+  private final class Call implements ClientResponseObserver<WatchRequest, WatchResponse> {
+    private final int gen;
+
+    Call(int gen) {
+      this.gen = gen;
+    }
+
+    @Override
+    public void beforeStart(ClientCallStreamObserver<WatchRequest> requestStream) {
+      synchronized (mutex) {
+        if (gen == generation) {
+          requests = requestStream;
+        }
+      }
+    }
+
+    @Override
+    public void onNext(WatchResponse resp) {
+      // grpc-java calls this serially per call, so events keep the server's order.
+      if (!connected) {
+        connected = true;
+        backoff.reset();
+      }
+      handle(resp);
+    }
+
+    @Override
+    public void onError(Throwable t) {
+      ended(gen, Status.fromThrowable(t));
+    }
+
+    @Override
+    public void onCompleted() {
+      ended(gen, Status.UNAVAILABLE.withDescription("the server at " + server.endpoint + " ended the watch stream"));
+    }
+  }
+
+  private void handle(WatchResponse resp) {
+    Transport.EventSink sink = streams.sink;
+    for (ChangeEvent e : resp.getEventsList()) {
+      if (sink != null) {
+        Transport.Change change = null;
+        try {
+          change = Conversions.change(e);
+        } catch (CastError err) {
+          // An event this library cannot represent must not break the stream for the others.
+          LOG.severe("dropping change event revision " + e.getRevision() + ": " + err.getMessage());
+        }
+        if (change != null) {
+          sink.event(change);
+        }
+      }
+      seen.merge(e.getAddress().getSubarchitecture(), e.getRevision(), Math::max);
+    }
+    if (resp.hasCreated()) {
+      var created = resp.getCreated();
+      if (!created.getHistoryId().isEmpty()) {
+        historyId = created.getHistoryId();
+      }
+      synchronized (mutex) {
+        Watch w = watches.get(created.getWatchId());
+        if (w != null) {
+          w.created(created.getRevisionsMap());
+        }
+      }
+      var f = pending.remove(created.getWatchId());
+      if (f != null) {
+        f.complete(created.getRevisionsMap());
+      }
+    }
+    if (resp.hasFailed()) {
+      var failed = resp.getFailed();
+      CastError error = Errors.forCode(failed.getCode(), failed.getMessage());
+      var f = pending.remove(failed.getWatchId());
+      Watch dropped;
+      synchronized (mutex) {
+        dropped = watches.remove(failed.getWatchId());
+      }
+      if (f != null) {
+        f.completeExceptionally(error);
+      } else if (dropped != null) {
+        // A resume refused after a reconnect: the history no longer covers it (or the server
+        // lost it): the component must resynchronise.
+        if (!(error instanceof HistoryExpiredError)) {
+          error = new HistoryExpiredError("watch " + failed.getWatchId() + " could not resume: " + failed.getMessage());
+        }
+        streams.onError.accept(error, failed.getWatchId());
+      }
+    }
+  }
+
+  private void ended(int gen, Status status) {
+    synchronized (mutex) {
+      if (gen != generation) {
+        return; // an older call
+      }
+      requests = null;
+    }
+    connected = false;
+    if (closed || transport.isClosing()) {
+      return;
+    }
+    CastError error = Errors.fromStatus(status);
+    if (!GrpcTransport.TRANSIENT.contains(status.getCode())) {
+      fail(error);
+      return;
+    }
+    reconnects.incrementAndGet();
+    long delay = backoff.nextMillis();
+    LOG.warning(
+        "watch stream to " + server.endpoint + " broke (" + status.getCode() + ": " + status.getDescription()
+            + "); reconnecting in " + delay + " ms");
+    transport.schedule(
+        () -> {
+          server.channel.resetConnectBackoff(); // try the server now, not after gRPC's own (long) backoff
+          open();
+        },
+        delay);
+  }
+
+  /** End the stream for good (fell behind the history, ...): every watch on it fails. */
+  private void fail(CastError error) {
+    dead = true;
+    synchronized (mutex) {
+      watches.clear();
+    }
+    for (Integer id : new ArrayList<>(pending.keySet())) {
+      var f = pending.remove(id);
+      if (f != null) {
+        f.completeExceptionally(error);
+      }
+    }
+    streams.onError.accept(error, -1);
+  }
+
+  /** Create a watch and wait for the server to confirm it; returns the revisions at creation. */
+  Map<String, Long> create(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> starts) {
+    var done = new CompletableFuture<Map<String, Long>>();
+    Watch w = new Watch(watchId, filters, starts);
+    synchronized (mutex) {
+      if (dead) {
+        throw new UnavailableError("the watch stream to " + server.endpoint + " has ended");
+      }
+      pending.put(watchId, done);
+      watches.put(watchId, w);
+      send(createRequest(w)); // while disconnected, the reopen sends it
+    }
+    long timeout = transport.callTimeout().toMillis();
+    try {
+      return done.get(timeout, TimeUnit.MILLISECONDS);
+    } catch (TimeoutException e) {
+      forget(watchId);
+      if (!connected) {
+        throw new UnavailableError(
+            "server " + server.endpoint + " unreachable: the watch was not created within " + transport.callTimeout());
+      }
+      throw new DeadlineExceededError(
+          "the server at " + server.endpoint + " did not confirm watch " + watchId + " within " + transport.callTimeout());
+    } catch (ExecutionException e) {
+      forget(watchId);
+      throw Errors.fromThrowable(e.getCause());
+    } catch (InterruptedException e) {
+      Thread.currentThread().interrupt();
+      forget(watchId);
+      throw new CastError("CANCELLED", "interrupted while waiting for the server to confirm watch " + watchId);
+    }
+  }
+
+  private void forget(int watchId) {
+    pending.remove(watchId);
+    synchronized (mutex) {
+      watches.remove(watchId);
+    }
+  }
+
+  /** Remove a watch on this stream. */
+  void cancel(int watchId) {
+    synchronized (mutex) {
+      watches.remove(watchId);
+      send(WatchRequest.newBuilder().setCancel(WatchCancel.newBuilder().setWatchId(watchId)).build());
+    }
+  }
+
+  /** End the call (the component is closing). */
+  void close() {
+    closed = true;
+    synchronized (mutex) {
+      if (requests != null) {
+        try {
+          requests.cancel("component closing", null);
+        } catch (RuntimeException e) {
+          LOG.fine("watch call already ended: " + e.getMessage());
+        }
+        requests = null;
+      }
+    }
+  }
+}

@@ -1,0 +1,76 @@
+"""Who a Java component is comes from the server (issue 14, item 3): RegisterResponse carries the identity
+the server verified from the token, and a launch environment or connect options that say otherwise are
+refused at start, naming both, against a real `cast serve`. The same rules on an in-memory transport:
+java_client/src/test/java/cast/client/IdentityTest.java."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from typing import Any
+
+from tests.interop.java_support import RUNNER, JavaComponent, java_classpath
+
+
+def run_java(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["java", "-cp", java_classpath(), *args], env=env, capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_a_component_started_with_a_token_for_another_id_exits_2_naming_both(server: Any) -> None:
+    env = dict(server.env("jalice", "vision"), CAST_TOKEN=server.token("jbob", "vision"))
+    r = run_java(env, RUNNER, "cast.itest.Driven")
+    assert r.returncode == 2, r.stderr
+    assert ("CAST_COMPONENT_ID is 'jalice' but the server verified the token as component 'jbob' of "
+            "subarchitecture 'vision'") in r.stderr, r.stderr
+    assert '"event": "ready"' not in r.stdout and '"event":"ready"' not in r.stdout, "no hook ran"
+
+
+def test_a_component_started_with_a_token_for_another_subarchitecture_exits_2_naming_both(server: Any) -> None:
+    env = dict(server.env("jcarol", "vision"), CAST_TOKEN=server.token("jcarol", "motor"))
+    r = run_java(env, RUNNER, "cast.itest.Driven")
+    assert r.returncode == 2, r.stderr
+    assert ("CAST_SUBARCHITECTURE is 'vision' but the server verified the token as component 'jcarol' of "
+            "subarchitecture 'motor'") in r.stderr, r.stderr
+    assert "`cast token jcarol --sa vision`" in r.stderr, r.stderr
+
+
+def test_the_component_is_whom_the_server_verified(server: Any) -> None:
+    jc = JavaComponent(server.env("jdave", "motor", privileged=True))
+    try:
+        ready = jc.ready()
+        assert (ready["component"], ready["subarchitecture"], ready["privileged"]) == ("jdave", "motor", True)
+        assert jc.quit() == 0
+    finally:
+        jc.close()
+
+
+def connect_script(env: dict[str, str]) -> tuple[int, dict[str, Any]]:
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("CAST_")}, **env}
+    r = run_java(env, "cast.itest.ConnectScript", "identity-probe")
+    lines = [line for line in r.stdout.splitlines() if line.startswith("{")]
+    assert lines, f"no JSON line (exit {r.returncode})\n{r.stdout}\n{r.stderr}"
+    return r.returncode, json.loads(lines[-1])
+
+
+def test_connect_options_that_contradict_the_token_are_refused_naming_both(server: Any) -> None:
+    token = server.token("planner", "vision")
+    status, out = connect_script({"CAST_ENDPOINT": server.endpoint, "CAST_TOKEN": token,
+                                  "CONNECT_OPTION_COMPONENT_ID": "notebook"})
+    assert status == 1 and out["error"] == "InvalidArgumentError", out
+    assert out["message"].startswith(
+        "ConnectOptions.componentId is 'notebook' but the server verified the token as component 'planner' of "
+        "subarchitecture 'vision': the token from CAST_TOKEN decides the identity"), out
+    # Options that agree with the token are fine.
+    status, out = connect_script({"CAST_ENDPOINT": server.endpoint, "CAST_TOKEN": token,
+                                  "CONNECT_OPTION_COMPONENT_ID": "planner", "CONNECT_OPTION_SUBARCHITECTURE": "vision"})
+    assert status == 0 and out["component"] == "planner", out
+
+
+def test_connect_with_a_token_that_is_no_cast_token_is_refused_by_the_server(server: Any) -> None:
+    # The format before JWTs: the client does not decode tokens, the server says what is wrong with it.
+    status, out = connect_script({"CAST_ENDPOINT": server.endpoint, "CAST_TOKEN": "eyJjIjoicCJ9.c2ln"})
+    assert status == 1 and out["error"] == "UnauthenticatedError", out
+    assert out["message"].startswith("the server refused the token from CAST_TOKEN: "), out
+    assert "format before JWTs" in out["message"], out
