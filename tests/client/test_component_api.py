@@ -297,35 +297,3 @@ def test_a_value_that_does_not_decode_is_an_invalid_argument_error_naming_the_en
     with pytest.raises(cast.InvalidArgumentError, match=pattern):
         changes[0].entry(Counter)
 
-
-def test_an_event_carries_its_entry_only_when_asked_and_never_one_written_under_anothers_odr_lock(
-    make_component: Any,
-) -> None:
-    # The same rules in process as over gRPC (cast.core.access): the two cases that once differed.
-    holder = make_component(cast.UnmanagedComponent, "holder")
-    plain = make_component(cast.UnmanagedComponent, "plain")
-    seen: list[cast.WorkingMemoryChange] = []
-    plain.on_change(cast.local_type_filter(Pose), seen.append)  # no include_entry
-    watcher = make_component(cast.UnmanagedComponent, "watcher")
-    with_entry: list[cast.WorkingMemoryChange] = []
-    watcher.on_change(cast.local_type_filter(Pose, include_entry=True), with_entry.append)
-    mine: list[cast.WorkingMemoryChange] = []
-    holder.on_change(cast.local_type_filter(Pose, include_entry=True), mine.append)
-    holder.add("secret", Pose(label="v0"))
-    with holder.lock("secret", cast.LockMode.ODR):
-        holder.overwrite("secret", Pose(label="hidden"))
-    wait_for(lambda: len(seen) == 2 and len(with_entry) == 2 and len(mine) == 2)
-    assert not any(c.has_entry for c in seen)  # not asked for: never sent
-    assert with_entry[0].entry(Pose).value.label == "v0"
-    assert not with_entry[1].has_entry  # written under the holder's ODR lock: not for others
-    assert mine[1].entry(Pose).value.label == "hidden"  # the holder sees its own write
-
-
-def test_a_task_completed_without_an_outcome_is_refused_in_every_transport(make_component: Any) -> None:
-    m = make_component(Manager, "m")
-    m.start()
-    task = m.propose_task("work")
-    wait_for(lambda: len(m.decisions) == 1)
-    with pytest.raises(cast.InvalidArgumentError, match="needs an outcome"):
-        m.task_complete(task, cast.TaskOutcome.UNSPECIFIED)
-    m.task_complete(task, cast.TaskOutcome.SUCCEEDED)

@@ -93,6 +93,13 @@ def _config(tmp_path: Path, mode: str) -> Path:
     return write_config(tmp_path / "system.yaml", config)
 
 
+def _start(tmp_path: Path, mode: str) -> tuple[Path, Path, dict[int, set[int]], ServerHandle]:
+    """The hold file, the configuration, the versions seen so far, and `cast serve` with the failpoint."""
+    hold = tmp_path / "hold"
+    config = _config(tmp_path, mode)
+    return hold, config, {}, serve(config, env={"CAST_FAILPOINT_JOURNAL_HOLD": str(hold)})
+
+
 def _one_value_per_version(seen: dict[int, set[int]]) -> None:
     reused = {version: values for version, values in seen.items() if len(values) > 1}
     assert not reused, f"versions given to more than one value: {reused}"
@@ -102,10 +109,7 @@ def _one_value_per_version(seen: dict[int, set[int]]) -> None:
 def test_a_write_the_journal_holds_is_seen_by_nobody_and_a_kill_then_reuses_no_version(
     tmp_path: Path, mode: str
 ) -> None:
-    hold = tmp_path / "hold"
-    config = _config(tmp_path, mode)
-    seen: dict[int, set[int]] = {}
-    handle = serve(config, env={"CAST_FAILPOINT_JOURNAL_HOLD": str(hold)})
+    hold, config, seen, handle = _start(tmp_path, mode)
     writer, reader = Client(handle, "writer", seen), Client(handle, "reader", seen)
     try:
         assert writer.add(1) == 0
@@ -146,10 +150,7 @@ def test_a_write_the_journal_holds_is_seen_by_nobody_and_a_kill_then_reuses_no_v
 def test_a_restart_that_loses_acknowledged_writes_never_gives_their_versions_again(
     tmp_path: Path, mode: str
 ) -> None:
-    hold = tmp_path / "hold"
-    config = _config(tmp_path, mode)
-    seen: dict[int, set[int]] = {}
-    handle = serve(config, env={"CAST_FAILPOINT_JOURNAL_HOLD": str(hold)})
+    hold, config, seen, handle = _start(tmp_path, mode)
     writer = Client(handle, "writer", seen)
     try:
         first = writer.add(1)
