@@ -4,17 +4,7 @@ The public API of the Python client library and component model. Everything
 a component author needs is importable from ``cast``.
 """
 
-from cast.client.component import (
-    Component,
-    Entry,
-    LockGuard,
-    ManagedComponent,
-    Task,
-    UnmanagedComponent,
-    WatchHandle,
-    WorkingMemoryAddress,
-    WorkingMemoryChange,
-)
+from cast.client.component import Component, LockGuard, ManagedComponent, UnmanagedComponent, WatchHandle
 from cast.client.filters import (
     ChangeFilter,
     address_filter,
@@ -24,6 +14,7 @@ from cast.client.filters import (
     source_filter,
 )
 from cast.client.script import Connection, connect
+from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange
 from cast.core.policies import Decision, TaskPolicy
 from cast.core.records import LockMode, Operation, WriteResult
 from cast.core.tasks import TaskOutcome, TaskState

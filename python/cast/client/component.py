@@ -9,168 +9,30 @@ object do not reach the WM) and a read returns a fresh object, in process too.
 
 from __future__ import annotations
 
-import builtins
 import itertools
 import logging
 import secrets
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Any, Generic, NamedTuple, TypeVar
+from typing import Any, TypeVar
 
-from google.protobuf.message import DecodeError, Message
+from google.protobuf.message import Message
 
 from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
 from cast.client.transport import Transport
-from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, Operation, WriteResult
+from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange, decode, entry_of
+from cast.core.records import BatchOp, ChangeEvent, Identity, LockMode, Operation, WriteResult
 from cast.core.schemas import files_of
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
 from cast.errors import CastError, InvalidArgumentError
 
-__all__ = [
-    "Component",
-    "Entry",
-    "LockGuard",
-    "ManagedComponent",
-    "Task",
-    "UnmanagedComponent",
-    "WatchHandle",
-    "WorkingMemoryAddress",
-    "WorkingMemoryChange",
-]
+__all__ = ["Component", "LockGuard", "ManagedComponent", "UnmanagedComponent", "WatchHandle"]
 
 log = logging.getLogger("cast.component")
 
 M = TypeVar("M", bound=Message)
-
-
-class WorkingMemoryAddress(NamedTuple):
-    """Where an entry lives."""
-
-    id: str
-    subarchitecture: str
-
-
-def _decode(cls: type[M], type_name_: str, data: bytes, what: str) -> M:
-    expected = cls.DESCRIPTOR.full_name
-    if type_name_ != expected:
-        raise InvalidArgumentError(f"{what} has type {type_name_}, not {expected}: read it with the right class")
-    try:
-        return cls.FromString(data)
-    except (DecodeError, RuntimeError) as exc:
-        # A value stored corrupt (or with another schema) is the caller's error to see, not a protobuf crash.
-        raise InvalidArgumentError(
-            f"{what} does not parse as {expected} ({exc}): it was written corrupt or with another schema; "
-            "overwrite or delete it"
-        ) from None
-
-
-@dataclass(frozen=True)
-class Entry(Generic[M]):
-    """An entry read from a WM: its value (a fresh copy) and its metadata."""
-
-    address: WorkingMemoryAddress
-    type: str
-    value: M
-    version: int
-    author: str
-    revision: int
-    modified_ns: int
-
-    @property
-    def id(self) -> str:
-        """The entry's id."""
-        return self.address.id
-
-
-def _entry(cls: type[M], record: EntryRecord) -> Entry[M]:
-    return Entry(
-        WorkingMemoryAddress(record.id, record.subarchitecture),
-        record.type,
-        _decode(cls, record.type, record.data, f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'"),
-        record.version,
-        record.author,
-        record.revision,
-        record.modified_ns,
-    )
-
-
-class WorkingMemoryChange:
-    """One change event as delivered to an ``on_change`` callback."""
-
-    __slots__ = ("_ev",)
-
-    def __init__(self, event: ChangeEvent) -> None:
-        self._ev = event
-
-    operation = property(lambda self: self._ev.operation, doc="ADD, OVERWRITE or DELETE.")
-    revision = property(lambda self: self._ev.revision, doc="The WM revision of the change.")
-    type = property(lambda self: self._ev.type, doc="Full message name of the entry's value.")
-    version = property(lambda self: self._ev.version, doc="The entry's version after the change.")
-    source_component = property(lambda self: self._ev.source_component, doc="Id of the writing component.")
-    source_subarchitecture = property(lambda self: self._ev.source_subarchitecture, doc="SA of the writer.")
-    time_ns = property(lambda self: self._ev.time_ns, doc="Server time of the change (ns since the epoch).")
-
-    @property
-    def address(self) -> WorkingMemoryAddress:
-        """The entry changed."""
-        return WorkingMemoryAddress(self._ev.id, self._ev.subarchitecture)
-
-    @property
-    def id(self) -> str:
-        """The changed entry's id."""
-        return self._ev.id
-
-    @property
-    def subarchitecture(self) -> str:
-        """The SA whose WM changed."""
-        return self._ev.subarchitecture
-
-    @property
-    def has_entry(self) -> bool:
-        """Whether the event carries the entry (the filter set include_entry)."""
-        return self._ev.entry is not None
-
-    def entry(self, cls: builtins.type[M]) -> Entry[M]:
-        """The entry carried by the event (after the write; for DELETE, as it was)."""
-        if self._ev.entry is None:
-            raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
-        return _entry(cls, self._ev.entry)
-
-    def __repr__(self) -> str:
-        return (
-            f"WorkingMemoryChange({self.operation.name} {self.subarchitecture}/{self.id} "
-            f"type={self.type} v={self.version} rev={self.revision} by={self.source_component})"
-        )
-
-
-class Task:
-    """A task proposed by a managed component, as its task manager decided."""
-
-    __slots__ = ("_rec",)
-
-    def __init__(self, record: TaskRecord) -> None:
-        self._rec = record
-
-    task_id = property(lambda self: self._rec.task_id, doc="Id given by the task manager.")
-    name = property(lambda self: self._rec.name, doc="Name given at proposal.")
-    subarchitecture = property(lambda self: self._rec.subarchitecture, doc="SA whose TM decided.")
-    component = property(lambda self: self._rec.component, doc="The proposer.")
-    priority = property(lambda self: self._rec.priority, doc="Priority given at proposal.")
-    state = property(lambda self: self._rec.state, doc="WAITING, ADOPTED, REJECTED, ...")
-    reason = property(lambda self: self._rec.reason, doc="Why it was rejected or ended.")
-
-    def data(self, cls: type[M]) -> M | None:
-        """The proposal's payload as ``cls`` (None if none was given)."""
-        if not self._rec.data_type:
-            return None
-        return _decode(cls, self._rec.data_type, self._rec.data, f"task '{self.task_id}' data")
-
-    def __repr__(self) -> str:
-        return f"Task({self.task_id} '{self.name}' {self.state.name})"
-
 
 class WatchHandle:
     """Returned by ``on_change``; ``cancel()`` stops the callback."""
@@ -376,16 +238,16 @@ class Component:
         """The value of an entry, as a new ``cls`` object; NotFoundError if missing."""
         record = self._transport.get(self._sa(subarchitecture), entry_id)
         where = f"entry '{entry_id}' in subarchitecture '{record.subarchitecture}'"
-        return _decode(cls, record.type, record.data, where)
+        return decode(cls, record.type, record.data, where)
 
     def get_entry(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> Entry[M]:
         """An entry with its version and author (for versioned overwrites)."""
-        return _entry(cls, self._transport.get(self._sa(subarchitecture), entry_id))
+        return entry_of(cls, self._transport.get(self._sa(subarchitecture), entry_id))
 
     def get_all(self, cls: type[M], *, subarchitecture: str | None = None, limit: int = 0) -> list[Entry[M]]:
         """Every entry of type ``cls``, newest first (at most ``limit`` if given)."""
         records = self._transport.get_by_type(self._sa(subarchitecture), type_name(cls), limit)
-        return [_entry(cls, r) for r in records]
+        return [entry_of(cls, r) for r in records]
 
     def exists(self, entry_id: str, *, subarchitecture: str | None = None) -> bool:
         """Whether an entry exists."""

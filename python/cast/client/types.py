@@ -1,0 +1,152 @@
+"""The values a component reads: an entry's address, an entry, a change event, a task.
+
+Each decodes its value into the caller's class on demand, and turns bytes that
+do not parse into :class:`cast.InvalidArgumentError` naming the entry (C++:
+``types.h``; Java: ``Entry``, ``WorkingMemoryChange``, ``Task``).
+"""
+
+from __future__ import annotations
+
+import builtins
+from dataclasses import dataclass
+from typing import Generic, NamedTuple, TypeVar
+
+from google.protobuf.message import DecodeError, Message
+
+from cast.core.records import ChangeEvent, EntryRecord
+from cast.core.tasks import TaskRecord
+from cast.errors import InvalidArgumentError
+
+__all__ = ["Entry", "Task", "WorkingMemoryAddress", "WorkingMemoryChange", "decode", "entry_of"]
+
+M = TypeVar("M", bound=Message)
+
+
+class WorkingMemoryAddress(NamedTuple):
+    """Where an entry lives."""
+
+    id: str
+    subarchitecture: str
+
+
+def decode(cls: type[M], type_name_: str, data: bytes, what: str) -> M:
+    """The value as ``cls``: InvalidArgumentError for another type, or for bytes that do not parse."""
+    expected = cls.DESCRIPTOR.full_name
+    if type_name_ != expected:
+        raise InvalidArgumentError(f"{what} has type {type_name_}, not {expected}: read it with the right class")
+    try:
+        return cls.FromString(data)
+    except (DecodeError, RuntimeError) as exc:
+        # A value stored corrupt (or with another schema) is the caller's error to see, not a protobuf crash.
+        raise InvalidArgumentError(
+            f"{what} does not parse as {expected} ({exc}): it was written corrupt or with another schema; "
+            "overwrite or delete it"
+        ) from None
+
+
+@dataclass(frozen=True)
+class Entry(Generic[M]):
+    """An entry read from a WM: its value (a fresh copy) and its metadata."""
+
+    address: WorkingMemoryAddress
+    type: str
+    value: M
+    version: int
+    author: str
+    revision: int
+    modified_ns: int
+
+    @property
+    def id(self) -> str:
+        """The entry's id."""
+        return self.address.id
+
+
+def entry_of(cls: type[M], record: EntryRecord) -> Entry[M]:
+    """An entry record as an :class:`Entry` of ``cls``."""
+    return Entry(
+        WorkingMemoryAddress(record.id, record.subarchitecture),
+        record.type,
+        decode(cls, record.type, record.data, f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'"),
+        record.version,
+        record.author,
+        record.revision,
+        record.modified_ns,
+    )
+
+
+class WorkingMemoryChange:
+    """One change event as delivered to an ``on_change`` callback."""
+
+    __slots__ = ("_ev",)
+
+    def __init__(self, event: ChangeEvent) -> None:
+        self._ev = event
+
+    operation = property(lambda self: self._ev.operation, doc="ADD, OVERWRITE or DELETE.")
+    revision = property(lambda self: self._ev.revision, doc="The WM revision of the change.")
+    type = property(lambda self: self._ev.type, doc="Full message name of the entry's value.")
+    version = property(lambda self: self._ev.version, doc="The entry's version after the change.")
+    source_component = property(lambda self: self._ev.source_component, doc="Id of the writing component.")
+    source_subarchitecture = property(lambda self: self._ev.source_subarchitecture, doc="SA of the writer.")
+    time_ns = property(lambda self: self._ev.time_ns, doc="Server time of the change (ns since the epoch).")
+
+    @property
+    def address(self) -> WorkingMemoryAddress:
+        """The entry changed."""
+        return WorkingMemoryAddress(self._ev.id, self._ev.subarchitecture)
+
+    @property
+    def id(self) -> str:
+        """The changed entry's id."""
+        return self._ev.id
+
+    @property
+    def subarchitecture(self) -> str:
+        """The SA whose WM changed."""
+        return self._ev.subarchitecture
+
+    @property
+    def has_entry(self) -> bool:
+        """Whether the event carries the entry (the filter set include_entry)."""
+        return self._ev.entry is not None
+
+    def entry(self, cls: builtins.type[M]) -> Entry[M]:
+        """The entry carried by the event (after the write; for DELETE, as it was)."""
+        if self._ev.entry is None:
+            raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
+        return entry_of(cls, self._ev.entry)
+
+    def __repr__(self) -> str:
+        return (
+            f"WorkingMemoryChange({self.operation.name} {self.subarchitecture}/{self.id} "
+            f"type={self.type} v={self.version} rev={self.revision} by={self.source_component})"
+        )
+
+
+class Task:
+    """A task proposed by a managed component, as its task manager decided."""
+
+    __slots__ = ("_rec",)
+
+    def __init__(self, record: TaskRecord) -> None:
+        self._rec = record
+
+    task_id = property(lambda self: self._rec.task_id, doc="Id given by the task manager.")
+    name = property(lambda self: self._rec.name, doc="Name given at proposal.")
+    subarchitecture = property(lambda self: self._rec.subarchitecture, doc="SA whose TM decided.")
+    component = property(lambda self: self._rec.component, doc="The proposer.")
+    priority = property(lambda self: self._rec.priority, doc="Priority given at proposal.")
+    state = property(lambda self: self._rec.state, doc="WAITING, ADOPTED, REJECTED, ...")
+    reason = property(lambda self: self._rec.reason, doc="Why it was rejected or ended.")
+
+    def data(self, cls: type[M]) -> M | None:
+        """The proposal's payload as ``cls`` (None if none was given)."""
+        if not self._rec.data_type:
+            return None
+        return decode(cls, self._rec.data_type, self._rec.data, f"task '{self.task_id}' data")
+
+    def __repr__(self) -> str:
+        return f"Task({self.task_id} '{self.name}' {self.state.name})"
+
+
