@@ -77,7 +77,7 @@ def test_the_readme_links_the_language_pages_and_the_design() -> None:
 
 
 def test_the_folders_named_are_there() -> None:
-    (tree,) = fenced(section(DESIGN, "2. The parts"), "text")
+    (tree,) = [t for t in fenced(section(DESIGN, "2. The parts"), "text") if not t.startswith("role ")]
     missing, top = [], None
     for line in tree.splitlines():
         if not line.startswith(" "):
@@ -91,6 +91,18 @@ def test_the_folders_named_are_there() -> None:
         for sub in re.findall(r"(?<![\w/.])([a-z][\w-]*/[\w/.-]*)", description):
             if not (ROOT / top / sub).exists() and not (ROOT / sub).exists():
                 missing.append(f"{top}{sub}")
+    assert not missing, missing
+
+
+def test_the_client_file_map_is_there() -> None:
+    (table,) = [t for t in fenced(section(DESIGN, "2. The parts"), "text") if t.startswith("role ")]
+    header, *rows = table.strip().splitlines()
+    roots = header.split()[1:]
+    assert roots == ["python/cast/client/", "cpp_client/", "java_client/src/main/java/cast/client/"]
+    assert [row.split()[0] for row in rows] == [
+        "component", "transport", "grpc_transport", "watch_stream", "session", "conversions", "credentials"]
+    missing = [f"{root}{name}" for row in rows for root, name in zip(roots, row.split()[1:], strict=True)
+               if not (ROOT / root / name).is_file()]
     assert not missing, missing
 
 
