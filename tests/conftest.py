@@ -127,21 +127,32 @@ def start_server(tmp: Path, config: dict[str, Any], extra_args: list[str] | None
     tmp.mkdir(parents=True, exist_ok=True)
     config_path = tmp / "system.yaml"
     config_path.write_text(yaml.safe_dump(config, sort_keys=False))
-    env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
+    return serve(config_path, cwd=tmp, extra=tuple(extra_args or ()))
+
+
+def serve(
+    config_path: Path, listen: str = "127.0.0.1:0", env: dict[str, str] | None = None, cwd: Path | None = None,
+    extra: tuple[str, ...] = (), own_session: bool = False,
+) -> ServerHandle:
+    """Start `cast serve CONFIG [EXTRA...]` and wait for its `listening on` line.
+
+    ``own_session`` puts the server in its own process group, for tests that signal the group.
+    """
+    full_env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH, **(env or {}))
     proc = subprocess.Popen(
-        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", "127.0.0.1:0", *(extra_args or [])],
+        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", listen, *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
-        env=env,
-        cwd=tmp,
+        env=full_env,
+        cwd=cwd or config_path.parent,
+        start_new_session=own_session,
     )
     assert proc.stdout is not None
     first = proc.stdout.readline().strip()
     if not first.startswith("listening on "):
         proc.kill()
-        rest = proc.stdout.read()
-        raise RuntimeError(f"server did not start: {first}\n{rest}")
+        raise RuntimeError(f"server did not start: {first}\n{proc.stdout.read()}")
     handle = ServerHandle(proc, first.removeprefix("listening on "), config_path)
 
     def drain() -> None:

@@ -15,19 +15,8 @@ import pytest
 import yaml
 from jsonschema import Draft7Validator
 
+from cast.config import model as m
 from cast.config import read_config
-from cast.config.model import (
-    DEFAULT_LISTEN,
-    AuthConfig,
-    ComponentConfig,
-    OrchestratorOptions,
-    PersistenceConfig,
-    RestartPolicy,
-    ServerConfig,
-    SubarchitectureConfig,
-    SystemConfig,
-    TlsConfig,
-)
 from cast.config.schema import mapping_properties, resolve, system_schema
 from cast.config.schema_gen import generated, main
 from cast.core.records import Limits, Quota
@@ -142,17 +131,17 @@ def test_limit_and_quota_keys_and_defaults_are_the_dataclasses() -> None:
 def test_every_section_maps_onto_its_model_with_the_same_defaults() -> None:
     # schema key -> model field, for the mappings the builder turns into one dataclass each.
     sections: list[tuple[tuple[str, ...], type, dict[str, str], set[str]]] = [
-        (("orchestrator",), OrchestratorOptions, {}, set()),
-        (("auth",), AuthConfig, {}, set()),
-        (("tls",), TlsConfig, {}, set()),
-        (("#persistence",), PersistenceConfig, {}, set()),
-        (("#restart",), RestartPolicy, {"policy": "mode"}, set()),
-        (("#server",), ServerConfig, {}, {"name"}),
-        (("#component",), ComponentConfig, {"class": "cls"},
+        (("orchestrator",), m.OrchestratorOptions, {}, set()),
+        (("auth",), m.AuthConfig, {}, set()),
+        (("tls",), m.TlsConfig, {}, set()),
+        (("#persistence",), m.PersistenceConfig, {}, set()),
+        (("#restart",), m.RestartPolicy, {"policy": "mode"}, set()),
+        (("#server",), m.ServerConfig, {}, {"name"}),
+        (("#component",), m.ComponentConfig, {"class": "cls"},
          {"id", "command", "base_dir", "position", "positions"}),
-        (("#subarchitecture",), SubarchitectureConfig, {"task_manager": "policy"},
+        (("#subarchitecture",), m.SubarchitectureConfig, {"task_manager": "policy"},
          {"name", "policy_options", "position"}),
-        ((), SystemConfig, {"system": "name", "include": "files", "components": "subarchitectures",
+        ((), m.SystemConfig, {"system": "name", "include": "files", "components": "subarchitectures",
                             "persistence": "servers"}, {"source"}),
     ]
     for section, cls, renamed, derived in sections:
@@ -164,8 +153,8 @@ def test_every_section_maps_onto_its_model_with_the_same_defaults() -> None:
             model_default = defaults.get(renamed.get(key, key), MISSING)
             if default(node) is not MISSING and model_default is not MISSING and not is_dataclass(model_default):
                 assert default(node) == model_default, (section, key)
-    assert default(props("#server")["listen"]) == DEFAULT_LISTEN
-    assert default(props("#component")["restart"]) == RestartPolicy().mode
+    assert default(props("#server")["listen"]) == m.DEFAULT_LISTEN
+    assert default(props("#component")["restart"]) == m.RestartPolicy().mode
 
 
 def _other_value(node: dict[str, Any], now: Any) -> Any:
@@ -221,9 +210,9 @@ def test_every_key_of_a_component_reaches_the_model(tmp_path: Path) -> None:
         "in_process"}  # each is set below, so a new key makes this test say so
     assert (c.language, c.kind, c.cls, c.run, c.args, c.privileged, c.manual) == (
         "java", "managed", "a.B", "ignored", {"n": 1}, True, True)
-    assert c.restart == RestartPolicy("always", 7, 2.0, 9.0)
+    assert c.restart == m.RestartPolicy("always", 7, 2.0, 9.0)
     assert c.classpath == [str(tmp_path / "x.jar")] and c.quota == Quota(3, 4)
-    assert p.in_process and p.restart == RestartPolicy("never")
+    assert p.in_process and p.restart == m.RestartPolicy("never")
 
 
 def _nodes(node: Any, where: str = "") -> list[tuple[str, dict[str, Any]]]:
@@ -307,8 +296,8 @@ def test_a_wrong_value_is_reported_and_its_default_used(tmp_path: Path) -> None:
                     "orchestrator: {stop_timeout: -1, lease_ms: 5}\n")
     config, found = read_config(path, environ={})
     assert config is not None and len(found.errors) == 2
-    assert config.orchestrator == OrchestratorOptions(lease_ms=5)
-    assert config.components[0].restart == RestartPolicy()
+    assert config.orchestrator == m.OrchestratorOptions(lease_ms=5)
+    assert config.components[0].restart == m.RestartPolicy()
 
 
 # ------------------------------------------------------------------ the config imports no layer above it

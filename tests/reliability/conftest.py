@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -15,7 +13,8 @@ import grpc
 import pytest
 import yaml
 
-from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle
+from tests import conftest
+from tests.conftest import ServerHandle
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> None:
@@ -30,31 +29,8 @@ def serve(
     config_path: Path, listen: str = "127.0.0.1:0", env: dict[str, str] | None = None, cwd: Path | None = None,
     extra: tuple[str, ...] = (),
 ) -> ServerHandle:
-    """Start `cast serve CONFIG [EXTRA...]` and wait for its `listening on` line."""
-    full_env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH, **(env or {}))
-    proc = subprocess.Popen(
-        [str(VENV_BIN / "cast"), "serve", str(config_path), "--listen", listen, *extra],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=full_env,
-        cwd=cwd or config_path.parent,
-        start_new_session=True,
-    )
-    assert proc.stdout is not None
-    first = proc.stdout.readline().strip()
-    if not first.startswith("listening on "):
-        proc.kill()
-        raise RuntimeError(f"server did not start: {first}\n{proc.stdout.read()}")
-    handle = ServerHandle(proc, first.removeprefix("listening on "), config_path)
-
-    def drain() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            handle.log_lines.append(line)
-
-    threading.Thread(target=drain, daemon=True).start()
-    return handle
+    """Start `cast serve CONFIG [EXTRA...]` in its own process group and wait for its `listening on` line."""
+    return conftest.serve(config_path, listen, env, cwd, extra, own_session=True)
 
 
 def kill9(handle: ServerHandle) -> None:

@@ -10,6 +10,8 @@ prevent.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -100,6 +102,17 @@ def _start(tmp_path: Path, mode: str) -> tuple[Path, Path, dict[int, set[int]], 
     return hold, config, {}, serve(config, env={"CAST_FAILPOINT_JOURNAL_HOLD": str(hold)})
 
 
+@contextmanager
+def _clients(handle: ServerHandle, seen: dict[int, set[int]]) -> Iterator[tuple[Client, Client]]:
+    """A writer and a reader on ``handle``, closed on the way out."""
+    writer, reader = Client(handle, "writer", seen), Client(handle, "reader", seen)
+    try:
+        yield writer, reader
+    finally:
+        writer.close()
+        reader.close()
+
+
 def _one_value_per_version(seen: dict[int, set[int]]) -> None:
     reused = {version: values for version, values in seen.items() if len(values) > 1}
     assert not reused, f"versions given to more than one value: {reused}"
@@ -110,40 +123,36 @@ def test_a_write_the_journal_holds_is_seen_by_nobody_and_a_kill_then_reuses_no_v
     tmp_path: Path, mode: str
 ) -> None:
     hold, config, seen, handle = _start(tmp_path, mode)
-    writer, reader = Client(handle, "writer", seen), Client(handle, "reader", seen)
     try:
-        assert writer.add(1) == 0
-        hold.touch()
-        held = writer.overwrite_future(2)
-        wait_for(lambda: reader.pending() == 1, what="the held overwrite to be committed in memory")
-        # Committed, not durable: the reader sees the durable value, and a compare-and-set that the
-        # held write would refuse gets no answer at all until the write is durable.
-        assert reader.get() == (1, 0)
-        cas = reader.overwrite_future(3, expected=0)
-        with pytest.raises(grpc.FutureTimeoutError):
-            cas.result(timeout=0.5)
-        assert not held.done()
-        kill9(handle)
-        for future in (held, cas):
-            with pytest.raises(grpc.RpcError) as err:
-                future.result()
-            assert err.value.code() == grpc.StatusCode.UNAVAILABLE
+        with _clients(handle, seen) as (writer, reader):
+            assert writer.add(1) == 0
+            hold.touch()
+            held = writer.overwrite_future(2)
+            wait_for(lambda: reader.pending() == 1, what="the held overwrite to be committed in memory")
+            # Committed, not durable: the reader sees the durable value, and a compare-and-set that the
+            # held write would refuse gets no answer at all until the write is durable.
+            assert reader.get() == (1, 0)
+            cas = reader.overwrite_future(3, expected=0)
+            with pytest.raises(grpc.FutureTimeoutError):
+                cas.result(timeout=0.5)
+            assert not held.done()
+            kill9(handle)
+            for future in (held, cas):
+                with pytest.raises(grpc.RpcError) as err:
+                    future.result()
+                assert err.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
-        writer.close()
-        reader.close()
         kill9(handle)
-    hold.unlink()
-    again = serve(config)
-    writer, reader = Client(again, "writer", seen), Client(again, "reader", seen)
+    hold.unlink()  # the journal writes again
+    handle = serve(config)
     try:
-        assert reader.get() == (1, 0)  # the held write is gone, and nobody had seen it
-        assert writer.overwrite(4) == 1  # so version 1 is given now, for the first time
-        assert reader.overwrite(5, expected=1) == 2
-        _one_value_per_version(seen)
+        with _clients(handle, seen) as (writer, reader):
+            assert reader.get() == (1, 0)  # the held write is gone, and nobody had seen it
+            assert writer.overwrite(4) == 1  # so version 1 is given now, for the first time
+            assert reader.overwrite(5, expected=1) == 2
+            _one_value_per_version(seen)
     finally:
-        writer.close()
-        reader.close()
-        again.stop()
+        handle.stop()
 
 
 @pytest.mark.parametrize("mode", ["none", "memory"])
@@ -161,41 +170,37 @@ def test_a_restart_that_loses_acknowledged_writes_never_gives_their_versions_aga
         handle.stop()  # a clean stop: in `none` these three are on disk
     handle = serve(config, env={"CAST_FAILPOINT_JOURNAL_HOLD": str(hold)})
     hold.touch()  # from now on the journal writes nothing: acknowledged writes will be lost
-    writer, reader = Client(handle, "writer", seen), Client(handle, "reader", seen)
     try:
-        if mode == "memory":
-            assert reader.get() is None
-            first = writer.add(11)
-        else:
-            assert reader.get() == (3, first + 2)
-        for value in (12, 13, 14):
-            writer.overwrite(value)
-        last = reader.get()
-        assert last is not None and last[0] == 14
+        with _clients(handle, seen) as (writer, reader):
+            if mode == "memory":
+                assert reader.get() is None
+                first = writer.add(11)
+            else:
+                assert reader.get() == (3, first + 2)
+            for value in (12, 13, 14):
+                writer.overwrite(value)
+            last = reader.get()
+            assert last is not None and last[0] == 14
     finally:
-        writer.close()
-        reader.close()
         kill9(handle)
-    hold.unlink()
-    again = serve(config)
-    writer, reader = Client(again, "writer", seen), Client(again, "reader", seen)
+    hold.unlink()  # the journal writes again
+    handle = serve(config)
     try:
-        survived = reader.get()
-        assert survived is None if mode == "memory" else survived == (3, 2)
-        # The reader's compare-and-set on the version it last saw names a value that is gone:
-        # it must fail, never apply to whatever holds that version number now.
-        cas = reader.overwrite_future(20, expected=last[1])
-        with pytest.raises(grpc.RpcError) as err:
-            cas.result()
-        assert err.value.code() in (grpc.StatusCode.ABORTED, grpc.StatusCode.NOT_FOUND)
-        told_before = max(seen)
-        new = writer.add(21) if survived is None else writer.overwrite(21)
-        assert new > told_before, f"version {new} after the restart, but {told_before} was given before it"
-        for value in (22, 23):
-            writer.overwrite(value)
-        reader.get()
-        _one_value_per_version(seen)
+        with _clients(handle, seen) as (writer, reader):
+            survived = reader.get()
+            assert survived is None if mode == "memory" else survived == (3, 2)
+            # The reader's compare-and-set on the version it last saw names a value that is gone:
+            # it must fail, never apply to whatever holds that version number now.
+            cas = reader.overwrite_future(20, expected=last[1])
+            with pytest.raises(grpc.RpcError) as err:
+                cas.result()
+            assert err.value.code() in (grpc.StatusCode.ABORTED, grpc.StatusCode.NOT_FOUND)
+            told_before = max(seen)
+            new = writer.add(21) if survived is None else writer.overwrite(21)
+            assert new > told_before, f"version {new} after the restart, but {told_before} was given before it"
+            for value in (22, 23):
+                writer.overwrite(value)
+            reader.get()
+            _one_value_per_version(seen)
     finally:
-        writer.close()
-        reader.close()
-        again.stop()
+        handle.stop()

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +53,41 @@ def _config(tmp: Path, persistence: bool) -> Path:
     return write_config(tmp / "system.yaml", config)
 
 
+class _Restartable:
+    """A `cast serve` that can be killed and started again on the same port."""
+
+    def __init__(self, config: Path) -> None:
+        self.config = config
+        self.server = serve(config)
+        self.port = self.server.endpoint.rpartition(":")[2]
+
+    def kill(self) -> None:
+        """SIGKILL, no clean-up."""
+        kill9(self.server)
+
+    def restart(self) -> None:
+        """Start it again where it was."""
+        self.server = serve(self.config, listen=f"127.0.0.1:{self.port}")
+
+
+@contextmanager
+def _watched(tmp: Path, persistence: bool) -> Iterator[tuple[_Restartable, Collector, cast.UnmanagedComponent]]:
+    """A restartable server, a watcher (a :class:`Collector`) and a writer in `vision`, closed on the way out."""
+    served = _Restartable(_config(tmp, persistence))
+    components: list[Any] = []
+    try:
+        watcher = served.server.connect("watcher", "vision", cls=Collector)
+        components.append(watcher)
+        writer = served.server.connect("writer", "vision")
+        components.append(writer)
+        assert isinstance(watcher, Collector) and isinstance(writer, cast.UnmanagedComponent)
+        yield served, watcher, writer
+    finally:
+        for c in components:
+            c._cast_close()
+        served.server.stop()
+
+
 def _write_until(c: Any, prefix: str, n: int) -> int:
     """Write n entries, retrying those refused while the server is away; return how many were retried."""
     retried = 0
@@ -68,24 +105,18 @@ def _write_until(c: Any, prefix: str, n: int) -> int:
 
 
 def test_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=True)
-    server = serve(config)
-    port = server.endpoint.rpartition(":")[2]
-    watcher = writer = None
-    try:
-        watcher = server.connect("watcher", "vision", cls=Collector)
-        writer = server.connect("writer", "vision")
+    with _watched(tmp_path, persistence=True) as (served, watcher, writer):
         watcher.on_change(ChangeFilter(subarchitecture="vision"), watcher.record)
         watcher.on_change(ChangeFilter(subarchitecture="language"), watcher.record)
         _write_until(writer, "a", 50)
         wait_for(lambda: len(watcher.revisions("vision")) >= 50, what="first events")
-        kill9(server)
+        served.kill()
         # While the server is away a call fails promptly with a clear error; it does not hang.
         started = time.monotonic()
         with pytest.raises(UnavailableError, match="unavailable"):
             writer.get("a-0", Counter)
         assert time.monotonic() - started < 25
-        server = serve(config, listen=f"127.0.0.1:{port}")
+        served.restart()
         _write_until(writer, "b", 50)
         top = writer.get_entry("b-49", Counter).revision
         wait_for(lambda: watcher.revisions("vision")[-1:] == [top], what="events after the restart")
@@ -94,37 +125,21 @@ def test_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_path:
         assert not watcher.failures
         # The session was registered again.
         wait_for(lambda: watcher._transport.sessions >= 2, what="re-registration")
-    finally:
-        for c in (watcher, writer):
-            if c is not None:
-                c._cast_close()
-        server.stop()
 
 
 def test_a_server_restarted_without_its_history_gets_the_resync_signal(tmp_path: Path) -> None:
-    config = _config(tmp_path, persistence=False)
-    server = serve(config)
-    port = server.endpoint.rpartition(":")[2]
-    watcher = writer = None
-    try:
-        watcher = server.connect("watcher", "vision", cls=Collector)
-        writer = server.connect("writer", "vision")
+    with _watched(tmp_path, persistence=False) as (served, watcher, writer):
         watcher.on_change(ChangeFilter(subarchitecture="vision"), watcher.record)
         _write_until(writer, "a", 5)
         wait_for(lambda: len(watcher.revisions("vision")) == 5, what="events")
-        kill9(server)
-        server = serve(config, listen=f"127.0.0.1:{port}")
+        served.kill()
+        served.restart()
         # The new server starts at revision 0 again: resuming at 6 would silently mix two histories.
         _write_until(writer, "b", 10)
         wait_for(lambda: watcher.failures, what="the resynchronise signal")
         assert isinstance(watcher.failures[0], HistoryExpiredError)
         assert "resynchronise" in watcher.failures[0].message
         assert watcher.revisions("vision") == [1, 2, 3, 4, 5]  # nothing from the other history
-    finally:
-        for c in (watcher, writer):
-            if c is not None:
-                c._cast_close()
-        server.stop()
 
 
 def test_a_cut_connection_releases_the_sessions_locks_and_the_watch_catches_up(server: ServerHandle) -> None:

@@ -17,35 +17,19 @@ from typing import Any
 
 import yaml
 
-from cast.config.model import (
-    AuthConfig,
-    ComponentConfig,
-    OrchestratorOptions,
-    PersistenceConfig,
-    RestartPolicy,
-    ServerConfig,
-    SubarchitectureConfig,
-    SystemConfig,
-    TlsConfig,
-)
+from cast.config import model
+from cast.config.model import *  # noqa: F403  (the package re-exports the model's public names)
+from cast.config.model import SystemConfig
 from cast.config.problems import ConfigError, Position, Problem, Problems
 from cast.config.source import load_tree
 from cast.config.validate import build_config
 
 __all__ = [
-    "AuthConfig",
-    "ComponentConfig",
+    *model.__all__,
     "ConfigError",
-    "OrchestratorOptions",
-    "PersistenceConfig",
     "Position",
     "Problem",
     "Problems",
-    "RestartPolicy",
-    "ServerConfig",
-    "SubarchitectureConfig",
-    "SystemConfig",
-    "TlsConfig",
     "load_config",
     "parse_config",
     "read_config",

@@ -187,19 +187,23 @@ def run_sync(system: System, steps: Steps[T], timeout: float | None = None) -> T
             if step is DURABLE:
                 if journal is not None:
                     journal.wait(journal.ticket())
-            else:
-                assert isinstance(step, Unlocked)
-                released = threading.Event()
-                cancel = system.host.wait_for_unlock(step.sa, step.entry_id, released.set)
-                try:
-                    remaining = None if end is None else max(0.0, end - time.monotonic())
-                    if not released.wait(remaining):
-                        steps.throw(DeadlineExceededError(f"deadline passed while waiting: {step.blocked.message}"))
-                finally:
-                    cancel()
-            step = steps.send(None)
+                step = steps.send(None)
+                continue
+            assert isinstance(step, Unlocked)
+            released = threading.Event()
+            cancel = system.host.wait_for_unlock(step.sa, step.entry_id, released.set)
+            try:
+                in_time = released.wait(None if end is None else max(0.0, end - time.monotonic()))
+            finally:
+                cancel()
+            step = steps.send(None) if in_time else steps.throw(_too_late(step))
     except StopIteration as done:
         return done.value  # type: ignore[no-any-return]
+
+
+def _too_late(step: Unlocked) -> DeadlineExceededError:
+    """The error of a lock wait that ran out of time."""
+    return DeadlineExceededError(f"deadline passed while waiting: {step.blocked.message}")
 
 
 async def run_async(system: System, steps: Steps[T], timeout: float | None = None) -> T:
@@ -211,26 +215,33 @@ async def run_async(system: System, steps: Steps[T], timeout: float | None = Non
         while True:
             if step is DURABLE:
                 await system.durable()
+                late = None
             else:
                 assert isinstance(step, Unlocked)
-                released: asyncio.Future[None] = loop.create_future()
-
-                def resolve(fut: asyncio.Future[None] = released) -> None:
-                    if not fut.done():
-                        fut.set_result(None)
-
-                def wake(resolve: Callable[[], None] = resolve) -> None:
-                    loop.call_soon_threadsafe(resolve)
-
-                cancel = system.host.wait_for_unlock(step.sa, step.entry_id, wake)
-                try:
-                    remaining = None if end is None else max(0.0, end - loop.time())
-                    await asyncio.wait_for(released, timeout=remaining)
-                except TimeoutError:
-                    steps.throw(DeadlineExceededError(f"deadline passed while waiting: {step.blocked.message}"))
-                finally:
-                    cancel()
-            step = steps.send(None)
+                late = await _wait_unlocked(system, step, None if end is None else max(0.0, end - loop.time()))
+            step = steps.send(None) if late is None else steps.throw(late)
     except StopIteration as done:
         return done.value  # type: ignore[no-any-return]
+
+
+async def _wait_unlocked(system: System, step: Unlocked, timeout: float | None) -> DeadlineExceededError | None:
+    """Wait on the event loop until ``step``'s entry is released; the error to throw if ``timeout`` ran out."""
+    loop = asyncio.get_running_loop()
+    released: asyncio.Future[None] = loop.create_future()
+
+    def resolve() -> None:
+        if not released.done():
+            released.set_result(None)
+
+    def wake() -> None:
+        loop.call_soon_threadsafe(resolve)  # the releasing thread is not the loop's
+
+    cancel = system.host.wait_for_unlock(step.sa, step.entry_id, wake)
+    try:
+        await asyncio.wait_for(released, timeout=timeout)
+        return None
+    except TimeoutError:
+        return _too_late(step)
+    finally:
+        cancel()
 
