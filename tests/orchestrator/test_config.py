@@ -290,6 +290,7 @@ def test_missing_cpp_build_warns_in_check_but_fails_run(tmp_path: Path) -> None:
     out = subprocess.run([CAST, "check", str(cfg)], capture_output=True, text=True, timeout=60, env=env)
     assert out.returncode == 0, out.stderr
     assert f"{cfg}:4: warning: components.seg.run: executable 'no-such-binary' is not in" in out.stderr
+    assert "1 subarchitecture, 1 component (1 cpp)" in out.stdout  # one of each: no plural
     out = subprocess.run([CAST, "run", str(cfg), "--for", "1", "--runtime-dir", str(tmp_path / "rt")],
                          capture_output=True, text=True, timeout=60, env=env)
     assert out.returncode == 2

@@ -33,8 +33,14 @@ def _describe(config: SystemConfig) -> str:
     langs = Counter(c.language for c in config.components)
     servers = ", ".join(f"{s.name} ({', '.join(s.subarchitectures)})" for s in config.servers)
     comps = ", ".join(f"{n} {lang}" for lang, n in langs.items()) or "none"
-    return (f"system '{config.name}': {len(config.subarchitectures)} subarchitectures, "
-            f"{len(config.components)} components ({comps}); servers: {servers}")
+    sas, n = len(config.subarchitectures), len(config.components)
+    return (f"system '{config.name}': {_count(sas, 'subarchitecture')}, {_count(n, 'component')} ({comps}); "
+            f"servers: {servers}")
+
+
+def _count(n: int, noun: str) -> str:
+    """``n`` and ``noun``, in the plural unless there is one."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _check(args: argparse.Namespace) -> int:
