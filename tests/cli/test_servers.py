@@ -68,7 +68,7 @@ def test_endpoint_and_secret_given_explicitly(two_servers: CastRun, tmp_path: Pa
 
 def test_a_secret_file_on_the_command_line_beats_cast_token_in_the_environment(tmp_path: Path) -> None:
     from cast.cli.connect import tool_token
-    from cast.orchestrator.runtime import RuntimeDir
+    from cast.runtime_dir import RuntimeDir
 
     secret = tmp_path / "secret"
     secret.write_text("s" * 40 + "\n")

@@ -1,4 +1,6 @@
 """The core knows nothing above it: no gRPC, no generated wire code, no server, client or tool.
+And the packages above it import downward only: core; then config and client; then server; then
+orchestrator; then cli (docs/design.md, "Folders").
 
 Every import in every module under python/cast/core (function-level ones too) is
 read from the source; the allowed packages are the standard library, protobuf's
@@ -35,6 +37,26 @@ def test_the_core_imports_nothing_above_it() -> None:
         for path in sorted(CORE.glob("*.py"))
         for line, name in imports(path)
         if any(name == bad or name.startswith(bad + ".") for bad in FORBIDDEN)
+    ]
+    assert not offending, "\n".join(offending)
+
+
+# What each package may not import: everything above it in the layering.
+ABOVE = {
+    "config": ("cast.client", "cast.server", "cast.orchestrator", "cast.cli"),
+    "client": ("cast.config", "cast.server", "cast.orchestrator", "cast.cli"),
+    "server": ("cast.orchestrator", "cast.cli"),
+    "orchestrator": ("cast.cli",),
+}
+
+
+def test_each_package_imports_only_those_below_it() -> None:
+    offending = [
+        f"{path.relative_to(ROOT)}:{line}: imports {name}"
+        for package, above in ABOVE.items()
+        for path in sorted((ROOT / "python" / "cast" / package).glob("*.py"))
+        for line, name in imports(path)
+        if any(name == bad or name.startswith(bad + ".") for bad in above)
     ]
     assert not offending, "\n".join(offending)
 

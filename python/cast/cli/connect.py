@@ -27,7 +27,7 @@ from cast.client.discovery import NoSystemError, find_endpoint, find_secret, fin
 from cast.client.grpc_transport import CHANNEL_OPTIONS, map_rpc_error
 from cast.core.records import Identity
 from cast.errors import CastError, NotFoundError
-from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
+from cast.runtime_dir import RuntimeDir, default_runtime_dir
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
 from cast.v1 import inspection_pb2_grpc as insp_grpc

@@ -56,7 +56,7 @@ def _check(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from cast.orchestrator.orchestrator import Orchestrator, RunOptions
     from cast.orchestrator.output import Output
-    from cast.orchestrator.runtime import default_runtime_dir
+    from cast.runtime_dir import default_runtime_dir
 
     config, _ = _validated(args, builds_required=True)
     if config is None:

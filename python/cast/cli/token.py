@@ -22,7 +22,7 @@ from cast.cli.options import parse_sets
 from cast.config import load_config
 from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, NotFoundError
-from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
+from cast.runtime_dir import RuntimeDir, default_runtime_dir
 
 __all__ = ["add_command"]
 

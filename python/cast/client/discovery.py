@@ -18,7 +18,7 @@ from typing import Any
 from cast.auth import load_secret
 from cast.client.credentials import ClientTls
 from cast.errors import InvalidArgumentError, NotFoundError
-from cast.orchestrator.runtime import RuntimeDir
+from cast.runtime_dir import RuntimeDir
 
 __all__ = ["NoSystemError", "find_endpoint", "find_secret", "find_tls", "first_subarchitecture"]
 

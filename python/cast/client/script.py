@@ -42,7 +42,7 @@ from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.core.sessions import ComponentState
 from cast.errors import InvalidArgumentError
-from cast.orchestrator.runtime import RuntimeDir, default_runtime_dir
+from cast.runtime_dir import RuntimeDir, default_runtime_dir
 
 __all__ = ["Connection", "connect"]
 

@@ -160,7 +160,8 @@ class WritePlanner:
         if current is not None:
             raise AlreadyExistsError(
                 f"entry '{entry_id}' already exists in subarchitecture '{sa}' (version {current.version}, "
-                f"type {current.type}): use overwrite to change it, or a fresh id from new_id() (newId() in C++ and Java)"
+                f"type {current.type}): use overwrite to change it, "
+                "or a fresh id from new_id() (newId() in C++ and Java)"
             )
         delta = tally.entries.get(sa, 0) if tally is not None else 0
         if wm.latest_count() + delta >= self.limits.max_entries:

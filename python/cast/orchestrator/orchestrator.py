@@ -24,11 +24,11 @@ from pathlib import Path
 from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.orchestrator.output import Output
-from cast.orchestrator.runtime import RuntimeDir
 from cast.orchestrator.security import LaunchSecurity
 from cast.orchestrator.servers import ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
 from cast.orchestrator.supervisor import Phase, Supervisor
+from cast.runtime_dir import RuntimeDir
 
 __all__ = ["Orchestrator", "RunOptions", "RunResult"]
 

@@ -11,6 +11,9 @@
 - ``logs/<component>.log``: each component's output.
 
 ``secret`` and ``system.json`` are removed on shutdown; the logs stay.
+
+The orchestrator writes it; the client library (``cast.connect``, scripts) and the
+CLI read it, so it lives beside them, not inside the orchestrator.
 """
 
 from __future__ import annotations
