@@ -45,7 +45,7 @@ inline void authorize(grpc::ClientContext& context, TokenSource& tokens) {
 }
 
 // One unary call with the token and a deadline (nullopt: none); a failed
-// status becomes the named error. `fn(context, response)` makes the call.
+// status becomes the named error (the precise one the server's trailer names). `fn(context, response)` makes the call.
 template <class Resp, class Fn>
 Resp unaryCall(TokenSource& tokens, std::optional<std::chrono::milliseconds> deadline, Fn&& fn) {
   for (int attempt = 0;; ++attempt) {
@@ -58,7 +58,7 @@ Resp unaryCall(TokenSource& tokens, std::optional<std::chrono::milliseconds> dea
     // A refused token may just have been renewed in its file: read it and
     // try once more.
     if (attempt == 0 && status.error_code() == grpc::StatusCode::UNAUTHENTICATED && tokens.refresh()) continue;
-    errorForStatus(status)->raise();
+    errorForStatus(status, errorTrailer(ctx.GetServerTrailingMetadata()))->raise();
   }
 }
 

@@ -294,7 +294,7 @@ class GrpcTransport final : public Transport {
           onError = onError_;
         }
         auto error = status.ok() ? std::make_shared<UnavailableError>("the task manager ended the decision stream")
-                                 : errorForStatus(status);
+                                 : errorForStatus(status, errorTrailer(context->GetServerTrailingMetadata()));
         if (!transient(error->code())) {
           log_.error(std::string("task decisions stopped: ") + error->name() + ": " + error->message());
           if (onError) onError(error);

@@ -150,7 +150,7 @@ void WatchStream::run() {
     }
     std::shared_ptr<CastError> error =
         status.ok() ? std::make_shared<UnavailableError>("the watch stream to " + server_.endpoint + " ended")
-                    : errorForStatus(status);
+                    : errorForStatus(status, errorTrailer(context->GetServerTrailingMetadata()));
     if (!transient(error->code())) {
       fail(error);
       return;

@@ -6,13 +6,15 @@
 // the other side. The message is the server's status details, unchanged.
 #pragma once
 
+#include <map>
 #include <memory>
 #include <stdexcept>
 #include <string>
 
 namespace grpc {
 class Status;
-}
+class string_ref;
+}  // namespace grpc
 
 namespace cast {
 
@@ -42,6 +44,17 @@ class CastError : public std::runtime_error {
     [[noreturn]] void raise() const override { throw *this; }             \
   };
 
+// A more precise error of a code another error already names: the server
+// names it in the kErrorTrailer trailer, and `catch (const Base&)` still
+// catches it.
+#define CAST_DECLARE_PRECISE_ERROR(Name, Base)                          \
+  class Name : public Base {                                            \
+   public:                                                              \
+    explicit Name(const std::string& message) : Base(message) {}        \
+    const char* name() const noexcept override { return #Name; }        \
+    [[noreturn]] void raise() const override { throw *this; }           \
+  };
+
 // An entry with this id already exists.
 CAST_DECLARE_ERROR(AlreadyExistsError, "ALREADY_EXISTS")
 // The entry, subarchitecture or task does not exist.
@@ -69,22 +82,46 @@ CAST_DECLARE_ERROR(UnavailableError, "UNAVAILABLE")
 // A bug: the server failed in a way it should not.
 CAST_DECLARE_ERROR(InternalError, "INTERNAL")
 
+// A task call its task's state does not allow, e.g. completing a task that is
+// still waiting (FAILED_PRECONDITION).
+CAST_DECLARE_PRECISE_ERROR(TaskStateError, LockedError)
+// A lock or a task asked for by a component with no live session
+// (FAILED_PRECONDITION): nothing would ever release it.
+CAST_DECLARE_PRECISE_ERROR(NoSessionError, LockedError)
+// A schema file registered again with other types (FAILED_PRECONDITION).
+CAST_DECLARE_PRECISE_ERROR(SchemaConflictError, LockedError)
+
 #undef CAST_DECLARE_ERROR
+#undef CAST_DECLARE_PRECISE_ERROR
+
+// The trailing metadata key in which the server names the error's class when
+// several share its status code ("TaskStateError" next to FAILED_PRECONDITION).
+inline constexpr const char* kErrorTrailer = "cast-error";
 
 // The named error for a gRPC status code name ("NOT_FOUND", ...); an unknown
-// name gives a plain CastError carrying that code.
-std::shared_ptr<CastError> errorForCode(const std::string& codeName, const std::string& message);
+// code gives a plain CastError carrying that code. `errorName` (the
+// kErrorTrailer trailer) picks a more precise class of that code, such as
+// TaskStateError for FAILED_PRECONDITION; an unknown name, or one of another
+// code, is ignored (as in Python's error_for_code).
+std::shared_ptr<CastError> errorForCode(const std::string& codeName, const std::string& message,
+                                        const std::string& errorName = "");
 
 // The gRPC status code name of a numeric grpc::StatusCode ("UNKNOWN" if out
 // of range).
 std::string statusCodeName(int grpcStatusCode);
 
-// The named error for a failed call's status. UNAVAILABLE gets the Python
-// client's explanation around gRPC's text, which says neither which side
-// failed nor whether a write went through.
-std::shared_ptr<CastError> errorForStatus(const grpc::Status& status);
+// The named error for a failed call's status; `errorName` as for
+// errorForCode. UNAVAILABLE gets the Python client's explanation around
+// gRPC's text, which says neither which side failed nor whether a write went
+// through.
+std::shared_ptr<CastError> errorForStatus(const grpc::Status& status, const std::string& errorName = "");
 
-// Throws errorForStatus(status) unless the status is OK.
-void throwIfError(const grpc::Status& status);
+// The class the server named in a call's trailing metadata (kErrorTrailer),
+// "" when it named none: pass `context.GetServerTrailingMetadata()` after the
+// call (or stream) finished.
+std::string errorTrailer(const std::multimap<grpc::string_ref, grpc::string_ref>& trailers);
+
+// Throws errorForStatus(status, errorName) unless the status is OK.
+void throwIfError(const grpc::Status& status, const std::string& errorName = "");
 
 }  // namespace cast

@@ -1,7 +1,10 @@
 // Status codes map to the same named errors as in Python and Java
 // (docs/client-protocol.md, "Errors").
 #include <grpcpp/support/status.h>
+#include <grpcpp/support/string_ref.h>
 #include <gtest/gtest.h>
+
+#include <map>
 
 #include "cast/errors.h"
 
@@ -105,6 +108,58 @@ TEST(Errors, EmptyDetailsFallBackToTheCodeName) {
 }
 
 TEST(Errors, OkStatusDoesNotThrow) { EXPECT_NO_THROW(cast::throwIfError(grpc::Status::OK)); }
+
+// The server names the precise class of a FAILED_PRECONDITION in the
+// "cast-error" trailer; the client raises it, and it is still a LockedError.
+template <class E>
+void expectPrecise(const char* name) {
+  auto err = cast::errorForStatus(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "task t is waiting"), name);
+  EXPECT_STREQ(err->name(), name);
+  EXPECT_EQ(err->code(), "FAILED_PRECONDITION");
+  EXPECT_EQ(err->message(), "task t is waiting");
+  EXPECT_THROW(err->raise(), E);
+  EXPECT_THROW(err->raise(), cast::LockedError);
+}
+
+TEST(Errors, TheTrailerNamesAPreciseLockedError) {
+  EXPECT_STREQ(cast::kErrorTrailer, "cast-error");
+  expectPrecise<cast::TaskStateError>("TaskStateError");
+  expectPrecise<cast::NoSessionError>("NoSessionError");
+  expectPrecise<cast::SchemaConflictError>("SchemaConflictError");
+  EXPECT_THROW(cast::throwIfError(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "x"), "TaskStateError"),
+               cast::TaskStateError);
+}
+
+TEST(Errors, WithoutATrailerItIsALockedError) {
+  auto err = cast::errorForStatus(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "held by b"));
+  EXPECT_STREQ(err->name(), "LockedError");
+  EXPECT_STREQ(cast::errorForCode("FAILED_PRECONDITION", "m", "")->name(), "LockedError");
+}
+
+TEST(Errors, AnUnknownNameInTheTrailerIsIgnored) {
+  auto err = cast::errorForStatus(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "m"), "FutureError");
+  EXPECT_STREQ(err->name(), "LockedError");
+  // Only the classes the trailer may name: not the plain ones, nor the base.
+  EXPECT_STREQ(cast::errorForCode("FAILED_PRECONDITION", "m", "NotFoundError")->name(), "LockedError");
+  EXPECT_STREQ(cast::errorForCode("FAILED_PRECONDITION", "m", "CastError")->name(), "LockedError");
+}
+
+TEST(Errors, ANameOfAnotherCodeIsIgnored) {
+  auto err = cast::errorForStatus(grpc::Status(grpc::StatusCode::NOT_FOUND, "no task t"), "TaskStateError");
+  EXPECT_STREQ(err->name(), "NotFoundError");
+  EXPECT_EQ(err->message(), "no task t");
+  EXPECT_STREQ(cast::errorForCode("SOMETHING_NEW", "m", "TaskStateError")->name(), "CastError");
+}
+
+TEST(Errors, TheTrailerIsReadFromTheTrailingMetadata) {
+  const std::string value = "TaskStateError";
+  std::multimap<grpc::string_ref, grpc::string_ref> trailers;
+  EXPECT_EQ(cast::errorTrailer(trailers), "") << "no trailer";
+  trailers.emplace("other-key", "x");
+  EXPECT_EQ(cast::errorTrailer(trailers), "");
+  trailers.emplace("cast-error", grpc::string_ref(value.data(), value.size()));
+  EXPECT_EQ(cast::errorTrailer(trailers), "TaskStateError");
+}
 
 TEST(Errors, StatusCodeNames) {
   EXPECT_EQ(cast::statusCodeName(0), "OK");

@@ -1,6 +1,7 @@
 package cast.client;
 
 import cast.v1.DecisionsRequest;
+import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.stub.ClientCallStreamObserver;
 import io.grpc.stub.ClientResponseObserver;
@@ -52,22 +53,23 @@ final class DecisionStream {
 
           @Override
           public void onError(Throwable t) {
-            ended(Status.fromThrowable(t));
+            ended(Status.fromThrowable(t), Status.trailersFromThrowable(t));
           }
 
           @Override
           public void onCompleted() {
-            ended(Status.UNAVAILABLE.withDescription("the task manager ended the decision stream"));
+            ended(Status.UNAVAILABLE.withDescription("the task manager ended the decision stream"), null);
           }
         });
   }
 
-  private void ended(Status status) {
+  /** The stream ended with {@code status}; {@code trailers} (null for none) may name a precise error. */
+  private void ended(Status status, Metadata trailers) {
     if (closed || transport.isClosing()) {
       return;
     }
     if (!GrpcTransport.TRANSIENT.contains(status.getCode())) {
-      transport.watchErrors().accept(Errors.fromStatus(status), -1);
+      transport.watchErrors().accept(Errors.fromStatus(status, trailers), -1);
       return;
     }
     long delay = backoff.nextMillis();

@@ -1,8 +1,9 @@
 package cast.client;
 
+import io.grpc.Metadata;
 import io.grpc.Status;
-import io.grpc.StatusException;
-import io.grpc.StatusRuntimeException;
+import java.util.Map;
+import java.util.function.Function;
 
 /**
  * Maps gRPC status codes to the named CAST errors (docs/client-protocol.md,
@@ -11,9 +12,41 @@ import io.grpc.StatusRuntimeException;
 public final class Errors {
   private Errors() {}
 
+  /**
+   * The trailing metadata key in which the server names the error's class when several share its
+   * status code ("TaskStateError" next to FAILED_PRECONDITION).
+   */
+  public static final String ERROR_TRAILER = "cast-error";
+
+  private static final Metadata.Key<String> ERROR_TRAILER_KEY =
+      Metadata.Key.of(ERROR_TRAILER, Metadata.ASCII_STRING_MARSHALLER);
+
+  /** A class the trailer may name, with the status code it refines. */
+  private record Precise(String code, Function<String, CastError> make) {}
+
+  /** The classes the trailer may name (Python's errors._BY_NAME). */
+  private static final Map<String, Precise> BY_NAME =
+      Map.of(
+          "TaskStateError", new Precise("FAILED_PRECONDITION", TaskStateError::new),
+          "NoSessionError", new Precise("FAILED_PRECONDITION", NoSessionError::new),
+          "SchemaConflictError", new Precise("FAILED_PRECONDITION", SchemaConflictError::new));
+
   /** The named error for a status code name ("NOT_FOUND", ...); CastError for any other code. */
   public static CastError forCode(String codeName, String message) {
+    return forCode(codeName, message, null);
+  }
+
+  /**
+   * The named error for a status code name, made precise by {@code errorName} (the {@link
+   * #ERROR_TRAILER} trailer, null for none): TaskStateError for FAILED_PRECONDITION, for instance.
+   * An unknown name, or a name of another code, is ignored, as in Python's {@code error_for_code}.
+   */
+  public static CastError forCode(String codeName, String message, String errorName) {
     String msg = message == null || message.isEmpty() ? codeName : message;
+    Precise precise = errorName == null ? null : BY_NAME.get(errorName);
+    if (precise != null && precise.code().equals(codeName)) {
+      return precise.make().apply(msg);
+    }
     switch (codeName) {
       case "ALREADY_EXISTS":
         return new AlreadyExistsError(msg);
@@ -46,6 +79,16 @@ public final class Errors {
 
   /** The named error for a gRPC status. */
   public static CastError fromStatus(Status status) {
+    return fromStatus(status, null);
+  }
+
+  /** The class the server named in a call's trailing metadata ({@link #ERROR_TRAILER}), or null. */
+  public static String errorName(Metadata trailers) {
+    return trailers == null ? null : trailers.get(ERROR_TRAILER_KEY);
+  }
+
+  /** The named error for a gRPC status and the call's trailing metadata (null for none). */
+  public static CastError fromStatus(Status status, Metadata trailers) {
     String name = status.getCode().name();
     String details = status.getDescription();
     if (details == null || details.isEmpty()) {
@@ -59,23 +102,18 @@ public final class Errors {
               + "): a write made by this call may or may not have been applied; the client reconnects by"
               + " itself, retry the call later");
     }
-    return forCode(name, details);
+    return forCode(name, details, errorName(trailers));
   }
 
   /**
    * The named error for a failure of a gRPC call: a status exception becomes its
-   * CAST error; a CastError passes unchanged; anything else becomes CastError.
+   * CAST error (the precise one its trailers name); a CastError passes unchanged;
+   * anything else becomes CastError.
    */
   public static CastError fromThrowable(Throwable t) {
     if (t instanceof CastError) {
       return (CastError) t;
     }
-    if (t instanceof StatusRuntimeException) {
-      return fromStatus(((StatusRuntimeException) t).getStatus());
-    }
-    if (t instanceof StatusException) {
-      return fromStatus(((StatusException) t).getStatus());
-    }
-    return fromStatus(Status.fromThrowable(t));
+    return fromStatus(Status.fromThrowable(t), Status.trailersFromThrowable(t));
   }
 }

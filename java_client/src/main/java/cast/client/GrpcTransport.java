@@ -177,25 +177,26 @@ final class GrpcTransport implements Transport {
 
   /** A unary call to {@code server}, its failure as the named CAST error. */
   <S extends AbstractStub<S>, R> R call(Server server, S stub, Duration timeout, Function<S, R> fn) {
-    Status status;
+    StatusRuntimeException failure;
     try {
       return attempt(stub, timeout, fn);
     } catch (StatusRuntimeException e) {
-      status = e.getStatus();
+      failure = e;
     }
     // A refused token may just have been renewed in its file: read it and try once more
     // (nothing was applied: the token is checked first).
-    if (status.getCode() == Status.Code.UNAUTHENTICATED && credentials.refresh()) {
+    if (failure.getStatus().getCode() == Status.Code.UNAUTHENTICATED && credentials.refresh()) {
       try {
         return attempt(stub, timeout, fn);
       } catch (StatusRuntimeException e) {
-        status = e.getStatus();
+        failure = e;
       }
     }
-    if (status.getCode() == Status.Code.UNAVAILABLE) {
+    if (failure.getStatus().getCode() == Status.Code.UNAVAILABLE) {
       server.channel.resetConnectBackoff(); // the next call tries the server at once
     }
-    throw Errors.fromStatus(status);
+    // The trailers name the precise error (TaskStateError, ...) where a code has several.
+    throw Errors.fromStatus(failure.getStatus(), failure.getTrailers());
   }
 
   <S extends AbstractStub<S>, R> R call(Server server, S stub, Function<S, R> fn) {

@@ -5,6 +5,7 @@ import cast.v1.WatchCancel;
 import cast.v1.WatchCreate;
 import cast.v1.WatchRequest;
 import cast.v1.WatchResponse;
+import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.stub.ClientCallStreamObserver;
 import io.grpc.stub.ClientResponseObserver;
@@ -310,12 +311,15 @@ final class WatchStream {
 
     @Override
     public void onError(Throwable t) {
-      ended(gen, Status.fromThrowable(t));
+      ended(gen, Status.fromThrowable(t), Status.trailersFromThrowable(t));
     }
 
     @Override
     public void onCompleted() {
-      ended(gen, Status.UNAVAILABLE.withDescription("the server at " + server.endpoint + " ended the watch stream"));
+      ended(
+          gen,
+          Status.UNAVAILABLE.withDescription("the server at " + server.endpoint + " ended the watch stream"),
+          null);
     }
   }
 
@@ -373,7 +377,8 @@ final class WatchStream {
     }
   }
 
-  private void ended(int gen, Status status) {
+  /** Call {@code gen} ended with {@code status}; {@code trailers} (null for none) may name a precise error. */
+  private void ended(int gen, Status status, Metadata trailers) {
     synchronized (mutex) {
       if (gen != generation) {
         return; // an older call
@@ -384,7 +389,7 @@ final class WatchStream {
     if (closed || transport.isClosing()) {
       return;
     }
-    CastError error = Errors.fromStatus(status);
+    CastError error = Errors.fromStatus(status, trailers);
     if (!GrpcTransport.TRANSIENT.contains(status.getCode())) {
       fail(error);
       return;

@@ -2,8 +2,10 @@ package cast.client;
 
 import static org.junit.jupiter.api.Assertions.*;
 
+import io.grpc.Metadata;
 import io.grpc.Status;
 import java.util.LinkedHashMap;
+import java.util.List;
 import java.util.Map;
 import org.junit.jupiter.api.Test;
 
@@ -82,5 +84,57 @@ class ErrorsTest {
       assertTrue(CastError.class.isAssignableFrom(cls), cls.getName());
       assertEquals("cast.client", cls.getPackageName());
     }
+  }
+
+  /** Trailing metadata as the server sends it next to a status: {@code cast-error: name}. */
+  static Metadata trailer(String name) {
+    Metadata trailers = new Metadata();
+    trailers.put(Metadata.Key.of("cast-error", Metadata.ASCII_STRING_MARSHALLER), name);
+    return trailers;
+  }
+
+  static final Status WAITING = Status.FAILED_PRECONDITION.withDescription("task t is waiting, not adopted");
+
+  @Test
+  void theTrailerNamesAPreciseLockedError() {
+    assertEquals("cast-error", Errors.ERROR_TRAILER);
+    for (var precise : List.of(TaskStateError.class, NoSessionError.class, SchemaConflictError.class)) {
+      CastError err = Errors.fromStatus(WAITING, trailer(precise.getSimpleName()));
+      assertEquals(precise, err.getClass());
+      assertTrue(err instanceof LockedError, "existing catch (LockedError e) still catches it");
+      assertEquals("FAILED_PRECONDITION", err.code());
+      assertEquals("task t is waiting, not adopted", err.getMessage());
+      assertEquals(precise, Errors.forCode("FAILED_PRECONDITION", "m", precise.getSimpleName()).getClass());
+    }
+  }
+
+  @Test
+  void withoutATrailerItIsALockedError() {
+    assertEquals(LockedError.class, Errors.fromStatus(WAITING, null).getClass());
+    assertEquals(LockedError.class, Errors.fromStatus(WAITING, new Metadata()).getClass());
+    assertNull(Errors.errorName(new Metadata()));
+  }
+
+  @Test
+  void anUnknownNameInTheTrailerIsIgnored() {
+    assertEquals(LockedError.class, Errors.fromStatus(WAITING, trailer("FutureError")).getClass());
+    // Only the classes the trailer may name: not the plain ones, nor the base.
+    assertEquals(LockedError.class, Errors.fromStatus(WAITING, trailer("NotFoundError")).getClass());
+    assertEquals(LockedError.class, Errors.fromStatus(WAITING, trailer("CastError")).getClass());
+  }
+
+  @Test
+  void aNameOfAnotherCodeIsIgnored() {
+    CastError err = Errors.fromStatus(Status.NOT_FOUND.withDescription("no task t"), trailer("TaskStateError"));
+    assertEquals(NotFoundError.class, err.getClass());
+    assertEquals("no task t", err.getMessage());
+    assertEquals(CastError.class, Errors.forCode("SOMETHING_NEW", "m", "TaskStateError").getClass());
+  }
+
+  @Test
+  void throwablesCarryTheirTrailers() {
+    assertEquals(TaskStateError.class, Errors.fromThrowable(WAITING.asRuntimeException(trailer("TaskStateError"))).getClass());
+    assertEquals(NoSessionError.class, Errors.fromThrowable(WAITING.asException(trailer("NoSessionError"))).getClass());
+    assertEquals(LockedError.class, Errors.fromThrowable(WAITING.asRuntimeException()).getClass());
   }
 }
