@@ -94,22 +94,25 @@ struct EventRecord {
 };
 
 // Parses `data` as T after checking the declared type. `what` names the thing
-// read in errors ("entry 'x'"), `sa` the subarchitecture it is in, and `why`
-// says how bytes that do not parse got there and what to do about them.
-// Stored bytes that do not parse are an InvalidArgumentError like a wrong
-// type, never a bare protobuf failure, so callers handle one kind of error.
+// read in errors ("entry 'x'"), `sa` the subarchitecture it is in (both
+// errors name it, as Python's do: "entry 'x' in subarchitecture 'vision' has
+// type ..."), and `why` says how bytes that do not parse got there and what
+// to do about them. Stored bytes that do not parse are an
+// InvalidArgumentError like a wrong type, never a bare protobuf failure, so
+// callers handle one kind of error.
 template <class T>
 T decode(const std::string& declaredType, const std::string& data, const std::string& what, const std::string& sa,
          const std::string& why) {
   const std::string& expected = typeName<T>();
+  const std::string where = what + " in subarchitecture '" + sa + "'";
   if (declaredType != expected) {
-    throw InvalidArgumentError(what + " has type " + declaredType + ", not " + expected +
+    throw InvalidArgumentError(where + " has type " + declaredType + ", not " + expected +
                                ": read it with the right class");
   }
   T value;
   if (!value.ParseFromString(data)) {
-    throw InvalidArgumentError(what + " in subarchitecture '" + sa + "' does not parse as " + expected + " (" +
-                               std::to_string(data.size()) + " stored bytes): " + why);
+    throw InvalidArgumentError(where + " does not parse as " + expected + " (" + std::to_string(data.size()) +
+                               " stored bytes): " + why);
   }
   return value;
 }

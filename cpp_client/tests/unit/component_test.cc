@@ -133,14 +133,17 @@ TEST(Component, AReadReturnsAFreshCopy) {
   EXPECT_EQ(b.component.getAll<Counter>()[0].value.value(), 1);
 }
 
-TEST(Component, ReadingWithTheWrongTypeNamesBothTypes) {
+TEST(Component, ReadingWithTheWrongTypeNamesBothTypesAndTheSubarchitecture) {
   Bound b;
   b.component.add("e1", counter("a", 1));
   try {
     b.component.get<Pose>("e1");
     FAIL() << "no error";
   } catch (const cast::InvalidArgumentError& e) {
-    EXPECT_EQ(e.message(), "entry 'e1' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class");
+    // Word for word Python's message.
+    EXPECT_EQ(e.message(),
+              "entry 'e1' in subarchitecture 'vision' has type cast.testing.Counter, not cast.testing.Pose: read it "
+              "with the right class");
   }
 }
 

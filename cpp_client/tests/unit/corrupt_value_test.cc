@@ -95,7 +95,22 @@ TEST(CorruptValue, AWrongTypeIsStillNamedAsSuch) {
   cast::testing::Pose pose;
   s.component.add("pose", pose);
   EXPECT_EQ(messageOf([&] { s.component.get<Counter>("pose"); }),
-            "entry 'pose' has type cast.testing.Pose, not cast.testing.Counter: read it with the right class");
+            "entry 'pose' in subarchitecture 'vision' has type cast.testing.Pose, not cast.testing.Counter: read it "
+            "with the right class");
+}
+
+TEST(CorruptValue, TheDataOfATaskOfAnotherTypeSaysWhichTaskAndWhere) {
+  auto transport = std::make_shared<FakeTransport>(cast::Identity{"worker", "vision", false});
+  Tasks component;
+  component.bind(transport);
+  cast::testing::Pose pose;
+  transport->propose("work", cast::typeName<cast::testing::Pose>(), pose.SerializeAsString(), 0);
+  auto future = component.messages.get_future();
+  ASSERT_EQ(future.wait_for(5s), std::future_status::ready);
+  EXPECT_EQ(future.get(),
+            "task 'task-1' data in subarchitecture 'vision' has type cast.testing.Pose, not cast.testing.Counter: "
+            "read it with the right class");
+  component.close();
 }
 
 }  // namespace

@@ -44,7 +44,8 @@ public final class Types {
   /**
    * Parse {@code data} as {@code cls}, after checking that {@code typeName} is that
    * class's type. {@code what} names the thing read in errors ("entry 'x'"), {@code sa}
-   * the subarchitecture it is in, and {@code why} says how bytes that do not parse got
+   * the subarchitecture it is in (both errors name it, as Python's do: "entry 'x' in
+   * subarchitecture 'vision' has type ..."), and {@code why} says how bytes that do not parse got
    * there and what to do about them. Bytes that do not parse are an
    * InvalidArgumentError like a wrong type, never a bare protobuf exception, so
    * callers handle one kind of error.
@@ -53,9 +54,10 @@ public final class Types {
       Class<T> cls, String typeName, ByteString data, String what, String sa, String why) {
     T proto = defaultInstance(cls);
     String expected = proto.getDescriptorForType().getFullName();
+    String where = what + " in subarchitecture '" + sa + "'";
     if (!expected.equals(typeName)) {
       throw new InvalidArgumentError(
-          what + " has type " + typeName + ", not " + expected + ": read it with the right class");
+          where + " has type " + typeName + ", not " + expected + ": read it with the right class");
     }
     try {
       @SuppressWarnings("unchecked")
@@ -63,7 +65,7 @@ public final class Types {
       return value;
     } catch (InvalidProtocolBufferException | RuntimeException e) {
       throw new InvalidArgumentError(
-          what + " in subarchitecture '" + sa + "' does not parse as " + expected + " (" + e.getMessage() + "): " + why);
+          where + " does not parse as " + expected + " (" + e.getMessage() + "): " + why);
     }
   }
 

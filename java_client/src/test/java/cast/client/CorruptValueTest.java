@@ -3,6 +3,7 @@ package cast.client;
 import static org.junit.jupiter.api.Assertions.*;
 
 import cast.testing.CastTesting.Counter;
+import cast.testing.CastTesting.Pose;
 import com.google.protobuf.Any;
 import com.google.protobuf.ByteString;
 import java.util.concurrent.CompletableFuture;
@@ -87,6 +88,28 @@ class CorruptValueTest {
       assertTrue(message.contains("' does not parse as cast.testing.Counter ("), message);
       assertTrue(
           message.endsWith("): it was proposed corrupt or with another schema; complete or retract the task"), message);
+    }
+  }
+
+  @Test
+  void aWrongTypeIsStillNamedAsSuchWithItsSubarchitecture() {
+    try (UnmanagedComponent c = FakeTransport.connect(new UnmanagedComponent() {}, memory, "reader", "vision")) {
+      c.add("pose", Pose.getDefaultInstance());
+      assertEquals(
+          "entry 'pose' in subarchitecture 'vision' has type cast.testing.Pose, not cast.testing.Counter: read it"
+              + " with the right class",
+          assertThrows(InvalidArgumentError.class, () -> c.get("pose", Counter.class)).getMessage());
+    }
+  }
+
+  @Test
+  void theDataOfATaskOfAnotherTypeSaysWhichTaskAndWhere() throws Exception {
+    try (Tasks c = FakeTransport.connect(new Tasks(), memory, "worker", "vision")) {
+      c.transport().propose("work", Types.pack(Pose.getDefaultInstance()), 0);
+      assertEquals(
+          "task 't1' data in subarchitecture 'vision' has type cast.testing.Pose, not cast.testing.Counter: read it"
+              + " with the right class",
+          c.seen.get(10, TimeUnit.SECONDS));
     }
   }
 }

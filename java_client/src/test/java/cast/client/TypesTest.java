@@ -26,8 +26,11 @@ class TypesTest {
         assertThrows(
             InvalidArgumentError.class,
             () -> Types.decode(Pose.class, "cast.testing.Counter", c.toByteString(), "entry 'x'", "vision", ""));
+    // Word for word Python's message.
     assertEquals(
-        "entry 'x' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class", e.getMessage());
+        "entry 'x' in subarchitecture 'vision' has type cast.testing.Counter, not cast.testing.Pose: read it with the"
+            + " right class",
+        e.getMessage());
   }
 
   @Test
