@@ -8,7 +8,8 @@ import subprocess
 import sys
 import tempfile
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,6 +101,10 @@ class ServerHandle:
             text=True,
         )
 
+    def components(self) -> dict[str, Any]:
+        """The components this server knows, by id (ComponentInfo from the directory)."""
+        return components(self.endpoint, self.token("tool", "vision"))
+
     def stop(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL)."""
         if self.process.poll() is None:
@@ -109,6 +114,34 @@ class ServerHandle:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
+
+
+def components(endpoint: str, token: str) -> dict[str, Any]:
+    """The components the server at ``endpoint`` knows, by id (ComponentInfo from the directory)."""
+    import grpc
+
+    from cast.v1 import directory_pb2, directory_pb2_grpc
+
+    with grpc.insecure_channel(endpoint) as channel:
+        desc = directory_pb2_grpc.DirectoryStub(channel).DescribeSystem(
+            directory_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),), timeout=10
+        )
+    return {c.id: c for c in desc.components}
+
+
+def wait_for(condition: Callable[[], Any], timeout: float = 60.0, what: str = "condition") -> Any:
+    """Poll until ``condition()`` is truthy and return that value; fail the test after ``timeout`` seconds.
+
+    The timeout is a guard against a hang, not a measurement: tests assert no wall-clock times.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.02)
 
 
 def register_session(channel: Any, metadata: Any) -> str:

@@ -11,13 +11,7 @@ from cast_testing_pb2 import Counter, Pose
 
 import cast
 from cast.core.records import Identity, Operation
-
-
-def wait_for(predicate: Any, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
+from tests.conftest import wait_for
 
 
 def test_write_read_and_versions(make_component: Any) -> None:

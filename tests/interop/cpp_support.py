@@ -20,6 +20,8 @@ from typing import Any
 
 import pytest
 
+from tests.interop.child import ChildProcess
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -36,41 +38,20 @@ def cpp_executable(name: str) -> Path:
     return path
 
 
-class CppProcess:
+class CppProcess(ChildProcess):
     """A C++ component process started with the launch contract; its output is collected as it comes."""
 
     def __init__(self, name: str, env: dict[str, str], stdin: bool = False) -> None:
-        self.name = name
-        self.proc = subprocess.Popen(
-            [str(cpp_executable(name))],
-            env=env,
-            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            encoding="utf-8",
-        )
         self.lines: queue.Queue[str | None] = queue.Queue()
-        self.stdout_lines: list[str] = []
-        self.stderr_lines: list[str] = []
-        threading.Thread(target=self._read_stdout, daemon=True).start()
-        threading.Thread(target=self._read_stderr, daemon=True).start()
+        super().__init__(name, [str(cpp_executable(name))], env, stdin)
 
-    def _read_stdout(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.stdout_lines.append(line)
-            self.lines.put(line)
+    def on_line(self, line: str) -> None:
+        """Queue the line for :meth:`next_json`."""
+        self.lines.put(line)
+
+    def on_end(self) -> None:
+        """Tell :meth:`next_json` that nothing more comes."""
         self.lines.put(None)
-
-    def _read_stderr(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            self.stderr_lines.append(line)
-
-    def output(self) -> str:
-        """What the process printed, for failure messages."""
-        return "".join(self.stdout_lines[-40:]) + "--- stderr ---\n" + "".join(self.stderr_lines[-60:])
 
     def next_json(self, timeout: float = 30.0) -> dict[str, Any]:
         """The next JSON line on stdout."""
@@ -86,28 +67,6 @@ class CppProcess:
         except json.JSONDecodeError:
             raise AssertionError(f"{self.name}: not a JSON line: {line!r}\n{self.output()}") from None
         return msg
-
-    def wait(self, timeout: float = 30.0) -> int:
-        """The exit status, waiting up to ``timeout`` seconds."""
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{self.name} did not exit within {timeout} s\n{self.output()}") from None
-
-    def terminate(self) -> None:
-        """SIGTERM: the runner calls stop() and exits."""
-        self.proc.send_signal(signal.SIGTERM)
-
-    def kill(self) -> None:
-        """SIGKILL: no clean-up at all; the server must notice the session end."""
-        self.proc.kill()
-        self.proc.wait(10)
-
-    def close(self) -> None:
-        """Kill the process if it is still running (test clean-up)."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
 
 
 class CppProbe(CppProcess):

@@ -23,6 +23,8 @@ from typing import Any
 import pytest
 from google.protobuf.message import Message
 
+from tests.interop.child import ChildProcess
+
 ROOT = Path(__file__).resolve().parents[2]
 JAVA_DIR = ROOT / "java_client"
 JAR = JAVA_DIR / "target" / "cast-client-all.jar"
@@ -40,54 +42,34 @@ def java_classpath(*extra: Path) -> str:
     return os.pathsep.join(str(p) for p in (JAR, TEST_CLASSES, *extra))
 
 
-class JavaComponent:
+class JavaComponent(ChildProcess):
     """A ``cast.itest.Driven`` process (or any component class) started with the launch contract."""
 
     def __init__(self, env: dict[str, str], cls: str = "cast.itest.Driven", classpath: str | None = None) -> None:
         self.cls = cls
-        self.proc = subprocess.Popen(
-            ["java", "-cp", classpath or java_classpath(), RUNNER, cls],
-            env=env,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            encoding="utf-8",
-        )
         self.replies: dict[int, dict[str, Any]] = {}
         self.events: queue.Queue[dict[str, Any]] = queue.Queue()
-        self.stdout_lines: list[str] = []
-        self.stderr_lines: list[str] = []
         self._seq = 0
         self._cond = threading.Condition()
-        threading.Thread(target=self._read_stdout, daemon=True).start()
-        threading.Thread(target=self._read_stderr, daemon=True).start()
+        super().__init__(cls, ["java", "-cp", classpath or java_classpath(), RUNNER, cls], env, stdin=True)
 
-    def _read_stdout(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.stdout_lines.append(line)
-            try:
-                msg = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if "reply" in msg:
-                with self._cond:
-                    self.replies[msg["reply"]] = msg
-                    self._cond.notify_all()
-            elif "event" in msg:
-                self.events.put(msg)
+    def on_line(self, line: str) -> None:
+        """A reply goes to its caller, an event to :meth:`wait_event`; other lines are only kept."""
+        try:
+            msg = json.loads(line)
+        except json.JSONDecodeError:
+            return
+        if "reply" in msg:
+            with self._cond:
+                self.replies[msg["reply"]] = msg
+                self._cond.notify_all()
+        elif "event" in msg:
+            self.events.put(msg)
+
+    def on_end(self) -> None:
+        """Wake the callers waiting for a reply: none will come."""
         with self._cond:
             self._cond.notify_all()
-
-    def _read_stderr(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            self.stderr_lines.append(line)
-
-    def output(self) -> str:
-        """What the process printed, for failure messages."""
-        return "".join(self.stdout_lines[-40:]) + "--- stderr ---\n" + "".join(self.stderr_lines[-60:])
 
     def wait_event(self, kind: str, timeout: float = 30.0) -> dict[str, Any]:
         """The next event of ``kind`` (events of other kinds before it are dropped)."""
@@ -151,21 +133,6 @@ class JavaComponent:
         if self.proc.poll() is None:
             self.send("quit")
         return self.wait(timeout)
-
-    def wait(self, timeout: float = 30.0) -> int:
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"{self.cls} did not exit within {timeout} s\n{self.output()}") from None
-
-    def terminate(self) -> None:
-        self.proc.send_signal(signal.SIGTERM)
-
-    def close(self) -> None:
-        """Kill the process if it is still running (test clean-up)."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
 
 
 def counter_json(writer: str, value: int) -> dict[str, Any]:
@@ -315,15 +282,9 @@ class CastRun:
 
     def components(self) -> dict[str, Any]:
         """The system's components as the directory describes them (id -> ComponentInfo)."""
-        import grpc
+        from tests.conftest import components
 
-        from cast.v1 import directory_pb2, directory_pb2_grpc
-
-        with grpc.insecure_channel(self.endpoint()) as channel:
-            stub = directory_pb2_grpc.DirectoryStub(channel)
-            md = (("authorization", f"Bearer {self.token('tool', 'tools')}"),)
-            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-        return {c.id: c for c in desc.components}
+        return components(self.endpoint(), self.token("tool", "tools"))
 
     def wait_running(self, component_id: str, timeout: float = 30.0) -> Any:
         """Wait until a component reports RUNNING (its start() returned); its ComponentInfo."""

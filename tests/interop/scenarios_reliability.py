@@ -5,6 +5,8 @@ through CAST_TOKEN_FILE. test_cpp_reliability.py and test_java_reliability.py ru
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -17,19 +19,6 @@ from tests.interop.probes import COUNTER, DRIVERS, counter_json, local_type, run
 from tests.interop.restart_support import restart_config, write_until
 from tests.reliability.conftest import kill9, serve, serve_tls, wait_for
 from tests.reliability.proxy import Proxy
-
-
-def _info(handle: ServerHandle, component: str) -> Any:
-    """The ComponentInfo the server has for ``component``; None if it knows no such component."""
-    import grpc
-
-    from cast.v1 import directory_pb2_grpc
-
-    with grpc.insecure_channel(handle.endpoint) as channel:
-        desc = directory_pb2_grpc.DirectoryStub(channel).DescribeSystem(
-            directory_pb2.DescribeSystemRequest(),
-            metadata=(("authorization", f"Bearer {handle.token('tool', 'vision')}"),), timeout=5)
-    return {c.id: c for c in desc.components}.get(component)
 
 
 def _revisions(events: list[dict[str, Any]]) -> list[int]:
@@ -69,12 +58,22 @@ class _Restarted:
         self.server.stop()
 
 
+@contextmanager
+def _restarted(
+    lang: str, tmp_path: Path, component: str, persistence: bool, first: int
+) -> Iterator[tuple[_Restarted, Any]]:
+    """A :class:`_Restarted` rig past :meth:`_Restarted.begin`, and its watch; closed on the way out."""
+    rig = _Restarted(lang, tmp_path, component, persistence)
+    try:
+        yield rig, rig.begin(first)
+    finally:
+        rig.close()
+
+
 def watch_resumes_after_a_server_restart(lang: str, tmp_path: Path, component: str) -> None:
     """A watch resumes with no gap and no duplicate across a journaled server's restart."""
-    rig = _Restarted(lang, tmp_path, component, persistence=True)
-    probe = rig.probe
-    try:
-        watch = rig.begin(50)
+    with _restarted(lang, tmp_path, component, persistence=True, first=50) as (rig, watch):
+        probe = rig.probe
         kill9(rig.server)
         # While the server is away a call fails promptly with a clear error; it does not hang.
         started = time.monotonic()
@@ -89,21 +88,17 @@ def watch_resumes_after_a_server_restart(lang: str, tmp_path: Path, component: s
         # The component registered with the new server process (which knew nothing of its old
         # session), and reads and writes again.
         running = directory_pb2.COMPONENT_STATE_RUNNING
-        wait_for(lambda: (i := _info(rig.server, component)) is not None and i.state == running
+        wait_for(lambda: (i := rig.server.components().get(component)) is not None and i.state == running
                  and i.session_id != "", timeout=30, what="re-registration")
         assert probe.ok("get", id="b-0", type=COUNTER)["value"] == {}
         probe.ok("add", id="after", type=COUNTER, value=counter_json(component, 1))
         assert probe.quit() == 0
-    finally:
-        rig.close()
 
 
 def restart_without_history_gives_the_resync_signal(lang: str, tmp_path: Path, component: str) -> None:
     """A server restarted with no journal tells the watcher to resynchronise instead of mixing histories."""
-    rig = _Restarted(lang, tmp_path, component, persistence=False)
-    probe = rig.probe
-    try:
-        watch = rig.begin(5)
+    with _restarted(lang, tmp_path, component, persistence=False, first=5) as (rig, watch):
+        probe = rig.probe
         kill9(rig.server)
         rig.serve_again()
         # The new server starts at revision 0 again: resuming at 6 would silently mix two histories.
@@ -120,8 +115,6 @@ def restart_without_history_gives_the_resync_signal(lang: str, tmp_path: Path, c
         rig.writer.add("c", Counter(value=1))
         assert len(_revisions(probe.watch_events(again, 1, 10000))) == 1
         assert probe.quit() == 0
-    finally:
-        rig.close()
 
 
 def cut_connection_releases_locks_and_the_watch_catches_up(lang: str, server: ServerHandle, component: str) -> None:
@@ -148,7 +141,7 @@ def cut_connection_releases_locks_and_the_watch_catches_up(lang: str, server: Se
         revs = _revisions(probe.watch_events(watch, top - 1, 30000))  # every change after the add of "doc" (revision 1)
         assert revs == list(range(2, top + 1)), "the watcher caught up with no gap and no duplicate"
         assert probe.failure(watch, within=0) is None
-        wait_for(lambda: _info(server, component).sessions >= 2, timeout=30, what="re-registration")
+        wait_for(lambda: server.components()[component].sessions >= 2, timeout=30, what="re-registration")
         # Locks do not survive a disconnect: the holder must take it again.
         assert probe.ok("lock", id="doc", mode="OD", timeout_ms=10000)["depth"] == 1
         assert not other.try_lock("doc")

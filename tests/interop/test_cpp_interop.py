@@ -5,16 +5,15 @@ The scenarios both probes can play are shared with Java (tests/interop/scenarios
 from __future__ import annotations
 
 import threading
-import time
 from typing import Any
 
-import grpc
 import pytest
 from cast_testing_pb2 import Counter, Pose
 
 import cast
 from cast.errors import ConsistencyError, NotFoundError
-from cast.v1 import directory_pb2, directory_pb2_grpc
+from cast.v1 import directory_pb2
+from tests.conftest import wait_for
 from tests.interop import scenarios_interop as s
 from tests.interop.cpp_support import CppProbe
 from tests.interop.probes import counter_json
@@ -207,34 +206,20 @@ def c_value(probe: CppProbe, entry_id: str) -> int:
 
 def test_cpp_component_shows_up_in_the_directory(server: Any, cpp: Any) -> None:
     c = cpp("cdir", "motor")
-    with grpc.insecure_channel(server.endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
-        # The state change is reported at once, not at the next heartbeat.
-        deadline = time.monotonic() + 2
-        while True:
-            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-            info = next(ci for ci in desc.components if ci.id == "cdir")
-            if info.state == directory_pb2.COMPONENT_STATE_RUNNING or time.monotonic() > deadline:
-                break
-            time.sleep(0.02)
-        assert info.language == "cpp"
-        assert info.kind == "managed"  # the probe is a ManagedComponent
-        assert info.subarchitecture == "motor"
-        assert info.pid == c.proc.pid
-        assert info.state == directory_pb2.COMPONENT_STATE_RUNNING
+
+    def state_is(state: int) -> Any:
+        info = server.components().get("cdir")
+        return info if info is not None and info.state == state else None
+
+    # The state change is reported at once, not at the next heartbeat.
+    info = wait_for(lambda: state_is(directory_pb2.COMPONENT_STATE_RUNNING), timeout=2, what="RUNNING")
+    assert info.language == "cpp"
+    assert info.kind == "managed"  # the probe is a ManagedComponent
+    assert info.subarchitecture == "motor"
+    assert info.pid == c.proc.pid
     assert c.quit() == 0
     # A clean exit ends the session at once (no lease to wait for).
-    with grpc.insecure_channel(server.endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        deadline = time.monotonic() + 5
-        while True:
-            desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-            info = next(ci for ci in desc.components if ci.id == "cdir")
-            if info.state == directory_pb2.COMPONENT_STATE_DISCONNECTED or time.monotonic() > deadline:
-                break
-            time.sleep(0.05)
-        assert info.state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+    wait_for(lambda: state_is(directory_pb2.COMPONENT_STATE_DISCONNECTED), timeout=5, what="DISCONNECTED")
 
 
 def test_batch_and_new_ids_from_python_are_visible_to_cpp(server: Any, cpp: Any) -> None:

@@ -13,18 +13,11 @@ import grpc
 import pytest
 
 import cast
-from cast.v1 import directory_pb2, directory_pb2_grpc, task_manager_pb2, task_manager_pb2_grpc
+from cast.v1 import directory_pb2, task_manager_pb2, task_manager_pb2_grpc
+from tests.conftest import components
 from tests.interop.cpp_support import CastRun, CppProbe, CppProcess, cpp_executable
 from tests.interop.restart_support import PyWorker, holder_config, readable
 from tests.interop.restart_support import eventually as wait_for
-
-
-def components(endpoint: str, token: str) -> dict[str, directory_pb2.ComponentInfo]:
-    with grpc.insecure_channel(endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {token}"),)
-        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-    return {c.id: c for c in desc.components}
 
 
 def live_tasks(endpoint: str, token: str, sa: str) -> list[task_manager_pb2.Task]:

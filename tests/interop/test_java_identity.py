@@ -10,6 +10,8 @@ import os
 import subprocess
 from typing import Any
 
+import pytest
+
 from tests.interop.java_support import RUNNER, JavaComponent, java_classpath
 
 
@@ -18,22 +20,25 @@ def run_java(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str
                           timeout=60)
 
 
-def test_a_component_started_with_a_token_for_another_id_exits_2_naming_both(server: Any) -> None:
-    env = dict(server.env("jalice", "vision"), CAST_TOKEN=server.token("jbob", "vision"))
+@pytest.mark.parametrize(
+    ("launched_as", "token_for", "named"),
+    [
+        (("jalice", "vision"), ("jbob", "vision"), "CAST_COMPONENT_ID is 'jalice' but the server verified the token "
+         "as component 'jbob' of subarchitecture 'vision'"),
+        (("jcarol", "vision"), ("jcarol", "motor"), "CAST_SUBARCHITECTURE is 'vision' but the server verified the "
+         "token as component 'jcarol' of subarchitecture 'motor'"),
+    ],
+    ids=["another-id", "another-subarchitecture"],
+)
+def test_a_component_started_with_a_token_for_another_identity_exits_2_naming_both(
+    server: Any, launched_as: tuple[str, str], token_for: tuple[str, str], named: str
+) -> None:
+    env = dict(server.env(*launched_as), CAST_TOKEN=server.token(*token_for))
     r = run_java(env, RUNNER, "cast.itest.Driven")
     assert r.returncode == 2, r.stderr
-    assert ("CAST_COMPONENT_ID is 'jalice' but the server verified the token as component 'jbob' of "
-            "subarchitecture 'vision'") in r.stderr, r.stderr
+    assert named in r.stderr, r.stderr
+    assert f"`cast token {launched_as[0]} --sa {launched_as[1]}`" in r.stderr, r.stderr  # what to do
     assert '"event": "ready"' not in r.stdout and '"event":"ready"' not in r.stdout, "no hook ran"
-
-
-def test_a_component_started_with_a_token_for_another_subarchitecture_exits_2_naming_both(server: Any) -> None:
-    env = dict(server.env("jcarol", "vision"), CAST_TOKEN=server.token("jcarol", "motor"))
-    r = run_java(env, RUNNER, "cast.itest.Driven")
-    assert r.returncode == 2, r.stderr
-    assert ("CAST_SUBARCHITECTURE is 'vision' but the server verified the token as component 'jcarol' of "
-            "subarchitecture 'motor'") in r.stderr, r.stderr
-    assert "`cast token jcarol --sa vision`" in r.stderr, r.stderr
 
 
 def test_the_component_is_whom_the_server_verified(server: Any) -> None:

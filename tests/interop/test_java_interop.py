@@ -10,24 +10,13 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import grpc
 import yaml
 from cast_testing_pb2 import Counter, Pose
 
 import cast
-from cast.v1 import directory_pb2, directory_pb2_grpc
+from cast.v1 import directory_pb2
 from tests.interop import scenarios_interop as s
 from tests.interop.java_support import CastRun, JavaComponent, counter_json, java_classpath
-
-
-def components(server: Any) -> dict[str, directory_pb2.ComponentInfo]:
-    """The components the server knows, by id."""
-    with grpc.insecure_channel(server.endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
-        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-    return {c.id: c for c in desc.components}
-
 
 # Probes in their own language's commands, and behind the shared driver (for the shared scenarios).
 java = s.starter_fixture("java", raw=True)
@@ -154,14 +143,14 @@ def test_java_component_shows_up_in_the_directory_running_at_once(server: Any, j
     jc = java("jdir", sa="motor")
     deadline = time.monotonic() + 2
     while True:
-        info = components(server)["jdir"]
+        info = server.components()["jdir"]
         if info.state == directory_pb2.COMPONENT_STATE_RUNNING or time.monotonic() > deadline:
             break
         time.sleep(0.02)
     assert (info.language, info.kind, info.subarchitecture, info.pid) == ("java", "managed", "motor", jc.proc.pid)
     assert info.state == directory_pb2.COMPONENT_STATE_RUNNING
     assert jc.quit() == 0
-    assert components(server)["jdir"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+    assert server.components()["jdir"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED
 
 
 def test_java_routes_by_sa_across_two_servers(tmp_path: Path) -> None:

@@ -5,33 +5,15 @@ from __future__ import annotations
 import os
 import subprocess
 import threading
-import time
 from typing import Any
 
-import grpc
 import pytest
 from cast_testing_pb2 import Counter
 
 import cast
-from cast.v1 import directory_pb2, directory_pb2_grpc
+from cast.v1 import directory_pb2
+from tests.conftest import wait_for
 from tests.interop.java_support import RUNNER, JavaComponent, counter_json, java_classpath
-
-
-def components(server: Any) -> dict[str, directory_pb2.ComponentInfo]:
-    with grpc.insecure_channel(server.endpoint) as channel:
-        stub = directory_pb2_grpc.DirectoryStub(channel)
-        md = (("authorization", f"Bearer {server.token('tool', 'vision')}"),)
-        desc = stub.DescribeSystem(directory_pb2.DescribeSystemRequest(), metadata=md)
-    return {c.id: c for c in desc.components}
-
-
-def wait_for(predicate: Any, timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def run_java(env: dict[str, str], *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
@@ -77,7 +59,7 @@ def test_a_failing_hook_exits_1_and_stop_is_still_called(server: Any, hook: str)
     )
     if hook == "stop":
         # Runs until asked to stop; the failure comes from stop() itself.
-        assert wait_for(lambda: components(server).get("jfail", directory_pb2.ComponentInfo()).state
+        assert wait_for(lambda: server.components().get("jfail", directory_pb2.ComponentInfo()).state
                         == directory_pb2.COMPONENT_STATE_RUNNING, 30)
         proc.terminate()
     out, err = proc.communicate(timeout=60)
@@ -90,15 +72,15 @@ def test_sigterm_calls_stop_exits_0_and_ends_the_session(server: Any) -> None:
     jc = JavaComponent(server.env("jterm", "vision"))
     try:
         jc.ready()
-        assert wait_for(lambda: components(server)["jterm"].state == directory_pb2.COMPONENT_STATE_RUNNING)
-        info = components(server)["jterm"]
+        assert wait_for(lambda: server.components()["jterm"].state == directory_pb2.COMPONENT_STATE_RUNNING)
+        info = server.components()["jterm"]
         assert (info.language, info.kind, info.pid) == ("java", "managed", jc.proc.pid)
         jc.ok("add", id="x", type="cast.testing.Counter", value=counter_json("jterm", 1))
         jc.ok("lock", id="x", mode="ODR")
         jc.terminate()
         jc.wait_event("stopping")
         assert jc.wait() == 0, jc.output()
-        assert components(server)["jterm"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED
+        assert server.components()["jterm"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED
         py = server.connect("pyafter", "vision")
         try:
             assert py.try_lock("x", cast.LockMode.ODR), "the lock went with the session"
@@ -144,7 +126,7 @@ def test_sigkill_releases_the_java_components_locks_and_tasks(server_factory: An
         assert py.adopted == ["python-task"]
         with py.lock("shared", cast.LockMode.ODR, timeout=15):
             assert py.get("shared", Counter).writer == "jvictim"
-        assert wait_for(lambda: components(server)["jvictim"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED)
+        assert wait_for(lambda: server.components()["jvictim"].state == directory_pb2.COMPONENT_STATE_DISCONNECTED)
     finally:
         py._cast_close()
         jc.close()

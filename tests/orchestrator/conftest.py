@@ -10,7 +10,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,22 +24,10 @@ from cast.config.problems import Problems
 from cast.orchestrator.orchestrator import Orchestrator, RunOptions, RunResult
 from cast.orchestrator.output import Output
 from cast.orchestrator.preflight import preflight
-from tests.conftest import ROOT
+from tests.conftest import ROOT, wait_for
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
 CAST = str(Path(sys.executable).parent / "cast")
-
-
-def wait_for(condition: Callable[[], Any], timeout: float = 60.0, what: str = "condition") -> Any:
-    """Poll until ``condition()`` is truthy; fail the test after ``timeout`` seconds (a guard, not a measurement)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def write_config(path: Path, data: dict[str, Any]) -> Path:

@@ -113,6 +113,18 @@ def _clients(handle: ServerHandle, seen: dict[int, set[int]]) -> Iterator[tuple[
         reader.close()
 
 
+@contextmanager
+def _served_again(hold: Path, config: Path, seen: dict[int, set[int]]) -> Iterator[tuple[Client, Client]]:
+    """Serve ``config`` again with the journal writing (``hold`` gone), and a writer and a reader on it."""
+    hold.unlink()
+    handle = serve(config)
+    try:
+        with _clients(handle, seen) as clients:
+            yield clients
+    finally:
+        handle.stop()
+
+
 def _one_value_per_version(seen: dict[int, set[int]]) -> None:
     reused = {version: values for version, values in seen.items() if len(values) > 1}
     assert not reused, f"versions given to more than one value: {reused}"
@@ -143,16 +155,11 @@ def test_a_write_the_journal_holds_is_seen_by_nobody_and_a_kill_then_reuses_no_v
                 assert err.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
         kill9(handle)
-    hold.unlink()  # the journal writes again
-    handle = serve(config)
-    try:
-        with _clients(handle, seen) as (writer, reader):
-            assert reader.get() == (1, 0)  # the held write is gone, and nobody had seen it
-            assert writer.overwrite(4) == 1  # so version 1 is given now, for the first time
-            assert reader.overwrite(5, expected=1) == 2
-            _one_value_per_version(seen)
-    finally:
-        handle.stop()
+    with _served_again(hold, config, seen) as (writer, reader):
+        assert reader.get() == (1, 0)  # the held write is gone, and nobody had seen it
+        assert writer.overwrite(4) == 1  # so version 1 is given now, for the first time
+        assert reader.overwrite(5, expected=1) == 2
+        _one_value_per_version(seen)
 
 
 @pytest.mark.parametrize("mode", ["none", "memory"])
@@ -183,24 +190,19 @@ def test_a_restart_that_loses_acknowledged_writes_never_gives_their_versions_aga
             assert last is not None and last[0] == 14
     finally:
         kill9(handle)
-    hold.unlink()  # the journal writes again
-    handle = serve(config)
-    try:
-        with _clients(handle, seen) as (writer, reader):
-            survived = reader.get()
-            assert survived is None if mode == "memory" else survived == (3, 2)
-            # The reader's compare-and-set on the version it last saw names a value that is gone:
-            # it must fail, never apply to whatever holds that version number now.
-            cas = reader.overwrite_future(20, expected=last[1])
-            with pytest.raises(grpc.RpcError) as err:
-                cas.result()
-            assert err.value.code() in (grpc.StatusCode.ABORTED, grpc.StatusCode.NOT_FOUND)
-            told_before = max(seen)
-            new = writer.add(21) if survived is None else writer.overwrite(21)
-            assert new > told_before, f"version {new} after the restart, but {told_before} was given before it"
-            for value in (22, 23):
-                writer.overwrite(value)
-            reader.get()
-            _one_value_per_version(seen)
-    finally:
-        handle.stop()
+    with _served_again(hold, config, seen) as (writer, reader):
+        survived = reader.get()
+        assert survived is None if mode == "memory" else survived == (3, 2)
+        # The reader's compare-and-set on the version it last saw names a value that is gone:
+        # it must fail, never apply to whatever holds that version number now.
+        cas = reader.overwrite_future(20, expected=last[1])
+        with pytest.raises(grpc.RpcError) as err:
+            cas.result()
+        assert err.value.code() in (grpc.StatusCode.ABORTED, grpc.StatusCode.NOT_FOUND)
+        told_before = max(seen)
+        new = writer.add(21) if survived is None else writer.overwrite(21)
+        assert new > told_before, f"version {new} after the restart, but {told_before} was given before it"
+        for value in (22, 23):
+            writer.overwrite(value)
+        reader.get()
+        _one_value_per_version(seen)
