@@ -5,7 +5,14 @@
 namespace cast {
 
 namespace {
-std::set<Operation> opSet(const Operations& ops) { return std::set<Operation>(ops.begin(), ops.end()); }
+// What every filter helper sets: the operations (none: every one) and
+// whether the events carry the entry.
+ChangeFilter filterOf(const Operations& operations, bool includeEntry) {
+  ChangeFilter f;
+  f.operations = std::set<Operation>(operations.begin(), operations.end());
+  f.includeEntry = includeEntry;
+  return f;
+}
 }  // namespace
 
 ChangeFilter ChangeFilter::withEntry() const {
@@ -57,30 +64,23 @@ std::ostream& operator<<(std::ostream& os, const ChangeFilter& f) {
 }
 
 ChangeFilter localTypeFilter(const std::string& typeName, const Operations& operations, bool includeEntry) {
-  ChangeFilter f;
-  f.operations = opSet(operations);
-  f.type = typeName;
+  ChangeFilter f = globalTypeFilter(typeName, operations, includeEntry);
   f.local = true;
-  f.includeEntry = includeEntry;
   return f;
 }
 
 ChangeFilter globalTypeFilter(const std::string& typeName, const Operations& operations, bool includeEntry) {
-  ChangeFilter f;
-  f.operations = opSet(operations);
+  ChangeFilter f = filterOf(operations, includeEntry);
   f.type = typeName;
-  f.includeEntry = includeEntry;
   return f;
 }
 
 ChangeFilter addressFilter(const std::string& entryId, const Operations& operations,
                            const std::string& subarchitecture, bool includeEntry) {
-  ChangeFilter f;
-  f.operations = opSet(operations);
+  ChangeFilter f = filterOf(operations, includeEntry);
   f.id = entryId;
   f.subarchitecture = subarchitecture;
   f.local = subarchitecture.empty();
-  f.includeEntry = includeEntry;
   return f;
 }
 
@@ -90,19 +90,15 @@ ChangeFilter addressFilter(const WorkingMemoryAddress& address, const Operations
 
 ChangeFilter sourceFilter(const std::string& componentId, const Operations& operations,
                           const std::string& subarchitecture, bool includeEntry) {
-  ChangeFilter f;
-  f.operations = opSet(operations);
+  ChangeFilter f = filterOf(operations, includeEntry);
   f.sourceComponent = componentId;
   f.subarchitecture = subarchitecture;
-  f.includeEntry = includeEntry;
   return f;
 }
 
 ChangeFilter operationFilter(const Operations& operations, bool local, bool includeEntry) {
-  ChangeFilter f;
-  f.operations = opSet(operations);
+  ChangeFilter f = filterOf(operations, includeEntry);
   f.local = local;
-  f.includeEntry = includeEntry;
   return f;
 }
 

@@ -226,23 +226,28 @@ TEST(Component, RegistersEveryFileATypeImports) {
 
 // ------------------------------------------------------------ locks
 
+// A bound component with an entry e1 to lock; depth(id) is how many times
+// the fake server counts the component's lock of that entry.
+struct WithEntry : Bound {
+  WithEntry() { component.add("e1", counter("a", 1)); }
+  auto depth(const std::string& id = "e1") const { return transport->lockDepth("vision", id); }
+};
+
 TEST(Component, LockGuardUnlocksAtTheEndOfItsScope) {
-  Bound b("c", "vision");
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   {
     cast::LockGuard guard = b.component.lock("e1", LockMode::ODR);
     EXPECT_TRUE(guard.held());
     EXPECT_EQ(guard.depth(), 1u);
     EXPECT_EQ(guard.address(), (cast::WorkingMemoryAddress{"e1", "vision"}));
     EXPECT_EQ(b.transport->lastLockMode, LockMode::ODR);
-    EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 1u);
+    EXPECT_EQ(b.depth(), 1u);
   }
-  EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 0u);
+  EXPECT_EQ(b.depth(), 0u);
 }
 
 TEST(Component, LockGuardsNestAndMove) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   cast::LockGuard outer = b.component.lock("e1");
   {
     cast::LockGuard inner = b.component.lock("e1");
@@ -250,41 +255,38 @@ TEST(Component, LockGuardsNestAndMove) {
     cast::LockGuard moved = std::move(inner);
     EXPECT_FALSE(inner.held());  // NOLINT(bugprone-use-after-move): checking the moved-from state
     EXPECT_TRUE(moved.held());
-    EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 2u);
+    EXPECT_EQ(b.depth(), 2u);
   }
-  EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 1u);
+  EXPECT_EQ(b.depth(), 1u);
   EXPECT_EQ(b.transport->calls["unlock"], 1);
   outer.unlock();
   EXPECT_FALSE(outer.held());
   outer.unlock();  // idempotent
   EXPECT_EQ(b.transport->calls["unlock"], 2);
-  EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 0u);
+  EXPECT_EQ(b.depth(), 0u);
 }
 
 TEST(Component, MoveAssignmentReleasesTheOldLock) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   b.component.add("e2", counter("a", 1));
   cast::LockGuard g = b.component.lock("e1");
   g = b.component.lock("e2");
-  EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 0u);
-  EXPECT_EQ(b.transport->lockDepth("vision", "e2"), 1u);
+  EXPECT_EQ(b.depth(), 0u);
+  EXPECT_EQ(b.depth("e2"), 1u);
 }
 
 TEST(Component, ReleasedGuardLeavesTheLockHeld) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   {
     cast::LockGuard g = b.component.lock("e1");
     g.release();
   }
-  EXPECT_EQ(b.transport->lockDepth("vision", "e1"), 1u);
+  EXPECT_EQ(b.depth(), 1u);
   EXPECT_EQ(b.component.unlock("e1"), 0u);
 }
 
 TEST(Component, AGuardWhoseUnlockFailsDoesNotThrowFromItsDestructor) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   {
     cast::LockGuard g = b.component.lock("e1");
     b.component.deleteEntry("e1");  // deleting releases the lock: the guard's unlock then fails
@@ -293,8 +295,7 @@ TEST(Component, AGuardWhoseUnlockFailsDoesNotThrowFromItsDestructor) {
 }
 
 TEST(Component, ExplicitUnlockOfAGuardReportsFailure) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   cast::LockGuard g = b.component.lock("e1");
   b.component.deleteEntry("e1");
   EXPECT_THROW(g.unlock(), cast::LockedError);
@@ -302,8 +303,7 @@ TEST(Component, ExplicitUnlockOfAGuardReportsFailure) {
 }
 
 TEST(Component, LockTimeoutIsTheCallsDeadline) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   { auto g = b.component.lock("e1", LockMode::O, "", 250ms); }
   EXPECT_EQ(b.transport->lastLockTimeout, std::optional<std::chrono::milliseconds>(250ms));
   EXPECT_FALSE(b.transport->lastLockNoWait);
@@ -314,8 +314,7 @@ TEST(Component, LockTimeoutIsTheCallsDeadline) {
 }
 
 TEST(Component, TryLockMapsLockedToFalse) {
-  Bound b;
-  b.component.add("e1", counter("a", 1));
+  WithEntry b;
   EXPECT_TRUE(b.component.tryLock("e1"));
   EXPECT_TRUE(b.transport->lastLockNoWait);
   b.component.unlock("e1");

@@ -150,6 +150,12 @@ class TokenFile : public ::testing::Test {
     std::ofstream(tmp) << text;
     std::rename(tmp.c_str(), path_.c_str());
   }
+  // Replaces the file later, once its modification time can differ from the
+  // last write's: a reader that checks the time must see the change.
+  void rewrite(const std::string& text) {
+    std::this_thread::sleep_for(10ms);
+    write(text);
+  }
   std::string path_;
 };
 
@@ -169,12 +175,10 @@ TEST_F(TokenFile, ARenewedFileIsReadAgain) {
   write("first\n");
   cast::TokenSource tokens("first", path_, 0ms);
   EXPECT_EQ(tokens.token(), "first");
-  std::this_thread::sleep_for(10ms);  // a new modification time
-  write("second-and-longer\n");
+  rewrite("second-and-longer\n");
   EXPECT_EQ(tokens.token(), "second-and-longer");
   EXPECT_FALSE(tokens.refresh()) << "nothing changed since";
-  std::this_thread::sleep_for(10ms);
-  write("third\n");
+  rewrite("third\n");
   EXPECT_TRUE(tokens.refresh());
   EXPECT_EQ(tokens.token(), "third");
 }
@@ -182,8 +186,7 @@ TEST_F(TokenFile, ARenewedFileIsReadAgain) {
 TEST_F(TokenFile, TheFileIsCheckedAtMostEveryInterval) {
   write("first\n");
   cast::TokenSource tokens("first", path_, 60000ms);
-  std::this_thread::sleep_for(10ms);
-  write("second\n");
+  rewrite("second\n");
   EXPECT_EQ(tokens.token(), "first") << "checked again before the interval passed";
   EXPECT_TRUE(tokens.refresh()) << "refresh() reads it at once";
   EXPECT_EQ(tokens.token(), "second");
@@ -192,8 +195,7 @@ TEST_F(TokenFile, TheFileIsCheckedAtMostEveryInterval) {
 TEST_F(TokenFile, AnEmptyOrMissingFileKeepsTheLastToken) {
   write("good\n");
   cast::TokenSource tokens("initial", path_, 0ms);
-  std::this_thread::sleep_for(10ms);
-  write("");
+  rewrite("");
   EXPECT_EQ(tokens.token(), "good");
   std::remove(path_.c_str());
   EXPECT_EQ(tokens.token(), "good");

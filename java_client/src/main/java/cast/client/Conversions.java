@@ -51,36 +51,29 @@ final class Conversions {
     return b.build();
   }
 
+  /**
+   * The wire constant of a library enum constant: the wire enums spell each library name
+   * behind their own prefix (OVERWRITE is OPERATION_OVERWRITE, ODR is LOCK_MODE_ODR), so one
+   * lookup serves them all; ConversionsTest maps every constant.
+   */
+  private static <W extends Enum<W>> W wire(Enum<?> value, Class<W> wireType, String prefix) {
+    return Enum.valueOf(wireType, prefix + value.name());
+  }
+
   static cast.v1.Operation operation(Operation op) {
-    return switch (op) {
-      case ADD -> cast.v1.Operation.OPERATION_ADD;
-      case OVERWRITE -> cast.v1.Operation.OPERATION_OVERWRITE;
-      case DELETE -> cast.v1.Operation.OPERATION_DELETE;
-    };
+    return wire(op, cast.v1.Operation.class, "OPERATION_");
   }
 
   static cast.v1.LockMode lockMode(LockMode mode) {
-    return switch (mode) {
-      case O -> cast.v1.LockMode.LOCK_MODE_O;
-      case OD -> cast.v1.LockMode.LOCK_MODE_OD;
-      case ODR -> cast.v1.LockMode.LOCK_MODE_ODR;
-    };
+    return wire(mode, cast.v1.LockMode.class, "LOCK_MODE_");
   }
 
   static cast.v1.TaskOutcome outcome(TaskOutcome outcome) {
-    return switch (outcome) {
-      case SUCCEEDED -> cast.v1.TaskOutcome.TASK_OUTCOME_SUCCEEDED;
-      case FAILED -> cast.v1.TaskOutcome.TASK_OUTCOME_FAILED;
-      case ABANDONED -> cast.v1.TaskOutcome.TASK_OUTCOME_ABANDONED;
-    };
+    return wire(outcome, cast.v1.TaskOutcome.class, "TASK_OUTCOME_");
   }
 
   static cast.v1.ComponentState state(ComponentState state) {
-    return switch (state) {
-      case STARTING -> cast.v1.ComponentState.COMPONENT_STATE_STARTING;
-      case RUNNING -> cast.v1.ComponentState.COMPONENT_STATE_RUNNING;
-      case STOPPING -> cast.v1.ComponentState.COMPONENT_STATE_STOPPING;
-    };
+    return wire(state, cast.v1.ComponentState.class, "COMPONENT_STATE_");
   }
 
   static AddRequest add(String sa, String id, Any value) {

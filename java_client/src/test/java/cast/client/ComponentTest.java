@@ -14,7 +14,6 @@ import java.util.concurrent.ExecutorService;
 import java.util.concurrent.Executors;
 import java.util.concurrent.Future;
 import java.util.concurrent.TimeUnit;
-import org.junit.jupiter.api.AfterEach;
 import org.junit.jupiter.api.Test;
 
 /**
@@ -23,23 +22,8 @@ import org.junit.jupiter.api.Test;
  * turns the answers and refusals into values and named errors. The server's own rules
  * are tested against a real server in tests/interop.
  */
-class ComponentTest {
+class ComponentTest extends WithFakeMemory {
   static final class Plain extends UnmanagedComponent {}
-
-  final FakeTransport.Memory memory = new FakeTransport.Memory("vision", "motor");
-  final List<Component> components = new ArrayList<>();
-
-  @AfterEach
-  void tearDown() {
-    for (Component c : components) {
-      c.close();
-    }
-  }
-
-  <C extends Component> C connect(C c, String id, String sa) {
-    components.add(FakeTransport.connect(c, memory, id, sa));
-    return c;
-  }
 
   /** Poll until {@code condition} holds; false after {@code timeout}. */
   static boolean eventually(java.util.function.BooleanSupplier condition, Duration timeout) throws InterruptedException {

@@ -4,28 +4,65 @@ import static org.junit.jupiter.api.Assertions.*;
 
 import io.grpc.Metadata;
 import io.grpc.Status;
+import java.io.IOException;
+import java.io.UncheckedIOException;
+import java.nio.file.Files;
+import java.nio.file.Path;
 import java.util.LinkedHashMap;
-import java.util.List;
 import java.util.Map;
+import java.util.Set;
+import java.util.regex.Matcher;
+import java.util.regex.Pattern;
 import org.junit.jupiter.api.Test;
 
 class ErrorsTest {
-  /** docs/client-protocol.md, "Errors": the same table in every client library. */
+  /**
+   * docs/client-protocol.md, "Errors": the table every client library follows, read from the
+   * page itself so that the page and this library cannot drift apart. Rows "| CODE | Class |".
+   */
   static final Map<Status.Code, Class<? extends CastError>> TABLE = new LinkedHashMap<>();
 
+  /** The same table's rows "| CODE, trailer `cast-error: Class` | Class (a Base) |": the precise errors. */
+  static final Map<Class<? extends CastError>, Status.Code> PRECISE = new LinkedHashMap<>();
+
   static {
-    TABLE.put(Status.Code.ALREADY_EXISTS, AlreadyExistsError.class);
-    TABLE.put(Status.Code.NOT_FOUND, NotFoundError.class);
-    TABLE.put(Status.Code.ABORTED, ConsistencyError.class);
-    TABLE.put(Status.Code.PERMISSION_DENIED, PermissionDeniedError.class);
-    TABLE.put(Status.Code.FAILED_PRECONDITION, LockedError.class);
-    TABLE.put(Status.Code.INVALID_ARGUMENT, InvalidArgumentError.class);
-    TABLE.put(Status.Code.UNAUTHENTICATED, UnauthenticatedError.class);
-    TABLE.put(Status.Code.DEADLINE_EXCEEDED, DeadlineExceededError.class);
-    TABLE.put(Status.Code.OUT_OF_RANGE, HistoryExpiredError.class);
-    TABLE.put(Status.Code.RESOURCE_EXHAUSTED, ResourceExhaustedError.class);
-    TABLE.put(Status.Code.UNAVAILABLE, UnavailableError.class);
-    TABLE.put(Status.Code.INTERNAL, InternalError.class);
+    Pattern plain = Pattern.compile("\\| ([A-Z_]+) \\| (\\w+) \\|");
+    Pattern precise = Pattern.compile("\\| ([A-Z_]+), trailer `cast-error: (\\w+)` \\| \\2 \\(a \\w+\\) \\|");
+    for (String row : errorsSection().split("\n")) {
+      Matcher m = plain.matcher(row);
+      if (m.matches()) {
+        TABLE.put(Status.Code.valueOf(m.group(1)), errorClass(m.group(2)));
+      } else if ((m = precise.matcher(row)).matches()) {
+        PRECISE.put(errorClass(m.group(2)), Status.Code.valueOf(m.group(1)));
+      }
+    }
+  }
+
+  /** The "Errors" section of docs/client-protocol.md (the tests run in java_client/). */
+  static String errorsSection() {
+    try {
+      String page =
+          Files.readString(Path.of(System.getProperty("basedir", "."), "..", "docs", "client-protocol.md"));
+      int start = page.indexOf("\n## Errors\n");
+      return page.substring(start, page.indexOf("\n## ", start + 1));
+    } catch (IOException e) {
+      throw new UncheckedIOException(e);
+    }
+  }
+
+  static Class<? extends CastError> errorClass(String name) {
+    try {
+      return Class.forName("cast.client." + name).asSubclass(CastError.class);
+    } catch (ClassNotFoundException e) {
+      throw new AssertionError("docs/client-protocol.md names " + name + ", which cast.client lacks", e);
+    }
+  }
+
+  @Test
+  void theTableIsReadFromThePage() {
+    assertEquals(12, TABLE.size(), TABLE.toString());
+    assertEquals(LockedError.class, TABLE.get(Status.Code.FAILED_PRECONDITION));
+    assertEquals(Set.of(TaskStateError.class, NoSessionError.class, SchemaConflictError.class), PRECISE.keySet());
   }
 
   @Test
@@ -98,7 +135,8 @@ class ErrorsTest {
   @Test
   void theTrailerNamesAPreciseLockedError() {
     assertEquals("cast-error", Errors.ERROR_TRAILER);
-    for (var precise : List.of(TaskStateError.class, NoSessionError.class, SchemaConflictError.class)) {
+    for (var precise : PRECISE.keySet()) {
+      assertEquals(Status.Code.FAILED_PRECONDITION, PRECISE.get(precise));
       CastError err = Errors.fromStatus(WAITING, trailer(precise.getSimpleName()));
       assertEquals(precise, err.getClass());
       assertTrue(err instanceof LockedError, "existing catch (LockedError e) still catches it");

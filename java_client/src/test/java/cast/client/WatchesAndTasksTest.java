@@ -15,7 +15,6 @@ import java.util.Set;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicReference;
-import org.junit.jupiter.api.AfterEach;
 import org.junit.jupiter.api.Test;
 
 /**
@@ -25,7 +24,7 @@ import org.junit.jupiter.api.Test;
  * a real server by tests/interop/test_java_reliability.py and test_java_runner.py; the
  * resume's start revisions also by WatchStreamTest.
  */
-class WatchesAndTasksTest {
+class WatchesAndTasksTest extends WithFakeMemory {
   static final class Plain extends UnmanagedComponent {}
 
   static final class Hooks extends ManagedComponent {
@@ -49,21 +48,6 @@ class WatchesAndTasksTest {
       failed.set(error);
       watchFailedCalled.countDown();
     }
-  }
-
-  final FakeTransport.Memory memory = new FakeTransport.Memory("vision", "motor");
-  final List<Component> components = new ArrayList<>();
-
-  @AfterEach
-  void tearDown() {
-    for (Component c : components) {
-      c.close();
-    }
-  }
-
-  <C extends Component> C connect(C c, String id, String sa) {
-    components.add(FakeTransport.connect(c, memory, id, sa));
-    return c;
   }
 
   @Test
