@@ -76,8 +76,8 @@ class LockedError(CastError):
 class SchemaConflictError(LockedError):
     """A schema file registered again with other types (FAILED_PRECONDITION).
 
-    Clients see it as their FAILED_PRECONDITION error (LockedError): the
-    status code, not the class, travels.
+    The class travels in the ``cast-error`` trailer, as for TaskStateError; a
+    client that does not read it sees its FAILED_PRECONDITION error (LockedError).
     """
 
 

@@ -203,6 +203,10 @@ def test_managed_component_tasks(make_component: Any) -> None:
     second = m.propose_task("second")
     wait_for(lambda: len(m.decisions) == 1)
     assert m.decisions[0][:2] == ("adopted", "first") and m.decisions[0][2].label == "payload"
+    # Task data read with the wrong class names the task and its SA, as an entry read does.
+    with pytest.raises(cast.InvalidArgumentError, match=rf"task '{first.task_id}' data in subarchitecture 'vision' "
+                       "has type cast.testing.Pose, not cast.testing.Counter"):
+        first.data(Counter)
     assert second.state is cast.TaskState.WAITING  # fifo, one at a time
     m.task_complete(first, cast.TaskOutcome.SUCCEEDED, "done")
     wait_for(lambda: len(m.decisions) == 2)

@@ -37,7 +37,8 @@ def test_python_writes_cpp_reads(server: Any, cpp_driver: s.Start) -> None:
     assert [e["id"] for e in CppProbe.ok(c, "getall", COUNTER, "language", 1)["entries"]] == ["b"]
     err = CppProbe.fails(c, "InvalidArgumentError", "get", "Pose", "a", "language")
     assert err["message"] == (
-        "entry 'a' has type cast.testing.Counter, not cast.testing.Pose: read it with the right class"
+        "entry 'a' in subarchitecture 'language' has type cast.testing.Counter, not cast.testing.Pose: "
+        "read it with the right class"
     )
     assert c.quit() == 0
 

@@ -144,7 +144,8 @@ class Task:
         """The proposal's payload as ``cls`` (None if none was given)."""
         if not self._rec.data_type:
             return None
-        return decode(cls, self._rec.data_type, self._rec.data, f"task '{self.task_id}' data")
+        what = f"task '{self.task_id}' data in subarchitecture '{self.subarchitecture}'"  # as C++ and Java say it
+        return decode(cls, self._rec.data_type, self._rec.data, what)
 
     def __repr__(self) -> str:
         return f"Task({self.task_id} '{self.name}' {self.state.name})"
