@@ -247,7 +247,7 @@ class CastRun:
             assert self.proc.stdout is not None
             for line in self.proc.stdout:
                 self.lines.append(line)
-                if "components connected in" in line:
+                if "components started in" in line:
                     connected.set()
             connected.set()
 

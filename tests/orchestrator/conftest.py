@@ -141,8 +141,10 @@ class CastRun:
         return "".join(self.lines)
 
 
-def start_cast_run(cwd: Path, config: Path, *extra: str, env: dict[str, str] | None = None) -> CastRun:
-    """Start `cast run CONFIG --no-status` and wait until every component is connected."""
+def start_cast_run(
+    cwd: Path, config: Path, *extra: str, env: dict[str, str] | None = None, until: str = "components started in"
+) -> CastRun:
+    """Start `cast run CONFIG --no-status` and wait for the line ``until`` (default: every component started)."""
     runtime = cwd / "runtime"
     base = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
     proc = subprocess.Popen(
@@ -156,7 +158,7 @@ def start_cast_run(cwd: Path, config: Path, *extra: str, env: dict[str, str] | N
         assert proc.stdout is not None
         for line in proc.stdout:
             run.lines.append(line)
-            if "components connected in" in line:
+            if until in line:
                 connected.set()
         connected.set()
 

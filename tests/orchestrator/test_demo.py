@@ -65,7 +65,7 @@ def test_demo_runs_for_a_fixed_time_and_exits_zero(demo_built: Path, tmp_path: P
     )
     assert out.returncode == 0, out.stdout + out.stderr
     text = out.stdout
-    assert "cast: all 5 components connected in" in text
+    assert "cast: all 5 components started in" in text
     assert "segmenter | frame 1: new region obj-1" in text
     assert "summary of scene-description" in text and "every component ran and stopped cleanly" in text
     assert "questions answered" in text  # the coordinator's stop() reports on the conversation

@@ -34,6 +34,9 @@ __all__ = ["CHANNEL_OPTIONS", "GrpcTransport", "map_rpc_error"]
 
 log = logging.getLogger("cast.client")
 
+# Deadline of one AwaitRun long-poll: how soon a stop request ends the wait for the start barrier.
+_AWAIT_RUN_POLL_S = 1.0
+
 
 class GrpcTransport:
     """A component's connection to a CAST system through its directory endpoint."""
@@ -322,6 +325,26 @@ class GrpcTransport:
     def report_state(self) -> None:
         """Send the component's state to every server now, not at the next heartbeat."""
         self._session.report_state()
+
+    def await_run(self, stopping: threading.Event) -> bool:
+        """Long-poll the directory's AwaitRun until the start barrier is released, or ``stopping``.
+
+        Each call has a short deadline, so a stop request is seen within it; a
+        server that is away is asked again with backoff (one restarted by
+        `cast run` has no barrier any more, and answers at once).
+        """
+        backoff = Backoff()
+        while not stopping.is_set() and not self._closing.is_set():
+            try:
+                self._call(self._directory.directory.AwaitRun, dir_pb2.AwaitRunRequest(), timeout=_AWAIT_RUN_POLL_S)
+                return True
+            except CastError as err:
+                if err.code == "DEADLINE_EXCEEDED":
+                    continue
+                if err.code != "UNAVAILABLE":
+                    raise
+            stopping.wait(backoff.next())
+        return False
 
     def close(self) -> None:
         """End sessions and streams, close channels."""

@@ -209,6 +209,13 @@ class LocalTransport:
             except CastError:
                 pass  # the session ended: nothing to report to
 
+    def await_run(self, stopping: threading.Event) -> bool:
+        """Wait on the system's start barrier itself (in process: no AwaitRun call to make)."""
+        while not stopping.is_set() and not self._closing.is_set():
+            if self._system.barrier.wait(0.1):
+                return True
+        return False
+
     def close(self) -> None:
         """End the session; stop watching."""
         self._closing.set()

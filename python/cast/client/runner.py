@@ -44,6 +44,7 @@ class LaunchContract:
     args: dict[str, Any]
     tls: ClientTls | None = None  # CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
     token_file: str = ""  # CAST_TOKEN_FILE: re-read when the orchestrator renews the token
+    start_barrier: bool = False  # CAST_START_BARRIER=1: run() waits until every component has started
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> LaunchContract:
@@ -70,6 +71,7 @@ class LaunchContract:
             args,
             ClientTls.from_env(env),
             env.get("CAST_TOKEN_FILE", ""),
+            env.get("CAST_START_BARRIER", "") == "1",
         )
 
     def identity(self) -> Identity:
@@ -107,9 +109,11 @@ def load_component_class(spec: str) -> type[Component]:
 class _Lifecycle:
     """Drives one component through configure, start, run and stop."""
 
-    def __init__(self, component: Component, transport: Transport, args: dict[str, Any]) -> None:
+    def __init__(self, component: Component, transport: Transport, args: dict[str, Any], barrier: bool) -> None:
         self.component = component
+        self.transport = transport
         self.args = args
+        self.barrier = barrier
         self.failed = False
         self._stopped = threading.Lock()
         self._stop_called = False
@@ -135,6 +139,12 @@ class _Lifecycle:
         try:
             c.configure(self.args)
             c.start()
+            if self.barrier:
+                # Watches made in start() are registered by now: say so, and run() only once every
+                # component has, so none misses what another writes first (cast.core.barrier).
+                c._set_state(ComponentState.STARTED)
+                if not self.transport.await_run(c._stopping):
+                    return  # asked to stop before the system got going: stop() follows, run() never ran
             c._set_state(ComponentState.RUNNING)
             c.run()
         except Exception:
@@ -146,14 +156,20 @@ class _Lifecycle:
         self.component._cast_close()
 
 
-def run_component(component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True) -> int:
+def run_component(
+    component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True,
+    barrier: bool = False,
+) -> int:
     """Run a component to the end; return the process exit code (0 ok, 1 failed).
+
+    With ``barrier`` (a component `cast run` launched), run() waits after start()
+    until every component of the system has started (cast.core.barrier).
 
     run() executes on a worker thread so that a signal can call stop() while
     run() is busy; after run() returns the component keeps serving callbacks
     until it is asked to stop.
     """
-    life = _Lifecycle(component, transport, args)
+    life = _Lifecycle(component, transport, args, barrier)
     signalled: list[int] = []
     if handle_signals:
         # The handler runs on the main thread, possibly while that thread holds the
@@ -194,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         component = cls()
         transport = contract.connect()
         # Binding registers the session; a token for another component is refused here, naming both.
-        return run_component(component, transport, contract.args)
+        return run_component(component, transport, contract.args, barrier=contract.start_barrier)
     except CastError as exc:
         print(f"cast.run: {exc.message}", file=sys.stderr)
         return 2

@@ -8,6 +8,7 @@ the core's record types, so the component code above them is one.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
@@ -111,6 +112,9 @@ class Transport(Protocol):
 
     def report_state(self) -> None:
         """Tell the server the component's state now, not at the next heartbeat."""
+
+    def await_run(self, stopping: threading.Event) -> bool:
+        """Block until the system's start barrier is released (True), or ``stopping`` is set (False)."""
 
     def system_name(self) -> str:
         """The system's name."""

@@ -29,6 +29,7 @@ class ComponentState(enum.IntEnum):
     RUNNING = 3
     STOPPING = 4
     DISCONNECTED = 5
+    STARTED = 6  # start() returned, watches registered; run() waits for the start barrier
 
 
 @dataclass

@@ -15,6 +15,7 @@ from typing import TypeVar
 
 from google.protobuf.descriptor import FileDescriptor
 
+from cast.core.barrier import StartBarrier
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
 from cast.core.policies import TaskPolicy
@@ -65,6 +66,7 @@ class System:
         )
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
+        self.barrier = StartBarrier()  # released unless `cast run` holds it (cast.core.barrier)
         # Locks and tasks need a live session: its end is what releases them.
         self.host.session_live = self.tasks.session_live = self.sessions.has_live
         self.started_ns = time.time_ns()

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, SystemConfig
+from cast.core.sessions import ComponentState
 from cast.orchestrator.output import Output
 from cast.orchestrator.security import LaunchSecurity
 from cast.orchestrator.servers import ServerGroup
@@ -76,7 +77,7 @@ class Orchestrator:
         self._security: LaunchSecurity | None = None
         self._servers: ServerGroup | None = None
         self.supervisor: Supervisor | None = None
-        self.connected = threading.Event()  # set once every component has connected
+        self.connected = threading.Event()  # set once every component has started (the barrier released)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread = 0
 
@@ -108,6 +109,7 @@ class Orchestrator:
             "CAST_COMPONENT_ID": comp.id,
             "CAST_SUBARCHITECTURE": comp.subarchitecture,
             "CAST_ARGS": json.dumps(comp.args),
+            "CAST_START_BARRIER": "1",  # run() after every component's start() (cast.core.barrier)
             # CAST_TOKEN, and with a token ttl CAST_TOKEN_FILE (renewed), with TLS CAST_TLS_*.
             **self._security.contract(comp),
         }
@@ -141,11 +143,13 @@ class Orchestrator:
                 supervisor.start_all()
                 renew_task = asyncio.ensure_future(self._security.renew_forever())
                 status_task = asyncio.ensure_future(self._show_status(tracker))
-                missing = await self._wait_connected(servers, supervisor)
+                missing = await self._wait_started(servers, supervisor)
+                # Released even when some did not start in time (the run has failed then): the
+                # others are not held back for good.
+                servers.release_run()
                 if missing:
-                    failures.extend(f"{cid} did not connect within {self.config.orchestrator.connect_timeout:.0f} s"
-                                    for cid in missing)
-                    self.output.notice(f"not connected: {', '.join(missing)}")
+                    failures.extend(missing)
+                    self.output.notice(f"not started: {', '.join(missing)}")
                 else:
                     self.connected.set()
                     connect_seconds = time.monotonic() - started
@@ -220,7 +224,7 @@ class Orchestrator:
         finished = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.EXITED]
         failed = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.FAILED]
         if not finished and not failed:
-            self.output.notice(f"all {count} components connected in {seconds:.2f} s")
+            self.output.notice(f"all {count} components started in {seconds:.2f} s; run() released")
             return
         # A component that did its work and exited 0 is not a failure to connect: say which is which.
         parts = [f"{count - len(finished) - len(failed)} of {count} components running after {seconds:.2f} s"]
@@ -230,19 +234,32 @@ class Orchestrator:
             parts.append(f"failed: {', '.join(failed)}")
         self.output.notice("; ".join(parts))
 
-    async def _wait_connected(self, servers: ServerGroup, supervisor: Supervisor) -> list[str]:
+    async def _wait_started(self, servers: ServerGroup, supervisor: Supervisor) -> list[str]:
+        """Wait until every launched component has finished start(); what is wrong with those that did not.
+
+        Started means STARTED (waiting at the barrier), or past it: a component of another library
+        that does not wait reports RUNNING at once. One that exited or failed is not waited for.
+        """
         expected = [c.id for c in self.config.components if not c.manual]
-        deadline = time.monotonic() + self.config.orchestrator.connect_timeout
+        past_start = (ComponentState.STARTED, ComponentState.RUNNING, ComponentState.STOPPING)
+        timeout = self.config.orchestrator.connect_timeout
+        deadline = time.monotonic() + timeout
         while True:
-            infos = {i.id: i for i in servers.directory.system.sessions.components()}
-            missing = [
+            # A component registers with each server it uses; an in-process one only with its own.
+            seen = [i for server in servers.servers for i in server.system.sessions.components() if i.session_id]
+            connected = {i.id for i in seen}
+            started = {i.id for i in seen if i.state in past_start}
+            waiting = [
                 cid for cid in expected
-                if not infos[cid].session_id
+                if cid not in started
                 and not (cid in supervisor.components and supervisor.components[cid].phase in (Phase.FAILED,
                                                                                                  Phase.EXITED))
             ]
-            if not missing or self._stop.is_set() or time.monotonic() > deadline:
-                return [] if self._stop.is_set() else missing
+            if not waiting or self._stop.is_set():
+                return []
+            if time.monotonic() > deadline:
+                return [f"{cid} did not finish start() within {timeout:.0f} s" if cid in connected
+                        else f"{cid} did not connect within {timeout:.0f} s" for cid in waiting]
             await asyncio.sleep(0.05)
 
     async def _show_status(self, tracker: StatusTracker) -> None:

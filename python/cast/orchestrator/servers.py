@@ -58,6 +58,7 @@ class ServerGroup:
         try:
             for server_config in self.config.servers:
                 system = build_system(self.config, server_config)
+                system.barrier.hold()  # run() waits until every component has started (release_run)
                 running = await start_server(
                     system, self.signer, server_config.listen, settings_from_config(self.config)
                 )
@@ -70,6 +71,11 @@ class ServerGroup:
                 if other is not server:
                     for sa in other.config.subarchitectures:
                         server.running.routes.remote[sa] = other.endpoint
+
+    def release_run(self) -> None:
+        """Release the start barrier of every server: each component's run() may begin."""
+        for server in self.servers:
+            server.system.barrier.release()
 
     @property
     def directory(self) -> HostedServer:

@@ -34,7 +34,7 @@ class ComponentRow:
     kind: str
     launch: str  # process, in-process, manual, joined
     phase: str  # orchestrator's view: running, restarting, failed, ...
-    session: str  # server's view: expected, starting, running, stopping, disconnected
+    session: str  # server's view: expected, starting, started, running, stopping, disconnected
     pid: int
     restarts: int
     sessions: int
@@ -140,7 +140,7 @@ class StatusTracker:
 
 _PHASE_STYLE = {"running": "green", "restarting": "yellow", "failed": "bold red", "exited": "dim",
                 "stopping": "yellow", "stopped": "dim", "pending": "dim"}
-_SESSION_STYLE = {"running": "green", "starting": "yellow", "expected": "dim", "stopping": "yellow",
+_SESSION_STYLE = {"running": "green", "starting": "yellow", "started": "cyan", "expected": "dim", "stopping": "yellow",
                   "disconnected": "red"}
 
 

@@ -99,6 +99,13 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
                 sessions.end(session_id)
 
     @rpc
+    async def AwaitRun(self, request: dir_pb2.AwaitRunRequest, context: Context) -> dir_pb2.AwaitRunResponse:
+        """Return once the start barrier is released (at once if there is none)."""
+        self._auth.identify(context)
+        await self._system.barrier.wait_async()
+        return dir_pb2.AwaitRunResponse()
+
+    @rpc
     async def RegisterSchemas(
         self, request: dir_pb2.RegisterSchemasRequest, context: Context
     ) -> dir_pb2.RegisterSchemasResponse:

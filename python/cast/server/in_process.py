@@ -37,7 +37,10 @@ class InProcessComponents:
         transport = LocalTransport(self._system, Identity(config.id, config.subarchitecture, config.privileged))
 
         def body() -> None:
-            self.exit_codes[config.id] = run_component(component, transport, dict(config.args), handle_signals=False)
+            # In the start barrier like every component: the server's own barrier says whether to wait.
+            self.exit_codes[config.id] = run_component(
+                component, transport, dict(config.args), handle_signals=False, barrier=True
+            )
 
         thread = threading.Thread(target=body, name=f"cast-inproc-{config.id}", daemon=True)
         thread.start()
