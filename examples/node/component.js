@@ -122,6 +122,22 @@ class Token {
   }
 }
 
+// Directory.AwaitRun until it answers OK: each call has a 1 s deadline, DEADLINE_EXCEEDED means
+// "not yet", UNAVAILABLE "ask again shortly" (docs/client-protocol.md, Start-up, step 5).
+async function awaitRun(directory, token) {
+  for (;;) {
+    try {
+      return await new Promise((resolve, reject) => {
+        directory.AwaitRun({}, token.metadata(), { deadline: Date.now() + 1000 },
+          (err, response) => (err ? reject(err) : resolve(response)));
+      });
+    } catch (err) {
+      if (err.code === grpc.status.UNAVAILABLE) await new Promise((resolve) => setTimeout(resolve, 200));
+      else if (err.code !== grpc.status.DEADLINE_EXCEEDED) throw Object.assign(err, { call: 'AwaitRun' });
+    }
+  }
+}
+
 // A unary call with the token and a deadline. UNAUTHENTICATED: re-read the token file and, if the
 // token changed, send the call once more (the token is checked before anything is applied).
 function unary(client, method, request, token) {
@@ -302,6 +318,14 @@ async function main() {
   const created = await inbox.take('watch 1');
   if (!created.ok) quit(`the watch was refused: ${created.code}: ${created.message}`, 1);
   say('watching', `${STRING_VALUE} entries of ${me.sa} (watch 1)`);
+  if (process.env.CAST_START_BARRIER === '1') {
+    // Started by `cast run`: say so, and begin work only once every component of the system has
+    // started, so that their watches see this component's first writes (the start barrier).
+    state = 'COMPONENT_STATE_STARTED';
+    beat();
+    await awaitRun(directory, token);
+    say('released', 'every component of the system has started');
+  }
   state = 'COMPONENT_STATE_RUNNING';
   beat();
 

@@ -256,6 +256,8 @@ def test_the_example_system_runs_node_next_to_python(tmp_path: Path) -> None:
     assert "reactor | python read greeter-" in out
     assert "greeter | saw: ADD reply-greeter-" in out and "by reactor" in out
     assert "every component ran and stopped cleanly" in out
+    # Under `cast run` the Node component waits at the start barrier too, between its watch and its first write.
+    assert out.index("greeter | watching:") < out.index("greeter | released:") < out.index("greeter | added:"), out
     summary = json.loads((tmp_path / "summary.json").read_text())
     greeter = next(c for c in summary["components"] if c["id"] == "greeter")
     assert (greeter["language"], greeter["sessions"]) == ("node", 1)

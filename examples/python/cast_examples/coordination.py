@@ -18,7 +18,11 @@ __all__ = ["Coordinator"]
 
 
 class Coordinator(cast.UnmanagedComponent):
-    """Asks scripted questions. Args: ``questions``, ``language_sa``, ``start_after_s``, ``every_s``, ``urgent``."""
+    """Asks scripted questions. Args: ``questions``, ``language_sa``, ``start_after_s``, ``every_s``, ``urgent``.
+
+    ``start_after_s`` only paces the demo (the scene fills before the first question): that the
+    answerer's watch is in place before the first question comes from the start barrier.
+    """
 
     def configure(self, args: dict[str, Any]) -> None:
         """Read the script."""
