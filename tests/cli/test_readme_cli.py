@@ -54,7 +54,7 @@ def test_running_commands(tmp_path: Path) -> None:
     assert run == "cast run configs/demo.yaml --for 20"
     out = shell(run.replace("--for 20", "--for 2"), env, timeout=180)
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "all 5 components connected" in out.stdout and "summary of scene-description" in out.stdout
+    assert "all 5 components started in" in out.stdout and "summary of scene-description" in out.stdout
 
 
 def test_joining_commands(demo: CastRun) -> None:

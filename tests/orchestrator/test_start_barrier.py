@@ -7,6 +7,9 @@ restarted after a crash, runs at once. The same across C++ and Java: tests/inter
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import subprocess
 import sys
 from collections.abc import Callable
@@ -16,7 +19,7 @@ from typing import Any
 import pytest
 from google.protobuf.wrappers_pb2 import Int64Value
 
-from tests.orchestrator.conftest import Embedded, start_cast_run, wait_for, write_config
+from tests.orchestrator.conftest import COMPONENTS, Embedded, start_cast_run, wait_for, write_config
 
 WRITES = 20
 RUNS = 5  # it failed within a few runs without the barrier
@@ -77,7 +80,7 @@ def _gate_system(tmp_path: Path, extra: dict[str, Any] | None = None) -> tuple[P
     return cfg, gate
 
 
-def test_a_slow_start_holds_every_run_back_and_a_joiner_runs_at_once(tmp_path: Path) -> None:
+def test_a_slow_start_holds_every_run_back_and_a_joiner_or_a_restart_runs_at_once(tmp_path: Path) -> None:
     cfg, gate = _gate_system(tmp_path, {"helper": {"class": "barrier_components:FirstWrite", "manual": True}})
     run = start_cast_run(tmp_path, cfg, until="cast: system 'gate'")
     try:
@@ -102,6 +105,11 @@ def test_a_slow_start_holds_every_run_back_and_a_joiner_runs_at_once(tmp_path: P
             entries = {e["id"]: e for e in run.cli_json("ls", "work")}
             assert entries["gate-opened"]["revision"] < entries["ran-first"]["revision"]
             assert states()["first"] == "running"
+            # A component restarted after a crash runs at once: the barrier stays open.
+            first = next(c for c in run.cli_json("components") if c["id"] == "first")
+            os.kill(first["pid"], signal.SIGKILL)
+            wait_for(lambda: any(e["id"].startswith("ran-first-") for e in run.cli_json("ls", "work")),
+                     what="the restarted component's run()")
         finally:
             joiner.terminate()
             joiner.wait(30)
@@ -111,11 +119,6 @@ def test_a_slow_start_holds_every_run_back_and_a_joiner_runs_at_once(tmp_path: P
 
 
 def _start_by_hand(cwd: Path, env_json: str, spec: str) -> subprocess.Popen[str]:
-    import json
-    import os
-
-    from tests.orchestrator.conftest import COMPONENTS
-
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("CAST_")}, **json.loads(env_json)}
     env["PYTHONPATH"] = str(COMPONENTS)
     return subprocess.Popen([sys.executable, "-m", "cast.run", spec], env=env, cwd=cwd,

@@ -240,13 +240,15 @@ def test_a_component_that_cannot_start_is_not_restarted(tmp_path: Path, embedded
 def test_a_component_that_finishes_before_the_connect_check_is_reported_as_finished_not_missing(
     tmp_path: Path,
 ) -> None:
-    # `fine` connects only after a pause, so the check happens once `quick` has surely exited.
+    # `fine` connects only after a pause, so the check happens once `quick` has surely exited. Both
+    # end before the start barrier: `quick` never connects (a program that exits 0 at once), `broken`
+    # fails in start(); a run() is held until every component started, so it cannot end earlier.
     late = f"import time, runpy, sys; time.sleep(3); sys.argv = ['cast.run', 'orch_components:Producer']; " \
            f"sys.path.insert(0, {str(COMPONENTS)!r}); runpy.run_module('cast.run', run_name='__main__')"
     cfg = write_config(tmp_path / "quick.yaml", {
         "subarchitectures": {"work": {"components": {
-            "quick": {"class": "orch_components:Quick", "restart": "never"},
-            "broken": {"class": "orch_components:Failing", "restart": "never"},
+            "quick": {"language": "other", "run": [sys.executable, "-c", "pass"], "restart": "never"},
+            "broken": {"class": "orch_components:FailingStart", "restart": "never"},
             "fine": {"language": "other", "run": [sys.executable, "-c", late]},
         }}},
         "orchestrator": {"connect_timeout": 30},

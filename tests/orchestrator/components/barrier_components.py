@@ -7,6 +7,7 @@ write the same entries, so one system mixes all three languages.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -69,8 +70,9 @@ class BarrierGate(cast.UnmanagedComponent):
 
 
 class FirstWrite(cast.UnmanagedComponent):
-    """Adds ``ran-<id>`` to its own SA as the first thing in run()."""
+    """Adds ``ran-<id>`` (``ran-<id>-<pid>`` once that exists: a restart) to its own SA first thing in run()."""
 
     def run(self) -> None:
-        self.add(f"ran-{self.component_id}", Int64Value(value=1))
+        entry_id = f"ran-{self.component_id}"
+        self.add(f"{entry_id}-{os.getpid()}" if self.exists(entry_id) else entry_id, Int64Value(value=1))
         self.wait_for_stop()

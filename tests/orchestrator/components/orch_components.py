@@ -168,6 +168,13 @@ class Failing(cast.UnmanagedComponent):
         raise RuntimeError("broken on purpose")
 
 
+class FailingStart(cast.UnmanagedComponent):
+    """start() raises: the runner exits 1 before the start barrier."""
+
+    def start(self) -> None:
+        raise RuntimeError("broken on purpose")
+
+
 class Recorder(cast.UnmanagedComponent):
     """Prints when its stop() is called (the order of shutdown shows in the output)."""
 
