@@ -4,6 +4,8 @@ package cast.client;
 enum ComponentState {
   /** Registered; configure and start are running. */
   STARTING,
+  /** start() returned, its watches are registered: run() waits for the start barrier (under {@code cast run}). */
+  STARTED,
   /** run() is running (a Connection: from the start, nothing else will run). */
   RUNNING,
   /** stop() was called. */

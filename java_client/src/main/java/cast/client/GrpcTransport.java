@@ -270,11 +270,7 @@ final class GrpcTransport implements Transport {
 
   @Override
   public List<String> subarchitectures() {
-    List<String> names = new ArrayList<>();
-    for (SubarchitectureInfo sa : system.getSubarchitecturesList()) {
-      names.add(sa.getName());
-    }
-    return names;
+    return system.getSubarchitecturesList().stream().map(SubarchitectureInfo::getName).toList();
   }
 
   /** The server of an SA; an unknown SA goes to the directory's server, which answers NOT_FOUND naming the known SAs. */
@@ -459,6 +455,11 @@ final class GrpcTransport implements Transport {
         session.report();
       }
     }
+  }
+
+  @Override
+  public boolean awaitRun(StopWait stopping) {
+    return Session.awaitRun(this, directory, stopping); // the start barrier is the directory's
   }
 
   /** End the sessions and streams, close the channels (idempotent). */

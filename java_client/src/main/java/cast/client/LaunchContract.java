@@ -7,7 +7,7 @@ import java.util.Map;
 /**
  * The environment a component process is started with (docs/design.md section 6):
  * CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
- * CAST_ARGS (a JSON object).
+ * CAST_ARGS (a JSON object); CAST_START_BARRIER=1 when {@code cast run} launched it.
  *
  * @param endpoint the directory's address, host:port
  * @param componentId this component's id; the server's answer to Register must agree
@@ -17,6 +17,8 @@ import java.util.Map;
  * @param args the component's arguments
  * @param tls TLS settings (CAST_TLS_*), or null for plaintext
  * @param tokenFile CAST_TOKEN_FILE, the file the orchestrator renews the token in, or null
+ * @param startBarrier CAST_START_BARRIER=1: run() waits until every component of the system
+ *     has finished start() (docs/client-protocol.md, "Start-up")
  */
 public record LaunchContract(
     String endpoint,
@@ -25,11 +27,19 @@ public record LaunchContract(
     String token,
     Args args,
     ClientTls tls,
-    String tokenFile) {
+    String tokenFile,
+    boolean startBarrier) {
+
+  /** A contract without the start barrier (a component not launched by {@code cast run}). */
+  public LaunchContract(
+      String endpoint, String componentId, String subarchitecture, String token, Args args, ClientTls tls,
+      String tokenFile) {
+    this(endpoint, componentId, subarchitecture, token, args, tls, tokenFile, false);
+  }
 
   /** A plaintext contract with a fixed token. */
   public LaunchContract(String endpoint, String componentId, String subarchitecture, String token, Args args) {
-    this(endpoint, componentId, subarchitecture, token, args, null, null);
+    this(endpoint, componentId, subarchitecture, token, args, null, null, false);
   }
 
   /** The variables that must be set. */
@@ -65,7 +75,8 @@ public record LaunchContract(
         env.get("CAST_TOKEN"),
         args,
         ClientTls.fromEnv(env),
-        tokenFile == null || tokenFile.isEmpty() ? null : tokenFile);
+        tokenFile == null || tokenFile.isEmpty() ? null : tokenFile,
+        "1".equals(env.get("CAST_START_BARRIER")));
   }
 
   /** Read the contract from the process environment. */
@@ -83,6 +94,7 @@ public record LaunchContract(
         + " via "
         + endpoint
         + (tls == null ? "" : " (TLS)")
+        + (startBarrier ? " (start barrier)" : "")
         + ", args="
         + args
         + ")";

@@ -19,7 +19,9 @@ import java.util.logging.Logger;
  * <pre>java -cp cast-client-all.jar:&lt;component classes&gt; cast.client.Runner com.example.MyComponent</pre>
  *
  * <p>Reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
- * CAST_ARGS; connects; calls configure(args), start(), run(); calls stop() once on
+ * CAST_ARGS; connects; calls configure(args), start(), run() (with CAST_START_BARRIER=1,
+ * as {@code cast run} launches it, run() waits until every component of the system has
+ * finished start(): a watch made in start() misses nothing written in run()); calls stop() once on
  * SIGTERM/SIGINT, on {@code requestStop()}, or when a hook failed. Exit status: 0
  * after a clean stop, 1 when a hook failed, 2 for a bad command line or launch
  * environment (or a system that cannot be reached or refuses the token).
@@ -73,7 +75,7 @@ public final class Runner {
       System.err.println("cast.client.Runner: bad CAST_ENDPOINT '" + contract.endpoint() + "': " + e.getMessage());
       return 2;
     }
-    return runComponent(component, contract.args(), handleSignals);
+    return runComponent(component, contract.args(), handleSignals, contract.startBarrier());
   }
 
   /** The component class named {@code className}; InvalidArgumentError saying what is wrong. */
@@ -162,12 +164,14 @@ public final class Runner {
   private static final class Lifecycle {
     private final Component component;
     private final Args args;
+    private final boolean startBarrier;
     private final AtomicBoolean stopCalled = new AtomicBoolean();
     volatile boolean failed;
 
-    Lifecycle(Component component, Args args) {
+    Lifecycle(Component component, Args args, boolean startBarrier) {
       this.component = component;
       this.args = args;
+      this.startBarrier = startBarrier;
     }
 
     /** Call stop() exactly once. */
@@ -190,6 +194,14 @@ public final class Runner {
       try {
         component.configure(args);
         component.start();
+        if (startBarrier) {
+          // Watches made in start() are registered by now: say so, and run() only once every
+          // component has, so none misses what another writes first thing in run().
+          component.setState(ComponentState.STARTED);
+          if (!component.transport().awaitRun(component::waitForStop)) {
+            return; // asked to stop before the system got going: stop() follows, run() never ran
+          }
+        }
         component.setState(ComponentState.RUNNING);
         component.run();
       } catch (Throwable e) {
@@ -207,7 +219,15 @@ public final class Runner {
    * callbacks until it is asked to stop.
    */
   public static int runComponent(Component component, Args args, boolean handleSignals) {
-    Lifecycle life = new Lifecycle(component, args);
+    return runComponent(component, args, handleSignals, false);
+  }
+
+  /**
+   * The same; with {@code startBarrier} (a component `cast run` launched, CAST_START_BARRIER=1)
+   * run() waits after start() until every component of the system has started.
+   */
+  public static int runComponent(Component component, Args args, boolean handleSignals, boolean startBarrier) {
+    Lifecycle life = new Lifecycle(component, args, startBarrier);
     CountDownLatch finished = new CountDownLatch(1);
     Thread hook = null;
     if (handleSignals) {

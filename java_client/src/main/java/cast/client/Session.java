@@ -1,5 +1,6 @@
 package cast.client;
 
+import cast.v1.AwaitRunRequest;
 import cast.v1.HeartbeatRequest;
 import cast.v1.HeartbeatResponse;
 import cast.v1.RegisterRequest;
@@ -7,6 +8,7 @@ import cast.v1.RegisterResponse;
 import io.grpc.stub.StreamObserver;
 import java.lang.management.ManagementFactory;
 import java.net.InetAddress;
+import java.time.Duration;
 import java.util.concurrent.RejectedExecutionException;
 import java.util.concurrent.ScheduledFuture;
 import java.util.concurrent.TimeUnit;
@@ -21,8 +23,9 @@ import java.util.logging.Logger;
  * session, and with it the component's locks and tasks, ends when that stream ends;
  * a lost session is registered again with backoff (a new session: the old one's
  * locks and tasks are gone). The answer to Register says who the component is, as
- * the server verified it from the token. The twin of python/cast/client/session.py
- * and cpp_client/src/session.cc.
+ * the server verified it from the token. {@link #awaitRun} waits at the start barrier
+ * (start-up, after start()). The twin of python/cast/client/session.py and
+ * cpp_client/src/session.cc.
  */
 final class Session {
   private static final Logger LOG = Logger.getLogger("cast.client");
@@ -179,6 +182,43 @@ final class Session {
     } catch (RejectedExecutionException e) {
       // closing
     }
+  }
+
+  /** How long one AwaitRun call waits before it is made again (a stop request is seen within it). */
+  static final Duration AWAIT_RUN_POLL = Duration.ofSeconds(1);
+
+  /**
+   * Long-poll {@code Directory.AwaitRun} on {@code directory} until the start barrier is
+   * released (true), or until {@code stopping} says the component was asked to stop or the
+   * transport closes (false). DEADLINE_EXCEEDED: asked again; UNAVAILABLE: asked again after a
+   * backoff (a server `cast run` restarted has no barrier and answers at once); any other
+   * error is thrown: the start fails as a failing hook does.
+   */
+  static boolean awaitRun(GrpcTransport transport, GrpcTransport.Server directory, Transport.StopWait stopping) {
+    Backoff backoff = new Backoff();
+    AwaitRunRequest req = AwaitRunRequest.getDefaultInstance();
+    try {
+      while (!transport.isClosing() && !stopping.waitForStop(Duration.ZERO)) {
+        try {
+          transport.call(directory, directory.dir, AWAIT_RUN_POLL, s -> s.awaitRun(req));
+          return true;
+        } catch (CastError e) {
+          if (e.code().equals("DEADLINE_EXCEEDED")) {
+            continue; // still held
+          }
+          if (!e.code().equals("UNAVAILABLE")) {
+            throw e;
+          }
+          LOG.fine("the directory at " + directory.endpoint + " is away (" + e.getMessage() + "); asking again");
+        }
+        if (stopping.waitForStop(Duration.ofMillis(backoff.nextMillis()))) {
+          return false;
+        }
+      }
+    } catch (InterruptedException e) {
+      Thread.currentThread().interrupt();
+    }
+    return false;
   }
 
   /** End the session: the server releases its locks and tasks. */

@@ -100,6 +100,18 @@ interface Transport extends AutoCloseable {
   /** Report the state now rather than at the next heartbeat. */
   void stateChanged();
 
+  /** Sleeps up to {@code timeout} or until the component is asked to stop; true if it was. */
+  interface StopWait {
+    boolean waitForStop(Duration timeout) throws InterruptedException;
+  }
+
+  /**
+   * Wait at the start barrier (a component `cast run` launched, state STARTED): returns true
+   * once every component of the system has started and run() may begin, false when
+   * {@code stopping} says the component was asked to stop first (or the transport closes).
+   */
+  boolean awaitRun(StopWait stopping);
+
   /** The names of the system's SAs, as the directory described them. */
   List<String> subarchitectures();
 

@@ -11,8 +11,10 @@ import java.util.List;
 import java.util.Map;
 import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.CopyOnWriteArrayList;
+import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.ExecutorService;
 import java.util.concurrent.Executors;
+import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicInteger;
 import java.util.function.BiConsumer;
 import java.util.function.Consumer;
@@ -59,6 +61,11 @@ final class FakeTransport implements Transport {
   final Map<Integer, List<ChangeFilter>> watches = new ConcurrentHashMap<>();
   volatile Supplier<ComponentState> state;
   volatile boolean closed;
+  // The start barrier: released (as a server not started by `cast run`) until a test holds it.
+  private volatile CountDownLatch barrier = new CountDownLatch(0);
+  final List<ComponentState> awaits = new CopyOnWriteArrayList<>(); // the state at each awaitRun
+  final CountDownLatch awaiting = new CountDownLatch(1); // counted down when awaitRun is first called
+  private volatile CastError barrierError; // what awaitRun throws, as a server refusing AwaitRun
   private volatile EventSink sink;
   private volatile BiConsumer<CastError, Integer> onError;
   private volatile Consumer<Task> decisions;
@@ -102,6 +109,41 @@ final class FakeTransport implements Transport {
   @Override
   public void stateChanged() {
     reported.add(state.get());
+  }
+
+  /** Hold the start barrier: awaitRun waits until {@link #releaseBarrier} (or a stop request). */
+  FakeTransport holdBarrier() {
+    barrier = new CountDownLatch(1);
+    return this;
+  }
+
+  /** Make awaitRun fail with {@code error} (an error other than DEADLINE_EXCEEDED or UNAVAILABLE). */
+  void failBarrier(CastError error) {
+    barrierError = error;
+  }
+
+  /** Release the start barrier: every awaitRun returns true, now and from now on. */
+  void releaseBarrier() {
+    barrier.countDown();
+  }
+
+  @Override
+  public boolean awaitRun(StopWait stopping) {
+    awaits.add(state.get());
+    awaiting.countDown();
+    if (barrierError != null) {
+      throw barrierError;
+    }
+    try {
+      while (!stopping.waitForStop(Duration.ZERO)) {
+        if (barrier.await(10, TimeUnit.MILLISECONDS)) {
+          return true;
+        }
+      }
+    } catch (InterruptedException e) {
+      Thread.currentThread().interrupt();
+    }
+    return false;
   }
 
   @Override

@@ -2,15 +2,26 @@ package cast.client;
 
 import static org.junit.jupiter.api.Assertions.*;
 
+import java.util.ArrayList;
 import java.util.HashMap;
 import java.util.List;
 import java.util.Map;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicInteger;
 import org.junit.jupiter.api.Test;
 
 class RunnerTest {
   public static final class Good extends UnmanagedComponent {}
 
   public abstract static class Abstract extends UnmanagedComponent {}
+
+  /** Stops as soon as run() begins. */
+  public static final class Quick extends UnmanagedComponent {
+    @Override
+    public void run() {
+      requestStop();
+    }
+  }
 
   public static final class NoDefaultConstructor extends UnmanagedComponent {
     public NoDefaultConstructor(int x) {}
@@ -103,5 +114,86 @@ class RunnerTest {
     assertEquals("configure(0) start run stop", bad.calls.toString());
     // Both sessions ended when the runner closed the components.
     assertTrue(okSession.closed && badSession.closed);
+  }
+
+  /** Run {@code c} (start barrier on) on a thread; its exit status lands in {@code status}. */
+  private static Thread runWithBarrier(Component c, AtomicInteger status) {
+    Thread t = new Thread(() -> status.set(Runner.runComponent(c, Args.empty(), false, true)), "barrier-test");
+    t.start();
+    return t;
+  }
+
+  @Test
+  void withTheBarrierHeldRunWaitsForItsReleaseAndStartedIsReportedFirst() throws Exception {
+    FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+    Lifecycle c = FakeTransport.connect(new Lifecycle(false), memory, "c", "vision");
+    FakeTransport fake = FakeTransport.of(c).holdBarrier();
+    AtomicInteger status = new AtomicInteger(-1);
+    Thread t = runWithBarrier(c, status);
+    assertTrue(fake.awaiting.await(5, TimeUnit.SECONDS), "awaitRun was called");
+    Thread.sleep(300);
+    assertEquals("configure(0) start ", c.calls.toString(), "run() waits while the barrier is held");
+    // STARTED was reported (at once) before the wait, and was the state while waiting.
+    assertEquals(List.of(ComponentState.STARTED), fake.reported);
+    assertEquals(List.of(ComponentState.STARTED), fake.awaits);
+    fake.releaseBarrier();
+    t.join(10_000);
+    assertFalse(t.isAlive());
+    assertEquals(0, status.get());
+    assertEquals("configure(0) start run stop", c.calls.toString());
+    assertEquals(List.of(ComponentState.STARTED, ComponentState.RUNNING, ComponentState.STOPPING), fake.reported);
+  }
+
+  @Test
+  void aStopRequestDuringTheWaitSkipsRunAndCallsStopOnce() throws Exception {
+    FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+    Lifecycle c = FakeTransport.connect(new Lifecycle(false), memory, "c", "vision");
+    FakeTransport fake = FakeTransport.of(c).holdBarrier();
+    AtomicInteger status = new AtomicInteger(-1);
+    Thread t = runWithBarrier(c, status);
+    assertTrue(fake.awaiting.await(5, TimeUnit.SECONDS), "awaitRun was called");
+    c.requestStop(); // as SIGTERM does
+    t.join(10_000);
+    assertFalse(t.isAlive());
+    assertEquals(0, status.get(), "a clean stop");
+    assertEquals("configure(0) start stop", c.calls.toString(), "run() never ran; stop() once");
+    assertEquals(List.of(ComponentState.STARTED, ComponentState.STOPPING), fake.reported);
+    assertTrue(fake.closed);
+  }
+
+  @Test
+  void theLaunchEnvironmentSaysWhetherToWaitAtTheBarrier() {
+    for (boolean barrier : new boolean[] {false, true}) {
+      Map<String, String> env = ArgsAndContractTest.env("{}");
+      if (barrier) {
+        env.put("CAST_START_BARRIER", "1");
+      }
+      FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+      List<FakeTransport> made = new ArrayList<>();
+      int status =
+          Runner.run(new String[] {Quick.class.getName()}, env, false, contract -> {
+            FakeTransport f = new FakeTransport(memory, new Identity("c1", "vision", false));
+            made.add(f);
+            return f;
+          });
+      assertEquals(0, status);
+      FakeTransport fake = made.get(0);
+      if (barrier) {
+        assertEquals(List.of(ComponentState.STARTED), fake.awaits, "awaitRun called once, after STARTED");
+        assertEquals(List.of(ComponentState.STARTED, ComponentState.RUNNING, ComponentState.STOPPING), fake.reported);
+      } else {
+        assertEquals(List.of(), fake.awaits, "without CAST_START_BARRIER awaitRun is never called");
+        assertEquals(List.of(ComponentState.RUNNING, ComponentState.STOPPING), fake.reported);
+      }
+    }
+  }
+
+  @Test
+  void aFailingBarrierFailsTheStartLikeAFailingHook() {
+    FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+    Lifecycle c = FakeTransport.connect(new Lifecycle(false), memory, "c", "vision");
+    FakeTransport.of(c).failBarrier(new PermissionDeniedError("no"));
+    assertEquals(1, Runner.runComponent(c, Args.empty(), false, true));
+    assertEquals("configure(0) start stop", c.calls.toString());
   }
 }
