@@ -1,8 +1,8 @@
 // The gRPC transport (cast/grpc_transport.h): routing by SA and the unary
 // calls, docs/client-protocol.md call by call. The streams it keeps open live
-// beside it: watch_stream.cc (Watch), session.cc (Register and Heartbeat);
-// the decision stream is here, being one loop. Mirrors the Python client's
-// client/grpc_transport.py.
+// beside it: watch_stream.cc (Watch), session.cc (Register and Heartbeat, and
+// the start barrier's AwaitRun); the decision stream is here, being one loop.
+// Mirrors the Python client's client/grpc_transport.py.
 #include "cast/grpc_transport.h"
 
 #include <algorithm>
@@ -317,6 +317,8 @@ class GrpcTransport final : public Transport {
   std::optional<Identity> verifiedIdentity() const override { return session_.verifiedIdentity(); }
 
   void stateChanged() override { session_.stateChanged(); }
+
+  bool awaitRun(const StopWait& stopping) override { return session_.awaitRun(*directory_, stopping); }
 
   void close() override {
     {

@@ -81,6 +81,7 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   c.args = Args::fromJson(get("CAST_ARGS"));
   c.tokenFile = get("CAST_TOKEN_FILE");
   c.tls = ClientTls::fromEnv(env);
+  c.startBarrier = get("CAST_START_BARRIER") == "1";
   return c;
 }
 
@@ -94,9 +95,9 @@ std::shared_ptr<detail::Transport> LaunchContract::connect() const {
 }
 
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
-                 bool handleSignals) {
+                 bool handleSignals, bool startBarrier) {
   if (handleSignals) installSignalHandlers();
-  component.bind(std::move(transport));
+  component.bind(transport);
   const Logger& log = component.log();
   std::atomic<bool> failed{false};
   std::atomic<bool> stopCalled{false};
@@ -120,8 +121,20 @@ int runComponent(Component& component, std::shared_ptr<detail::Transport> transp
     try {
       component.configure(args);
       component.start();
-      component.setState(ComponentState::Running);
-      component.run();
+      // Watches made in start() are registered by now (onChange returns once
+      // the servers confirmed them): say so, and run() only once every
+      // component has, so none misses what another writes first thing in run().
+      bool go = true;
+      if (startBarrier) {
+        component.setState(ComponentState::Started);
+        go = transport->awaitRun([&](std::chrono::milliseconds d) { return component.waitForStop(d); });
+      }
+      // Not released: asked to stop before the system got going; stop()
+      // follows, run() never runs.
+      if (go) {
+        component.setState(ComponentState::Running);
+        component.run();
+      }
     } catch (...) {
       log.error("failed: " + describe(std::current_exception()));
       failed = true;
@@ -180,7 +193,7 @@ int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc
     return 1;
   }
   try {
-    return runComponent(*component, std::move(transport), contract.args);
+    return runComponent(*component, std::move(transport), contract.args, true, contract.startBarrier);
   } catch (const detail::IdentityMismatchError& e) {
     // bind() found that the token is another component's: the launch
     // environment is wrong, not the component (bind already closed the connection).

@@ -8,6 +8,11 @@
 
 namespace cast::detail {
 
+namespace {
+// The deadline of one AwaitRun call: how soon a stop request is noticed while waiting.
+constexpr Millis kAwaitRunPoll{1000};
+}  // namespace
+
 Session::Session(std::shared_ptr<TokenSource> tokens, Millis callTimeout, Logger log)
     : tokens_(std::move(tokens)), timeout_(callTimeout), log_(std::move(log)) {}
 
@@ -40,6 +45,24 @@ void Session::stateChanged() {
     ++stateVersion_;
   }
   wake_.notify_all();
+}
+
+bool Session::awaitRun(Server& directory, const StopWait& stopping) {
+  Backoff backoff;
+  const v1::AwaitRunRequest request;
+  while (!stopping(Millis(0)) && !closingEvent_.isSet()) {
+    try {
+      unaryCall<v1::AwaitRunResponse>(*tokens_, kAwaitRunPoll, [&](auto* ctx, auto* r) {
+        return directory.dir->AwaitRun(ctx, request, r);
+      });
+      return true;
+    } catch (const CastError& e) {
+      if (e.code() == "DEADLINE_EXCEEDED") continue;  // not released yet: ask again
+      if (e.code() != "UNAVAILABLE") throw;
+    }
+    if (stopping(backoff.next())) break;
+  }
+  return false;
 }
 
 void Session::close() {

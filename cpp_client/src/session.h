@@ -1,7 +1,8 @@
 // The component's sessions (docs/client-protocol.md, "Start-up" step 3 and
 // "Reconnecting"): Register with every server, a Heartbeat stream per server
-// that keeps the session alive and reports the component's state, and a new
-// registration when a session was lost. Private to the gRPC transport.
+// that keeps the session alive and reports the component's state, a new
+// registration when a session was lost, and the wait at the start barrier
+// (Directory.AwaitRun). Private to the gRPC transport.
 #pragma once
 
 #include <condition_variable>
@@ -40,6 +41,12 @@ class Session {
   std::optional<Identity> verifiedIdentity() const;
   // Reports the component's state now rather than at the next heartbeat.
   void stateChanged();
+  // Long-polls `directory`'s AwaitRun until the start barrier is released
+  // (true) or `stopping` says the component was asked to stop, or close()
+  // was called (false). Each call has a short deadline, so a stop request is
+  // seen within it; a server that is away is asked again with backoff; any
+  // other error is thrown.
+  bool awaitRun(Server& directory, const StopWait& stopping);
   // Ends every session and joins the heartbeat threads. Ending a heartbeat
   // stream ends its session: the server releases this component's locks and
   // tasks at once rather than at lease expiry.

@@ -7,7 +7,10 @@
 // makes an executable that reads CAST_ENDPOINT, CAST_COMPONENT_ID,
 // CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), and
 // optionally CAST_TOKEN_FILE and CAST_TLS_* (see cast/credentials.h), connects,
-// calls configure(args), start(), run(), and stop() once on SIGINT/SIGTERM,
+// calls configure(args), start(), run() (with CAST_START_BARRIER=1, as `cast
+// run` launches it, run() waits until every component of the system has
+// finished start(), so a watch made in start() misses nothing another
+// component writes in run()), and stop() once on SIGINT/SIGTERM,
 // on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
 // failed, 2 bad launch environment (missing variables, bad CAST_ARGS, a
 // system that refuses the token or cannot be reached at start, or a token the
@@ -38,6 +41,7 @@ struct LaunchContract {
   Args args;
   std::string tokenFile;          // CAST_TOKEN_FILE: re-read when the orchestrator renews the token
   std::optional<ClientTls> tls;   // CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
+  bool startBarrier = false;      // CAST_START_BARRIER=1: run() waits until every component has started
 
   // Reads the contract from the process environment; InvalidArgumentError
   // naming every missing variable, or saying what is wrong with CAST_ARGS.
@@ -57,9 +61,12 @@ struct LaunchContract {
 // Runs a bound-to-be component to the end and returns the exit code (0 ok,
 // 1 failed). run() executes on a worker thread so that a signal can call
 // stop() while run() is busy. With handleSignals, SIGINT and SIGTERM ask
-// the component to stop.
+// the component to stop. With startBarrier (a component `cast run`
+// launched), the component reports STARTED after start() and run() waits
+// for the system's start barrier (Transport::awaitRun); asked to stop while
+// waiting, it skips run() (stop() is still called once).
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
-                 bool handleSignals = true);
+                 bool handleSignals = true, bool startBarrier = false);
 
 // The whole main(): reads the launch environment, makes the component, runs it.
 int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc, char** argv);

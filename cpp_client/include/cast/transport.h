@@ -44,6 +44,8 @@ using EventSink = std::function<void(EventRecord event, const std::vector<std::u
 using ErrorSink = std::function<void(std::shared_ptr<CastError> error)>;
 using DecisionSink = std::function<void(TaskRecord task)>;
 using StateSource = std::function<ComponentState()>;
+// Sleeps up to the given time or until the component is asked to stop; true if it was.
+using StopWait = std::function<bool(std::chrono::milliseconds)>;
 
 class Transport {
  public:
@@ -99,6 +101,12 @@ class Transport {
   // The component's state changed: report it now rather than at the next
   // heartbeat, so tools see RUNNING / STOPPING when it happens.
   virtual void stateChanged() {}
+  // Waits at the start barrier (docs/client-protocol.md, "Start-up"): the
+  // runner of a component `cast run` launched calls it after start(), in
+  // state STARTED. True once every component of the system has started and
+  // run() may begin; false when `stopping` says the component was asked to
+  // stop first (or the transport closes). Throws what the server refuses.
+  virtual bool awaitRun(const StopWait& stopping) = 0;
   // Ends sessions and streams; no sink is called after close() returns.
   virtual void close() = 0;
 };

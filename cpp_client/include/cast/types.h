@@ -28,7 +28,9 @@ enum class LockMode {
 };
 
 // A component's life stage as its session reports it (cast.v1.ComponentState).
-enum class ComponentState { Starting = 2, Running = 3, Stopping = 4 };
+// Started: start() returned and its watches are registered; run() waits for
+// the system's start barrier (a component `cast run` launched).
+enum class ComponentState { Starting = 2, Running = 3, Stopping = 4, Started = 6 };
 
 // Where a task is in its life (cast.v1.TaskState).
 enum class TaskState { Unspecified = 0, Waiting = 1, Adopted = 2, Rejected = 3, Retracted = 4, Completed = 5 };

@@ -223,6 +223,43 @@ class FakeTransport : public detail::Transport {
     return state_();
   }
 
+  // Every state reported at once through stateChanged(), in order.
+  void stateChanged() override {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (state_) stateChanges.push_back(state_());
+  }
+
+  // The start barrier: released unless holdBarrier() was called; waits poll
+  // every 5 ms, as a long-poll would, and see a stop request in between.
+  bool awaitRun(const detail::StopWait& stopping) override {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      ++awaitRunCalls;
+      stateAtAwaitRun = state_ ? std::optional<ComponentState>(state_()) : std::nullopt;
+      if (awaitRunError) awaitRunError->raise();
+    }
+    while (!stopping(std::chrono::milliseconds(0))) {
+      {
+        std::lock_guard<std::mutex> lock(mu_);
+        if (!barrierHeld_) return true;
+      }
+      if (stopping(std::chrono::milliseconds(5))) break;
+    }
+    return false;
+  }
+  void holdBarrier() {
+    std::lock_guard<std::mutex> lock(mu_);
+    barrierHeld_ = true;
+  }
+  void releaseBarrier() {
+    std::lock_guard<std::mutex> lock(mu_);
+    barrierHeld_ = false;
+  }
+  int awaitRunCount() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return awaitRunCalls;
+  }
+
   void close() override {
     std::lock_guard<std::mutex> lock(mu_);
     closed = true;
@@ -245,6 +282,12 @@ class FakeTransport : public detail::Transport {
   bool closed = false;
   // The identity the fake server "verified from the token"; nullopt: it does not say.
   std::optional<Identity> verified;
+  // The start barrier as the runner met it (guarded by the transport's mutex:
+  // read them after the runner returned, or through awaitRunCount()).
+  std::vector<ComponentState> stateChanges;
+  int awaitRunCalls = 0;
+  std::optional<ComponentState> stateAtAwaitRun;  // the state reported when awaitRun was called
+  std::shared_ptr<CastError> awaitRunError;        // awaitRun throws it (a server that refuses)
 
  private:
   static bool matches(const ChangeFilter& f, Operation op, const detail::EntryRecord& r, const Identity& who) {
@@ -289,6 +332,7 @@ class FakeTransport : public detail::Transport {
   Identity identity_;
   mutable std::mutex mu_;
   bool sessionStarted_ = false;
+  bool barrierHeld_ = false;
   std::map<std::string, detail::EntryRecord> entries_;
   std::map<std::string, std::uint32_t> locks_;
   std::map<std::uint32_t, std::vector<ChangeFilter>> watches_;

@@ -58,6 +58,17 @@ TEST(LaunchContract, TokenFileAndTlsArePartOfIt) {
   EXPECT_THROW(cast::LaunchContract::fromEnv(env), cast::InvalidArgumentError);
 }
 
+// `cast run` sets CAST_START_BARRIER=1; started any other way, run() follows
+// start() at once (start_barrier_test.cc).
+TEST(LaunchContract, TheStartBarrierIsOnlyForWhatCastRunLaunched) {
+  auto env = fullEnv();
+  EXPECT_FALSE(cast::LaunchContract::fromEnv(env).startBarrier);
+  env["CAST_START_BARRIER"] = "1";
+  EXPECT_TRUE(cast::LaunchContract::fromEnv(env).startBarrier);
+  env["CAST_START_BARRIER"] = "0";
+  EXPECT_FALSE(cast::LaunchContract::fromEnv(env).startBarrier);
+}
+
 // The contract does not decode the token: its identity is the environment's,
 // and the privilege comes from the server at Register (session_test.cc).
 TEST(LaunchContract, TheIdentityIsTheEnvironmentsNotTheTokens) {
