@@ -47,6 +47,7 @@ ABOVE = {
     "client": ("cast.config", "cast.server", "cast.orchestrator", "cast.cli"),
     "server": ("cast.orchestrator", "cast.cli"),
     "orchestrator": ("cast.cli",),
+    "agent": ("cast.client", "cast.server", "cast.cli"),  # beside the orchestrator: launchers and processes only
 }
 
 

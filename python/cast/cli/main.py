@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import inspection, run, serve, token
+from cast.cli import agent, inspection, run, serve, token
 from cast.errors import CastError
 
 __all__ = ["build_parser", "main"]
@@ -20,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_command(sub)
     token.add_command(sub)
     inspection.add_commands(sub)
+    agent.add_command(sub)
     return parser
 
 
