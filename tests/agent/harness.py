@@ -164,6 +164,7 @@ class Attachment:
         self._call = agent_pb2_grpc.AgentStub(channel).Attach(self._requests(), metadata=metadata(token))
         threading.Thread(target=self._read, daemon=True).start()
         threading.Thread(target=self._keepalive, daemon=True).start()
+        self.wait(lambda: self.of("attached") or self.error, what="the attached event")
 
     def _requests(self) -> Iterator[agent_pb2.AttachRequest]:
         while True:
