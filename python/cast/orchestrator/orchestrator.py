@@ -153,7 +153,7 @@ class Orchestrator:
                 else:
                     self.connected.set()
                     connect_seconds = time.monotonic() - started
-                    self._report_connected(supervisor, connect_seconds)
+                    self._report_started(supervisor, connect_seconds)
                 if self.options.run_for is not None and not self._stop.is_set():
                     loop.call_later(self.options.run_for, self._stop.set)
                 await self._stop.wait()
@@ -219,7 +219,7 @@ class Orchestrator:
             + f"; runtime directory {self.runtime.path}"
         )
 
-    def _report_connected(self, supervisor: Supervisor, seconds: float) -> None:
+    def _report_started(self, supervisor: Supervisor, seconds: float) -> None:
         count = sum(1 for c in self.config.components if not c.manual)
         finished = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.EXITED]
         failed = [cid for cid, sup in supervisor.components.items() if sup.phase is Phase.FAILED]
