@@ -423,3 +423,115 @@ def test_component_quotas_reach_the_server(tmp_path: Path) -> None:
                                "byts: 3}}\n")
     assert {p.key for p in found} == {"subarchitectures.v.components.c.quota.entries",
                                       "subarchitectures.v.components.c.quota.byts"}, found
+
+
+# ------------------------------------------------------------------- hosts (issue 16)
+
+def test_unknown_host_names_its_line_with_a_suggestion(tmp_path: Path) -> None:
+    found = problems(tmp_path, """\
+        hosts:
+          arm: 10.0.0.2:7070
+        servers:
+          main: {listen: "10.0.0.1:7000", subarchitectures: [vision]}
+        subarchitectures:
+          vision:
+            components:
+              a: {class: "m:A", host: amr}
+              b: {class: "m:B", host: arm}
+        """)
+    one(found, 8, "components.a.host", "unknown host 'amr' (did you mean 'arm'?)")
+    assert len([p for p in found if not p.warning]) == 1, [str(p) for p in found]
+
+
+def test_a_host_without_a_hosts_section_says_where_to_name_it(tmp_path: Path) -> None:
+    found = problems(tmp_path, """\
+        subarchitectures:
+          vision:
+            components:
+              a: {class: "m:A", host: arm}
+        """)
+    one(found, 4, "components.a.host", "name the machines of the system and their agents' addresses under 'hosts:'")
+
+
+def test_a_remote_component_needs_a_server_other_hosts_reach(tmp_path: Path) -> None:
+    found = problems(tmp_path, """\
+        hosts: {arm: {agent: "10.0.0.2:7070"}}
+        servers:
+          main: {listen: "127.0.0.1:0", subarchitectures: [vision]}
+          other: {listen: "0.0.0.0:7001", subarchitectures: [motor]}
+        subarchitectures:
+          vision:
+            components:
+              a: {class: "m:A", host: arm}
+          motor:
+            components:
+              b: {class: "m:B", host: arm}
+              c: {class: "m:C"}
+        """)
+    one(found, 8, "components.a.host", "server 'main', listens on the loopback address 127.0.0.1:0")
+    one(found, 11, "components.b.host", "server 'other', listens on the wildcard address 0.0.0.0:7001")
+    assert len(found) == 3, [str(p) for p in found]  # b needs both the directory and its SA's server
+
+
+def test_advertise_makes_a_server_reachable_and_its_port_0_is_the_bound_port(tmp_path: Path) -> None:
+    path = tmp_path / "system.yaml"
+    path.write_text(textwrap.dedent("""\
+        hosts: {arm: "10.0.0.2:7070"}
+        servers:
+          main: {listen: "0.0.0.0:0", advertise: "robot.local:0", subarchitectures: [vision]}
+        subarchitectures:
+          vision:
+            components:
+              a: {class: "m:A", host: arm}
+        """))
+    config, found = read_config(path, environ={})
+    assert config is not None and not found.items, [str(p) for p in found.items]
+    assert config.servers[0].address("0.0.0.0:41234") == "robot.local:41234"
+    assert config.components[0].remote and config.remote_components == config.components
+
+
+def test_hosts_section_mistakes(tmp_path: Path) -> None:
+    found = problems(tmp_path, """\
+        hosts:
+          local: 10.0.0.2:7070
+          arm: not-an-address
+          leg: {agnet: "10.0.0.3:7070"}
+          hand: {agent: "10.0.0.4:7070"}
+        servers:
+          main: {listen: "10.0.0.1:0", subarchitectures: [vision], host: hand}
+        subarchitectures:
+          vision:
+            components:
+              a: {class: "m:A", in_process: true, host: hand}
+              b: {class: "m:B", host: leg}
+        """)
+    one(found, 2, "hosts.local", "'local' is the orchestrator's own host")
+    one(found, 3, "hosts.arm", "HOST:PORT")
+    one(found, 4, "hosts.leg.agnet", "did you mean 'agent'?")
+    one(found, 7, "servers.main.host", "servers run in the orchestrator's process for now")
+    one(found, 11, "components.a.host", "an in_process component runs inside its server")
+    assert not [p for p in found if "unknown host" in p.message]  # leg's entry was reported, not each use
+
+
+def test_cast_check_describes_the_hosts_and_probe_says_an_agent_is_down(tmp_path: Path) -> None:
+    path = tmp_path / "system.yaml"
+    path.write_text(textwrap.dedent(f"""\
+        python_path: [{COMPONENTS}]
+        hosts: {{arm: "127.0.0.1:1"}}
+        servers:
+          main: {{listen: "10.0.0.1:0", subarchitectures: [vision]}}
+        subarchitectures:
+          vision:
+            components:
+              producer: {{class: orch_components:Producer, host: arm}}
+              worker: {{kind: managed, class: orch_components:Worker}}
+        """))
+    env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("CAST_")}
+    done = subprocess.run([CAST, "check", "system.yaml"], capture_output=True, text=True, cwd=tmp_path, env=env)
+    assert done.returncode == 0, done.stderr
+    assert "hosts: local (1 component), arm (1 component)" in done.stdout
+    probed = subprocess.run([CAST, "check", "system.yaml", "--probe"], capture_output=True, text=True, cwd=tmp_path,
+                            env=dict(env, CAST_SECRET="s" * 32))
+    assert probed.returncode == 1
+    assert "system.yaml:8: error: components.producer.host: agent not usable: host 'arm' (agent 127.0.0.1:1): " \
+           "UNAVAILABLE" in probed.stderr, probed.stderr

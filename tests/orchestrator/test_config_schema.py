@@ -198,21 +198,24 @@ def test_every_key_of_a_component_reaches_the_model(tmp_path: Path) -> None:
                 restart: {policy: always, max_restarts: 7, backoff: 2, max_backoff: 9}
                 classpath: [x.jar]
                 quota: {entries: 3, bytes: 4}
+                host: arm
           w:
             components:
               p: {class: "m:C", in_process: true, restart: never}
+        hosts: {arm: "10.0.0.2:7070"}
         """))
     config, found = read_config(path, environ={})
     assert config is not None and not found.items, [str(p) for p in found.items]
     c, p = config.components
     assert set(props("#component")) - {"subarchitecture"} == {
         "language", "kind", "class", "run", "args", "privileged", "manual", "restart", "classpath", "quota",
-        "in_process"}  # each is set below, so a new key makes this test say so
+        "in_process", "host"}  # each is set below, so a new key makes this test say so
     assert (c.language, c.kind, c.cls, c.run, c.args, c.privileged, c.manual) == (
         "java", "managed", "a.B", "ignored", {"n": 1}, True, True)
     assert c.restart == m.RestartPolicy("always", 7, 2.0, 9.0)
     assert c.classpath == [str(tmp_path / "x.jar")] and c.quota == Quota(3, 4)
     assert p.in_process and p.restart == m.RestartPolicy("never")
+    assert (c.host, p.host, config.hosts["arm"].agent) == ("arm", "local", "10.0.0.2:7070")
 
 
 def _nodes(node: Any, where: str = "") -> list[tuple[str, dict[str, Any]]]:

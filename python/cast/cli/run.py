@@ -24,9 +24,24 @@ def _validated(args: argparse.Namespace, builds_required: bool) -> tuple[SystemC
     config, problems = read_config(args.config, parse_sets(args.set))
     if config is not None and not problems.errors:
         preflight(config, problems, builds_required=builds_required)
+        if getattr(args, "probe", False):
+            _probe(config, problems)
     for problem in sorted(problems.items, key=lambda p: (p.warning, p.position.file, p.position.line)):
         print(problem, file=sys.stderr)
     return (None if problems.errors else config), problems
+
+
+def _probe(config: SystemConfig, problems: Problems) -> None:
+    """``--probe``: ask each host's agent whether it is up and has what its components need."""
+    from cast.auth import load_secret
+    from cast.config.problems import Position
+    from cast.orchestrator.remote import probe_hosts
+
+    for comp, _host, problem in probe_hosts(config, load_secret()):
+        if comp is None:
+            problems.error(Position(config.source), "hosts", problem)
+        else:
+            problems.error(comp.at("host"), f"components.{comp.id}.host", problem)
 
 
 def _describe(config: SystemConfig) -> str:
@@ -34,8 +49,12 @@ def _describe(config: SystemConfig) -> str:
     servers = ", ".join(f"{s.name} ({', '.join(s.subarchitectures)})" for s in config.servers)
     comps = ", ".join(f"{n} {lang}" for lang, n in langs.items()) or "none"
     sas, n = len(config.subarchitectures), len(config.components)
+    placed = Counter(c.host for c in config.components)
+    hosts = ""
+    if config.hosts:
+        hosts = "; hosts: " + ", ".join(f"{h} ({_count(placed[h], 'component')})" for h in ["local", *config.hosts])
     return (f"system '{config.name}': {_count(sas, 'subarchitecture')}, {_count(n, 'component')} ({comps}); "
-            f"servers: {servers}")
+            f"servers: {servers}{hosts}")
 
 
 def _count(n: int, noun: str) -> str:
@@ -81,6 +100,9 @@ def add_commands(sub: Any) -> None:
     check = sub.add_parser("check", help="validate a configuration without starting anything (exit 0 ok, 1 not)")
     check.add_argument("config", help="system configuration (YAML)")
     check.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a config variable")
+    check.add_argument("--probe", action="store_true",
+                       help="also ask each host's cast agent whether it is up and could launch its components "
+                            "(signs with $CAST_SECRET_FILE / $CAST_SECRET, the secret the agents were given)")
     check.set_defaults(fn=_check)
 
     run = sub.add_parser("run", help="start a system: servers, every component, live status; Ctrl-C stops it")

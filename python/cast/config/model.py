@@ -14,9 +14,11 @@ __all__ = [
     "DURABILITY_MODES",
     "LANGUAGES",
     "KINDS",
+    "LOCAL_HOST",
     "RESTART_MODES",
     "AuthConfig",
     "ComponentConfig",
+    "HostConfig",
     "OrchestratorOptions",
     "PersistenceConfig",
     "RestartPolicy",
@@ -31,6 +33,7 @@ KINDS = ("unmanaged", "managed")
 RESTART_MODES = ("never", "on-failure", "always")
 DURABILITY_MODES = ("always", "batch", "none")
 DEFAULT_LISTEN = "127.0.0.1:0"
+LOCAL_HOST = "local"  # the orchestrator's own host: the default of every host: key
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,7 @@ class ComponentConfig:
     restart: RestartPolicy = field(default_factory=RestartPolicy)
     quota: Quota | None = None  # what it may hold on each server (entries, bytes; 0: unbounded)
     classpath: list[str] = field(default_factory=list)  # java: extra entries, absolute
+    host: str = LOCAL_HOST  # where it runs: local, or a name under hosts: (started by that host's agent)
     base_dir: Path = field(default_factory=Path.cwd)  # directory of the file that defines it
     position: Position = field(default_factory=lambda: Position("<config>"))
     positions: dict[str, Position] = field(default_factory=dict)  # of each key's value, for later checks
@@ -78,6 +82,11 @@ class ComponentConfig:
     def at(self, key: str) -> Position:
         """Where the value of ``key`` is written (the component itself if not written)."""
         return self.positions.get(key, self.position)
+
+    @property
+    def remote(self) -> bool:
+        """Whether it runs on another host, started by that host's agent."""
+        return self.host != LOCAL_HOST
 
     @property
     def launched(self) -> bool:
@@ -155,6 +164,26 @@ class ServerConfig:
     listen: str = DEFAULT_LISTEN
     subarchitectures: list[str] = field(default_factory=list)
     persistence: PersistenceConfig | None = None
+    host: str = LOCAL_HOST  # servers run in the orchestrator's process (local) for now
+    advertise: str = ""  # HOST:PORT other hosts use to reach it ("": its listen address; port 0: its port)
+
+    def address(self, endpoint: str) -> str:
+        """What other hosts dial: ``advertise`` (port 0: the bound port of ``endpoint``), else ``endpoint``."""
+        if not self.advertise:
+            return endpoint
+        host, _, port = self.advertise.rpartition(":")
+        return f"{host}:{endpoint.rpartition(':')[2]}" if int(port) == 0 else self.advertise
+
+
+@dataclass(frozen=True)
+class HostConfig:
+    """Another machine of the system: where its ``cast agent`` listens, and TLS to reach it."""
+
+    name: str
+    agent: str
+    tls_ca: Path | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
 
 
 @dataclass
@@ -181,6 +210,7 @@ class SystemConfig:
     files: list[Path] = field(default_factory=list)
     tls: TlsConfig | None = None
     auth: AuthConfig = field(default_factory=AuthConfig)
+    hosts: dict[str, HostConfig] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.servers:
@@ -194,6 +224,11 @@ class SystemConfig:
     def component(self, component_id: str) -> ComponentConfig | None:
         """A component by id."""
         return next((c for c in self.components if c.id == component_id), None)
+
+    @property
+    def remote_components(self) -> list[ComponentConfig]:
+        """The launched components that run on another host."""
+        return [c for c in self.components if c.launched and c.remote]
 
     def server_of(self, sa: str) -> ServerConfig:
         """The server hosting an SA."""

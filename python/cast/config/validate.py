@@ -24,8 +24,10 @@ from typing import Any
 
 from cast.config.commands import component_run
 from cast.config.model import (
+    LOCAL_HOST,
     AuthConfig,
     ComponentConfig,
+    HostConfig,
     OrchestratorOptions,
     PersistenceConfig,
     RestartPolicy,
@@ -61,6 +63,8 @@ class _Builder:
         self.root = tree.root
         self.p: Problems = tree.problems
         self.component_seen: dict[str, Position] = {}
+        self.hosts: dict[str, HostConfig] = {}
+        self.host_keys: set[str] = set()  # every name written under hosts:, valid or not (the wrong ones reported)
         self.invalid = check_tree(self.root, runtime_schema(), self.p)
 
     def written(self, path: KeyPath) -> bool:
@@ -81,6 +85,7 @@ class _Builder:
         top = defaults()
         name = str(_get(root, "system", top)) or str(top["system"])
         python_path = self.paths(root, "python_path")
+        self.hosts = self.host_section()
         with extended_sys_path(python_path):  # user policy classes may live there
             sas = self.subarchitectures()
         self.placed_components(sas)
@@ -96,6 +101,7 @@ class _Builder:
                              "with a 'servers:' section, give each server its own 'persistence:' (one file each)")
             else:
                 servers[0].persistence = persistence
+        self.reachable(sas, servers)
         return SystemConfig(
             name=name,
             subarchitectures=sas,
@@ -106,6 +112,7 @@ class _Builder:
             orchestrator=self.orchestrator(),
             tls=self.tls(),
             auth=self.auth(),
+            hosts=self.hosts,
         )
 
     def subarchitectures(self) -> dict[str, SubarchitectureConfig]:
@@ -204,6 +211,12 @@ class _Builder:
         self.language_rules(raw, pos, path, language, cls, in_process, manual)
         args = raw.get("args")
         classpath = self.paths(raw, "classpath")
+        host = self.host_name(raw, f"{where}.host")
+        if host != LOCAL_HOST and in_process:
+            self.p.error(raw.value_at("host"), f"{where}.host",
+                         f"an in_process component runs inside its server, on the orchestrator's host: remove "
+                         f"'host: {host}' or 'in_process: true'")
+            host = LOCAL_HOST
         sa.components[comp_id] = ComponentConfig(
             id=comp_id,
             subarchitecture=sa.name,
@@ -219,6 +232,7 @@ class _Builder:
             restart=self.restart(raw),
             quota=self.quota(raw),
             classpath=[str(p) for p in classpath],
+            host=host,
             base_dir=Path(raw.pos.file).resolve().parent,
             position=pos,
             positions=dict(raw.value_pos),
@@ -293,6 +307,12 @@ class _Builder:
             where = f"servers.{name}"
             listen = str(_get(sraw, "listen", defaults("#server")))
             server = ServerConfig(name, listen, persistence=self.persistence(sraw, ("servers", name)))
+            server.advertise = "" if sraw.get("advertise") is None else str(sraw["advertise"])
+            host = self.host_name(sraw, f"{where}.host")
+            if host != LOCAL_HOST:
+                self.p.error(sraw.value_at("host"), f"{where}.host",
+                             f"servers run in the orchestrator's process for now: 'host: {host}' is not supported "
+                             "yet; remove it, and give the server listen: and advertise: addresses other hosts reach")
             names = sraw.get("subarchitectures")
             for sa, pos in zip(names or [], names.item_pos if names else [], strict=True):
                 sa = str(sa)
@@ -311,6 +331,66 @@ class _Builder:
                 self.p.error(self.root.at("servers"), "servers",
                              f"no server hosts subarchitecture '{sa}': add it to one server's subarchitectures")
         return out
+
+    # ------------------------------------------------------------------ hosts
+
+    def host_section(self) -> dict[str, HostConfig]:
+        """The ``hosts:`` section: name -> agent address (and TLS files)."""
+        raw = self.root.get("hosts")
+        out: dict[str, HostConfig] = {}
+        self.host_keys = set(raw or {})
+        for name, value in (raw or {}).items():
+            if name == LOCAL_HOST:
+                assert raw is not None
+                self.p.error(raw.at(name), f"hosts.{name}", "'local' is the orchestrator's own host (the default "
+                                                            "of host:), not a name to give another host")
+                continue
+            if isinstance(value, YMap):
+                if "agent" not in value:
+                    continue  # reported by the schema
+                tls = value.get("tls")
+                files: dict[str, Path | None] = {"ca": None, "cert": None, "key": None}
+                if isinstance(tls, YMap) and "ca" in tls:
+                    for key in files:
+                        if key in tls:
+                            files[key] = _relative_to(tls.value_at(key), str(tls[key]))
+                out[name] = HostConfig(name, str(value["agent"]), files["ca"], files["cert"], files["key"])
+            elif value is not None:
+                out[name] = HostConfig(name, str(value))
+        return out
+
+    def host_name(self, raw: YMap, where: str) -> str:
+        """The ``host:`` of a component or server: local, or a name under ``hosts:`` (an unknown one reported)."""
+        value = raw.get("host")
+        name = LOCAL_HOST if value is None else str(value)
+        if name == LOCAL_HOST or name in self.hosts:
+            return name
+        if name in self.host_keys:
+            return LOCAL_HOST  # its entry under hosts: is wrong, and was reported there
+        known = {LOCAL_HOST, *self.hosts}
+        hint = did_you_mean(name, known)
+        if not self.hosts:
+            hint += "; name the machines of the system and their agents' addresses under 'hosts:'"
+        self.p.error(raw.value_at("host"), where, f"unknown host '{name}'{hint}")
+        return LOCAL_HOST
+
+    def reachable(self, sas: dict[str, SubarchitectureConfig], servers: list[ServerConfig]) -> None:
+        """A component on another host must be able to dial the directory and its SA's server."""
+        if not servers:
+            return
+        for sa in sas.values():
+            for comp in sa.components.values():
+                if comp.host == LOCAL_HOST or comp.manual:
+                    continue
+                needed = [servers[0], *(s for s in servers[1:] if sa.name in s.subarchitectures)]
+                for server in needed:
+                    problem = _unreachable(server)
+                    if problem:
+                        role = "the directory" if server is servers[0] else f"the server of SA '{sa.name}'"
+                        self.p.error(comp.at("host"), f"components.{comp.id}.host",
+                                     f"'{comp.id}' runs on host '{comp.host}' but {role}, server '{server.name}', "
+                                     f"{problem}: give server '{server.name}' an address other hosts reach "
+                                     f"(listen: on this host's address, or advertise: HOST:PORT)")
 
     def persistence(self, parent: YMap, path: KeyPath) -> PersistenceConfig | None:
         raw = parent.get("persistence")
@@ -355,6 +435,22 @@ def _relative_to(pos: Position, value: str) -> Path:
     """``value`` as a path: absolute, or relative to the directory of the file it is written in."""
     path = Path(value)
     return path if path.is_absolute() else (Path(pos.file).resolve().parent / path).resolve()
+
+
+_LOOPBACK = ("127.", "localhost", "::1", "[::1]")
+_WILDCARD = ("0.0.0.0", "", "::", "[::]", "*")
+
+
+def _unreachable(server: ServerConfig) -> str:
+    """Why other hosts cannot dial ``server`` as configured ("" if they can, as far as the file says)."""
+    if server.advertise:
+        return ""
+    host = server.listen.rpartition(":")[0]
+    if host.startswith(_LOOPBACK):
+        return f"listens on the loopback address {server.listen} and has no advertise:"
+    if host in _WILDCARD:
+        return f"listens on the wildcard address {server.listen} (not an address to dial) and has no advertise:"
+    return ""
 
 
 def _plain(value: Any) -> Any:

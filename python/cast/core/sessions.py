@@ -46,6 +46,7 @@ class ComponentInfo:
     pid: int = 0
     host: str = ""
     sessions: int = 0
+    placed_on: str = ""  # the host the configuration places it on (hosts:); shown instead of the one it reports
     deadline: float = 0.0  # monotonic time the lease ends
 
 
@@ -86,7 +87,8 @@ class SessionTable:
         session_id = secrets.token_hex(8)
         with self._mutex:
             info.subarchitecture, info.privileged = who.subarchitecture, who.privileged
-            info.language, info.kind, info.pid, info.host = language, kind, pid, host
+            info.language, info.kind, info.pid = language, kind, pid
+            info.host = info.placed_on or host
             info.session_id, info.state = session_id, ComponentState.STARTING
             info.sessions += 1
             info.deadline = self._clock() + self.lease_ms / 1000

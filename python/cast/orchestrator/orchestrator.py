@@ -25,6 +25,7 @@ from cast.auth import TokenSigner
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.core.sessions import ComponentState
 from cast.orchestrator.output import Output
+from cast.orchestrator.remote import Agents
 from cast.orchestrator.security import LaunchSecurity
 from cast.orchestrator.servers import ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
@@ -104,8 +105,10 @@ class Orchestrator:
     def _contract(self, comp: ComponentConfig) -> dict[str, str]:
         assert self._signer is not None and self._servers is not None
         assert self._security is not None
+        directory = self._servers.directory
         return {
-            "CAST_ENDPOINT": self._servers.directory.endpoint,
+            # A component on another host dials the directory's advertised address.
+            "CAST_ENDPOINT": directory.config.address(directory.endpoint) if comp.remote else directory.endpoint,
             "CAST_COMPONENT_ID": comp.id,
             "CAST_SUBARCHITECTURE": comp.subarchitecture,
             "CAST_ARGS": json.dumps(comp.args),
@@ -124,8 +127,16 @@ class Orchestrator:
         servers = self._servers = ServerGroup(self.config, self._signer)
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
+        try:
+            agents = await self._attach_agents()
+        except BaseException:
+            await servers.stop()
+            self.runtime.release()
+            self._handle_signals(loop, install=False)
+            raise
         supervisor = self.supervisor = Supervisor(
-            self.config, self._contract, self.runtime.logs, self.output.component_line, self.output.notice, child_env
+            self.config, self._contract, self.runtime.logs, self.output.component_line, self.output.notice, child_env,
+            agents,
         )
         tracker = StatusTracker(self.config, servers, supervisor)
         self._publish(servers)
@@ -168,6 +179,8 @@ class Orchestrator:
             if renew_task is not None:
                 renew_task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
+            if agents is not None:
+                await agents.close()
             await servers.stop()
             self.runtime.release()
             self._handle_signals(loop, install=False)
@@ -179,10 +192,30 @@ class Orchestrator:
                 self.options.summary_json.write_text(json.dumps(data, indent=2))
         return RunResult(failures, snapshot, connect_seconds)
 
+    async def _attach_agents(self) -> Agents | None:
+        """Attach to the agent of every host that runs a component (None if every component is local)."""
+        if not self.config.remote_components:
+            return None
+        assert self._signer is not None
+        agents = Agents(self.config, self._signer, lambda host, text: self.output.notice(f"host {host}: {text}"))
+        started = time.monotonic()
+        try:
+            await agents.attach_all()
+        except BaseException:
+            await agents.close()
+            raise
+        hosts = ", ".join(f"{name} ({link.host.agent}, {link.attached.host if link.attached else '?'})"
+                          for name, link in agents.links.items())
+        self.output.notice(f"attached to the agents of {hosts} in {time.monotonic() - started:.2f} s")
+        return agents
+
     def _prepare(self) -> None:
         """Claim the runtime directory, make the secret and the launch security, extend sys.path."""
         self.runtime.claim()
         secret = self.env.get("CAST_SECRET", "").encode() or None
+        if not secret and self.env.get("CAST_SECRET_FILE"):
+            # The system secret the agents were given with --secret-file (docs/multihost.md).
+            secret = Path(self.env["CAST_SECRET_FILE"]).read_bytes().strip() or None
         if secret:
             self.runtime.write_secret(secret)
         else:
@@ -207,8 +240,10 @@ class Orchestrator:
         self.runtime.write_state({
             "system": self.config.name,
             "endpoint": servers.directory.endpoint,
-            "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures}
+            "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures,
+                                        "advertise": s.config.address(s.endpoint)}
                         for s in servers.servers},
+            "hosts": {h.name: h.agent for h in self.config.hosts.values()},
             "config": str(Path(self.config.source).resolve()),
             "tls": self._security.tls_state(),  # so `cast ls` & co. reach a TLS system unaided
         })

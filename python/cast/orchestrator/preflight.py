@@ -30,6 +30,8 @@ def preflight(
     with extended_sys_path(config.python_path):
         for comp in config.components:
             where = f"components.{comp.id}"
+            if comp.remote and comp.launched:
+                continue  # checked on its host, by its agent: `cast check --probe`, and Launch itself
             if comp.language == "python":
                 try:
                     cls = load_component_class(comp.cls)

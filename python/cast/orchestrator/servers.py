@@ -70,7 +70,8 @@ class ServerGroup:
             for other in self.servers:
                 if other is not server:
                     for sa in other.config.subarchitectures:
-                        server.running.routes.remote[sa] = other.endpoint
+                        # What other hosts dial (advertise:), since components there follow these routes too.
+                        server.running.routes.remote[sa] = other.config.address(other.endpoint)
 
     def release_run(self) -> None:
         """Release the start barrier of every server: each component's run() may begin."""

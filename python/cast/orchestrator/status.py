@@ -39,6 +39,7 @@ class ComponentRow:
     restarts: int
     sessions: int
     crashes: list[int] = field(default_factory=list)
+    host: str = "local"  # where it runs: local (the orchestrator's host) or a name under hosts:
 
 
 @dataclass
@@ -66,6 +67,7 @@ class Snapshot:
     uptime: float
     components: list[ComponentRow]
     subarchitectures: list[SubarchitectureRow]
+    multihost: bool = False  # the system has hosts: (the tables get a host column)
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready form."""
@@ -111,6 +113,7 @@ class StatusTracker:
                 restarts=sup.restarts if sup is not None else 0,
                 sessions=info.sessions,
                 crashes=list(sup.crashes) if sup is not None else [],
+                host=comp.host if comp is not None else info.host,
             ))
         revisions: dict[str, int] = {}
         sas: list[SubarchitectureRow] = []
@@ -135,7 +138,8 @@ class StatusTracker:
                     types=system.host.type_counts(sa),
                 ))
         self._last = (now, revisions)
-        return Snapshot(self._config.name, self._servers.directory.endpoint, now - self._started, rows, sas)
+        return Snapshot(self._config.name, self._servers.directory.endpoint, now - self._started, rows, sas,
+                        bool(self._config.hosts))
 
 
 _PHASE_STYLE = {"running": "green", "restarting": "yellow", "failed": "bold red", "exited": "dim",
@@ -146,11 +150,13 @@ _SESSION_STYLE = {"running": "green", "starting": "yellow", "started": "cyan", "
 
 def _components_table(snap: Snapshot) -> Table:
     table = Table(title="components", title_justify="left", expand=False, pad_edge=False)
-    for col in ("id", "SA", "lang", "kind", "launch", "process", "session", "pid", "restarts"):
+    cols = ["id", "SA", "lang", "kind", *(["host"] if snap.multihost else []), "launch", "process", "session", "pid",
+            "restarts"]
+    for col in cols:
         table.add_column(col, justify="right" if col in ("pid", "restarts") else "left")
     for c in snap.components:
         table.add_row(
-            c.id, c.subarchitecture, c.language, c.kind, c.launch,
+            c.id, c.subarchitecture, c.language, c.kind, *([c.host] if snap.multihost else []), c.launch,
             Text(c.phase, style=_PHASE_STYLE.get(c.phase, "")),
             Text(c.session, style=_SESSION_STYLE.get(c.session, "")),
             str(c.pid or ""), str(c.restarts or ""),
@@ -190,6 +196,11 @@ def render_summary(snap: Snapshot, failures: list[str]) -> RenderableType:
         Text.assemble(("summary of ", "bold"), (snap.system, "bold cyan"), f" after {snap.uptime:.1f} s"),
         _sa_table(snap, live=False),
     ]
+    if snap.multihost:
+        hosts: dict[str, list[str]] = {}
+        for c in snap.components:
+            hosts.setdefault(c.host, []).append(c.id)
+        parts.append(Text("hosts: " + "; ".join(f"{h}: {', '.join(ids)}" for h, ids in hosts.items())))
     restarted = [c for c in snap.components if c.restarts or c.crashes]
     if restarted:
         parts.append(Text("; ".join(f"{c.id}: {len(c.crashes)} crash(es), {c.restarts} restart(s)"

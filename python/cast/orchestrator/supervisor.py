@@ -26,6 +26,7 @@ from cast.config.model import ComponentConfig, SystemConfig
 from cast.errors import CastError
 from cast.orchestrator.launchers import launcher_for
 from cast.orchestrator.process import ComponentProcess, LineSink
+from cast.orchestrator.remote import Agents, RemoteProcess
 
 __all__ = ["Phase", "Supervised", "Supervisor"]
 
@@ -48,7 +49,7 @@ class Supervised:
 
     config: ComponentConfig
     phase: Phase = Phase.PENDING
-    process: ComponentProcess | None = None
+    process: ComponentProcess | RemoteProcess | None = None
     restarts: int = 0
     crashes: list[int] = field(default_factory=list)  # exit codes of unexpected exits
     stop_code: int | None = None  # exit code when the orchestrator stopped it
@@ -83,8 +84,10 @@ class Supervisor:
         sink: LineSink,
         notify: Notify,
         env: Mapping[str, str] | None = None,
+        agents: Agents | None = None,
     ) -> None:
         self.config = config
+        self._agents = agents  # components on other hosts are launched through their agents
         self._contract = contract
         self._logs = logs
         self._sink = sink
@@ -101,6 +104,8 @@ class Supervisor:
 
     async def _launch(self, sup: Supervised) -> bool:
         comp = sup.config
+        if comp.remote:
+            return await self._launch_remote(sup)
         launcher = launcher_for(comp.language)
         try:
             argv = launcher.command(comp, self.config, self._env)
@@ -114,6 +119,19 @@ class Supervisor:
             await process.start()
         except OSError as exc:
             sup.error = f"cannot start {argv[0]}: {exc.strerror or exc}"
+            return False
+        sup.process, sup.phase, sup.started_at = process, Phase.RUNNING, time.monotonic()
+        return True
+
+    async def _launch_remote(self, sup: Supervised) -> bool:
+        """Launch through the agent of the component's host: the same contract, output and exits come back."""
+        comp = sup.config
+        assert self._agents is not None, f"{comp.id} runs on host '{comp.host}' but no agent is attached"
+        process = self._agents.process(comp, self._contract(comp), self._logs / f"{comp.id}.log", self._sink)
+        try:
+            await process.start()
+        except CastError as exc:
+            sup.error = exc.message
             return False
         sup.process, sup.phase, sup.started_at = process, Phase.RUNNING, time.monotonic()
         return True

@@ -102,7 +102,10 @@ def system_from_config(
         quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
     )
     for comp in config.components:
-        system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind))
+        # With hosts: a component shows the host the configuration places it on (local or a hosts: name).
+        placed = comp.host if config.hosts else ""
+        system.expect(ComponentInfo(comp.id, comp.subarchitecture, comp.privileged, comp.language, comp.kind,
+                                    host=placed, placed_on=placed))
     return system
 
 
