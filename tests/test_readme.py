@@ -68,3 +68,13 @@ def test_quickstart_commands_run_as_written(tmp_path: Path) -> None:
     finally:
         server.terminate()
         server.wait(10)
+
+
+def test_several_machines_configuration_checks(tmp_path: Path) -> None:
+    yaml_text = blocks(section("Several machines: `cast agent`"), "yaml")[0]
+    config = tmp_path / "robot.yaml"
+    config.write_text(yaml_text)
+    cast = str(Path(sys.executable).parent / "cast")
+    out = subprocess.run([cast, "check", str(config)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "hosts: local (0 components), workstation (1 component)" in out.stdout, out.stdout
