@@ -14,17 +14,15 @@ import json
 import os
 import signal
 import subprocess
-import threading
 import time
 from pathlib import Path
 
-import pytest
 import yaml
 
-from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
+from tests.conftest import PYTHONPATH, SECRET
 from tests.orchestrator.conftest import COMPONENTS
+from tests.orchestrator.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
 
-CAST = str(VENV_BIN / "cast")
 LOUD = '''\
 import os
 
@@ -44,59 +42,12 @@ class LoudWatcher(BarrierWatcher):
 COUNT = 25
 
 
-def _ip(*args: str) -> None:
-    done = subprocess.run(["ip", *args], capture_output=True, text=True)
-    if done.returncode != 0:
-        pytest.fail(f"`ip {' '.join(args)}` failed: {done.stderr.strip()} (network namespaces are required)")
-
-
-class Lines:
-    """A process's output lines, read on a thread."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.proc = proc
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait(self, text: str, timeout: float = 60.0) -> str:
-        deadline = time.monotonic() + timeout
-        while True:
-            hit = next((x for x in self.lines if text in x), None)
-            if hit is not None:
-                return hit
-            assert time.monotonic() < deadline, f"timed out waiting for {text!r}: " + "\n".join(self.lines[-30:])
-            assert self.proc.poll() is None or any(text in x for x in self.lines), \
-                f"exited ({self.proc.returncode}) before {text!r}: " + "\n".join(self.lines[-30:])
-            time.sleep(0.05)
-
-
-def _ns_pids(ns: str) -> set[int]:
-    done = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True)
-    return {int(p) for p in done.stdout.split()}
-
-
 def test_cast_run_places_components_on_an_agents_host(tmp_path: Path) -> None:
-    tag = f"{os.getpid() % 100000}"
-    net = 20 + os.getpid() % 200
-    orch_ns, agent_ns = f"castorch{tag}", f"castagent{tag}"
-    orch_if, agent_if = f"vo{tag}", f"va{tag}"
-    orch_ip, agent_ip = f"10.214.{net}.1", f"10.214.{net}.2"
+    net = Namespaces()
     procs: list[subprocess.Popen[str]] = []
     try:
-        _ip("netns", "add", orch_ns)
-        _ip("netns", "add", agent_ns)
-        _ip("link", "add", orch_if, "type", "veth", "peer", "name", agent_if)
-        _ip("link", "set", orch_if, "netns", orch_ns)
-        _ip("link", "set", agent_if, "netns", agent_ns)
-        for ns, ifname, addr in ((orch_ns, orch_if, orch_ip), (agent_ns, agent_if, agent_ip)):
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", ifname)
-            _ip("-n", ns, "link", "set", ifname, "up")
-            _ip("-n", ns, "link", "set", "lo", "up")
+        orch_ns, agent_ns = net.add("orch"), net.add("agent")
+        orch_ip, agent_ip = net.link(orch_ns, agent_ns)
 
         # The root: the same directory is the agent's --root and cast run's working directory.
         root = tmp_path / "root"
@@ -106,16 +57,8 @@ def test_cast_run_places_components_on_an_agents_host(tmp_path: Path) -> None:
         env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
         env["PYTHONPATH"] = PYTHONPATH
 
-        agent = subprocess.Popen(
-            ["ip", "netns", "exec", agent_ns, CAST, "agent", "--listen", f"{agent_ip}:0", "--root", str(root),
-             "--secret-file", str(root / "secret")],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=root)
+        agent, agent_ep, agent_out = start_agent(agent_ns, f"{agent_ip}:0", root, root / "secret", env)
         procs.append(agent)
-        assert agent.stdout is not None
-        first = agent.stdout.readline().strip()
-        assert first.startswith("cast agent listening on "), first
-        agent_ep = first.removeprefix("cast agent listening on ").split()[0]
-        agent_out = Lines(agent)
 
         def comp(cls: str, host: str | None = None, **args: object) -> dict[str, object]:
             return {"class": f"loud_components:{cls}", **({"host": host} if host else {}),
@@ -183,7 +126,7 @@ def test_cast_run_places_components_on_an_agents_host(tmp_path: Path) -> None:
             assert f"LOUD {cid} pid" in (root / "rt" / "logs" / f"{cid}.log").read_text()
         remote_pids = {int(x.rsplit(" ", 1)[1]) for x in out.lines for cid in ("rwatch", "rwrite")
                        if f"LOUD {cid} pid" in x}
-        in_agent_ns = _ns_pids(agent_ns)
+        in_agent_ns = ns_pids(agent_ns)
         assert remote_pids <= in_agent_ns, (remote_pids, in_agent_ns)
 
         stop_at = time.monotonic()
@@ -195,23 +138,15 @@ def test_cast_run_places_components_on_an_agents_host(tmp_path: Path) -> None:
         assert {c["id"]: c["host"] for c in summary["components"]} == hosts
         assert summary["failures"] == []
         deadline = time.monotonic() + 10
-        while (left := _ns_pids(agent_ns) - {agent.pid}) - _agent_tree(agent.pid):
+        while (left := ns_pids(agent_ns) - {agent.pid}) - _agent_tree(agent.pid):
             assert time.monotonic() < deadline, f"processes left in the agent's namespace: {left}"
             time.sleep(0.1)
         assert agent.poll() is None, "\n".join(agent_out.lines)
         print(f"\nremote start: {attached}; {all_started}; cast run to all started {start_seconds:.2f} s; "
               f"stop {stop_seconds:.2f} s")
     finally:
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(15)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-        for ns in (orch_ns, agent_ns):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        stop_all(procs)
+        net.close()
 
 
 def _agent_tree(pid: int) -> set[int]:
