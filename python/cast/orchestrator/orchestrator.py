@@ -313,7 +313,10 @@ def _component_failures(supervisor: Supervisor) -> list[str]:
         if sup.crashes:
             codes = ", ".join(str(c) for c in sup.crashes)
             failures.append(f"{cid} crashed {len(sup.crashes)} time(s) (exit codes {codes})")
-        if sup.phase is Phase.FAILED and sup.error:
+        if sup.host_losses:
+            failures.append(f"{cid}: host '{sup.config.host}' lost ({sup.host_losses} time(s))"
+                            + ("; not running at the end" if sup.phase is Phase.FAILED else "; restarted"))
+        if sup.phase is Phase.FAILED and sup.error and not sup.error.startswith("host '"):
             failures.append(f"{cid}: {sup.error}")
         if sup.stop_code not in (None, 0):
             failures.append(f"{cid} exited with code {sup.stop_code} when stopped"

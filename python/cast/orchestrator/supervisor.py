@@ -55,6 +55,7 @@ class Supervised:
     stop_code: int | None = None  # exit code when the orchestrator stopped it
     error: str = ""
     started_at: float = 0.0
+    host_losses: int = 0  # times it ended because its host was lost (not counted as crashes)
 
     @property
     def pid(self) -> int:
@@ -64,7 +65,8 @@ class Supervised:
     @property
     def failed(self) -> bool:
         """Whether this component counts as a failure of the run."""
-        return bool(self.crashes) or self.phase is Phase.FAILED or (self.stop_code not in (None, 0))
+        return (bool(self.crashes) or self.phase is Phase.FAILED or bool(self.host_losses)
+                or (self.stop_code not in (None, 0)))
 
 
 Notify = Callable[[str], None]
@@ -149,6 +151,10 @@ class Supervisor:
             code = await sup.process.wait()
             if self._stopping:
                 return
+            if isinstance(sup.process, RemoteProcess) and sup.process.host_lost:
+                if not await self._host_lost(sup, sup.process):
+                    return
+                continue
             if code != 0:
                 sup.crashes.append(code)
             how = f"crashed (exit code {code})" if code != 0 else "exited"
@@ -169,6 +175,29 @@ class Supervisor:
                          f"{comp.restart.max_restarts})")
             await asyncio.sleep(delay)
             sup.restarts += 1
+
+    async def _host_lost(self, sup: Supervised, process: RemoteProcess) -> bool:
+        """Its host was lost: failed, and no restart until the host is back; then whether to restart it.
+
+        The link already said so on one line naming the host and its components. Trying to launch
+        on a host that does not answer cannot help, so the component waits (FAILED) for the link to
+        attach again; then its restart policy decides, as after a crash.
+        """
+        comp = sup.config
+        sup.host_losses += 1
+        sup.phase, sup.error = Phase.FAILED, f"host '{comp.host}' lost"
+        if not comp.restart.should_restart(-9, sup.restarts):
+            reason = "" if comp.restart.mode == "never" else f" after {sup.restarts} restarts"
+            self._notify(f"{comp.id}: host '{comp.host}' lost; not restarted{reason} (restart: {comp.restart.mode})")
+            return False
+        await process.link.back.wait()
+        delay = comp.restart.delay(sup.restarts)
+        sup.phase = Phase.RESTARTING
+        self._notify(f"{comp.id}: host '{comp.host}' is back; restarting in {delay:.1f} s (restart "
+                     f"{sup.restarts + 1} of {comp.restart.max_restarts})")
+        await asyncio.sleep(delay)
+        sup.restarts += 1
+        return True
 
     async def stop_all(self, timeout: float) -> None:
         """Stop components in reverse start order: SIGTERM, then SIGKILL after ``timeout`` seconds."""
