@@ -364,3 +364,65 @@ def test_an_agent_restarted_while_the_system_runs_rejoins(net: Net, system) -> N
     assert any("rnever: host 'arm' lost (1 time(s)); not running at the end" in f for f in failures), failures
     print(f"\nagent SIGKILLed and restarted: the orchestrator attached again {rejoined:.2f} s after the restart "
           f"({out.lines[lost]}); rticker restarted once (pid {first} -> {second}), rnever (restart: never) not")
+
+
+def test_a_link_cut_within_the_lease_restarts_nothing_and_loses_no_line(net: Net, system) -> None:  # type: ignore[no-untyped-def]
+    s: System = system({"lticker": comp("Ticker"), "rticker": comp("Ticker", "arm", restart="on-failure")},
+                       lease_ms=4000)
+    s.start_agent()
+    out = s.start_run()
+    pid = s.pid_of("rticker")
+    out.wait("TICK rticker 5")
+    cut_at = len(out.lines)
+    before = max(ticks(out.lines, "rticker"))
+    net.cut()
+    cut = time.monotonic()
+    time.sleep(1.5)
+    net.restore()
+    cut_s = time.monotonic() - cut
+    resumed = out.wait(rf"TICK rticker {before + 20}$", cut_at)
+    caught_up = out.times[resumed] - (cut + cut_s)
+    assert not out.matching(r"host arm: lost|restarting|PID rticker", cut_at), out.tail()
+    assert pid in net.pids(net.agent_ns)
+    code, summary = s.stop_run()
+    assert code == 0, out.tail()
+    assert summary["failures"] == []
+    logged = ticks(s.log("rticker").splitlines(), "rticker")
+    assert logged == list(range(1, len(logged) + 1)), "lines lost or duplicated in the orchestrator's log"
+    retries = len(out.matching(r"RETRY rticker", cut_at))
+    print(f"\nlink cut for {cut_s:.2f} s (lease 4.0 s): nothing restarted, {len(logged)} numbered lines in the "
+          f"orchestrator's log with no gap or duplicate, {retries} failed writes retried, the remote ticker "
+          f"20 ticks on {caught_up:.2f} s after the link returned")
+
+
+def test_a_link_cut_longer_than_the_lease_loses_the_host_until_it_returns(net: Net, system) -> None:  # type: ignore[no-untyped-def]
+    s: System = system({"lticker": comp("Ticker"), "rticker": comp("Ticker", "arm", restart="on-failure")},
+                       lease_ms=2000)
+    s.start_agent()
+    out = s.start_run()
+    first = s.pid_of("rticker")
+    out.wait("TICK rticker 3")
+    cut_at = len(out.lines)
+    net.cut()
+    cut = time.monotonic()
+    lost = out.wait(r"host arm: lost: no answer from its agent .*its components failed: rticker", cut_at)
+    detected = out.times[lost] - cut
+    wait_gone({first}, "the component of a session whose lease ran out")
+    stopped = time.monotonic() - cut
+    assert not out.matching(r"PID rticker|restarting in", cut_at), out.tail()
+    net.restore()
+    restored = time.monotonic()
+    back = out.wait(r"host arm: back: attached to the agent", lost)
+    rejoined = out.times[back] - restored
+    again = out.wait(r"PID rticker \d+", back)
+    out.wait(r"TICK rticker \d+", again)
+    second = int(out.lines[again].rsplit(" ", 1)[1])
+    assert second != first
+    code, summary = s.stop_run()
+    assert code == 1, out.tail()
+    rows = {c["id"]: c for c in summary["components"]}  # type: ignore[attr-defined]
+    assert rows["rticker"]["restarts"] == 1, rows["rticker"]
+    assert not any(str(f).startswith("lticker") for f in summary["failures"]), summary["failures"]  # type: ignore[attr-defined]
+    print(f"\nlink cut longer than the lease (2.0 s): host lost {detected:.2f} s after the cut, the agent stopped "
+          f"the component {stopped:.2f} s after it; link restored {restored - cut:.2f} s after the cut, attached "
+          f"again {rejoined:.2f} s later, rticker restarted once (pid {first} -> {second})")
