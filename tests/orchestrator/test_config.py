@@ -508,7 +508,7 @@ def test_hosts_section_mistakes(tmp_path: Path) -> None:
     one(found, 2, "hosts.local", "'local' is the orchestrator's own host")
     one(found, 3, "hosts.arm", "HOST:PORT")
     one(found, 4, "hosts.leg.agnet", "did you mean 'agent'?")
-    one(found, 7, "servers.main.host", "servers run in the orchestrator's process for now")
+    one(found, 7, "servers.main.host", "is the directory (the first server), which runs on the orchestrator's host")
     one(found, 11, "components.a.host", "an in_process component runs inside its server")
     assert not [p for p in found if "unknown host" in p.message]  # leg's entry was reported, not each use
 

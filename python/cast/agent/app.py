@@ -70,7 +70,7 @@ async def start_agent(listen: str, root: Path, trust: AgentTrust, log_dir: Path 
     root = root.resolve()
     table = ProcessTable(root, (log_dir or root / ".cast" / "agent" / "logs").resolve())
     server = grpc.aio.server(options=_OPTIONS, interceptors=[TrustInterceptor(trust)])
-    agent_pb2_grpc.add_AgentServicer_to_server(AgentServicer(table), server)
+    agent_pb2_grpc.add_AgentServicer_to_server(AgentServicer(table, trust.secret_file), server)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection((AGENT_SERVICE, _HEALTH_SERVICE, reflection.SERVICE_NAME), server)

@@ -22,7 +22,10 @@ from cast.config.model import ComponentConfig, SystemConfig
 from cast.errors import CastError, InvalidArgumentError, LockedError, NotFoundError
 from cast.orchestrator.launchers import LaunchError, launcher_for
 
-__all__ = ["PRIVATE_ENV", "LaunchPlan", "check_contract", "load_from_root", "plan_launch", "probe"]
+__all__ = [
+    "PRIVATE_ENV", "SERVER_PREFIX", "LaunchPlan", "check_contract", "load_from_root", "plan_launch", "plan_server",
+    "probe",
+]
 
 PRIVATE_ENV = ("CAST_SECRET", "CAST_SECRET_FILE")
 """Never passed to a component: with the secret a component could sign any identity."""
@@ -32,10 +35,46 @@ PRIVATE_ENV = ("CAST_SECRET", "CAST_SECRET_FILE")
 class LaunchPlan:
     """What to start for one component: argv, the full environment, the working directory."""
 
-    component: ComponentConfig
+    component: ComponentConfig | None  # None for a server (plan_server)
     argv: list[str]
     env: dict[str, str]
     cwd: Path | None
+    name: str = ""  # the process's name in the table and the events, when not a component's id
+
+    @property
+    def process_id(self) -> str:
+        """The name the process table, Stop and the events know it by."""
+        return self.name or (self.component.id if self.component is not None else "")
+
+
+SERVER_PREFIX = "server:"
+"""A server started by an agent is known as ``server:NAME`` (no component id has a colon)."""
+
+
+def plan_server(
+    config: SystemConfig, config_file: Path, server: str, routes: Mapping[str, str], await_run: str,
+    secret_file: Path | None, sets: Mapping[str, str], agent_env: Mapping[str, str] | None = None,
+) -> LaunchPlan:
+    """``cast serve CONFIG --server NAME`` on the server's listen: address, with the agent's secret file."""
+    found = next((s for s in config.servers if s.name == server), None)
+    if found is None:
+        known = ", ".join(s.name for s in config.servers)
+        raise NotFoundError(f"no server '{server}' in {config.source} (servers: {known})")
+    if secret_file is None:
+        raise LockedError(f"server '{server}': this agent has no --secret-file, and a server verifies component "
+                          "tokens with the system secret: start the agent with --secret-file")
+    argv = [sys.executable, "-m", "cast.cli", "serve", str(config_file), "--server", server,
+            "--listen", found.listen, "--secret-file", str(secret_file),
+            "--lease-ms", str(config.orchestrator.lease_ms)]
+    for name, value in sets.items():
+        argv += ["--set", f"{name}={value}"]
+    for sa, address in routes.items():
+        argv += ["--route", f"{sa}={address}"]
+    if await_run:
+        argv += ["--await-run", await_run]
+    env = {k: v for k, v in (os.environ if agent_env is None else agent_env).items() if k not in PRIVATE_ENV}
+    env["PYTHONUNBUFFERED"] = "1"
+    return LaunchPlan(None, argv, env, None, name=SERVER_PREFIX + server)
 
 
 def load_from_root(root: Path, config_path: str, sets: Mapping[str, str]) -> SystemConfig:

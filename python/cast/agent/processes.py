@@ -100,22 +100,25 @@ class ProcessTable:
 
     # -------------------------------------------------------------- processes
 
-    async def launch(self, system: str, plan: LaunchPlan) -> AgentProcess:
+    async def launch(self, system: str, plan: LaunchPlan,
+                     first_line: asyncio.Future[str] | None = None) -> AgentProcess:
         """Start ``plan`` for ``system``; ALREADY_EXISTS if that component runs, OSError if it cannot be run."""
         session = self.session(system)
-        key = (system, plan.component.id)
+        key = (system, plan.process_id)
         if key in self.processes:
-            raise AlreadyExistsError(f"component '{plan.component.id}' of system '{system}' is running here "
+            raise AlreadyExistsError(f"component '{plan.process_id}' of system '{system}' is running here "
                                      f"(pid {self.processes[key].process.pid}): Stop it first")
 
         def line(component_id: str, text: str) -> None:
             output = agent_pb2.OutputLine(component_id=component_id, stream=agent_pb2.OUTPUT_STREAM_STDOUT,
                                           text=text, pid=process.pid)
+            if first_line is not None and not first_line.done():
+                first_line.set_result(text)
             session.push(agent_pb2.AgentEvent(output=output))
 
-        log_path = self.log_dir / _safe(system) / f"{_safe(plan.component.id)}.log"
+        log_path = self.log_dir / _safe(system) / f"{_safe(plan.process_id)}.log"
         # The launchers' "no directory" means the orchestrator's; here that is the root (same checkout).
-        process = ComponentProcess(plan.component.id, plan.argv, plan.env, log_path, line, plan.cwd or self.root)
+        process = ComponentProcess(plan.process_id, plan.argv, plan.env, log_path, line, plan.cwd or self.root)
         await process.start()
         proc = self.processes[key] = AgentProcess(system, process)
         self._spawn(self._watch(session, proc))

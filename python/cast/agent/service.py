@@ -16,10 +16,10 @@ from typing import Any, TypeVar
 
 import grpc
 
-from cast.agent.launch import load_from_root, plan_launch, probe
+from cast.agent.launch import load_from_root, plan_launch, plan_server, probe
 from cast.agent.processes import ProcessTable
 from cast.agent.sessions import SystemSession
-from cast.errors import CastError, InvalidArgumentError
+from cast.errors import CastError, InvalidArgumentError, UnavailableError
 from cast.v1 import agent_pb2, agent_pb2_grpc
 
 __all__ = ["AgentServicer"]
@@ -28,6 +28,7 @@ T = TypeVar("T")
 Context = grpc.aio.ServicerContext[Any, Any]
 
 DEFAULT_STOP_TIMEOUT_MS = 10_000
+SERVER_START_TIMEOUT_S = 30.0
 
 
 async def _answer(context: Context, work: Callable[[], Awaitable[T]]) -> T:
@@ -42,8 +43,10 @@ async def _answer(context: Context, work: Callable[[], Awaitable[T]]) -> T:
 class AgentServicer(agent_pb2_grpc.AgentServicer):
     """Attach, Launch, Stop and Probe over one :class:`ProcessTable`."""
 
-    def __init__(self, table: ProcessTable) -> None:
+    def __init__(self, table: ProcessTable, secret_file: Path | None = None) -> None:
         self.table = table
+        # Given to the servers it starts: they verify component tokens with it.
+        self.secret_file = secret_file.resolve() if secret_file else None
         self.host = socket.gethostname()
 
     @property
@@ -107,6 +110,8 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         async def work() -> agent_pb2.LaunchResponse:
             self.table.session(request.system)  # fail before anything is read when there is no session
             config = load_from_root(self.root, request.config_path, request.sets)
+            if request.server:
+                return await self._launch_server(request, config)
             plan = plan_launch(config, request.component_id, request.env)
             try:
                 proc = await self.table.launch(request.system, plan)
@@ -116,6 +121,32 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             return agent_pb2.LaunchResponse(pid=proc.process.pid, argv=plan.argv, log_path=str(proc.process.log_path))
 
         return await _answer(context, work)
+
+    async def _launch_server(self, request: agent_pb2.LaunchRequest, config: Any) -> agent_pb2.LaunchResponse:
+        """``cast serve`` for one server; the reply waits for its ``listening on HOST:PORT`` line."""
+        if request.env:
+            raise InvalidArgumentError(f"server '{request.server}': a server takes no launch environment")
+        plan = plan_server(config, (self.root / request.config_path).resolve(), request.server, request.routes,
+                           request.await_run, self.secret_file, request.sets)
+        first: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        try:
+            proc = await self.table.launch(request.system, plan, first)
+        except OSError as exc:
+            raise InvalidArgumentError(f"server '{request.server}': cannot start {plan.argv[0]}: "
+                                       f"{exc.strerror or exc}") from exc
+        exited: asyncio.Future[Any] = asyncio.ensure_future(proc.process.wait())
+        try:
+            await asyncio.wait([first, exited], timeout=SERVER_START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            exited.cancel()
+        line = first.result() if first.done() else ""
+        if not line.startswith("listening on "):
+            await self.table.stop(request.system, plan.process_id, 1.0, "stopped")
+            raise UnavailableError(f"server '{request.server}' did not start on this host: "
+                                   + (f"it printed {line!r}" if line else "no output") + f" (its log: "
+                                   f"{proc.process.log_path})")
+        return agent_pb2.LaunchResponse(pid=proc.process.pid, argv=plan.argv, log_path=str(proc.process.log_path),
+                                        endpoint=line.removeprefix("listening on ").strip())
 
     async def Stop(self, request: agent_pb2.StopRequest, context: Context) -> agent_pb2.StopResponse:
         """SIGTERM, then SIGKILL after the timeout; the exit."""

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
+import threading
+import time
 from typing import Any
 
 from cast.auth import TokenSigner, load_or_create_secret
@@ -27,14 +29,61 @@ def _serve(args: argparse.Namespace) -> int:
     signer = TokenSigner(load_or_create_secret(args.secret_file))
     in_process = InProcessComponents(system)
 
+    routes = _routes(args.route)
+    if args.await_run and settings_from_config(config).tls is not None:
+        raise InvalidArgumentError("--await-run with tls: is not supported yet (docs/multihost.md)")
+    if args.await_run:
+        # Held until the directory's barrier is released (a server `cast run` started on another host).
+        system.barrier.hold()
+
     def started(running: RunningServer) -> None:
+        running.routes.remote.update(routes)  # where the other servers' SAs are
+        if args.await_run:
+            threading.Thread(target=_await_run, args=(args.await_run, signer, system.barrier, settings),
+                             daemon=True, name="await-run").start()
         for comp in config.components:
-            if comp.in_process:
+            # With --server, only the in-process components of the SAs this server hosts.
+            if comp.in_process and (server is None or comp.subarchitecture in server.subarchitectures):
                 in_process.start(comp)
         running.on_stop(in_process.stop_all)
 
-    asyncio.run(serve_forever(system, signer, args.listen, started, settings_from_config(config)))
+    settings = settings_from_config(config)
+    asyncio.run(serve_forever(system, signer, args.listen, started, settings))
     return 0
+
+
+def _routes(given: list[str]) -> dict[str, str]:
+    routes: dict[str, str] = {}
+    for item in given:
+        sa, sep, address = item.partition("=")
+        if not sep or not sa or ":" not in address:
+            raise InvalidArgumentError(f"--route {item!r}: write SA=HOST:PORT")
+        routes[sa] = address
+    return routes
+
+
+def _await_run(directory: str, signer: TokenSigner, barrier: Any, settings: Any) -> None:
+    """Long-poll the directory's AwaitRun, then release this server's own barrier."""
+    import grpc
+
+    from cast.core.records import Identity
+    from cast.v1 import directory_pb2, directory_pb2_grpc
+
+    channel = grpc.insecure_channel(directory)  # a TLS system is refused before (see _serve)
+    token = signer.issue(Identity("orchestrator", "", True))
+    stub = directory_pb2_grpc.DirectoryStub(channel)
+    while not barrier.released:
+        try:
+            stub.AwaitRun(directory_pb2.AwaitRunRequest(), metadata=(("authorization", f"Bearer {token}"),),
+                          timeout=5.0)
+        except grpc.RpcError as exc:
+            if exc.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE):
+                print(f"await-run: {exc.code().name}: {exc.details()}", file=sys.stderr, flush=True)
+            time.sleep(0.2)
+            continue
+        barrier.release()
+        print(f"start barrier released (by the directory at {directory})", flush=True)
+    channel.close()
 
 
 def _chosen_server(config: SystemConfig, name: str | None) -> ServerConfig | None:
@@ -66,6 +115,11 @@ def add_command(sub: Any) -> None:
     serve.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a config variable")
     serve.add_argument("--server", help="serve only this server of the configuration's servers: section (its SAs "
                                         "and its persistence); default: every SA as one server")
+    serve.add_argument("--route", action="append", default=[], metavar="SA=HOST:PORT",
+                       help="where another server serves an SA (a server of a multi-server system)")
+    serve.add_argument("--await-run", metavar="HOST:PORT",
+                       help="hold the start barrier until the directory at HOST:PORT releases its own "
+                            "(a server `cast run` starts on another host)")
     serve.set_defaults(fn=_serve, log_level="INFO")
 
 

@@ -309,10 +309,11 @@ class _Builder:
             server = ServerConfig(name, listen, persistence=self.persistence(sraw, ("servers", name)))
             server.advertise = "" if sraw.get("advertise") is None else str(sraw["advertise"])
             host = self.host_name(sraw, f"{where}.host")
-            if host != LOCAL_HOST:
+            if host != LOCAL_HOST and not out:
                 self.p.error(sraw.value_at("host"), f"{where}.host",
-                             f"servers run in the orchestrator's process for now: 'host: {host}' is not supported "
-                             "yet; remove it, and give the server listen: and advertise: addresses other hosts reach")
+                             f"server '{name}' is the directory (the first server), which runs on the orchestrator's "
+                             f"host for now: put a server without host: first, or remove 'host: {host}'")
+            server.host = host
             names = sraw.get("subarchitectures")
             for sa, pos in zip(names or [], names.item_pos if names else [], strict=True):
                 sa = str(sa)

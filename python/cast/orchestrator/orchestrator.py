@@ -20,12 +20,13 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from cast.auth import TokenSigner
-from cast.config.model import ComponentConfig, SystemConfig
+from cast.config.model import LOCAL_HOST, ComponentConfig, SystemConfig
 from cast.core.sessions import ComponentState
 from cast.orchestrator.output import Output
-from cast.orchestrator.remote import Agents
+from cast.orchestrator.remote import Agents, remote_hosts
 from cast.orchestrator.security import LaunchSecurity
 from cast.orchestrator.servers import ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
@@ -127,9 +128,15 @@ class Orchestrator:
         servers = self._servers = ServerGroup(self.config, self._signer)
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
+        agents: Agents | None = None
         try:
             agents = await self._attach_agents()
+            if agents is not None and any(srv.host != LOCAL_HOST for srv in self.config.servers):
+                await self._start_remote_servers(servers, agents)
         except BaseException:
+            await servers.stop_remote(1.0)
+            if agents is not None:
+                await agents.close()
             await servers.stop()
             self.runtime.release()
             self._handle_signals(loop, install=False)
@@ -179,6 +186,7 @@ class Orchestrator:
             if renew_task is not None:
                 renew_task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
+            await servers.stop_remote(self.config.orchestrator.stop_timeout)  # then the servers, remote first
             if agents is not None:
                 await agents.close()
             await servers.stop()
@@ -192,9 +200,17 @@ class Orchestrator:
                 self.options.summary_json.write_text(json.dumps(data, indent=2))
         return RunResult(failures, snapshot, connect_seconds)
 
+    async def _start_remote_servers(self, servers: ServerGroup, agents: Agents) -> None:
+        """Start the servers placed on other hosts through their agents; say where each listens."""
+        started = time.monotonic()
+        await servers.start_remote(agents, self.runtime.logs, self.output.component_line)
+        for far in servers.remote:
+            self.output.notice(f"server {far.config.name} on host {far.config.host}: listening on {far.endpoint}, "
+                               f"reached at {far.address} ({time.monotonic() - started:.2f} s)")
+
     async def _attach_agents(self) -> Agents | None:
-        """Attach to the agent of every host that runs a component (None if every component is local)."""
-        if not self.config.remote_components:
+        """Attach to the agent of every host that runs a component or a server (None if all is local)."""
+        if not remote_hosts(self.config):
             return None
         assert self._signer is not None
         agents = Agents(self.config, self._signer, lambda host, text: self.output.notice(f"host {host}: {text}"))
@@ -242,7 +258,9 @@ class Orchestrator:
             "endpoint": servers.directory.endpoint,
             "servers": {s.config.name: {"endpoint": s.endpoint, "subarchitectures": s.config.subarchitectures,
                                         "advertise": s.config.address(s.endpoint)}
-                        for s in servers.servers},
+                        for s in servers.servers}
+                       | {s.config.name: {"endpoint": s.address, "subarchitectures": s.config.subarchitectures,
+                                          "advertise": s.address, "host": s.config.host} for s in servers.remote},
             "hosts": {h.name: h.agent for h in self.config.hosts.values()},
             "config": str(Path(self.config.source).resolve()),
             "tls": self._security.tls_state(),  # so `cast ls` & co. reach a TLS system unaided
@@ -250,7 +268,8 @@ class Orchestrator:
         self.output.known_components([c.id for c in self.config.components])
         self.output.notice(
             f"system '{self.config.name}': {len(self.config.subarchitectures)} SAs on "
-            + ", ".join(f"{s.config.name} {s.endpoint}" for s in servers.servers)
+            + ", ".join([f"{s.config.name} {s.endpoint}" for s in servers.servers]
+                        + [f"{s.config.name} {s.address} (host {s.config.host})" for s in servers.remote])
             + f"; runtime directory {self.runtime.path}"
         )
 
@@ -281,7 +300,10 @@ class Orchestrator:
         deadline = time.monotonic() + timeout
         while True:
             # A component registers with each server it uses; an in-process one only with its own.
-            seen = [i for server in servers.servers for i in server.system.sessions.components() if i.session_id]
+            seen: list[Any] = [i for server in servers.servers for i in server.system.sessions.components()
+                               if i.session_id]
+            # In-process components of a server on another host register only there: ask it.
+            seen += [i for i in await servers.remote_components() if i.session_id] if servers.remote else []
             connected = {i.id for i in seen}
             started = {i.id for i in seen if i.state in past_start}
             waiting = [

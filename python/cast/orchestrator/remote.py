@@ -31,13 +31,19 @@ import grpc.aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from cast.auth import TokenSigner
-from cast.config.model import ComponentConfig, HostConfig, SystemConfig
+from cast.config.model import LOCAL_HOST, ComponentConfig, HostConfig, ServerConfig, SystemConfig
 from cast.core.records import Identity
 from cast.errors import CastError, InvalidArgumentError, UnavailableError
 from cast.orchestrator.process import LineSink
 from cast.v1 import agent_pb2, agent_pb2_grpc
 
-__all__ = ["ORCHESTRATOR_ID", "AgentLink", "Agents", "RemoteProcess", "config_path_for_agents", "probe_hosts"]
+__all__ = [
+    "ORCHESTRATOR_ID", "SERVER_PREFIX", "AgentLink", "Agents", "RemoteProcess", "config_path_for_agents",
+    "probe_hosts", "remote_hosts",
+]
+
+SERVER_PREFIX = "server:"
+"""A server started through an agent is known there as ``server:NAME``."""
 
 ORCHESTRATOR_ID = "orchestrator"
 """The identity of the token an orchestrator presents to agents (privileged)."""
@@ -100,6 +106,11 @@ class RemoteProcess:
         self.host_lost = False  # ended because its host was lost (not an exit the agent reported)
         self._exit: asyncio.Future[int] = asyncio.get_running_loop().create_future()
         self.argv: list[str] = []
+        # A server (component_id "server:NAME"): its name, the routes and directory it is given, its endpoint.
+        self.server = ""
+        self.routes: dict[str, str] = {}
+        self.await_run = ""
+        self.endpoint = ""
 
     @property
     def host(self) -> str:
@@ -115,7 +126,7 @@ class RemoteProcess:
         """Launch through the agent; CastError (with the agent's reason) if it cannot start."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         reply = await self.link.launch(self)
-        self.pid, self.argv = reply.pid, list(reply.argv)
+        self.pid, self.argv, self.endpoint = reply.pid, list(reply.argv), reply.endpoint
 
     def line(self, text: str) -> None:
         """One output line from the agent: to the log file and the sink."""
@@ -368,9 +379,14 @@ class AgentLink:
         if self.lost:
             raise UnavailableError(f"cannot launch {proc.component_id}: host '{self.host.name}' is lost")
         self.processes[proc.component_id] = proc
-        request = agent_pb2.LaunchRequest(system=self.config.name, config_path=self.config_path,
-                                          sets=dict(self.config.variables), component_id=proc.component_id,
-                                          env=proc.env)
+        if proc.server:
+            request = agent_pb2.LaunchRequest(system=self.config.name, config_path=self.config_path,
+                                              sets=dict(self.config.variables), server=proc.server,
+                                              routes=proc.routes, await_run=proc.await_run)
+        else:
+            request = agent_pb2.LaunchRequest(system=self.config.name, config_path=self.config_path,
+                                              sets=dict(self.config.variables), component_id=proc.component_id,
+                                              env=proc.env)
         try:
             return await self.stub.Launch(request, metadata=_metadata(self._signer), timeout=_CALL_TIMEOUT)
         except grpc.RpcError as exc:
@@ -407,12 +423,12 @@ class Agents:
         self.config = config
         self._signer = signer
         self._notify = notify
-        self.config_path = config_path_for_agents(config, cwd) if config.remote_components else ""
+        self.config_path = config_path_for_agents(config, cwd) if remote_hosts(config) else ""
         self.links: dict[str, AgentLink] = {}
 
     async def attach_all(self) -> None:
-        """Attach to the agent of every host a component runs on (CastError naming the first that fails)."""
-        hosts = {c.host for c in self.config.remote_components}
+        """Attach to the agent of every host a component or server runs on (CastError naming the first that fails)."""
+        hosts = remote_hosts(self.config)
         for name in sorted(hosts):
             link = AgentLink(self.config.hosts[name], self.config, self.config_path, self._signer, self._notify)
             try:
@@ -426,11 +442,23 @@ class Agents:
         """A process of ``comp`` to be started on its host."""
         return RemoteProcess(self.links[comp.host], comp.id, env, log_path, sink)
 
+    def server_process(self, server: ServerConfig, routes: Mapping[str, str], await_run: str, log_path: Path,
+                       sink: LineSink) -> RemoteProcess:
+        """A server process (``cast serve``) to be started on its host."""
+        proc = RemoteProcess(self.links[server.host], SERVER_PREFIX + server.name, {}, log_path, sink)
+        proc.server, proc.routes, proc.await_run = server.name, dict(routes), await_run
+        return proc
+
     async def close(self) -> None:
         """Detach from every agent."""
         for link in self.links.values():
             await link.close()
         self.links.clear()
+
+
+def remote_hosts(config: SystemConfig) -> set[str]:
+    """The hosts whose agents run a component or a server of the system."""
+    return {c.host for c in config.remote_components} | {s.host for s in config.servers if s.host != LOCAL_HOST}
 
 
 def probe_hosts(config: SystemConfig, secret: bytes | None, cwd: Path | None = None,

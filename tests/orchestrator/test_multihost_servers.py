@@ -1,0 +1,119 @@
+"""A server on another host (issue 16, item 4): `cast run` starts it through that host's `cast agent`.
+
+Two network namespaces joined by a veth pair on a private 10.217.x.0/24 made here: `cast run` (the
+directory server `main`, SA `near`, in its process) in one; `cast agent` in the other, which starts
+the server `far` (SA `far`, `host: arm`) as `cast serve --server far` with the agent's secret. On
+each side a writer adds to the other side's SA and a watcher watches its own: every change is
+seen (the start barrier holds both servers' components). A clean stop leaves nothing in the
+agent's namespace but the agent. A test that cannot make namespaces fails with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import yaml
+
+from tests.conftest import PYTHONPATH, SECRET
+from tests.orchestrator.conftest import COMPONENTS
+from tests.orchestrator.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
+
+COUNT = 25
+
+
+def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
+    net = Namespaces(second_octet=217)
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        orch_ns, agent_ns = net.add("orch"), net.add("agent")
+        orch_ip, agent_ip = net.link(orch_ns, agent_ns)
+
+        root = tmp_path / "root"
+        root.mkdir()
+        (root / "secret").write_text(SECRET + "\n")
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+        env["PYTHONPATH"] = PYTHONPATH
+
+        agent, agent_ep, agent_out = start_agent(agent_ns, f"{agent_ip}:0", root, root / "secret", env)
+        procs.append(agent)
+
+        def comp(cls: str, host: str | None = None, **args: object) -> dict[str, object]:
+            return {"class": f"barrier_components:{cls}", **({"host": host} if host else {}),
+                    **({"args": args} if args else {}), "privileged": True}
+
+        (root / "system.yaml").write_text(yaml.safe_dump({
+            "system": "mhservers",
+            "python_path": [str(COMPONENTS)],
+            "hosts": {"arm": agent_ep},
+            "servers": {
+                "main": {"listen": f"{orch_ip}:0", "subarchitectures": ["near"]},
+                "far": {"listen": f"{agent_ip}:0", "host": "arm", "subarchitectures": ["far"]},
+            },
+            "orchestrator": {"lease_ms": 3000, "stop_timeout": 5, "connect_timeout": 60},
+            "subarchitectures": {
+                "near": {"components": {
+                    "lwatch": comp("BarrierWatcher"),
+                    "lwrite": comp("BarrierWriter", sa="far", count=COUNT),
+                }},
+                "far": {"components": {
+                    "rwatch": comp("BarrierWatcher", "arm"),
+                    "rwrite": comp("BarrierWriter", "arm", sa="near", count=COUNT),
+                }},
+            },
+        }, sort_keys=False))
+
+        run_env = dict(env, CAST_SECRET_FILE=str(root / "secret"))
+        ns_exec = Namespaces.exec(orch_ns)
+        check = subprocess.run([*ns_exec, CAST, "check", "system.yaml", "--probe"], capture_output=True, text=True,
+                               env=run_env, cwd=root, timeout=60)
+        assert check.returncode == 0, check.stdout + check.stderr
+
+        started = time.monotonic()
+        run = subprocess.Popen([*ns_exec, CAST, "run", "system.yaml", "--no-status", "--runtime-dir", "rt",
+                                "--summary-json", "summary.json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=run_env, cwd=root)
+        procs.append(run)
+        out = Lines(run)
+        far_line = out.wait("server far on host arm: listening on")
+        assert f"reached at {agent_ip}:" in far_line, far_line
+        all_started = out.wait("all 4 components started in")
+        start_seconds = time.monotonic() - started
+
+        def get(sa: str, entry: str) -> str:
+            got = subprocess.run([*ns_exec, CAST, "get", sa, entry, "--json", "--runtime-dir", "rt"],
+                                 capture_output=True, text=True, env=env, cwd=root, timeout=60)
+            return got.stdout if got.returncode == 0 else ""
+
+        # Each watcher saw every change the writer of the other host made to its SA.
+        deadline = time.monotonic() + 60
+        for sa, entry in (("far", "seen-rwatch-lwrite"), ("near", "seen-lwatch-rwrite")):
+            while str(COUNT) not in (text := get(sa, entry)):
+                assert time.monotonic() < deadline, f"{sa}/{entry}: {text!r}\n" + "\n".join(out.lines[-30:])
+                time.sleep(0.2)
+
+        # The far server runs in the agent's namespace; its output comes back to the orchestrator's log.
+        server_log = root / "rt" / "logs" / "server-far.log"
+        assert "listening on" in server_log.read_text()
+        assert "start barrier released" in server_log.read_text()
+
+        stop_at = time.monotonic()
+        run.send_signal(signal.SIGINT)
+        code = run.wait(60)
+        stop_seconds = time.monotonic() - stop_at
+        assert code == 0, "\n".join(out.lines[-40:])
+        summary = json.loads((root / "summary.json").read_text())
+        assert summary["failures"] == []
+        deadline = time.monotonic() + 10
+        while left := ns_pids(agent_ns) - {agent.pid}:
+            assert time.monotonic() < deadline, f"processes left in the agent's namespace: {left}"
+            time.sleep(0.1)
+        assert agent.poll() is None, "\n".join(agent_out.lines)
+        print(f"\n{far_line}; {all_started}; cast run to all started {start_seconds:.2f} s; stop {stop_seconds:.2f} s")
+    finally:
+        stop_all(procs)
+        net.close()
