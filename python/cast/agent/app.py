@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import signal
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,6 +16,7 @@ from cast.agent.processes import ProcessTable
 from cast.agent.service import AgentServicer
 from cast.agent.trust import AgentTrust, TrustInterceptor
 from cast.errors import InvalidArgumentError
+from cast.signals import until_terminated
 from cast.v1 import agent_pb2, agent_pb2_grpc
 
 __all__ = ["AGENT_SERVICE", "RunningAgent", "serve_agent", "start_agent"]
@@ -97,11 +96,6 @@ async def serve_agent(
           flush=True)
     if on_started is not None:
         on_started(running)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
-    await stop.wait()
+    await until_terminated()
     print("cast agent stopping: stopping every process it started", file=sys.stderr, flush=True)
     await running.stop()

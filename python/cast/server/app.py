@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -29,6 +27,7 @@ from cast.server.task_manager import TaskManagerServicer
 from cast.server.wire import wire_system
 from cast.server.working_memory import WorkingMemoryServicer
 from cast.server.working_memory import add_to_server as add_working_memory
+from cast.signals import until_terminated
 from cast.v1 import (
     directory_pb2,
     directory_pb2_grpc,
@@ -232,11 +231,6 @@ async def serve_forever(
     print(f"listening on {running.endpoint}", flush=True)
     if on_started is not None:
         on_started(running)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
-    await stop.wait()
+    await until_terminated()
     print("stopping", file=sys.stderr, flush=True)
     await running.stop()
