@@ -44,6 +44,7 @@ class Namespaces:
         self.net = 20 + os.getpid() % 200
         self.names: list[str] = []
         self.links = 0
+        self.interfaces: dict[str, str] = {}  # namespace -> the veth end it got last (to cut its link)
 
     def __enter__(self) -> Namespaces:
         return self
@@ -78,6 +79,7 @@ class Namespaces:
             ip("-n", ns, "addr", "add", f"{subnet}.{host}/24", "dev", ifname)
             ip("-n", ns, "link", "set", ifname, "up")
             addresses.append(f"{subnet}.{host}")
+            self.interfaces[ns] = ifname
         return addresses[0], addresses[1]
 
     def bridge(self, hub: str, *spokes: str) -> list[str]:

@@ -27,6 +27,7 @@ import pytest
 import yaml
 
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
+from tests.orchestrator.netns import Namespaces, ip, ns_pids, stop_all
 
 CAST = str(VENV_BIN / "cast")
 GUARD_S = 60.0
@@ -71,12 +72,6 @@ class Seer(cast.UnmanagedComponent):
 '''
 
 
-def _ip(*args: str) -> None:
-    done = subprocess.run(["ip", *args], capture_output=True, text=True)
-    if done.returncode != 0:
-        pytest.fail(f"`ip {' '.join(args)}` failed: {done.stderr.strip()} (network namespaces are required)")
-
-
 class Lines:
     """A process's output lines, read on a thread, each with the time it arrived."""
 
@@ -119,46 +114,29 @@ class Lines:
 
 @dataclass
 class Net:
+    """The orchestrator's namespace and the agent's, joined by a veth pair whose agent end can be cut."""
+
     orch_ns: str
     agent_ns: str
     agent_if: str
     orch_ip: str
     agent_ip: str
-
-    def exec(self, ns: str) -> list[str]:
-        return ["ip", "netns", "exec", ns]
-
-    def pids(self, ns: str) -> set[int]:
-        done = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True)
-        return {int(p) for p in done.stdout.split()}
+    exec = staticmethod(Namespaces.exec)
+    pids = staticmethod(ns_pids)
 
     def cut(self) -> None:
-        _ip("-n", self.agent_ns, "link", "set", self.agent_if, "down")
+        ip("-n", self.agent_ns, "link", "set", self.agent_if, "down")
 
     def restore(self) -> None:
-        _ip("-n", self.agent_ns, "link", "set", self.agent_if, "up")
+        ip("-n", self.agent_ns, "link", "set", self.agent_if, "up")
 
 
 @pytest.fixture(scope="module")
 def net() -> Iterator[Net]:
-    tag = f"{os.getpid() % 100000}"
-    octet = 20 + os.getpid() % 200
-    n = Net(f"castfo{tag}", f"castfa{tag}", f"vfa{tag}", f"10.215.{octet}.1", f"10.215.{octet}.2")
-    orch_if = f"vfo{tag}"
-    try:
-        _ip("netns", "add", n.orch_ns)
-        _ip("netns", "add", n.agent_ns)
-        _ip("link", "add", orch_if, "type", "veth", "peer", "name", n.agent_if)
-        _ip("link", "set", orch_if, "netns", n.orch_ns)
-        _ip("link", "set", n.agent_if, "netns", n.agent_ns)
-        for ns, ifname, addr in ((n.orch_ns, orch_if, n.orch_ip), (n.agent_ns, n.agent_if, n.agent_ip)):
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", ifname)
-            _ip("-n", ns, "link", "set", ifname, "up")
-            _ip("-n", ns, "link", "set", "lo", "up")
-        yield n
-    finally:
-        for ns in (n.orch_ns, n.agent_ns):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+    with Namespaces(second_octet=215) as spaces:
+        orch, agent = spaces.add("fo"), spaces.add("fa")
+        orch_ip, agent_ip = spaces.link(orch, agent)
+        yield Net(orch, agent, spaces.interfaces[agent], orch_ip, agent_ip)
 
 
 def gone(pid: int) -> bool:
@@ -243,14 +221,7 @@ class System:
 
     def close(self) -> None:
         self.net.restore()
-        for proc in reversed(self.procs):
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(15)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        stop_all(self.procs)
 
 
 @pytest.fixture
