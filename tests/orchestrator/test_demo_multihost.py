@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from tests.conftest import ROOT, SECRET
-from tests.orchestrator.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
+from tests.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
 from tests.orchestrator.test_demo import demo_builds
 
 CONFIG = "configs/demo-multihost.yaml"

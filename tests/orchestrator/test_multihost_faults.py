@@ -27,7 +27,7 @@ import pytest
 import yaml
 
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
-from tests.orchestrator.netns import Namespaces, ip, ns_pids, stop_all
+from tests.netns import Namespaces, ip, ns_pids, stop_all
 
 CAST = str(VENV_BIN / "cast")
 GUARD_S = 60.0

@@ -20,8 +20,8 @@ from pathlib import Path
 import yaml
 
 from tests.conftest import PYTHONPATH, SECRET
+from tests.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
 from tests.orchestrator.conftest import COMPONENTS
-from tests.orchestrator.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
 
 LOUD = '''\
 import os

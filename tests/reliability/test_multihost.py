@@ -18,21 +18,15 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
 import yaml
 
 from cast.auth import TokenSigner
 from cast.core.records import Identity
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
+from tests.netns import Namespaces, ip, stop_all
 from tests.reliability.figures import record
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
-
-
-def _ip(*args: str) -> None:
-    done = subprocess.run(["ip", *args], capture_output=True, text=True)
-    if done.returncode != 0:
-        pytest.fail(f"`ip {' '.join(args)}` failed: {done.stderr.strip()} (network namespaces are required)")
 
 
 class Lines:
@@ -56,22 +50,12 @@ class Lines:
 
 
 def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session(tmp_path: Path) -> None:
-    tag = f"{os.getpid() % 100000}"
-    net = 20 + os.getpid() % 200
-    srv_ns, cli_ns = f"castsrv{tag}", f"castcli{tag}"
-    srv_if, cli_if = f"vs{tag}", f"vc{tag}"
-    srv_ip, cli_ip = f"10.213.{net}.1", f"10.213.{net}.2"
+    spaces = Namespaces(second_octet=213)
     procs: list[subprocess.Popen[str]] = []
     try:
-        _ip("netns", "add", srv_ns)
-        _ip("netns", "add", cli_ns)
-        _ip("link", "add", srv_if, "type", "veth", "peer", "name", cli_if)
-        _ip("link", "set", srv_if, "netns", srv_ns)
-        _ip("link", "set", cli_if, "netns", cli_ns)
-        for ns, ifname, addr in ((srv_ns, srv_if, srv_ip), (cli_ns, cli_if, cli_ip)):
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", ifname)
-            _ip("-n", ns, "link", "set", ifname, "up")
-            _ip("-n", ns, "link", "set", "lo", "up")
+        srv_ns, cli_ns = spaces.add("srv"), spaces.add("cli")
+        srv_ip, _ = spaces.link(srv_ns, cli_ns)
+        srv_if = spaces.interfaces[srv_ns]
 
         config = tmp_path / "system.yaml"
         config.write_text(yaml.safe_dump({"system": "multihost", "subarchitectures": {"vision": {}}}))
@@ -111,11 +95,11 @@ def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session
         writer = component("rel_components:NetWriter", "writer", {"count": 300})
         writer.wait(lambda ls: sum(x.startswith("ACK") for x in ls) >= 50, what="acknowledged writes")
 
-        _ip("-n", srv_ns, "link", "set", srv_if, "down")  # cut the link
+        ip("-n", srv_ns, "link", "set", srv_if, "down")  # cut the link
         cut_at = time.monotonic()
         released = check("released")  # inside the server's namespace, while the link is down
         time.sleep(max(0.0, 3.0 - (time.monotonic() - cut_at)))  # keep it down a few seconds in all
-        _ip("-n", srv_ns, "link", "set", srv_if, "up")
+        ip("-n", srv_ns, "link", "set", srv_if, "up")
         cut_seconds = time.monotonic() - cut_at
         assert released == {"released": True}
 
@@ -133,13 +117,5 @@ def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session
         record("multihost_link_cut", {"cut_seconds": round(cut_seconds, 2), "acknowledged": len(acked),
                                       "lost": 0, "watcher_events": len(revs), "lease_ms": 1500})
     finally:
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-        for ns in (srv_ns, cli_ns):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        stop_all(procs)
+        spaces.close()
