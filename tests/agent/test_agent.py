@@ -136,3 +136,15 @@ def test_health_and_reflection_list_the_agent_service(agent: AgentHandle) -> Non
         iter([request]), metadata=metadata(), timeout=10)
     names = {s.name for r in responses for s in r.list_services_response.service}
     assert {"cast.v1.Agent", "grpc.health.v1.Health"} <= names
+
+
+def test_a_new_session_ignores_the_ack_of_an_old_one(agent: AgentHandle, wm_server: ServerHandle) -> None:
+    # An orchestrator re-attaching after the agent restarted still holds the old session's last seq:
+    # the new session's events, numbered from 1 again, must reach it all the same.
+    attach = Attachment(agent.channel(), system="fresh-session", ack_seq=1000)
+    attached = attach.wait(lambda: attach.of("attached"), what="the attached event")[0]
+    assert not attached.resumed
+    request = launch_request("chatty", wm_server.endpoint, SECRET, system="fresh-session")
+    stub(agent).Launch(request, metadata=metadata(), timeout=30)
+    attach.wait(lambda: attach.of("exit", "chatty"), what="chatty's exit, although acked 1000 before")
+    attach.close()

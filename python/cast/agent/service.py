@@ -64,14 +64,17 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
         if not first.system:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the first AttachRequest must name the system")
         session, resumed = self.table.open_session(first.system, first.lease_ms, first.grace_ms)
-        session.ack(first.ack_seq)
+        # A new session numbers its events from 1: an ack of the caller's last session (this agent was
+        # restarted, or the old session ended) says nothing about them, and would withhold them.
+        start = first.ack_seq if resumed else 0
+        session.ack(start)
         stream = session.attach()
         reader = asyncio.ensure_future(self._keepalives(request_iterator, session, stream))
         try:
             yield agent_pb2.AgentEvent(attached=agent_pb2.AgentAttached(
                 host=self.host, root=str(self.root), agent_pid=os.getpid(),
                 running=self.table.running(first.system), resumed=resumed))
-            seq = first.ack_seq
+            seq = start
             while True:
                 events = await session.wait(stream, seq)
                 if events is None:

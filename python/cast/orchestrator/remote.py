@@ -311,10 +311,7 @@ class AgentLink:
                 call, attached = await self._session(max(0.5, self.lease_ms / 3000))
                 if not attached.resumed:
                     new_session = True
-                    if self._ack:  # its events start at 1 again: attach once more, acknowledging none
-                        call.cancel()
-                        self._ack = 0
-                        call, attached = await self._session(max(0.5, self.lease_ms / 3000))
+                    self._ack = 0  # its events start at 1 again (the agent ignored our old ack)
             except CastError:
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, max(0.2, self.lease_ms / 3000))
