@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections import defaultdict
 
@@ -216,3 +218,26 @@ def test_the_server_says_who_a_component_is_and_a_launch_environment_that_disagr
         boss.add("from-boss", Counter(), subarchitecture="language")
     finally:
         boss._cast_close()
+
+
+def test_a_launched_component_waits_for_a_server_that_answers_late(server: ServerHandle, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # The launcher started the system first, so a server that does not answer at once is busy or still
+    # starting: the component asks again (cast.client.runner.LaunchContract.connect) instead of exiting 2.
+    import socket
+
+    from tests.conftest import serve
+
+    with socket.socket() as probe:  # a port nobody listens on yet (the OS's pick, not a fixed one)
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    env = dict(server.env("late", "vision", args={"count": 3}), CAST_ENDPOINT=f"127.0.0.1:{port}")
+    proc = subprocess.Popen([sys.executable, "-m", "cast.run", "itest_components:Writer"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    time.sleep(1.0)  # the component's first calls find nobody
+    late = serve(server.config_path, listen=f"127.0.0.1:{port}", cwd=tmp_path)
+    try:
+        out = finish(proc)
+        assert "not answering yet" in out, out
+    finally:
+        proc.kill()
+        late.stop()

@@ -16,21 +16,26 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from cast.client.channel import Backoff
 from cast.client.component import Component
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.transport import Transport
 from cast.core.records import Identity
 from cast.core.sessions import ComponentState
-from cast.errors import CastError, InvalidArgumentError
+from cast.errors import CastError, InvalidArgumentError, UnavailableError
 
 __all__ = ["LaunchContract", "load_component_class", "main", "run_component"]
 
 log = logging.getLogger("cast.run")
+
+CONNECT_WINDOW_S = 20.0
+"""How long a launched component keeps asking a server that does not answer before it gives up."""
 
 
 @dataclass(frozen=True)
@@ -83,10 +88,25 @@ class LaunchContract:
         """
         return Identity(self.component_id, self.subarchitecture, False)
 
-    def connect(self) -> GrpcTransport:
-        """A gRPC connection to the system."""
+    def connect(self, window: float = CONNECT_WINDOW_S) -> GrpcTransport:
+        """A gRPC connection to the system.
+
+        Whoever launched the component started the system first, so a server that does not
+        answer at once is busy or still starting (a machine starting many components, or a server
+        restarted by its supervisor): it is asked again with backoff for ``window`` seconds before
+        the component gives up (exit 2), rather than failing for good on the first refusal.
+        """
         tokens = TokenSource(self.token, self.token_file or None)
-        return GrpcTransport(self.endpoint, tokens, self.identity(), tls=self.tls)
+        deadline = time.monotonic() + window
+        backoff = Backoff()
+        while True:
+            try:
+                return GrpcTransport(self.endpoint, tokens, self.identity(), tls=self.tls)
+            except UnavailableError as err:
+                if time.monotonic() >= deadline:
+                    raise
+                log.info("the server at %s is not answering yet (%s); asking again", self.endpoint, err.message)
+                time.sleep(backoff.next())
 
 
 def load_component_class(spec: str) -> type[Component]:
