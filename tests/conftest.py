@@ -107,13 +107,18 @@ class ServerHandle:
 
     def stop(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL)."""
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(10)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
+        stop_process(self.process, 10)
+
+
+def stop_process(process: subprocess.Popen[str], grace: float) -> None:
+    """SIGTERM a test's child process if it still runs, SIGKILL after ``grace`` seconds; wait for its end."""
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(grace)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
 
 
 def components(endpoint: str, token: str) -> dict[str, Any]:

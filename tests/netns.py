@@ -17,7 +17,7 @@ from types import TracebackType
 
 import pytest
 
-from tests.conftest import VENV_BIN
+from tests.conftest import VENV_BIN, stop_process
 
 CAST = str(VENV_BIN / "cast")
 
@@ -159,10 +159,4 @@ def start_agent(ns: str, listen: str, root: Path, secret_file: Path, env: dict[s
 def stop_all(procs: list[subprocess.Popen[str]]) -> None:
     """Terminate what is still running, the last started first (SIGKILL after 15 s)."""
     for proc in reversed(procs):
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_process(proc, 15)

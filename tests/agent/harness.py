@@ -23,6 +23,7 @@ import grpc
 from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.v1 import agent_pb2, agent_pb2_grpc
+from tests.conftest import stop_process
 
 ROOT = Path(__file__).resolve().parents[2]
 VENV_BIN = Path(sys.executable).parent
@@ -116,13 +117,7 @@ class AgentHandle:
 
     def stop(self) -> None:
         """SIGTERM, then SIGKILL."""
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
+        stop_process(self.process, 15)
 
 
 def start_agent(root: Path, *extra: str, secret: bool = True) -> AgentHandle:

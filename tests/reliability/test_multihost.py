@@ -14,7 +14,6 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -22,31 +21,11 @@ import yaml
 
 from cast.auth import TokenSigner
 from cast.core.records import Identity
-from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
-from tests.netns import Namespaces, ip, stop_all
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, wait_for
+from tests.netns import Lines, Namespaces, ip, stop_all
 from tests.reliability.figures import record
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
-
-
-class Lines:
-    """A process's output lines, read on a thread."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.proc = proc
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait(self, predicate: object, timeout: float = 60.0, what: str = "") -> None:
-        deadline = time.monotonic() + timeout
-        while not predicate(self.lines):  # type: ignore[operator]
-            assert time.monotonic() < deadline, f"timed out waiting for {what}: {self.lines[-5:]}"
-            time.sleep(0.05)
 
 
 def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session(tmp_path: Path) -> None:
@@ -89,11 +68,11 @@ def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session
             return dict(json.loads(done.stdout.strip().splitlines()[-1]))
 
         watcher = component("rel_components:NetWatcher", "watcher")
-        watcher.wait(lambda ls: "WATCHING" in ls, what="the watcher")
+        wait_for(lambda: "WATCHING" in watcher.lines, what="the watcher")
         locker = component("rel_components:NetLocker", "locker")
-        locker.wait(lambda ls: any(x.startswith("ADOPTED") for x in ls), what="the lock and task")
+        wait_for(lambda: any(x.startswith("ADOPTED") for x in locker.lines), what="the lock and task")
         writer = component("rel_components:NetWriter", "writer", {"count": 300})
-        writer.wait(lambda ls: sum(x.startswith("ACK") for x in ls) >= 50, what="acknowledged writes")
+        wait_for(lambda: sum(x.startswith("ACK") for x in writer.lines) >= 50, what="acknowledged writes")
 
         ip("-n", srv_ns, "link", "set", srv_if, "down")  # cut the link
         cut_at = time.monotonic()
@@ -103,14 +82,14 @@ def test_link_cut_between_namespaces_loses_nothing_and_releases_the_lost_session
         cut_seconds = time.monotonic() - cut_at
         assert released == {"released": True}
 
-        writer.wait(lambda ls: "DONE" in ls, timeout=120, what="the writer to finish")
+        wait_for(lambda: "DONE" in writer.lines, timeout=120, what="the writer to finish")
         acked = [x.split()[1] for x in writer.lines if x.startswith("ACK")]
         ids_file = tmp_path / "acked.txt"
         ids_file.write_text("\n".join(acked))
         state = check("state", str(ids_file))
         assert state["missing"] == [], state
         top = int(state["revision"])  # type: ignore[call-overload]
-        watcher.wait(lambda ls: any(x.startswith(f"EV {top} ") for x in ls), timeout=60, what="the watcher")
+        wait_for(lambda: any(x.startswith(f"EV {top} ") for x in watcher.lines), timeout=60, what="the watcher")
         revs = [int(x.split()[1]) for x in watcher.lines if x.startswith("EV")]
         assert revs == list(range(revs[0], top + 1)), "gap or duplicate"
         assert not any(x.startswith("FAILED") for x in watcher.lines)
