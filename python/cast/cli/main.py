@@ -1,4 +1,4 @@
-"""The ``cast`` command line: serve, run, check, token, and the inspection commands."""
+"""The ``cast`` command line: serve, run, check, token, the inspection commands, record, replay and info."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import agent, inspection, run, serve, token
+from cast.cli import agent, inspection, record, replay, run, serve, token
 from cast.errors import CastError
 
 __all__ = ["build_parser", "main"]
@@ -21,6 +21,8 @@ def build_parser() -> argparse.ArgumentParser:
     token.add_command(sub)
     inspection.add_commands(sub)
     agent.add_command(sub)
+    record.add_command(sub)
+    replay.add_commands(sub)
     return parser
 
 

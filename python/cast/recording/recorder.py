@@ -1,0 +1,295 @@
+"""Recording a running system: every change of the chosen SAs, and every gap, into a :class:`RecordingWriter`.
+
+One watch stream per server (the client library's :class:`WatchStream`), so a
+broken connection or a restarted server is resumed from the revision after the
+last one received, with no gap and no duplicate. When a resume is refused (the
+server's history no longer reaches back that far, or it restarted without its
+history) or the recorder fell behind the history, the recorder watches again
+from the server's current revision and writes a :class:`Gap` for each SA that
+missed changes: the file says what is missing, and the caller is told.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import grpc
+
+from cast.client.channel import Backoff, ServerLink, map_rpc_error
+from cast.client.credentials import ClientTls, TokenSource
+from cast.client.watch_stream import WatchStream
+from cast.core.records import ChangeEvent
+from cast.core.watch import EventFilter
+from cast.errors import CastError, NotFoundError
+from cast.recording.channels import FORMAT_VERSION, MAX_SEQUENCE, ChannelMap, Gap
+from cast.recording.info import iso
+from cast.recording.mcap_file import RecordingWriter
+from cast.v1 import directory_pb2 as dir_pb2
+
+__all__ = ["RecordOptions", "RecordStats", "Recorder"]
+
+_RESYNC_RETRY_S = 1.0
+_SCHEMA_ATTEMPTS = 3
+
+
+@dataclass(frozen=True)
+class RecordOptions:
+    """What to record: SAs (empty: every SA), entry types (empty: every type), and where to start."""
+
+    subarchitectures: tuple[str, ...] = ()
+    types: tuple[str, ...] = ()
+    from_revision: int = 0  # 0: from now; else the first revision of each SA to record
+
+
+@dataclass
+class RecordStats:
+    """What has been recorded so far (read by a status line on another thread)."""
+
+    changes: int = 0
+    data_bytes: int = 0
+    per_subarchitecture: dict[str, int] = field(default_factory=dict)
+    gaps: list[Gap] = field(default_factory=list)
+    reconnects: int = 0
+    connected: bool = True
+
+
+class _Server:
+    """One server the recorder watches: its link, the SAs recorded there, its watch stream."""
+
+    def __init__(self, link: ServerLink, sas: list[str]) -> None:
+        self.link = link
+        self.sas = sas
+        self.stream: WatchStream | None = None
+        self.watch_id = 0
+        self.history = ""
+        self.failure: CastError | None = None  # a resynchronisation still to do, and why
+        self.retry_at = 0.0
+
+
+Item = tuple[_Server, ChangeEvent | CastError]
+
+
+class Recorder:
+    """Watches the chosen SAs of a running system and writes every change to a recording."""
+
+    def __init__(self, endpoint: str, tokens: TokenSource, options: RecordOptions, tls: ClientTls | None = None,
+                 call_timeout: float = 10.0) -> None:
+        self._tokens = tokens
+        self._tls = tls
+        self._timeout = call_timeout
+        self.options = options
+        self._closing = threading.Event()
+        self._queue: queue.SimpleQueue[Item] = queue.SimpleQueue()
+        self._directory = ServerLink(endpoint, tls)
+        self._links: dict[str, ServerLink] = {endpoint: self._directory}
+        self.system = self._describe()
+        known = [sa.name for sa in self.system.subarchitectures]
+        chosen = list(dict.fromkeys(options.subarchitectures)) or known
+        unknown = [sa for sa in chosen if sa not in known]
+        if unknown:
+            raise NotFoundError(f"no subarchitecture {', '.join(repr(sa) for sa in unknown)} in system "
+                                f"'{self.system.name}' (known: {', '.join(known)})")
+        self.subarchitectures = chosen
+        self._servers: list[_Server] = []
+        by_endpoint: dict[str, _Server] = {}
+        for info in self.system.subarchitectures:
+            if info.name not in chosen:
+                continue
+            address = info.endpoint if info.endpoint and info.endpoint != self.system.endpoint else endpoint
+            server = by_endpoint.get(address)
+            if server is None:
+                link = self._links.get(address) or ServerLink(address, tls)
+                self._links[address] = link
+                server = by_endpoint[address] = _Server(link, [])
+                self._servers.append(server)
+            server.sas.append(info.name)
+        self.channels = ChannelMap(self._schema)
+        self.stats = RecordStats(per_subarchitecture=dict.fromkeys(chosen, 0))
+        self._last: dict[str, int] = {}  # per SA, the newest revision recorded (or known to be before the start)
+        self._sequence = 0
+        self.started_ns = 0
+        self.stop_reason = ""
+
+    # ----------------------------------------------------------------- calls
+
+    def _describe(self) -> dir_pb2.SystemDescription:
+        try:
+            desc: dir_pb2.SystemDescription = self._directory.directory.DescribeSystem(
+                dir_pb2.DescribeSystemRequest(), metadata=self._tokens.metadata(), timeout=self._timeout)
+        except grpc.RpcError as exc:
+            raise map_rpc_error(exc) from None
+        return desc
+
+    def _schema(self, sa: str, type_name: str) -> bytes | None:
+        """The serialized FileDescriptorSet of a type as registered on the SA's server; None if nobody did."""
+        link = next((s.link for s in self._servers if sa in s.sas), self._directory)
+        backoff = Backoff()
+        for attempt in range(_SCHEMA_ATTEMPTS):
+            try:
+                resp = link.directory.GetSchema(dir_pb2.GetSchemaRequest(type=type_name),
+                                                metadata=self._tokens.metadata(), timeout=self._timeout)
+                return bytes(resp.files.SerializeToString()) if resp.files.file else None
+            except grpc.RpcError as exc:
+                error = map_rpc_error(exc)
+                if error.code == "NOT_FOUND" or attempt == _SCHEMA_ATTEMPTS - 1:
+                    return None
+                time.sleep(backoff.next())
+        return None
+
+    def _filters(self, sas: Sequence[str]) -> list[EventFilter]:
+        types = self.options.types or ("",)
+        return [EventFilter(subarchitecture=sa, type=t, include_entry=True) for sa in sas for t in types]
+
+    # --------------------------------------------------------------- watches
+
+    def _open_stream(self, server: _Server) -> WatchStream:
+        def sink(event: ChangeEvent, _ids: Sequence[int]) -> None:
+            self._queue.put((server, event))
+
+        def failed(error: CastError) -> None:
+            # Called on the stream's thread: the watch is created again on the main thread.
+            self._queue.put((server, error))
+
+        server.link.watch_stream = WatchStream(server.link, self._tokens, sink, failed, self._closing)
+        return server.link.watch_stream
+
+    def start(self) -> None:
+        """Create the watches (from ``from_revision``, or from now); the named error if the server refuses."""
+        for server in self._servers:
+            server.stream = self._open_stream(server)
+            server.watch_id = 1
+            starts = {sa: self.options.from_revision for sa in server.sas} if self.options.from_revision else {}
+            revisions = server.stream.create(server.watch_id, self._filters(server.sas), starts, self._timeout)
+            server.history = server.stream.history_id
+            for sa in server.sas:
+                self._last[sa] = starts[sa] - 1 if starts else revisions.get(sa, 0)
+        self.started_ns = time.time_ns()
+
+    def header(self) -> dict[str, str]:
+        """The ``cast.recording`` metadata: what is recorded, from where, since when."""
+        return {
+            "format": FORMAT_VERSION,
+            "system": self.system.name,
+            "endpoint": self._directory.endpoint,
+            "subarchitectures": ",".join(self.subarchitectures),
+            "types": ",".join(self.options.types),
+            "from_revision": str(self.options.from_revision),
+            "start_revisions": ",".join(f"{sa}={self._last.get(sa, 0) + 1}" for sa in self.subarchitectures),
+            "started": iso(self.started_ns or time.time_ns()),
+        }
+
+    def trailer(self) -> dict[str, str]:
+        """The ``cast.recording.end`` metadata: when and why the recording ended, and what it holds."""
+        return {
+            "stopped": iso(time.time_ns()),
+            "reason": self.stop_reason,
+            "changes": str(self.stats.changes),
+            "gaps": str(len(self.stats.gaps)),
+            "last_revisions": ",".join(f"{sa}={self._last.get(sa, 0)}" for sa in self.subarchitectures),
+        }
+
+    # ------------------------------------------------------------------ loop
+
+    def run(self, writer: RecordingWriter, stop: threading.Event, until: float | None,
+            on_gap: Callable[[Gap], None]) -> None:
+        """Write changes as they come until ``stop`` is set or the monotonic time ``until`` passes.
+
+        Then the streams are closed and what they had delivered is written too.
+        """
+        while not stop.is_set():
+            now = time.monotonic()
+            if until is not None and now >= until:
+                self.stop_reason = self.stop_reason or "time"
+                break
+            wait = 0.2 if until is None else max(0.0, min(0.2, until - now))
+            try:
+                server, item = self._queue.get(timeout=wait)
+            except queue.Empty:
+                pass
+            else:
+                if not self._handle(writer, server, item, on_gap):
+                    break
+            self._retry_resyncs(writer, on_gap)
+            self._update_connection()
+            writer.flush_if_due()
+        self.close()
+        while True:
+            try:
+                server, item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(item, ChangeEvent) and not self._handle(writer, server, item, on_gap):
+                break
+
+    def _handle(self, writer: RecordingWriter, server: _Server, item: ChangeEvent | CastError,
+                on_gap: Callable[[Gap], None]) -> bool:
+        if isinstance(item, CastError):
+            if server.failure is None:
+                server.failure = item
+                self._resync(writer, server, on_gap)
+            return True
+        if self._sequence >= MAX_SEQUENCE:
+            self.stop_reason = f"full: {MAX_SEQUENCE} changes are the most one file numbers; start another"
+            return False
+        self._sequence += 1
+        for message in self.channels.messages(item, self._sequence):
+            writer.write(message)
+            self.stats.data_bytes += len(message.data)
+        self.stats.changes += 1
+        self.stats.per_subarchitecture[item.subarchitecture] = (
+            self.stats.per_subarchitecture.get(item.subarchitecture, 0) + 1)
+        self._last[item.subarchitecture] = item.revision
+        return True
+
+    def _resync(self, writer: RecordingWriter, server: _Server, on_gap: Callable[[Gap], None]) -> None:
+        """Watch again from the current revision and mark what was missed, or try again a little later."""
+        reason = server.failure
+        assert reason is not None
+        stream = server.stream
+        if stream is None or stream.dead:
+            if stream is not None:
+                stream.close()
+            stream = server.stream = self._open_stream(server)
+        server.watch_id += 1
+        try:
+            revisions = stream.create(server.watch_id, self._filters(server.sas), {}, self._timeout)
+        except CastError:
+            server.retry_at = time.monotonic() + _RESYNC_RETRY_S  # the server is away again
+            return
+        server.failure = None
+        before, after = server.history, stream.history_id
+        server.history = after
+        for sa in server.sas:
+            last, current = self._last.get(sa, 0), revisions.get(sa, 0)
+            if before == after and current <= last:
+                continue  # nothing happened in this SA meanwhile
+            gap = Gap(sa, last, current + 1, reason.message, time.time_ns(), before, after)
+            writer.write(self.channels.gap_message(gap))
+            self.stats.gaps.append(gap)
+            self._last[sa] = current
+            on_gap(gap)
+
+    def _retry_resyncs(self, writer: RecordingWriter, on_gap: Callable[[Gap], None]) -> None:
+        now = time.monotonic()
+        for server in self._servers:
+            if server.failure is not None and now >= server.retry_at:
+                self._resync(writer, server, on_gap)
+
+    def _update_connection(self) -> None:
+        streams = [s.stream for s in self._servers if s.stream is not None]
+        self.stats.connected = all(s.connected for s in streams)
+        self.stats.reconnects = sum(s.reconnects for s in streams)
+
+    def close(self) -> None:
+        """End the watch streams and close the connections."""
+        self._closing.set()
+        for server in self._servers:
+            if server.stream is not None:
+                server.stream.close()
+        for link in self._links.values():
+            link.close()
+
