@@ -1,6 +1,8 @@
 #include "cast/runner.h"
 
+#include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <csignal>
 #include <cstdlib>
 #include <cstring>
@@ -11,6 +13,7 @@
 #include "cast/grpc_transport.h"
 #include "cast/log.h"
 #include "component_core.h"
+#include "connect_window.h"
 #include "process_env.h"
 
 extern char** environ;
@@ -87,11 +90,25 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
 
 Identity LaunchContract::identity() const { return Identity{componentId, subarchitecture, false}; }
 
-std::shared_ptr<detail::Transport> LaunchContract::connect() const {
+std::shared_ptr<detail::Transport> LaunchContract::connect(std::chrono::milliseconds window) const {
   TransportOptions options;
   options.tokenFile = tokenFile;
   options.tls = tls;
-  return connectGrpc(endpoint, token, identity(), options);
+  detail::ConnectClock clock;
+  // Waits in short steps so that a SIGTERM from the launcher ends the asking
+  // at once rather than after the window.
+  clock.wait = [](detail::Millis delay) {
+    const auto until = std::chrono::steady_clock::now() + delay;
+    while (!g_signalled.load()) {
+      const auto left = until - std::chrono::steady_clock::now();
+      if (left <= std::chrono::steady_clock::duration::zero()) return false;
+      std::this_thread::sleep_for(std::min<std::chrono::steady_clock::duration>(left, std::chrono::milliseconds(50)));
+    }
+    return true;
+  };
+  return detail::connectWithin<std::shared_ptr<detail::Transport>>(
+      endpoint, tls.has_value(), window, [&] { return connectGrpc(endpoint, token, identity(), options); }, clock,
+      Logger("cast.run"));
 }
 
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
@@ -182,7 +199,8 @@ int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc
     transport = contract.connect();
   } catch (const CastError& e) {
     std::cerr << "cast: " << e.message() << std::endl;
-    return 2;
+    // A stop asked for while the server did not answer yet is honoured, not a failure.
+    return e.code() == "CANCELLED" && g_signalled.load() ? 0 : 2;
   }
   std::unique_ptr<Component> component;
   try {

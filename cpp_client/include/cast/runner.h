@@ -13,11 +13,12 @@
 // component writes in run()), and stop() once on SIGINT/SIGTERM,
 // on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
 // failed, 2 bad launch environment (missing variables, bad CAST_ARGS, a
-// system that refuses the token or cannot be reached at start, or a token the
-// server verified as another component or SA than CAST_COMPONENT_ID and
-// CAST_SUBARCHITECTURE name).
+// system that refuses the token or does not answer within the connect window,
+// or a token the server verified as another component or SA than
+// CAST_COMPONENT_ID and CAST_SUBARCHITECTURE name).
 #pragma once
 
+#include <chrono>
 #include <functional>
 #include <map>
 #include <memory>
@@ -31,6 +32,10 @@
 #include "cast/transport.h"
 
 namespace cast {
+
+// How long a launched component keeps asking a server that does not answer
+// before it gives up (LaunchContract::connect; CONNECT_WINDOW_S in Python).
+inline constexpr std::chrono::seconds kConnectWindow{20};
 
 // The environment a component process is started with.
 struct LaunchContract {
@@ -54,8 +59,14 @@ struct LaunchContract {
   // the server, which verifies the token at Register, and refuses to start
   // if the server's identity is another (the runner then exits 2).
   Identity identity() const;
-  // A gRPC connection to the system.
-  std::shared_ptr<detail::Transport> connect() const;
+  // A gRPC connection to the system. Whoever launched the component started
+  // the system first, so a server that does not answer at once is busy or
+  // still starting: a first call failing with UNAVAILABLE or
+  // DEADLINE_EXCEEDED is asked again with backoff for `window`, then
+  // UnavailableError saying where it asked, for how long and what to check.
+  // Any other failure is thrown at once. SIGINT/SIGTERM caught by the runner
+  // end the waiting (CastError with code CANCELLED).
+  std::shared_ptr<detail::Transport> connect(std::chrono::milliseconds window = kConnectWindow) const;
 };
 
 // Runs a bound-to-be component to the end and returns the exit code (0 ok,

@@ -37,6 +37,23 @@ log = logging.getLogger("cast.run")
 CONNECT_WINDOW_S = 20.0
 """How long a launched component keeps asking a server that does not answer before it gives up."""
 
+CONNECT_RETRIED = ("UNAVAILABLE", "DEADLINE_EXCEEDED")
+"""The failures of the first contact that are asked again: the server is down, still starting or busy.
+Any other (a refused token, a bad TLS file) is the launch environment's fault and ends the runner at once."""
+
+
+def connect_gave_up(endpoint: str, window: float, tls: bool, last: CastError) -> str:
+    """What a runner says when no server answered its first contact within the connect window.
+
+    The same words in C++ (cpp_client/src/connect_window.h) and Java (ConnectWindow.java).
+    """
+    spoken = "with TLS" if tls else "in plaintext"
+    return (
+        f"no CAST system answered at {endpoint} within {window:g} s (CAST_ENDPOINT, spoken to {spoken}): check "
+        f"that the system is running and that CAST_ENDPOINT and CAST_TLS_* are its address and TLS settings "
+        f"(last error: {last.message})"
+    )
+
 
 @dataclass(frozen=True)
 class LaunchContract:
@@ -93,8 +110,9 @@ class LaunchContract:
 
         Whoever launched the component started the system first, so a server that does not
         answer at once is busy or still starting (a machine starting many components, or a server
-        restarted by its supervisor): it is asked again with backoff for ``window`` seconds before
-        the component gives up (exit 2), rather than failing for good on the first refusal.
+        restarted by its supervisor): a first call failing with one of ``CONNECT_RETRIED`` is asked
+        again with backoff for ``window`` seconds; then UnavailableError saying where it asked, for how
+        long and what to check (the runner exits 2). Any other failure is raised at once.
         """
         tokens = TokenSource(self.token, self.token_file or None)
         deadline = time.monotonic() + window
@@ -102,9 +120,11 @@ class LaunchContract:
         while True:
             try:
                 return GrpcTransport(self.endpoint, tokens, self.identity(), tls=self.tls)
-            except UnavailableError as err:
-                if time.monotonic() >= deadline:
+            except CastError as err:
+                if err.code not in CONNECT_RETRIED:
                     raise
+                if time.monotonic() >= deadline:
+                    raise UnavailableError(connect_gave_up(self.endpoint, window, self.tls is not None, err)) from None
                 log.info("the server at %s is not answering yet (%s); asking again", self.endpoint, err.message)
                 time.sleep(backoff.next())
 

@@ -24,7 +24,8 @@ import java.util.logging.Logger;
  * finished start(): a watch made in start() misses nothing written in run()); calls stop() once on
  * SIGTERM/SIGINT, on {@code requestStop()}, or when a hook failed. Exit status: 0
  * after a clean stop, 1 when a hook failed, 2 for a bad command line or launch
- * environment (or a system that cannot be reached or refuses the token).
+ * environment (or a system that refuses the token, or does not answer within the
+ * connect window: {@link ConnectWindow}).
  */
 public final class Runner {
   private static final Logger LOG = Logger.getLogger("cast.run");
@@ -48,6 +49,16 @@ public final class Runner {
   /** The same, connecting through {@code transports} (tests give an in-memory one). */
   static int run(
       String[] argv, Map<String, String> env, boolean handleSignals, Function<LaunchContract, Transport> transports) {
+    return run(argv, env, handleSignals, transports, new ConnectWindow());
+  }
+
+  /** The same, asking a server that does not answer again within {@code window} (tests give a short one). */
+  static int run(
+      String[] argv,
+      Map<String, String> env,
+      boolean handleSignals,
+      Function<LaunchContract, Transport> transports,
+      ConnectWindow window) {
     if (argv.length != 1 || argv[0].equals("-h") || argv[0].equals("--help")) {
       System.err.println(USAGE);
       return 2;
@@ -66,7 +77,10 @@ public final class Runner {
       return 1;
     }
     try {
-      component.bind(transports.apply(contract), who -> verifyLaunchIdentity(contract, who));
+      // The system was started first: a server that does not answer yet is busy or starting.
+      Transport transport =
+          window.connect(contract.endpoint(), contract.tls() != null, () -> transports.apply(contract));
+      component.bind(transport, who -> verifyLaunchIdentity(contract, who));
     } catch (CastError e) {
       System.err.println(
           "cast.client.Runner: cannot join the system at " + contract.endpoint() + ": " + e.getMessage());

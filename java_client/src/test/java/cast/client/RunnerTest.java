@@ -2,6 +2,7 @@ package cast.client;
 
 import static org.junit.jupiter.api.Assertions.*;
 
+import java.time.Duration;
 import java.util.ArrayList;
 import java.util.HashMap;
 import java.util.List;
@@ -59,9 +60,11 @@ class RunnerTest {
   @Test
   void anUnreachableSystemExitsWith2() {
     Map<String, String> env = ArgsAndContractTest.env("{}");
-    // Port 1 on loopback: nothing listens there, the connection is refused at once.
+    // Port 1 on loopback: nothing listens there, the connection is refused at once. An empty
+    // connect window gives up after the first refusal (ConnectWindowTest covers the asking).
     env.put("CAST_ENDPOINT", "127.0.0.1:1");
-    assertEquals(2, Runner.run(new String[] {Good.class.getName()}, env, false));
+    ConnectWindow none = new ConnectWindow(Duration.ZERO, ConnectWindow.SYSTEM);
+    assertEquals(2, Runner.run(new String[] {Good.class.getName()}, env, false, GrpcTransport::new, none));
     env.put("CAST_ENDPOINT", "not a valid:target:%%");
     assertEquals(2, Runner.run(new String[] {Good.class.getName()}, env, false));
   }
