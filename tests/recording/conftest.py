@@ -158,3 +158,78 @@ def wait_recorded(path: Path, count: int, what: str = "") -> list[ChangeEvent]:
     """Wait until the file holds at least ``count`` change records; those records."""
     return list(wait_for(lambda: (found := recorded_so_far(path)) and len(found) >= count and found,
                          what=what or f"{count} changes in {path.name}"))
+
+
+@dataclass
+class Scenario:
+    """A recording of a small system in three phases a second apart, and what its WMs held at the end.
+
+    Phase A (0 s): vision adds p1 and p2, motor's task manager decides a task; phase B (~1 s): vision overwrites
+    p1, adds c1, deletes p2; phase C (~2 s): a privileged writer adds q1 to language.
+    """
+
+    path: Path
+    final: dict[str, dict[str, tuple[str, str]]]  # SA -> id -> (type, value as text)
+
+
+def entries(server: ServerHandle, sa: str) -> dict[str, tuple[str, str]]:
+    """The Pose and Counter entries of an SA: id -> (type, value as text)."""
+    from cast_testing_pb2 import Counter, Pose
+
+    reader = server.connect("reader", sa)
+    try:
+        found = {}
+        for cls in (Pose, Counter):
+            for entry in reader.get_all(cls, subarchitecture=sa):
+                found[entry.id] = (entry.type, text(entry.value))
+        return found
+    finally:
+        reader._cast_close()
+
+
+def text(value: Any) -> str:
+    """A message as one line of text."""
+    return " ".join(str(value).split())
+
+
+@pytest.fixture(scope="session")
+def scenario(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Scenario]:
+    """Record the scenario once for the session (a real server and `cast record`)."""
+    import time
+
+    from cast_testing_pb2 import Counter, Pose
+
+    import cast
+    from tests.conftest import DEFAULT_CONFIG, start_server
+
+    tmp = tmp_path_factory.mktemp("scenario")
+    server = start_server(tmp / "server", DEFAULT_CONFIG)
+    path = tmp / "scenario.mcap"
+    rec = record(server.endpoint, path)
+    writer = server.connect("w", "vision", privileged=True)
+    manager = server.connect("m", "motor", cls=cast.ManagedComponent)
+    try:
+        writer.add("p1", Pose(x=1, label="p1"))
+        writer.add("p2", Pose(x=2, label="p2"))
+        assert isinstance(manager, cast.ManagedComponent)
+        manager.propose_task("drive")
+        time.sleep(1.0)  # spacing between phases, so that --from/--to can pick one; nothing is timed
+        writer.overwrite("p1", Pose(x=1.5, label="p1b"))
+        writer.add("c1", Counter(writer="w", value=1))
+        writer.delete_entry("p2")
+        time.sleep(1.0)
+        writer.add("q1", Pose(label="q"), subarchitecture="language")
+        wait_for(lambda: any(e.address.id == "q1" for e in recorded_so_far(path)), what="the last change recorded")
+        final = {sa: entries(server, sa) for sa in ("vision", "language")}
+        assert rec.stop(signal.SIGINT) == 0, rec.stderr()
+    finally:
+        writer._cast_close()
+        manager._cast_close()
+        stop_process(rec.process, 5)
+        server.stop()
+    assert final == {
+        "vision": {"p1": ("cast.testing.Pose", 'x: 1.5 label: "p1b"'), "c1": ("cast.testing.Counter",
+                                                                          'writer: "w" value: 1')},
+        "language": {"q1": ("cast.testing.Pose", 'label: "q"')},
+    }
+    yield Scenario(path, final)
