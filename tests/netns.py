@@ -12,12 +12,15 @@ import os
 import subprocess
 import threading
 import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 
 import pytest
 
-from tests.conftest import VENV_BIN, stop_process
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, stop_process
 
 CAST = str(VENV_BIN / "cast")
 
@@ -138,7 +141,7 @@ class Lines:
 
 
 def start_agent(ns: str, listen: str, root: Path, secret_file: Path, env: dict[str, str],
-                log_dir: Path | None = None) -> tuple[subprocess.Popen[str], str, Lines]:
+                log_dir: Path | None = None, extra: Sequence[str] = ()) -> tuple[subprocess.Popen[str], str, Lines]:
     """`cast agent` in namespace ``ns`` on ``listen``: its process, the address it listens on, its output.
 
     ``ip netns exec`` execs the agent, so the process's pid is the agent's.
@@ -146,7 +149,7 @@ def start_agent(ns: str, listen: str, root: Path, secret_file: Path, env: dict[s
     log = ["--log-dir", str(log_dir)] if log_dir is not None else []
     agent = subprocess.Popen(
         [*Namespaces.exec(ns), CAST, "agent", "--listen", listen, "--root", str(root), "--secret-file",
-         str(secret_file), *log],
+         str(secret_file), *log, *extra],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=root)
     assert agent.stdout is not None
     first = agent.stdout.readline().strip()
@@ -154,6 +157,80 @@ def start_agent(ns: str, listen: str, root: Path, secret_file: Path, env: dict[s
         agent.kill()
         pytest.fail(f"cast agent did not start in {ns}: {first}{agent.stdout.read()}")
     return agent, first.removeprefix("cast agent listening on ").split()[0], Lines(agent)
+
+
+@dataclass
+class TwoHosts:
+    """Two namespaces joined by a veth pair: `cast run`'s (``orch``) and a `cast agent`'s (``agent``), one root.
+
+    The root (a temporary directory holding the system secret) is the agent's ``--root`` and the
+    working directory of every `cast` command run here, as the same checkout on both hosts would be.
+    """
+
+    net: Namespaces
+    orch_ns: str
+    agent_ns: str
+    orch_ip: str
+    agent_ip: str
+    root: Path
+    env: dict[str, str]  # the test's environment without CAST_*, with PYTHONPATH
+    procs: list[subprocess.Popen[str]] = field(default_factory=list)
+    agent: subprocess.Popen[str] | None = None
+    agent_endpoint: str = ""
+    agent_out: Lines | None = None
+
+    @property
+    def run_env(self) -> dict[str, str]:
+        """The environment of `cast run` and `cast check`: the system secret the agent was given."""
+        return dict(self.env, CAST_SECRET_FILE=str(self.root / "secret"))
+
+    def start_agent(self, *extra: str) -> None:
+        """`cast agent` in the agent's namespace, on its address, with the root's secret (and ``extra`` flags)."""
+        self.agent, self.agent_endpoint, self.agent_out = start_agent(
+            self.agent_ns, f"{self.agent_ip}:0", self.root, self.root / "secret", self.env, extra=extra)
+        self.procs.append(self.agent)
+
+    def cast(self, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+        """``cast ARGS`` in the orchestrator's namespace, from the root; its result."""
+        return subprocess.run([*Namespaces.exec(self.orch_ns), CAST, *args], capture_output=True, text=True,
+                              env=self.run_env, cwd=self.root, timeout=timeout)
+
+    def start_run(self, *args: str) -> tuple[subprocess.Popen[str], Lines]:
+        """``cast run ARGS`` in the orchestrator's namespace, its output read on a thread."""
+        run = subprocess.Popen([*Namespaces.exec(self.orch_ns), CAST, "run", *args], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, env=self.run_env, cwd=self.root)
+        self.procs.append(run)
+        return run, Lines(run)
+
+    def wait_agent_alone(self, timeout: float = 10.0) -> None:
+        """Until nothing but the agent is left in its namespace (no orphan); the agent still runs."""
+        assert self.agent is not None and self.agent_out is not None
+        deadline = time.monotonic() + timeout
+        while left := ns_pids(self.agent_ns) - {self.agent.pid}:
+            assert time.monotonic() < deadline, f"processes left in the agent's namespace: {left}"
+            time.sleep(0.1)
+        assert self.agent.poll() is None, "\n".join(self.agent_out.lines)
+
+
+@contextmanager
+def two_hosts(tmp_path: Path, second_octet: int) -> Iterator[TwoHosts]:
+    """:class:`TwoHosts` on ``10.<second_octet>.x.0/24``, with the agent not started yet; all removed at the end."""
+    net = Namespaces(second_octet=second_octet)
+    hosts: TwoHosts | None = None
+    try:
+        orch_ns, agent_ns = net.add("orch"), net.add("agent")
+        orch_ip, agent_ip = net.link(orch_ns, agent_ns)
+        root = tmp_path / "root"
+        root.mkdir()
+        (root / "secret").write_text(SECRET + "\n")
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+        env["PYTHONPATH"] = PYTHONPATH
+        hosts = TwoHosts(net, orch_ns, agent_ns, orch_ip, agent_ip, root, env)
+        yield hosts
+    finally:
+        if hosts is not None:
+            stop_all(hosts.procs)
+        net.close()
 
 
 def stop_all(procs: list[subprocess.Popen[str]]) -> None:

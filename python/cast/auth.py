@@ -16,6 +16,7 @@ which :func:`load_or_create_secret` creates (mode 0600) on first use.
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import math
 import os
@@ -35,6 +36,7 @@ __all__ = [
     "load_or_create_secret",
     "load_secret",
     "peek",
+    "write_token_file",
 ]
 
 DEFAULT_SECRET_PATH = Path(".cast") / "secret"
@@ -156,6 +158,23 @@ def load_or_create_secret(path: str | os.PathLike[str] | None = None) -> bytes:
     with os.fdopen(fd, "wb") as f:
         f.write(secret + b"\n")
     return secret
+
+
+def write_token_file(path: Path, token: str) -> None:
+    """Write ``token`` to ``path`` (mode 0600, in a 0700 directory made if missing), atomically.
+
+    Client libraries re-read the file while the component runs (``CAST_TOKEN_FILE``):
+    writing a temporary file and renaming it means they read the old token or the
+    new one, never half a file.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    tmp = path.with_suffix(".tmp")
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    tmp.replace(path)
 
 
 def peek(token: str) -> Identity | None:

@@ -57,3 +57,19 @@ def test_launch_starts_a_server_that_verifies_tokens_with_the_agents_secret(agen
         assert "no server 'nowhere'" in (unknown.value.details() or "")
     finally:
         attach.close()
+
+
+def test_probe_says_whether_a_server_could_start_here(agent: AgentHandle, root: Path) -> None:
+    (root / "servers.yaml").write_text(SERVERS)
+    tls = SERVERS.replace("subarchitectures:\n  sa", "tls: {ca: certs/ca.pem, cert: certs/server.pem, "
+                                                      "key: certs/server.key}\nsubarchitectures:\n  sa", 1)
+    (root / "servers-tls.yaml").write_text(tls)
+    stub = agent_pb2_grpc.AgentStub(agent.channel())
+    reply = stub.Probe(agent_pb2.ProbeRequest(config_path="servers.yaml", component_ids=["server:far", "server:x"]),
+                       metadata=metadata(), timeout=30)
+    assert [(r.component_id, r.launchable) for r in reply.results] == [("server:far", True), ("server:x", False)]
+    assert "no server 'x'" in reply.results[1].problem
+    missing = stub.Probe(agent_pb2.ProbeRequest(config_path="servers-tls.yaml", component_ids=["server:far"]),
+                         metadata=metadata(), timeout=30)
+    assert not missing.results[0].launchable
+    assert "TLS file" in missing.results[0].problem and "ca.pem" in missing.results[0].problem

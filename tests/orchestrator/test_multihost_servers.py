@@ -11,36 +11,22 @@ agent's namespace but the agent. A test that cannot make namespaces fails with t
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
 import time
 from pathlib import Path
 
 import yaml
 
-from tests.conftest import PYTHONPATH, SECRET
-from tests.netns import CAST, Lines, Namespaces, ns_pids, start_agent, stop_all
+from tests.netns import two_hosts
 from tests.orchestrator.conftest import COMPONENTS
 
 COUNT = 25
 
 
 def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
-    net = Namespaces(second_octet=217)
-    procs: list[subprocess.Popen[str]] = []
-    try:
-        orch_ns, agent_ns = net.add("orch"), net.add("agent")
-        orch_ip, agent_ip = net.link(orch_ns, agent_ns)
-
-        root = tmp_path / "root"
-        root.mkdir()
-        (root / "secret").write_text(SECRET + "\n")
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        env["PYTHONPATH"] = PYTHONPATH
-
-        agent, agent_ep, agent_out = start_agent(agent_ns, f"{agent_ip}:0", root, root / "secret", env)
-        procs.append(agent)
+    with two_hosts(tmp_path, second_octet=217) as hosts:
+        hosts.start_agent()
+        orch_ip, agent_ip, root = hosts.orch_ip, hosts.agent_ip, hosts.root
 
         def comp(cls: str, host: str | None = None, **args: object) -> dict[str, object]:
             return {"class": f"barrier_components:{cls}", **({"host": host} if host else {}),
@@ -49,7 +35,7 @@ def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
         (root / "system.yaml").write_text(yaml.safe_dump({
             "system": "mhservers",
             "python_path": [str(COMPONENTS)],
-            "hosts": {"arm": agent_ep},
+            "hosts": {"arm": hosts.agent_endpoint},
             "servers": {
                 "main": {"listen": f"{orch_ip}:0", "subarchitectures": ["near"]},
                 "far": {"listen": f"{agent_ip}:0", "host": "arm", "subarchitectures": ["far"]},
@@ -67,26 +53,19 @@ def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
             },
         }, sort_keys=False))
 
-        run_env = dict(env, CAST_SECRET_FILE=str(root / "secret"))
-        ns_exec = Namespaces.exec(orch_ns)
-        check = subprocess.run([*ns_exec, CAST, "check", "system.yaml", "--probe"], capture_output=True, text=True,
-                               env=run_env, cwd=root, timeout=60)
+        check = hosts.cast("check", "system.yaml", "--probe")
         assert check.returncode == 0, check.stdout + check.stderr
 
         started = time.monotonic()
-        run = subprocess.Popen([*ns_exec, CAST, "run", "system.yaml", "--no-status", "--runtime-dir", "rt",
-                                "--summary-json", "summary.json"],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=run_env, cwd=root)
-        procs.append(run)
-        out = Lines(run)
+        run, out = hosts.start_run("system.yaml", "--no-status", "--runtime-dir", "rt", "--summary-json",
+                                   "summary.json")
         far_line = out.wait("server far on host arm: listening on")
         assert f"reached at {agent_ip}:" in far_line, far_line
         all_started = out.wait("all 4 components started in")
         start_seconds = time.monotonic() - started
 
         def get(sa: str, entry: str) -> str:
-            got = subprocess.run([*ns_exec, CAST, "get", sa, entry, "--json", "--runtime-dir", "rt"],
-                                 capture_output=True, text=True, env=env, cwd=root, timeout=60)
+            got = hosts.cast("get", sa, entry, "--json", "--runtime-dir", "rt")
             return got.stdout if got.returncode == 0 else ""
 
         # Each watcher saw every change the writer of the other host made to its SA.
@@ -108,12 +87,10 @@ def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
         assert code == 0, "\n".join(out.lines[-40:])
         summary = json.loads((root / "summary.json").read_text())
         assert summary["failures"] == []
-        deadline = time.monotonic() + 10
-        while left := ns_pids(agent_ns) - {agent.pid}:
-            assert time.monotonic() < deadline, f"processes left in the agent's namespace: {left}"
-            time.sleep(0.1)
-        assert agent.poll() is None, "\n".join(agent_out.lines)
+        # The far server's SA is in the summary too, asked over the network (lwrite's entries, rwatch's report).
+        sas = {row["name"]: row for row in summary["subarchitectures"]}
+        assert set(sas) == {"near", "far"}, sas
+        assert sas["far"]["entries"] >= COUNT + 2 and sas["far"]["endpoint"].startswith(f"{agent_ip}:"), sas["far"]
+        assert sas["far"]["types"].get("google.protobuf.Int64Value", 0) >= COUNT + 2, sas["far"]
+        hosts.wait_agent_alone()
         print(f"\n{far_line}; {all_started}; cast run to all started {start_seconds:.2f} s; stop {stop_seconds:.2f} s")
-    finally:
-        stop_all(procs)
-        net.close()

@@ -18,9 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cast.config import load_config
-from cast.config.model import ComponentConfig, SystemConfig
+from cast.config.model import ComponentConfig, ServerConfig, SystemConfig
 from cast.errors import CastError, InvalidArgumentError, LockedError, NotFoundError
 from cast.orchestrator.launchers import LaunchError, launcher_for
+from cast.orchestrator.security import component_tls
 
 __all__ = [
     "PRIVATE_ENV", "SERVER_PREFIX", "LaunchPlan", "check_contract", "load_from_root", "plan_launch", "plan_server",
@@ -40,6 +41,7 @@ class LaunchPlan:
     env: dict[str, str]
     cwd: Path | None
     name: str = ""  # the process's name in the table and the events, when not a component's id
+    token_file: bool = False  # write CAST_TOKEN to a file of this host, named in CAST_TOKEN_FILE (renewed)
 
     @property
     def process_id(self) -> str:
@@ -56,13 +58,7 @@ def plan_server(
     secret_file: Path | None, sets: Mapping[str, str], agent_env: Mapping[str, str] | None = None,
 ) -> LaunchPlan:
     """``cast serve CONFIG --server NAME`` on the server's listen: address, with the agent's secret file."""
-    found = next((s for s in config.servers if s.name == server), None)
-    if found is None:
-        known = ", ".join(s.name for s in config.servers)
-        raise NotFoundError(f"no server '{server}' in {config.source} (servers: {known})")
-    if secret_file is None:
-        raise LockedError(f"server '{server}': this agent has no --secret-file, and a server verifies component "
-                          "tokens with the system secret: start the agent with --secret-file")
+    found = _startable_server(config, server, secret_file)
     argv = [sys.executable, "-m", "cast.cli", "serve", str(config_file), "--server", server,
             "--listen", found.listen, "--secret-file", str(secret_file),
             "--lease-ms", str(config.orchestrator.lease_ms)]
@@ -145,11 +141,20 @@ def check_contract(env: Mapping[str, str]) -> None:
         )
 
 
+AGENT_ENV = ("CAST_TOKEN_FILE", "CAST_TLS_CA", "CAST_TLS_CERT", "CAST_TLS_KEY", "CAST_TLS_SERVER_NAME")
+"""Launch-contract variables the agent sets itself: paths on its own host, not the orchestrator's."""
+
+
 def plan_launch(
-    config: SystemConfig, component_id: str, contract: Mapping[str, str], agent_env: Mapping[str, str] | None = None
+    config: SystemConfig, component_id: str, contract: Mapping[str, str], agent_env: Mapping[str, str] | None = None,
+    token_file: bool = False,
 ) -> LaunchPlan:
     """The process to start for ``component_id``, or the CastError that says why none can be."""
     check_contract(contract)
+    contract = {k: v for k, v in contract.items() if k not in AGENT_ENV}
+    if token_file and not contract.get("CAST_TOKEN"):
+        raise InvalidArgumentError(f"component '{component_id}': token_file needs CAST_TOKEN in the launch "
+                                   "environment (the token to write)")
     comp = find_component(config, component_id)
     if not comp.launched:
         raise LockedError(f"component '{comp.id}' is not launched as a process (in_process or manual): "
@@ -161,27 +166,69 @@ def plan_launch(
             raise LaunchError(problem)
     launcher = launcher_for(comp.language)
     argv = launcher.command(comp, config, env)
-    full_env = {**env, **launcher.environment(comp, config, env), **contract}
-    return LaunchPlan(comp, argv, full_env, launcher.working_directory(comp))
+    full_env = {**env, **launcher.environment(comp, config, env), **contract, **_tls_env(config)}
+    return LaunchPlan(comp, argv, full_env, launcher.working_directory(comp), token_file=token_file)
 
 
-def probe(config: SystemConfig, component_ids: Sequence[str]) -> list[tuple[str, str | None]]:
-    """For each component (every launched one if none named): (id, the problem, or None if launchable)."""
-    ids = list(component_ids) or [c.id for c in config.components if c.launched]
+def _tls_env(config: SystemConfig) -> dict[str, str]:
+    """``CAST_TLS_*`` from the configuration's ``tls:`` files on this host; LaunchError naming one missing."""
+    client = component_tls(config)
+    if client is None:
+        return {}
+    for path in (client.ca, client.cert, client.key):
+        if path is not None and not path.is_file():
+            raise LaunchError(f"TLS file {path} (tls: in {config.source}) is not on this host: every host needs "
+                              "the system's TLS files where the configuration says (a relative path is under "
+                              "the agent's --root; docs/multihost.md)")
+    return client.env()
+
+
+def probe(config: SystemConfig, ids: Sequence[str], secret_file: Path | None = None) -> list[tuple[str, str | None]]:
+    """For each id (every launched component if none named): (id, the problem, or None if it could start here).
+
+    An id ``server:NAME`` asks about a server: this agent needs a --secret-file to start one, and the
+    server's TLS files must be on this host.
+    """
+    ids = list(ids) or [c.id for c in config.components if c.launched]
     results: list[tuple[str, str | None]] = []
-    for component_id in ids:
+    for process_id in ids:
         try:
-            comp = find_component(config, component_id)
-            if not comp.launched:
-                raise LockedError(f"component '{comp.id}' is not launched as a process (in_process or manual)")
-            if comp.language == "python":
-                problem = missing_module(comp, config)
-                if problem is not None:
-                    raise LaunchError(problem)
-            env = {k: v for k, v in os.environ.items() if k not in PRIVATE_ENV}
-            launcher_for(comp.language).command(comp, config, env)
+            if process_id.startswith(SERVER_PREFIX):
+                _startable_server(config, process_id.removeprefix(SERVER_PREFIX), secret_file)
+            else:
+                _probe_component(config, process_id)
         except CastError as exc:
-            results.append((component_id, exc.message))
+            results.append((process_id, exc.message))
         else:
-            results.append((component_id, None))
+            results.append((process_id, None))
     return results
+
+
+def _probe_component(config: SystemConfig, component_id: str) -> None:
+    comp = find_component(config, component_id)
+    if not comp.launched:
+        raise LockedError(f"component '{comp.id}' is not launched as a process (in_process or manual)")
+    if comp.language == "python":
+        problem = missing_module(comp, config)
+        if problem is not None:
+            raise LaunchError(problem)
+    env = {k: v for k, v in os.environ.items() if k not in PRIVATE_ENV}
+    launcher_for(comp.language).command(comp, config, env)
+    _tls_env(config)
+
+
+def _startable_server(config: SystemConfig, name: str, secret_file: Path | None) -> ServerConfig:
+    """The server ``name``, if this agent can start it: it has the secret, and the TLS files are here."""
+    found = next((s for s in config.servers if s.name == name), None)
+    if found is None:
+        known = ", ".join(s.name for s in config.servers)
+        raise NotFoundError(f"no server '{name}' in {config.source} (servers: {known})")
+    if secret_file is None:
+        raise LockedError(f"server '{name}': this agent has no --secret-file, and a server verifies component "
+                          "tokens with the system secret: start the agent with --secret-file")
+    tls = config.tls
+    for path in ((tls.ca, tls.cert, tls.key) if tls is not None else ()):
+        if not path.is_file():
+            raise LaunchError(f"server '{name}': TLS file {path} (tls: in {config.source}) is not on this host "
+                              "(a relative path is under the agent's --root; docs/multihost.md)")
+    return found

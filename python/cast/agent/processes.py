@@ -14,6 +14,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import shutil
+import tempfile
 from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +24,7 @@ from typing import Any
 from cast.agent.launch import LaunchPlan
 from cast.agent.resources import ResourceMeter
 from cast.agent.sessions import SystemSession
+from cast.auth import write_token_file
 from cast.errors import AlreadyExistsError, LockedError, NotFoundError
 from cast.orchestrator.process import ComponentProcess
 from cast.v1 import agent_pb2
@@ -40,6 +43,7 @@ class AgentProcess:
     system: str
     process: ComponentProcess
     stop_reason: str = ""  # set when the agent stops it: "stopped", "lease expired", "agent stopping"
+    token_file: Path | None = None  # CAST_TOKEN_FILE when launched with token_file (rewritten by renew)
     exit: agent_pb2.ProcessExit | None = None
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -66,6 +70,8 @@ class ProcessTable:
     def __init__(self, root: Path, log_dir: Path) -> None:
         self.root = root
         self.log_dir = log_dir
+        # Tokens are credentials: a private directory of this agent's, not the logs' (removed at the end).
+        self.token_dir = Path(tempfile.mkdtemp(prefix="cast-agent-tokens-"))
         self.sessions: dict[str, SystemSession] = {}
         self.processes: dict[tuple[str, str], AgentProcess] = {}
         self._meter = ResourceMeter()
@@ -118,9 +124,19 @@ class ProcessTable:
 
         log_path = self.log_dir / _safe(system) / f"{_safe(plan.process_id)}.log"
         # The launchers' "no directory" means the orchestrator's; here that is the root (same checkout).
-        process = ComponentProcess(plan.process_id, plan.argv, plan.env, log_path, line, plan.cwd or self.root)
-        await process.start()
-        proc = self.processes[key] = AgentProcess(system, process)
+        env, token_file = plan.env, None
+        if plan.token_file:
+            token_file = self.token_dir / _safe(system) / f"{_safe(plan.process_id)}.token"
+            write_token_file(token_file, env.get("CAST_TOKEN", ""))
+            env = {**env, "CAST_TOKEN_FILE": str(token_file)}
+        process = ComponentProcess(plan.process_id, plan.argv, env, log_path, line, plan.cwd or self.root)
+        try:
+            await process.start()
+        except OSError:
+            if token_file is not None:
+                token_file.unlink(missing_ok=True)
+            raise
+        proc = self.processes[key] = AgentProcess(system, process, token_file=token_file)
         self._spawn(self._watch(session, proc))
         log.info("system '%s': started %s (pid %d): %s", system, proc.component_id, process.pid, " ".join(plan.argv))
         return proc
@@ -131,11 +147,24 @@ class ProcessTable:
         self._meter.forget(proc.process.pid)
         if self.processes.get((proc.system, proc.component_id)) is proc:
             del self.processes[(proc.system, proc.component_id)]
+        if proc.token_file is not None:
+            proc.token_file.unlink(missing_ok=True)  # no process reads it any more
         if not session.ended:
             session.push(agent_pb2.AgentEvent(exit=proc.exit))
         proc.done.set()
         log.info("system '%s': %s (pid %d) ended: %s", proc.system, proc.component_id, proc.process.pid,
                  str(proc.exit).replace("\n", " "))
+
+    def renew(self, system: str, component_id: str, token: str) -> None:
+        """Rewrite the token file of a running process (launched with token_file)."""
+        self.session(system)
+        proc = self.processes.get((system, component_id))
+        if proc is None:
+            raise NotFoundError(f"no process of component '{component_id}' of system '{system}' runs on this agent")
+        if proc.token_file is None:
+            raise LockedError(f"component '{component_id}' of system '{system}' was launched without token_file: "
+                              "it reads no token file to renew (its token does not expire)")
+        write_token_file(proc.token_file, token)
 
     async def stop(self, system: str, component_id: str, timeout_s: float, reason: str) -> agent_pb2.ProcessExit:
         """SIGTERM the component's group, SIGKILL after ``timeout_s``; its exit."""
@@ -210,6 +239,7 @@ class ProcessTable:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        shutil.rmtree(self.token_dir, ignore_errors=True)
 
     def kill_everything(self) -> None:
         """SIGKILL every process group now (last resort on the way out)."""

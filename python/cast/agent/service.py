@@ -41,7 +41,7 @@ async def _answer(context: Context, work: Callable[[], Awaitable[T]]) -> T:
 
 
 class AgentServicer(agent_pb2_grpc.AgentServicer):
-    """Attach, Launch, Stop and Probe over one :class:`ProcessTable`."""
+    """Attach, Launch, Stop, Renew and Probe over one :class:`ProcessTable`."""
 
     def __init__(self, table: ProcessTable, secret_file: Path | None = None) -> None:
         self.table = table
@@ -115,7 +115,7 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
             config = load_from_root(self.root, request.config_path, request.sets)
             if request.server:
                 return await self._launch_server(request, config)
-            plan = plan_launch(config, request.component_id, request.env)
+            plan = plan_launch(config, request.component_id, request.env, token_file=request.token_file)
             try:
                 proc = await self.table.launch(request.system, plan)
             except OSError as exc:
@@ -160,12 +160,22 @@ class AgentServicer(agent_pb2_grpc.AgentServicer):
 
         return await _answer(context, work)
 
+    async def Renew(self, request: agent_pb2.RenewRequest, context: Context) -> agent_pb2.RenewResponse:
+        """Rewrite the token file of a component launched with token_file."""
+        async def work() -> agent_pb2.RenewResponse:
+            if not request.token:
+                raise InvalidArgumentError(f"component '{request.component_id}': Renew needs the new token")
+            self.table.renew(request.system, request.component_id, request.token)
+            return agent_pb2.RenewResponse()
+
+        return await _answer(context, work)
+
     async def Probe(self, request: agent_pb2.ProbeRequest, context: Context) -> agent_pb2.ProbeResponse:
         """Whether each component could be launched here."""
         async def work() -> agent_pb2.ProbeResponse:
             config = load_from_root(self.root, request.config_path, request.sets)
             results = [agent_pb2.ProbeResult(component_id=cid, launchable=problem is None, problem=problem or "")
-                       for cid, problem in probe(config, list(request.component_ids))]
+                       for cid, problem in probe(config, list(request.component_ids), self.secret_file)]
             return agent_pb2.ProbeResponse(results=results, host=self.host, root=str(self.root))
 
         return await _answer(context, work)

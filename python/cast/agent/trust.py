@@ -4,7 +4,7 @@ An agent starts processes on its host for whoever calls it, so it refuses to
 run without a way to tell its orchestrator from anyone else: ``--tls-ca``
 (mutual TLS, the handshake refuses a client without a certificate signed by
 that CA) or ``--secret-file`` (every call carries ``authorization: Bearer
-<token>``, a privileged token for the identity :data:`ORCHESTRATOR_ID` signed
+<token>``, a privileged token for the identity :data:`cast.orchestrator.agent_link.ORCHESTRATOR_ID` signed
 with that secret; :mod:`cast.auth`), or both. The check is an interceptor, so
 it covers every service, reflection included; the health service stays open
 (it reveals nothing and starts nothing), so that probes need no token.
@@ -22,11 +22,9 @@ from grpc_health.v1 import health_pb2
 
 from cast.auth import TokenSigner, load_secret
 from cast.errors import CastError, InvalidArgumentError, UnauthenticatedError
+from cast.orchestrator.agent_link import ORCHESTRATOR_ID
 
-__all__ = ["ORCHESTRATOR_ID", "AgentTrust", "TrustInterceptor"]
-
-ORCHESTRATOR_ID = "orchestrator"
-"""The identity an orchestrator's token names (privileged) when it calls an agent."""
+__all__ = ["AgentTrust", "TrustInterceptor"]
 
 _OPEN_SERVICES = (health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,)
 

@@ -34,14 +34,17 @@ def _validated(args: argparse.Namespace, builds_required: bool) -> tuple[SystemC
 def _probe(config: SystemConfig, problems: Problems) -> None:
     """``--probe``: ask each host's agent whether it is up and has what its components need."""
     from cast.auth import load_secret
+    from cast.config.model import ComponentConfig
     from cast.config.problems import Position
     from cast.orchestrator.remote import probe_hosts
 
-    for comp, _host, problem in probe_hosts(config, load_secret()):
-        if comp is None:
-            problems.error(Position(config.source), "hosts", problem)
+    for placed, _host, problem in probe_hosts(config, load_secret()):
+        if isinstance(placed, ComponentConfig):
+            problems.error(placed.at("host"), f"components.{placed.id}.host", problem)
+        elif placed is not None:
+            problems.error(Position(config.source), f"servers.{placed.name}.host", problem)
         else:
-            problems.error(comp.at("host"), f"components.{comp.id}.host", problem)
+            problems.error(Position(config.source), "hosts", problem)
 
 
 def _describe(config: SystemConfig) -> str:

@@ -30,8 +30,6 @@ def _serve(args: argparse.Namespace) -> int:
     in_process = InProcessComponents(system)
 
     routes = _routes(args.route)
-    if args.await_run and settings_from_config(config).tls is not None:
-        raise InvalidArgumentError("--await-run with tls: is not supported yet (docs/multihost.md)")
     if args.await_run:
         # Held until the directory's barrier is released (a server `cast run` started on another host).
         system.barrier.hold()
@@ -39,7 +37,7 @@ def _serve(args: argparse.Namespace) -> int:
     def started(running: RunningServer) -> None:
         running.routes.remote.update(routes)  # where the other servers' SAs are
         if args.await_run:
-            threading.Thread(target=_await_run, args=(args.await_run, signer, system.barrier, settings),
+            threading.Thread(target=_await_run, args=(args.await_run, signer, system.barrier, config),
                              daemon=True, name="await-run").start()
         for comp in config.components:
             # With --server, only the in-process components of the SAs this server hosts.
@@ -62,14 +60,19 @@ def _routes(given: list[str]) -> dict[str, str]:
     return routes
 
 
-def _await_run(directory: str, signer: TokenSigner, barrier: Any, settings: Any) -> None:
+def _await_run(directory: str, signer: TokenSigner, barrier: Any, config: SystemConfig) -> None:
     """Long-poll the directory's AwaitRun, then release this server's own barrier."""
     import grpc
 
     from cast.core.records import Identity
+    from cast.orchestrator.security import component_tls
     from cast.v1 import directory_pb2, directory_pb2_grpc
 
-    channel = grpc.insecure_channel(directory)  # a TLS system is refused before (see _serve)
+    # In a TLS system the directory is dialled as a component would: its CA, and its client certificate
+    # when the servers require one.
+    tls = component_tls(config)
+    channel = (grpc.secure_channel(directory, tls.credentials()) if tls is not None
+               else grpc.insecure_channel(directory))
     token = signer.issue(Identity("orchestrator", "", True))
     stub = directory_pb2_grpc.DirectoryStub(channel)
     while not barrier.released:

@@ -65,6 +65,7 @@ class _Builder:
         self.component_seen: dict[str, Position] = {}
         self.hosts: dict[str, HostConfig] = {}
         self.host_keys: set[str] = set()  # every name written under hosts:, valid or not (the wrong ones reported)
+        self.server_host_at: dict[str, Position] = {}  # where each server on another host names its host
         self.invalid = check_tree(self.root, runtime_schema(), self.p)
 
     def written(self, path: KeyPath) -> bool:
@@ -314,6 +315,8 @@ class _Builder:
                              f"server '{name}' is the directory (the first server), which runs on the orchestrator's "
                              f"host for now: put a server without host: first, or remove 'host: {host}'")
             server.host = host
+            if host != LOCAL_HOST:
+                self.server_host_at[name] = sraw.value_at("host")
             names = sraw.get("subarchitectures")
             for sa, pos in zip(names or [], names.item_pos if names else [], strict=True):
                 sa = str(sa)
@@ -392,6 +395,27 @@ class _Builder:
                                      f"'{comp.id}' runs on host '{comp.host}' but {role}, server '{server.name}', "
                                      f"{problem}: give server '{server.name}' an address other hosts reach "
                                      f"(listen: on this host's address, or advertise: HOST:PORT)")
+        for i, far in enumerate(servers):
+            if far.host == LOCAL_HOST:
+                continue
+            for later in servers[i + 1:]:
+                # Remote servers start in the file's order, each told the others' addresses when it starts.
+                if later.host != LOCAL_HOST and (later.advertise or later.listen).endswith(":0"):
+                    self.p.error(self.server_host_at[far.name], f"servers.{far.name}.host",
+                                 f"server '{far.name}' on host '{far.host}' starts before server '{later.name}' "
+                                 f"(host '{later.host}') and must be told its address, but '{later.name}' picks "
+                                 "its port when it starts (port 0): give it a fixed port in listen: or advertise:, "
+                                 "or put it first")
+            # A server on another host is dialled by every other (routes, the directory's forwarding) and
+            # dials the directory (its start barrier) and the others' SAs: all of them must be reachable.
+            for server in servers:
+                problem = _unreachable(server)
+                if problem:
+                    whose = "it" if server is far else f"server '{server.name}'"
+                    self.p.error(self.server_host_at[far.name], f"servers.{far.name}.host",
+                                 f"server '{far.name}' runs on host '{far.host}' but {whose} {problem}: give "
+                                 f"server '{server.name}' an address other hosts reach (listen: on its host's "
+                                 "address, or advertise: HOST:PORT)")
 
     def persistence(self, parent: YMap, path: KeyPath) -> PersistenceConfig | None:
         raw = parent.get("persistence")

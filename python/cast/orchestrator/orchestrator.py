@@ -28,7 +28,7 @@ from cast.core.sessions import ComponentState
 from cast.orchestrator.output import Output
 from cast.orchestrator.remote import Agents, remote_hosts
 from cast.orchestrator.security import LaunchSecurity
-from cast.orchestrator.servers import ServerGroup
+from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
 from cast.orchestrator.supervisor import Phase, Supervisor
 from cast.runtime_dir import RuntimeDir
@@ -37,6 +37,8 @@ __all__ = ["Orchestrator", "RunOptions", "RunResult"]
 
 # Variables a component must never inherit: with the secret it could forge any identity.
 _PRIVATE_ENV = ("CAST_SECRET", "CAST_SECRET_FILE")
+REMOTE_STATUS_S = 2.0
+"""How often the live view asks servers on other hosts about their SAs."""
 
 
 @dataclass
@@ -152,8 +154,13 @@ class Orchestrator:
         snapshot: Snapshot | None = None
         status_task: asyncio.Task[None] | None = None
         renew_task: asyncio.Future[None] | None = None
+        watch_task: asyncio.Future[None] | None = None
+        if agents is not None:
+            self._security.remote = agents.renew  # tokens of components on other hosts go to their agents
         try:
             with self.output:
+                if servers.remote:
+                    watch_task = asyncio.ensure_future(self._watch_remote_servers(servers, failures))
                 for comp in self.config.components:
                     if comp.in_process:
                         servers.start_in_process(comp)
@@ -179,12 +186,14 @@ class Orchestrator:
                 await supervisor.stop_all(self.config.orchestrator.stop_timeout)
                 await loop.run_in_executor(None, servers.stop_in_process)
                 status_task.cancel()
+                await tracker.refresh_remote()  # the SAs of servers on other hosts, still running
                 snapshot = tracker.snapshot()
         finally:
             if status_task is not None:
                 status_task.cancel()
-            if renew_task is not None:
-                renew_task.cancel()
+            for task in (renew_task, watch_task):
+                if task is not None:
+                    task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
             await servers.stop_remote(self.config.orchestrator.stop_timeout)  # then the servers, remote first
             if agents is not None:
@@ -207,6 +216,29 @@ class Orchestrator:
         for far in servers.remote:
             self.output.notice(f"server {far.config.name} on host {far.config.host}: listening on {far.endpoint}, "
                                f"reached at {far.address} ({time.monotonic() - started:.2f} s)")
+
+    async def _watch_remote_servers(self, servers: ServerGroup, failures: list[str]) -> None:
+        """A server on another host that ends (or whose host is lost) before the stop ends the system.
+
+        Its SAs are gone for every component, and a fresh server would have lost their entries unless
+        it journals: the run fails and says why, as when a local server cannot serve (docs/multihost.md).
+        """
+        ended = asyncio.as_completed([asyncio.ensure_future(self._ended(far)) for far in servers.remote])
+        for next_end in ended:
+            far, code = await next_end
+            if self._stop.is_set():
+                return
+            how = (f"host '{far.config.host}' was lost" if far.process.host_lost
+                   else f"it exited with {'signal ' + str(-code) if code < 0 else 'code ' + str(code)}")
+            failures.append(f"server {far.config.name} on host {far.config.host}: {how}")
+            self.output.notice(f"server {far.config.name} on host {far.config.host} ended: {how}; its SAs "
+                               f"({', '.join(far.config.subarchitectures)}) are gone, so the system stops")
+            self._stop.set()
+            return
+
+    @staticmethod
+    async def _ended(far: RemoteServer) -> tuple[RemoteServer, int]:
+        return far, await far.process.wait()
 
     async def _attach_agents(self) -> Agents | None:
         """Attach to the agent of every host that runs a component or a server (None if all is local)."""
@@ -322,7 +354,12 @@ class Orchestrator:
     async def _show_status(self, tracker: StatusTracker) -> None:
         if not self.output.live_status:
             return
+        asked = 0.0
         while True:
+            if self._servers is not None and self._servers.remote and time.monotonic() - asked >= REMOTE_STATUS_S:
+                # Servers on other hosts are asked over the network: less often than the view is drawn.
+                asked = time.monotonic()
+                await tracker.refresh_remote()
             self.output.update_status(render_status(tracker.snapshot()))
             await asyncio.sleep(self.options.status_interval)
 

@@ -7,26 +7,45 @@ rewrites every file with a fresh token each ``ttl / 3`` seconds, atomically
 (write, then rename); client libraries re-read the file when it changes and
 send the newest token. A component the orchestrator no longer runs gets no new
 token, so a leaked token stops working within ``ttl``. Without a ttl tokens
-never expire and no file is written.
+never expire and no file is written. A component on another host gets its file
+from its agent, on that host (``LaunchRequest.token_file``); renewing it sends
+the fresh token to the agent (``Agent.Renew``, through the ``remote`` hook).
 
 With ``tls:`` in the configuration, components get ``CAST_TLS_CA`` (to verify
 the servers) and, when servers require client certificates, ``CAST_TLS_CERT``
 and ``CAST_TLS_KEY`` (``tls.client_cert``/``client_key``, else ``cert``/``key``).
+A component on another host gets them from its agent, which resolves the same
+``tls:`` entries on its own host (:func:`component_tls`): the paths are that
+host's, and no key crosses the network.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import os
+import logging
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
-from cast.auth import TokenSigner
+from cast.auth import TokenSigner, write_token_file
 from cast.client.credentials import ClientTls
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.core.records import Identity
+from cast.errors import CastError
 
-__all__ = ["LaunchSecurity"]
+__all__ = ["LaunchSecurity", "RemoteRenewal", "component_tls"]
+
+log = logging.getLogger("cast.orchestrator")
+
+RemoteRenewal = Callable[[ComponentConfig, str], Awaitable[None]]
+"""Sends a remote component's fresh token to its agent (``Agents.renew``)."""
+
+
+def component_tls(config: SystemConfig) -> ClientTls | None:
+    """What launched components and tools use: the CA, and the client identity when servers require one."""
+    tls = config.tls
+    if tls is None:
+        return None
+    return ClientTls(tls.ca, *tls.component_identity) if tls.client_auth else ClientTls(tls.ca)
 
 
 class LaunchSecurity:
@@ -39,29 +58,24 @@ class LaunchSecurity:
         self.token_dir = runtime_dir / "tokens"
         self._issued: dict[str, ComponentConfig] = {}
         self.renewals = 0
+        self.remote: RemoteRenewal | None = None  # set when some components run on other hosts
 
     def contract(self, comp: ComponentConfig) -> dict[str, str]:
-        """``CAST_TOKEN`` (and ``CAST_TOKEN_FILE``, ``CAST_TLS_*``) for one component."""
+        """``CAST_TOKEN`` (and ``CAST_TOKEN_FILE``, ``CAST_TLS_*`` on this host) for one component."""
         token = self._token(comp)
         env = {"CAST_TOKEN": token}
         if self.ttl:
-            env["CAST_TOKEN_FILE"] = str(self._write(comp.id, token))
             self._issued[comp.id] = comp
-        client = self._client_tls()
-        if client is not None:
+            if not comp.remote:  # its agent writes the file on its own host (token_file)
+                env["CAST_TOKEN_FILE"] = str(self._write(comp.id, token))
+        client = component_tls(self.config)
+        if client is not None and not comp.remote:
             env |= client.env()
         return env
 
-    def _client_tls(self) -> ClientTls | None:
-        """What launched components and tools use: the CA, and the client identity when servers require one."""
-        tls = self.config.tls
-        if tls is None:
-            return None
-        return ClientTls(tls.ca, *tls.component_identity) if tls.client_auth else ClientTls(tls.ca)
-
     def tls_state(self) -> dict[str, str] | None:
         """The TLS files a tool needs to reach the servers (CA, and client cert/key when required), or None."""
-        client = self._client_tls()
+        client = component_tls(self.config)
         if client is None:
             return None
         state = {"ca": str(client.ca.resolve())}
@@ -77,21 +91,24 @@ class LaunchSecurity:
         return self.signer.issue(Identity(comp.id, comp.subarchitecture, comp.privileged), self.ttl)
 
     def _write(self, component_id: str, token: str) -> Path:
-        self.token_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         path = self.token_dir / f"{component_id}.token"
-        tmp = path.with_suffix(".tmp")
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(token + "\n")
-        tmp.replace(path)  # readers see the old token or the new one, never half a file
+        write_token_file(path, token)
         return path
 
-    def renew_all(self) -> None:
-        """Write a fresh token for every component issued one."""
+    async def renew_all(self) -> None:
+        """A fresh token for every component issued one: into its file here, or to its agent."""
         for comp in list(self._issued.values()):
-            self._write(comp.id, self._token(comp))
+            token = self._token(comp)
+            if not comp.remote:
+                self._write(comp.id, token)
+            elif self.remote is not None:
+                try:
+                    await self.remote(comp, token)
+                except CastError as exc:
+                    # Its host is lost or it is restarting: a relaunch issues a fresh token anyway, and one
+                    # unreachable host must not hold up the others' renewal.
+                    log.warning("cannot renew the token of component '%s' on host '%s': %s", comp.id, comp.host,
+                                exc)
         self.renewals += 1
 
     async def renew_forever(self) -> None:
@@ -100,4 +117,4 @@ class LaunchSecurity:
             return
         while True:
             await asyncio.sleep(max(0.2, self.ttl / 3))
-            self.renew_all()
+            await self.renew_all()

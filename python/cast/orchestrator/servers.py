@@ -22,6 +22,7 @@ from cast.core.system import System
 from cast.errors import InvalidArgumentError
 from cast.orchestrator.process import LineSink
 from cast.orchestrator.remote import Agents, RemoteProcess
+from cast.orchestrator.security import component_tls
 from cast.server.app import RunningServer, settings_from_config, start_server, system_from_config
 from cast.server.in_process import InProcessComponents
 from cast.v1 import directory_pb2 as dir_pb2
@@ -153,17 +154,27 @@ class ServerGroup:
             return None
         return configured
 
+    def remote_channel(self, far: RemoteServer) -> grpc.aio.Channel:
+        """A channel to a server on another host, with the components' TLS files in a TLS system."""
+        tls = component_tls(self.config)
+        if tls is not None:
+            return grpc.aio.secure_channel(far.address, tls.credentials(), options=tls.channel_options())
+        return grpc.aio.insecure_channel(far.address)
+
+    def orchestrator_metadata(self) -> tuple[tuple[str, str]]:
+        """The privileged token the orchestrator's own calls to a server carry."""
+        return (("authorization", f"Bearer {self.signer.issue(Identity('orchestrator', '', True))}"),)
+
     async def remote_components(self) -> list[dir_pb2.ComponentInfo]:
         """The components each server on another host knows (Directory.DescribeSystem); none if unreachable."""
         found: list[dir_pb2.ComponentInfo] = []
-        token = self.signer.issue(Identity("orchestrator", "", True))
         for far in self.remote:
             if not far.process.running:
                 continue
-            async with grpc.aio.insecure_channel(far.address) as channel:
+            async with self.remote_channel(far) as channel:
                 try:
                     reply = await directory_pb2_grpc.DirectoryStub(channel).DescribeSystem(
-                        dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),), timeout=2.0)
+                        dir_pb2.DescribeSystemRequest(), metadata=self.orchestrator_metadata(), timeout=2.0)
                 except grpc.RpcError:
                     continue
             found.extend(reply.components)

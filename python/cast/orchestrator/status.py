@@ -8,9 +8,11 @@ summary printed at the end and ``--summary-json`` use the same numbers.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from collections import Counter
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
+import grpc
 from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
@@ -18,8 +20,11 @@ from rich.text import Text
 from cast.config.model import SystemConfig
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskState
-from cast.orchestrator.servers import ServerGroup
+from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.supervisor import Supervisor
+from cast.v1 import inspection_pb2 as insp_pb2
+from cast.v1 import inspection_pb2_grpc, task_manager_pb2_grpc
+from cast.v1 import task_manager_pb2 as tm_pb2
 
 __all__ = ["ComponentRow", "Snapshot", "StatusTracker", "SubarchitectureRow", "render_status", "render_summary"]
 
@@ -83,6 +88,8 @@ class StatusTracker:
         self._supervisor = supervisor
         self._started = time.monotonic()
         self._last: tuple[float, dict[str, int]] | None = None
+        self._remote_rows: list[SubarchitectureRow] = []  # the SAs of servers on other hosts (refresh_remote)
+        self._remote_at = 0.0
 
     def snapshot(self) -> Snapshot:
         """The current state of everything."""
@@ -115,31 +122,85 @@ class StatusTracker:
                 crashes=list(sup.crashes) if sup is not None else [],
                 host=comp.host if comp is not None else info.host,
             ))
-        revisions: dict[str, int] = {}
-        sas: list[SubarchitectureRow] = []
         elapsed = now - self._last[0] if self._last else 0.0
+        local = self._local_rows()
+        revisions = {sa.name: sa.revision for sa in local}
+        for sa in local:
+            before = self._last[1].get(sa.name, sa.revision) if self._last else sa.revision
+            sa.events_per_s = (sa.revision - before) / elapsed if elapsed > 0 else 0.0
+        self._last = (now, revisions)
+        sas = [*local, *(replace(r) for r in self._remote_rows)]  # remote rates: per refresh (refresh_remote)
+        return Snapshot(self._config.name, self._servers.directory.endpoint, now - self._started, rows, sas,
+                        bool(self._config.hosts))
+
+    def _local_rows(self) -> list[SubarchitectureRow]:
+        """The SAs of the servers in this process, read from their objects."""
+        sas: list[SubarchitectureRow] = []
         for server in self._servers.servers:
             system = server.system
             live = system.tasks.tasks()
             for sa in system.host.subarchitectures:
-                revision = system.host.revision(sa)
-                revisions[sa] = revision
-                before = self._last[1].get(sa, revision) if self._last else revision
                 sas.append(SubarchitectureRow(
                     name=sa,
                     endpoint=server.endpoint,
                     policy=system.tasks.policy(sa).describe(),
                     entries=system.host.entry_count(sa),
-                    revision=revision,
-                    events_per_s=(revision - before) / elapsed if elapsed > 0 else 0.0,
+                    revision=system.host.revision(sa),
+                    events_per_s=0.0,
                     waiting=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.WAITING),
                     running=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.ADOPTED),
                     counters=dict(system.tasks.counters[sa]),
                     types=system.host.type_counts(sa),
                 ))
-        self._last = (now, revisions)
-        return Snapshot(self._config.name, self._servers.directory.endpoint, now - self._started, rows, sas,
-                        bool(self._config.hosts))
+        return sas
+
+    async def refresh_remote(self) -> None:
+        """Ask each server on another host about its SAs (Inspection and TaskManager calls, as `cast ls` does).
+
+        Their objects live in another process, so the live view shows what the last refresh found; a server
+        that does not answer keeps its last rows.
+        """
+        now = time.monotonic()
+        before = {r.name: r.revision for r in self._remote_rows}
+        elapsed = now - self._remote_at if self._remote_rows else 0.0
+        rows: list[SubarchitectureRow] = []
+        for far in self._servers.remote:
+            if not far.process.running:
+                continue
+            try:
+                found = await self._ask(far)
+            except grpc.RpcError:
+                rows += [r for r in self._remote_rows if r.endpoint == far.address]
+                continue
+            for row in found:
+                if elapsed > 0 and row.name in before:
+                    row.events_per_s = (row.revision - before[row.name]) / elapsed
+            rows += found
+        self._remote_rows, self._remote_at = rows, now
+
+    async def _ask(self, far: RemoteServer) -> list[SubarchitectureRow]:
+        metadata = self._servers.orchestrator_metadata()
+        rows: list[SubarchitectureRow] = []
+        async with self._servers.remote_channel(far) as channel:
+            inspection = inspection_pb2_grpc.InspectionStub(channel)
+            manager = task_manager_pb2_grpc.TaskManagerStub(channel)
+            stats = await inspection.TaskStatistics(insp_pb2.TaskStatisticsRequest(), metadata=metadata, timeout=2.0)
+            for counted in stats.subarchitectures:
+                sa = counted.subarchitecture
+                listed = await inspection.ListEntries(insp_pb2.ListEntriesRequest(subarchitecture=sa),
+                                                      metadata=metadata, timeout=2.0)
+                live = await manager.ListTasks(tm_pb2.ListTasksRequest(subarchitecture=sa), metadata=metadata,
+                                               timeout=2.0)
+                rows.append(SubarchitectureRow(
+                    name=sa, endpoint=far.address, policy=counted.policy, entries=len(listed.entries),
+                    revision=listed.revision, events_per_s=0.0,
+                    waiting=sum(1 for t in live.tasks if t.state == tm_pb2.TASK_STATE_WAITING),
+                    running=sum(1 for t in live.tasks if t.state == tm_pb2.TASK_STATE_ADOPTED),
+                    counters={k: getattr(counted, k) for k in ("proposed", "adopted", "rejected", "retracted",
+                                                               "completed")},
+                    types=dict(Counter(e.type for e in listed.entries)),
+                ))
+        return rows
 
 
 _PHASE_STYLE = {"running": "green", "restarting": "yellow", "failed": "bold red", "exited": "dim",
