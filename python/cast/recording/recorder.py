@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import grpc
 
@@ -25,15 +26,24 @@ from cast.client.watch_stream import WatchStream
 from cast.core.records import ChangeEvent
 from cast.core.watch import EventFilter
 from cast.errors import CastError, NotFoundError
-from cast.recording.channels import FORMAT_VERSION, MAX_SEQUENCE, ChannelMap, Gap
+from cast.recording.channels import FORMAT_VERSION, MAX_SEQUENCE, ChannelMap, ChannelMessage, Gap
 from cast.recording.info import iso
-from cast.recording.mcap_file import RecordingWriter
 from cast.v1 import directory_pb2 as dir_pb2
 
-__all__ = ["RecordOptions", "RecordStats", "Recorder"]
+__all__ = ["MessageSink", "RecordOptions", "RecordStats", "Recorder"]
 
 _RESYNC_RETRY_S = 1.0
 _SCHEMA_ATTEMPTS = 3
+
+
+class MessageSink(Protocol):
+    """Where :meth:`Recorder.run` puts channel messages: the MCAP file (``RecordingWriter``) or the live view."""
+
+    def write(self, message: ChannelMessage) -> None:
+        """Take one message (its channel announced first, if new)."""
+
+    def flush_if_due(self) -> None:
+        """Called between messages, so that a sink may flush on its own schedule."""
 
 
 @dataclass(frozen=True)
@@ -194,7 +204,7 @@ class Recorder:
 
     # ------------------------------------------------------------------ loop
 
-    def run(self, writer: RecordingWriter, stop: threading.Event, until: float | None,
+    def run(self, writer: MessageSink, stop: threading.Event, until: float | None,
             on_gap: Callable[[Gap], None]) -> None:
         """Write changes as they come until ``stop`` is set or the monotonic time ``until`` passes.
 
@@ -225,7 +235,7 @@ class Recorder:
             if isinstance(item, ChangeEvent) and not self._handle(writer, server, item, on_gap):
                 break
 
-    def _handle(self, writer: RecordingWriter, server: _Server, item: ChangeEvent | CastError,
+    def _handle(self, writer: MessageSink, server: _Server, item: ChangeEvent | CastError,
                 on_gap: Callable[[Gap], None]) -> bool:
         if isinstance(item, CastError):
             if server.failure is None:
@@ -245,7 +255,7 @@ class Recorder:
         self._last[item.subarchitecture] = item.revision
         return True
 
-    def _resync(self, writer: RecordingWriter, server: _Server, on_gap: Callable[[Gap], None]) -> None:
+    def _resync(self, writer: MessageSink, server: _Server, on_gap: Callable[[Gap], None]) -> None:
         """Watch again from the current revision and mark what was missed, or try again a little later."""
         reason = server.failure
         assert reason is not None
@@ -273,7 +283,7 @@ class Recorder:
             self._last[sa] = current
             on_gap(gap)
 
-    def _retry_resyncs(self, writer: RecordingWriter, on_gap: Callable[[Gap], None]) -> None:
+    def _retry_resyncs(self, writer: MessageSink, on_gap: Callable[[Gap], None]) -> None:
         now = time.monotonic()
         for server in self._servers:
             if server.failure is not None and now >= server.retry_at:
