@@ -260,3 +260,46 @@ def test_a_start_older_than_the_history_is_refused_with_what_the_server_keeps(
     assert out.returncode == 2, out.stderr
     assert "revision 1 is no longer in the history (kept: 8..12)" in out.stderr
     assert not path.exists()
+
+
+def test_on_a_terminal_a_live_line_shows_changes_bytes_and_rate(server: ServerHandle, tmp_path: Path) -> None:
+    import os
+    import pty
+    import subprocess
+
+    from tests.recording.conftest import CAST, cli_env
+
+    primary, secondary = pty.openpty()
+    path = tmp_path / "tty.mcap"
+    proc = subprocess.Popen([CAST, "record", "--endpoint", server.endpoint, "-o", str(path), "--for", "4"],
+                            env=cli_env(TERM="xterm"), stdout=subprocess.DEVNULL, stderr=secondary)
+    os.close(secondary)
+    seen = bytearray()
+
+    def read() -> None:
+        while True:
+            try:
+                chunk = os.read(primary, 4096)
+            except OSError:
+                return
+            if not chunk:
+                return
+            seen.extend(chunk)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    writer = server.connect("w", "vision")
+    try:
+        wait_for(lambda: b"recording to" in seen, what="the live line")
+        for i in range(3):
+            writer.add(f"t{i}", Counter(value=i))
+        wait_for(lambda: b"3 changes, " in seen, what="the live line to count the changes")
+        assert proc.wait(60) == 0
+    finally:
+        writer._cast_close()
+        if proc.poll() is None:
+            proc.kill()
+        reader.join(5)
+        os.close(primary)
+    text = seen.decode(errors="replace")
+    assert "recording to tty.mcap: " in text and "KiB, " in text and "/s" in text

@@ -115,7 +115,8 @@ class _Status:
     def __init__(self, stats: RecordStats, target: str) -> None:
         self._stats = stats
         self._target = target
-        self._samples: deque[tuple[float, int]] = deque(maxlen=20)
+        self._samples: deque[tuple[float, int]] = deque(maxlen=20)  # 5 s at 4 refreshes a second
+        self._began = time.monotonic()
 
     def __rich__(self) -> Text:
         now = time.monotonic()
@@ -123,12 +124,14 @@ class _Status:
         self._samples.append((now, s.changes))
         then, before = self._samples[0]
         rate = (s.changes - before) / (now - then) if now > then else 0.0
-        line = f"recording to {self._target}: {s.changes} changes, {_mib(s.data_bytes)}, {rate:.1f}/s"
+        line = (f"recording to {self._target}: {now - self._began:.0f} s, {s.changes} changes, {_mib(s.data_bytes)}, "
+                f"{rate:.1f}/s")
         if s.gaps:
             line += f", {len(s.gaps)} gap{'s' if len(s.gaps) > 1 else ''}"
         if not s.connected:
             line += ", reconnecting"
-        return Text(line, style="bold red" if s.gaps else "")
+        # One line however narrow the terminal: cropped, never wrapped.
+        return Text(line, style="bold red" if s.gaps else "", no_wrap=True, overflow="ellipsis")
 
 
 # -------------------------------------------------------------------- record
@@ -174,7 +177,7 @@ def _record(args: argparse.Namespace) -> int:
 
         with stop_on_signals(stop, why):
             if console.is_terminal:
-                with Live(_Status(recorder.stats, str(out)), console=console, refresh_per_second=4,
+                with Live(_Status(recorder.stats, out.name), console=console, refresh_per_second=4,
                           transient=True):
                     recorder.run(writer, stop, until, gap)
             else:
