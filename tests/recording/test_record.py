@@ -303,3 +303,36 @@ def test_on_a_terminal_a_live_line_shows_changes_bytes_and_rate(server: ServerHa
         os.close(primary)
     text = seen.decode(errors="replace")
     assert "recording to tty.mcap: " in text and "KiB, " in text and "/s" in text
+
+
+def test_a_cast_run_system_on_two_servers_is_found_through_its_runtime_directory(tmp_path: Path) -> None:
+    import subprocess
+
+    from tests.orchestrator.conftest import start_cast_run, write_config
+    from tests.recording.conftest import CAST
+
+    config = write_config(tmp_path / "two.yaml", {
+        "system": "two",
+        "subarchitectures": {
+            "vision": {"task_manager": {"policy": "fifo", "max_concurrent": 1}, "components": {
+                "worker": {"kind": "managed", "class": "orch_components:Worker", "args": {"source_sa": "motor"}}}},
+            "motor": {"components": {"producer": {"class": "orch_components:Producer", "args": {"count": 2}}}},
+        },
+        "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
+    })
+    run = start_cast_run(tmp_path, config)
+    try:
+        wait_for(lambda: len(run.cli_json("ls", "vision")) >= 2, what="the worker's results")
+        path = tmp_path / "two.mcap"
+        out = subprocess.run([CAST, "record", "-o", str(path), "--from-revision", "1", "--for", "2"], cwd=tmp_path,
+                             env=run.env(), capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+    finally:
+        assert run.stop() == 0, run.output()
+    read = read_indexed(path)
+    changes = [ChangeEvent.FromString(m.data) for m in read.on("/cast/changes")]
+    motor = [(e.address.id, e.revision) for e in changes if e.address.subarchitecture == "motor"]
+    assert motor[:2] == [("item-0", 1), ("item-1", 2)]  # from the other server
+    assert {e.address.subarchitecture for e in changes} == {"vision", "motor"}
+    assert "/vision/cast.v1.Task" in read.topics() and "/motor/google.protobuf.StringValue" in read.topics()
+    assert read.metadata["cast.recording"]["system"] == "two"
