@@ -39,12 +39,18 @@ def test_a_replay_into_a_fresh_system_reproduces_the_recorded_entries(server: Se
 
 
 def test_sa_map_and_type_choose_where_and_what(server_factory: Any, scenario: Scenario) -> None:
-    live = server_factory({"system": "other", "subarchitectures": {"camera": {}, "language": {}, "motor": {}}})
-    out = replay(live, scenario, "--rate", "max", "--sa-map", "vision=camera", "--type", "cast.testing.Pose")
+    # No motor here: the recording has only task changes there, which are not replayed, so it needs no target.
+    live = server_factory({"system": "other", "subarchitectures": {"camera": {}, "language": {}}})
+    out = replay(live, scenario, "--rate", "max", "--sa-map", "vision=camera")
     assert out.returncode == 0, out.stderr
-    assert entries(live, "camera") == {"p1": scenario.final["vision"]["p1"]}  # no Counter c1: --type
+    assert entries(live, "camera") == scenario.final["vision"]
     assert entries(live, "language") == scenario.final["language"]
     assert "into vision->camera, language" in out.stderr
+    only = server_factory({"system": "poses", "subarchitectures": {"camera": {}, "language": {}}})
+    out = replay(only, scenario, "--rate", "max", "--sa-map", "vision=camera", "--type", "cast.testing.Pose")
+    assert out.returncode == 0, out.stderr
+    assert entries(only, "camera") == {"p1": scenario.final["vision"]["p1"]}  # not the Counter c1
+    assert entries(only, "language") == scenario.final["language"]
 
 
 def test_from_and_to_pick_a_window_of_the_recording(server: ServerHandle, scenario: Scenario) -> None:
@@ -153,6 +159,9 @@ def test_bad_input_is_refused_naming_what_is_wrong_and_changes_nothing(
     assert "--sa-map 'vision': write RECORDED=LIVE" in refused("--sa-map", "vision")
     assert "--rate 0.0: give a speed factor above 0" in refused("--rate", "0")
     assert "--from 3.0 --to 1.0: give 0 <= FROM < TO" in refused("--from", "3", "--to", "1")
+    assert "--from 60.0: the recording lasts" in refused("--from", "60")
+    assert ("--type cast.testing.Poze: the recording has no values of that type (it holds: cast.testing.Counter, "
+            "cast.testing.Pose, cast.v1.Task)") in refused("--type", "cast.testing.Poze")
     # A type whose schema differs from the live server's: refused before anything is written.
     other = descriptor_pb2.FileDescriptorProto(name="cast_testing.proto", package="cast.testing", syntax="proto3")
     pose = other.message_type.add(name="Pose")

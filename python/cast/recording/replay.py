@@ -101,6 +101,14 @@ class Replayer:
             raise InvalidArgumentError(
                 f"--from {opts.start_s} --to {opts.end_s}: give 0 <= FROM < TO, in seconds from the recording's start "
                 f"(it lasts {self.duration_s:.3f} s)")
+        if opts.start_s > self.duration_s:
+            raise InvalidArgumentError(f"--from {opts.start_s}: the recording lasts {self.duration_s:.3f} s from its "
+                                       "first change to its last; give a start within it")
+        recorded_types = sorted({t for _, t in self.recording.value_channels()})
+        unknown = [t for t in opts.types if t not in recorded_types]
+        if unknown:
+            raise InvalidArgumentError(f"--type {unknown[0]}: the recording has no values of that type (it holds: "
+                                       f"{', '.join(recorded_types) or 'none'})")
         recorded = self.recording.subarchitectures
         live = self.transport.subarchitectures()
         for sa, target in opts.sa_map.items():
@@ -110,7 +118,9 @@ class Replayer:
             if target not in live:
                 raise InvalidArgumentError(f"--sa-map {sa}={target}: the live system has no subarchitecture "
                                            f"'{target}' (known: {', '.join(live)})")
-        channels = {key: c for key, c in self.recording.value_channels().items() if self._wanted(key[1])}
+        # Task entries are not replayed (the live task managers own them): their SAs need no live target.
+        channels = {key: c for key, c in self.recording.value_channels().items()
+                    if self._wanted(key[1]) and key[1] != TASK_TYPE}
         for sa in dict.fromkeys(sa for sa, _ in channels):
             target = opts.sa_map.get(sa, sa)
             if target not in live:
