@@ -131,3 +131,37 @@ def test_a_server_restarted_without_its_history_is_a_marked_gap(
     assert gap.history_before and gap.history_after and gap.history_before != gap.history_after
     assert "restarted without it" in gap.reason
     assert "gap in subarchitecture 'vision': changes after revision 3 of history" in rec.stderr()
+
+
+def test_a_recorder_that_falls_behind_the_history_marks_the_gap_and_goes_on(
+    server_factory: Any, tmp_path: Path, recorders: list[RecordProcess]
+) -> None:
+    server: ServerHandle = server_factory({"system": "slow", "subarchitectures": {"vision": {}},
+                                           "limits": {"history_events": 100}})
+    path = tmp_path / "behind.mcap"
+    rec = record(server.endpoint, path)
+    recorders.append(rec)
+    writer = server.connect("w", "vision")
+    try:
+        writer.add("first", Counter(value=0))
+        wait_recorded(path, 1)
+        rec.process.send_signal(signal.SIGSTOP)  # the recorder stops reading; its connection stays open
+        try:
+            blob = "x" * 2000
+            for b in range(100):  # 20,000 changes of 2 kB: far more than any socket and HTTP/2 window hold
+                writer.batch([("add", f"k{b}-{i}", Counter(writer=blob, value=i)) for i in range(200)])
+        finally:
+            rec.process.send_signal(signal.SIGCONT)
+        wait_for(lambda: "gap in" in rec.stderr(), what="the recorder to report the gap")
+        writer.add("last", Counter(value=1))
+        wait_for(lambda: any(e.address.id == "last" for e in wait_recorded(path, 2)), what="the change after it")
+        assert rec.stop(signal.SIGINT) == 1, rec.stderr()
+    finally:
+        writer._cast_close()
+    read = read_indexed(path)
+    (gap,) = [parse_gap(m.data, m.log_time) for m in read.on("/cast/gaps")]
+    revisions = _revisions(path)
+    assert revisions[-1] == 20_002 and gap.resumed_revision == 20_002
+    before = revisions[:-1]
+    assert before == list(range(1, len(before) + 1)) and gap.last_revision == len(before)  # nothing out of order
+    assert gap.missing == 20_001 - len(before) > 0 and "is no longer in the history" in gap.reason
