@@ -146,15 +146,18 @@ class Recording:
     @property
     def start_ns(self) -> int:
         """Log time of the first change (ns since the epoch); 0 if there is none."""
-        return min((t for t, _ in self._change_span()), default=0)
+        recorded = int(self.trailer.get("first_change_ns", "0") or 0)
+        return recorded or min((t for t, _ in self._change_span()), default=0)
 
     @property
     def end_ns(self) -> int:
         """Log time of the last change; 0 if there is none."""
-        return max((t for _, t in self._change_span()), default=0)
+        recorded = int(self.trailer.get("last_change_ns", "0") or 0)
+        return recorded or max((t for _, t in self._change_span()), default=0)
 
     def _change_span(self) -> list[tuple[int, int]]:
-        # From the chunk indexes of chunks holding change records: no message is read.
+        # Without the recorder's own figures: the chunk indexes of chunks holding change records (a gap
+        # marker in the same chunk may widen the span a little); no message is read.
         changes = {c.id for c in self.channels(ROLE_CHANGES)}
         out = []
         for index in self.summary.chunk_indexes:

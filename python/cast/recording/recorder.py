@@ -121,6 +121,7 @@ class Recorder:
         self.stats = RecordStats(per_subarchitecture=dict.fromkeys(chosen, 0))
         self._last: dict[str, int] = {}  # per SA, the newest revision recorded (or known to be before the start)
         self._sequence = 0
+        self._span: tuple[int, int] | None = None  # commit times of the first and last change recorded
         self.started_ns = 0
         self.stop_reason = ""
 
@@ -200,6 +201,9 @@ class Recorder:
             "changes": str(self.stats.changes),
             "gaps": str(len(self.stats.gaps)),
             "last_revisions": ",".join(f"{sa}={self._last.get(sa, 0)}" for sa in self.subarchitectures),
+            # The exact span of the changes: the chunk indexes' times include gap markers (recorder clock).
+            "first_change_ns": str(self._span[0] if self._span else 0),
+            "last_change_ns": str(self._span[1] if self._span else 0),
         }
 
     # ------------------------------------------------------------------ loop
@@ -246,6 +250,8 @@ class Recorder:
             self.stop_reason = f"full: {MAX_SEQUENCE} changes are the most one file numbers; start another"
             return False
         self._sequence += 1
+        t = item.time_ns
+        self._span = (min(self._span[0], t), max(self._span[1], t)) if self._span else (t, t)
         for message in self.channels.messages(item, self._sequence):
             writer.write(message)
             self.stats.data_bytes += len(message.data)
