@@ -100,6 +100,11 @@ def test_an_outage_longer_than_the_history_is_a_marked_gap(
         ("vision", 5, gap.missing)]
     table = cast_cli("info", str(path)).stdout
     assert "1 gap(s)" in table and "no longer in the history" in table
+    fresh = server_factory({"system": "fresh", "subarchitectures": {"vision": {}}})
+    out = cast_cli("replay", str(path), "--endpoint", fresh.endpoint, "--rate", "max")
+    assert out.returncode == 0, out.stderr  # what is in the file is replayed, and the gap is said
+    assert "the recording has a gap in subarchitecture 'vision': revisions 6..35" in out.stderr
+    assert "8 changes written" in out.stderr
 
 
 def test_a_server_restarted_without_its_history_is_a_marked_gap(

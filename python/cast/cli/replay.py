@@ -70,6 +70,8 @@ def _replay(args: argparse.Namespace) -> int:
             console.print(f"cast replay: {args.file} into {targets or 'nothing'} at "
                           f"{'full speed' if options.rate is None else f'{options.rate:g} x'}"
                           f"{', looping (Ctrl-C to stop)' if options.loop else ''}", soft_wrap=True, markup=False)
+            for gap in recording.gaps():
+                console.print(f"cast replay: the recording has a {gap.describe()}", soft_wrap=True, markup=False)
             with stop_on_signals(stop, why):
                 report = replayer.run(stop)
         finally:
