@@ -1,6 +1,6 @@
 """The core knows nothing above it: no gRPC, no generated wire code, no server, client or tool.
 And the packages above it import downward only: core; then config and client; then server and
-recording; then orchestrator; then cli (docs/design.md, "Folders").
+recording (and the live view beside it); then orchestrator; then cli (docs/design.md, "Folders").
 
 Every import in every module under python/cast/core (function-level ones too) is
 read from the source; the allowed packages are the standard library, protobuf's
@@ -17,7 +17,7 @@ from tests.conftest import ROOT
 
 CORE = ROOT / "python" / "cast" / "core"
 FORBIDDEN = ("grpc", "grpc_health", "grpc_reflection", "cast.v1", "cast.server", "cast.client",
-             "cast.cli", "cast.orchestrator", "cast.config", "cast.auth", "cast.recording")
+             "cast.cli", "cast.orchestrator", "cast.config", "cast.auth", "cast.recording", "cast.liveview")
 
 
 def imports(path: Path) -> list[tuple[int, str]]:
@@ -43,11 +43,13 @@ def test_the_core_imports_nothing_above_it() -> None:
 
 # What each package may not import: everything above it in the layering.
 ABOVE = {
-    "config": ("cast.client", "cast.server", "cast.orchestrator", "cast.cli", "cast.recording"),
-    "client": ("cast.config", "cast.server", "cast.orchestrator", "cast.cli", "cast.recording"),
+    "config": ("cast.client", "cast.server", "cast.orchestrator", "cast.cli", "cast.recording", "cast.liveview"),
+    "client": ("cast.config", "cast.server", "cast.orchestrator", "cast.cli", "cast.recording", "cast.liveview"),
     # beside the server: a client-side tool (record, replay, info) on the client library only
-    "recording": ("cast.config", "cast.server", "cast.orchestrator", "cast.agent", "cast.cli"),
-    "server": ("cast.orchestrator", "cast.cli", "cast.recording"),
+    "recording": ("cast.config", "cast.server", "cast.orchestrator", "cast.agent", "cast.cli", "cast.liveview"),
+    # the live view (cast foxglove, cast run --foxglove): the recorder's loop feeding a Foxglove server
+    "liveview": ("cast.config", "cast.server", "cast.orchestrator", "cast.agent", "cast.cli"),
+    "server": ("cast.orchestrator", "cast.cli", "cast.recording", "cast.liveview"),
     "orchestrator": ("cast.cli",),
     "agent": ("cast.client", "cast.server", "cast.cli"),  # beside the orchestrator: launchers and processes only
 }

@@ -1,4 +1,4 @@
-"""The ``cast`` command line: serve, run, check, token, the inspection commands, record, replay and info."""
+"""The ``cast`` command line: serve, run, check, token, the inspection commands, record, replay, info, foxglove."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import agent, inspection, record, replay, run, serve, token
+from cast.cli import agent, foxglove, inspection, record, replay, run, serve, token
 from cast.errors import CastError
 
 __all__ = ["build_parser", "main"]
@@ -23,6 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_command(sub)
     record.add_command(sub)
     replay.add_commands(sub)
+    foxglove.add_command(sub)
     return parser
 
 

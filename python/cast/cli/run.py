@@ -15,6 +15,7 @@ from rich.console import Console
 from cast.cli.options import parse_sets
 from cast.config import SystemConfig, read_config
 from cast.config.problems import Problems
+from cast.liveview.sink import DEFAULT_LISTEN
 from cast.orchestrator.preflight import preflight
 
 __all__ = ["add_commands"]
@@ -88,6 +89,7 @@ def _run(args: argparse.Namespace) -> int:
         run_for=args.for_seconds,
         runtime_dir=Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(),
         summary_json=Path(args.summary_json) if args.summary_json else None,
+        foxglove=args.foxglove,
     )
     console = Console(highlight=False, soft_wrap=True)
     if not console.is_terminal:
@@ -119,4 +121,7 @@ def add_commands(sub: Any) -> None:
     run.add_argument("--runtime-dir", help="where the secret, system.json and logs go (default: $CAST_RUNTIME_DIR "
                                            "or .cast)")
     run.add_argument("--summary-json", metavar="FILE", help="also write the final summary as JSON")
+    run.add_argument("--foxglove", nargs="?", const=DEFAULT_LISTEN, metavar="HOST:PORT",
+                     help=f"also serve the working memories live to the Foxglove app (default address "
+                          f"{DEFAULT_LISTEN}, loopback only; port 0 picks a free one); docs/foxglove.md")
     run.set_defaults(fn=_run)

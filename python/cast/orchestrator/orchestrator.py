@@ -25,9 +25,10 @@ from typing import Any
 from cast.auth import TokenSigner
 from cast.config.model import LOCAL_HOST, ComponentConfig, SystemConfig
 from cast.core.sessions import ComponentState
+from cast.liveview.in_run import RunView
 from cast.orchestrator.output import Output
 from cast.orchestrator.remote import Agents, remote_hosts
-from cast.orchestrator.security import LaunchSecurity
+from cast.orchestrator.security import LaunchSecurity, component_tls
 from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
 from cast.orchestrator.supervisor import Phase, Supervisor
@@ -49,6 +50,7 @@ class RunOptions:
     runtime_dir: Path = field(default_factory=lambda: Path(".cast"))
     status_interval: float = 0.5
     summary_json: Path | None = None
+    foxglove: str | None = None  # HOST:PORT of the Foxglove live view (cast run --foxglove); None: no view
 
 
 @dataclass
@@ -122,6 +124,20 @@ class Orchestrator:
 
     async def run(self) -> RunResult:
         """Run the system; return when it has shut down."""
+        loop = asyncio.get_running_loop()
+
+        def notice(text: str) -> None:  # from the view's thread too
+            loop.call_soon_threadsafe(self.output.notice, f"foxglove: {text}")
+
+        # Bound before anything starts, so that a taken port ends the run at once (docs/foxglove.md).
+        view = RunView(self.options.foxglove, notice) if self.options.foxglove is not None else None
+        try:
+            return await self._run(view)
+        finally:
+            if view is not None:
+                await loop.run_in_executor(None, view.close)
+
+    async def _run(self, view: RunView | None) -> RunResult:
         self._prepare()
         loop = self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
@@ -158,6 +174,9 @@ class Orchestrator:
         if agents is not None:
             self._security.remote = agents.renew  # tokens of components on other hosts go to their agents
         try:
+            if view is not None:  # a tool like any other: off the loop that serves its calls
+                await loop.run_in_executor(None, view.attach, servers.directory.endpoint, self._signer,
+                                           component_tls(self.config))
             with self.output:
                 if servers.remote:
                     watch_task = asyncio.ensure_future(self._watch_remote_servers(servers, failures))
@@ -195,6 +214,8 @@ class Orchestrator:
                 if task is not None:
                     task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
+            if view is not None:  # it has seen the components' last changes; its watches end before the servers
+                await loop.run_in_executor(None, view.stop_watching)
             await servers.stop_remote(self.config.orchestrator.stop_timeout)  # then the servers, remote first
             if agents is not None:
                 await agents.close()
