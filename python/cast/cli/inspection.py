@@ -1,4 +1,4 @@
-"""``cast ls``, ``cast get``, ``cast watch``, ``cast components``, ``cast tasks``: looking at a running system."""
+"""``cast ls``, ``get``, ``watch``, ``components``, ``tasks`` (and ``stats``): looking at a running system."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from typing import Any
 
 import grpc
 
+from cast.cli import stats
 from cast.cli.connect import ServerStubs, SystemClient, add_tls_options, connect
 from cast.cli.render import SchemaDecoder, iso_time, print_json, print_table
 from cast.client.grpc_transport import map_rpc_error
@@ -301,3 +302,5 @@ def add_commands(sub: Any) -> None:
     tasks.add_argument("subarchitecture", nargs="?", help="SA (default: every SA)")
     _common(tasks)
     tasks.set_defaults(fn=_tasks)
+
+    stats.add_command(sub, _common)

@@ -89,6 +89,7 @@ def _run(args: argparse.Namespace) -> int:
         run_for=args.for_seconds,
         runtime_dir=Path(args.runtime_dir) if args.runtime_dir else default_runtime_dir(),
         summary_json=Path(args.summary_json) if args.summary_json else None,
+        metrics=args.metrics,
         foxglove=args.foxglove,
     )
     console = Console(highlight=False, soft_wrap=True)
@@ -120,7 +121,11 @@ def add_commands(sub: Any) -> None:
     run.add_argument("--quiet", action="store_true", help="do not echo component output (it is still logged)")
     run.add_argument("--runtime-dir", help="where the secret, system.json and logs go (default: $CAST_RUNTIME_DIR "
                                            "or .cast)")
-    run.add_argument("--summary-json", metavar="FILE", help="also write the final summary as JSON")
+    run.add_argument("--summary-json", metavar="FILE", help="also write the final summary as JSON (with the "
+                                                           "servers' metrics under 'metrics': docs/experiments.md)")
+    run.add_argument("--metrics", metavar="HOST:PORT",
+                     help="serve the servers' metrics in Prometheus's text format on http://HOST:PORT/metrics (port "
+                          "0 picks a free one; the address is printed); docs/experiments.md")
     run.add_argument("--foxglove", nargs="?", const=DEFAULT_LISTEN, metavar="HOST:PORT",
                      help=f"also serve the working memories live to the Foxglove app (default address "
                           f"{DEFAULT_LISTEN}, loopback only; port 0 picks a free one); docs/foxglove.md")

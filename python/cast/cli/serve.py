@@ -25,11 +25,17 @@ def _serve(args: argparse.Namespace) -> int:
     config = load_config(args.config, parse_sets(args.set))
     sys.path[:0] = [str(p) for p in config.python_path]  # in-process components import from there
     server = _chosen_server(config, args.server)
-    system = system_from_config(config, lease_ms=args.lease_ms, server=server)
+    system = system_from_config(config, lease_ms=args.lease_ms, server=server, metrics=not args.no_metrics)
     signer = TokenSigner(load_or_create_secret(args.secret_file))
     in_process = InProcessComponents(system)
 
     routes = _routes(args.route)
+    endpoint = None
+    if args.metrics:
+        from cast.server.prometheus import serve_metrics
+
+        # Bound before the server starts, so that a taken port stops it before anyone connects.
+        endpoint = serve_metrics(args.metrics, system.metrics.snapshot)
     if args.await_run:
         # Held until the directory's barrier is released (a server `cast run` started on another host).
         system.barrier.hold()
@@ -44,6 +50,9 @@ def _serve(args: argparse.Namespace) -> int:
             if comp.in_process and (server is None or comp.subarchitecture in server.subarchitectures):
                 in_process.start(comp)
         running.on_stop(in_process.stop_all)
+        if endpoint is not None:
+            print(f"metrics on http://{endpoint.address}/metrics", flush=True)  # after the listening line
+            running.on_stop(endpoint.close)
 
     settings = settings_from_config(config)
     asyncio.run(serve_forever(system, signer, args.listen, started, settings))
@@ -123,6 +132,12 @@ def add_command(sub: Any) -> None:
     serve.add_argument("--await-run", metavar="HOST:PORT",
                        help="hold the start barrier until the directory at HOST:PORT releases its own "
                             "(a server `cast run` starts on another host)")
+    serve.add_argument("--metrics", metavar="HOST:PORT",
+                       help="also serve the metrics in Prometheus's text format on http://HOST:PORT/metrics (port 0 "
+                            "picks a free one; the address is printed after the listening line); docs/experiments.md")
+    serve.add_argument("--no-metrics", action="store_true",
+                       help="count nothing (the metrics are on by default; `cast stats` then shows zeros); for "
+                            "measuring what counting costs")
     serve.set_defaults(fn=_serve, log_level="INFO")
 
 

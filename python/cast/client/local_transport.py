@@ -124,7 +124,7 @@ class LocalTransport:
                 if self._room is not None and budget == 0:
                     return  # the sink remembers it was full and calls pump() when it drains
                 try:
-                    matches = self._sub.poll(max_events=budget)
+                    matches = self._access.take(self._sub, max_events=budget)
                 except CastError as exc:
                     self._sub.close()
                     self._sub = None

@@ -13,6 +13,10 @@ what it waits for (:class:`Durable`, :class:`Unlocked`) and returns the
 result. :func:`run_sync` drives them on the caller's thread (in process),
 :func:`run_async` on an event loop (the servicers); neither holds a mutex
 while it waits.
+
+What the rulebook answers and hands out is also what it counts
+(:mod:`cast.core.metrics`): reads, applied and refused writes, locks and
+their waits, events delivered to watchers. So every transport counts alike.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
+from cast.core.metrics import Metrics
 from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -63,32 +68,48 @@ class Access:
         self.system = system
         self.who = who
         self._host = system.host
+        self._metrics: Metrics | None = system.metrics.active
 
     # ------------------------------------------------------------------ reads
     # Reads see durable state only and never wait (cast.core.host).
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """One entry; NOT_FOUND, or FAILED_PRECONDITION if another holds it ODR-locked."""
-        return self._host.get(self.who, sa, entry_id)
+        record = self._host.get(self.who, sa, entry_id)
+        if self._metrics is not None:
+            self._metrics.read(self.who, sa, 1, len(record.data))
+        return record
 
     def get_by_type(self, sa: str, type_name: str, limit: int = 0) -> tuple[list[EntryRecord], int]:
         """Entries of one type, newest first (ODR-locked ones of others left out), and the revision read."""
-        return self._host.get_by_type(self.who, sa, type_name, limit)
+        records, revision = self._host.get_by_type(self.who, sa, type_name, limit)
+        if self._metrics is not None:
+            self._metrics.read(self.who, sa, len(records), sum(len(r.data) for r in records))
+        return records, revision
 
     def exists(self, sa: str, entry_id: str) -> bool:
         """Whether an entry exists."""
-        return self._host.exists(self.who, sa, entry_id)
+        found = self._host.exists(self.who, sa, entry_id)
+        if self._metrics is not None:
+            self._metrics.read(self.who, sa, 0, 0)
+        return found
 
     # ----------------------------------------------------------------- writes
     # Answered, refusals included, only once what they saw is durable.
 
     def write(self, op: BatchOp) -> Steps[WriteResult]:
         """One add, overwrite or delete."""
-        return self._settled(lambda: self._host.write(self.who, op))
+        m = self._metrics
+        if m is None:
+            return self._settled(lambda: self._host.write(self.who, op))
+        return self._counted(lambda: self._host.write(self.who, op), lambda: m.wrote(self.who, op))
 
     def batch(self, ops: Sequence[BatchOp]) -> Steps[list[WriteResult]]:
         """Writes in order, all or nothing."""
-        return self._settled(lambda: self._host.batch(self.who, ops))
+        m = self._metrics
+        if m is None:
+            return self._settled(lambda: self._host.batch(self.who, ops))
+        return self._counted(lambda: self._host.batch(self.who, ops), lambda: m.wrote_batch(self.who, ops))
 
     def register_schemas(self, files: Sequence[object]) -> Steps[list[str]]:
         """Register entry types (see cast.core.schemas); the message types they define."""
@@ -98,13 +119,24 @@ class Access:
 
     def lock(self, sa: str, entry_id: str, mode: LockMode, no_wait: bool = False) -> Steps[int]:
         """Take a lock (re-entrant); wait for another holder unless ``no_wait``; the depth."""
-        while True:
-            try:
-                return (yield from self._settled(lambda: self._host.try_lock(self.who, sa, entry_id, mode)))
-            except LockedError as exc:
-                if no_wait or isinstance(exc, NoSessionError):
-                    raise
-                yield Unlocked(sa, entry_id, exc)
+        waited_from = 0  # monotonic ns of the first wait; a wait is counted once, however it ends
+        try:
+            while True:
+                try:
+                    depth = yield from self._settled(lambda: self._host.try_lock(self.who, sa, entry_id, mode))
+                except LockedError as exc:
+                    if no_wait or isinstance(exc, NoSessionError):
+                        raise
+                    if not waited_from:
+                        waited_from = time.monotonic_ns()
+                    yield Unlocked(sa, entry_id, exc)
+                    continue
+                if self._metrics is not None:
+                    self._metrics.locked(self.who, sa)
+                return depth
+        finally:
+            if waited_from and self._metrics is not None:
+                self._metrics.lock_waited(self.who, sa, time.monotonic_ns() - waited_from)
 
     def unlock(self, sa: str, entry_id: str) -> Steps[int]:
         """Release one level of the caller's lock; the remaining depth."""
@@ -148,12 +180,37 @@ class Access:
             )
         return sub.add_watch(watch_id, filters, dict(start_revisions or {}))
 
+    def take(self, sub: Subscription, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
+        """The events pending for ``sub`` (:meth:`Subscription.poll`), counted as delivered to this caller.
+
+        The transports hand what this returns to the watcher at once (encoded
+        into the stream's next message, or to the in-process sink), so this is
+        the moment the delivery latency is taken (docs/experiments.md).
+        """
+        matches = sub.poll(max_events, max_bytes)
+        if matches and self._metrics is not None:
+            self._metrics.delivered(self.who, matches, self.carries_entry)
+        return matches
+
     def carries_entry(self, match: Match) -> bool:
         """Whether an event goes to this caller with its entry: asked for, and not under another's ODR lock."""
         holder = match.event.odr_holder
         return match.include_entry and (holder is None or holder == self.who.component_id)
 
     # ---------------------------------------------------------------- helpers
+
+    def _counted(self, call: Callable[[], T], count: Callable[[], None]) -> Steps[T]:
+        """:meth:`_settled` for a write: ``count()`` once applied, a refusal counted as one."""
+        try:
+            result = call()
+        except CastError:
+            assert self._metrics is not None
+            self._metrics.refused(self.who)
+            yield DURABLE
+            raise
+        count()  # counted once committed, before the wait for the journal
+        yield DURABLE
+        return result
 
     def _settled(self, call: Callable[[], T]) -> Steps[T]:
         try:

@@ -18,6 +18,7 @@ from google.protobuf.descriptor import FileDescriptor
 from cast.core.barrier import StartBarrier
 from cast.core.host import BatchOp, MemoryHost
 from cast.core.journal import Journal
+from cast.core.metrics import Metrics
 from cast.core.policies import TaskPolicy
 from cast.core.records import TASK_TYPE, Identity, Limits, Operation, Quota
 from cast.core.schemas import SchemaRegistry
@@ -45,13 +46,15 @@ class System:
         quotas: Mapping[str, Quota] | None = None,
         own_files: Sequence[FileDescriptor] = (),
         encode_task: Callable[[TaskRecord], bytes] | None = None,
+        metrics: bool = True,
     ) -> None:
         """Wire the parts together.
 
         ``own_files`` (the wire's .proto files, preloaded like the well-known
         ones) and ``encode_task`` (a task's bytes in its ``cast.v1.Task``
         entry) come from the server layer (cast.server.wire), so that the core
-        knows nothing of the wire.
+        knows nothing of the wire. ``metrics``: count what callers do
+        (cast.core.metrics; a server's ``--no-metrics`` turns it off).
         """
         self.name = name
         # The system's own files are the server's, like the well-known ones: client copies are ignored.
@@ -65,6 +68,8 @@ class System:
             subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor, quotas=quotas
         )
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
+        self.metrics = Metrics(name, self.host.subarchitectures, enabled=metrics)
+        self.tasks.metrics = self.metrics.active
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         self.barrier = StartBarrier()  # released unless `cast run` holds it (cast.core.barrier)
         # Locks and tasks need a live session: its end is what releases them.

@@ -19,6 +19,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from cast.core.host import MemoryHost
+from cast.core.metrics import Metrics
 from cast.core.policies import AlwaysPolicy, TaskPolicy
 from cast.core.records import EntryRecord, Identity, no_session
 from cast.errors import InvalidArgumentError, NoSessionError, NotFoundError, PermissionDeniedError, TaskStateError
@@ -110,6 +111,7 @@ class TaskBoard:
         self._listeners: list[Callable[[str], None]] = []
         # Whether a component has a live session (cast.core.sessions); None: no sessions (bare core).
         self.session_live: Callable[[str], bool] | None = None
+        self.metrics: Metrics | None = None  # counts decisions per component too (cast.core.metrics); None: off
         self.counters: dict[str, dict[str, int]] = {
             sa: {"proposed": 0, "adopted": 0, "rejected": 0, "retracted": 0, "completed": 0}
             for sa in host.subarchitectures
@@ -164,7 +166,7 @@ class TaskBoard:
                 self._clock(),
             )
             self._live[task.task_id] = task
-            self.counters[sa]["proposed"] += 1
+            self._count(task, "proposed")
             self._emit(task, queue=False)
             self._decide(sa)
             return task
@@ -252,7 +254,7 @@ class TaskBoard:
     def _finish(self, task: TaskRecord, state: TaskState, outcome: TaskOutcome, reason: str) -> None:
         task.state, task.outcome, task.reason = state, outcome, reason
         del self._live[task.task_id]
-        self.counters[task.subarchitecture][state.name.lower()] += 1
+        self._count(task, state.name.lower())
         self._emit(task, queue=False)
         self._decide(task.subarchitecture)
 
@@ -266,14 +268,20 @@ class TaskBoard:
         for task in decision.adopt:
             if task.state is TaskState.WAITING:
                 task.state, task.decided_ns = TaskState.ADOPTED, now
-                self.counters[sa]["adopted"] += 1
+                self._count(task, "adopted", now - task.proposed_ns)
                 self._emit(task, queue=True)
         for task, reason in decision.reject:
             if task.state is TaskState.WAITING:
                 task.state, task.decided_ns, task.reason = TaskState.REJECTED, now, reason
                 del self._live[task.task_id]
-                self.counters[sa]["rejected"] += 1
+                self._count(task, "rejected")
                 self._emit(task, queue=True)
+
+    def _count(self, task: TaskRecord, what: str, wait_ns: int | None = None) -> None:
+        """Count what happened to ``task`` per SA, and per component in the metrics."""
+        self.counters[task.subarchitecture][what] += 1
+        if self.metrics is not None:
+            self.metrics.task(task.component, task.subarchitecture, what, wait_ns)
 
     def _emit(self, task: TaskRecord, queue: bool) -> None:
         revision = self._publish(task) if self._publish is not None else 0

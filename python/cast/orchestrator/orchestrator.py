@@ -28,6 +28,7 @@ from cast.core.sessions import ComponentState
 from cast.liveview.in_run import RunView
 from cast.orchestrator.output import Output
 from cast.orchestrator.remote import Agents, remote_hosts
+from cast.orchestrator.run_metrics import RunMetrics
 from cast.orchestrator.security import LaunchSecurity, component_tls
 from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
@@ -49,6 +50,7 @@ class RunOptions:
     run_for: float | None = None  # seconds after every component connected; None: until signalled
     runtime_dir: Path = field(default_factory=lambda: Path(".cast"))
     status_interval: float = 0.5
+    metrics: str | None = None  # HOST:PORT to serve /metrics on (Prometheus); None: not served
     summary_json: Path | None = None
     foxglove: str | None = None  # HOST:PORT of the Foxglove live view (cast run --foxglove); None: no view
 
@@ -144,6 +146,7 @@ class Orchestrator:
         self._handle_signals(loop, install=True)
         assert self._signer is not None and self._security is not None
         servers = self._servers = ServerGroup(self.config, self._signer)
+        metrics = RunMetrics(servers, self.options.metrics, self.output.notice)  # bound before anything starts
         await servers.start()
         child_env = {k: v for k, v in self.env.items() if k not in _PRIVATE_ENV}
         agents: Agents | None = None
@@ -156,6 +159,7 @@ class Orchestrator:
             if agents is not None:
                 await agents.close()
             await servers.stop()
+            metrics.close()
             self.runtime.release()
             self._handle_signals(loop, install=False)
             raise
@@ -168,6 +172,7 @@ class Orchestrator:
         failures: list[str] = []
         connect_seconds: float | None = None
         snapshot: Snapshot | None = None
+        counted: dict[str, Any] = {}
         status_task: asyncio.Task[None] | None = None
         renew_task: asyncio.Future[None] | None = None
         watch_task: asyncio.Future[None] | None = None
@@ -207,6 +212,7 @@ class Orchestrator:
                 status_task.cancel()
                 await tracker.refresh_remote()  # the SAs of servers on other hosts, still running
                 snapshot = tracker.snapshot()
+                counted = await metrics.snapshot()  # every component has stopped: the final counts
         finally:
             if status_task is not None:
                 status_task.cancel()
@@ -220,13 +226,15 @@ class Orchestrator:
             if agents is not None:
                 await agents.close()
             await servers.stop()
+            metrics.close()
             self.runtime.release()
             self._handle_signals(loop, install=False)
         failures.extend(_component_failures(supervisor))
         if snapshot is not None:
             self.output.show(render_summary(snapshot, failures))
             if self.options.summary_json is not None:
-                data = {**snapshot.to_json(), "failures": failures, "connect_seconds": connect_seconds}
+                data = {**snapshot.to_json(), "failures": failures, "connect_seconds": connect_seconds,
+                        "metrics": counted}
                 self.options.summary_json.write_text(json.dumps(data, indent=2))
         return RunResult(failures, snapshot, connect_seconds)
 

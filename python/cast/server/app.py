@@ -73,7 +73,7 @@ def settings_from_config(config: SystemConfig) -> ServerSettings:
 
 
 def system_from_config(
-    config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None
+    config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None, metrics: bool = True
 ) -> System:
     """A :class:`System` hosting the SAs of ``server`` (default: every SA), expecting every component.
 
@@ -82,6 +82,7 @@ def system_from_config(
     configuration with several servers run as one by ``cast serve`` keeps
     memory only). TLS and token rules are the server's
     (:func:`settings_from_config`), given to :func:`start_server`.
+    ``metrics``: whether the server counts what callers do (cast.core.metrics).
     """
     if server is None:
         hosted = list(config.subarchitectures)
@@ -99,6 +100,7 @@ def system_from_config(
         lease_ms=lease_ms,
         journal=journal,
         quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
+        metrics=metrics,
     )
     for comp in config.components:
         # With hosts: a component shows the host the configuration places it on (local or a hosts: name).

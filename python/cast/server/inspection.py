@@ -1,10 +1,11 @@
-"""The Inspection servicer: whole-WM listings and task counters for tools (``cast ls``, ``cast tasks``)."""
+"""The Inspection servicer: WM listings, task counters and metrics for tools (``cast ls``, ``tasks``, ``stats``)."""
 
 from __future__ import annotations
 
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
 from cast.server.conversions import entry_to_pb
+from cast.server.metrics_wire import snapshot_to_pb
 from cast.server.rpc import Authenticator, Context, rpc
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
@@ -57,3 +58,9 @@ class InspectionServicer(insp_grpc.InspectionServicer):
             counts = tasks.counters[sa]
             out.append(insp_pb2.TaskCounters(subarchitecture=sa, policy=policy, **counts))
         return insp_pb2.TaskStatisticsResponse(subarchitectures=out)
+
+    @rpc
+    async def GetMetrics(self, request: insp_pb2.GetMetricsRequest, context: Context) -> insp_pb2.GetMetricsResponse:
+        """What this server counted since it started (cast.core.metrics)."""
+        self._auth.identify_read(context)
+        return snapshot_to_pb(self._system.metrics.snapshot())

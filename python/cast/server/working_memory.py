@@ -218,7 +218,7 @@ class _WatchStream:
                 if self._error is not None:
                     raise self._error
                 # The history holds only visible writes, so these are durable (cast.core.host).
-                matches = self._sub.poll(_BATCH_EVENTS, _BATCH_BYTES)
+                matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
