@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help soak
+.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help soak experiment
 
 all: setup proto
 
@@ -26,6 +26,7 @@ help:
 	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
+	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
 
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -63,6 +64,15 @@ test-python: setup proto examples bench-deps node grpcurl
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java java-demo test-python
+
+# The shipped design-space experiment (docs/experiments.md): the demo's components as one, two
+# and three SAs, the vision task manager fifo or priority, each run EXPERIMENT_SECONDS, twice.
+EXPERIMENT_SECONDS ?= 18
+EXPERIMENT_REPEAT ?= 2
+experiment: setup proto examples
+	$(VENV)/bin/cast sweep configs/experiments/decomposition.yaml --vary SAS=one,two,three \
+	  --vary VISION_POLICY=fifo,priority --for $(EXPERIMENT_SECONDS) --repeat $(EXPERIMENT_REPEAT) \
+	  -o build/experiments/decomposition
 
 # The long variants of tests/reliability (CAST_SOAK=1); figures go to build/reliability-figures.json.
 soak: setup proto examples

@@ -52,6 +52,9 @@ ABOVE = {
     "server": ("cast.orchestrator", "cast.cli", "cast.recording", "cast.liveview"),
     "orchestrator": ("cast.cli",),
     "agent": ("cast.client", "cast.server", "cast.cli"),  # beside the orchestrator: launchers and processes only
+    # cast sweep's planning, report and plots: it runs `cast run` as a process, and reads its summary
+    "experiments": ("cast.client", "cast.server", "cast.orchestrator", "cast.agent", "cast.cli", "cast.recording",
+                    "cast.liveview"),
 }
 
 

@@ -1,4 +1,4 @@
-"""The ``cast`` command line: serve, run, check, token, the inspection commands, record, replay, info, foxglove."""
+"""The ``cast`` command line: run and serve a system, the agent, and the tools (inspect, record, view, sweep)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import agent, foxglove, inspection, record, replay, run, serve, token
+from cast.cli import agent, foxglove, inspection, record, replay, run, serve, sweep, token
 from cast.errors import CastError
 
 __all__ = ["build_parser", "main"]
@@ -24,6 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_command(sub)
     replay.add_commands(sub)
     foxglove.add_command(sub)
+    sweep.add_command(sub)
     return parser
 
 
