@@ -23,7 +23,7 @@ help:
 	@echo "make test-cpp   the C++ unit tests (GoogleTest via ctest)"
 	@echo "make java-demo   the demo's Java components (examples/java-demo/target/cast-demo.jar)"
 	@echo "make node    the Node.js example component's runtime, packages and schema (examples/node)"
-	@echo "make demo    run the demo system (DEMO_SECONDS=20)"
+	@echo "make demo    run the demo system (DEMO_SECONDS=20; RECORD=demo.mcap also records it)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
@@ -57,8 +57,9 @@ $(EXAMPLES_STAMP): $(EXAMPLE_PROTOS) $(VENV)/.installed
 
 examples: $(EXAMPLES_STAMP)
 
+# RECORD=FILE also records the run to an MCAP file (docs/recording.md).
 demo: setup proto examples cpp java-demo
-	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)
+	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
 test-python: setup proto examples bench-deps node grpcurl
 	$(PY) -m pytest -q tests

@@ -36,12 +36,11 @@ from cast.core.records import Identity
 from cast.errors import CastError, InvalidArgumentError
 from cast.recording.channels import Gap
 from cast.recording.mcap_file import RecordingWriter
-from cast.recording.recorder import Recorder, RecordOptions, RecordStats
+from cast.recording.recorder import RECORD_ID, Recorder, RecordOptions, RecordStats
 from cast.runtime_dir import RuntimeDir, default_runtime_dir
 
 __all__ = ["Reach", "add_command", "add_connection_options", "reach", "stop_on_signals", "unreachable"]
 
-RECORD_ID = "cast-record"
 
 
 class Reach:

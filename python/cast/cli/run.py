@@ -91,6 +91,7 @@ def _run(args: argparse.Namespace) -> int:
         summary_json=Path(args.summary_json) if args.summary_json else None,
         metrics=args.metrics,
         foxglove=args.foxglove,
+        record=Path(args.record) if args.record else None,
     )
     console = Console(highlight=False, soft_wrap=True)
     if not console.is_terminal:
@@ -129,4 +130,6 @@ def add_commands(sub: Any) -> None:
     run.add_argument("--foxglove", nargs="?", const=DEFAULT_LISTEN, metavar="HOST:PORT",
                      help=f"also serve the working memories live to the Foxglove app (default address "
                           f"{DEFAULT_LISTEN}, loopback only; port 0 picks a free one); docs/foxglove.md")
+    run.add_argument("--record", metavar="FILE", help="record every change of the run, from the first, to this "
+                                                       "MCAP file (never overwritten); docs/recording.md")
     run.set_defaults(fn=_run)

@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,10 +25,10 @@ from typing import Any
 from cast.auth import TokenSigner
 from cast.config.model import LOCAL_HOST, ComponentConfig, SystemConfig
 from cast.core.sessions import ComponentState
-from cast.liveview.in_run import RunView
 from cast.orchestrator.output import Output
 from cast.orchestrator.remote import Agents, remote_hosts
 from cast.orchestrator.run_metrics import RunMetrics
+from cast.orchestrator.run_tools import RunTool, make_tools
 from cast.orchestrator.security import LaunchSecurity, component_tls
 from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
@@ -53,6 +53,7 @@ class RunOptions:
     metrics: str | None = None  # HOST:PORT to serve /metrics on (Prometheus); None: not served
     summary_json: Path | None = None
     foxglove: str | None = None  # HOST:PORT of the Foxglove live view (cast run --foxglove); None: no view
+    record: Path | None = None  # the MCAP file to record the run to (cast run --record); None: no recording
 
 
 @dataclass
@@ -128,18 +129,20 @@ class Orchestrator:
         """Run the system; return when it has shut down."""
         loop = asyncio.get_running_loop()
 
-        def notice(text: str) -> None:  # from the view's thread too
-            loop.call_soon_threadsafe(self.output.notice, f"foxglove: {text}")
+        def notices(tool: str) -> Callable[[str], None]:
+            def notice(text: str) -> None:  # from the tool's thread too
+                loop.call_soon_threadsafe(self.output.notice, f"{tool}: {text}")
+            return notice
 
-        # Bound before anything starts, so that a taken port ends the run at once (docs/foxglove.md).
-        view = RunView(self.options.foxglove, notice) if self.options.foxglove is not None else None
+        # Made before anything starts, so that a taken port or an existing file ends the run at once.
+        tools = make_tools(self.options.foxglove, self.options.record, notices)
         try:
-            return await self._run(view)
+            return await self._run(tools)
         finally:
-            if view is not None:
-                await loop.run_in_executor(None, view.close)
+            for tool in tools:
+                await loop.run_in_executor(None, tool.close)
 
-    async def _run(self, view: RunView | None) -> RunResult:
+    async def _run(self, tools: Sequence[RunTool]) -> RunResult:
         self._prepare()
         loop = self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
@@ -179,8 +182,8 @@ class Orchestrator:
         if agents is not None:
             self._security.remote = agents.renew  # tokens of components on other hosts go to their agents
         try:
-            if view is not None:  # a tool like any other: off the loop that serves its calls
-                await loop.run_in_executor(None, view.attach, servers.directory.endpoint, self._signer,
+            for tool in tools:  # before any component starts; off the loop that serves the tool's calls
+                await loop.run_in_executor(None, tool.attach, servers.directory.endpoint, self._signer,
                                            component_tls(self.config))
             with self.output:
                 if servers.remote:
@@ -220,8 +223,8 @@ class Orchestrator:
                 if task is not None:
                     task.cancel()
             await supervisor.stop_all(0.5)  # on an error path; a no-op after an orderly stop
-            if view is not None:  # it has seen the components' last changes; its watches end before the servers
-                await loop.run_in_executor(None, view.stop_watching)
+            for tool in tools:  # it has seen the components' last changes; its watches end before the servers
+                await loop.run_in_executor(None, tool.stop_watching)
             await servers.stop_remote(self.config.orchestrator.stop_timeout)  # then the servers, remote first
             if agents is not None:
                 await agents.close()

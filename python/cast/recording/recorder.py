@@ -30,7 +30,10 @@ from cast.recording.channels import FORMAT_VERSION, MAX_SEQUENCE, ChannelMap, Ch
 from cast.recording.info import iso
 from cast.v1 import directory_pb2 as dir_pb2
 
-__all__ = ["MessageSink", "RecordOptions", "RecordStats", "Recorder"]
+__all__ = ["RECORD_ID", "MessageSink", "RecordOptions", "RecordStats", "Recorder"]
+
+RECORD_ID = "cast-record"
+"""The identity recordings are made under (a reader: a recorder writes nothing)."""
 
 _RESYNC_RETRY_S = 1.0
 _SCHEMA_ATTEMPTS = 3
