@@ -16,8 +16,9 @@ BIN = str(VENV_BIN)
 
 
 def test_the_readme_commands_record_inspect_and_replay(server_factory: Any, tmp_path: Path) -> None:
-    record_line, info_line, replay_line = blocks(
-        section("Recording and replaying: `cast record`, `cast info`, `cast replay`"), "sh")[0].strip().splitlines()
+    lines = blocks(section("Recording and replaying: `cast record`, `cast info`, `cast replay`"), "sh")[0]
+    record_line, info_line, replay_line, demo_line = lines.strip().splitlines()
+    assert demo_line.startswith("make demo RECORD=demo.mcap")  # tests/recording/test_run_record.py runs it dry
     assert record_line.startswith("cast record -o run.mcap --for 60")
     robot = server_factory({"system": "robot", "subarchitectures": {"vision": {}}})
     desk = server_factory({"system": "desk", "subarchitectures": {"vision": {}}})
