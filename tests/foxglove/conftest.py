@@ -122,6 +122,7 @@ class FoxgloveClient:
         self.status: list[dict[str, Any]] = []
         self.messages: list[Received] = []
         self._subscriptions: dict[int, str] = {}
+        self._by_topic: dict[str, list[Received]] = {}
 
     def close(self) -> None:
         self._stack.close()
@@ -137,7 +138,9 @@ class FoxgloveClient:
         else:
             opcode, subscription, log_time = struct.unpack_from("<BIQ", frame)
             assert opcode == 1, f"unexpected binary opcode {opcode}"
-            self.messages.append(Received(self._subscriptions[subscription], log_time, bytes(frame[13:])))
+            received = Received(self._subscriptions[subscription], log_time, bytes(frame[13:]))
+            self.messages.append(received)
+            self._by_topic.setdefault(received.topic, []).append(received)
 
     def _control(self, message: dict[str, Any]) -> None:
         op = message["op"]
@@ -157,8 +160,8 @@ class FoxgloveClient:
         deadline = time.monotonic() + timeout
         while not (value := condition()):
             if time.monotonic() > deadline:
-                raise AssertionError(f"timed out waiting for {what}; channels {sorted(self.channels)}, "
-                                     f"{len(self.messages)} messages")
+                raise AssertionError(f"timed out waiting for {what}; channels {self.channels}, subscriptions "
+                                     f"{self._subscriptions}, {len(self.messages)} messages, status {self.status}")
             self._pump(0.2)
         return value
 
@@ -176,7 +179,7 @@ class FoxgloveClient:
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
     def on(self, topic: str) -> list[Received]:
-        return [m for m in self.messages if m.topic == topic]
+        return list(self._by_topic.get(topic, ()))
 
     def wait_messages(self, topic: str, count: int) -> list[Received]:
         """Wait until ``count`` messages arrived on ``topic``; those messages."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import signal
+import time
 from collections.abc import Callable
 from itertools import count
 from typing import Any
@@ -36,14 +37,19 @@ def subscribed(client: FoxgloveClient, write: Callable[[int], None], topic: str 
     subscriptions are in force.
 
     The protocol does not acknowledge a subscription, and a message sent before it took effect is not delivered.
+    One write per 0.2 s at most, whatever arrives meanwhile: writes must not breed writes.
     """
     seen = len(client.on(topic))
     attempts = count()
+    last = -1.0
 
     def arrived() -> bool:
+        nonlocal last
         if len(client.on(topic)) > seen:
             return True
-        write(next(attempts))  # its result (a task, a revision) is not an answer
+        if time.monotonic() - last >= 0.2:
+            last = time.monotonic()
+            write(next(attempts))  # its result (a task, a revision) is not an answer
         return False
 
     client.wait(arrived, "the subscriptions to take effect")

@@ -53,22 +53,23 @@ def _foxglove(args: argparse.Namespace) -> int:
         else:
             held.append(text)
 
-    sink = FoxgloveSink(address, "cast", note, "--listen")  # first: a taken port is the first thing said
     stop = threading.Event()
     why: list[str] = []
-    try:
-        view = _attach(sink, where, args, note)
-        _say(listening_line(address, sink.url))
-        _say(f"showing {', '.join(view.subarchitectures)} of system '{view.system_name}' from {where.endpoint} "
-             f"(Ctrl-C to stop)")
-        notes, held = held or [], None
-        for text in notes:
-            note(text)
-        with stop_on_signals(stop, why):
+    # Before the first line: whoever reads it may signal at once, and must get a clean stop.
+    with stop_on_signals(stop, why):
+        sink = FoxgloveSink(address, "cast", note, "--listen")  # first: a taken port is the first thing said
+        try:
+            view = _attach(sink, where, args, note)
+            _say(listening_line(address, sink.url))
+            _say(f"showing {', '.join(view.subarchitectures)} of system '{view.system_name}' from "
+                 f"{where.endpoint} (Ctrl-C to stop)")
+            notes, held = held or [], None
+            for text in notes:
+                note(text)
             view.run(stop)  # returns on a signal, or when the view cannot go on (its reason said below)
-        view.close()
-    finally:
-        sink.close()
+            view.close()
+        finally:
+            sink.close()
     _say(f"stopped by {why[0] if why else view.stop_reason or 'request'}: {sink.messages} messages sent on "
          f"{len(sink.topics)} channels")
     return 0 if why else 1
