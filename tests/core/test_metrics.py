@@ -9,10 +9,11 @@ from typing import Any
 import pytest
 
 from cast.core.access import Access, run_sync
-from cast.core.metrics import BUCKETS_S, MAX_REPORT_NAMES, Metrics
+from cast.core.metrics import BUCKETS_S, Metrics
 from cast.core.metrics_view import COUNTERS, merge_snapshots, quantile
 from cast.core.policies import make_policy
 from cast.core.records import BatchOp, ChangeEvent, Identity, LockMode, Operation
+from cast.core.reports import MAX_REPORT_NAMES
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome
 from cast.core.watch import EventFilter, Match, Subscription

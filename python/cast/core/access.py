@@ -100,16 +100,32 @@ class Access:
     def write(self, op: BatchOp) -> Steps[WriteResult]:
         """One add, overwrite or delete."""
         m = self._metrics
-        if m is None:
-            return self._settled(lambda: self._host.write(self.who, op))
-        return self._counted(lambda: self._host.write(self.who, op), lambda: m.wrote(self.who, op))
+        try:
+            result = self._host.write(self.who, op)
+        except CastError:
+            if m is not None:
+                m.refused(self.who)
+            yield DURABLE  # a refusal names versions and holders: only durable ones
+            raise
+        if m is not None:
+            m.wrote(self.who, op)  # counted once applied, before the wait for the journal
+        yield DURABLE
+        return result
 
     def batch(self, ops: Sequence[BatchOp]) -> Steps[list[WriteResult]]:
         """Writes in order, all or nothing."""
         m = self._metrics
-        if m is None:
-            return self._settled(lambda: self._host.batch(self.who, ops))
-        return self._counted(lambda: self._host.batch(self.who, ops), lambda: m.wrote_batch(self.who, ops))
+        try:
+            results = self._host.batch(self.who, ops)
+        except CastError:
+            if m is not None:
+                m.refused(self.who)
+            yield DURABLE
+            raise
+        if m is not None:
+            m.wrote_batch(self.who, ops)
+        yield DURABLE
+        return results
 
     def register_schemas(self, files: Sequence[object]) -> Steps[list[str]]:
         """Register entry types (see cast.core.schemas); the message types they define."""
@@ -198,19 +214,6 @@ class Access:
         return match.include_entry and (holder is None or holder == self.who.component_id)
 
     # ---------------------------------------------------------------- helpers
-
-    def _counted(self, call: Callable[[], T], count: Callable[[], None]) -> Steps[T]:
-        """:meth:`_settled` for a write: ``count()`` once applied, a refusal counted as one."""
-        try:
-            result = call()
-        except CastError:
-            assert self._metrics is not None
-            self._metrics.refused(self.who)
-            yield DURABLE
-            raise
-        count()  # counted once committed, before the wait for the journal
-        yield DURABLE
-        return result
 
     def _settled(self, call: Callable[[], T]) -> Steps[T]:
         try:

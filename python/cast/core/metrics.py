@@ -2,25 +2,28 @@
 
 One :class:`Metrics` per :class:`cast.core.system.System`. The rulebook
 (:mod:`cast.core.access`) feeds it the calls it answers and the events it hands
-to watchers, the task board (:mod:`cast.core.tasks`) its decisions. It counts
-per component, per working memory and per pair of SAs (the caller's registered
-SA -> the WM's SA): reads, writes by operation, bytes, events delivered, lock
-waits and tasks; the write -> event delivery latency per watcher, as a
-histogram; and the outcomes components report (:meth:`Metrics.report`). Every
-figure and its unit: docs/experiments.md, "Metrics"; the JSON shape:
-:mod:`cast.core.metrics_view`.
+to watchers, the task board (:mod:`cast.core.tasks`) its decisions. From that
+come, per component, per working memory and per pair of SAs (the caller's
+registered SA -> the WM's SA): reads, writes by operation, bytes, events
+delivered, lock waits and tasks; the write -> event delivery latency per
+watcher, as a histogram; and the outcomes components report
+(:mod:`cast.core.reports`). Every figure and its unit: docs/experiments.md,
+"Metrics"; the JSON shape: :mod:`cast.core.metrics_view`.
 
-Cheap enough to be always on, so it takes no lock of its own: every count is
-an integer increment of a slot or a list item with no call in between, and
+Cheap enough to be always on. A call updates one record: what one component
+did to one WM (:class:`Counts`), or what one watcher was sent
+(:class:`Watching`); the totals per component, per WM and per pair of SAs are
+added up when a snapshot is taken. No lock of its own: every count is an
+integer increment of a slot or a list item with no call in between, and
 CPython (3.11 on) hands the GIL to another thread only at calls and backward
 jumps, so the event loop and in-process components' threads do not lose each
-other's increments. A snapshot copies the tables (C-level copies, atomic under
-the GIL) and then reads the slots: at worst a call or two behind.
+other's increments; records are created with ``dict.setdefault`` (atomic). A
+snapshot copies the tables (C-level copies) and then reads the slots: at worst
+a call or two behind.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from bisect import bisect_left
 from collections.abc import Callable, Iterable, Sequence
@@ -28,59 +31,38 @@ from typing import Any
 
 from cast.core.metrics_view import COUNTERS, histogram_json
 from cast.core.records import BatchOp, Identity, Operation
+from cast.core.reports import Reports
 from cast.core.watch import Match
-from cast.errors import InvalidArgumentError, ResourceExhaustedError
 
-__all__ = ["BUCKETS_S", "MAX_REPORT_NAMES", "Counts", "Histogram", "Metrics", "Traffic"]
+__all__ = ["BUCKETS_S", "Counts", "Histogram", "Metrics", "Watching"]
 
 BUCKETS_S = (0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
              1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 300.0)
 """Upper bounds (seconds) of the histograms' buckets; one more bucket counts what is above the last."""
 
 _BUCKETS_NS = tuple(round(b * 1e9) for b in BUCKETS_S)
-
-MAX_REPORT_NAMES = 256
-"""Distinct report names one component may use (what it reports is kept for the server's life)."""
+_ADD, _OVERWRITE = Operation.ADD, Operation.OVERWRITE
+_SUMMED = ("reads", "entries_read", "adds", "overwrites", "deletes", "bytes_in", "bytes_out", "locks", "lock_waits",
+           "lock_wait_ns", "tasks_proposed", "tasks_adopted", "tasks_rejected", "tasks_retracted",
+           "tasks_completed", "task_wait_ns")
 
 
 class Counts:
-    """The counters of one component, or of one working memory (the calls into it)."""
+    """What one component did to one working memory (and, added up, a component's or a WM's totals)."""
 
-    __slots__ = ("adds", "bytes_in", "bytes_out", "deletes", "entries_read", "event_bytes", "events", "lock_wait_ns",
-                 "lock_waits", "locks", "overwrites", "reads", "subarchitecture", "task_wait_ns", "tasks_adopted",
-                 "tasks_completed", "tasks_proposed", "tasks_rejected", "tasks_retracted", "writes_refused")
+    __slots__ = _SUMMED
 
-    def __init__(self, subarchitecture: str = "") -> None:
-        self.subarchitecture = subarchitecture  # a component's registered SA ("" for a WM's own counts)
+    def __init__(self) -> None:
         self.reads = self.entries_read = self.bytes_out = 0
-        self.adds = self.overwrites = self.deletes = self.writes_refused = self.bytes_in = 0
-        self.events = self.event_bytes = 0
+        self.adds = self.overwrites = self.deletes = self.bytes_in = 0
         self.locks = self.lock_waits = self.lock_wait_ns = 0
         self.tasks_proposed = self.tasks_adopted = self.tasks_rejected = self.tasks_retracted = 0
         self.tasks_completed = self.task_wait_ns = 0
 
-    def json(self, with_refused: bool) -> dict[str, Any]:
-        """The counters as in ``cast stats --json`` (nanoseconds as seconds)."""
-        out: dict[str, Any] = {}
-        for name in COUNTERS:
-            if name == "writes":
-                out[name] = self.adds + self.overwrites + self.deletes
-            elif name == "lock_wait_s":
-                out[name] = self.lock_wait_ns / 1e9
-            elif name == "task_wait_s":
-                out[name] = self.task_wait_ns / 1e9
-            elif name != "writes_refused" or with_refused:
-                out[name] = getattr(self, name)
-        return out
-
-
-class Traffic:
-    """One cell of the cross-SA matrix: what components of one SA did with the WM of another."""
-
-    __slots__ = ("bytes_in", "bytes_out", "events", "reads", "writes")
-
-    def __init__(self) -> None:
-        self.reads = self.writes = self.bytes_in = self.bytes_out = self.events = 0
+    def add(self, other: Counts) -> None:
+        """Add ``other``'s counts to these."""
+        for name in _SUMMED:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
 
 
 class Histogram:
@@ -100,13 +82,15 @@ class Histogram:
         self.sum_ns += ns
 
 
-class _Report:
-    """One named outcome of one component: count, sum, min, max, last and when it came."""
+class Watching:
+    """What one watcher (a component, all its streams) was sent: the latency histogram, events per WM."""
 
-    __slots__ = ("count", "last", "last_ns", "max", "min", "sum")
+    __slots__ = ("by_sa", "latency", "subarchitecture")
 
-    def __init__(self, value: float, now_ns: int) -> None:
-        self.count, self.sum, self.min, self.max, self.last, self.last_ns = 1, value, value, value, value, now_ns
+    def __init__(self, subarchitecture: str) -> None:
+        self.subarchitecture = subarchitecture
+        self.latency = Histogram()
+        self.by_sa: dict[str, list[int]] = {}  # SA of the events -> [events, bytes of the values they carried]
 
 
 class Metrics:
@@ -116,88 +100,81 @@ class Metrics:
                  clock: Callable[[], int] = time.time_ns) -> None:
         self.system = system
         self.enabled = enabled
+        self.reports = Reports()  # kept whether or not counting is on: reporting is the component's own call
         self._clock = clock  # the clock of the events' times (cast.core.host stamps them with time.time_ns)
         self._started = time.monotonic()
-        self._components: dict[str, Counts] = {}
-        self._wms: dict[str, Counts] = {sa: Counts() for sa in subarchitectures}
-        self._task_waits: dict[str, Histogram] = {sa: Histogram() for sa in self._wms}
-        self._traffic: dict[tuple[str, str], Traffic] = {}
-        self._latency: dict[str, tuple[str, Histogram]] = {}  # watcher -> (its SA, histogram)
-        self._reports: dict[str, dict[str, _Report]] = {}
+        self._sas = tuple(subarchitectures)
+        self._usage: dict[str, dict[str, Counts]] = {}  # component -> WM's SA -> what it did there
+        self._registered: dict[str, str] = {}  # component -> its registered SA (as first seen)
+        self._refused: dict[str, list[int]] = {}  # component -> [writes refused]
+        self._watching: dict[str, Watching] = {}
+        self._task_waits: dict[str, Histogram] = {sa: Histogram() for sa in self._sas}
 
     @property
     def active(self) -> Metrics | None:
         """This object when counting is on, else None (what the feeders test, once per call)."""
         return self if self.enabled else None
 
+    def report(self, component_id: str, name: str, value: float) -> None:
+        """Record an outcome a component reports (:meth:`cast.core.reports.Reports.report`)."""
+        self.reports.report(component_id, name, value)
+
     # ------------------------------------------------------------- feeding
+    # Run on every call: one record looked up, plain increments.
 
-    def _component(self, who: Identity) -> Counts:
-        counts = self._components.get(who.component_id)
-        if counts is None:
-            counts = self._components[who.component_id] = Counts(who.subarchitecture)
-        return counts
-
-    def _cell(self, from_sa: str, to_sa: str) -> Traffic:
-        key = (from_sa, to_sa)
-        cell = self._traffic.get(key)
-        if cell is None:
-            cell = self._traffic[key] = Traffic()
-        return cell
+    def _counts(self, component_id: str, sa: str, registered: str) -> Counts:
+        """The record of what ``component_id`` did to ``sa``'s WM, made on first use."""
+        mine = self._usage.get(component_id)
+        if mine is None:
+            self._registered.setdefault(component_id, registered)
+            mine = self._usage.setdefault(component_id, {})
+        counts = mine.get(sa)
+        return counts if counts is not None else mine.setdefault(sa, Counts())
 
     def read(self, who: Identity, sa: str, entries: int, size: int) -> None:
         """A read call answered: ``entries`` returned with ``size`` bytes of values (0 and 0 for Exists)."""
-        c = self._component(who)
+        c = self._counts(who.component_id, sa, who.subarchitecture)
         c.reads += 1
         c.entries_read += entries
         c.bytes_out += size
-        w = self._wms[sa]
-        w.reads += 1
-        w.entries_read += entries
-        w.bytes_out += size
-        t = self._cell(who.subarchitecture, sa)
-        t.reads += 1
-        t.bytes_out += size
 
     def wrote(self, who: Identity, op: BatchOp) -> None:
         """One write applied."""
-        size = len(op.data)
+        c = self._counts(who.component_id, op.subarchitecture, who.subarchitecture)
         kind = op.operation
-        for c in (self._component(who), self._wms[op.subarchitecture]):
-            if kind is Operation.ADD:
-                c.adds += 1
-            elif kind is Operation.OVERWRITE:
-                c.overwrites += 1
-            else:
-                c.deletes += 1
-            c.bytes_in += size
-        t = self._cell(who.subarchitecture, op.subarchitecture)
-        t.writes += 1
-        t.bytes_in += size
+        if kind is _ADD:
+            c.adds += 1
+        elif kind is _OVERWRITE:
+            c.overwrites += 1
+        else:
+            c.deletes += 1
+        c.bytes_in += len(op.data)
 
     def wrote_batch(self, who: Identity, ops: Sequence[BatchOp]) -> None:
         """The writes of a batch applied, each counted as one write."""
-        per_sa: dict[str, list[int]] = {}  # SA -> [bytes, adds, overwrites, deletes] (index = Operation value)
+        c: Counts | None = None
+        sa = None
         for op in ops:
-            tally = per_sa.get(op.subarchitecture)
-            if tally is None:
-                tally = per_sa[op.subarchitecture] = [0, 0, 0, 0]
-            tally[op.operation] += 1
-            tally[0] += len(op.data)
-        comp = self._component(who)
-        for sa, (size, adds, overwrites, deletes) in per_sa.items():
-            for c in (comp, self._wms[sa]):
-                c.adds += adds
-                c.overwrites += overwrites
-                c.deletes += deletes
-                c.bytes_in += size
-            t = self._cell(who.subarchitecture, sa)
-            t.writes += adds + overwrites + deletes
-            t.bytes_in += size
+            if op.subarchitecture != sa:  # a batch is mostly of one WM: look its record up once
+                sa = op.subarchitecture
+                c = self._counts(who.component_id, sa, who.subarchitecture)
+            assert c is not None
+            kind = op.operation
+            if kind is _ADD:
+                c.adds += 1
+            elif kind is _OVERWRITE:
+                c.overwrites += 1
+            else:
+                c.deletes += 1
+            c.bytes_in += len(op.data)
 
     def refused(self, who: Identity) -> None:
         """A write or batch refused (conflict, lock, permission, limit...): nothing was applied."""
-        self._component(who).writes_refused += 1
+        mine = self._refused.get(who.component_id)
+        if mine is None:
+            self._registered.setdefault(who.component_id, who.subarchitecture)
+            mine = self._refused.setdefault(who.component_id, [0])
+        mine[0] += 1
 
     def delivered(self, who: Identity, matches: Sequence[Match], carries: Callable[[Match], bool]) -> None:
         """Events handed to the watcher ``who``; ``carries`` says which go with their entry's value.
@@ -206,142 +183,141 @@ class Metrics:
         the write is numbered) to now, when the rulebook hands it over.
         """
         now = self._clock()
-        entry = self._latency.get(who.component_id)
-        if entry is None:
-            entry = self._latency[who.component_id] = (who.subarchitecture, Histogram())
-        hist = entry[1]
-        counts, bounds = hist.counts, _BUCKETS_NS
-        wms = self._wms
-        total_bytes = 0
+        watching = self._watching.get(who.component_id)
+        if watching is None:
+            self._registered.setdefault(who.component_id, who.subarchitecture)
+            watching = self._watching.setdefault(who.component_id, Watching(who.subarchitecture))
+        counts, bounds = watching.latency.counts, _BUCKETS_NS
+        total_ns = 0
+        # Per WM, counted in locals and added when the WM changes: a batch is mostly of one WM.
         sa = ""
-        wm: Counts | None = None
-        cell: Traffic | None = None
+        events = size = 0
         for m in matches:
             ev = m.event
             latency = now - ev.time_ns
-            if latency < 0:
-                latency = 0
-            counts[bisect_left(bounds, latency)] += 1
-            hist.sum_ns += latency
-            size = len(ev.entry.data) if ev.entry is not None and carries(m) else 0
-            if wm is None or ev.subarchitecture != sa:  # batches are mostly of one WM: look it up once
-                sa = ev.subarchitecture
-                wm = wms[sa]
-                cell = self._cell(who.subarchitecture, sa)
-            assert cell is not None
-            wm.events += 1
-            wm.event_bytes += size
-            wm.bytes_out += size
-            cell.events += 1
-            cell.bytes_out += size
-            total_bytes += size
-        c = self._component(who)
-        c.events += len(matches)
-        c.event_bytes += total_bytes
-        c.bytes_out += total_bytes
+            if latency > 0:
+                counts[bisect_left(bounds, latency)] += 1  # bisect_left: a value equal to a bound is in its bucket
+                total_ns += latency
+            else:
+                counts[0] += 1  # a clock step back: as if at once
+            if ev.subarchitecture != sa:
+                if events:
+                    self._delivered_from(watching, sa, events, size)
+                sa, events, size = ev.subarchitecture, 0, 0
+            events += 1
+            # carries() is the rulebook's say (ODR locks); asked only of events that could carry a value.
+            if m.include_entry and ev.entry is not None and carries(m):
+                size += len(ev.entry.data)
+        if events:  # the last (usually the only) WM, inline: this runs once per batch handed over
+            tally = watching.by_sa.get(sa)
+            if tally is None:
+                tally = watching.by_sa.setdefault(sa, [0, 0])
+            tally[0] += events
+            tally[1] += size
+        watching.latency.sum_ns += total_ns
+
+    @staticmethod
+    def _delivered_from(watching: Watching, sa: str, events: int, size: int) -> None:
+        tally = watching.by_sa.get(sa)
+        if tally is None:
+            tally = watching.by_sa.setdefault(sa, [0, 0])
+        tally[0] += events
+        tally[1] += size
 
     def locked(self, who: Identity, sa: str) -> None:
         """A lock taken (or re-entered)."""
-        self._component(who).locks += 1
-        self._wms[sa].locks += 1
+        self._counts(who.component_id, sa, who.subarchitecture).locks += 1
 
     def lock_waited(self, who: Identity, sa: str, ns: int) -> None:
         """A lock call that had to wait, for ``ns`` nanoseconds, whether it got the lock or not."""
-        c = self._component(who)
+        c = self._counts(who.component_id, sa, who.subarchitecture)
         c.lock_waits += 1
         c.lock_wait_ns += ns
-        w = self._wms.get(sa)
-        if w is not None:
-            w.lock_waits += 1
-            w.lock_wait_ns += ns
 
     def task(self, component_id: str, sa: str, what: str, wait_ns: int | None = None) -> None:
         """A task of ``component_id`` in ``sa`` was proposed, adopted, rejected, retracted or completed.
 
         ``wait_ns``, for an adoption: the time from its proposal.
         """
-        c = self._components.get(component_id)
-        if c is None:
-            c = self._components[component_id] = Counts(sa)
+        c = self._counts(component_id, sa, sa)  # a component proposes to its own SA's task manager
         name = f"tasks_{what}"
-        for counts in (c, self._wms[sa]):
-            setattr(counts, name, getattr(counts, name) + 1)
-            if wait_ns is not None:
-                counts.task_wait_ns += max(0, wait_ns)
+        setattr(c, name, getattr(c, name) + 1)
         if wait_ns is not None:
+            c.task_wait_ns += max(0, wait_ns)
             self._task_waits[sa].observe(wait_ns)
-
-    def report(self, component_id: str, name: str, value: float) -> None:
-        """Record an outcome a component reports (``report("answers_correct", 1)``).
-
-        Kept per (component, name) as count, sum, min, max and the last value,
-        for the server's life; recorded whether or not counting is on (it is
-        the component's own call). INVALID_ARGUMENT for an empty or over-long
-        name or a value that is not a finite number; RESOURCE_EXHAUSTED past
-        :data:`MAX_REPORT_NAMES` names for one component.
-        """
-        if not name or len(name.encode()) > 128:
-            raise InvalidArgumentError(f"a report name must be 1 to 128 bytes, got {name!r}")
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise InvalidArgumentError(f"report '{name}': the value must be a number, got {value!r}") from None
-        if not math.isfinite(value):
-            raise InvalidArgumentError(f"report '{name}': the value must be a finite number, got {value}")
-        mine = self._reports.setdefault(component_id, {})
-        found = mine.get(name)
-        now = time.time_ns()
-        if found is None:
-            if len(mine) >= MAX_REPORT_NAMES:
-                raise ResourceExhaustedError(
-                    f"component '{component_id}' already reports {len(mine)} names, the limit: report fewer "
-                    "names (a name is a measure; put the variation in its value)"
-                )
-            mine[name] = _Report(value, now)
-            return
-        found.count += 1
-        found.sum += value
-        found.min = min(found.min, value)
-        found.max = max(found.max, value)
-        found.last, found.last_ns = value, now
 
     # ------------------------------------------------------------- reading
 
     def snapshot(self) -> dict[str, Any]:
         """Everything counted so far, in the JSON shape of ``cast stats --json`` (cast.core.metrics_view)."""
-        components = dict(self._components)
-        wms = dict(self._wms)
-        traffic = dict(self._traffic)
-        latency = dict(self._latency)
-        reports = {cid: dict(named) for cid, named in dict(self._reports).items()}
+        usage = {cid: dict(by_sa) for cid, by_sa in dict(self._usage).items()}
+        registered = dict(self._registered)
+        refused = {cid: n[0] for cid, n in dict(self._refused).items()}
+        watching = dict(self._watching)
+        per_component = {cid: Counts() for cid in registered}
+        per_wm = {sa: Counts() for sa in self._sas}
+        events = {cid: [0, 0] for cid in registered}  # component -> [events, bytes] it was sent
+        wm_events = {sa: [0, 0] for sa in self._sas}
+        cells: dict[tuple[str, str], dict[str, int]] = {}
+
+        def cell(a: str, b: str) -> dict[str, int]:
+            return cells.setdefault((a, b), {"reads": 0, "writes": 0, "bytes_in": 0, "bytes_out": 0, "events": 0})
+
+        for cid, by_sa in usage.items():
+            for sa, c in by_sa.items():
+                per_component[cid].add(c)
+                per_wm.setdefault(sa, Counts()).add(c)
+                if c.reads or c.adds or c.overwrites or c.deletes:
+                    t = cell(registered[cid], sa)
+                    t["reads"] += c.reads
+                    t["writes"] += c.adds + c.overwrites + c.deletes
+                    t["bytes_in"] += c.bytes_in
+                    t["bytes_out"] += c.bytes_out
+        latency: dict[str, Any] = {}
         everyone = Histogram()
-        watchers: dict[str, Any] = {}
-        for watcher, (sa, hist) in sorted(latency.items()):
-            counts, total = list(hist.counts), hist.sum_ns
+        for watcher, w in sorted(watching.items()):
+            for sa, (n, size) in dict(w.by_sa).items():
+                for tally in (events[watcher], wm_events.setdefault(sa, [0, 0])):
+                    tally[0] += n
+                    tally[1] += size
+                t = cell(w.subarchitecture, sa)
+                t["events"] += n
+                t["bytes_out"] += size
+            counts, total = list(w.latency.counts), w.latency.sum_ns
             everyone.counts = [a + b for a, b in zip(everyone.counts, counts, strict=True)]
             everyone.sum_ns += total
-            watchers[watcher] = {"subarchitecture": sa, **histogram_json(counts, total / 1e9, BUCKETS_S)}
+            latency[watcher] = {"subarchitecture": w.subarchitecture, **histogram_json(counts, total / 1e9, BUCKETS_S)}
+        components = {cid: {"subarchitecture": registered[cid],
+                            **_counters(per_component[cid], events[cid], refused.get(cid, 0))}
+                      for cid in sorted(registered)}
+        wms = {sa: {**_counters(c, wm_events[sa], None),
+                    "task_wait": histogram_json(list(self._task_waits[sa].counts), self._task_waits[sa].sum_ns / 1e9,
+                                                BUCKETS_S)}
+               for sa, c in per_wm.items() if sa in self._task_waits}
         return {
             "enabled": self.enabled,
             "system": self.system,
             "servers": 1,
             "uptime_s": round(time.monotonic() - self._started, 3),
             "buckets_s": list(BUCKETS_S),
-            "components": {cid: {"subarchitecture": c.subarchitecture, **c.json(with_refused=True)}
-                           for cid, c in sorted(components.items())},
-            "subarchitectures": {
-                sa: {**w.json(with_refused=False),
-                     "task_wait": histogram_json(list(self._task_waits[sa].counts),
-                                                 self._task_waits[sa].sum_ns / 1e9, BUCKETS_S)}
-                for sa, w in wms.items()
-            },
-            "traffic": [{"from_sa": a, "to_sa": b, "reads": t.reads, "writes": t.writes, "bytes_in": t.bytes_in,
-                         "bytes_out": t.bytes_out, "events": t.events}
-                        for (a, b), t in sorted(traffic.items())],
+            "components": components,
+            "subarchitectures": wms,
+            "traffic": [{"from_sa": a, "to_sa": b, **t} for (a, b), t in sorted(cells.items())],
             "delivery_latency": {"all": histogram_json(everyone.counts, everyone.sum_ns / 1e9, BUCKETS_S),
-                                 "watchers": watchers},
-            "reports": {cid: {name: {"count": r.count, "sum": r.sum, "min": r.min, "max": r.max, "last": r.last,
-                                     "mean": r.sum / r.count, "last_time": r.last_ns / 1e9}
-                              for name, r in sorted(named.items())}
-                        for cid, named in sorted(reports.items())},
+                                 "watchers": latency},
+            "reports": self.reports.snapshot(),
         }
+
+
+def _counters(c: Counts, sent: list[int], refused: int | None) -> dict[str, Any]:
+    """The counters of the JSON (COUNTERS' order) from summed counts and [events, bytes] sent."""
+    values: dict[str, Any] = {
+        "reads": c.reads, "entries_read": c.entries_read, "writes": c.adds + c.overwrites + c.deletes,
+        "adds": c.adds, "overwrites": c.overwrites, "deletes": c.deletes, "writes_refused": refused,
+        "bytes_in": c.bytes_in, "bytes_out": c.bytes_out + sent[1], "events": sent[0], "event_bytes": sent[1],
+        "locks": c.locks, "lock_waits": c.lock_waits, "lock_wait_s": c.lock_wait_ns / 1e9,
+        "tasks_proposed": c.tasks_proposed, "tasks_adopted": c.tasks_adopted, "tasks_rejected": c.tasks_rejected,
+        "tasks_retracted": c.tasks_retracted, "tasks_completed": c.tasks_completed,
+        "task_wait_s": c.task_wait_ns / 1e9,
+    }
+    return {name: values[name] for name in COUNTERS if name != "writes_refused" or refused is not None}
