@@ -36,6 +36,7 @@ from tests.recording.conftest import recorders as recorders  # the fixture, for 
 SUBPROTOCOL = "foxglove.sdk.v1"  # the name foxglove-sdk's server speaks (the protocol of foxglove.websocket.v1)
 COMPONENTS = Path(__file__).resolve().parent / "components"
 URL = re.compile(r"listening on (ws://\S+)")
+UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
 
 
 @dataclass
@@ -154,6 +155,9 @@ class FoxgloveClient:
             self.channels = {t: c for t, c in self.channels.items() if c["id"] not in gone}
         elif op == "status":
             self.status.append(message)
+            unknown = UNKNOWN_CHANNEL.search(message.get("message", ""))
+            if unknown:
+                self._subscribe_again(int(unknown.group(1)))
 
     def wait(self, condition: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
         """Read frames until ``condition()`` holds; its value. The timeout guards against a hang only."""
@@ -177,6 +181,15 @@ class FoxgloveClient:
             self._subscriptions[sub_id] = topic
             subs.append({"id": sub_id, "channelId": self.channel(topic)["id"]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def _subscribe_again(self, channel_id: int) -> None:
+        """The server did not know a channel it had just advertised (foxglove-sdk 0.30 answers a subscription that
+        comes right after the advertisement so, now and then, under load): ask again, as a person would."""
+        subs = [{"id": sub_id, "channelId": channel_id} for sub_id, topic in self._subscriptions.items()
+                if self.channels.get(topic, {}).get("id") == channel_id]
+        if subs:
+            time.sleep(0.05)
+            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
     def on(self, topic: str) -> list[Received]:
         return list(self._by_topic.get(topic, ()))
