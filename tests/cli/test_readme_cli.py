@@ -77,9 +77,9 @@ def test_joining_commands(demo: CastRun) -> None:
 
 
 def test_inspection_commands(demo: CastRun) -> None:
-    lines = blocks(section("Looking at a running system: `cast ls`, `get`, `watch`, `components`, `tasks`"),
+    lines = blocks(section("Looking at a running system: `cast ls`, `get`, `watch`, `components`, `tasks`, `stats`"),
                    "sh")[0].strip().splitlines()
-    assert [line.split()[1] for line in lines] == ["components", "ls", "get", "watch", "tasks"]
+    assert [line.split()[1] for line in lines] == ["components", "ls", "get", "watch", "tasks", "stats"]
     outputs = {}
     for line in lines:
         out = shell(line, demo.env())
@@ -91,3 +91,5 @@ def test_inspection_commands(demo: CastRun) -> None:
     assert len(outputs["watch"].splitlines()) == 3
     assert all(json.loads(line)["subarchitecture"] == "language" for line in outputs["watch"].splitlines())
     assert re.search(r"vision\s*│\s*fifo", outputs["tasks"])
+    # The metrics: the coordinator (coordination) writes questions into language's WM.
+    assert "traffic" in outputs["stats"] and re.search(r"coordinator\s*│\s*coordination", outputs["stats"])
