@@ -372,6 +372,8 @@ std::uint32_t Component::unlock(const std::string& id, const std::string& subarc
   return core().transport().unlock(targetSa(subarchitecture), id);
 }
 
+void Component::report(const std::string& name, double value) { core().transport().report(name, value); }
+
 WatchHandle Component::onChange(const ChangeFilter& filter, ChangeCallback callback) {
   return onChange(std::vector<ChangeFilter>{filter}, std::move(callback));
 }

@@ -15,6 +15,7 @@
 #include "cast/credentials.h"
 #include "cast/errors.h"
 #include "cast/v1/directory.grpc.pb.h"
+#include "cast/v1/inspection.grpc.pb.h"
 #include "cast/v1/task_manager.grpc.pb.h"
 #include "cast/v1/working_memory.grpc.pb.h"
 
@@ -37,6 +38,7 @@ struct Server {
   std::unique_ptr<v1::WorkingMemory::Stub> wm;
   std::unique_ptr<v1::TaskManager::Stub> tm;
   std::unique_ptr<v1::Directory::Stub> dir;
+  std::unique_ptr<v1::Inspection::Stub> insp;  // Report: the component's outcomes
 };
 
 // The metadata every call carries: the component's token.

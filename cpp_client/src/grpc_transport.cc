@@ -305,6 +305,17 @@ class GrpcTransport final : public Transport {
     });
   }
 
+  // ---------------------------------------------------------------- outcomes
+
+  // To the own SA's server, as task calls go; `cast stats` merges every server's.
+  void report(const std::string& name, double value) override {
+    v1::ReportRequest req;
+    req.set_name(name);
+    req.set_value(value);
+    Server& s = server(identity_.subarchitecture);
+    call<v1::ReportResponse>([&](auto* ctx, auto* r) { return s.insp->Report(ctx, req, r); });
+  }
+
   // ---------------------------------------------------------------- sessions
 
   void startSession(const std::string& language, const std::string& kind, StateSource state) override {
@@ -431,6 +442,7 @@ Server::Server(std::string ep, const std::optional<ClientTls>& tls) : endpoint(s
   wm = v1::WorkingMemory::NewStub(channel);
   tm = v1::TaskManager::NewStub(channel);
   dir = v1::Directory::NewStub(channel);
+  insp = v1::Inspection::NewStub(channel);
 }
 
 }  // namespace detail

@@ -107,6 +107,7 @@ class CppDriver(CppProbe):
             "lock": ["lock", kw.get("id"), kw.get("mode"), sa, timeout],
             "try_lock": ["trylock", kw.get("id"), kw.get("mode"), sa],
             "unlock": ["unlock", kw.get("id"), sa],
+            "report": ["report", kw.get("name"), kw.get("value")],
             "open_gate": ["open_gate"],
             "whoami": ["whoami"],
             "new_id": ["newid"],

@@ -1,6 +1,7 @@
 """Metrics count C++ and Java components exactly as Python ones: known traffic from a probe of SA vision into
 language's WM (adds, an overwrite, a delete, a refused add), reads, a watch, a lock wait behind a Python
-holder, a task proposed, adopted and completed; read back with `cast stats --json` (Inspection.GetMetrics).
+holder, a task proposed, adopted and completed; and the outcomes a probe reports (``report(name, value)``,
+refusals included); read back with `cast stats --json` (Inspection.GetMetrics).
 
 The probes: cpp_client/tests/components/cast_probe.cc and java_client/src/test/java/cast/itest/Driven.java,
 behind one vocabulary (tests/interop/probes.py)."""
@@ -17,6 +18,7 @@ import pytest
 from cast_testing_pb2 import Counter
 
 from cast import LockMode
+from cast.core.reports import MAX_REPORT_NAMES
 from tests.conftest import SECRET, VENV_BIN, ServerHandle
 from tests.interop.cpp_support import CppProbe
 from tests.interop.probes import COUNTER, CppDriver, Driver, counter_json, start
@@ -109,3 +111,37 @@ def test_known_traffic_from_a_cpp_or_java_component_gives_exact_counts(server: S
     assert (language["writes"], language["reads"], language["locks"], language["lock_waits"]) == (N_ADDS + 2, 4, 2, 1)
     assert counted["subarchitectures"]["vision"]["tasks_completed"] == 1
     assert counted["delivery_latency"]["watchers"][me]["count"] == N_ADDS + 2
+
+
+@pytest.mark.parametrize("lang", ["cpp", "java"])
+def test_outcomes_a_cpp_or_java_component_reports_are_kept_exactly(server: ServerHandle, lang: str) -> None:
+    me = f"r-{lang}"
+    probe = start(lang, server.env(me, "language"))
+    try:
+        probe.ready()
+        for correct in ("1", "0", "1", "1"):
+            probe.ok("report", name="answers_correct", value=correct)
+        for seconds in ("0.5", "0.25", "-2.75"):
+            probe.ok("report", name="answer_time_s", value=seconds)
+        # Refused by the server, with its message, as the client library's named error: nothing recorded.
+        for value in ("NaN", "Infinity", "-Infinity"):
+            refused = probe.fails("InvalidArgumentError", "report", name="bad", value=value)
+            assert "report 'bad': the value must be a finite number" in refused["message"], refused
+        refused = probe.fails("InvalidArgumentError", "report", name="n" * 129, value="1")
+        assert "a report name must be 1 to 128 bytes" in refused["message"], refused
+        for i in range(MAX_REPORT_NAMES - 2):  # two names are taken already
+            probe.ok("report", name=f"m{i}", value=str(i))
+        refused = probe.fails("ResourceExhaustedError", "report", name="one-too-many", value="1")
+        assert f"component '{me}' already reports {MAX_REPORT_NAMES} names, the limit" in refused["message"]
+        counted = _stats(server)
+        assert probe.quit() == 0
+    finally:
+        probe.close()
+    mine = counted["reports"][me]
+    assert len(mine) == MAX_REPORT_NAMES and not {"bad", "one-too-many", "n" * 129} & set(mine)
+    assert {name: {k: v for k, v in r.items() if k != "last_time"}
+            for name, r in mine.items() if not name.startswith("m")} == {
+        "answers_correct": {"count": 4, "sum": 3.0, "min": 0.0, "max": 1.0, "last": 1.0, "mean": 0.75},
+        "answer_time_s": {"count": 3, "sum": -2.0, "min": -2.75, "max": 0.5, "last": -2.75, "mean": -2.0 / 3},
+    }
+    assert mine["m7"] == {**mine["m7"], "count": 1, "sum": 7.0, "last": 7.0}

@@ -214,6 +214,15 @@ class Component {
   // Releases one level of this component's lock; returns the remaining depth.
   std::uint32_t unlock(const std::string& id, const std::string& subarchitecture = "");
 
+  // ------------------------------------------------------------ outcomes
+  // Reports a measured outcome (report("answers_correct", 1)) for experiments
+  // to read: the server keeps per name the count, sum, min, max and last
+  // value this component reported (`cast stats`, `cast run --summary-json`,
+  // `cast sweep`). InvalidArgumentError for an empty name or one over 128
+  // bytes, or a value that is not finite; ResourceExhaustedError past 256
+  // names. A refused report records nothing.
+  void report(const std::string& name, double value);
+
   // ------------------------------------------------------------ watching
   // Calls `callback(change)` on the dispatcher thread for each matching
   // change, in revision order. Several filters are ORed. Returns once the

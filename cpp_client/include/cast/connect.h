@@ -77,6 +77,9 @@ class Connection final : private UnmanagedComponent {
   using Component::tryLock;
   using Component::unlock;
 
+  // Outcomes: report(name, value), kept by the server under this identity.
+  using Component::report;
+
   // Watching: onChange with filters, callbacks on the dispatcher thread;
   // drain waits for the callbacks queued so far.
   using Component::drain;

@@ -90,6 +90,10 @@ class Transport {
   // Opens the decision stream of the own SA's task manager.
   virtual void setDecisionSink(DecisionSink sink) = 0;
 
+  // Records an outcome the component measured (Inspection.Report) with the
+  // server of its own SA; the server refuses a bad name or value.
+  virtual void report(const std::string& name, double value) = 0;
+
   // Registers the component's session(s) and keeps them alive.
   virtual void startSession(const std::string& language, const std::string& kind, StateSource state) = 0;
   // Who the server says the component is, having verified its token at

@@ -199,6 +199,13 @@ class FakeTransport : public detail::Transport {
     completed.emplace_back(taskId, outcome);
   }
 
+  // Records what was reported; reportError, when set, is thrown instead (a server that refuses).
+  void report(const std::string& name, double value) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (reportError) reportError->raise();
+    reports.emplace_back(name, value);
+  }
+
   void setDecisionSink(detail::DecisionSink sink) override {
     std::lock_guard<std::mutex> lock(mu_);
     decisions_ = std::move(sink);
@@ -272,6 +279,8 @@ class FakeTransport : public detail::Transport {
   std::vector<std::uint32_t> cancelled;
   std::vector<std::string> retracted;
   std::vector<std::pair<std::string, TaskOutcome>> completed;
+  std::vector<std::pair<std::string, double>> reports;
+  std::shared_ptr<CastError> reportError;
   std::set<std::string> lockedByOther;
   std::optional<std::chrono::milliseconds> lastLockTimeout;
   bool lastLockNoWait = false;

@@ -2,12 +2,16 @@
 
 It asks a script of questions by writing ``Question`` entries straight into
 the language WM (a cross-SA write only a privileged component may make), and
-prints each answer when the language SA writes it back.
+prints each answer when the language SA writes it back. It reports how the
+conversation went as outcomes an experiment measures (docs/experiments.md):
+``questions_answered`` (1 per answer) and ``answer_time_s`` (from asking to
+the answer).
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 from castdemo.scene_pb2 import Question
@@ -32,6 +36,7 @@ class Coordinator(cast.UnmanagedComponent):
         self.every = float(args.get("every_s", 1.5))
         self.urgent = {str(q) for q in args.get("urgent", [])}
         self.answered = 0
+        self.asked: dict[int, float] = {}  # question number -> when it was asked (monotonic), until answered
         self.mutex = threading.Lock()
 
     def start(self) -> None:
@@ -49,6 +54,8 @@ class Coordinator(cast.UnmanagedComponent):
         for number, text in enumerate(self.questions, 1):
             priority = 10 if text in self.urgent else 0
             question = Question(number=number, text=text, asked_by=self.component_id, priority=priority)
+            with self.mutex:  # before the add: the answer may come before add() returns
+                self.asked[number] = time.monotonic()
             self.add(f"question-{number}", question, subarchitecture=self.language_sa)
             print(f"asks q{number}{' (urgent)' if priority else ''}: {text}", flush=True)
             if self.wait_for_stop(self.every):
@@ -56,12 +63,16 @@ class Coordinator(cast.UnmanagedComponent):
         self.wait_for_stop()
 
     def replied(self, change: cast.WorkingMemoryChange) -> None:
-        """Print an answer."""
+        """Print an answer and report it."""
         question = self.get(change.id, Question, subarchitecture=self.language_sa)
         if question.answered:
             with self.mutex:
                 self.answered += 1
+                asked = self.asked.pop(question.number, None)
             print(f"q{question.number} {question.text} -> {question.answer}", flush=True)
+            if asked is not None:  # once per question, whatever else overwrites its entry
+                self.report("questions_answered", 1)
+                self.report("answer_time_s", time.monotonic() - asked)
 
     def stop(self) -> None:
         """Say how the conversation went."""

@@ -16,6 +16,7 @@ import grpc
 from cast.client.credentials import ClientTls
 from cast.errors import ERROR_TRAILER, CastError, UnavailableError, error_for_code
 from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import inspection_pb2_grpc as insp_grpc
 from cast.v1 import task_manager_pb2_grpc as tm_grpc
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
@@ -75,6 +76,7 @@ class ServerLink:
         self.wm = wm_grpc.WorkingMemoryStub(self.channel)
         self.tm = tm_grpc.TaskManagerStub(self.channel)
         self.directory = dir_grpc.DirectoryStub(self.channel)
+        self.inspection = insp_grpc.InspectionStub(self.channel)  # Report: a component's outcomes
         self.watch_stream: WatchStream | None = None
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server

@@ -286,6 +286,24 @@ class Component:
         """Release one level of this component's lock; return the remaining depth."""
         return self._transport.unlock(self._sa(subarchitecture), entry_id)
 
+    # ------------------------------------------------------------- outcomes
+
+    def report(self, name: str, value: float) -> None:
+        """Report a measured outcome (``self.report("answers_correct", 1)``) for experiments to read.
+
+        The server keeps per name the count, sum, min, max and last value of
+        what this component reported (``cast stats``, ``cast run
+        --summary-json``, ``cast sweep``). InvalidArgumentError for an empty
+        name or one over 128 bytes, or a value that is not a finite number;
+        ResourceExhaustedError past 256 names. A refused report records nothing.
+        """
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            # As the server words it; a value the wire cannot carry never leaves the component.
+            raise InvalidArgumentError(f"report '{name}': the value must be a number, got {value!r}") from None
+        self._transport.report(name, number)
+
     # ------------------------------------------------------------- watching
 
     def on_change(

@@ -27,6 +27,7 @@ from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import CastError
 from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 
@@ -304,6 +305,13 @@ class GrpcTransport:
         thread = threading.Thread(target=read, name="cast-decisions", daemon=True)
         thread.start()
         self._decision_threads.append(thread)
+
+    # -------------------------------------------------------------- outcomes
+
+    def report(self, name: str, value: float) -> None:
+        """Record an outcome with the server of the own SA (``cast stats`` merges every server's)."""
+        req = insp_pb2.ReportRequest(name=name, value=value)
+        self._call(self._server(self.identity.subarchitecture).inspection.Report, req)
 
     # -------------------------------------------------------------- sessions
 

@@ -171,6 +171,10 @@ class LocalTransport:
         """Report an adopted task's outcome."""
         run_sync(self._system, self._access.complete(task_id, outcome, reason))
 
+    def report(self, name: str, value: float) -> None:
+        """Record an outcome through the rulebook, as the servicer does."""
+        self._access.report(name, value)
+
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
         """Where task decisions go."""
         self._decision_sink = sink

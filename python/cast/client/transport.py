@@ -107,6 +107,9 @@ class Transport(Protocol):
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
         """Where task decisions about this component go."""
 
+    def report(self, name: str, value: float) -> None:
+        """Record an outcome the component measured, with its own SA's server (Inspection.Report)."""
+
     def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
         """Register and keep a session alive (heartbeats report ``state()``)."""
 

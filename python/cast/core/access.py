@@ -177,6 +177,16 @@ class Access:
         """The live tasks of one SA or all, once their states are durable."""
         return self._settled(lambda: self.system.tasks.tasks(sa))
 
+    # --------------------------------------------------------------- outcomes
+
+    def report(self, name: str, value: float) -> None:
+        """Record an outcome the caller measured, under its own id (refusals: :meth:`cast.core.reports.Reports.report`).
+
+        Kept whether or not counting is on (it is the caller's own call), and
+        never journaled, so nothing waits for durability.
+        """
+        self.system.metrics.report(self.who.component_id, name, value)
+
     # ---------------------------------------------------------------- watches
 
     def watch(

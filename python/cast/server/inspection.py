@@ -1,7 +1,8 @@
-"""The Inspection servicer: WM listings, task counters and metrics for tools (``cast ls``, ``tasks``, ``stats``)."""
+"""The Inspection servicer: WM listings, task counters and metrics for tools; the outcomes components report."""
 
 from __future__ import annotations
 
+from cast.core.access import Access
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
 from cast.server.conversions import entry_to_pb
@@ -64,3 +65,9 @@ class InspectionServicer(insp_grpc.InspectionServicer):
         """What this server counted since it started (cast.core.metrics)."""
         self._auth.identify_read(context)
         return snapshot_to_pb(self._system.metrics.snapshot())
+
+    @rpc
+    async def Report(self, request: insp_pb2.ReportRequest, context: Context) -> insp_pb2.ReportResponse:
+        """Record an outcome the caller measured; who it is comes from its token, never from the request."""
+        Access(self._system, self._auth.identify(context)).report(request.name, request.value)
+        return insp_pb2.ReportResponse()

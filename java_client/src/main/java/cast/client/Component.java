@@ -387,6 +387,19 @@ public abstract class Component implements AutoCloseable {
     return t().unlock(sa(subarchitecture), id);
   }
 
+  // -------------------------------------------------------------- outcomes
+
+  /**
+   * Report a measured outcome ({@code report("answers_correct", 1)}) for experiments to
+   * read: the server keeps per name the count, sum, min, max and last value this component
+   * reported ({@code cast stats}, {@code cast run --summary-json}, {@code cast sweep}).
+   * InvalidArgumentError for an empty name or one over 128 bytes, or a value that is not
+   * finite; ResourceExhaustedError past 256 names. A refused report records nothing.
+   */
+  public void report(String name, double value) {
+    t().report(name == null ? "" : name, value);
+  }
+
   // -------------------------------------------------------------- watching
 
   /** {@code callback} for each change matching {@code filter}; see {@link #onChange(List, ChangeCallback)}. */

@@ -5,7 +5,9 @@ import cast.v1.DirectoryGrpc;
 import cast.v1.ExistsRequest;
 import cast.v1.GetByTypeRequest;
 import cast.v1.GetRequest;
+import cast.v1.InspectionGrpc;
 import cast.v1.RegisterSchemasRequest;
+import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
@@ -105,6 +107,7 @@ final class GrpcTransport implements Transport {
     final TaskManagerGrpc.TaskManagerStub tmAsync;
     final DirectoryGrpc.DirectoryBlockingStub dir;
     final DirectoryGrpc.DirectoryStub dirAsync;
+    final InspectionGrpc.InspectionBlockingStub insp; // Report: the component's outcomes
     volatile Session session;
 
     Server(String endpoint) {
@@ -117,6 +120,7 @@ final class GrpcTransport implements Transport {
       this.tmAsync = TaskManagerGrpc.newStub(channel).withInterceptors(auth);
       this.dir = DirectoryGrpc.newBlockingStub(channel).withInterceptors(auth);
       this.dirAsync = DirectoryGrpc.newStub(channel).withInterceptors(auth);
+      this.insp = InspectionGrpc.newBlockingStub(channel).withInterceptors(auth);
     }
   }
 
@@ -417,6 +421,15 @@ final class GrpcTransport implements Transport {
   @Override
   public void openDecisions(Consumer<Task> sink) {
     decisions = new DecisionStream(this, taskServer(), sink);
+  }
+
+  /** To the own SA's server, as task calls go; {@code cast stats} merges every server's. */
+  @Override
+  public void report(String name, double value) {
+    var req = ReportRequest.newBuilder().setName(name).setValue(value).build();
+    Identity who = identity; // null only before a session (never for a component): the directory's server
+    Server server = who == null ? directory : server(who.subarchitecture());
+    call(server, server.insp, s -> s.report(req));
   }
 
   // --------------------------------------------------------------- sessions

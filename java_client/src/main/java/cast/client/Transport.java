@@ -182,6 +182,11 @@ interface Transport extends AutoCloseable {
   /** Deliver every decision about this component's tasks to {@code sink}, from now on. */
   void openDecisions(Consumer<Task> sink);
 
+  // --------------------------------------------------------------- outcomes
+
+  /** Record an outcome the component measured with its own SA's server (Inspection.Report). */
+  void report(String name, double value);
+
   /** End the sessions (locks and tasks released) and every stream (idempotent). */
   @Override
   void close();

@@ -405,6 +405,21 @@ final class FakeTransport implements Transport {
     decisions = sink;
   }
 
+  // --------------------------------------------------------------- outcomes
+
+  /** What the component reported, in order, as "name value". */
+  final List<String> reports = new CopyOnWriteArrayList<>();
+  /** What report throws, as a server refusing it (null: accepted). */
+  volatile CastError reportError;
+
+  @Override
+  public void report(String name, double value) {
+    if (reportError != null) {
+      throw reportError;
+    }
+    reports.add(name + " " + value);
+  }
+
   @Override
   public void close() {
     closed = true;

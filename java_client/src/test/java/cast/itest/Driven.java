@@ -358,6 +358,9 @@ public class Driven extends ManagedComponent {
       case "retract":
         retractTask(str(c, "task_id"));
         break;
+      case "report": // the value as text: "NaN" and "Infinity" too, for the server to judge
+        report(str(c, "name"), Double.parseDouble(str(c, "value")));
+        break;
       case "rich_write":
         result(reply, add(str(c, "id"), Rich.canonical(str(c, "variant")), sa));
         break;
