@@ -144,3 +144,14 @@ def test_the_shipped_experiment_is_valid_in_every_layout(layout: str) -> None:
                                "--set", f"VISION_POLICY={policy}"], capture_output=True, text=True, cwd=ROOT)
         assert done.returncode == 0, done.stderr
         assert f"system 'decomposition-{layout}': {dict(one=1, two=2, three=3)[layout]} subarchitecture" in done.stdout
+
+
+def test_reported_outcomes_are_summed_and_averaged_per_run() -> None:
+    from cast.experiments.measures import reports
+
+    summary = {"metrics": {"reports": {
+        "a": {"answers": {"count": 2, "sum": 2.0}, "time_s": {"count": 2, "sum": 3.0}},
+        "b": {"answers": {"count": 1, "sum": 1.0}},
+    }}}
+    assert reports(summary) == {"answers sum": 3.0, "answers mean": 1.0, "time_s sum": 3.0, "time_s mean": 1.5}
+    assert reports({}) == {}

@@ -112,9 +112,19 @@ def traffic(summary: Summary) -> dict[tuple[str, str], float]:
 
 
 def reports(summary: Summary) -> dict[str, float]:
-    """Component-reported outcomes: name -> sum over components (``report(name, value)``)."""
-    sums: dict[str, float] = {}
+    """Component-reported outcomes (``report(name, value)``), per name over every component of the run.
+
+    Two figures per name: ``NAME sum`` (a count, such as questions answered, adds up) and ``NAME mean``
+    (a duration or a score, such as the time to an answer, averages).
+    """
+    totals: dict[str, tuple[float, int]] = {}
     for per_component in _metrics(summary).get("reports", {}).values():
         for name, agg in per_component.items():
-            sums[name] = sums.get(name, 0.0) + float(agg.get("sum", 0.0))
-    return sums
+            total, count = totals.get(name, (0.0, 0))
+            totals[name] = (total + float(agg.get("sum", 0.0)), count + int(agg.get("count", 0)))
+    out: dict[str, float] = {}
+    for name, (total, count) in totals.items():
+        out[f"{name} sum"] = total
+        if count:
+            out[f"{name} mean"] = total / count
+    return out

@@ -74,7 +74,8 @@ def render_report(sweep: Sweep, results: Sequence[VariantResult], command: str, 
     names = sorted({n for res in results for n in res.outcomes})
     if names:
         lines += ["", "## Reported outcomes", "",
-                  "Sums over the components of a run of what they reported (`report(name, value)`).", "",
+                  "What the components of a run reported (`report(name, value)`): per name the sum over the "
+                  "run and the mean of the values; each cell the median over the variant's runs.", "",
                   "| variant | " + " | ".join(names) + " |", "|" + "---|" * (len(names) + 1)]
         for res in results:
             lines.append(f"| `{res.variant.name}` | " + " | ".join(_cell(res.outcomes.get(n)) for n in names) + " |")
