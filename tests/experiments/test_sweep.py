@@ -155,3 +155,12 @@ def test_reported_outcomes_are_summed_and_averaged_per_run() -> None:
     }}}
     assert reports(summary) == {"answers sum": 3.0, "answers mean": 1.0, "time_s sum": 3.0, "time_s mean": 1.5}
     assert reports({}) == {}
+
+
+def test_a_spread_keeps_three_significant_digits_of_small_values() -> None:
+    from cast.experiments.measures import spread
+
+    small = spread([0.0123, 0.0131, 0.0119])
+    assert small is not None and small.text() == "0.0123 [0.0119, 0.0131]"
+    assert spread([1234.4, 1200.0]).text() == "1217 [1200, 1234]"  # type: ignore[union-attr]
+    assert spread([4.0, 4.0]).text(0) == "4" and spread([None]) is None  # type: ignore[union-attr]

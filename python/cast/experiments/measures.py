@@ -38,11 +38,15 @@ class Spread:
     high: float
     n: int
 
-    def text(self, digits: int = 1) -> str:
-        """``median [low, high]``, or the one value."""
+    def text(self, digits: int | None = None) -> str:
+        """``median [low, high]``, or the one value; ``digits`` after the point, else three significant ones."""
+        def number(x: float) -> str:
+            if digits is not None:
+                return f"{x:.{digits}f}"
+            return f"{x:.0f}" if abs(x) >= 100 else f"{x:.3g}"  # 7.31, 60.9, 1234; 0.0123 not 0.0
         if self.n == 1 or self.low == self.high:
-            return f"{self.median:.{digits}f}"
-        return f"{self.median:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+            return number(self.median)
+        return f"{number(self.median)} [{number(self.low)}, {number(self.high)}]"
 
 
 def spread(values: Iterable[float | None]) -> Spread | None:

@@ -44,7 +44,7 @@ def summarise(sweep: Sweep) -> list[VariantResult]:
 def _cell(value: Spread | None, measure: Measure | None = None) -> str:
     if value is None:
         return "n/a"
-    return value.text(0 if measure is not None and measure.unit == "tasks" else 1)
+    return value.text(0 if measure is not None and measure.unit == "tasks" else None)
 
 
 def render_report(sweep: Sweep, results: Sequence[VariantResult], command: str, plots: Sequence[str]) -> str:
