@@ -33,10 +33,7 @@
 #include <condition_variable>
 #include <cstdlib>
 #include <iostream>
-#include <atomic>
 #include <map>
-#include <set>
-#include <thread>
 #include <mutex>
 #include <sstream>
 
@@ -44,6 +41,7 @@
 #include "cast_fidelity.pb.h"
 #include "cast_testing.pb.h"
 #include "probe_json.h"
+#include "probe_stress.h"
 
 namespace {
 
@@ -312,7 +310,10 @@ class Probe : public cast::ManagedComponent {
       });
     }
     if (cmd == "watch") return watchCommand(split(line, 2));  // watch NAME JSON
-    if (cmd == "stress") return stress(split(line, 3));  // stress THREADS PER_THREAD
+    if (cmd == "stress") {  // stress THREADS PER_THREAD (probe_stress.cc)
+      auto a = split(line, 3);
+      return cast::probe::stress(*this, std::stoi(a[1]), std::stoi(a[2]));
+    }
     if (cmd == "open_gate") {  // lets gated watch callbacks return
       {
         std::lock_guard<std::mutex> l(mu_);
@@ -375,67 +376,6 @@ class Probe : public cast::ManagedComponent {
       return "{}";
     }
     throw cast::InvalidArgumentError("probe: unknown command '" + cmd + "'");
-  }
-
-  // stress THREADS PER_THREAD: every thread adds, reads, overwrites (versioned),
-  // locks and unlocks its own entries at once, while one watch counts the
-  // changes: the API shared by threads, against a real server.
-  std::string stress(const std::vector<std::string>& a) {
-    const int threads = std::stoi(a[1]);
-    const int perThread = std::stoi(a[2]);
-    std::mutex mu;
-    std::condition_variable cv;
-    std::set<std::pair<std::string, std::uint64_t>> seen;  // (id, version): each change once
-    int duplicates = 0;
-    auto handle = onChange(cast::localTypeFilter<cast::testing::Counter>(), [&](const cast::WorkingMemoryChange& c) {
-      std::lock_guard<std::mutex> l(mu);
-      if (!seen.insert({c.id(), c.version()}).second) ++duplicates;
-      cv.notify_all();
-    });
-    std::atomic<int> errors{0};
-    std::vector<std::string> firstError;
-    std::vector<std::thread> workers;
-    for (int t = 0; t < threads; ++t) {
-      workers.emplace_back([&, t] {
-        for (int i = 0; i < perThread; ++i) {
-          try {
-            const std::string id = newId();
-            cast::testing::Counter c;
-            c.set_writer("stress-" + std::to_string(t));
-            c.set_value(i);
-            const std::uint64_t added = add(id, c).version;
-            if (get<cast::testing::Counter>(id).value() != i) throw std::runtime_error("read back a wrong value");
-            c.set_value(i + 1);
-            {
-              cast::LockGuard guard = lock(id, cast::LockMode::OD);
-              overwrite(id, c, "", added);
-            }
-            if (!tryLock(id, cast::LockMode::O)) throw std::runtime_error("could not lock an entry of its own");
-            unlock(id);
-          } catch (const std::exception& e) {
-            if (errors++ == 0) {
-              std::lock_guard<std::mutex> l(mu);
-              firstError.push_back(e.what());
-            }
-          }
-        }
-      });
-    }
-    for (auto& w : workers) w.join();
-    const size_t expected = static_cast<size_t>(threads) * static_cast<size_t>(perThread) * 2;  // add + overwrite
-    {
-      std::unique_lock<std::mutex> l(mu);
-      cv.wait_for(l, std::chrono::seconds(30), [&] { return seen.size() >= expected; });
-    }
-    handle.cancel();
-    drain(std::chrono::milliseconds(5000));
-    std::lock_guard<std::mutex> l(mu);
-    return Object()
-        .num("errors", errors.load())
-        .str("first_error", firstError.empty() ? "" : firstError[0])
-        .unum("changes", seen.size())
-        .num("duplicates", duplicates)
-        .json();
   }
 
   // watch NAME {"filters": [{"kind": "global|local|address|source|operation", ...}]}

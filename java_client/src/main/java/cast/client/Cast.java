@@ -30,7 +30,7 @@ public final class Cast {
     try {
       transport =
           new GrpcTransport(
-              contract, endpoint -> GrpcTransport.channel(endpoint, contract.tls()), options.callTimeout());
+              contract, endpoint -> GrpcServer.channel(endpoint, contract.tls()), options.callTimeout());
     } catch (UnavailableError e) {
       // Say where the address came from: a stale system.json or CAST_ENDPOINT is the usual cause.
       throw new UnavailableError(

@@ -2,14 +2,11 @@ package cast.client;
 
 import com.google.protobuf.Any;
 import com.google.protobuf.Message;
-import java.security.SecureRandom;
 import java.time.Duration;
 import java.util.ArrayList;
-import java.util.HexFormat;
 import java.util.List;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
-import java.util.concurrent.atomic.AtomicLong;
 import java.util.function.Consumer;
 import java.util.logging.Logger;
 
@@ -26,13 +23,7 @@ import java.util.logging.Logger;
  * decisions arrived (revision order per working memory).
  */
 public abstract class Component implements AutoCloseable {
-  private static final SecureRandom RANDOM = new SecureRandom();
-
-  private Transport transport;
-  private Identity identity; // as the server verified it from the token
-  private Dispatcher dispatcher;
-  private String idPrefix;
-  private final AtomicLong idCounter = new AtomicLong();
+  private ComponentBinding binding; // null until connected (ComponentBinding.java)
   private final Schemas.Registered schemas = new Schemas.Registered();
   private final CountDownLatch stopping = new CountDownLatch(1);
   private volatile ComponentState state = ComponentState.STARTING;
@@ -65,26 +56,10 @@ public abstract class Component implements AutoCloseable {
    * transport is closed and the component stays unconnected.
    */
   void bind(Transport transport, Consumer<Identity> verify) {
-    if (this.transport != null) {
+    if (this.binding != null) {
       throw new IllegalStateException("component " + componentId() + " is already connected");
     }
-    Identity who;
-    try {
-      who = transport.startSession("java", kind(), () -> state);
-      verify.accept(who);
-    } catch (RuntimeException e) {
-      transport.close(); // ends the session the server opened for the token's holder
-      throw e;
-    }
-    this.identity = who;
-    this.dispatcher =
-        new Dispatcher(who.componentId(), maxPendingCallbacks(), Logger.getLogger("cast.component." + who.componentId()));
-    byte[] salt = new byte[3];
-    RANDOM.nextBytes(salt);
-    // Unique across components (the id) and across restarts of one component (the salt).
-    this.idPrefix = who.componentId() + ":" + HexFormat.of().formatHex(salt) + ":";
-    transport.setEventSink(dispatcher::deliver, this::onWatchError);
-    this.transport = transport;
+    this.binding = new ComponentBinding(this, transport, () -> state, verify);
     bindExtra(transport);
   }
 
@@ -105,21 +80,25 @@ public abstract class Component implements AutoCloseable {
   /** Report a new life stage to the server at once. */
   void setState(ComponentState state) {
     this.state = state;
-    if (transport != null) {
-      transport.stateChanged();
+    if (binding != null) {
+      binding.transport.stateChanged();
     }
   }
 
-  private Transport t() {
-    Transport tr = transport;
-    if (tr == null) {
+  private ComponentBinding b() {
+    ComponentBinding bound = binding;
+    if (bound == null) {
       throw new IllegalStateException(
           getClass().getName()
               + " is not connected: run it with `java cast.client.Runner "
               + getClass().getName()
               + "`, or connect it with Runner.connect(component, contract)");
     }
-    return tr;
+    return bound;
+  }
+
+  private Transport t() {
+    return b().transport;
   }
 
   /** The transport, for the task calls of managed components (and tests). */
@@ -130,30 +109,24 @@ public abstract class Component implements AutoCloseable {
   /** Close the connection: queued callbacks run, then the session ends (locks and tasks released). */
   @Override
   public void close() {
-    if (dispatcher != null) {
-      dispatcher.stop(Duration.ofSeconds(5));
-    }
-    if (transport != null) {
-      transport.close();
+    if (binding != null) {
+      binding.close();
     }
   }
 
   /** This component's id, as the server verified it from the token. */
   public String componentId() {
-    t(); // an unconnected component says how to connect it
-    return identity.componentId();
+    return b().identity.componentId(); // an unconnected component says how to connect it
   }
 
   /** This component's own subarchitecture, as the server verified it from the token. */
   public String subarchitecture() {
-    t();
-    return identity.subarchitecture();
+    return b().identity.subarchitecture();
   }
 
   /** Whether this component may write every SA, as the server verified it from the token. */
   public boolean isPrivileged() {
-    t();
-    return identity.privileged();
+    return b().identity.privileged();
   }
 
   /** False once the component has been asked to stop. */
@@ -178,7 +151,7 @@ public abstract class Component implements AutoCloseable {
 
   /** A logger named after the component. */
   public Logger log() {
-    return Logger.getLogger("cast.component." + (transport == null ? getClass().getSimpleName() : componentId()));
+    return Logger.getLogger("cast.component." + (binding == null ? getClass().getSimpleName() : componentId()));
   }
 
   /** The names of the system's SAs, as the directory described them at connection. */
@@ -190,8 +163,7 @@ public abstract class Component implements AutoCloseable {
 
   /** A fresh entry id, unique across components and restarts. */
   public String newId() {
-    t();
-    return idPrefix + idCounter.incrementAndGet();
+    return b().newId();
   }
 
   private String sa(String subarchitecture) {
@@ -419,22 +391,8 @@ public abstract class Component implements AutoCloseable {
     if (callback == null) {
       throw new InvalidArgumentError("onChange needs a callback");
     }
-    Transport tr = t();
-    List<ChangeFilter> resolved = new ArrayList<>();
-    for (ChangeFilter f : filters) {
-      if (f == null) {
-        throw new InvalidArgumentError("onChange filters must not be null");
-      }
-      // "Local" means this component's own SA, which only the component knows.
-      resolved.add(f.isLocal() ? f.inSubarchitecture(subarchitecture()) : f);
-    }
-    return dispatcher.watch(tr, resolved, callback);
-  }
-
-  /** Change delivery stopped: for one watch ({@code watchId} >= 0, which is dropped) or for all. */
-  private void onWatchError(CastError error, int watchId) {
-    dispatcher.stopped(error, watchId);
-    submit(() -> watchFailed(error));
+    // "Local" filters mean this component's own SA, which only its binding knows.
+    return b().watch(filters, callback);
   }
 
   /**
@@ -451,22 +409,22 @@ public abstract class Component implements AutoCloseable {
 
   /** Run a hook on the dispatcher thread, logging its failure. */
   void submit(Dispatcher.Hook hook) {
-    dispatcher.submitHook(hook);
+    binding.dispatcher.submitHook(hook);
   }
 
   /** Wait until every callback queued so far has run (tests, orderly shutdown); false on timeout. */
   public boolean drain(Duration timeout) throws InterruptedException {
-    return dispatcher == null || dispatcher.drain(timeout);
+    return binding == null || binding.dispatcher.drain(timeout);
   }
 
   /** Callbacks and hooks queued or running on the dispatcher (for tests). */
   long pendingCallbacks() {
-    return dispatcher == null ? 0 : dispatcher.pending();
+    return binding == null ? 0 : binding.dispatcher.pending();
   }
 
   /** Whether the calling thread is this component's dispatcher thread. */
   public boolean onDispatcherThread() {
-    return dispatcher != null && Thread.currentThread() == dispatcher.thread();
+    return binding != null && Thread.currentThread() == binding.dispatcher.thread();
   }
 
   // --------------------------------------------------------- filter helpers

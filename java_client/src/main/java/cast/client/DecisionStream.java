@@ -19,14 +19,14 @@ final class DecisionStream {
   private static final Logger LOG = Logger.getLogger("cast.client");
 
   private final GrpcTransport transport;
-  private final GrpcTransport.Server server;
+  private final GrpcServer server;
   private final Consumer<Task> sink;
   private final Backoff backoff = new Backoff();
   private volatile ClientCallStreamObserver<DecisionsRequest> call;
   private volatile boolean closed;
 
   /** Opens the stream to {@code server}; decisions go to {@code sink}, in the order they came. */
-  DecisionStream(GrpcTransport transport, GrpcTransport.Server server, Consumer<Task> sink) {
+  DecisionStream(GrpcTransport transport, GrpcServer server, Consumer<Task> sink) {
     this.transport = transport;
     this.server = server;
     this.sink = sink;

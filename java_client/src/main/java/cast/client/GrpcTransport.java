@@ -1,26 +1,18 @@
 package cast.client;
 
 import cast.v1.DescribeSystemRequest;
-import cast.v1.DirectoryGrpc;
 import cast.v1.ExistsRequest;
 import cast.v1.GetByTypeRequest;
 import cast.v1.GetRequest;
-import cast.v1.InspectionGrpc;
 import cast.v1.RegisterSchemasRequest;
 import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
-import cast.v1.TaskManagerGrpc;
 import cast.v1.UnlockRequest;
-import cast.v1.WorkingMemoryGrpc;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
-import io.grpc.ClientInterceptor;
-import io.grpc.Grpc;
-import io.grpc.ManagedChannel;
-import io.grpc.ManagedChannelBuilder;
 import io.grpc.Status;
 import io.grpc.StatusRuntimeException;
 import io.grpc.stub.AbstractStub;
@@ -48,9 +40,10 @@ import java.util.logging.Logger;
 /**
  * The {@link Transport} of a component that reaches a CAST system through its
  * directory endpoint, following docs/client-protocol.md call by call: routing by
- * SA from DescribeSystem and the unary calls, with a deadline each. Each server has
- * one {@link WatchStream} and one {@link Session}; a managed component's decisions
- * come on a {@link DecisionStream}; {@link Credentials} puts the token on every call. The twin of
+ * SA from DescribeSystem and the unary calls, with a deadline each. Each server
+ * ({@link GrpcServer}: its channel and stubs) has one {@link WatchStream} and one
+ * {@link Session}; a managed component's decisions come on a {@link DecisionStream};
+ * {@link Credentials} puts the token on every call. The twin of
  * python/cast/client/grpc_transport.py and cpp_client/src/grpc_transport.cc.
  *
  * <p>When a server goes away the component object stays and the transport
@@ -60,7 +53,6 @@ import java.util.logging.Logger;
  */
 final class GrpcTransport implements Transport {
   private static final Logger LOG = Logger.getLogger("cast.client");
-  static final int MAX_MESSAGE_BYTES = 64 * 1024 * 1024;
   static final Duration DEFAULT_CALL_TIMEOUT = Duration.ofSeconds(30);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
@@ -72,65 +64,13 @@ final class GrpcTransport implements Transport {
           Status.Code.DEADLINE_EXCEEDED,
           Status.Code.UNAUTHENTICATED);
 
-  /** Opens a channel to an endpoint. */
-  interface ChannelFactory {
-    ManagedChannel open(String endpoint);
-  }
-
-  /** A channel to {@code endpoint}, with TLS when {@code tls} is set (never falling back to plaintext). */
-  static ManagedChannel channel(String endpoint, ClientTls tls) {
-    ManagedChannelBuilder<?> b;
-    if (tls == null) {
-      b = ManagedChannelBuilder.forTarget(endpoint).usePlaintext();
-    } else {
-      b = Grpc.newChannelBuilder(endpoint, Credentials.channelCredentials(tls));
-      if (!tls.serverName().isEmpty()) {
-        b.overrideAuthority(tls.serverName());
-      }
-    }
-    return b.maxInboundMessageSize(MAX_MESSAGE_BYTES)
-        // Notice a dead server (and let it notice us) on an idle connection;
-        // the server permits pings every 5 s without data.
-        .keepAliveTime(10, TimeUnit.SECONDS)
-        .keepAliveTimeout(5, TimeUnit.SECONDS)
-        .keepAliveWithoutCalls(true)
-        .build();
-  }
-
-  /** One server endpoint: its channel, stubs and per-server streams. */
-  final class Server {
-    final String endpoint;
-    final ManagedChannel channel;
-    final WorkingMemoryGrpc.WorkingMemoryBlockingStub wm;
-    final WorkingMemoryGrpc.WorkingMemoryStub wmAsync;
-    final TaskManagerGrpc.TaskManagerBlockingStub tm;
-    final TaskManagerGrpc.TaskManagerStub tmAsync;
-    final DirectoryGrpc.DirectoryBlockingStub dir;
-    final DirectoryGrpc.DirectoryStub dirAsync;
-    final InspectionGrpc.InspectionBlockingStub insp; // Report: the component's outcomes
-    volatile Session session;
-
-    Server(String endpoint) {
-      this.endpoint = endpoint;
-      this.channel = channels.open(endpoint);
-      ClientInterceptor auth = credentials.interceptor();
-      this.wm = WorkingMemoryGrpc.newBlockingStub(channel).withInterceptors(auth);
-      this.wmAsync = WorkingMemoryGrpc.newStub(channel).withInterceptors(auth);
-      this.tm = TaskManagerGrpc.newBlockingStub(channel).withInterceptors(auth);
-      this.tmAsync = TaskManagerGrpc.newStub(channel).withInterceptors(auth);
-      this.dir = DirectoryGrpc.newBlockingStub(channel).withInterceptors(auth);
-      this.dirAsync = DirectoryGrpc.newStub(channel).withInterceptors(auth);
-      this.insp = InspectionGrpc.newBlockingStub(channel).withInterceptors(auth);
-    }
-  }
-
   private final Credentials credentials;
   private final Duration callTimeout;
-  private final ChannelFactory channels;
+  private final GrpcServer.ChannelFactory channels;
   private final Object lock = new Object();
-  private final Server directory;
-  private final Map<String, Server> servers = new LinkedHashMap<>(); // by endpoint; guarded by lock
-  private volatile Map<String, Server> routes = Map.of();
+  private final GrpcServer directory;
+  private final Map<String, GrpcServer> servers = new LinkedHashMap<>(); // by endpoint; guarded by lock
+  private volatile Map<String, GrpcServer> routes = Map.of();
   private volatile SystemDescription system;
   private volatile Identity identity; // as the server verified it, once the session started
   private final WatchStream.Streams watches = new WatchStream.Streams(this);
@@ -142,10 +82,10 @@ final class GrpcTransport implements Transport {
 
   /** Connects to the directory of {@code contract} and describes the system (TLS as the contract says). */
   GrpcTransport(LaunchContract contract) {
-    this(contract, endpoint -> channel(endpoint, contract.tls()), DEFAULT_CALL_TIMEOUT);
+    this(contract, endpoint -> GrpcServer.channel(endpoint, contract.tls()), DEFAULT_CALL_TIMEOUT);
   }
 
-  GrpcTransport(LaunchContract contract, ChannelFactory channels, Duration callTimeout) {
+  GrpcTransport(LaunchContract contract, GrpcServer.ChannelFactory channels, Duration callTimeout) {
     this.callTimeout = callTimeout;
     this.channels = channels;
     this.credentials =
@@ -161,7 +101,7 @@ final class GrpcTransport implements Transport {
             });
     pool.setRemoveOnCancelPolicy(true);
     this.scheduler = pool;
-    this.directory = new Server(contract.endpoint());
+    this.directory = openServer(contract.endpoint());
     servers.put(contract.endpoint(), directory);
     try {
       describe();
@@ -169,6 +109,11 @@ final class GrpcTransport implements Transport {
       close();
       throw e;
     }
+  }
+
+  /** A server at {@code endpoint}: a channel of this transport's and its credentials on every call. */
+  private GrpcServer openServer(String endpoint) {
+    return new GrpcServer(endpoint, channels, credentials);
   }
 
   // ------------------------------------------------------------------ calls
@@ -180,7 +125,7 @@ final class GrpcTransport implements Transport {
   }
 
   /** A unary call to {@code server}, its failure as the named CAST error. */
-  <S extends AbstractStub<S>, R> R call(Server server, S stub, Duration timeout, Function<S, R> fn) {
+  <S extends AbstractStub<S>, R> R call(GrpcServer server, S stub, Duration timeout, Function<S, R> fn) {
     StatusRuntimeException failure;
     try {
       return attempt(stub, timeout, fn);
@@ -203,7 +148,7 @@ final class GrpcTransport implements Transport {
     throw Errors.fromStatus(failure.getStatus(), failure.getTrailers());
   }
 
-  <S extends AbstractStub<S>, R> R call(Server server, S stub, Function<S, R> fn) {
+  <S extends AbstractStub<S>, R> R call(GrpcServer server, S stub, Function<S, R> fn) {
     return call(server, stub, callTimeout, fn);
   }
 
@@ -257,13 +202,13 @@ final class GrpcTransport implements Transport {
     SystemDescription desc =
         call(directory, directory.dir, s -> s.describeSystem(DescribeSystemRequest.getDefaultInstance()));
     synchronized (lock) {
-      Map<String, Server> r = new HashMap<>();
+      Map<String, GrpcServer> r = new HashMap<>();
       for (SubarchitectureInfo sa : desc.getSubarchitecturesList()) {
         // An SA served by the answering server itself reuses the directory's channel.
         if (sa.getEndpoint().isEmpty() || sa.getEndpoint().equals(desc.getEndpoint())) {
           r.put(sa.getName(), directory);
         } else {
-          r.put(sa.getName(), servers.computeIfAbsent(sa.getEndpoint(), Server::new));
+          r.put(sa.getName(), servers.computeIfAbsent(sa.getEndpoint(), this::openServer));
         }
       }
       routes = r;
@@ -278,19 +223,19 @@ final class GrpcTransport implements Transport {
   }
 
   /** The server of an SA; an unknown SA goes to the directory's server, which answers NOT_FOUND naming the known SAs. */
-  Server server(String sa) {
+  GrpcServer server(String sa) {
     return routes.getOrDefault(sa, directory);
   }
 
   /** Every server of the system, the directory's first. */
-  List<Server> allServers() {
+  List<GrpcServer> allServers() {
     synchronized (lock) {
       return new ArrayList<>(servers.values());
     }
   }
 
   /** The server of the own SA's task manager. */
-  private Server taskServer() {
+  private GrpcServer taskServer() {
     Identity who = identity;
     if (who == null) {
       throw new IllegalStateException("task calls need a session: startSession first");
@@ -332,7 +277,7 @@ final class GrpcTransport implements Transport {
   @Override
   public void registerSchemas(FileDescriptorSet files) {
     var req = RegisterSchemasRequest.newBuilder().setFiles(files).build();
-    for (Server server : allServers()) {
+    for (GrpcServer server : allServers()) {
       call(server, server.dir, s -> s.registerSchemas(req));
     }
   }
@@ -399,21 +344,21 @@ final class GrpcTransport implements Transport {
   @Override
   public Task propose(String name, Any data, int priority) {
     var req = Conversions.propose(name, data, priority);
-    Server server = taskServer();
+    GrpcServer server = taskServer();
     return Conversions.task(call(server, server.tm, s -> s.propose(req)).getTask());
   }
 
   @Override
   public void retract(String taskId) {
     var req = RetractRequest.newBuilder().setTaskId(taskId).build();
-    Server server = taskServer();
+    GrpcServer server = taskServer();
     call(server, server.tm, s -> s.retract(req));
   }
 
   @Override
   public void complete(String taskId, TaskOutcome outcome, String reason) {
     var req = Conversions.complete(taskId, outcome, reason);
-    Server server = taskServer();
+    GrpcServer server = taskServer();
     call(server, server.tm, s -> s.complete(req));
   }
 
@@ -428,7 +373,7 @@ final class GrpcTransport implements Transport {
   public void report(String name, double value) {
     var req = ReportRequest.newBuilder().setName(name).setValue(value).build();
     Identity who = identity; // null only before a session (never for a component): the directory's server
-    Server server = who == null ? directory : server(who.subarchitecture());
+    GrpcServer server = who == null ? directory : server(who.subarchitecture());
     call(server, server.insp, s -> s.report(req));
   }
 
@@ -438,7 +383,7 @@ final class GrpcTransport implements Transport {
   @Override
   public Identity startSession(String language, String kind, Supplier<ComponentState> state) {
     Identity verified = null;
-    for (Server server : allServers()) {
+    for (GrpcServer server : allServers()) {
       Session session = new Session(this, server, language, kind, state);
       server.session = session;
       Identity who = session.open();
@@ -462,7 +407,7 @@ final class GrpcTransport implements Transport {
     if (closing.get()) {
       return;
     }
-    for (Server server : allServers()) {
+    for (GrpcServer server : allServers()) {
       Session session = server.session;
       if (session != null) {
         session.report();
@@ -482,8 +427,8 @@ final class GrpcTransport implements Transport {
       return;
     }
     watches.close();
-    List<Server> all = allServers();
-    for (Server server : all) {
+    List<GrpcServer> all = allServers();
+    for (GrpcServer server : all) {
       Session session = server.session;
       if (session != null) {
         session.close(); // the server ends the session: locks and tasks are released
@@ -494,10 +439,10 @@ final class GrpcTransport implements Transport {
       d.close();
     }
     scheduler.shutdownNow();
-    for (Server server : all) {
+    for (GrpcServer server : all) {
       server.channel.shutdown();
     }
-    for (Server server : all) {
+    for (GrpcServer server : all) {
       try {
         if (!server.channel.awaitTermination(2, TimeUnit.SECONDS)) {
           server.channel.shutdownNow();

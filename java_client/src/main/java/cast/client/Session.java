@@ -31,7 +31,7 @@ final class Session {
   private static final Logger LOG = Logger.getLogger("cast.client");
 
   private final GrpcTransport transport;
-  private final GrpcTransport.Server server;
+  private final GrpcServer server;
   private final String language;
   private final String kind;
   private final Supplier<ComponentState> state;
@@ -43,7 +43,7 @@ final class Session {
 
   Session(
       GrpcTransport transport,
-      GrpcTransport.Server server,
+      GrpcServer server,
       String language,
       String kind,
       Supplier<ComponentState> state) {
@@ -194,7 +194,7 @@ final class Session {
    * backoff (a server `cast run` restarted has no barrier and answers at once); any other
    * error is thrown: the start fails as a failing hook does.
    */
-  static boolean awaitRun(GrpcTransport transport, GrpcTransport.Server directory, Transport.StopWait stopping) {
+  static boolean awaitRun(GrpcTransport transport, GrpcServer directory, Transport.StopWait stopping) {
     Backoff backoff = new Backoff();
     AwaitRunRequest req = AwaitRunRequest.getDefaultInstance();
     try {

@@ -109,9 +109,9 @@ final class WatchStream {
   static final class Streams {
     private final GrpcTransport transport;
     private final Object lock = new Object();
-    private final Map<GrpcTransport.Server, WatchStream> streams = new HashMap<>(); // guarded by lock
+    private final Map<GrpcServer, WatchStream> streams = new HashMap<>(); // guarded by lock
     private boolean closed; // guarded by lock
-    private final Map<Integer, List<GrpcTransport.Server>> placed = new ConcurrentHashMap<>();
+    private final Map<Integer, List<GrpcServer>> placed = new ConcurrentHashMap<>();
     private volatile Transport.EventSink sink;
     private volatile BiConsumer<CastError, Integer> onError =
         (err, watchId) -> LOG.severe("change delivery stopped: " + err.getMessage());
@@ -135,10 +135,10 @@ final class WatchStream {
         throw new IllegalStateException("setEventSink must be called before watch");
       }
       List<cast.v1.ChangeFilter> wire = new ArrayList<>();
-      List<GrpcTransport.Server> targets = new ArrayList<>();
+      List<GrpcServer> targets = new ArrayList<>();
       for (ChangeFilter f : filters) {
         wire.add(Conversions.filter(f));
-        for (GrpcTransport.Server s :
+        for (GrpcServer s :
             f.subarchitecture().isEmpty() ? transport.allServers() : List.of(transport.server(f.subarchitecture()))) {
           if (!targets.contains(s)) {
             targets.add(s);
@@ -148,7 +148,7 @@ final class WatchStream {
       Map<String, Long> revisions = new HashMap<>();
       List<WatchStream> created = new ArrayList<>();
       try {
-        for (GrpcTransport.Server server : targets) {
+        for (GrpcServer server : targets) {
           WatchStream stream;
           synchronized (lock) {
             if (closed || transport.isClosing()) {
@@ -183,11 +183,11 @@ final class WatchStream {
 
     /** Remove the watch from every server it is on. */
     void cancel(int watchId) {
-      List<GrpcTransport.Server> targets = placed.remove(watchId);
+      List<GrpcServer> targets = placed.remove(watchId);
       if (targets == null) {
         return;
       }
-      for (GrpcTransport.Server server : targets) {
+      for (GrpcServer server : targets) {
         WatchStream stream;
         synchronized (lock) {
           stream = streams.get(server);
@@ -212,7 +212,7 @@ final class WatchStream {
   }
 
   private final GrpcTransport transport;
-  private final GrpcTransport.Server server;
+  private final GrpcServer server;
   private final Streams streams;
   private final Object mutex = new Object();
   private final Map<Integer, Watch> watches = new LinkedHashMap<>(); // guarded by mutex
@@ -230,7 +230,7 @@ final class WatchStream {
   final AtomicInteger reconnects = new AtomicInteger();
 
   /** Opens the stream to {@code server}; events and failures go where {@code streams} says. */
-  WatchStream(GrpcTransport transport, GrpcTransport.Server server, Streams streams) {
+  WatchStream(GrpcTransport transport, GrpcServer server, Streams streams) {
     this.transport = transport;
     this.server = server;
     this.streams = streams;
