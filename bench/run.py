@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from bench import cast_cases, durability, floors, other_clients, redis_peer, report, stalled_watcher
+from bench import cast_cases, durability, floors, metrics_overhead, other_clients, redis_peer, report, stalled_watcher
 from bench.harness import ROOT
 from bench.rows import Results, rows
 
@@ -65,7 +65,9 @@ def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, 
     m7 = other_clients.run(work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"],
                            rounds=rounds, jit_warm=5000 if q else 20_000, log=log)
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
-    return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1), scaling, m7_samples
+    log("O1 what the metrics cost")
+    o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 2000 if q else 10_000, 1 if q else 3, log)
+    return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1), scaling, m7_samples
 
 
 def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str], None]) -> tuple[Any, ...]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tests.conftest import ROOT
 
-IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "R1"]
+IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "O1", "R1"]
 
 
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
@@ -40,5 +40,8 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     # M5 measures its floor (the dispatcher's handoff alone) with it.
     m5_first = doc["results"]["M5"]["figures"][0]
     assert m5_first["name"] == "add -> callback p50 (µs)" and m5_first["floor"] > 0, m5_first
+    # O1 measured the writer with metrics on against --no-metrics (the floor column).
+    o1 = doc["results"]["O1"]["figures"]
+    assert o1[0]["name"] == "sequential Overwrite (calls/s)" and o1[0]["floor"] > 0, o1
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"

@@ -4,9 +4,12 @@ latency histogram, reports, merging servers, and counting off."""
 from __future__ import annotations
 
 import threading
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, cast
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from cast.core.access import Access, run_sync
 from cast.core.metrics import BUCKETS_S, Metrics
@@ -185,20 +188,40 @@ def _match(sa: str, time_ns: int) -> Match:
     return Match(ev, [1], False)
 
 
-def test_latency_is_from_the_events_commit_time_into_its_bucket() -> None:
+def _delivered(metrics: Metrics, ages_ns: list[int], now: int) -> dict[str, Any]:
+    """Hand events of the given ages to one watcher at ``now``; its histogram."""
+    polled = SimpleNamespace(polled=[("a", len(ages_ns))], with_values=False)  # what a Subscription polled
+    metrics.delivered(Identity("watcher", "a"), cast(Subscription, polled), [_match("a", now - a) for a in ages_ns],
+                      lambda m: False)
+    latency: dict[str, Any] = metrics.snapshot()["delivery_latency"]["watchers"]["watcher"]
+    return latency
+
+
+@pytest.mark.parametrize("one_by_one", [False, True], ids=["batch", "single"])
+def test_latency_is_from_the_events_commit_time_into_its_bucket(one_by_one: bool) -> None:
     now = 10_000_000_000
     metrics = Metrics("m", ["a"], clock=lambda: now)
-    who = Identity("watcher", "a")
     # 40 µs, exactly 1 ms (a bound is in its own bucket), 7 s, 400 s (above the last bound), a clock step back.
     ages_ns = [40_000, 1_000_000, 7_000_000_000, 400_000_000_000, -5]
-    metrics.delivered(who, [_match("a", now - age) for age in ages_ns], lambda m: False)
-    hist = metrics.snapshot()["delivery_latency"]["watchers"]["watcher"]
+    for batch in ([a] for a in ages_ns) if one_by_one else [ages_ns]:
+        hist = _delivered(metrics, batch, now)
     buckets = hist["buckets"]
     assert buckets[0] == 2  # 40 µs and the negative one, counted as 0
     assert buckets[BUCKETS_S.index(0.001)] == 1
     assert buckets[BUCKETS_S.index(10.0)] == 1
     assert buckets[-1] == 1 and sum(buckets) == 5
     assert hist["sum_s"] == pytest.approx((40_000 + 1_000_000 + 7_000_000_000 + 400_000_000_000) / 1e9)
+
+
+@given(st.lists(st.integers(min_value=0, max_value=400_000_000_000), min_size=2, max_size=60))
+def test_a_batch_counts_as_its_events_one_by_one(ages_ns: list[int]) -> None:
+    now = 500_000_000_000
+    batched, single = Metrics("m", ["a"], clock=lambda: now), Metrics("m", ["a"], clock=lambda: now)
+    got = _delivered(batched, ages_ns, now)
+    for age in ages_ns:
+        want = _delivered(single, [age], now)
+    assert (got["buckets"], got["count"]) == (want["buckets"], len(ages_ns))
+    assert got["sum_s"] == pytest.approx(want["sum_s"])
 
 
 def test_quantiles_are_estimated_within_their_bucket() -> None:

@@ -215,7 +215,7 @@ class Access:
         """
         matches = sub.poll(max_events, max_bytes)
         if matches and self._metrics is not None:
-            self._metrics.delivered(self.who, matches, self.carries_entry)
+            self._metrics.delivered(self.who, sub, matches, self.carries_entry)
         return matches
 
     def carries_entry(self, match: Match) -> bool:

@@ -80,6 +80,11 @@ class Subscription:
         # watches (on the writer's thread in process), watches change rarely.
         self._by_sa: dict[str, list[_Watch]] | None = None
         self.behind = False  # the last poll stopped at its budget with events left
+        # What the last poll returned per WM, (SA, events) in the order polled, and whether a watch asked
+        # for values (it stays true once one did): the metrics count per WM without looking at each event
+        # (cast.core.metrics).
+        self.polled: list[tuple[str, int]] = []
+        self.with_values = False
         host.add_listener(wake)
 
     @property
@@ -128,6 +133,7 @@ class Subscription:
         nxt = {sa: starts.get(sa, revisions[sa] + 1) for sa in sas}
         self._watches[watch_id] = _Watch(watch_id, tuple(filters), frozenset(sas), nxt)
         self._by_sa = None
+        self.with_values = self.with_values or any(f.include_entry for f in filters)
         if starts:
             self._wake()  # history to replay
         return revisions
@@ -149,6 +155,8 @@ class Subscription:
         if by_sa is None:
             by_sa = self._by_sa = self._index()
         per_sa: list[list[Match]] = []
+        polled: list[tuple[str, int]] = []
+        self.polled = polled
         budget_events, budget_bytes = max_events, max_bytes
         exhausted = False
         for sa, watches in by_sa.items():
@@ -187,6 +195,7 @@ class Subscription:
                 w.next[sa] = max(w.next[sa], last)
             if matches:
                 per_sa.append(matches)
+                polled.append((sa, len(matches)))
         if len(per_sa) == 1:
             return per_sa[0]
         return list(heapq.merge(*per_sa, key=lambda m: m.event.seq))
