@@ -92,5 +92,10 @@ def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
         assert set(sas) == {"near", "far"}, sas
         assert sas["far"]["entries"] >= COUNT + 2 and sas["far"]["endpoint"].startswith(f"{agent_ip}:"), sas["far"]
         assert sas["far"]["types"].get("google.protobuf.Int64Value", 0) >= COUNT + 2, sas["far"]
+        # The metrics of both servers: the far one counted the writes into far, and was asked over the network.
+        metrics = summary["metrics"]
+        assert metrics["servers"] == 2, metrics
+        writes = {(cell["from_sa"], cell["to_sa"]): cell["writes"] for cell in metrics["traffic"]}
+        assert writes[("near", "far")] == COUNT + 1 and writes[("far", "near")] == COUNT + 1, writes
         hosts.wait_agent_alone()
         print(f"\n{far_line}; {all_started}; cast run to all started {start_seconds:.2f} s; stop {stop_seconds:.2f} s")
