@@ -37,6 +37,7 @@ class Results:
     r1: dict[str, Any]
     d1: dict[str, Any]
     o1: dict[str, Any]  # the row itself (bench/metrics_overhead.py)
+    rec1: dict[str, Any]  # the row itself (bench/recording.py)
 
     @property
     def unary_cps(self) -> float:
@@ -67,7 +68,7 @@ class Results:
 def rows(r: Results) -> list[dict[str, Any]]:
     """Every row, in the table's order."""
     return [_m1_row(r), _m2_row(r), _m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7, _durability_row(r.d1),
-            _r1_row(r), r.o1]
+            _r1_row(r), r.o1, r.rec1]
 
 
 def _m1_row(r: Results) -> dict[str, Any]:

@@ -11,7 +11,17 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from bench import cast_cases, durability, floors, metrics_overhead, other_clients, redis_peer, report, stalled_watcher
+from bench import (
+    cast_cases,
+    durability,
+    floors,
+    metrics_overhead,
+    other_clients,
+    recording,
+    redis_peer,
+    report,
+    stalled_watcher,
+)
 from bench.harness import ROOT
 from bench.rows import Results, rows
 
@@ -67,7 +77,9 @@ def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, 
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
     log("O1 what the metrics cost")
     o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 2000 if q else 10_000, 1 if q else 3, log)
-    return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1), scaling, m7_samples
+    log("REC1 what recording costs")
+    rec1 = recording.run(work / "rec1", 1000 if q else 5000, 5000 if q else 50_000, log)
+    return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1), scaling, m7_samples
 
 
 def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str], None]) -> tuple[Any, ...]:
