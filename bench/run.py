@@ -76,7 +76,7 @@ def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, 
                            rounds=rounds, jit_warm=5000 if q else 20_000, log=log)
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
     log("O1 what the metrics cost")
-    o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 2000 if q else 10_000, 1 if q else 3, log)
+    o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 1000 if q else 10_000, 1 if q else 3, log)
     log("REC1 what recording costs")
     rec1 = recording.run(work / "rec1", 1000 if q else 5000, 5000 if q else 50_000, log)
     return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1), scaling, m7_samples
