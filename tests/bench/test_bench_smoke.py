@@ -11,10 +11,11 @@ import pytest
 
 from tests.conftest import ROOT
 
-IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "O1", "R1"]
+IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "O1", "R1", "REC1"]
 
 
 @pytest.mark.timeout(600)  # every row, quick: one to two minutes on an idle 2-core machine, more on a busy one
+@pytest.mark.timeout(600)  # about 95 s alone: every row, quickly, with servers of its own
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "bench.run", "--quick", "--out", str(tmp_path)],
@@ -46,5 +47,8 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     # O1 measured the writer with metrics on against --no-metrics (the floor column).
     o1 = doc["results"]["O1"]["figures"]
     assert o1[0]["name"] == "sequential Overwrite (calls/s)" and o1[0]["floor"] > 0, o1
+    # REC1 measured the recorded writer against one without (the floor), and the recorder and a replay.
+    rec1 = doc["results"]["REC1"]["figures"]
+    assert rec1[0]["floor"] > 0 and rec1[1]["name"] == "recorder throughput (changes/s)" and rec1[1]["value"] > 0
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"
