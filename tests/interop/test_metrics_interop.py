@@ -81,7 +81,7 @@ def test_known_traffic_from_a_cpp_or_java_component_gives_exact_counts(server: S
         # A lock wait: the probe waits for the Python holder's lock.
         guard = holder.lock("m1", LockMode.O)
         token = probe.send("lock", id="m1", mode="O", sa="language", timeout_ms=20000)
-        time.sleep(0.5)
+        time.sleep(1.0)  # time for the lock call to reach the server and wait; the holder then lets go
         assert probe.pending(token), "the probe's lock must wait while Python holds the entry"
         guard.unlock()
         assert probe.answer(token)["ok"], probe.output()
