@@ -15,7 +15,6 @@ IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "O1", "R1", "REC1"]
 
 
 @pytest.mark.timeout(600)  # every row, quick: one to two minutes on an idle 2-core machine, more on a busy one
-@pytest.mark.timeout(600)  # about 95 s alone: every row, quickly, with servers of its own
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "bench.run", "--quick", "--out", str(tmp_path)],
