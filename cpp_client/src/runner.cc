@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdlib>
 #include <cstring>
@@ -85,6 +86,18 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   c.tokenFile = get("CAST_TOKEN_FILE");
   c.tls = ClientTls::fromEnv(env);
   c.startBarrier = get("CAST_START_BARRIER") == "1";
+  const std::string window = get("CAST_CONNECT_WINDOW_S");
+  if (!window.empty()) {
+    // Same rule and words as Python's connect_window_from: seconds, 0 or more.
+    char* end = nullptr;
+    const double seconds = std::strtod(window.c_str(), &end);
+    if (end == window.c_str() || *end != '\0' || !(seconds >= 0) || !std::isfinite(seconds)) {
+      throw InvalidArgumentError("CAST_CONNECT_WINDOW_S '" + window +
+                                 "': give the seconds a launched component keeps asking a server that does not "
+                                 "answer, 0 or more (default 20)");
+    }
+    c.connectWindow = std::chrono::milliseconds(static_cast<long long>(seconds * 1000));
+  }
   return c;
 }
 
@@ -196,7 +209,7 @@ int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc
   std::shared_ptr<detail::Transport> transport;
   try {
     contract = LaunchContract::fromEnv();
-    transport = contract.connect();
+    transport = contract.connect(contract.connectWindow);
   } catch (const CastError& e) {
     std::cerr << "cast: " << e.message() << std::endl;
     // A stop asked for while the server did not answer yet is honoured, not a failure.

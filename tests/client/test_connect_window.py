@@ -92,3 +92,14 @@ def test_the_window_is_twenty_seconds_and_its_words_match_the_other_runners() ->
     assert runner.CONNECT_RETRIED == ("UNAVAILABLE", "DEADLINE_EXCEEDED")
     said = runner.connect_gave_up("h:1", 1.5, True, refused())
     assert "within 1.5 s (CAST_ENDPOINT, spoken to with TLS)" in said
+
+
+def test_cast_connect_window_s_sets_the_window_and_a_bad_value_is_named() -> None:
+    env = {"CAST_ENDPOINT": "127.0.0.1:4711", "CAST_COMPONENT_ID": "late", "CAST_SUBARCHITECTURE": "vision",
+           "CAST_TOKEN": "tok.sig"}
+    assert runner.LaunchContract.from_env(env).connect_window == 20.0
+    assert runner.LaunchContract.from_env({**env, "CAST_CONNECT_WINDOW_S": "2.5"}).connect_window == 2.5
+    assert runner.LaunchContract.from_env({**env, "CAST_CONNECT_WINDOW_S": "0"}).connect_window == 0.0
+    for bad in ("soon", "-1", "inf", "nan"):
+        with pytest.raises(CastError, match=f"CAST_CONNECT_WINDOW_S '{bad}': give the seconds"):
+            runner.LaunchContract.from_env({**env, "CAST_CONNECT_WINDOW_S": bad})

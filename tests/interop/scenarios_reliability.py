@@ -201,13 +201,17 @@ def tls_from_the_launch_contract(lang: str, tmp_path: Path, pki: dict[str, Path]
         ])
         assert status == 0, out
         assert answers[1]["value"] == counter_json(component, 7), answers
-        # Without the CA (plaintext) or trusting another CA, the component cannot connect.
+        # Without the CA (plaintext) or trusting another CA, the component cannot connect: it asks again for
+        # its connect window (CAST_CONNECT_WINDOW_S, 1 s here instead of 20), then gives up saying so.
+        env["CAST_CONNECT_WINDOW_S"] = "1"
         env.pop("CAST_TLS_CA")
         status, _, out = run_script(lang, env, [])
         assert status == 2 and "unavailable" in out, out
         env["CAST_TLS_CA"] = str(pki["other_ca"])
         status, _, out = run_script(lang, env, [])
-        assert status == 2, out
+        assert status == 2 and "no CAST system answered at" in out and "within 1 s" in out, out
+        status, _, out = run_script(lang, {**env, "CAST_CONNECT_WINDOW_S": "soon"}, [])
+        assert status == 2 and "CAST_CONNECT_WINDOW_S 'soon': give the seconds" in out, out
         # Incomplete settings are a bad launch environment, said in words.
         env.update(CAST_TLS_CA=str(pki["ca"]), CAST_TLS_CERT=str(pki["client_cert"]))
         status, _, out = run_script(lang, env, [])
@@ -226,6 +230,7 @@ def client_certificates_when_required(lang: str, tmp_path: Path, pki: dict[str, 
     try:
         env = handle.env(component, "vision")
         env["CAST_TLS_CA"] = str(pki["ca"])
+        env["CAST_CONNECT_WINDOW_S"] = "1"  # refused at the handshake: asked again for 1 s, not 20
         status, _, out = run_script(lang, env, [])
         assert status == 2, f"connected without a client certificate\n{out}"
         env.update(CAST_TLS_CERT=str(pki["client_cert"]), CAST_TLS_KEY=str(pki["client_key"]))

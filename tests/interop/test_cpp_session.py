@@ -104,8 +104,9 @@ def test_refused_token_and_unreachable_server_exit_2(server: Any) -> None:
     assert status == 2, out
     env = server.env("cnowhere", "vision")
     env["CAST_ENDPOINT"] = "127.0.0.1:1"
-    status, out = run_once(env, timeout=60)  # nobody ever answers: it asks for the 20 s connect window first
-    assert status == 2 and "no CAST system answered at 127.0.0.1:1 within 20 s" in out, out
+    env["CAST_CONNECT_WINDOW_S"] = "1.5"  # nobody ever answers: it asks for its connect window (20 s unless set)
+    status, out = run_once(env, timeout=60)
+    assert status == 2 and "no CAST system answered at 127.0.0.1:1 within 1.5 s" in out, out
     assert "server unavailable" in out, out
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import grpc
+import pytest
 from cast_testing_pb2 import Pose
 from google.protobuf import descriptor_pb2
 
@@ -137,6 +138,7 @@ def test_loop_replays_until_interrupted_each_pass_from_the_same_start(server: Se
     assert "0 conflict(s)" in stderr
 
 
+@pytest.mark.timeout(300)  # a dozen `cast replay` processes: a minute on a busy machine
 def test_bad_input_is_refused_naming_what_is_wrong_and_changes_nothing(
     server: ServerHandle, scenario: Scenario, tmp_path: Path
 ) -> None:
@@ -171,7 +173,8 @@ def test_bad_input_is_refused_naming_what_is_wrong_and_changes_nothing(
         directory_pb2_grpc.DirectoryStub(channel).RegisterSchemas(
             directory_pb2.RegisterSchemasRequest(files=descriptor_pb2.FileDescriptorSet(file=[other])),
             metadata=(("authorization", f"Bearer {server.token('other', 'vision')}"),), timeout=10)
-    assert "has another schema in the live system" in refused() and "nothing was written" in refused()
+    answer = refused()
+    assert "has another schema in the live system" in answer and "nothing was written" in answer
     unprivileged = cast_cli("replay", str(scenario.path), "--endpoint", server.endpoint, "--type", "cast.testing.Pose",
                             env=cli_env(CAST_TOKEN=server.token("dev", "vision")))
     assert unprivileged.returncode == 2 and "is not privileged" in unprivileged.stderr

@@ -81,11 +81,12 @@ def test_a_component_process_uses_tls_from_the_launch_contract(tmp_path: Path, p
         done = subprocess.run([sys.executable, "-m", "cast.run", "itest_components:Writer"], env=env,
                               capture_output=True, text=True, timeout=60)
         assert done.returncode == 0, done.stdout + done.stderr
-        # Without the CA the same component cannot connect (and says so).
+        # Without the CA the same component cannot connect (and says so, after its connect window: 1 s here).
         env.pop("CAST_TLS_CA")
+        env["CAST_CONNECT_WINDOW_S"] = "1"
         failed = subprocess.run([sys.executable, "-m", "cast.run", "itest_components:Writer"], env=env,
                                 capture_output=True, text=True, timeout=60)
-        assert failed.returncode != 0
+        assert failed.returncode == 2 and "within 1 s" in failed.stderr, failed.stderr
         reader = _connect(handle, ClientTls(pki["ca"]), "reader")
         try:
             assert len(reader.get_all(Counter)) == 2  # 3 written, one deleted

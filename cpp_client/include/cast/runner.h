@@ -47,6 +47,8 @@ struct LaunchContract {
   std::string tokenFile;          // CAST_TOKEN_FILE: re-read when the orchestrator renews the token
   std::optional<ClientTls> tls;   // CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
   bool startBarrier = false;      // CAST_START_BARRIER=1: run() waits until every component has started
+  // CAST_CONNECT_WINDOW_S: how long the first contact is asked again (default kConnectWindow).
+  std::chrono::milliseconds connectWindow = kConnectWindow;
 
   // Reads the contract from the process environment; InvalidArgumentError
   // naming every missing variable, or saying what is wrong with CAST_ARGS.

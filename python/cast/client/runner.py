@@ -55,6 +55,20 @@ def connect_gave_up(endpoint: str, window: float, tls: bool, last: CastError) ->
     )
 
 
+def connect_window_from(text: str) -> float:
+    """``CAST_CONNECT_WINDOW_S`` as seconds (empty: the default); InvalidArgumentError for anything else."""
+    if not text:
+        return CONNECT_WINDOW_S
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = -1.0
+    if not 0 <= seconds < float("inf"):
+        raise InvalidArgumentError(f"CAST_CONNECT_WINDOW_S {text!r}: give the seconds a launched component keeps "
+                                   f"asking a server that does not answer, 0 or more (default {CONNECT_WINDOW_S:g})")
+    return seconds
+
+
 @dataclass(frozen=True)
 class LaunchContract:
     """The environment a component process is started with."""
@@ -67,6 +81,7 @@ class LaunchContract:
     tls: ClientTls | None = None  # CAST_TLS_CA / CAST_TLS_CERT / CAST_TLS_KEY / CAST_TLS_SERVER_NAME
     token_file: str = ""  # CAST_TOKEN_FILE: re-read when the orchestrator renews the token
     start_barrier: bool = False  # CAST_START_BARRIER=1: run() waits until every component has started
+    connect_window: float = CONNECT_WINDOW_S  # CAST_CONNECT_WINDOW_S: how long the first contact is asked again
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> LaunchContract:
@@ -94,6 +109,7 @@ class LaunchContract:
             ClientTls.from_env(env),
             env.get("CAST_TOKEN_FILE", ""),
             env.get("CAST_START_BARRIER", "") == "1",
+            connect_window_from(env.get("CAST_CONNECT_WINDOW_S", "")),
         )
 
     def identity(self) -> Identity:
@@ -248,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         cls = load_component_class(argv[0])
         contract = LaunchContract.from_env()
         component = cls()
-        transport = contract.connect()
+        transport = contract.connect(contract.connect_window)
         # Binding registers the session; a token for another component is refused here, naming both.
         return run_component(component, transport, contract.args, barrier=contract.start_barrier)
     except CastError as exc:

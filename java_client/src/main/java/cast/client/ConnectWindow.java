@@ -50,6 +50,31 @@ final class ConnectWindow {
     this(CONNECT_WINDOW, SYSTEM);
   }
 
+  /**
+   * The runner's, for the launch environment: {@code CAST_CONNECT_WINDOW_S} seconds when set (the
+   * same rule and words as Python's {@code connect_window_from}), else {@link #CONNECT_WINDOW}.
+   */
+  static ConnectWindow fromEnv(java.util.Map<String, String> env) {
+    String text = env.getOrDefault("CAST_CONNECT_WINDOW_S", "");
+    if (text.isEmpty()) {
+      return new ConnectWindow();
+    }
+    double seconds;
+    try {
+      seconds = Double.parseDouble(text);
+    } catch (NumberFormatException e) {
+      seconds = -1;
+    }
+    if (!(seconds >= 0) || Double.isInfinite(seconds)) {
+      throw new InvalidArgumentError(
+          "CAST_CONNECT_WINDOW_S '"
+              + text
+              + "': give the seconds a launched component keeps asking a server that does not answer,"
+              + " 0 or more (default 20)");
+    }
+    return new ConnectWindow(Duration.ofMillis((long) (seconds * 1000)), SYSTEM);
+  }
+
   ConnectWindow(Duration window, Clock clock) {
     this.window = window;
     this.clock = clock;

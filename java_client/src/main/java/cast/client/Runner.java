@@ -49,10 +49,13 @@ public final class Runner {
   /** The same, connecting through {@code transports} (tests give an in-memory one). */
   static int run(
       String[] argv, Map<String, String> env, boolean handleSignals, Function<LaunchContract, Transport> transports) {
-    return run(argv, env, handleSignals, transports, new ConnectWindow());
+    return run(argv, env, handleSignals, transports, null);
   }
 
-  /** The same, asking a server that does not answer again within {@code window} (tests give a short one). */
+  /**
+   * The same, asking a server that does not answer again within {@code window} (tests give a short
+   * one; null: {@code CAST_CONNECT_WINDOW_S} from {@code env}, else 20 s).
+   */
   static int run(
       String[] argv,
       Map<String, String> env,
@@ -65,9 +68,11 @@ public final class Runner {
     }
     Component component;
     LaunchContract contract;
+    ConnectWindow asking;
     try {
       Class<? extends Component> cls = loadComponentClass(argv[0]);
       contract = LaunchContract.fromEnv(env);
+      asking = window != null ? window : ConnectWindow.fromEnv(env);
       component = instantiate(cls);
     } catch (InvalidArgumentError e) {
       System.err.println("cast.client.Runner: " + e.getMessage());
@@ -79,7 +84,7 @@ public final class Runner {
     try {
       // The system was started first: a server that does not answer yet is busy or starting.
       Transport transport =
-          window.connect(contract.endpoint(), contract.tls() != null, () -> transports.apply(contract));
+          asking.connect(contract.endpoint(), contract.tls() != null, () -> transports.apply(contract));
       component.bind(transport, who -> verifyLaunchIdentity(contract, who));
     } catch (CastError e) {
       System.err.println(
