@@ -73,21 +73,18 @@ def _await_run(directory: str, signer: TokenSigner, barrier: Any, config: System
     """Long-poll the directory's AwaitRun, then release this server's own barrier."""
     import grpc
 
-    from cast.core.records import Identity
+    from cast.client.channel import ServerLink
+    from cast.orchestrator.agent_link import orchestrator_metadata
     from cast.orchestrator.security import component_tls
-    from cast.v1 import directory_pb2, directory_pb2_grpc
+    from cast.v1 import directory_pb2
 
     # In a TLS system the directory is dialled as a component would: its CA, and its client certificate
     # when the servers require one.
-    tls = component_tls(config)
-    channel = (grpc.secure_channel(directory, tls.credentials()) if tls is not None
-               else grpc.insecure_channel(directory))
-    token = signer.issue(Identity("orchestrator", "", True))
-    stub = directory_pb2_grpc.DirectoryStub(channel)
+    link = ServerLink(directory, component_tls(config))
+    metadata = orchestrator_metadata(signer)
     while not barrier.released:
         try:
-            stub.AwaitRun(directory_pb2.AwaitRunRequest(), metadata=(("authorization", f"Bearer {token}"),),
-                          timeout=5.0)
+            link.directory.AwaitRun(directory_pb2.AwaitRunRequest(), metadata=metadata, timeout=5.0)
         except grpc.RpcError as exc:
             if exc.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE):
                 print(f"await-run: {exc.code().name}: {exc.details()}", file=sys.stderr, flush=True)
@@ -95,7 +92,7 @@ def _await_run(directory: str, signer: TokenSigner, barrier: Any, config: System
             continue
         barrier.release()
         print(f"start barrier released (by the directory at {directory})", flush=True)
-    channel.close()
+    link.close()
 
 
 def _chosen_server(config: SystemConfig, name: str | None) -> ServerConfig | None:

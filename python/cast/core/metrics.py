@@ -93,6 +93,18 @@ class Watching:
         self.by_sa: dict[str, list[int]] = {}  # SA of the events -> [events, bytes of the values they carried]
 
 
+
+def _count_write(c: Counts, op: BatchOp) -> None:
+    """One applied write in ``c``: by its operation, and the bytes of its value."""
+    kind = op.operation
+    if kind is _ADD:
+        c.adds += 1
+    elif kind is _OVERWRITE:
+        c.overwrites += 1
+    else:
+        c.deletes += 1
+    c.bytes_in += len(op.data)
+
 class Metrics:
     """The counters of one server: fed by the rulebook and the task board, read by :meth:`snapshot`."""
 
@@ -140,15 +152,7 @@ class Metrics:
 
     def wrote(self, who: Identity, op: BatchOp) -> None:
         """One write applied."""
-        c = self._counts(who.component_id, op.subarchitecture, who.subarchitecture)
-        kind = op.operation
-        if kind is _ADD:
-            c.adds += 1
-        elif kind is _OVERWRITE:
-            c.overwrites += 1
-        else:
-            c.deletes += 1
-        c.bytes_in += len(op.data)
+        _count_write(self._counts(who.component_id, op.subarchitecture, who.subarchitecture), op)
 
     def wrote_batch(self, who: Identity, ops: Sequence[BatchOp]) -> None:
         """The writes of a batch applied, each counted as one write."""
@@ -159,14 +163,7 @@ class Metrics:
                 sa = op.subarchitecture
                 c = self._counts(who.component_id, sa, who.subarchitecture)
             assert c is not None
-            kind = op.operation
-            if kind is _ADD:
-                c.adds += 1
-            elif kind is _OVERWRITE:
-                c.overwrites += 1
-            else:
-                c.deletes += 1
-            c.bytes_in += len(op.data)
+            _count_write(c, op)
 
     def refused(self, who: Identity) -> None:
         """A write or batch refused (conflict, lock, permission, limit...): nothing was applied."""

@@ -48,7 +48,7 @@ def _credentials(host: HostConfig) -> grpc.ChannelCredentials | None:
 
 
 def orchestrator_metadata(signer: TokenSigner | None) -> tuple[tuple[str, str], ...]:
-    """The ``orchestrator`` token every call to an agent carries (none when trust is TLS only)."""
+    """The ``orchestrator`` token every call to an agent, or to a server, carries (none when trust is TLS only)."""
     if signer is None:
         return ()
     return (("authorization", f"Bearer {signer.issue(Identity(ORCHESTRATOR_ID, '', True))}"),)

@@ -17,9 +17,9 @@ import grpc.aio
 
 from cast.auth import TokenSigner
 from cast.config.model import LOCAL_HOST, ComponentConfig, ServerConfig, SystemConfig
-from cast.core.records import Identity
 from cast.core.system import System
 from cast.errors import InvalidArgumentError
+from cast.orchestrator.agent_link import orchestrator_metadata
 from cast.orchestrator.process import LineSink
 from cast.orchestrator.remote import Agents, RemoteProcess
 from cast.orchestrator.security import component_tls
@@ -161,9 +161,9 @@ class ServerGroup:
             return grpc.aio.secure_channel(far.address, tls.credentials(), options=tls.channel_options())
         return grpc.aio.insecure_channel(far.address)
 
-    def orchestrator_metadata(self) -> tuple[tuple[str, str]]:
-        """The privileged token the orchestrator's own calls to a server carry."""
-        return (("authorization", f"Bearer {self.signer.issue(Identity('orchestrator', '', True))}"),)
+    def orchestrator_metadata(self) -> tuple[tuple[str, str], ...]:
+        """The privileged token the orchestrator's own calls to a server carry (the one agents get too)."""
+        return orchestrator_metadata(self.signer)
 
     async def remote_components(self) -> list[dir_pb2.ComponentInfo]:
         """The components each server on another host knows (Directory.DescribeSystem); none if unreachable."""
