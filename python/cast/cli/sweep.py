@@ -92,6 +92,9 @@ def _check_first(config: Path, planned: list[Any], fixed: dict[str, str], read_c
                 first = problems.errors[0] if problems.errors else "it cannot be read"
                 raise InvalidArgumentError(f"variant {variant.name}: the configuration has errors, so no run "
                                            f"started: {first} (cast check {config} with the same --set shows all)")
+            if not variant.policies:
+                continue
+            # The overlay would add an SA it names, so the SAs are the user's file's own.
             plain, _ = read_config(config, overrides)
             known = set(plain.subarchitectures) if plain is not None else set()
             for sa, _policy in variant.policies:
