@@ -22,6 +22,7 @@ from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
 if TYPE_CHECKING:
     from cast.client.watch_stream import WatchStream
+    from cast.client.write_stream import WriteStream
 
 __all__ = ["CHANNEL_OPTIONS", "TRANSIENT", "Backoff", "ServerLink", "map_rpc_error"]
 
@@ -78,6 +79,7 @@ class ServerLink:
         self.directory = dir_grpc.DirectoryStub(self.channel)
         self.inspection = insp_grpc.InspectionStub(self.channel)  # Report: a component's outcomes
         self.watch_stream: WatchStream | None = None
+        self.write_stream: WriteStream | None = None  # opened by the first write (cast.client.write_stream)
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server
         self.beat_now = threading.Event()  # the component's state changed: send a heartbeat at once

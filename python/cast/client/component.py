@@ -14,6 +14,7 @@ import logging
 import secrets
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from typing import Any, TypeVar
 
 from google.protobuf.message import Message
@@ -198,6 +199,31 @@ class Component:
         """Replace an entry's value; ConsistencyError if ``expected_version`` is given and differs."""
         type_name_, data = self._serialise(value)
         return self._transport.overwrite(self._sa(subarchitecture), entry_id, type_name_, data, expected_version)
+
+    def add_async(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> Future[WriteResult]:
+        """Create an entry without waiting for the answer: a future of its result.
+
+        Many writes may be in flight at once (no need for a batch to keep the
+        link busy); they are applied in call order. Errors (AlreadyExistsError,
+        ...) arrive on the future. Over gRPC the future completes on a client
+        thread: keep its callbacks short.
+        """
+        type_name_, data = self._serialise(value)
+        return self._transport.add_async(self._sa(subarchitecture), entry_id, type_name_, data)
+
+    def overwrite_async(
+        self,
+        entry_id: str,
+        value: Message,
+        *,
+        subarchitecture: str | None = None,
+        expected_version: int | None = None,
+    ) -> Future[WriteResult]:
+        """Replace an entry's value without waiting for the answer: a future of its result (as :meth:`add_async`)."""
+        type_name_, data = self._serialise(value)
+        return self._transport.overwrite_async(
+            self._sa(subarchitecture), entry_id, type_name_, data, expected_version
+        )
 
     def delete_entry(
         self, entry_id: str, *, subarchitecture: str | None = None, expected_version: int | None = None

@@ -1,8 +1,9 @@
 """Reaching working memories over gRPC: unary calls routed by SA; streams and sessions in their own modules.
 
 The client library's file map is the same in Python, C++ and Java: component,
-transport (the interface), grpc_transport (this), watch_stream, session,
-conversions, credentials.
+transport (the interface), grpc_transport (this), write_stream, watch_stream,
+session, conversions, credentials. Writes and locks go on the Write stream;
+reads, tasks and the rest are unary calls.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from typing import Any
 
 import grpc
@@ -21,6 +23,7 @@ from cast.client.credentials import ClientTls, TokenSource
 from cast.client.session import Session
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
+from cast.client.write_stream import WriteStream, reply_result
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -37,6 +40,8 @@ log = logging.getLogger("cast.client")
 
 # Deadline of one AwaitRun long-poll: how soon a stop request ends the wait for the start barrier.
 _AWAIT_RUN_POLL_S = 1.0
+# How much longer than a lock's own timeout the client waits for the server's answer to it.
+_LOCK_REPLY_MARGIN_S = 5.0
 
 
 class GrpcTransport:
@@ -120,29 +125,80 @@ class GrpcTransport:
 
     # ---------------------------------------------------------------- writes
 
+    def _stream(self, sa: str) -> WriteStream:
+        server = self._server(sa)
+        stream = server.write_stream
+        if stream is None:
+            with self._lock:
+                if server.write_stream is None:
+                    server.write_stream = WriteStream(server, self._tokens)
+                stream = server.write_stream
+        return stream
+
+    def _write(self, sa: str, request: wm_pb2.WriteRequest, timeout: float | None = -1.0) -> wm_pb2.WriteReply:
+        """One write or lock on the Write stream of ``sa``'s server (cast.client.write_stream)."""
+        return self._stream(sa).call(request, self._timeout if timeout == -1.0 else timeout)
+
+    def _write_async(self, sa: str, request: wm_pb2.WriteRequest) -> Future[WriteResult]:
+        result: Future[WriteResult] = Future()
+
+        def done(sent: Future[wm_pb2.WriteReply]) -> None:
+            try:
+                reply = reply_result(sent.result())
+            except BaseException as exc:  # noqa: BLE001 - every failure goes to the caller's future
+                result.set_exception(exc)
+                return
+            result.set_result(WriteResult(reply.write.revision, reply.write.version))
+
+        self._stream(sa).submit(request).add_done_callback(done)
+        return result
+
+    @staticmethod
+    def _add_request(sa: str, entry_id: str, type_name: str, data: bytes) -> wm_pb2.WriteRequest:
+        request = wm_pb2.WriteRequest()
+        fill_write(request.add, sa, entry_id, type_name, data)
+        return request
+
+    @staticmethod
+    def _overwrite_request(
+        sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> wm_pb2.WriteRequest:
+        request = wm_pb2.WriteRequest()
+        fill_write(request.overwrite, sa, entry_id, type_name, data)
+        if expected_version is not None:
+            request.overwrite.expected_version = expected_version
+        return request
+
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        req = wm_pb2.AddRequest()
-        fill_write(req, sa, entry_id, type_name, data)
-        resp = self._call(self._server(sa).wm.Add, req)
-        return WriteResult(resp.revision, resp.version)
+        reply = self._write(sa, self._add_request(sa, entry_id, type_name, data))
+        return WriteResult(reply.write.revision, reply.write.version)
+
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+        """Create an entry without waiting: the future of its result."""
+        return self._write_async(sa, self._add_request(sa, entry_id, type_name, data))
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        req = wm_pb2.OverwriteRequest()
-        fill_write(req, sa, entry_id, type_name, data)
-        if expected_version is not None:
-            req.expected_version = expected_version
-        resp = self._call(self._server(sa).wm.Overwrite, req)
-        return WriteResult(resp.revision, resp.version)
+        reply = self._write(sa, self._overwrite_request(sa, entry_id, type_name, data, expected_version))
+        return WriteResult(reply.write.revision, reply.write.version)
+
+    def overwrite_async(
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> Future[WriteResult]:
+        """Replace an entry's value without waiting: the future of its result."""
+        return self._write_async(sa, self._overwrite_request(sa, entry_id, type_name, data, expected_version))
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
-        req = wm_pb2.DeleteRequest(address=address(sa, entry_id), expected_version=expected_version)
-        resp = self._call(self._server(sa).wm.Delete, req)
-        return WriteResult(resp.revision, resp.version)
+        request = wm_pb2.WriteRequest()
+        request.delete.address.id, request.delete.address.subarchitecture = entry_id, sa
+        if expected_version is not None:
+            request.delete.expected_version = expected_version
+        reply = self._write(sa, request)
+        return WriteResult(reply.write.revision, reply.write.version)
 
     def batch(self, ops: Sequence[BatchOp]) -> list[WriteResult]:
         """Apply writes in order, all or nothing, on the server of the first operation's SA."""
@@ -150,8 +206,8 @@ class GrpcTransport:
             return []
         # Filling the request in place is about three times cheaper than building
         # each nested message and copying it in (this is the hot loop of Batch).
-        request = wm_pb2.BatchRequest()
-        items = request.operations
+        write_request = wm_pb2.WriteRequest()
+        items = write_request.batch.operations
         for op in ops:
             item = items.add()
             write: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest
@@ -168,8 +224,8 @@ class GrpcTransport:
                 fill_write(write, op.subarchitecture, op.id, op.type, op.data)
             if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
                 write.expected_version = op.expected_version
-        resp = self._call(self._server(ops[0].subarchitecture).wm.Batch, request)
-        return [WriteResult(r.revision, r.version) for r in resp.results]
+        reply = self._write(ops[0].subarchitecture, write_request)
+        return [WriteResult(r.revision, r.version) for r in reply.batch.results]
 
     # ----------------------------------------------------------------- reads
 
@@ -195,14 +251,18 @@ class GrpcTransport:
 
     def lock(self, sa: str, entry_id: str, mode: LockMode, timeout: float | None, no_wait: bool) -> int:
         """Take a lock; the wait is bounded by the call's deadline."""
-        req = wm_pb2.LockRequest(address=address(sa, entry_id), mode=int(mode), no_wait=no_wait)  # type: ignore[arg-type]
-        resp = self._call(self._server(sa).wm.Lock, req, timeout=timeout)
-        return int(resp.depth)
+        request = wm_pb2.WriteRequest(timeout_ms=0 if timeout is None else max(1, round(timeout * 1000)))
+        request.lock.address.id, request.lock.address.subarchitecture = entry_id, sa
+        request.lock.mode, request.lock.no_wait = int(mode), no_wait  # type: ignore[assignment]
+        # The server gives up the wait itself (DEADLINE_EXCEEDED); the margin covers the round trip.
+        reply = self._write(sa, request, timeout=None if timeout is None else timeout + _LOCK_REPLY_MARGIN_S)
+        return int(reply.lock.depth)
 
     def unlock(self, sa: str, entry_id: str) -> int:
         """Release one level of a lock."""
-        resp = self._call(self._server(sa).wm.Unlock, wm_pb2.UnlockRequest(address=address(sa, entry_id)))
-        return int(resp.depth)
+        request = wm_pb2.WriteRequest()
+        request.unlock.address.id, request.unlock.address.subarchitecture = entry_id, sa
+        return int(self._write(sa, request).unlock.depth)
 
     # --------------------------------------------------------------- schemas
 
@@ -360,6 +420,8 @@ class GrpcTransport:
         for server in self._servers.values():
             server.beat_now.set()
         for server in self._servers.values():
+            if server.write_stream is not None:
+                server.write_stream.close()
             if server.watch_stream is not None:
                 server.watch_stream.close()
         call = getattr(self, "_decision_call", None)

@@ -14,6 +14,7 @@ import os
 import socket
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 
 from google.protobuf import descriptor_pb2
 
@@ -25,8 +26,19 @@ from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Subscription
 from cast.errors import CastError
+from cast.version import library_version
 
 __all__ = ["LocalTransport"]
+
+
+def _done(write: Callable[[], WriteResult]) -> Future[WriteResult]:
+    """A finished future holding ``write()``'s result or error."""
+    future: Future[WriteResult] = Future()
+    try:
+        future.set_result(write())
+    except CastError as exc:
+        future.set_exception(exc)
+    return future
 
 
 class LocalTransport:
@@ -67,6 +79,16 @@ class LocalTransport:
         """Replace an entry's value."""
         op = BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, data, expected_version)
         return run_sync(self._system, self._access.write(op))
+
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+        """Create an entry; in process the write is done when this returns, so its future is too."""
+        return _done(lambda: self.add(sa, entry_id, type_name, data))
+
+    def overwrite_async(
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> Future[WriteResult]:
+        """Replace an entry's value; the future is done when this returns (in process)."""
+        return _done(lambda: self.overwrite(sa, entry_id, type_name, data, expected_version))
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
@@ -191,7 +213,9 @@ class LocalTransport:
         """Register and keep the session alive from a timer thread."""
         sessions = self._system.sessions
         self._state = state
-        self._session_id = sessions.register(self.identity, language, kind, os.getpid(), socket.gethostname())
+        self._session_id = sessions.register(
+            self.identity, language, kind, os.getpid(), socket.gethostname(), library_version()
+        )
         interval = max(0.05, sessions.lease_ms / 3000)
 
         def beat() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from typing import Protocol
 
 from google.protobuf import descriptor_pb2
@@ -46,6 +47,14 @@ class Transport(Protocol):
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
+
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+        """Create an entry without waiting for the answer: its future (errors arrive on it)."""
+
+    def overwrite_async(
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> Future[WriteResult]:
+        """Replace an entry's value without waiting for the answer: its future."""
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""

@@ -35,7 +35,10 @@ from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Match, Subscription
 from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, LockedError, NoSessionError
 
-__all__ = ["DURABLE", "Access", "Durable", "Steps", "Unlocked", "event_for", "run_async", "run_sync"]
+__all__ = [
+    "DURABLE", "Access", "Durable", "Steps", "Unlocked", "event_for", "resume_async", "run_async", "run_sync",
+    "settle_at_once",
+]
 
 T = TypeVar("T")
 
@@ -278,10 +281,36 @@ def _too_late(step: Unlocked) -> DeadlineExceededError:
 
 async def run_async(system: System, steps: Steps[T], timeout: float | None = None) -> T:
     """Drive ``steps`` on the running event loop; a lock wait gives up after ``timeout`` seconds."""
+    try:
+        step = next(steps)
+    except StopIteration as done:
+        return done.value  # type: ignore[no-any-return]
+    return await resume_async(system, steps, step, timeout)
+
+
+def settle_at_once(
+    system: System, steps: Steps[T], step: Durable | Unlocked
+) -> tuple[Durable | Unlocked | None, T | None]:
+    """Take the steps that need no waiting: durability when nothing waits for the journal.
+
+    Returns ``(None, result)`` once done (the common case without a waiting
+    journal, where an event-loop round trip per call would only add latency),
+    or ``(step, None)`` with the step still to be awaited (:func:`resume_async`).
+    Errors the steps raise are raised.
+    """
+    while step is DURABLE and system.durable_at_once:
+        try:
+            step = steps.send(None)
+        except StopIteration as done:
+            return None, done.value
+    return step, None
+
+
+async def resume_async(system: System, steps: Steps[T], step: Durable | Unlocked, timeout: float | None = None) -> T:
+    """:func:`run_async` from a step the caller already took (``next(steps)`` returned ``step``)."""
     loop = asyncio.get_running_loop()
     end = None if timeout is None else loop.time() + timeout
     try:
-        step = next(steps)
         while True:
             if step is DURABLE:
                 await system.durable()

@@ -109,6 +109,12 @@ class System:
                     self.host.system_write(author, BatchOp(Operation.DELETE, sa, record.id))
         self.durable_sync()  # serve nobody before those deletes are visible
 
+    @property
+    def durable_at_once(self) -> bool:
+        """Whether every applied write is durable at once (no journal that writers wait for)."""
+        journal = self.journal
+        return journal is None or not journal.waits
+
     async def durable(self) -> None:
         """Return once every write made so far is durable (and visible), at once without a waiting journal.
 

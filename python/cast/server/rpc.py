@@ -13,7 +13,7 @@ from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.errors import ERROR_TRAILER, CastError, UnauthenticatedError, error_for_code
 
-__all__ = ["ANONYMOUS", "Authenticator", "Context", "rpc", "stream_rpc"]
+__all__ = ["ANONYMOUS", "Authenticator", "Context", "error_class", "rpc", "stream_rpc"]
 
 log = logging.getLogger("cast.server")
 
@@ -68,11 +68,21 @@ _PLAIN = frozenset(type(error_for_code(code, "")).__name__ for code in (
 ))
 
 
+def error_class(exc: CastError) -> str:
+    """The class name clients need besides the status code to raise ``exc``'s class; empty if the code says it.
+
+    Several errors share a status code (FAILED_PRECONDITION is a held lock or a
+    task in the wrong state): the name lets every client raise the same one.
+    """
+    name = type(exc).__name__
+    return "" if name in _PLAIN else name
+
+
 async def _abort(context: Context, exc: BaseException) -> None:
     if isinstance(exc, CastError):
-        if type(exc).__name__ not in _PLAIN:
-            # Several errors share a status code: name the class, so clients raise the same one.
-            context.set_trailing_metadata(((ERROR_TRAILER, type(exc).__name__),))
+        name = error_class(exc)
+        if name:
+            context.set_trailing_metadata(((ERROR_TRAILER, name),))
         await context.abort(grpc.StatusCode[exc.code], exc.message)
     log.exception("internal error in %s", context)
     await context.abort(grpc.StatusCode.INTERNAL, f"internal server error: {type(exc).__name__}: {exc}")

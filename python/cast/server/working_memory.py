@@ -8,14 +8,15 @@ from collections.abc import AsyncIterator
 
 import grpc
 
-from cast.client.conversions import any_to_type_data
 from cast.core.access import Access, run_async
-from cast.core.records import BatchOp, LockMode, Operation
+from cast.core.records import BatchOp
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.conversions import fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.server.write_requests import batch_ops, lock_mode, write_op
+from cast.server.write_stream import WriteStream
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
@@ -25,25 +26,6 @@ __all__ = ["WorkingMemoryServicer", "add_to_server"]
 # stream catching up never sends a message the client refuses for its size.
 _BATCH_EVENTS = 4096
 _BATCH_BYTES = 4 * 1024 * 1024
-
-
-def _lock_mode(value: int) -> LockMode:
-    try:
-        return LockMode(value)
-    except ValueError:
-        raise InvalidArgumentError(f"lock mode must be O, OD or ODR (1, 2 or 3), got {value}") from None
-
-
-def _op(req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest) -> BatchOp:
-    addr = req.address
-    if isinstance(req, wm_pb2.AddRequest):
-        type_name, data = any_to_type_data(req.value)
-        return BatchOp(Operation.ADD, addr.subarchitecture, addr.id, type_name, data)
-    expected = req.expected_version if req.HasField("expected_version") else None
-    if isinstance(req, wm_pb2.OverwriteRequest):
-        type_name, data = any_to_type_data(req.value)
-        return BatchOp(Operation.OVERWRITE, addr.subarchitecture, addr.id, type_name, data, expected)
-    return BatchOp(Operation.DELETE, addr.subarchitecture, addr.id, expected_version=expected)
 
 
 class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
@@ -63,19 +45,19 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     @rpc
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
-        return await self._write(self._access(context), _op(request))  # who, before what
+        return await self._write(self._access(context), write_op(request))  # who, before what
 
     @rpc
     async def Overwrite(
         self, request: wm_pb2.OverwriteRequest, context: Context
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
-        return await self._write(self._access(context), _op(request))  # who, before what
+        return await self._write(self._access(context), write_op(request))  # who, before what
 
     @rpc
     async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
         """Delete an entry."""
-        return await self._write(self._access(context), _op(request))  # who, before what
+        return await self._write(self._access(context), write_op(request))  # who, before what
 
     @rpc
     async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
@@ -109,7 +91,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Lock(self, request: wm_pb2.LockRequest, context: Context) -> wm_pb2.LockResponse:
         """Take a lock, waiting up to the call's deadline unless no_wait."""
         steps = self._access(context).lock(
-            request.address.subarchitecture, request.address.id, _lock_mode(request.mode), request.no_wait
+            request.address.subarchitecture, request.address.id, lock_mode(request.mode), request.no_wait
         )
         return wm_pb2.LockResponse(depth=await run_async(self._system, steps, context.time_remaining()))
 
@@ -123,21 +105,22 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Batch(self, request: wm_pb2.BatchRequest, context: Context) -> wm_pb2.BatchResponse:
         """Apply many writes in order, all or nothing."""
         access = self._access(context)
-        ops = []
-        for index, item in enumerate(request.operations):
-            kind = item.WhichOneof("operation")
-            if kind is None:
-                raise InvalidArgumentError(f"batch operation {index} is empty: set add, overwrite or delete")
-            try:
-                ops.append(_op(getattr(item, kind)))
-            except CastError as exc:
-                raise type(exc)(f"batch operation {index}: {exc.message}") from None
+        ops = batch_ops(request)
         results = await run_async(self._system, access.batch(ops))
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
             add_result(revision=r.revision, version=r.version)
         return response
+
+    @stream_rpc
+    async def Write(
+        self, request_iterator: AsyncIterator[wm_pb2.WriteRequests], context: Context
+    ) -> AsyncIterator[wm_pb2.WriteReplies]:
+        """Apply a component's writes and locks as they arrive on the stream, answering each by id."""
+        stream = WriteStream(self._system, self._auth, context)
+        async for reply in stream.run(request_iterator):
+            yield reply
 
     @stream_rpc
     async def Watch(  # type: ignore[override]  # yields bytes too: see add_to_server
