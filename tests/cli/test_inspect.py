@@ -25,9 +25,13 @@ def test_components_table_and_json(demo: CastRun) -> None:
     assert {r["id"]: r["language"] for r in rows} == languages  # the segmenter may be the C++ one
     assert by_id["shape"]["kind"] == "managed"
     assert all(r["pid"] > 0 and r["sessions"] == 1 for r in rows)
+    # Each client library (Python, C++, Java) registered with its release, the repository's VERSION.
+    version = (ROOT / "VERSION").read_text().strip()
+    assert {r["id"]: r["library_version"] for r in rows} == {r["id"]: version for r in rows}
     table = demo.cli("components").stdout
     assert "system 'scene-description': 5 components" in table
-    assert re.search(r"coordinator\s*│\s*coordination\s*│\s*python\s*│\s*unmanaged\s*│\s*yes\s*│\s*running", table)
+    assert re.search(r"coordinator\s*│\s*coordination\s*│\s*python\s*│\s*" + re.escape(version)
+                     + r"\s*│\s*unmanaged\s*│\s*yes\s*│\s*running", table)
 
 
 def test_ls_lists_entries_of_one_sa_or_all(demo: CastRun) -> None:

@@ -201,7 +201,8 @@ def _components(args: argparse.Namespace) -> int:
                 usage[0] += c.entries
                 usage[1] += c.bytes
     rows = [{
-        "id": c.id, "subarchitecture": c.subarchitecture, "language": c.language, "kind": c.kind,
+        "id": c.id, "subarchitecture": c.subarchitecture, "language": c.language,
+        "library_version": c.library_version, "kind": c.kind,
         "privileged": c.privileged, "state": _enum(dir_pb2.ComponentState.Name(c.state), "COMPONENT_STATE_"),
         "pid": c.pid, "host": c.host, "sessions": c.sessions,
         "entries": held.get(c.id, [0, 0])[0], "bytes": held.get(c.id, [0, 0])[1],
@@ -210,9 +211,10 @@ def _components(args: argparse.Namespace) -> int:
         print_json(rows)
     else:
         print_table(f"system '{desc.name}': {len(rows)} components",
-                    ["id", "SA", "language", "kind", "privileged", "state", "pid", "host", "sessions", "entries",
-                     "holds"],
-                    [[r["id"], r["subarchitecture"], r["language"], r["kind"], "yes" if r["privileged"] else "",
+                    ["id", "SA", "language", "library", "kind", "privileged", "state", "pid", "host", "sessions",
+                     "entries", "holds"],
+                    [[r["id"], r["subarchitecture"], r["language"], r["library_version"], r["kind"],
+                      "yes" if r["privileged"] else "",
                       r["state"], r["pid"] or "", r["host"], r["sessions"], r["entries"], mib(r["bytes"])]
                      for r in rows],
                     numeric=["pid", "sessions", "entries", "holds"])

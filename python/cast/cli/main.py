@@ -8,6 +8,7 @@ import sys
 
 from cast.cli import agent, foxglove, inspection, record, replay, run, serve, sweep, token
 from cast.errors import CastError
+from cast.version import version_line
 
 __all__ = ["build_parser", "main"]
 
@@ -15,6 +16,8 @@ __all__ = ["build_parser", "main"]
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``cast``."""
     parser = argparse.ArgumentParser(prog="cast", description="CAST on gRPC: working memories for robot components")
+    parser.add_argument("--version", action="version", version=version_line(),
+                        help="print the library's release and the wire API it speaks, and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     run.add_commands(sub)
     serve.add_command(sub)

@@ -24,6 +24,7 @@ from cast.core.records import Identity
 from cast.core.sessions import ComponentState
 from cast.errors import CastError, InvalidArgumentError
 from cast.v1 import directory_pb2 as dir_pb2
+from cast.version import library_version
 
 __all__ = ["Session"]
 
@@ -63,7 +64,10 @@ class Session:
             ).start()
 
     def _register(self, server: ServerLink, language: str, kind: str) -> float:
-        req = dir_pb2.RegisterRequest(language=language, kind=kind, pid=os.getpid(), host=socket.gethostname())
+        req = dir_pb2.RegisterRequest(
+            language=language, kind=kind, pid=os.getpid(), host=socket.gethostname(),
+            library_version=library_version(),
+        )
         resp = self._call(server.directory.Register, req)
         self._check_identity(resp)
         server.session_id = resp.session_id

@@ -46,6 +46,7 @@ class ComponentInfo:
     pid: int = 0
     host: str = ""
     sessions: int = 0
+    library_version: str = ""  # the client library's release, as it registered ("": it did not say)
     placed_on: str = ""  # the host the configuration places it on (hosts:); shown instead of the one it reports
     deadline: float = 0.0  # monotonic time the lease ends
 
@@ -71,7 +72,9 @@ class SessionTable:
         with self._mutex:
             self._components.setdefault(info.id, info)
 
-    def register(self, who: Identity, language: str, kind: str, pid: int, host: str) -> str:
+    def register(
+        self, who: Identity, language: str, kind: str, pid: int, host: str, library_version: str = ""
+    ) -> str:
         """Start a session for ``who``; a previous session of the same component ends first."""
         with self._mutex:
             info = self._components.get(who.component_id)
@@ -88,6 +91,7 @@ class SessionTable:
         with self._mutex:
             info.subarchitecture, info.privileged = who.subarchitecture, who.privileged
             info.language, info.kind, info.pid = language, kind, pid
+            info.library_version = library_version
             info.host = info.placed_on or host
             info.session_id, info.state = session_id, ComponentState.STARTING
             info.sessions += 1

@@ -164,6 +164,7 @@ def component_to_pb(info: ComponentInfo) -> directory_pb2.ComponentInfo:
         pid=info.pid,
         host=info.host,
         sessions=info.sessions,
+        library_version=info.library_version,
     )
 
 

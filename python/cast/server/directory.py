@@ -70,7 +70,9 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
         """Start a session for the caller."""
         who = self._auth.identify(context)
         sessions = self._system.sessions
-        session_id = sessions.register(who, request.language, request.kind, request.pid, request.host)
+        session_id = sessions.register(
+            who, request.language, request.kind, request.pid, request.host, request.library_version
+        )
         return dir_pb2.RegisterResponse(
             session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system, self._routes),
             component_id=who.component_id, subarchitecture=who.subarchitecture, privileged=who.privileged,
