@@ -61,7 +61,7 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
-test-python: setup proto examples bench-deps node grpcurl
+test-python: setup proto examples bench-deps node grpcurl web-deps
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java java-demo test-python
@@ -82,6 +82,13 @@ soak: setup proto examples
 # Redis is the peer the benchmarks compare against (Debian's redis-server).
 bench-deps:
 	@command -v redis-server >/dev/null || { apt-get update -q && apt-get install -y -q redis-server; }
+
+# Debian's chromium: the browser the web view's tests drive headless with Playwright (tests/web);
+# installed only when missing (apt-get update only then).
+.PHONY: web-deps
+web-deps:
+	@command -v chromium >/dev/null || { echo "installing Debian's chromium"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium; }
 
 bench: setup proto bench-deps cpp java
 	$(PY) -m bench.run

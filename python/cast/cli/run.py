@@ -17,6 +17,7 @@ from cast.config import SystemConfig, read_config
 from cast.config.problems import Problems
 from cast.liveview.sink import DEFAULT_LISTEN
 from cast.orchestrator.preflight import preflight
+from cast.web.address import DEFAULT_LISTEN as WEB_LISTEN
 
 __all__ = ["add_commands"]
 
@@ -92,6 +93,7 @@ def _run(args: argparse.Namespace) -> int:
         metrics=args.metrics,
         foxglove=args.foxglove,
         record=Path(args.record) if args.record else None,
+        web=args.web,
     )
     console = Console(highlight=False, soft_wrap=True)
     if not console.is_terminal:
@@ -132,4 +134,7 @@ def add_commands(sub: Any) -> None:
                           f"{DEFAULT_LISTEN}, loopback only; port 0 picks a free one); docs/foxglove.md")
     run.add_argument("--record", metavar="FILE", help="record every change of the run, from the first, to this "
                                                        "MCAP file (never overwritten); docs/recording.md")
+    run.add_argument("--web", nargs="?", const=WEB_LISTEN, metavar="HOST:PORT",
+                     help=f"also serve the live web view (default address {WEB_LISTEN}, loopback only; port 0 picks "
+                          "a free one; the login link is printed); docs/web.md")
     run.set_defaults(fn=_run)

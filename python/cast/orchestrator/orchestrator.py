@@ -54,6 +54,7 @@ class RunOptions:
     summary_json: Path | None = None
     foxglove: str | None = None  # HOST:PORT of the Foxglove live view (cast run --foxglove); None: no view
     record: Path | None = None  # the MCAP file to record the run to (cast run --record); None: no recording
+    web: str | None = None  # HOST:PORT of the web view (cast run --web); None: no web view
 
 
 @dataclass
@@ -135,7 +136,7 @@ class Orchestrator:
             return notice
 
         # Made before anything starts, so that a taken port or an existing file ends the run at once.
-        tools = make_tools(self.options.foxglove, self.options.record, notices)
+        tools = make_tools(self.options.foxglove, self.options.record, notices, self.options.web)
         try:
             return await self._run(tools)
         finally:

@@ -1,4 +1,4 @@
-"""The tools ``cast run`` can run beside its servers: the Foxglove live view and a recording of the run.
+"""The tools ``cast run`` can run beside its servers: the Foxglove live view, a recording, the web view.
 
 Each is made before anything starts (so that a taken port or an existing file
 ends the run at once), attached once the servers are up and before any
@@ -19,6 +19,7 @@ from cast.auth import TokenSigner
 from cast.client.credentials import ClientTls
 from cast.liveview.in_run import RunView
 from cast.recording.in_run import RunRecording
+from cast.web.in_run import RunWeb
 
 __all__ = ["RunTool", "make_tools"]
 
@@ -37,14 +38,16 @@ class RunTool(Protocol):
 
 
 def make_tools(foxglove: str | None, record: Path | None,
-               notices: Callable[[str], Callable[[str], None]]) -> list[RunTool]:
-    """The tools asked for (``--foxglove``, ``--record``); ``notices(name)`` gives each its notice line."""
+               notices: Callable[[str], Callable[[str], None]], web: str | None = None) -> list[RunTool]:
+    """The tools asked for (``--foxglove``, ``--record``, ``--web``); ``notices(name)`` gives each its notice line."""
     tools: list[RunTool] = []
     try:
         if foxglove is not None:
             tools.append(RunView(foxglove, notices("foxglove")))
         if record is not None:
             tools.append(RunRecording(record, notices("record")))
+        if web is not None:
+            tools.append(RunWeb(web, notices("web")))
     except BaseException:
         for tool in tools:
             tool.close()
