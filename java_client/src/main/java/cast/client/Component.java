@@ -5,6 +5,7 @@ import com.google.protobuf.Message;
 import java.time.Duration;
 import java.util.ArrayList;
 import java.util.List;
+import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.TimeUnit;
 import java.util.function.Consumer;
@@ -20,9 +21,10 @@ import java.util.logging.Logger;
  * object, so a component never shares a mutable object with the working memory.
  * Every method may be called from any thread. Callbacks and hooks run on one
  * dispatcher thread per component, one at a time, in the order the changes and
- * decisions arrived (revision order per working memory).
+ * decisions arrived (revision order per working memory). The filter helpers
+ * ({@code localTypeFilter}, ...) are inherited from {@link Filters}.
  */
-public abstract class Component implements AutoCloseable {
+public abstract class Component extends Filters implements AutoCloseable {
   private ComponentBinding binding; // null until connected (ComponentBinding.java)
   private final Schemas.Registered schemas = new Schemas.Registered();
   private final CountDownLatch stopping = new CountDownLatch(1);
@@ -186,6 +188,22 @@ public abstract class Component implements AutoCloseable {
     return t().add(sa(subarchitecture), id, any);
   }
 
+  /**
+   * Create an entry in the own SA without waiting for the server: the future of its result,
+   * completed when the reply arrives; a refusal (AlreadyExistsError, ...) arrives on it. Writes
+   * are applied in call order, synchronous and asynchronous alike. See {@link
+   * #overwriteAsync(String, Message, String, Long)}.
+   */
+  public CompletableFuture<WriteResult> addAsync(String id, Message value) {
+    return addAsync(id, value, null);
+  }
+
+  /** Create an entry in {@code subarchitecture} without waiting: the future of its result. */
+  public CompletableFuture<WriteResult> addAsync(String id, Message value, String subarchitecture) {
+    Any any = serialise(value);
+    return t().addAsync(sa(subarchitecture), id, any);
+  }
+
   /** Replace an entry's value in the own SA; NotFoundError if it does not exist. */
   public WriteResult overwrite(String id, Message value) {
     return overwrite(id, value, null, null);
@@ -205,6 +223,35 @@ public abstract class Component implements AutoCloseable {
   public WriteResult overwrite(String id, Message value, String subarchitecture, Long expectedVersion) {
     Any any = serialise(value);
     return t().overwrite(sa(subarchitecture), id, any, expectedVersion);
+  }
+
+  /** Replace an entry's value in the own SA without waiting: the future of its result. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Message value) {
+    return overwriteAsync(id, value, null, null);
+  }
+
+  /** Replace an entry's value if its version is {@code expectedVersion}, without waiting. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Message value, long expectedVersion) {
+    return overwriteAsync(id, value, null, expectedVersion);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture} without waiting. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Message value, String subarchitecture) {
+    return overwriteAsync(id, value, subarchitecture, null);
+  }
+
+  /**
+   * Replace an entry's value in {@code subarchitecture}, checking its version unless it is
+   * null, without waiting for the server: many writes may be in flight at once. The future
+   * completes when the reply arrives, on the component's write-results thread, in reply order;
+   * a refusal arrives on it as the error {@link #overwrite} would throw ({@code get()} wraps it
+   * in an ExecutionException, {@code join()} in a CompletionException). A continuation may make
+   * any call, but should not block waiting for another write's future (compose them instead).
+   */
+  public CompletableFuture<WriteResult> overwriteAsync(
+      String id, Message value, String subarchitecture, Long expectedVersion) {
+    Any any = serialise(value);
+    return t().overwriteAsync(sa(subarchitecture), id, any, expectedVersion);
   }
 
   /**
@@ -376,7 +423,12 @@ public abstract class Component implements AutoCloseable {
 
   /** {@code callback} for each change matching {@code filter}; see {@link #onChange(List, ChangeCallback)}. */
   public WatchHandle onChange(ChangeFilter filter, ChangeCallback callback) {
-    return onChange(List.of(filter), callback);
+    return onChange(List.of(filter), callback, WatchOptions.defaults());
+  }
+
+  /** {@code callback} for changes matching {@code filter}, delivered as {@code options} say. */
+  public WatchHandle onChange(ChangeFilter filter, ChangeCallback callback, WatchOptions options) {
+    return onChange(List.of(filter), callback, options);
   }
 
   /**
@@ -385,6 +437,19 @@ public abstract class Component implements AutoCloseable {
    * watch, so a change made after this returns is never missed.
    */
   public WatchHandle onChange(List<ChangeFilter> filters, ChangeCallback callback) {
+    return onChange(filters, callback, WatchOptions.defaults());
+  }
+
+  /**
+   * As {@link #onChange(List, ChangeCallback)}, delivered as {@code options} say: {@code
+   * WatchOptions.latest()} (only the newest undelivered change of each entry, {@link
+   * WorkingMemoryChange#skipped()} counting the ones it replaced) and {@code
+   * .priority(Priority.HIGH)} (run before the component's pending MEDIUM and LOW callbacks).
+   */
+  public WatchHandle onChange(List<ChangeFilter> filters, ChangeCallback callback, WatchOptions options) {
+    if (options == null) {
+      throw new InvalidArgumentError("onChange options must not be null: use WatchOptions.defaults()");
+    }
     if (filters == null || filters.isEmpty()) {
       throw new InvalidArgumentError("onChange needs at least one filter");
     }
@@ -392,7 +457,7 @@ public abstract class Component implements AutoCloseable {
       throw new InvalidArgumentError("onChange needs a callback");
     }
     // "Local" filters mean this component's own SA, which only its binding knows.
-    return b().watch(filters, callback);
+    return b().watch(filters, callback, options);
   }
 
   /**
@@ -425,47 +490,5 @@ public abstract class Component implements AutoCloseable {
   /** Whether the calling thread is this component's dispatcher thread. */
   public boolean onDispatcherThread() {
     return binding != null && Thread.currentThread() == binding.dispatcher.thread();
-  }
-
-  // --------------------------------------------------------- filter helpers
-
-  /** See {@link Filters#localTypeFilter(Class, Operation...)}. */
-  public static ChangeFilter localTypeFilter(Class<? extends Message> cls, Operation... operations) {
-    return Filters.localTypeFilter(cls, operations);
-  }
-
-  /** See {@link Filters#localTypeFilter(String, Operation...)}. */
-  public static ChangeFilter localTypeFilter(String typeName, Operation... operations) {
-    return Filters.localTypeFilter(typeName, operations);
-  }
-
-  /** See {@link Filters#globalTypeFilter(Class, Operation...)}. */
-  public static ChangeFilter globalTypeFilter(Class<? extends Message> cls, Operation... operations) {
-    return Filters.globalTypeFilter(cls, operations);
-  }
-
-  /** See {@link Filters#globalTypeFilter(String, Operation...)}. */
-  public static ChangeFilter globalTypeFilter(String typeName, Operation... operations) {
-    return Filters.globalTypeFilter(typeName, operations);
-  }
-
-  /** See {@link Filters#addressFilter(String, Operation...)}. */
-  public static ChangeFilter addressFilter(String id, Operation... operations) {
-    return Filters.addressFilter(id, operations);
-  }
-
-  /** See {@link Filters#addressFilter(WorkingMemoryAddress, Operation...)}. */
-  public static ChangeFilter addressFilter(WorkingMemoryAddress address, Operation... operations) {
-    return Filters.addressFilter(address, operations);
-  }
-
-  /** See {@link Filters#sourceFilter(String, Operation...)}. */
-  public static ChangeFilter sourceFilter(String componentId, Operation... operations) {
-    return Filters.sourceFilter(componentId, operations);
-  }
-
-  /** See {@link Filters#operationFilter(Operation...)}. */
-  public static ChangeFilter operationFilter(Operation... operations) {
-    return Filters.operationFilter(operations);
   }
 }

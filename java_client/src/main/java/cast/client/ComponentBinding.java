@@ -68,9 +68,10 @@ final class ComponentBinding {
 
   /**
    * Watch {@code filters} (checked for null here; "local" ones resolved to the own SA,
-   * which only the binding knows) with {@code callback} on the dispatcher thread.
+   * which only the binding knows) with {@code callback} on the dispatcher thread, as
+   * {@code options} say.
    */
-  WatchHandle watch(List<ChangeFilter> filters, ChangeCallback callback) {
+  WatchHandle watch(List<ChangeFilter> filters, ChangeCallback callback, WatchOptions options) {
     List<ChangeFilter> resolved = new ArrayList<>();
     for (ChangeFilter f : filters) {
       if (f == null) {
@@ -78,7 +79,7 @@ final class ComponentBinding {
       }
       resolved.add(f.isLocal() ? f.inSubarchitecture(identity.subarchitecture()) : f);
     }
-    return dispatcher.watch(transport, resolved, callback);
+    return dispatcher.watch(transport, resolved, callback, options);
   }
 
   /** Queued callbacks run, then the session ends (locks and tasks released). */

@@ -10,9 +10,12 @@ import cast.v1.LockRequest;
 import cast.v1.OverwriteRequest;
 import cast.v1.ProposeRequest;
 import cast.v1.RegisterResponse;
+import cast.v1.UnlockRequest;
+import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.Timestamp;
+import java.time.Duration;
 import java.time.Instant;
 import java.util.List;
 
@@ -76,6 +79,10 @@ final class Conversions {
     return wire(state, cast.v1.ComponentState.class, "COMPONENT_STATE_");
   }
 
+  static cast.v1.Delivery delivery(Delivery delivery) {
+    return wire(delivery, cast.v1.Delivery.class, "DELIVERY_");
+  }
+
   static AddRequest add(String sa, String id, Any value) {
     return AddRequest.newBuilder().setAddress(address(sa, id)).setValue(value).build();
   }
@@ -115,6 +122,40 @@ final class Conversions {
 
   static LockRequest lock(String sa, String id, LockMode mode, boolean noWait) {
     return LockRequest.newBuilder().setAddress(address(sa, id)).setMode(lockMode(mode)).setNoWait(noWait).build();
+  }
+
+  // ------------------------------------------- requests of the Write stream
+
+  /** Largest lock timeout the wire carries (timeout_ms is a uint32 of milliseconds). */
+  static final long MAX_LOCK_TIMEOUT_MS = 0xFFFF_FFFFL;
+
+  static WriteRequest.Builder writeAdd(String sa, String id, Any value) {
+    return WriteRequest.newBuilder().setAdd(add(sa, id, value));
+  }
+
+  static WriteRequest.Builder writeOverwrite(String sa, String id, Any value, Long expectedVersion) {
+    return WriteRequest.newBuilder().setOverwrite(overwrite(sa, id, value, expectedVersion));
+  }
+
+  static WriteRequest.Builder writeDelete(String sa, String id, Long expectedVersion) {
+    return WriteRequest.newBuilder().setDelete(delete(sa, id, expectedVersion));
+  }
+
+  static WriteRequest.Builder writeBatch(String sa, List<Transport.Write> writes) {
+    return WriteRequest.newBuilder().setBatch(batch(sa, writes));
+  }
+
+  /**
+   * A lock whose wait the server bounds by {@code timeout} (null, or {@code noWait}: no bound;
+   * at least 1 ms, at most what the wire carries, about 49 days).
+   */
+  static WriteRequest.Builder writeLock(String sa, String id, LockMode mode, boolean noWait, Duration timeout) {
+    long ms = noWait || timeout == null ? 0 : Math.min(Math.max(1, timeout.toMillis()), MAX_LOCK_TIMEOUT_MS);
+    return WriteRequest.newBuilder().setLock(lock(sa, id, mode, noWait)).setTimeoutMs((int) ms);
+  }
+
+  static WriteRequest.Builder writeUnlock(String sa, String id) {
+    return WriteRequest.newBuilder().setUnlock(UnlockRequest.newBuilder().setAddress(address(sa, id)));
   }
 
   static ProposeRequest propose(String name, Any data, int priority) {
@@ -180,7 +221,9 @@ final class Conversions {
         e.getSourceSubarchitecture(),
         time(e.getTime()),
         e.hasEntry() ? entry(e.getEntry()) : null,
-        List.copyOf(e.getWatchIdsList()));
+        List.copyOf(e.getWatchIdsList()),
+        e.getSkipped(),
+        e.getFirstSkippedRevision());
   }
 
   static TaskState taskState(cast.v1.TaskState state) {

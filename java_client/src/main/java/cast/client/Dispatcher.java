@@ -1,20 +1,29 @@
 package cast.client;
 
 import java.time.Duration;
+import java.util.ArrayList;
+import java.util.Iterator;
+import java.util.LinkedHashMap;
 import java.util.List;
 import java.util.Map;
 import java.util.concurrent.ConcurrentHashMap;
-import java.util.concurrent.LinkedBlockingQueue;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicInteger;
 import java.util.logging.Level;
 import java.util.logging.Logger;
 
 /**
- * One thread per component that runs its callbacks and hooks one at a time, in
- * the order they were queued, and the component's watch callbacks by watch id: a
- * change event goes to the callback of every watch it matched. A failing callback
- * is logged, not fatal: one bad callback must not stop the others.
+ * One thread per component that runs its callbacks and hooks one at a time, and the
+ * component's watch callbacks by watch id: a change event goes to the callback of every
+ * watch it matched. A failing callback is logged, not fatal: one bad callback must not stop
+ * the others.
+ *
+ * <p>Pending calls wait in one FIFO per {@link Priority}: the dispatcher takes the oldest call
+ * of the highest priority that has one, so one watch's changes stay in order and hooks (at
+ * MEDIUM) keep theirs. A watch with {@link Delivery#LATEST} keeps at most one undelivered
+ * change per entry: a newer change of the entry replaces it (counting it and what it had
+ * skipped into {@link WorkingMemoryChange#skipped()}) and goes to the back, so its watch's
+ * changes stay in revision order.
  *
  * <p>The queue is bounded by {@code capacity}: a blocking submit (from a stream's
  * reader) waits for room, so a component whose callbacks are slow stops reading
@@ -24,18 +33,39 @@ import java.util.logging.Logger;
  */
 final class Dispatcher {
   private static final Logger LOG = Logger.getLogger("cast.component");
-  private static final Runnable END = () -> {};
 
-  private final LinkedBlockingQueue<Runnable> queue = new LinkedBlockingQueue<>();
   private final Thread thread;
-  private final Object idle = new Object();
+  private final Object lock = new Object();
   private final int capacity;
   private final Logger log; // the component's: a failing callback is its failure
   private final Map<Integer, Registration> callbacks = new ConcurrentHashMap<>();
   private final AtomicInteger watchIds = new AtomicInteger();
-  private long pending; // guarded by idle
+  // One FIFO per priority, HIGH first. A call's key is itself, or for a LATEST watch's change
+  // (watch, entry), so that a newer change of the entry finds the one it replaces.
+  private final List<LinkedHashMap<Object, Runnable>> levels = new ArrayList<>(); // guarded by lock
+  private long pending; // queued or running; guarded by lock
+  private boolean stopped; // guarded by lock
 
-  private record Registration(ChangeCallback callback, WatchHandle handle) {}
+  private record Registration(ChangeCallback callback, WatchHandle handle, WatchOptions options) {}
+
+  /** Where a LATEST watch's undelivered change of one entry waits. */
+  private record LatestKey(int watchId, WorkingMemoryAddress address) {}
+
+  /** A LATEST watch's undelivered change; a newer one of the same entry takes its place. */
+  private final class LatestCall implements Runnable {
+    final int watchId;
+    final Transport.Change change;
+
+    LatestCall(int watchId, Transport.Change change) {
+      this.watchId = watchId;
+      this.change = change;
+    }
+
+    @Override
+    public void run() {
+      Dispatcher.this.run(watchId, new WorkingMemoryChange(change));
+    }
+  }
 
   Dispatcher(String name, int capacity, Logger log) {
     if (capacity < 1) {
@@ -43,6 +73,9 @@ final class Dispatcher {
     }
     this.capacity = capacity;
     this.log = log;
+    for (int i = 0; i < Priority.values().length; i++) {
+      levels.add(new LinkedHashMap<>());
+    }
     thread = new Thread(this::loop, "cast-dispatch-" + name);
     thread.setDaemon(true);
     thread.start();
@@ -55,7 +88,7 @@ final class Dispatcher {
 
   /** Calls queued or running. */
   long pending() {
-    synchronized (idle) {
+    synchronized (lock) {
       return pending;
     }
   }
@@ -78,49 +111,87 @@ final class Dispatcher {
         });
   }
 
-  /** Queue a call without waiting (hooks, errors: never held up by a full queue). */
+  /** Queue a call at MEDIUM priority without waiting (hooks, errors: never held up by a full queue). */
   void submit(Runnable call) {
-    synchronized (idle) {
-      pending++;
+    submit(Priority.MEDIUM, call);
+  }
+
+  /** Queue a call at {@code priority} without waiting. */
+  void submit(Priority priority, Runnable call) {
+    synchronized (lock) {
+      add(priority, call, call);
     }
-    queue.add(call);
   }
 
   /**
-   * Queue a call, first waiting while the queue is full (except on the dispatcher
-   * thread itself, which would wait for itself).
+   * Queue a call at MEDIUM priority, first waiting while the queue is full (except on the
+   * dispatcher thread itself, which would wait for itself).
    */
   void submitBlocking(Runnable call) throws InterruptedException {
-    synchronized (idle) {
-      while (pending >= capacity && Thread.currentThread() != thread) {
-        idle.wait();
-      }
-      pending++;
+    submitBlocking(Priority.MEDIUM, call);
+  }
+
+  /** Queue a call at {@code priority}, first waiting while the queue is full. */
+  void submitBlocking(Priority priority, Runnable call) throws InterruptedException {
+    synchronized (lock) {
+      awaitRoom();
+      add(priority, call, call);
     }
-    queue.add(call);
+  }
+
+  /** Wait while the queue is full (holding lock); never on the dispatcher thread. */
+  private void awaitRoom() throws InterruptedException {
+    while (pending >= capacity && !stopped && Thread.currentThread() != thread) {
+      lock.wait();
+    }
+  }
+
+  /** Queue {@code call} under {@code key} (holding lock); dropped once the dispatcher stopped. */
+  private void add(Priority priority, Object key, Runnable call) {
+    if (stopped) {
+      return; // stop() runs what was queued before it, nothing after
+    }
+    levels.get(priority.ordinal()).put(key, call);
+    pending++;
+    lock.notifyAll();
+  }
+
+  /** The oldest call of the highest priority that has one, taken off its queue; null if none (holding lock). */
+  private Runnable next() {
+    for (LinkedHashMap<Object, Runnable> level : levels) {
+      if (!level.isEmpty()) {
+        Iterator<Runnable> it = level.values().iterator();
+        Runnable call = it.next();
+        it.remove();
+        return call;
+      }
+    }
+    return null;
   }
 
   private void loop() {
     while (true) {
       Runnable call;
-      try {
-        call = queue.take();
-      } catch (InterruptedException e) {
-        return;
-      }
-      if (call == END) {
-        return;
+      synchronized (lock) {
+        while ((call = next()) == null) {
+          if (stopped) {
+            return;
+          }
+          try {
+            lock.wait();
+          } catch (InterruptedException e) {
+            return;
+          }
+        }
       }
       try {
         call.run();
       } catch (Throwable t) { // a callback's failure is reported, the dispatcher goes on
         LOG.log(Level.SEVERE, thread.getName() + ": callback failed", t);
       } finally {
-        synchronized (idle) {
+        synchronized (lock) {
           pending--;
-          if (pending == 0 || pending == capacity - 1) {
-            idle.notifyAll(); // drain() waits for 0, submitBlocking() for room
-          }
+          lock.notifyAll(); // drain() waits for 0, a blocking submit for room
         }
       }
     }
@@ -132,13 +203,13 @@ final class Dispatcher {
    * Register {@code callback} under a new watch id, then create the watch through
    * {@code transport} (filters with their SA filled in); the handle cancels both.
    */
-  WatchHandle watch(Transport transport, List<ChangeFilter> filters, ChangeCallback callback) {
+  WatchHandle watch(Transport transport, List<ChangeFilter> filters, ChangeCallback callback, WatchOptions options) {
     int watchId = watchIds.incrementAndGet();
     WatchHandle handle = new WatchHandle(this, transport, watchId);
     // Registered before the create is sent: events may arrive before the confirmation.
-    callbacks.put(watchId, new Registration(callback, handle));
+    callbacks.put(watchId, new Registration(callback, handle, options));
     try {
-      transport.watch(watchId, filters, Map.of());
+      transport.watch(watchId, filters, Map.of(), options.delivery());
     } catch (RuntimeException e) {
       callbacks.remove(watchId);
       throw e;
@@ -163,20 +234,52 @@ final class Dispatcher {
   void deliver(Transport.Change change) {
     WorkingMemoryChange c = null;
     for (int watchId : change.watchIds()) {
-      if (!callbacks.containsKey(watchId)) {
+      Registration r = callbacks.get(watchId);
+      if (r == null) {
         continue;
       }
-      if (c == null) {
-        c = new WorkingMemoryChange(change);
-      }
-      WorkingMemoryChange delivered = c;
       try {
-        submitBlocking(() -> run(watchId, delivered));
+        if (r.options().delivery() == Delivery.LATEST) {
+          deliverLatest(r.options().priority(), watchId, change);
+          continue;
+        }
+        if (c == null) {
+          c = new WorkingMemoryChange(change);
+        }
+        WorkingMemoryChange delivered = c;
+        submitBlocking(r.options().priority(), () -> run(watchId, delivered));
       } catch (InterruptedException e) {
         Thread.currentThread().interrupt();
         return;
       }
     }
+  }
+
+  /** Queue a LATEST watch's change, in place of an undelivered one of the same entry if there is one. */
+  private void deliverLatest(Priority priority, int watchId, Transport.Change change) throws InterruptedException {
+    LatestKey key = new LatestKey(watchId, change.address());
+    LinkedHashMap<Object, Runnable> level = levels.get(priority.ordinal());
+    synchronized (lock) {
+      if (!replaced(level, key, watchId, change)) {
+        awaitRoom();
+        if (!replaced(level, key, watchId, change)) {
+          add(priority, key, new LatestCall(watchId, change));
+        }
+      }
+    }
+  }
+
+  /**
+   * Replace the undelivered change under {@code key} by {@code change} (now at the back of
+   * its queue, the pending count unchanged); false if there is none (holding lock).
+   */
+  private boolean replaced(LinkedHashMap<Object, Runnable> level, LatestKey key, int watchId, Transport.Change change) {
+    Runnable queued = level.remove(key);
+    if (queued == null) {
+      return false;
+    }
+    level.put(key, new LatestCall(watchId, change.superseding(((LatestCall) queued).change)));
+    return true;
   }
 
   private void run(int watchId, WorkingMemoryChange change) {
@@ -211,7 +314,7 @@ final class Dispatcher {
   /** Wait until every call queued so far has run; false on timeout (null: wait forever). */
   boolean drain(Duration timeout) throws InterruptedException {
     long deadline = timeout == null ? Long.MAX_VALUE : System.nanoTime() + timeout.toNanos();
-    synchronized (idle) {
+    synchronized (lock) {
       while (pending > 0) {
         if (Thread.currentThread() == thread) {
           return false; // a callback waiting for itself would wait forever
@@ -220,15 +323,21 @@ final class Dispatcher {
         if (left <= 0) {
           return false;
         }
-        TimeUnit.NANOSECONDS.timedWait(idle, Math.min(left, TimeUnit.SECONDS.toNanos(3600)));
+        TimeUnit.NANOSECONDS.timedWait(lock, Math.min(left, TimeUnit.SECONDS.toNanos(3600)));
       }
       return true;
     }
   }
 
-  /** Run what is queued, then end the thread (waits up to {@code timeout} unless called from it). */
+  /**
+   * Run what is queued, then end the thread (waits up to {@code timeout} unless called from
+   * it); what is queued after this is dropped.
+   */
   void stop(Duration timeout) {
-    queue.add(END);
+    synchronized (lock) {
+      stopped = true;
+      lock.notifyAll();
+    }
     if (Thread.currentThread() != thread) {
       try {
         thread.join(timeout.toMillis());

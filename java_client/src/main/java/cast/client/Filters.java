@@ -4,12 +4,14 @@ import com.google.protobuf.Message;
 import java.util.EnumSet;
 
 /**
- * The filter helpers of the component model (docs/design.md section 5). Every
- * component has the same methods as statics, so a component writes
- * {@code onChange(localTypeFilter(Pose.class, Operation.ADD), this::onPose)}.
+ * The filter helpers of the component model (docs/design.md section 5). {@link Component}
+ * extends this class so that a component calls them unqualified, as JUnit 3's
+ * {@code TestCase} extends {@code Assert}:
+ * {@code onChange(localTypeFilter(Pose.class, Operation.ADD), this::onPose)}; a script calls
+ * {@code Filters.localTypeFilter(...)}. Nothing outside the library can extend or instantiate it.
  */
-public final class Filters {
-  private Filters() {}
+public abstract class Filters {
+  Filters() {}
 
   private static EnumSet<Operation> ops(Operation... operations) {
     EnumSet<Operation> set = EnumSet.noneOf(Operation.class);

@@ -13,7 +13,7 @@ import java.util.concurrent.TimeUnit;
 /**
  * One server of a system as the gRPC transport reaches it: its channel and a stub per
  * service, each putting the token on every call. Its streams belong to whoever opened
- * them ({@link WatchStream}, {@link Session}, {@link DecisionStream}). Part of the
+ * them ({@link WriteStream}, {@link WatchStream}, {@link Session}, {@link DecisionStream}). Part of the
  * {@code grpc_transport} role of the client file map (docs/design.md, "Client
  * libraries"), as cpp_client/src/grpc_server.h is: {@link GrpcTransport} routes SAs to
  * these and makes the unary calls.
@@ -26,8 +26,11 @@ final class GrpcServer {
     ManagedChannel open(String endpoint);
   }
 
-  /** A channel to {@code endpoint}, with TLS when {@code tls} is set (never falling back to plaintext). */
-  static ManagedChannel channel(String endpoint, ClientTls tls) {
+  /**
+   * A channel to {@code endpoint}, with TLS when {@code tls} is set (never falling back to
+   * plaintext); {@code interceptors} see every call (tests count them).
+   */
+  static ManagedChannel channel(String endpoint, ClientTls tls, ClientInterceptor... interceptors) {
     ManagedChannelBuilder<?> b;
     if (tls == null) {
       b = ManagedChannelBuilder.forTarget(endpoint).usePlaintext();
@@ -37,7 +40,8 @@ final class GrpcServer {
         b.overrideAuthority(tls.serverName());
       }
     }
-    return b.maxInboundMessageSize(MAX_MESSAGE_BYTES)
+    return b.intercept(interceptors)
+        .maxInboundMessageSize(MAX_MESSAGE_BYTES)
         // Notice a dead server (and let it notice us) on an idle connection;
         // the server permits pings every 5 s without data.
         .keepAliveTime(10, TimeUnit.SECONDS)
@@ -56,6 +60,7 @@ final class GrpcServer {
   final DirectoryGrpc.DirectoryStub dirAsync;
   final InspectionGrpc.InspectionBlockingStub insp; // Report: the component's outcomes
   volatile Session session;
+  volatile WriteStream writes; // opened by GrpcTransport on the first write to this server
 
   /** Opens a channel to {@code endpoint} through {@code channels}; {@code credentials} authorise every call. */
   GrpcServer(String endpoint, ChannelFactory channels, Credentials credentials) {

@@ -9,7 +9,7 @@ import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
-import cast.v1.UnlockRequest;
+import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
@@ -24,6 +24,7 @@ import java.util.LinkedHashMap;
 import java.util.List;
 import java.util.Map;
 import java.util.Set;
+import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.RejectedExecutionException;
 import java.util.concurrent.ScheduledExecutorService;
 import java.util.concurrent.ScheduledThreadPoolExecutor;
@@ -41,8 +42,9 @@ import java.util.logging.Logger;
  * The {@link Transport} of a component that reaches a CAST system through its
  * directory endpoint, following docs/client-protocol.md call by call: routing by
  * SA from DescribeSystem and the unary calls, with a deadline each. Each server
- * ({@link GrpcServer}: its channel and stubs) has one {@link WatchStream} and one
- * {@link Session}; a managed component's decisions come on a {@link DecisionStream};
+ * ({@link GrpcServer}: its channel and stubs) has one {@link WriteStream} (every write
+ * and lock), one {@link WatchStream} and one {@link Session}; a managed component's
+ * decisions come on a {@link DecisionStream};
  * {@link Credentials} puts the token on every call. The twin of
  * python/cast/client/grpc_transport.py and cpp_client/src/grpc_transport.cc.
  *
@@ -54,6 +56,8 @@ import java.util.logging.Logger;
 final class GrpcTransport implements Transport {
   private static final Logger LOG = Logger.getLogger("cast.client");
   static final Duration DEFAULT_CALL_TIMEOUT = Duration.ofSeconds(30);
+  /** How much longer than a lock's own timeout the client waits for the server's answer to it. */
+  static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(5);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
       Set.of(
@@ -79,6 +83,7 @@ final class GrpcTransport implements Transport {
   private final ScheduledExecutorService scheduler;
   private volatile DecisionStream decisions;
   private final AtomicInteger sessions = new AtomicInteger();
+  private final WriteStream.Results results; // completes the futures of addAsync/overwriteAsync
 
   /** Connects to the directory of {@code contract} and describes the system (TLS as the contract says). */
   GrpcTransport(LaunchContract contract) {
@@ -101,6 +106,7 @@ final class GrpcTransport implements Transport {
             });
     pool.setRemoveOnCancelPolicy(true);
     this.scheduler = pool;
+    this.results = new WriteStream.Results(name);
     this.directory = openServer(contract.endpoint());
     servers.put(contract.endpoint(), directory);
     try {
@@ -245,30 +251,55 @@ final class GrpcTransport implements Transport {
 
   // ------------------------------------------------------- writes and reads
 
+  /** The Write stream to the server of {@code sa}, opened by the first write (WriteStream.java). */
+  WriteStream writes(String sa) {
+    GrpcServer server = server(sa);
+    WriteStream stream = server.writes;
+    if (stream == null) {
+      synchronized (lock) {
+        if (server.writes == null) {
+          server.writes = new WriteStream(server, credentials, callTimeout);
+        }
+        stream = server.writes;
+      }
+    }
+    return stream;
+  }
+
+  private WriteResult write(String sa, WriteRequest.Builder request) {
+    return Conversions.result(writes(sa).call(request, callTimeout).getWrite());
+  }
+
   @Override
   public WriteResult add(String sa, String id, Any value) {
-    var req = Conversions.add(sa, id, value);
-    return Conversions.result(call(server(sa), server(sa).wm, s -> s.add(req)));
+    return write(sa, Conversions.writeAdd(sa, id, value));
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
+    return writes(sa).submitWrite(Conversions.writeAdd(sa, id, value), results);
   }
 
   @Override
   public WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
-    var req = Conversions.overwrite(sa, id, value, expectedVersion);
-    return Conversions.result(call(server(sa), server(sa).wm, s -> s.overwrite(req)));
+    return write(sa, Conversions.writeOverwrite(sa, id, value, expectedVersion));
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
+    return writes(sa).submitWrite(Conversions.writeOverwrite(sa, id, value, expectedVersion), results);
   }
 
   @Override
   public WriteResult delete(String sa, String id, Long expectedVersion) {
-    var req = Conversions.delete(sa, id, expectedVersion);
-    return Conversions.result(call(server(sa), server(sa).wm, s -> s.delete(req)));
+    return write(sa, Conversions.writeDelete(sa, id, expectedVersion));
   }
 
   @Override
   public List<WriteResult> batch(String sa, List<Write> writes) {
-    var req = Conversions.batch(sa, writes);
-    var resp = call(server(sa), server(sa).wm, s -> s.batch(req));
+    var reply = writes(sa).call(Conversions.writeBatch(sa, writes), callTimeout);
     List<WriteResult> out = new ArrayList<>();
-    for (WriteResponse r : resp.getResultsList()) {
+    for (WriteResponse r : reply.getBatch().getResultsList()) {
       out.add(Conversions.result(r));
     }
     return out;
@@ -306,15 +337,16 @@ final class GrpcTransport implements Transport {
 
   @Override
   public int lock(String sa, String id, LockMode mode, Duration timeout, boolean noWait) {
-    var req = Conversions.lock(sa, id, mode, noWait);
-    // A blocking lock waits as long as the caller said (null: forever), not the call timeout.
-    return call(server(sa), server(sa).wm, noWait ? callTimeout : timeout, s -> s.lock(req)).getDepth();
+    var request = Conversions.writeLock(sa, id, mode, noWait, timeout);
+    // The server ends a blocking lock's wait itself (DEADLINE_EXCEEDED after `timeout`; null: it
+    // waits as long as it takes); the margin covers the round trip.
+    Duration wait = noWait ? callTimeout : timeout == null ? null : timeout.plus(LOCK_REPLY_MARGIN);
+    return writes(sa).call(request, wait).getLock().getDepth();
   }
 
   @Override
   public int unlock(String sa, String id) {
-    var req = UnlockRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
-    return call(server(sa), server(sa).wm, s -> s.unlock(req)).getDepth();
+    return writes(sa).call(Conversions.writeUnlock(sa, id), callTimeout).getUnlock().getDepth();
   }
 
   // --------------------------------------------------------------- watching
@@ -330,8 +362,9 @@ final class GrpcTransport implements Transport {
   }
 
   @Override
-  public Map<String, Long> watch(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions) {
-    return watches.create(watchId, filters, startRevisions);
+  public Map<String, Long> watch(
+      int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions, Delivery delivery) {
+    return watches.create(watchId, filters, startRevisions, delivery);
   }
 
   @Override
@@ -426,8 +459,15 @@ final class GrpcTransport implements Transport {
     if (!closing.compareAndSet(false, true)) {
       return;
     }
-    watches.close();
     List<GrpcServer> all = allServers();
+    for (GrpcServer server : all) {
+      WriteStream writes = server.writes;
+      if (writes != null) {
+        writes.close(Duration.ofSeconds(2)); // outstanding replies first: they may be async results
+      }
+    }
+    results.shutdown(); // what is queued still runs
+    watches.close();
     for (GrpcServer server : all) {
       Session session = server.session;
       if (session != null) {

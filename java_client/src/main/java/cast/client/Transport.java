@@ -7,6 +7,7 @@ import java.time.Duration;
 import java.time.Instant;
 import java.util.List;
 import java.util.Map;
+import java.util.concurrent.CompletableFuture;
 import java.util.function.BiConsumer;
 import java.util.function.Consumer;
 import java.util.function.Supplier;
@@ -59,6 +60,8 @@ interface Transport extends AutoCloseable {
    * @param time server time of the change
    * @param entry the entry (after the write; DELETE: as it was), or null when no filter asked for it
    * @param watchIds the matching watches of this component
+   * @param skipped how many earlier changes of the entry a LATEST watch did not receive (0: none)
+   * @param firstSkippedRevision the revision of the oldest of them (0: none)
    */
   record Change(
       long revision,
@@ -70,7 +73,36 @@ interface Transport extends AutoCloseable {
       String sourceSubarchitecture,
       Instant time,
       StoredEntry entry,
-      List<Integer> watchIds) {}
+      List<Integer> watchIds,
+      long skipped,
+      long firstSkippedRevision) {
+
+    /** A change that replaced none. */
+    Change(
+        long revision,
+        Operation operation,
+        WorkingMemoryAddress address,
+        String type,
+        long version,
+        String sourceComponent,
+        String sourceSubarchitecture,
+        Instant time,
+        StoredEntry entry,
+        List<Integer> watchIds) {
+      this(revision, operation, address, type, version, sourceComponent, sourceSubarchitecture, time, entry,
+          watchIds, 0, 0);
+    }
+
+    /**
+     * This change in place of {@code older}, an undelivered change of the same entry: it
+     * skipped that one and what that one skipped (the oldest skipped revision is kept).
+     */
+    Change superseding(Change older) {
+      long first = older.firstSkippedRevision != 0 ? older.firstSkippedRevision : older.revision;
+      return new Change(revision, operation, address, type, version, sourceComponent, sourceSubarchitecture, time,
+          entry, watchIds, skipped + older.skipped + 1, first);
+    }
+  }
 
   /**
    * One write of a batch.
@@ -120,8 +152,14 @@ interface Transport extends AutoCloseable {
   /** Create an entry; AlreadyExistsError if the id is taken. */
   WriteResult add(String sa, String id, Any value);
 
+  /** Create an entry without waiting: the future of its result (errors arrive on it). */
+  CompletableFuture<WriteResult> addAsync(String sa, String id, Any value);
+
   /** Replace an entry's value, checking its version unless {@code expectedVersion} is null. */
   WriteResult overwrite(String sa, String id, Any value, Long expectedVersion);
+
+  /** Replace an entry's value without waiting: the future of its result (errors arrive on it). */
+  CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion);
 
   /** Delete an entry, checking its version unless {@code expectedVersion} is null. */
   WriteResult delete(String sa, String id, Long expectedVersion);
@@ -160,10 +198,12 @@ interface Transport extends AutoCloseable {
   void setEventSink(EventSink sink, BiConsumer<CastError, Integer> onError);
 
   /**
-   * Create a watch (filters with their SA filled in; "" for every SA); returns once the
-   * servers confirmed it, with each SA's revision when it took effect.
+   * Create a watch (filters with their SA filled in; "" for every SA) delivered as
+   * {@code delivery} says; returns once the servers confirmed it, with each SA's revision
+   * when it took effect.
    */
-  Map<String, Long> watch(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions);
+  Map<String, Long> watch(
+      int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions, Delivery delivery);
 
   /** Remove a watch. */
   void cancelWatch(int watchId);

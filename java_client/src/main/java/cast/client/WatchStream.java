@@ -42,13 +42,15 @@ final class WatchStream {
     final int watchId;
     final List<cast.v1.ChangeFilter> filters;
     final Map<String, Long> firstStarts;
+    final cast.v1.Delivery delivery;
     private List<String> sas = List.of(); // the SAs of this server the watch covers (known once created)
     private Map<String, Long> base; // per SA, the revision the watch has seen up to (null until created)
 
-    Watch(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> firstStarts) {
+    Watch(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> firstStarts, cast.v1.Delivery delivery) {
       this.watchId = watchId;
       this.filters = List.copyOf(filters);
       this.firstStarts = Map.copyOf(firstStarts);
+      this.delivery = delivery;
     }
 
     /** Whether the server confirmed the watch (a later create of it is a resume). */
@@ -130,7 +132,8 @@ final class WatchStream {
     }
 
     /** Create the watch on every server its filters can match; the revisions at creation, per SA. */
-    Map<String, Long> create(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions) {
+    Map<String, Long> create(
+        int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions, Delivery delivery) {
       if (sink == null) {
         throw new IllegalStateException("setEventSink must be called before watch");
       }
@@ -167,7 +170,7 @@ final class WatchStream {
               mine.put(sa, rev);
             }
           });
-          revisions.putAll(stream.create(watchId, wire, mine));
+          revisions.putAll(stream.create(watchId, wire, mine, Conversions.delivery(delivery)));
           created.add(stream);
         }
       } catch (RuntimeException e) {
@@ -252,6 +255,7 @@ final class WatchStream {
                 .setWatchId(w.watchId)
                 .addAllFilters(w.filters)
                 .putAllStartRevisions(starts)
+                .setDelivery(w.delivery)
                 .setHistoryId(history))
         .build();
   }
@@ -423,9 +427,10 @@ final class WatchStream {
   }
 
   /** Create a watch and wait for the server to confirm it; returns the revisions at creation. */
-  Map<String, Long> create(int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> starts) {
+  Map<String, Long> create(
+      int watchId, List<cast.v1.ChangeFilter> filters, Map<String, Long> starts, cast.v1.Delivery delivery) {
     var done = new CompletableFuture<Map<String, Long>>();
-    Watch w = new Watch(watchId, filters, starts);
+    Watch w = new Watch(watchId, filters, starts, delivery);
     synchronized (mutex) {
       if (dead) {
         throw new UnavailableError("the watch stream to " + server.endpoint + " has ended");

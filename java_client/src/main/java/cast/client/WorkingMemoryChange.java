@@ -61,6 +61,20 @@ public final class WorkingMemoryChange {
     return change.address().subarchitecture();
   }
 
+  /**
+   * How many earlier changes of this entry a {@link Delivery#LATEST} watch did not receive
+   * because this newer one replaced them (on the server or in the component's queue); 0
+   * when none, and always 0 for a QUEUE watch.
+   */
+  public long skipped() {
+    return change.skipped();
+  }
+
+  /** The revision of the oldest change {@link #skipped()} counts (0 when none): they lie between it and this one. */
+  public long firstSkippedRevision() {
+    return change.firstSkippedRevision();
+  }
+
   /** Whether the event carries the entry (its filter asked for it with {@code withEntry()}). */
   public boolean hasEntry() {
     return change.entry() != null;
@@ -88,6 +102,7 @@ public final class WorkingMemoryChange {
         + revision()
         + " by="
         + sourceComponent()
+        + (skipped() == 0 ? "" : " skipped=" + skipped() + " from rev " + firstSkippedRevision())
         + ")";
   }
 }

@@ -9,6 +9,7 @@ import java.util.HashMap;
 import java.util.LinkedHashMap;
 import java.util.List;
 import java.util.Map;
+import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.CopyOnWriteArrayList;
 import java.util.concurrent.CountDownLatch;
@@ -49,7 +50,7 @@ final class FakeTransport implements Transport {
   }
 
   /** One watch as the component created it. */
-  record Created(int watchId, List<ChangeFilter> filters) {}
+  record Created(int watchId, List<ChangeFilter> filters, Delivery delivery) {}
 
   final Memory memory;
   final Identity identity; // whom "the server" says the token was issued to
@@ -175,6 +176,25 @@ final class FakeTransport implements Transport {
       }
       return write(Operation.OVERWRITE, sa, id, value, old.version() + 1);
     }
+  }
+
+  /** The write applied at once; its result or refusal on a completed future, as the stream's reply. */
+  private static CompletableFuture<WriteResult> completed(Supplier<WriteResult> write) {
+    try {
+      return CompletableFuture.completedFuture(write.get());
+    } catch (CastError e) {
+      return CompletableFuture.failedFuture(e);
+    }
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
+    return completed(() -> add(sa, id, value));
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
+    return completed(() -> overwrite(sa, id, value, expectedVersion));
   }
 
   @Override
@@ -344,8 +364,9 @@ final class FakeTransport implements Transport {
   }
 
   @Override
-  public Map<String, Long> watch(int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions) {
-    creates.add(new Created(watchId, List.copyOf(filters)));
+  public Map<String, Long> watch(
+      int watchId, List<ChangeFilter> filters, Map<String, Long> startRevisions, Delivery delivery) {
+    creates.add(new Created(watchId, List.copyOf(filters), delivery));
     watches.put(watchId, List.copyOf(filters));
     Map<String, Long> now = new HashMap<>();
     synchronized (memory) {

@@ -15,7 +15,8 @@ import org.junit.jupiter.api.Test;
 class WatchStreamTest {
   static WatchStream.Watch watch(Map<String, Long> firstStarts, ChangeFilter... filters) {
     return new WatchStream.Watch(
-        7, java.util.Arrays.stream(filters).map(Conversions::filter).toList(), firstStarts);
+        7, java.util.Arrays.stream(filters).map(Conversions::filter).toList(), firstStarts,
+        cast.v1.Delivery.DELIVERY_QUEUE);
   }
 
   @Test
