@@ -24,12 +24,15 @@ export function lineChart({ title, series, format, testid }) {
   for (const s of series) {
     // A null value breaks the line (nothing was measured in that interval).
     let path = "", pen = "M";
-    for (const [t, v] of s.points) {
-      if (t < -SPAN) continue;
-      if (v === null) { pen = "M"; continue; }
+    const shown = s.points.filter(([t]) => t >= -SPAN);
+    shown.forEach(([t, v], i) => {
+      if (v === null) { pen = "M"; return; }
       path += `${pen}${x(t).toFixed(1)},${y(v).toFixed(1)} `;
       pen = "L";
-    }
+      // A value with no neighbour to join (the intervals around it measured nothing) is a dot.
+      const alone = (i === 0 || shown[i - 1][1] === null) && (i === shown.length - 1 || shown[i + 1][1] === null);
+      if (alone) chart.append(svg("circle", { cx: x(t).toFixed(1), cy: y(v).toFixed(1), r: 2, fill: s.color }));
+    });
     if (path) chart.append(svg("path", { d: path, fill: "none", stroke: s.color, "stroke-width": 1.8,
                                         "vector-effect": "non-scaling-stroke" }));
   }
