@@ -24,26 +24,6 @@ Transport& ComponentCore::transport() const {
   return *transport_;
 }
 
-void ComponentCore::cancelWatch(std::uint32_t watchId) {
-  bool had;
-  {
-    std::lock_guard<std::mutex> lock(mu);
-    had = callbacks.erase(watchId) > 0;
-  }
-  if (had && transport_ && !closed) transport_->cancelWatch(watchId);
-}
-
-bool ComponentCore::watchActive(std::uint32_t watchId) {
-  std::lock_guard<std::mutex> lock(mu);
-  return callbacks.count(watchId) > 0;
-}
-
-std::shared_ptr<CastError> ComponentCore::watchError(std::uint32_t watchId) {
-  std::lock_guard<std::mutex> lock(mu);
-  auto it = errors.find(watchId);
-  return it == errors.end() ? nullptr : it->second;
-}
-
 }  // namespace detail
 
 // ---------------------------------------------------------------- LockGuard
@@ -92,22 +72,6 @@ void LockGuard::unlock() {
 }
 
 void LockGuard::release() noexcept { held_ = false; }
-
-// ---------------------------------------------------------------- WatchHandle
-
-void WatchHandle::cancel() {
-  if (auto core = core_.lock()) core->cancelWatch(watchId_);
-}
-
-bool WatchHandle::active() const {
-  auto core = core_.lock();
-  return core && core->watchActive(watchId_);
-}
-
-std::shared_ptr<CastError> WatchHandle::error() const {
-  auto core = core_.lock();
-  return core ? core->watchError(watchId_) : nullptr;
-}
 
 // ---------------------------------------------------------------- Component
 
@@ -212,39 +176,10 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
   std::weak_ptr<ComponentCore> weak = core_;
   c.transport_->setEventSink(
       [weak](detail::EventRecord event, const std::vector<std::uint32_t>& watchIds) {
-        auto core = weak.lock();
-        if (!core || !core->dispatcher) return;
-        auto change = std::make_shared<const WorkingMemoryChange>(std::move(event));
-        for (std::uint32_t wid : watchIds) {
-          {
-            std::lock_guard<std::mutex> lock(core->mu);
-            if (core->callbacks.count(wid) == 0) continue;
-          }
-          core->dispatcher->submit([weak, wid, change] {
-            auto c2 = weak.lock();
-            if (!c2) return;
-            ChangeCallback cb;
-            {
-              std::lock_guard<std::mutex> lock(c2->mu);
-              auto it = c2->callbacks.find(wid);
-              if (it == c2->callbacks.end()) return;  // cancelled while queued: drop
-              cb = it->second;
-            }
-            cb(*change);
-          });
-        }
+        if (auto core = weak.lock()) core->deliver(std::move(event), watchIds);
       },
       [weak](std::shared_ptr<CastError> error) {
-        auto core = weak.lock();
-        if (!core || !core->dispatcher) return;
-        {
-          std::lock_guard<std::mutex> lock(core->mu);
-          for (const auto& kv : core->callbacks) core->errors[kv.first] = error;
-        }
-        core->dispatcher->submit([weak, error] {
-          auto c2 = weak.lock();
-          if (c2 && !c2->closed) c2->owner->watchFailed(*error);
-        });
+        if (auto core = weak.lock()) core->deliveryFailed(error);
       });
   std::weak_ptr<ComponentCore> weakState = core_;
   c.transport_->startSession(language, kind(), [weakState] {
@@ -313,6 +248,19 @@ WriteResult Component::overwrite(const std::string& id, const google::protobuf::
   return core().transport().overwrite(targetSa(subarchitecture), id, type, data, expectedVersion);
 }
 
+std::future<WriteResult> Component::addAsync(const std::string& id, const google::protobuf::Message& value,
+                                             const std::string& subarchitecture) {
+  auto [type, data] = serialise(value);
+  return core().transport().addAsync(targetSa(subarchitecture), id, type, data);
+}
+
+std::future<WriteResult> Component::overwriteAsync(const std::string& id, const google::protobuf::Message& value,
+                                                   const std::string& subarchitecture,
+                                                   std::optional<std::uint64_t> expectedVersion) {
+  auto [type, data] = serialise(value);
+  return core().transport().overwriteAsync(targetSa(subarchitecture), id, type, data, expectedVersion);
+}
+
 WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,
                                    std::optional<std::uint64_t> expectedVersion) {
   return core().transport().deleteEntry(targetSa(subarchitecture), id, expectedVersion);
@@ -373,44 +321,6 @@ std::uint32_t Component::unlock(const std::string& id, const std::string& subarc
 }
 
 void Component::report(const std::string& name, double value) { core().transport().report(name, value); }
-
-WatchHandle Component::onChange(const ChangeFilter& filter, ChangeCallback callback) {
-  return onChange(std::vector<ChangeFilter>{filter}, std::move(callback));
-}
-
-WatchHandle Component::onChange(const std::vector<ChangeFilter>& filters, ChangeCallback callback) {
-  detail::Transport& t = core().transport();
-  if (filters.empty()) throw InvalidArgumentError("onChange needs at least one filter");
-  if (!callback) throw InvalidArgumentError("onChange needs a callback");
-  std::vector<ChangeFilter> resolved;
-  for (const auto& f : filters) resolved.push_back(f.resolve(subarchitecture()));
-  std::uint32_t watchId;
-  {
-    std::lock_guard<std::mutex> lock(core_->mu);
-    watchId = core_->nextWatchId++;
-    // Registered before the watch exists, so no event can find it missing.
-    core_->callbacks[watchId] = std::move(callback);
-  }
-  try {
-    t.watch(watchId, resolved, {});
-  } catch (...) {
-    std::lock_guard<std::mutex> lock(core_->mu);
-    core_->callbacks.erase(watchId);
-    throw;
-  }
-  return WatchHandle(core_, watchId);
-}
-
-bool Component::drain(std::chrono::milliseconds timeout) {
-  return core_->dispatcher ? core_->dispatcher->drain(timeout) : true;
-}
-
-void Component::setMaxPendingCallbacks(std::size_t count) {
-  if (core_->dispatcher) throw CastError("setMaxPendingCallbacks must be called before bind()", "FAILED_PRECONDITION");
-  core_->maxPending = count == 0 ? 1 : count;
-}
-
-bool Component::onDispatcherThread() const { return core_->dispatcher && core_->dispatcher->onThread(); }
 
 // ---------------------------------------------------------------- ManagedComponent
 

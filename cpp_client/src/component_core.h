@@ -9,6 +9,8 @@
 #include <mutex>
 #include <set>
 #include <string>
+#include <tuple>
+#include <vector>
 
 #include "cast/component.h"
 #include "dispatcher.h"
@@ -25,7 +27,7 @@ class IdentityMismatchError : public InvalidArgumentError {
   [[noreturn]] void raise() const override { throw *this; }
 };
 
-class ComponentCore {
+class ComponentCore : public std::enable_shared_from_this<ComponentCore> {
  public:
   explicit ComponentCore(Component* owner) : owner(owner) {}
 
@@ -35,6 +37,11 @@ class ComponentCore {
   void cancelWatch(std::uint32_t watchId);
   bool watchActive(std::uint32_t watchId);
   std::shared_ptr<CastError> watchError(std::uint32_t watchId);
+  // The transport's event sink (component_watch.cc): queues the callbacks of
+  // `watchIds` for `event` on the dispatcher, by each watch's options.
+  void deliver(EventRecord event, const std::vector<std::uint32_t>& watchIds);
+  // The transport's error sink: change delivery stopped for every watch.
+  void deliveryFailed(const std::shared_ptr<CastError>& error);
 
   Component* owner;  // valid until close(); hooks run only before that
   std::shared_ptr<Transport> transport_;
@@ -43,8 +50,24 @@ class ComponentCore {
   std::unique_ptr<Dispatcher> dispatcher;
   std::size_t maxPending = 10000;
 
-  std::mutex mu;  // guards callbacks, errors, nextWatchId
-  std::map<std::uint32_t, ChangeCallback> callbacks;
+  // One onChange registration: its callback and how its changes come.
+  struct Watch {
+    ChangeCallback callback;
+    WatchOptions options;
+  };
+  // The undelivered change of one entry for a Latest watch (by watch id, SA
+  // and entry id): a newer change of the entry replaces it, in its place in
+  // the queue, adding up what was skipped.
+  using LatestKey = std::tuple<std::uint32_t, std::string, std::string>;
+  struct LatestSlot {
+    std::shared_ptr<const EventRecord> event;
+    std::uint64_t skipped = 0;
+    std::uint64_t firstSkippedRevision = 0;
+  };
+
+  std::mutex mu;  // guards callbacks, latest, errors, nextWatchId
+  std::map<std::uint32_t, Watch> callbacks;
+  std::map<LatestKey, LatestSlot> latest;
   std::map<std::uint32_t, std::shared_ptr<CastError>> errors;
   std::uint32_t nextWatchId = 1;
 

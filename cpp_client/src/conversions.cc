@@ -2,6 +2,9 @@
 // the library's enums are declared with the proto's numbers (types.h).
 #include "conversions.h"
 
+#include <algorithm>
+#include <limits>
+
 namespace cast::detail {
 
 namespace {
@@ -52,6 +55,8 @@ EventRecord eventFromPb(const v1::ChangeEvent& e) {
   r.version = e.version();
   r.timeNs = nanos(e.time());
   if (e.has_entry()) r.entry = entryFromPb(e.entry());
+  r.skipped = e.skipped();
+  r.firstSkippedRevision = e.first_skipped_revision();
   return r;
 }
 
@@ -83,5 +88,78 @@ void filterToPb(const ChangeFilter& f, v1::ChangeFilter* pb) {
 }
 
 WriteResult writeResult(const v1::WriteResponse& r) { return WriteResult{r.revision(), r.version()}; }
+
+v1::WriteRequest addRequest(const std::string& sa, const std::string& id, const std::string& type,
+                            const std::string& data) {
+  v1::WriteRequest request;
+  auto* add = request.mutable_add();
+  *add->mutable_address() = addressPb(sa, id);
+  setAny(add->mutable_value(), type, data);
+  return request;
+}
+
+v1::WriteRequest overwriteRequest(const std::string& sa, const std::string& id, const std::string& type,
+                                  const std::string& data, std::optional<std::uint64_t> expectedVersion) {
+  v1::WriteRequest request;
+  auto* overwrite = request.mutable_overwrite();
+  *overwrite->mutable_address() = addressPb(sa, id);
+  setAny(overwrite->mutable_value(), type, data);
+  if (expectedVersion) overwrite->set_expected_version(*expectedVersion);
+  return request;
+}
+
+v1::WriteRequest deleteRequest(const std::string& sa, const std::string& id,
+                               std::optional<std::uint64_t> expectedVersion) {
+  v1::WriteRequest request;
+  auto* del = request.mutable_delete_();
+  *del->mutable_address() = addressPb(sa, id);
+  if (expectedVersion) del->set_expected_version(*expectedVersion);
+  return request;
+}
+
+v1::WriteRequest batchRequest(const std::vector<BatchOp>& ops) {
+  v1::WriteRequest request;
+  auto* batch = request.mutable_batch();
+  for (const auto& op : ops) {
+    auto* item = batch->add_operations();
+    if (op.operation == Operation::Add) {
+      auto* add = item->mutable_add();
+      *add->mutable_address() = addressPb(op.subarchitecture, op.id);
+      setAny(add->mutable_value(), op.type, op.data);
+    } else if (op.operation == Operation::Overwrite) {
+      auto* overwrite = item->mutable_overwrite();
+      *overwrite->mutable_address() = addressPb(op.subarchitecture, op.id);
+      setAny(overwrite->mutable_value(), op.type, op.data);
+      if (op.expectedVersion) overwrite->set_expected_version(*op.expectedVersion);
+    } else {
+      auto* del = item->mutable_delete_();
+      *del->mutable_address() = addressPb(op.subarchitecture, op.id);
+      if (op.expectedVersion) del->set_expected_version(*op.expectedVersion);
+    }
+  }
+  return request;
+}
+
+v1::WriteRequest lockRequest(const std::string& sa, const std::string& id, LockMode mode, bool noWait,
+                             std::optional<std::chrono::milliseconds> timeout) {
+  v1::WriteRequest request;
+  auto* lock = request.mutable_lock();
+  *lock->mutable_address() = addressPb(sa, id);
+  lock->set_mode(static_cast<v1::LockMode>(mode));
+  lock->set_no_wait(noWait);
+  if (timeout && !noWait) {
+    // 0 on the wire means "no bound": a timeout of 0 ms is the shortest bound
+    // instead, and one past the field's range (49 days) is as good as none.
+    const std::int64_t ms = std::max<std::int64_t>(1, timeout->count());
+    if (ms <= std::numeric_limits<std::uint32_t>::max()) request.set_timeout_ms(static_cast<std::uint32_t>(ms));
+  }
+  return request;
+}
+
+v1::WriteRequest unlockRequest(const std::string& sa, const std::string& id) {
+  v1::WriteRequest request;
+  *request.mutable_unlock()->mutable_address() = addressPb(sa, id);
+  return request;
+}
 
 }  // namespace cast::detail

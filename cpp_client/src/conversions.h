@@ -6,10 +6,14 @@
 #include <google/protobuf/any.pb.h>
 #include <google/protobuf/timestamp.pb.h>
 
+#include <chrono>
 #include <cstdint>
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "cast/filters.h"
+#include "cast/transport.h"
 #include "cast/types.h"
 #include "cast/v1/task_manager.pb.h"
 #include "cast/v1/working_memory.pb.h"
@@ -43,5 +47,19 @@ void filterToPb(const ChangeFilter& f, v1::ChangeFilter* pb);
 
 // The revision and version a write got.
 WriteResult writeResult(const v1::WriteResponse& r);
+
+// The requests of the Write stream (WriteRequest with its id still unset),
+// each carrying what the unary call of the same name takes.
+v1::WriteRequest addRequest(const std::string& sa, const std::string& id, const std::string& type,
+                            const std::string& data);
+v1::WriteRequest overwriteRequest(const std::string& sa, const std::string& id, const std::string& type,
+                                  const std::string& data, std::optional<std::uint64_t> expectedVersion);
+v1::WriteRequest deleteRequest(const std::string& sa, const std::string& id,
+                               std::optional<std::uint64_t> expectedVersion);
+v1::WriteRequest batchRequest(const std::vector<BatchOp>& ops);
+// A lock waiting up to `timeout` (nullopt: forever) unless `noWait`.
+v1::WriteRequest lockRequest(const std::string& sa, const std::string& id, LockMode mode, bool noWait,
+                             std::optional<std::chrono::milliseconds> timeout);
+v1::WriteRequest unlockRequest(const std::string& sa, const std::string& id);
 
 }  // namespace cast::detail

@@ -1,5 +1,6 @@
 #include "dispatcher.h"
 
+#include <algorithm>
 #include <exception>
 
 #include "cast/errors.h"
@@ -14,14 +15,14 @@ Dispatcher::Dispatcher(std::string name, std::size_t capacity)
 
 Dispatcher::~Dispatcher() { stop(); }
 
-void Dispatcher::submit(std::function<void()> fn) {
+void Dispatcher::submit(std::function<void()> fn, Priority priority) {
   {
     std::unique_lock<std::mutex> lock(state_->mu);
     if (!onThread()) {
       state_->idle.wait(lock, [this] { return state_->pending < state_->capacity || state_->stopping; });
     }
     if (state_->stopping) return;
-    state_->queue.push_back(std::move(fn));
+    state_->queues.at(static_cast<std::size_t>(priority)).push_back(std::move(fn));
     ++state_->pending;
   }
   state_->wake.notify_one();
@@ -32,10 +33,14 @@ void Dispatcher::loop(const std::shared_ptr<State>& s) {
     std::function<void()> fn;
     {
       std::unique_lock<std::mutex> lock(s->mu);
-      s->wake.wait(lock, [&] { return !s->queue.empty() || s->stopping; });
-      if (s->queue.empty()) break;  // stopping and nothing left to run
-      fn = std::move(s->queue.front());
-      s->queue.pop_front();
+      auto next = s->queues.end();
+      s->wake.wait(lock, [&] {
+        next = std::find_if(s->queues.begin(), s->queues.end(), [](const auto& q) { return !q.empty(); });
+        return next != s->queues.end() || s->stopping;
+      });
+      if (next == s->queues.end()) break;  // stopping and nothing left to run
+      fn = std::move(next->front());
+      next->pop_front();
     }
     try {
       fn();

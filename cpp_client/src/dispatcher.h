@@ -1,6 +1,7 @@
-// One thread per component that runs its callbacks one at a time, in the
-// order they were queued. A failing callback is logged and the next one runs:
-// one bad callback must not silence the others.
+// One thread per component that runs its callbacks one at a time: the
+// highest priority first (onChange's WatchOptions::priority), in the order
+// they were queued within a priority. A failing callback is logged and the
+// next one runs: one bad callback must not silence the others.
 //
 // The queue is bounded (`capacity`), as in the Python client: a component
 // whose callbacks are slow then lags behind on the server, which keeps a
@@ -9,6 +10,7 @@
 // stream's reader thread waits for room, which stops reading that stream.
 #pragma once
 
+#include <array>
 #include <chrono>
 #include <condition_variable>
 #include <deque>
@@ -18,6 +20,7 @@
 #include <thread>
 
 #include "cast/log.h"
+#include "cast/types.h"
 
 namespace cast::detail {
 
@@ -28,10 +31,10 @@ class Dispatcher {
   Dispatcher(const Dispatcher&) = delete;
   Dispatcher& operator=(const Dispatcher&) = delete;
 
-  // Queues `fn`, first waiting while the queue is full (never on the
-  // dispatcher thread itself, which would wait for itself); ignored once
-  // stop() was called.
-  void submit(std::function<void()> fn);
+  // Queues `fn` behind the callbacks of its priority, first waiting while the
+  // queue is full (never on the dispatcher thread itself, which would wait
+  // for itself); ignored once stop() was called.
+  void submit(std::function<void()> fn, Priority priority = Priority::Medium);
   // Waits until everything queued so far has run; false on timeout. Called
   // on the dispatcher thread itself it cannot wait for itself: returns false.
   bool drain(std::chrono::milliseconds timeout);
@@ -49,7 +52,7 @@ class Dispatcher {
     std::mutex mu;
     std::condition_variable wake;
     std::condition_variable idle;  // also signalled when room appears
-    std::deque<std::function<void()>> queue;
+    std::array<std::deque<std::function<void()>>, 3> queues;  // by Priority: High, Medium, Low
     std::size_t pending = 0;  // queued + running
     bool stopping = false;
     bool finished = false;

@@ -1,7 +1,8 @@
 // The gRPC transport (cast/grpc_transport.h): routing by SA and the unary
 // calls, docs/client-protocol.md call by call. The streams it keeps open live
-// beside it: watch_stream.cc (Watch), session.cc (Register and Heartbeat, and
-// the start barrier's AwaitRun); the decision stream is here, being one loop.
+// beside it: write_stream.cc (Write: every write and lock), watch_stream.cc
+// (Watch), session.cc (Register and Heartbeat, and the start barrier's
+// AwaitRun); the decision stream is here, being one loop.
 // Mirrors the Python client's client/grpc_transport.py.
 #include "cast/grpc_transport.h"
 
@@ -17,6 +18,7 @@
 #include "grpc_server.h"
 #include "session.h"
 #include "watch_stream.h"
+#include "write_stream.h"
 
 namespace cast {
 namespace detail {
@@ -24,6 +26,9 @@ namespace {
 
 // Large values (images, point clouds) must pass; gRPC's default is 4 MB.
 constexpr int kMaxMessageBytes = 64 * 1024 * 1024;
+// How much longer than a lock's own timeout the client waits for the server's
+// answer to it (the server gives up the wait itself; this covers the trip).
+constexpr Millis kLockReplyMargin{5000};
 
 class GrpcTransport final : public Transport {
  public:
@@ -46,61 +51,41 @@ class GrpcTransport final : public Transport {
   const Identity& identity() const override { return identity_; }
 
   // ---------------------------------------------------------------- writes
+  // Every write and lock goes on the Write stream of its SA's server
+  // (write_stream.cc); reads, tasks and the rest are unary calls.
 
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
-    v1::AddRequest req;
-    *req.mutable_address() = addressPb(sa, id);
-    setAny(req.mutable_value(), type, data);
-    Server& s = server(sa);
-    return writeResult(call<v1::WriteResponse>([&](auto* ctx, auto* resp) { return s.wm->Add(ctx, req, resp); }));
+    return writeResult(write(sa, addRequest(sa, id, type, data)).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
-    v1::OverwriteRequest req;
-    *req.mutable_address() = addressPb(sa, id);
-    setAny(req.mutable_value(), type, data);
-    if (expectedVersion) req.set_expected_version(*expectedVersion);
-    Server& s = server(sa);
-    return writeResult(
-        call<v1::WriteResponse>([&](auto* ctx, auto* resp) { return s.wm->Overwrite(ctx, req, resp); }));
+    return writeResult(write(sa, overwriteRequest(sa, id, type, data, expectedVersion)).write());
+  }
+
+  std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
+                                    const std::string& data) override {
+    return writeStream(sa).writeAsync(addRequest(sa, id, type, data));
+  }
+
+  std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
+                                          const std::string& data,
+                                          std::optional<std::uint64_t> expectedVersion) override {
+    return writeStream(sa).writeAsync(overwriteRequest(sa, id, type, data, expectedVersion));
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
                           std::optional<std::uint64_t> expectedVersion) override {
-    v1::DeleteRequest req;
-    *req.mutable_address() = addressPb(sa, id);
-    if (expectedVersion) req.set_expected_version(*expectedVersion);
-    Server& s = server(sa);
-    return writeResult(call<v1::WriteResponse>([&](auto* ctx, auto* resp) { return s.wm->Delete(ctx, req, resp); }));
+    return writeResult(write(sa, deleteRequest(sa, id, expectedVersion)).write());
   }
 
   std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) override {
     if (ops.empty()) return {};
-    v1::BatchRequest req;
-    for (const auto& op : ops) {
-      auto* item = req.add_operations();
-      if (op.operation == Operation::Add) {
-        auto* add = item->mutable_add();
-        *add->mutable_address() = addressPb(op.subarchitecture, op.id);
-        setAny(add->mutable_value(), op.type, op.data);
-      } else if (op.operation == Operation::Overwrite) {
-        auto* ow = item->mutable_overwrite();
-        *ow->mutable_address() = addressPb(op.subarchitecture, op.id);
-        setAny(ow->mutable_value(), op.type, op.data);
-        if (op.expectedVersion) ow->set_expected_version(*op.expectedVersion);
-      } else {
-        auto* del = item->mutable_delete_();
-        *del->mutable_address() = addressPb(op.subarchitecture, op.id);
-        if (op.expectedVersion) del->set_expected_version(*op.expectedVersion);
-      }
-    }
     // A batch is applied by one server: the one of its first operation's SA.
-    Server& s = server(ops.front().subarchitecture);
-    auto resp = call<v1::BatchResponse>([&](auto* ctx, auto* r) { return s.wm->Batch(ctx, req, r); });
+    v1::WriteReply reply = write(ops.front().subarchitecture, batchRequest(ops));
     std::vector<WriteResult> out;
-    for (const auto& r : resp.results()) out.push_back(writeResult(r));
+    for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
     return out;
   }
 
@@ -137,22 +122,17 @@ class GrpcTransport final : public Transport {
 
   std::uint32_t lock(const std::string& sa, const std::string& id, LockMode mode, std::optional<Millis> timeout,
                      bool noWait) override {
-    v1::LockRequest req;
-    *req.mutable_address() = addressPb(sa, id);
-    req.set_mode(static_cast<v1::LockMode>(mode));
-    req.set_no_wait(noWait);
-    Server& s = server(sa);
-    // A blocking lock waits up to the call's deadline: the caller's timeout,
-    // or none at all (wait forever), never the default call timeout.
-    std::optional<Millis> deadline = noWait ? std::optional<Millis>(timeout_) : timeout;
-    return call<v1::LockResponse>([&](auto* ctx, auto* r) { return s.wm->Lock(ctx, req, r); }, deadline).depth();
+    // A blocking lock waits up to the caller's timeout, or for ever; the
+    // server ends the wait itself (DEADLINE_EXCEEDED), so the client waits a
+    // margin longer for that answer. A lock that does not wait is answered
+    // at once, within the call timeout.
+    std::optional<Millis> wait = noWait ? std::optional<Millis>(timeout_) : timeout;
+    if (!noWait && timeout) wait = *timeout + kLockReplyMargin;
+    return write(sa, lockRequest(sa, id, mode, noWait, timeout), wait).lock().depth();
   }
 
   std::uint32_t unlock(const std::string& sa, const std::string& id) override {
-    v1::UnlockRequest req;
-    *req.mutable_address() = addressPb(sa, id);
-    Server& s = server(sa);
-    return call<v1::UnlockResponse>([&](auto* ctx, auto* r) { return s.wm->Unlock(ctx, req, r); }).depth();
+    return write(sa, unlockRequest(sa, id)).unlock().depth();
   }
 
   // ---------------------------------------------------------------- schemas
@@ -174,7 +154,8 @@ class GrpcTransport final : public Transport {
   }
 
   std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
-                                             const std::map<std::string, std::uint64_t>& startRevisions) override {
+                                             const std::map<std::string, std::uint64_t>& startRevisions,
+                                             Delivery delivery) override {
     // A filter naming an SA goes to that SA's server; one with no SA matches
     // every SA, so it goes to every server.
     std::vector<Server*> targets;
@@ -209,7 +190,7 @@ class GrpcTransport final : public Transport {
         for (const auto& kv : startRevisions) {
           if (&server(kv.first) == s) mine.insert(kv);
         }
-        auto got = stream->create(watchId, filters, mine, timeout_);
+        auto got = stream->create(watchId, filters, mine, delivery, timeout_);
         revisions.insert(got.begin(), got.end());
         created.emplace_back(s, stream);
       }
@@ -338,6 +319,9 @@ class GrpcTransport final : public Transport {
       closing_ = true;
     }
     closingEvent_.set();
+    // Writes first: their outstanding replies come while the session (and
+    // with it the component's locks) still lives.
+    for (auto& kv : writeStreams_) kv.second->close();
     std::vector<std::shared_ptr<WatchStream>> streams;
     std::shared_ptr<grpc::ClientContext> decisionContext;
     {
@@ -355,6 +339,18 @@ class GrpcTransport final : public Transport {
   }
 
  private:
+  // The Write stream of `sa`'s server (one per server, made with the routes).
+  WriteStream& writeStream(const std::string& sa) { return *writeStreams_.at(&server(sa)); }
+
+  // One write or lock on the Write stream, waiting up to `wait` for its reply.
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, std::optional<Millis> wait) {
+    return writeStream(sa).call(std::move(request), wait);
+  }
+  // One write, waiting up to the call timeout, as a unary call would.
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request) {
+    return write(sa, std::move(request), std::optional<Millis>(timeout_));
+  }
+
   // A unary call bounded by `deadline` (nullopt: none).
   template <class Resp, class Fn>
   Resp call(Fn&& fn, std::optional<Millis> deadline) {
@@ -383,6 +379,8 @@ class GrpcTransport final : public Transport {
         routes_[sa.name()] = slot.get();
       }
     }
+    // A Write stream per server, opened by its first write.
+    for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_);
   }
 
   // An SA the directory does not know goes to the directory's server, which
@@ -411,6 +409,7 @@ class GrpcTransport final : public Transport {
   std::map<std::string, std::unique_ptr<Server>> servers_;  // by endpoint
   Server* directory_ = nullptr;
   std::map<std::string, Server*> routes_;  // SA -> server
+  std::map<Server*, std::unique_ptr<WriteStream>> writeStreams_;  // one per server, fixed after describe()
   std::map<Server*, std::shared_ptr<WatchStream>> watchByServer_;  // the one open stream per server
   std::map<std::uint32_t, std::vector<std::pair<Server*, std::shared_ptr<WatchStream>>>> watchStreams_;
   std::vector<std::shared_ptr<WatchStream>> retired_;  // dead streams, closed by close()

@@ -42,10 +42,28 @@ const char* toString(TaskOutcome outcome) {
   return "UNSPECIFIED";
 }
 
+const char* toString(Delivery delivery) {
+  switch (delivery) {
+    case Delivery::Queue: return "queue";
+    case Delivery::Latest: return "latest";
+  }
+  return "unspecified";
+}
+
+const char* toString(Priority priority) {
+  switch (priority) {
+    case Priority::High: return "high";
+    case Priority::Medium: return "medium";
+    case Priority::Low: return "low";
+  }
+  return "unspecified";
+}
+
 std::ostream& operator<<(std::ostream& os, const WorkingMemoryChange& c) {
-  return os << "WorkingMemoryChange(" << c.operation() << " " << c.subarchitecture() << "/" << c.id()
-            << " type=" << c.type() << " v=" << c.version() << " rev=" << c.revision()
-            << " by=" << c.sourceComponent() << ")";
+  os << "WorkingMemoryChange(" << c.operation() << " " << c.subarchitecture() << "/" << c.id() << " type=" << c.type()
+     << " v=" << c.version() << " rev=" << c.revision() << " by=" << c.sourceComponent();
+  if (c.skipped() > 0) os << " skipped=" << c.skipped() << " from rev=" << c.firstSkippedRevision();
+  return os << ")";
 }
 
 std::ostream& operator<<(std::ostream& os, const Task& t) {

@@ -24,7 +24,7 @@ bool WatchStream::dead() {
 std::map<std::string, std::uint64_t> WatchStream::create(std::uint32_t watchId,
                                                          const std::vector<ChangeFilter>& filters,
                                                          const std::map<std::string, std::uint64_t>& starts,
-                                                         Millis timeout) {
+                                                         Delivery delivery, Millis timeout) {
   auto pending = std::make_shared<Pending>();
   {
     std::lock_guard<std::mutex> lock(mu_);
@@ -32,6 +32,7 @@ std::map<std::string, std::uint64_t> WatchStream::create(std::uint32_t watchId,
     auto w = std::make_shared<Watch>();
     w->watchId = watchId;
     w->filters = filters;
+    w->delivery = delivery;
     w->firstStarts = starts;
     watches_[watchId] = w;
     pending_[watchId] = pending;
@@ -82,6 +83,7 @@ v1::WatchRequest WatchStream::createRequest(Watch& w) {
   v1::WatchRequest request;
   auto* create = request.mutable_create();
   create->set_watch_id(w.watchId);
+  create->set_delivery(static_cast<v1::Delivery>(w.delivery));
   for (const auto& f : w.filters) filterToPb(f, create->add_filters());
   if (!w.base) {
     for (const auto& kv : w.firstStarts) (*create->mutable_start_revisions())[kv.first] = kv.second;

@@ -44,7 +44,8 @@ class WatchStream {
   // Creates watch `watchId` on this server and waits up to `timeout` for the
   // server to confirm it; returns the revision per SA it starts after.
   std::map<std::string, std::uint64_t> create(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
-                                              const std::map<std::string, std::uint64_t>& starts, Millis timeout);
+                                              const std::map<std::string, std::uint64_t>& starts, Delivery delivery,
+                                              Millis timeout);
   // Forgets a watch and tells the server (if the stream is open).
   void cancel(std::uint32_t watchId);
   // Ends the stream and joins the reader; creates still waiting fail with CANCELLED.
@@ -62,6 +63,7 @@ class WatchStream {
   struct Watch {
     std::uint32_t watchId = 0;
     std::vector<ChangeFilter> filters;
+    Delivery delivery = Delivery::Queue;
     std::map<std::string, std::uint64_t> firstStarts;
     std::vector<std::string> sas;  // the SAs of this server the watch covers (known once created)
     // Per SA, the revision the watch is known to have seen up to (unset until created).

@@ -18,6 +18,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <future>
 #include <memory>
 #include <optional>
 #include <string>
@@ -171,6 +172,17 @@ class Component {
   WriteResult overwrite(const std::string& id, const google::protobuf::Message& value,
                         const std::string& subarchitecture = "",
                         std::optional<std::uint64_t> expectedVersion = std::nullopt);
+  // add and overwrite without waiting for the answer: the future of the
+  // result, which the server's reply completes (future.get() throws what
+  // add / overwrite would have thrown: AlreadyExistsError, ...). Many writes
+  // may be in flight at once, with no need for a batch; they are applied in
+  // call order. Only a value that cannot be serialised, or a component that
+  // is not bound, throws here.
+  std::future<WriteResult> addAsync(const std::string& id, const google::protobuf::Message& value,
+                                    const std::string& subarchitecture = "");
+  std::future<WriteResult> overwriteAsync(const std::string& id, const google::protobuf::Message& value,
+                                          const std::string& subarchitecture = "",
+                                          std::optional<std::uint64_t> expectedVersion = std::nullopt);
   // Deletes an entry (its locks go with it). `delete` is a C++ keyword, so
   // every language calls it deleteEntry / delete_entry.
   WriteResult deleteEntry(const std::string& id, const std::string& subarchitecture = "",
@@ -227,9 +239,14 @@ class Component {
   // Calls `callback(change)` on the dispatcher thread for each matching
   // change, in revision order. Several filters are ORed. Returns once the
   // servers confirmed the watch, so a change made after this returns is
-  // never missed.
-  WatchHandle onChange(const ChangeFilter& filter, ChangeCallback callback);
-  WatchHandle onChange(const std::vector<ChangeFilter>& filters, ChangeCallback callback);
+  // never missed. `options`: Delivery::Latest to receive only the newest
+  // change of each entry the callback has not taken yet, when it falls
+  // behind (change.skipped() counts the others; the server conflates too);
+  // a Priority to run before (High) or after (Low) the component's other
+  // pending callbacks.
+  WatchHandle onChange(const ChangeFilter& filter, ChangeCallback callback, const WatchOptions& options = {});
+  WatchHandle onChange(const std::vector<ChangeFilter>& filters, ChangeCallback callback,
+                       const WatchOptions& options = {});
   // Waits until every callback queued so far has run; false on timeout.
   bool drain(std::chrono::milliseconds timeout = std::chrono::milliseconds(5000));
   // Whether the calling thread is this component's dispatcher thread.

@@ -59,8 +59,11 @@ class Connection final : private UnmanagedComponent {
   using Component::subarchitecture;
   using Component::log;
 
-  // Writes: newId, add, overwrite, deleteEntry, batch (cast/component.h).
+  // Writes: newId, add, overwrite, addAsync, overwriteAsync, deleteEntry,
+  // batch (cast/component.h).
   using Component::add;
+  using Component::addAsync;
+  using Component::overwriteAsync;
   using Component::batch;
   using Component::deleteEntry;
   using Component::newId;

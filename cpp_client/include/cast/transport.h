@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <future>
 #include <map>
 #include <memory>
 #include <optional>
@@ -60,6 +61,19 @@ class Transport {
   virtual WriteResult deleteEntry(const std::string& sa, const std::string& id,
                                   std::optional<std::uint64_t> expectedVersion) = 0;
   virtual std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) = 0;
+  // The same writes without waiting for the answer: the future completes
+  // with the result or the error add/overwrite would have thrown. Writes are
+  // applied in call order. This default answers at once, by calling
+  // add/overwrite (a transport without a stream has nothing to pipeline).
+  virtual std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
+                                            const std::string& data) {
+    return settled([&] { return add(sa, id, type, data); });
+  }
+  virtual std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id,
+                                                  const std::string& type, const std::string& data,
+                                                  std::optional<std::uint64_t> expectedVersion) {
+    return settled([&] { return overwrite(sa, id, type, data, expectedVersion); });
+  }
 
   virtual EntryRecord get(const std::string& sa, const std::string& id) = 0;
   virtual std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type,
@@ -77,10 +91,12 @@ class Transport {
 
   // Where events and stream failures go; called before the first watch.
   virtual void setEventSink(EventSink sink, ErrorSink onError) = 0;
-  // Creates watch `watchId` (filters already resolved); returns when every
-  // server involved confirmed it, with the revisions it starts after.
+  // Creates watch `watchId` (filters already resolved) with `delivery`;
+  // returns when every server involved confirmed it, with the revisions it
+  // starts after.
   virtual std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
-                                                     const std::map<std::string, std::uint64_t>& startRevisions) = 0;
+                                                     const std::map<std::string, std::uint64_t>& startRevisions,
+                                                     Delivery delivery) = 0;
   virtual void cancelWatch(std::uint32_t watchId) = 0;
 
   virtual TaskRecord propose(const std::string& name, const std::string& dataType, const std::string& data,
@@ -113,6 +129,19 @@ class Transport {
   virtual bool awaitRun(const StopWait& stopping) = 0;
   // Ends sessions and streams; no sink is called after close() returns.
   virtual void close() = 0;
+
+ private:
+  // A future already holding what `write()` returned or threw.
+  template <class Write>
+  static std::future<WriteResult> settled(Write&& write) {
+    std::promise<WriteResult> promise;
+    try {
+      promise.set_value(write());
+    } catch (...) {
+      promise.set_exception(std::current_exception());
+    }
+    return promise.get_future();
+  }
 };
 
 }  // namespace detail

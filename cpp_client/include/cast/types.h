@@ -7,6 +7,7 @@
 #include <google/protobuf/message.h>
 
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <ostream>
 #include <string>
@@ -38,14 +39,34 @@ enum class TaskState { Unspecified = 0, Waiting = 1, Adopted = 2, Rejected = 3, 
 // What the proposer reports when a task ends (cast.v1.TaskOutcome).
 enum class TaskOutcome { Unspecified = 0, Succeeded = 1, Failed = 2, Abandoned = 3 };
 
+// What a watch receives when it falls behind the writers (cast.v1.Delivery):
+// Queue, every change in order; Latest, only the newest change of each entry
+// it has not taken yet, with WorkingMemoryChange::skipped() saying how many it
+// replaced (for fast data such as images read by slower consumers).
+enum class Delivery { Queue = 0, Latest = 1 };
+
+// Which of a component's pending callbacks its dispatcher runs first: the
+// highest priority, first in first out within one.
+enum class Priority { High = 0, Medium = 1, Low = 2 };
+
+// How onChange delivers a watch's changes (the last parameter of onChange).
+struct WatchOptions {
+  Delivery delivery = Delivery::Queue;
+  Priority priority = Priority::Medium;
+};
+
 const char* toString(Operation op);
 const char* toString(LockMode mode);
 const char* toString(TaskState state);
 const char* toString(TaskOutcome outcome);
+const char* toString(Delivery delivery);
+const char* toString(Priority priority);
 inline std::ostream& operator<<(std::ostream& os, Operation op) { return os << toString(op); }
 inline std::ostream& operator<<(std::ostream& os, LockMode m) { return os << toString(m); }
 inline std::ostream& operator<<(std::ostream& os, TaskState s) { return os << toString(s); }
 inline std::ostream& operator<<(std::ostream& os, TaskOutcome o) { return os << toString(o); }
+inline std::ostream& operator<<(std::ostream& os, Delivery d) { return os << toString(d); }
+inline std::ostream& operator<<(std::ostream& os, Priority p) { return os << toString(p); }
 
 // Where an entry lives: its id in the WM of one subarchitecture.
 struct WorkingMemoryAddress {
@@ -93,6 +114,9 @@ struct EventRecord {
   std::uint64_t version = 0;
   std::int64_t timeNs = 0;
   std::optional<EntryRecord> entry;
+  // What a Latest watch did not receive because this change replaced it.
+  std::uint64_t skipped = 0;
+  std::uint64_t firstSkippedRevision = 0;
 };
 
 // Parses `data` as T after checking the declared type. `what` names the thing
@@ -149,32 +173,49 @@ Entry<T> toEntry(const EntryRecord& r) {
 }
 }  // namespace detail
 
-// One change event as delivered to an onChange callback.
+// One change event as delivered to an onChange callback. Copies share the
+// event (and its entry's bytes), so passing a change around is cheap.
 class WorkingMemoryChange {
  public:
-  explicit WorkingMemoryChange(detail::EventRecord event) : ev_(std::move(event)) {}
+  explicit WorkingMemoryChange(detail::EventRecord event)
+      : WorkingMemoryChange(std::make_shared<const detail::EventRecord>(std::move(event))) {}
+  // The event with what a Latest watch skipped before it (on the server and
+  // in the component's own queue, added up).
+  WorkingMemoryChange(std::shared_ptr<const detail::EventRecord> event, std::uint64_t skipped,
+                      std::uint64_t firstSkippedRevision)
+      : ev_(std::move(event)), skipped_(skipped), firstSkipped_(firstSkippedRevision) {}
+  explicit WorkingMemoryChange(std::shared_ptr<const detail::EventRecord> event)
+      : WorkingMemoryChange(event, event->skipped, event->firstSkippedRevision) {}
 
-  Operation operation() const { return ev_.operation; }
-  std::uint64_t revision() const { return ev_.revision; }
-  const std::string& type() const { return ev_.type; }
-  std::uint64_t version() const { return ev_.version; }
-  const std::string& sourceComponent() const { return ev_.sourceComponent; }
-  const std::string& sourceSubarchitecture() const { return ev_.sourceSubarchitecture; }
-  std::int64_t timeNs() const { return ev_.timeNs; }
-  const WorkingMemoryAddress& address() const { return ev_.address; }
-  const std::string& id() const { return ev_.address.id; }
-  const std::string& subarchitecture() const { return ev_.address.subarchitecture; }
+  Operation operation() const { return ev_->operation; }
+  std::uint64_t revision() const { return ev_->revision; }
+  const std::string& type() const { return ev_->type; }
+  std::uint64_t version() const { return ev_->version; }
+  const std::string& sourceComponent() const { return ev_->sourceComponent; }
+  const std::string& sourceSubarchitecture() const { return ev_->sourceSubarchitecture; }
+  std::int64_t timeNs() const { return ev_->timeNs; }
+  const WorkingMemoryAddress& address() const { return ev_->address; }
+  const std::string& id() const { return ev_->address.id; }
+  const std::string& subarchitecture() const { return ev_->address.subarchitecture; }
+  // With Delivery::Latest: how many earlier changes of this entry the watch
+  // did not receive because this one replaced them (0: none), and the
+  // revision of the oldest of them (0: none); the skipped ones lie between
+  // it and revision(). Always 0 with Delivery::Queue.
+  std::uint64_t skipped() const { return skipped_; }
+  std::uint64_t firstSkippedRevision() const { return firstSkipped_; }
   // Whether the event carries the entry (a matching filter set includeEntry).
-  bool hasEntry() const { return ev_.entry.has_value(); }
+  bool hasEntry() const { return ev_->entry.has_value(); }
   // The entry carried by the event (after the write; for DELETE, as it was).
   template <class T>
   Entry<T> entry() const {
-    if (!ev_.entry) throw InvalidArgumentError("this change carries no entry: ask for it with includeEntry");
-    return detail::toEntry<T>(*ev_.entry);
+    if (!ev_->entry) throw InvalidArgumentError("this change carries no entry: ask for it with includeEntry");
+    return detail::toEntry<T>(*ev_->entry);
   }
 
  private:
-  detail::EventRecord ev_;
+  std::shared_ptr<const detail::EventRecord> ev_;
+  std::uint64_t skipped_ = 0;
+  std::uint64_t firstSkipped_ = 0;
 };
 
 std::ostream& operator<<(std::ostream& os, const WorkingMemoryChange& change);

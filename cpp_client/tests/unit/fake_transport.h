@@ -141,8 +141,9 @@ class FakeTransport : public detail::Transport {
   }
 
   std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
-                                             const std::map<std::string, std::uint64_t>&) override {
+                                             const std::map<std::string, std::uint64_t>&, Delivery delivery) override {
     std::lock_guard<std::mutex> lock(mu_);
+    deliveries[watchId] = delivery;
     if (failNextWatch) {
       failNextWatch = false;
       throw InvalidArgumentError("bad filter");
@@ -277,6 +278,7 @@ class FakeTransport : public detail::Transport {
   std::vector<google::protobuf::FileDescriptorSet> registered;
   std::vector<std::vector<detail::BatchOp>> batches;
   std::vector<std::uint32_t> cancelled;
+  std::map<std::uint32_t, Delivery> deliveries;  // what each watch asked for
   std::vector<std::string> retracted;
   std::vector<std::pair<std::string, TaskOutcome>> completed;
   std::vector<std::pair<std::string, double>> reports;

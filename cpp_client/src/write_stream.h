@@ -1,0 +1,84 @@
+// A component's writes and locks on one WorkingMemory.Write stream per server
+// (docs/client-protocol.md, "Write stream"): private to the gRPC transport,
+// which sends every add, overwrite, delete, batch, lock and unlock here.
+// Mirrors the Python client's client/write_stream.py.
+//
+// A unary call costs a whole gRPC call each way; on the stream a write is
+// part of a message each way, and many may be in flight (send() returns at
+// once, the reply comes later, matched by id). A message carries every
+// request queued while the one before it was being written, so writes in
+// flight share the cost of a message (WriteRequests). Writes are sent in call
+// order on one stream, which the server applies in arrival order, so a
+// component's writes keep their order.
+//
+// The stream is opened on the first write. The token is checked before each
+// send (TokenSource stats its file at most once a second): when it was
+// renewed, the stream is replaced by one opened with the new token, after the
+// old one's outstanding requests were answered (so no write overtakes an
+// earlier one). A stream that breaks fails its outstanding requests with
+// UnavailableError, as a broken unary call, and the next write opens a new
+// one.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <future>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "backoff.h"
+#include "grpc_server.h"
+
+namespace cast::detail {
+
+// What a request's sender gets back: the reply (which may carry the error the
+// unary call would have ended with), or, when no reply will come, the error
+// why (the stream broke, the connection is closed).
+using ReplyHandler = std::function<void(const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed)>;
+
+// The error a reply carries, as the unary call would have thrown it (the
+// precise class the server named); nullptr for a reply with a result.
+std::shared_ptr<CastError> replyError(const v1::WriteReply& reply);
+
+class WriteStream {
+ public:
+  WriteStream(Server& server, std::shared_ptr<TokenSource> tokens);
+  ~WriteStream();
+  WriteStream(const WriteStream&) = delete;
+  WriteStream& operator=(const WriteStream&) = delete;
+
+  // Sends `request` (its id is set here) and calls `onReply` once, on the
+  // stream's reader thread or right here: keep it short, it holds up the
+  // replies behind it. `direct`: when nothing else is being sent, write it
+  // from this thread at once (a caller that waits for the reply); otherwise
+  // it goes to the stream's writer thread with whatever queues up behind it.
+  void send(v1::WriteRequest& request, ReplyHandler onReply, bool direct);
+  // Sends `request` and waits up to `timeout` (nullopt: as long as it takes)
+  // for its reply, DeadlineExceededError past it. A reply's error is thrown as
+  // the unary call would throw it; a refused token is read again from its
+  // file once, and the request sent again if it changed (a refused request
+  // changed nothing).
+  v1::WriteReply call(v1::WriteRequest request, std::optional<Millis> timeout);
+  // Sends an add or overwrite and returns at once: the future of its result,
+  // or of the error call() would have thrown.
+  std::future<WriteResult> writeAsync(v1::WriteRequest request);
+  // Stops sending (later writes fail with UnavailableError), waits up to
+  // `grace` for the outstanding replies, then ends the stream.
+  void close(Millis grace = Millis(2000));
+
+ private:
+  struct Call;
+  std::shared_ptr<Call> current(const std::string& token);
+
+  Server& server_;
+  std::shared_ptr<TokenSource> tokens_;
+  std::mutex openMu_;   // held while choosing, replacing or opening the call
+  std::mutex stateMu_;  // guards call_ and closed_ (close() takes it without waiting for an opening)
+  std::shared_ptr<Call> call_;
+  bool closed_ = false;
+};
+
+}  // namespace cast::detail
