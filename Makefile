@@ -153,8 +153,9 @@ $(JAVA_DEMO_JAR): $(JAVA_DEMO_SOURCES) $(JAVA_JAR)
 
 java-demo: java $(JAVA_DEMO_JAR)
 
-# JUnit tests on the classes `make java` compiled, with Surefire's summary.
-test-java: java
+# JUnit tests on the classes `make java` compiled, with Surefire's summary. Some run a real
+# server (`cast serve` from .venv, java_client/src/test/java/cast/client/RealServer.java).
+test-java: setup proto java
 	cd java_client && $(MVN) surefire:test
 
 # The Node.js example component (examples/node): Debian's nodejs and npm when node or npm is

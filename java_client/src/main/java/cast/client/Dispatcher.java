@@ -86,6 +86,13 @@ final class Dispatcher {
     return thread;
   }
 
+  /** Whether {@link #stop} was called. */
+  boolean isStopped() {
+    synchronized (lock) {
+      return stopped;
+    }
+  }
+
   /** Calls queued or running. */
   long pending() {
     synchronized (lock) {

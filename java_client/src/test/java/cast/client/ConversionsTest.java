@@ -22,6 +22,10 @@ class ConversionsTest {
     for (TaskOutcome o : TaskOutcome.values()) {
       assertEquals("TASK_OUTCOME_" + o.name(), Conversions.outcome(o).name());
     }
+    for (Delivery d : Delivery.values()) {
+      assertEquals("DELIVERY_" + d.name(), Conversions.delivery(d).name());
+    }
+    assertEquals(cast.v1.Delivery.DELIVERY_QUEUE, Conversions.delivery(Delivery.QUEUE), "the wire's default");
     for (ComponentState s : ComponentState.values()) {
       assertEquals("COMPONENT_STATE_" + s.name(), Conversions.state(s).name());
     }
@@ -61,6 +65,37 @@ class ConversionsTest {
     assertEquals(value, got.value());
     assertEquals(Instant.ofEpochSecond(10, 20), got.modified());
     assertEquals(List.of(2L, 5L, "w"), List.of(got.version(), got.revision(), got.author()));
+  }
+
+  @Test
+  void anEventSaysWhatALatestWatchSkippedAndANewerChangeInTheQueueAddsToIt() {
+    var address = cast.v1.EntryAddress.newBuilder().setId("x").setSubarchitecture("vision");
+    var event = cast.v1.ChangeEvent.newBuilder().setRevision(9).setOperation(cast.v1.Operation.OPERATION_OVERWRITE)
+        .setAddress(address).addWatchIds(1);
+    Transport.Change none = Conversions.change(event.build());
+    assertEquals(List.of(0L, 0L), List.of(none.skipped(), none.firstSkippedRevision()));
+    Transport.Change older = Conversions.change(event.setSkipped(3).setFirstSkippedRevision(5).build());
+    assertEquals(List.of(3L, 5L), List.of(older.skipped(), older.firstSkippedRevision()));
+    // The server skipped 5..8 for the older (9); a newer one (12, itself skipping 10..11) replaces it in the queue.
+    Transport.Change newer = Conversions.change(event.setRevision(12).setSkipped(2).setFirstSkippedRevision(10).build());
+    Transport.Change merged = newer.superseding(older);
+    assertEquals(List.of(12L, 6L, 5L), List.of(merged.revision(), merged.skipped(), merged.firstSkippedRevision()));
+    // Neither skipped anything: the newer skipped the older alone.
+    Transport.Change next = Conversions.change(event.setRevision(10).setSkipped(0).setFirstSkippedRevision(0).build());
+    Transport.Change replaced = next.superseding(none);
+    assertEquals(List.of(10L, 1L, 9L), List.of(replaced.revision(), replaced.skipped(), replaced.firstSkippedRevision()));
+  }
+
+  @Test
+  void aLockOnTheStreamCarriesItsTimeoutForTheServerToEndTheWait() {
+    assertEquals(0, Conversions.writeLock("vision", "x", LockMode.O, false, null).getTimeoutMs(), "forever");
+    assertEquals(0, Conversions.writeLock("vision", "x", LockMode.O, true, java.time.Duration.ofSeconds(3)).getTimeoutMs());
+    assertEquals(1500, Conversions.writeLock("vision", "x", LockMode.O, false, java.time.Duration.ofMillis(1500)).getTimeoutMs());
+    assertEquals(1, Conversions.writeLock("vision", "x", LockMode.O, false, java.time.Duration.ZERO).getTimeoutMs());
+    int longest = Conversions.writeLock("vision", "x", LockMode.ODR, false, java.time.Duration.ofDays(100)).getTimeoutMs();
+    assertEquals(Conversions.MAX_LOCK_TIMEOUT_MS, Integer.toUnsignedLong(longest), "as much as the uint32 carries");
+    var lock = Conversions.writeLock("motor", "y", LockMode.ODR, true, null).getLock();
+    assertEquals(List.of("motor", "y", true), List.of(lock.getAddress().getSubarchitecture(), lock.getAddress().getId(), lock.getNoWait()));
   }
 
   @Test

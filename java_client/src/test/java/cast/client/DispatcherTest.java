@@ -98,6 +98,68 @@ class DispatcherTest {
   }
 
   @Test
+  void theHighestPriorityPendingCallRunsFirstInArrivalOrderWithinOne() throws Exception {
+    Dispatcher d = new Dispatcher("prio", 100, LOG);
+    CountDownLatch busy = new CountDownLatch(1);
+    CountDownLatch release = new CountDownLatch(1);
+    List<String> order = Collections.synchronizedList(new ArrayList<>());
+    d.submit(
+        () -> {
+          busy.countDown();
+          try {
+            release.await();
+          } catch (InterruptedException e) {
+            Thread.currentThread().interrupt();
+          }
+        });
+    assertTrue(busy.await(5, TimeUnit.SECONDS));
+    d.submit(Priority.LOW, () -> order.add("low 1"));
+    d.submit(() -> order.add("hook")); // hooks are MEDIUM
+    d.submitBlocking(Priority.HIGH, () -> order.add("high 1"));
+    d.submit(Priority.LOW, () -> order.add("low 2"));
+    d.submit(Priority.HIGH, () -> order.add("high 2"));
+    release.countDown();
+    assertTrue(d.drain(Duration.ofSeconds(5)));
+    assertEquals(List.of("high 1", "high 2", "hook", "low 1", "low 2"), order);
+    d.stop(Duration.ofSeconds(1));
+  }
+
+  @Test
+  void stopRunsWhatIsQueuedAndDropsWhatComesAfter() throws Exception {
+    Dispatcher d = new Dispatcher("stop", 100, LOG);
+    CountDownLatch release = new CountDownLatch(1);
+    List<String> ran = Collections.synchronizedList(new ArrayList<>());
+    d.submit(
+        () -> {
+          try {
+            release.await();
+          } catch (InterruptedException e) {
+            Thread.currentThread().interrupt();
+          }
+        });
+    d.submit(Priority.LOW, () -> ran.add("queued before"));
+    Thread stopper = new Thread(() -> d.stop(Duration.ofSeconds(5)));
+    stopper.start();
+    assertTrue(eventuallyStopping(d));
+    d.submit(() -> ran.add("queued after"));
+    release.countDown();
+    stopper.join(5000);
+    assertFalse(d.thread().isAlive());
+    assertEquals(List.of("queued before"), ran);
+  }
+
+  private static boolean eventuallyStopping(Dispatcher d) throws InterruptedException {
+    // stop() returns only when the thread ends; its flag is set at once
+    for (int i = 0; i < 500; i++) {
+      if (d.isStopped()) {
+        return true;
+      }
+      Thread.sleep(2);
+    }
+    return false;
+  }
+
+  @Test
   void capacityMustBePositive() {
     assertThrows(InvalidArgumentError.class, () -> new Dispatcher("bad", 0, LOG));
   }

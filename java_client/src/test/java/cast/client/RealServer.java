@@ -140,6 +140,11 @@ final class RealServer implements AutoCloseable {
     return new Connection(transport, who -> {});
   }
 
+  /** SIGSTOP: the server takes requests into its socket and answers none, until killed. */
+  void pause() throws IOException, InterruptedException {
+    new ProcessBuilder("kill", "-STOP", Long.toString(process.pid())).inheritIO().start().waitFor();
+  }
+
   /** SIGKILL: the server is gone at once, its connections broken. */
   void kill() throws InterruptedException {
     process.destroyForcibly();
@@ -152,11 +157,16 @@ final class RealServer implements AutoCloseable {
   }
 
   @Override
-  public void close() throws InterruptedException {
+  public void close() throws InterruptedException, IOException {
     process.destroy(); // SIGTERM: the server stops cleanly
     if (!process.waitFor(10, TimeUnit.SECONDS)) {
       process.destroyForcibly();
       process.waitFor(10, TimeUnit.SECONDS);
+    }
+    try (var files = Files.walk(dir)) {
+      for (Path p : files.sorted(java.util.Comparator.reverseOrder()).toList()) {
+        Files.deleteIfExists(p);
+      }
     }
   }
 

@@ -1,0 +1,130 @@
+package cast.client;
+
+import static org.junit.jupiter.api.Assertions.*;
+
+import com.google.protobuf.Int64Value;
+import java.nio.file.Files;
+import java.nio.file.Path;
+import java.nio.file.StandardCopyOption;
+import java.time.Duration;
+import java.util.ArrayList;
+import java.util.List;
+import java.util.concurrent.CompletableFuture;
+import java.util.concurrent.ExecutionException;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicReference;
+import org.junit.jupiter.api.Test;
+
+/**
+ * The Write stream when things go wrong, against real servers ({@link RealServer}, one per
+ * test): a server that dies fails the writes in flight with UnavailableError and the next
+ * write opens a new stream; a renewed token goes on a new stream; closing waits for the
+ * replies of writes in flight.
+ */
+class WriteStreamFaultsTest {
+  @Test
+  void aBrokenStreamFailsTheWritesInFlightAndTheNextWriteOpensANewOne() throws Exception {
+    try (RealServer server = new RealServer()) {
+      RealServer.Calls calls = new RealServer.Calls();
+      try (Connection holder = server.connect("holder", "vision", false, null);
+          Connection waiter = server.connect("waiter", "vision", false, calls)) {
+        waiter.add("e", Int64Value.of(0));
+        holder.lock("e", LockMode.OD);
+        // A lock that waits for the holder, then writes sent to a server that no longer answers.
+        AtomicReference<Throwable> lockFailure = new AtomicReference<>();
+        Thread locking =
+            new Thread(
+                () -> {
+                  try {
+                    waiter.lock("e", LockMode.OD, Duration.ofSeconds(60));
+                  } catch (Throwable t) {
+                    lockFailure.set(t);
+                  }
+                });
+        locking.start();
+        Thread.sleep(300); // the lock request reaches the server and waits there
+        server.pause();
+        List<CompletableFuture<WriteResult>> inFlight = new ArrayList<>();
+        for (int i = 1; i <= 3; i++) {
+          inFlight.add(waiter.overwriteAsync("e", Int64Value.of(i)));
+        }
+        server.kill();
+        locking.join(30_000);
+        assertInstanceOf(UnavailableError.class, lockFailure.get());
+        String message = lockFailure.get().getMessage();
+        assertTrue(message.startsWith("the write stream to " + server.endpoint() + " broke ("), message);
+        assertTrue(message.contains("may or may not have been applied"), message);
+        for (CompletableFuture<WriteResult> f : inFlight) {
+          ExecutionException e = assertThrows(ExecutionException.class, () -> f.get(30, TimeUnit.SECONDS));
+          assertInstanceOf(UnavailableError.class, e.getCause());
+        }
+        // The same address again, an empty memory: the next write that gets through is on a new stream.
+        server.restart();
+        RealServer.waitFor(
+            () -> {
+              try {
+                waiter.add("after", Int64Value.of(1));
+                return true;
+              } catch (UnavailableError e) {
+                return false; // the channel is still connecting
+              }
+            },
+            Duration.ofSeconds(30),
+            "a write after the restart");
+        assertEquals(1, waiter.get("after", Int64Value.class).getValue());
+        assertTrue(calls.count("WorkingMemory/Write") >= 2, calls.methods.toString());
+      }
+    }
+  }
+
+  @Test
+  void aRenewedTokenGoesOnANewStreamAndARefusedWriteIsSentOnceMoreWithIt() throws Exception {
+    try (RealServer server = new RealServer()) {
+      Path file = Files.createTempFile("cast-junit-token", "");
+      long expires = System.currentTimeMillis() / 1000 + 2;
+      Files.writeString(file, RealServer.token("renewed", "vision", false, expires));
+      RealServer.Calls calls = new RealServer.Calls();
+      LaunchContract contract =
+          new LaunchContract(server.endpoint(), "renewed", "vision", "", Args.empty(), null, file.toString());
+      try (Connection wm = server.connect(contract, calls)) {
+        wm.add("t", Int64Value.of(1));
+        RealServer.waitFor(
+            () -> System.currentTimeMillis() / 1000.0 > expires + 0.3, Duration.ofSeconds(10), "the token to expire");
+        UnauthenticatedError expired =
+            assertThrows(UnauthenticatedError.class, () -> wm.overwrite("t", Int64Value.of(2)));
+        assertTrue(expired.getMessage().contains("expired"), expired.getMessage());
+        // Renewed as the orchestrator does (write and rename). The file was just checked, so the
+        // next write goes with the old token, is refused, and goes again on a new stream.
+        Path next = file.resolveSibling(file.getFileName() + ".new");
+        Files.writeString(next, RealServer.token("renewed", "vision", false, 0));
+        Files.move(next, file, StandardCopyOption.REPLACE_EXISTING, StandardCopyOption.ATOMIC_MOVE);
+        wm.overwrite("t", Int64Value.of(3));
+        assertEquals(3, wm.get("t", Int64Value.class).getValue());
+        assertEquals(2, calls.count("WorkingMemory/Write"), calls.methods.toString());
+      } finally {
+        Files.deleteIfExists(file);
+      }
+    }
+  }
+
+  @Test
+  void closingWaitsForTheRepliesOfWritesInFlightAndRefusesLaterOnes() throws Exception {
+    try (RealServer server = new RealServer()) {
+      Connection wm = server.connect("closer", "vision", false, null);
+      wm.add("c", Int64Value.of(0));
+      List<CompletableFuture<WriteResult>> inFlight = new ArrayList<>();
+      for (int i = 1; i <= 100; i++) {
+        inFlight.add(wm.overwriteAsync("c", Int64Value.of(i)));
+      }
+      wm.close();
+      for (CompletableFuture<WriteResult> f : inFlight) {
+        assertNotNull(f.get(10, TimeUnit.SECONDS), "answered before the stream closed");
+      }
+      UnavailableError closed = assertThrows(UnavailableError.class, () -> wm.add("d", Int64Value.of(1)));
+      assertTrue(closed.getMessage().contains("is closed"), closed.getMessage());
+      try (Connection reader = server.connect("reader", "vision", false, null)) {
+        assertEquals(100, reader.get("c", Int64Value.class).getValue());
+      }
+    }
+  }
+}
