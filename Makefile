@@ -61,7 +61,7 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
-test-python: setup proto examples bench-deps node grpcurl web-deps
+test-python: setup proto examples bench-deps export-deps node grpcurl web-deps
 	$(PY) -m pytest -q tests
 
 test: test-cpp test-java java-demo test-python
@@ -78,6 +78,13 @@ experiment: setup proto examples
 # The long variants of tests/reliability (CAST_SOAK=1); figures go to build/reliability-figures.json.
 soak: setup proto examples
 	CAST_SOAK=1 $(PY) -m pytest -q tests/reliability --timeout 1800
+
+# systemd-analyze, which tests/export checks the units of `cast export --to systemd` with (Debian's
+# systemd; `verify` reads unit files and needs no running systemd). Installed only when missing.
+.PHONY: export-deps
+export-deps:
+	@command -v systemd-analyze >/dev/null || { echo "installing Debian's systemd (systemd-analyze)"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q systemd; }
 
 # Redis is the peer the benchmarks compare against (Debian's redis-server).
 bench-deps:

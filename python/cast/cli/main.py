@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import agent, foxglove, inspection, record, replay, run, serve, sweep, token, web
+from cast.cli import agent, export, foxglove, inspection, record, replay, run, serve, sweep, token, web
 from cast.errors import CastError
 from cast.version import version_line
 
@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_commands(sub)
     foxglove.add_command(sub)
     sweep.add_command(sub)
+    export.add_command(sub)
     web.add_command(sub)
     return parser
 

@@ -14,6 +14,7 @@ from rich.console import Console
 
 from cast.cli.options import parse_sets
 from cast.config import SystemConfig, read_config
+from cast.config.engines import ENGINES, read_for_engine
 from cast.config.problems import Problems
 from cast.liveview.sink import DEFAULT_LISTEN
 from cast.orchestrator.preflight import preflight
@@ -23,7 +24,10 @@ __all__ = ["add_commands"]
 
 
 def _validated(args: argparse.Namespace, builds_required: bool) -> tuple[SystemConfig | None, Problems]:
-    config, problems = read_config(args.config, parse_sets(args.set))
+    if getattr(args, "to", None):  # cast check --to ENGINE: also what the engine cannot express (docs/deploy.md)
+        config, problems = read_for_engine(args.config, args.to, Path.cwd(), parse_sets(args.set))
+    else:
+        config, problems = read_config(args.config, parse_sets(args.set))
     if config is not None and not problems.errors:
         preflight(config, problems, builds_required=builds_required)
         if getattr(args, "probe", False):
@@ -112,6 +116,8 @@ def add_commands(sub: Any) -> None:
     check.add_argument("--probe", action="store_true",
                        help="also ask each host's cast agent whether it is up and could launch its components "
                             "(signs with $CAST_SECRET_FILE / $CAST_SECRET, the secret the agents were given)")
+    check.add_argument("--to", choices=ENGINES, help="also refuse what this engine cannot run, as `cast export --to "
+                                                     "ENGINE` would (docs/deploy.md); run from the checkout's root")
     check.set_defaults(fn=_check)
 
     run = sub.add_parser("run", help="start a system: servers, every component, live status; Ctrl-C stops it")

@@ -19,6 +19,7 @@ __all__ = [
     "AuthConfig",
     "ComponentConfig",
     "HostConfig",
+    "ImagesConfig",
     "OrchestratorOptions",
     "PersistenceConfig",
     "RestartPolicy",
@@ -187,6 +188,28 @@ class HostConfig:
 
 
 @dataclass
+class ImagesConfig:
+    """Container images for ``cast export --to kubernetes`` (docs/deploy.md): one per language runtime.
+
+    ``python`` also runs the servers and the token containers. ``components``
+    gives a component an image of its own (needed by ``language: other`` ones).
+    The defaults are the tags docs/deploy.md builds from ``deploy/images/``.
+    """
+
+    python: str = "cast-python:0.1.0"
+    cpp: str = "cast-cpp:0.1.0"
+    java: str = "cast-java:0.1.0"
+    pull_policy: str = "IfNotPresent"
+    components: dict[str, str] = field(default_factory=dict)
+
+    def for_component(self, comp: ComponentConfig) -> str:
+        """The image a component's container runs ("" for an ``other`` one without an image of its own)."""
+        if comp.id in self.components:
+            return self.components[comp.id]
+        return {"python": self.python, "cpp": self.cpp, "java": self.java}.get(comp.language, "")
+
+
+@dataclass
 class OrchestratorOptions:
     """How ``cast run`` supervises the system."""
 
@@ -211,6 +234,7 @@ class SystemConfig:
     tls: TlsConfig | None = None
     auth: AuthConfig = field(default_factory=AuthConfig)
     hosts: dict[str, HostConfig] = field(default_factory=dict)
+    images: ImagesConfig = field(default_factory=ImagesConfig)  # for cast export --to kubernetes
 
     def __post_init__(self) -> None:
         if not self.servers:

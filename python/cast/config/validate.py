@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from cast.config.commands import component_run
+from cast.config.images import build_images
 from cast.config.model import (
     LOCAL_HOST,
     AuthConfig,
@@ -495,4 +496,5 @@ def build_config(tree: SourceTree) -> SystemConfig:
     config = _Builder(tree).build()
     config.variables = dict(tree.variables.used)
     config.files = list(tree.files)
+    config.images = build_images(tree.root, config, tree.problems)  # ties images: to the components
     return config
