@@ -84,6 +84,7 @@ function showView() {
     document.getElementById(`view-${name}`).classList.toggle("active", name === view);
     document.querySelector(`nav a[data-view="${name}"]`).classList.toggle("active", name === view);
   }
+  memories.show(view === "memories");
   render();
 }
 

@@ -31,7 +31,14 @@ export class Memories {
     this.changes = [];
     this.pending = null;
     this.valueVersion = null;
+    this.active = false; // whether the view is shown
     document.getElementById("wm-type").addEventListener("change", (e) => { this.type = e.target.value; this.load(); });
+  }
+
+  /** Shown or hidden: when shown again, the entries and the selected value are brought up to date. */
+  show(active) {
+    if (active && !this.active) { this.load(); this.refreshValue(); }
+    this.active = active;
   }
 
   /** The SAs are known (every state): draw the SA buttons; choose the first SA once. */
@@ -52,9 +59,10 @@ export class Memories {
     this.changes.push(...items);
     if (this.changes.length > 200) this.changes.splice(0, this.changes.length - 200);
     this.drawChanges();
-    if (items.some((c) => c.gap || c.subarchitecture === this.sa)) this.later(() => this.load());
+    // Reloaded only while shown: a busy robot's changes must not keep a hidden tab asking for entries.
+    if (this.active && items.some((c) => c.gap || c.subarchitecture === this.sa)) this.later(() => this.load());
     const sel = this.selected;
-    if (sel && items.some((c) => c.subarchitecture === sel.sa && c.id === sel.id)) this.refreshValue();
+    if (this.active && sel && items.some((c) => c.subarchitecture === sel.sa && c.id === sel.id)) this.refreshValue();
   }
 
   /** Fetch the selected value again: one request at a time, and one more after it if it changed meanwhile. */
