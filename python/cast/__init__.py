@@ -5,6 +5,7 @@ a component author needs is importable from ``cast``.
 """
 
 from cast.client.component import Component, LockGuard, ManagedComponent, UnmanagedComponent, WatchHandle
+from cast.client.delivery import Delivery, Priority
 from cast.client.filters import (
     ChangeFilter,
     address_filter,
@@ -43,6 +44,7 @@ __all__ = [
     "ConsistencyError",
     "DeadlineExceededError",
     "Decision",
+    "Delivery",
     "Entry",
     "HistoryExpiredError",
     "InternalError",
@@ -54,6 +56,7 @@ __all__ = [
     "NotFoundError",
     "Operation",
     "PermissionDeniedError",
+    "Priority",
     "ResourceExhaustedError",
     "Task",
     "TaskOutcome",

@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 from google.protobuf.message import Message
 
+from cast.client.delivery import Delivery, LatestSlots, Priority, delivery_of, priority_of
 from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
 from cast.client.transport import Transport
@@ -108,7 +109,9 @@ class Component:
         self._identity: Identity = transport.identity
         self._dispatcher = Dispatcher(self._identity.component_id, self.max_pending_callbacks)
         self._dispatcher.on_space = transport.pump
-        self._callbacks: dict[int, tuple[Callable[[WorkingMemoryChange], None], WatchHandle]] = {}
+        # watch id -> (callback, handle, dispatcher priority, latest delivery)
+        self._callbacks: dict[int, tuple[Callable[[WorkingMemoryChange], None], WatchHandle, int, bool]] = {}
+        self._latest = LatestSlots()
         self._watch_ids = itertools.count(1)
         self._registered_types: set[str] = set()
         self._schema_lock = threading.Lock()
@@ -336,43 +339,66 @@ class Component:
         self,
         filters: ChangeFilter | Sequence[ChangeFilter],
         callback: Callable[[WorkingMemoryChange], None],
+        *,
+        delivery: Delivery | str = Delivery.QUEUE,
+        priority: Priority | str = Priority.MEDIUM,
     ) -> WatchHandle:
         """Call ``callback(change)`` on the dispatcher thread for each matching change, in revision order.
 
         Several filters are ORed. Changes made after this returns are never
-        missed.
+        missed. ``delivery="latest"`` is for fast data read by a slower
+        callback: of the changes of one entry not yet handed to it, only the
+        newest is, with ``change.skipped`` saying how many it replaced (the
+        server conflates what waits on its side too). ``priority`` ("high",
+        "medium", "low") orders this component's pending callbacks.
         """
         flist = [filters] if isinstance(filters, ChangeFilter) else list(filters)
         if not flist:
             raise InvalidArgumentError("on_change needs at least one filter")
+        latest = delivery_of(delivery) is Delivery.LATEST
+        level = priority_of(priority)
         watch_id = next(self._watch_ids)
         handle = WatchHandle(self, watch_id)
-        self._callbacks[watch_id] = (callback, handle)
+        self._callbacks[watch_id] = (callback, handle, level, latest)
         try:
-            self._transport.watch(watch_id, [f.resolve(self.subarchitecture) for f in flist])
+            self._transport.watch(watch_id, [f.resolve(self.subarchitecture) for f in flist], latest=latest)
         except BaseException:
             self._callbacks.pop(watch_id, None)
             raise
         return handle
 
     def _cancel_watch(self, watch_id: int) -> None:
-        if self._callbacks.pop(watch_id, None) is not None:
+        registered = self._callbacks.pop(watch_id, None)
+        if registered is not None:
             self._transport.cancel_watch(watch_id)
+            if registered[3]:
+                self._latest.drop(watch_id)
 
     def _on_event(self, event: ChangeEvent, watch_ids: Sequence[int]) -> None:
-        change = WorkingMemoryChange(event)
         for wid in watch_ids:
             registered = self._callbacks.get(wid)
-            if registered is not None:
-                self._dispatcher.submit(self._deliver, wid, change, block=self._block_on_full)
+            if registered is None:
+                continue
+            change = WorkingMemoryChange(event)  # one each: a latest watch's counts are its own
+            if registered[3]:
+                key = (wid, event.subarchitecture, event.id)
+                if self._latest.offer(key, change):
+                    self._dispatcher.submit(self._deliver_latest, wid, key, block=False, priority=registered[2])
+            else:
+                self._dispatcher.submit(self._deliver, wid, change, block=self._block_on_full, priority=registered[2])
 
     def _deliver(self, watch_id: int, change: WorkingMemoryChange) -> None:
         registered = self._callbacks.get(watch_id)
         if registered is not None:  # cancelled while queued: drop
             registered[0](change)
 
+    def _deliver_latest(self, watch_id: int, key: tuple[int, str, str]) -> None:
+        change = self._latest.take(key)  # the newest by now, whatever arrived since this was queued
+        if change is not None:
+            self._deliver(watch_id, change)
+
     def _on_watch_error(self, error: CastError) -> None:
-        for _, handle in list(self._callbacks.values()):
+        for _, handle, _, _ in list(self._callbacks.values()):
             handle.error = error
         self._dispatcher.submit(self.watch_failed, error)
 

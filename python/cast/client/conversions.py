@@ -75,7 +75,7 @@ def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:
 
 def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
     """Record form of a wire event (client side); ``seq`` is 0."""
-    return ChangeEvent(
+    event = ChangeEvent(
         0,
         pb.revision,
         Operation(pb.operation),
@@ -88,6 +88,9 @@ def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
         ns(pb.time),
         entry_from_pb(pb.entry) if pb.HasField("entry") else None,
     )
+    if pb.skipped:
+        event.skipped, event.first_skipped_revision = pb.skipped, pb.first_skipped_revision
+    return event
 
 
 def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:

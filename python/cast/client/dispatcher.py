@@ -1,13 +1,17 @@
-"""One thread per component that runs its callbacks, one at a time, in arrival order."""
+"""One thread per component that runs its callbacks, one at a time: highest priority first, then in arrival order."""
 
 from __future__ import annotations
 
 import logging
 import queue
 import threading
+from collections import deque
 from collections.abc import Callable
 
-__all__ = ["Dispatcher"]
+__all__ = ["HIGH", "LOW", "MEDIUM", "Dispatcher"]
+
+HIGH, MEDIUM, LOW = 0, 1, 2
+"""Priorities of queued calls: the dispatcher takes the highest pending one first (FIFO within one)."""
 
 log = logging.getLogger("cast.component")
 
@@ -23,7 +27,10 @@ class Dispatcher:
     """
 
     def __init__(self, name: str, capacity: int = 10_000) -> None:
-        self._queue: queue.SimpleQueue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.SimpleQueue()
+        # One token per queued call wakes the thread; it then takes the oldest call of the highest priority
+        # (deque append and popleft are atomic, so the queues need no lock of their own).
+        self._queue: queue.SimpleQueue[bool | None] = queue.SimpleQueue()
+        self._calls: tuple[deque[tuple[Callable[..., object], tuple[object, ...]]], ...] = (deque(), deque(), deque())
         self._thread = threading.Thread(target=self._run, name=f"cast-dispatch-{name}", daemon=True)
         # A plain lock, taken directly on the common paths: the writer submits and
         # the dispatcher thread finishes a callback at nearly the same moment for
@@ -53,14 +60,15 @@ class Dispatcher:
         """The dispatcher thread (callbacks run on it)."""
         return self._thread
 
-    def submit(self, fn: Callable[..., object], *args: object, block: bool = True) -> None:
-        """Queue ``fn(*args)``; with ``block``, first wait while the queue is full."""
+    def submit(self, fn: Callable[..., object], *args: object, block: bool = True, priority: int = MEDIUM) -> None:
+        """Queue ``fn(*args)`` at ``priority`` (HIGH, MEDIUM, LOW); with ``block``, wait while the queue is full."""
         with self._lock:
             if block and self._pending >= self.capacity and threading.current_thread() is not self._thread:
                 self._was_full = True
                 self._wait_for(lambda: self._pending < self.capacity)
             self._pending += 1
-        self._queue.put((fn, args))
+        self._calls[priority].append((fn, args))
+        self._queue.put(True)
 
     def _wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
         # Called with _lock held.
@@ -72,10 +80,10 @@ class Dispatcher:
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
-            if item is None:
+            if self._queue.get() is None:
                 return
-            fn, args = item
+            calls = self._calls
+            fn, args = (calls[HIGH] or calls[MEDIUM] or calls[LOW]).popleft()
             try:
                 fn(*args)
             except Exception:

@@ -289,9 +289,13 @@ class GrpcTransport:
         """Nothing to do: the watch threads deliver as soon as the sink takes events."""
 
     def watch(
-        self, watch_id: int, filters: Sequence[EventFilter], start_revisions: dict[str, int] | None = None
+        self,
+        watch_id: int,
+        filters: Sequence[EventFilter],
+        start_revisions: dict[str, int] | None = None,
+        latest: bool = False,
     ) -> dict[str, int]:
-        """Create a watch on every server whose SAs its filters can match."""
+        """Create a watch on every server whose SAs its filters can match (``latest``: conflating delivery)."""
         if self._sink is None:
             raise RuntimeError("set_event_sink must be called before watch")
         targets: list[ServerLink] = []
@@ -307,7 +311,7 @@ class GrpcTransport:
                     server.watch_stream = WatchStream(server, self._tokens, self._sink, self._on_error, self._closing)
                 stream = server.watch_stream
             mine = {sa: r for sa, r in (start_revisions or {}).items() if self._server(sa) is server}
-            revisions.update(stream.create(watch_id, filters, mine, self._timeout))
+            revisions.update(stream.create(watch_id, filters, mine, self._timeout, latest))
         self._watch_servers[watch_id] = targets
         return revisions
 

@@ -158,15 +158,19 @@ class LocalTransport:
                     return
 
     def watch(
-        self, watch_id: int, filters: Sequence[EventFilter], start_revisions: dict[str, int] | None = None
+        self,
+        watch_id: int,
+        filters: Sequence[EventFilter],
+        start_revisions: dict[str, int] | None = None,
+        latest: bool = False,
     ) -> dict[str, int]:
-        """Create a watch."""
+        """Create a watch (``latest``: conflating delivery, see :meth:`cast.core.access.Access.watch`)."""
         if self._sink is None:
             raise RuntimeError("set_event_sink must be called before watch")
         with self._sub_lock:
             if self._sub is None:
                 self._sub = Subscription(self._host, self._wake)
-            revisions = self._access.watch(self._sub, watch_id, filters, start_revisions)
+            revisions = self._access.watch(self._sub, watch_id, filters, start_revisions, latest=latest)
         if start_revisions:
             self._wake()
         return revisions

@@ -85,8 +85,13 @@ class Transport(Protocol):
         watch_id: int,
         filters: Sequence[EventFilter],
         start_revisions: dict[str, int] | None = None,
+        latest: bool = False,
     ) -> dict[str, int]:
-        """Create a watch; return each SA's revision when it took effect."""
+        """Create a watch; return each SA's revision when it took effect.
+
+        ``latest``: delivery "latest" (the server sends only the newest of the
+        changes of an entry pending for this watch, with how many it skipped).
+        """
 
     def cancel_watch(self, watch_id: int) -> None:
         """Remove a watch."""

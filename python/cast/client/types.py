@@ -78,10 +78,20 @@ def entry_of(cls: type[M], record: EntryRecord) -> Entry[M]:
 class WorkingMemoryChange:
     """One change event as delivered to an ``on_change`` callback."""
 
-    __slots__ = ("_ev",)
+    __slots__ = ("_ev", "first_skipped_revision", "skipped")
 
     def __init__(self, event: ChangeEvent) -> None:
         self._ev = event
+        self.skipped: int = event.skipped
+        """For a ``delivery="latest"`` watch: how many earlier changes of this entry it replaced (0: none)."""
+        self.first_skipped_revision: int = event.first_skipped_revision
+        """The revision of the oldest change it replaced (0: none)."""
+
+    def replacing(self, older: WorkingMemoryChange) -> WorkingMemoryChange:
+        """This change, counting ``older`` (and what it replaced) as skipped: conflation in the client's queue."""
+        self.skipped += older.skipped + 1
+        self.first_skipped_revision = older.first_skipped_revision or older.revision
+        return self
 
     operation = property(lambda self: self._ev.operation, doc="ADD, OVERWRITE or DELETE.")
     revision = property(lambda self: self._ev.revision, doc="The WM revision of the change.")

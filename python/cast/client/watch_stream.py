@@ -26,10 +26,13 @@ log = logging.getLogger("cast.client")
 class _Watch:
     """What the client keeps of one watch so that it can be created again after a reconnect."""
 
-    __slots__ = ("base", "filters", "first_starts", "sas", "watch_id")
+    __slots__ = ("base", "filters", "first_starts", "latest", "sas", "watch_id")
 
-    def __init__(self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int]) -> None:
+    def __init__(
+        self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], latest: bool = False
+    ) -> None:
         self.watch_id = watch_id
+        self.latest = latest
         self.filters = list(filters)
         self.first_starts = starts
         self.sas: list[str] = []  # the SAs of this server the watch covers (known once created)
@@ -90,7 +93,7 @@ class WatchStream:
             history_id = self.history_id
         create = wm_pb2.WatchCreate(
             watch_id=w.watch_id, filters=[filter_to_pb(f) for f in w.filters], start_revisions=starts,
-            history_id=history_id,
+            history_id=history_id, delivery=wm_pb2.DELIVERY_LATEST if w.latest else wm_pb2.DELIVERY_QUEUE,
         )
         return wm_pb2.WatchRequest(create=create)
 
@@ -179,12 +182,20 @@ class WatchStream:
     # ---------------------------------------------------------------- API
 
     def create(
-        self, watch_id: int, filters: Sequence[EventFilter], starts: dict[str, int], timeout: float
+        self,
+        watch_id: int,
+        filters: Sequence[EventFilter],
+        starts: dict[str, int],
+        timeout: float,
+        latest: bool = False,
     ) -> dict[str, int]:
-        """Create a watch and wait (up to ``timeout``) for the server to confirm it; every WM's revision."""
+        """Create a watch and wait (up to ``timeout``) for the server to confirm it; every WM's revision.
+
+        ``latest``: the server conflates what is pending for it to the newest change per entry.
+        """
         done = threading.Event()
         box: list[Any] = []
-        w = _Watch(watch_id, filters, starts)
+        w = _Watch(watch_id, filters, starts, latest)
         with self._mutex:
             self._pending[watch_id] = (done, box)
             self._watches[watch_id] = w

@@ -21,14 +21,16 @@ import itertools
 import logging
 import queue
 import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import Future, InvalidStateError
+from typing import Any, cast
 
 import grpc
 
 from cast.client.channel import ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
-from cast.errors import CastError, DeadlineExceededError, UnavailableError, error_for_code
+from cast.errors import CastError, DeadlineExceededError, UnauthenticatedError, UnavailableError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
 __all__ = ["WriteStream", "reply_result"]
@@ -83,60 +85,147 @@ def _messages(requests: queue.SimpleQueue[wm_pb2.WriteRequest | None]) -> Iterat
 
 
 class _Call:
-    """One open Write call: its request queue, outstanding futures and the thread reading replies."""
+    """One open Write call: its request queue, outstanding futures, and who reads the replies.
+
+    Replies are read by a thread that waits for one (leader/follower): a
+    caller waiting for its own reply reads the stream itself while nobody
+    else does, settling every reply it finds, so a sequential write costs no
+    hand-off to a reader thread and back. The pump thread reads only for
+    futures nobody waits on (the async calls) and to see the end of a call
+    that broke while idle.
+    """
 
     def __init__(self, server: ServerLink, token: str) -> None:
         self.token = token
         self.endpoint = server.endpoint
         self.requests: queue.SimpleQueue[wm_pb2.WriteRequest | None] = queue.SimpleQueue()
         self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
+        self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
         self.lock = threading.Lock()
-        self.idle = threading.Condition(self.lock)  # notified when pending becomes empty
-        self.broken = False
+        self.changed = threading.Condition(self.lock)  # replies settled, reader left, or the call ended
+        self.reading = False  # a thread is reading the stream (at most one)
+        self.ended = False  # gRPC reported the call over: read what is left, then it is broken
+        self.broken = False  # over: nothing more will be read; the next write opens a new call
         self.ids = itertools.count(1)
         metadata = (("authorization", f"Bearer {token}"),)
-        self.responses = server.wm.Write(_messages(self.requests), metadata=metadata)
-        self.reader = threading.Thread(target=self._read, name="cast-write-replies", daemon=True)
-        self.reader.start()
+        # The stubs' type (an iterator) hides what the call object also is: a grpc.Future with a next().
+        self.responses: Any = cast(Any, server.wm.Write(_messages(self.requests), metadata=metadata))
+        self.responses.add_done_callback(self._on_done)
+        self.pump = threading.Thread(target=self._pump, name="cast-write-replies", daemon=True)
+        self.pump.start()
 
-    def send(self, request: wm_pb2.WriteRequest) -> Future[wm_pb2.WriteReply]:
+    def send(self, request: wm_pb2.WriteRequest, detached: bool) -> Future[wm_pb2.WriteReply]:
         """Queue ``request`` with the next id; the future of its reply. Call with :attr:`lock` held."""
         future: Future[wm_pb2.WriteReply] = Future()
         request.id = request_id = next(self.ids)
         self.pending[request_id] = future
+        if detached:
+            self.detached.add(request_id)
+            self.changed.notify_all()  # the pump reads for it
         self.requests.put(request)
         return future
 
-    def _read(self) -> None:
-        status = "the server ended it"
+    def _on_done(self, _: object) -> None:
+        with self.lock:
+            self.ended = True
+            self.changed.notify_all()
+
+    def _lead(self) -> bool:
+        """Read one message and settle its replies (the caller is the reader); False once the call is over."""
         try:
-            for message in self.responses:
-                with self.lock:
-                    pop = self.pending.pop
-                    settled = [(pop(reply.id, None), reply) for reply in message.replies]
-                    if not self.pending:
-                        self.idle.notify_all()
-                for future, reply in settled:
-                    if future is not None:
-                        _settle(future, reply, None)
+            message = next(self.responses)
+        except StopIteration:
+            self._fail(None, "the server ended it")
+            return False
         except grpc.RpcError as exc:
-            status = str(map_rpc_error(exc))
-        except Exception as exc:  # noqa: BLE001 - the thread must fail the outstanding calls whatever happened
-            status = f"{type(exc).__name__}: {exc}"
+            error = map_rpc_error(exc)
+            self._fail(error, str(error))
+            return False
+        except Exception as exc:  # noqa: BLE001 - whatever happened, the outstanding calls must fail
+            self._fail(None, f"{type(exc).__name__}: {exc}")
+            return False
+        with self.lock:
+            pop = self.pending.pop
+            settled = [(pop(reply.id, None), reply) for reply in message.replies]
+            for reply in message.replies:
+                self.detached.discard(reply.id)
+        for future, reply in settled:
+            if future is not None:
+                _settle(future, reply, None)
+        with self.lock:
+            self.changed.notify_all()  # followers whose reply this was, and drain()
+        return True
+
+    def _fail(self, error: CastError | None, status: str) -> None:
+        self.requests.put(None)  # ends the request iterator, and with it gRPC's thread that reads it
         with self.lock:
             self.broken = True
             left = list(self.pending.values())
             self.pending.clear()
-            self.idle.notify_all()
+            self.detached.clear()
         for future in left:
+            if error is not None and error.code == "UNAUTHENTICATED":
+                # Refused when it opened, before any request was read: nothing was applied.
+                _settle(future, None, error)
+                continue
             _settle(future, None, UnavailableError(
                 f"the write stream to {self.endpoint} broke ({status}): this write may or may not have been "
                 "applied; the client reconnects by itself, retry the call later"
             ))
+        with self.lock:
+            self.changed.notify_all()  # the waiters of what just failed
+
+    def _release(self) -> None:
+        with self.lock:
+            self.reading = False
+            self.changed.notify_all()
+
+    def wait(self, future: Future[wm_pb2.WriteReply], timeout: float | None) -> wm_pb2.WriteReply:
+        """The reply of ``future``: read the stream while nobody else does, else wait for who does.
+
+        ``timeout`` bounds the wait as a follower; the reader returns when the
+        reply arrives or the call breaks (keepalive finds a dead server within
+        seconds, and a lock's own wait is bounded by the server).
+        """
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            with self.lock:
+                while not future.done() and (self.reading or self.broken):
+                    remaining = None if end is None else end - time.monotonic()
+                    if remaining is not None and remaining <= 0:
+                        future.cancel()
+                        raise DeadlineExceededError(
+                            f"no reply to a write within {timeout} s: it may or may not have been applied"
+                        )
+                    self.changed.wait(remaining)
+                if future.done():
+                    break
+                self.reading = True
+            try:
+                while not future.done() and self._lead():
+                    pass
+            finally:
+                self._release()
+        return future.result()
+
+    def _pump(self) -> None:
+        while True:
+            with self.lock:
+                while not self.broken and (self.reading or not (self.detached or self.ended)):
+                    self.changed.wait()
+                if self.broken:
+                    return
+                self.reading = True
+            try:
+                alive = self._lead()
+            finally:
+                self._release()
+            if not alive:
+                return
 
     def drain(self, timeout: float) -> None:
         """Wait until every outstanding request is answered (or ``timeout``). Call with :attr:`lock` held."""
-        self.idle.wait_for(lambda: not self.pending, timeout)
+        self.changed.wait_for(lambda: not self.pending, timeout)
 
     def close(self) -> None:
         """Half-close: the server answers what it has and ends the call."""
@@ -144,7 +233,7 @@ class _Call:
 
     def cancel(self) -> None:
         """End the call now; outstanding requests fail."""
-        self.responses.cancel()  # type: ignore[no-untyped-call]
+        self.responses.cancel()
 
 
 class WriteStream:
@@ -157,8 +246,14 @@ class WriteStream:
         self._call: _Call | None = None
         self._closed = False
 
-    def submit(self, request: wm_pb2.WriteRequest) -> Future[wm_pb2.WriteReply]:
-        """Send ``request`` (its id is set here); the future of its reply (use :func:`reply_result`)."""
+    def submit(self, request: wm_pb2.WriteRequest, detached: bool = True) -> Future[wm_pb2.WriteReply]:
+        """Send ``request`` (its id is set here); the future of its reply (use :func:`reply_result`).
+
+        ``detached``: nobody will wait in :meth:`call` for it, so the pump thread reads its reply.
+        """
+        return self._submit(request, detached)[1]
+
+    def _submit(self, request: wm_pb2.WriteRequest, detached: bool) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
         token = self._tokens.token()
         with self._lock:
             if self._closed:
@@ -168,10 +263,15 @@ class WriteStream:
                 call = self._open(call, token)
             with call.lock:
                 if not call.broken:
-                    return call.send(request)
+                    return call, call.send(request, detached)
             call = self._open(call, token)  # it broke just now: one more try on a new call
             with call.lock:
-                return call.send(request)
+                if not call.broken:
+                    return call, call.send(request, detached)
+        raise UnavailableError(
+            f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
+            "was not sent; the client reconnects by itself, retry the call later"
+        )
 
     def _open(self, old: _Call | None, token: str) -> _Call:
         if old is not None and not old.broken:
@@ -187,20 +287,22 @@ class WriteStream:
         A refused token is re-read from its file once, and the request sent
         again if it changed (a refused request changed nothing).
         """
-        reply = self._wait(self.submit(request), timeout)
-        if reply.WhichOneof("result") == "error" and reply.error.code == "UNAUTHENTICATED" and self._tokens.refresh():
-            reply = self._wait(self.submit(request), timeout)
+        call, future = self._submit(request, detached=False)
+        try:
+            reply = call.wait(future, timeout)
+        except UnauthenticatedError:
+            if not self._tokens.refresh():
+                raise
+            reply = self._retry(request, timeout)
+        else:
+            refused = reply.WhichOneof("result") == "error" and reply.error.code == "UNAUTHENTICATED"
+            if refused and self._tokens.refresh():
+                reply = self._retry(request, timeout)
         return reply_result(reply)
 
-    @staticmethod
-    def _wait(future: Future[wm_pb2.WriteReply], timeout: float | None) -> wm_pb2.WriteReply:
-        try:
-            return future.result(timeout)
-        except TimeoutError:
-            future.cancel()
-            raise DeadlineExceededError(
-                f"no reply to a write within {timeout} s: it may or may not have been applied"
-            ) from None
+    def _retry(self, request: wm_pb2.WriteRequest, timeout: float | None) -> wm_pb2.WriteReply:
+        call, future = self._submit(request, detached=False)
+        return call.wait(future, timeout)
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop sending; wait up to ``timeout`` for outstanding replies, then end the stream."""
@@ -212,6 +314,6 @@ class WriteStream:
         with call.lock:
             call.drain(timeout)
         call.close()
-        call.reader.join(timeout)
-        if call.reader.is_alive():
+        call.pump.join(timeout)
+        if call.pump.is_alive():
             call.cancel()

@@ -199,15 +199,19 @@ class Access:
         filters: Sequence[EventFilter],
         start_revisions: Mapping[str, int] | None = None,
         history_id: str = "",
+        latest: bool = False,
     ) -> dict[str, int]:
-        """Add a watch to ``sub``; every WM's revision. A resume into another history is refused."""
+        """Add a watch to ``sub``; every WM's revision. A resume into another history is refused.
+
+        ``latest``: conflating delivery (:meth:`cast.core.watch.Subscription.add_watch`).
+        """
         if history_id and start_revisions and history_id != self.system.history_id:
             raise HistoryExpiredError(
                 f"this server's history ({self.system.history_id}) is not the one the watch resumes from "
                 f"({history_id}): the server restarted without it (no persistence, or writes lost in a crash); "
                 "resynchronise: read the current state, then watch from the current revision"
             )
-        return sub.add_watch(watch_id, filters, dict(start_revisions or {}))
+        return sub.add_watch(watch_id, filters, dict(start_revisions or {}), latest)
 
     def take(self, sub: Subscription, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
         """The events pending for ``sub`` (:meth:`Subscription.poll`), counted as delivered to this caller.
@@ -241,10 +245,14 @@ class Access:
 def event_for(access: Access, match: Match) -> ChangeEvent:
     """The event as this caller may see it: without its entry unless :meth:`Access.carries_entry`."""
     ev = match.event
-    if ev.entry is None or access.carries_entry(match):
+    carries = ev.entry is None or access.carries_entry(match)
+    if carries and not match.skipped:
         return ev
-    return ChangeEvent(ev.seq, ev.revision, ev.operation, ev.subarchitecture, ev.id, ev.type, ev.source_component,
-                       ev.source_subarchitecture, ev.version, ev.time_ns, None, ev.odr_holder)
+    copy = ChangeEvent(ev.seq, ev.revision, ev.operation, ev.subarchitecture, ev.id, ev.type, ev.source_component,
+                       ev.source_subarchitecture, ev.version, ev.time_ns, ev.entry if carries else None,
+                       ev.odr_holder)
+    copy.skipped, copy.first_skipped_revision = match.skipped, match.first_skipped
+    return copy
 
 
 # ------------------------------------------------------------------ drivers

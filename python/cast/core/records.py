@@ -121,11 +121,13 @@ class ChangeEvent:
 
     __slots__ = (
         "entry",
+        "first_skipped_revision",
         "id",
         "odr_holder",
         "operation",
         "revision",
         "seq",
+        "skipped",
         "source_component",
         "source_subarchitecture",
         "subarchitecture",
@@ -165,6 +167,10 @@ class ChangeEvent:
         # Encoded forms cached by the transport layer (without, with the entry), so
         # that fan-out to many watchers encodes each event once.
         self.wire: list[bytes | None] | None = None
+        # Set on the copy a latest-delivery watcher receives: the earlier changes of the entry it replaced
+        # (cast.core.watch). Always 0 in the history.
+        self.skipped = 0
+        self.first_skipped_revision = 0
 
     def __repr__(self) -> str:
         return (

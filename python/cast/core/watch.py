@@ -47,12 +47,15 @@ class EventFilter:
 class Match:
     """An event pending for a subscription, the watches it matched, and whether to send its entry."""
 
-    __slots__ = ("event", "include_entry", "watch_ids")
+    __slots__ = ("event", "first_skipped", "include_entry", "skipped", "watch_ids")
 
     def __init__(self, event: ChangeEvent, watch_ids: list[int], include_entry: bool) -> None:
         self.event = event
         self.watch_ids = watch_ids
         self.include_entry = include_entry
+        # Earlier changes of the entry this one replaced for latest-delivery watches, and the oldest's revision.
+        self.skipped = 0
+        self.first_skipped = 0
 
 
 @dataclass
@@ -61,6 +64,7 @@ class _Watch:
     filters: tuple[EventFilter, ...]
     sas: frozenset[str]  # the WMs its filters can match
     next: dict[str, int] = field(default_factory=dict)
+    latest: bool = False  # delivery "latest": pending changes of one entry conflate to the newest
 
 
 class Subscription:
@@ -97,12 +101,17 @@ class Subscription:
         watch_id: int,
         filters: Sequence[EventFilter],
         start_revisions: Mapping[str, int] | None = None,
+        latest: bool = False,
     ) -> dict[str, int]:
         """Add a watch; return every WM's current revision.
 
         ``start_revisions`` maps an SA to the first revision to deliver; other
         SAs start after their current revision. HistoryExpiredError if a start
         is older than the history, INVALID_ARGUMENT if it is in the future.
+        ``latest``: of the changes of one entry pending at a poll, deliver only
+        the newest, counting the others in its :attr:`Match.skipped` (for fast
+        data read by slower consumers: what piles up while the consumer is
+        behind is one change per entry, never a queue).
         """
         if watch_id in self._watches:
             raise InvalidArgumentError(f"watch id {watch_id} is already in use on this stream: pick another")
@@ -131,7 +140,7 @@ class Subscription:
                 raise InvalidArgumentError(f"start revision for subarchitecture '{sa}' must be >= 1, got {start}")
             self._host.events_since(sa, start)  # raises HistoryExpiredError if too old
         nxt = {sa: starts.get(sa, revisions[sa] + 1) for sa in sas}
-        self._watches[watch_id] = _Watch(watch_id, tuple(filters), frozenset(sas), nxt)
+        self._watches[watch_id] = _Watch(watch_id, tuple(filters), frozenset(sas), nxt, latest)
         self._by_sa = None
         self.with_values = self.with_values or any(f.include_entry for f in filters)
         if starts:
@@ -167,7 +176,10 @@ class Subscription:
             events = self._host.events_since(sa, start)
             if not events:
                 continue
-            matches = []
+            matches: list[Match | None] = []
+            latest = {w.watch_id for w in watches if w.latest}
+            newest: dict[str, int] = {}  # entry id -> index in matches of its conflatable change
+            conflated = False
             last = start
             for ev in events:
                 last = ev.revision + 1
@@ -182,7 +194,22 @@ class Subscription:
                             include = include or f.include_entry
                             break
                 if ids:
-                    matches.append(Match(ev, ids, include))
+                    match = Match(ev, ids, include)
+                    if latest and latest.issuperset(ids):
+                        at = newest.get(ev.id)
+                        older = matches[at] if at is not None else None
+                        if older is not None and older.watch_ids == ids:
+                            # The newer change replaces the older one, which gives back its budget.
+                            match.skipped = older.skipped + 1
+                            match.first_skipped = older.first_skipped or older.event.revision
+                            matches[at] = None  # type: ignore[index]
+                            conflated = True
+                            if max_events:
+                                budget_events += 1
+                            if max_bytes and older.include_entry and older.event.entry is not None:
+                                budget_bytes += len(older.event.entry.data)
+                        newest[ev.id] = len(matches)
+                    matches.append(match)
                     if max_events:
                         budget_events -= 1
                     if max_bytes and include and ev.entry is not None:
@@ -193,9 +220,10 @@ class Subscription:
                         break
             for w in watches:
                 w.next[sa] = max(w.next[sa], last)
-            if matches:
-                per_sa.append(matches)
-                polled.append((sa, len(matches)))
+            kept = [m for m in matches if m is not None] if conflated else matches
+            if kept:
+                per_sa.append(kept)  # type: ignore[arg-type]  # no None left once conflated ones are out
+                polled.append((sa, len(kept)))
         if len(per_sa) == 1:
             return per_sa[0]
         return list(heapq.merge(*per_sa, key=lambda m: m.event.seq))

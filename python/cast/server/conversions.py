@@ -92,20 +92,25 @@ def event_wire(ev: ChangeEvent, include_entry: bool) -> bytes:
 
 _EVENTS_TAG = b"\x0a"  # WatchResponse.events: field 1, length-delimited
 _WATCH_IDS_TAG = b"\x52"  # ChangeEvent.watch_ids: field 10, packed
+_SKIPPED_TAG = b"\x58"  # ChangeEvent.skipped: field 11, varint
+_FIRST_SKIPPED_TAG = b"\x60"  # ChangeEvent.first_skipped_revision: field 12, varint
 
 
-def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool]]) -> bytes:
-    """An encoded ``cast.v1.WatchResponse`` carrying ``(event, watch_ids, include_entry)`` items.
+def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool, int, int]]) -> bytes:
+    """An encoded ``cast.v1.WatchResponse`` of ``(event, watch_ids, include_entry, skipped, first_skipped)``.
 
     Protobuf lets fields of a message be concatenated, so each event's cached
-    encoding is reused as is and only its watch ids are appended: fan-out to
-    many streams costs one encoding per event, not one per event per stream.
+    encoding is reused as is and only what is this stream's own is appended
+    (its watch ids, and what a latest-delivery watch skipped): fan-out to many
+    streams costs one encoding per event, not one per event per stream.
     """
     parts: list[bytes] = []
-    for ev, watch_ids, include in events:
+    for ev, watch_ids, include, skipped, first_skipped in events:
         body = event_wire(ev, include)
         packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(_varint(i) for i in watch_ids)
         tail = _WATCH_IDS_TAG + _varint(len(packed)) + packed
+        if skipped:
+            tail += _SKIPPED_TAG + _varint(skipped) + _FIRST_SKIPPED_TAG + _varint(first_skipped)
         parts.extend((_EVENTS_TAG, _varint(len(body) + len(tail)), body, tail))
     return b"".join(parts)
 

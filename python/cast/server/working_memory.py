@@ -117,7 +117,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Write(
         self, request_iterator: AsyncIterator[wm_pb2.WriteRequests], context: Context
     ) -> AsyncIterator[wm_pb2.WriteReplies]:
-        """Apply a component's writes and locks as they arrive on the stream, answering each by id."""
+        """Apply a component's writes and locks as they arrive on the stream, answering each by id.
+
+        A missing or bad token ends the call at once, as every RPC does; it is
+        checked again for each request, since the stream outlives tokens.
+        """
+        self._auth.identify(context)
         stream = WriteStream(self._system, self._auth, context)
         async for reply in stream.run(request_iterator):
             yield reply
@@ -180,7 +185,8 @@ class _WatchStream:
         try:
             filters = [filter_from_pb(f) for f in create.filters]
             revisions = self._access.watch(
-                self._sub, create.watch_id, filters, dict(create.start_revisions), create.history_id
+                self._sub, create.watch_id, filters, dict(create.start_revisions), create.history_id,
+                latest=create.delivery == wm_pb2.DELIVERY_LATEST,
             )
         except CastError as exc:
             failed = wm_pb2.WatchFailed(watch_id=create.watch_id, code=exc.code, message=exc.message)
@@ -214,7 +220,7 @@ class _WatchStream:
     def _events(self, matches: list[Match]) -> bytes:
         """The batch as an encoded WatchResponse (see :func:`cast.convert.watch_events_wire`)."""
         carries = self._access.carries_entry
-        return watch_events_wire([(m.event, m.watch_ids, carries(m)) for m in matches])
+        return watch_events_wire([(m.event, m.watch_ids, carries(m), m.skipped, m.first_skipped) for m in matches])
 
     def close(self) -> None:
         self._sub.close()
