@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python lint demo bench bench-quick bench-deps clean help soak experiment
+.PHONY: all setup proto examples test test-python package-test lint demo bench bench-quick bench-deps clean help soak experiment
 
 all: setup proto
 
@@ -17,6 +17,7 @@ help:
 	@echo "make setup   create .venv with pinned dependencies and the cast package"
 	@echo "make proto   generate Python code from proto/ (never committed)"
 	@echo "make test    set up, build and run every test"
+	@echo "make package-test   build the Python, C++ and Java packages and use each from outside the tree"
 	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
 	@echo "make cpp     build the C++ client library, its tests and C++ components (build/cpp, bin/)"
@@ -28,7 +29,7 @@ help:
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
 
-$(VENV)/.installed: requirements-dev.txt pyproject.toml
+$(VENV)/.installed: requirements-dev.txt pyproject.toml setup.py VERSION
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements-dev.txt
@@ -37,13 +38,10 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml
 
 setup: $(VENV)/.installed
 
-$(GEN_STAMP): $(PROTOS) $(VENV)/.installed
-	rm -rf python/cast/v1
-	mkdir -p python/cast/v1
-	$(PY) -m grpc_tools.protoc -Iproto --python_out=python --grpc_python_out=python \
-	  --mypy_out=quiet:python --mypy_grpc_out=quiet:python --plugin=protoc-gen-mypy=$(VENV)/bin/protoc-gen-mypy \
-	  --plugin=protoc-gen-mypy_grpc=$(VENV)/bin/protoc-gen-mypy_grpc $(PROTOS)
-	echo '"""Generated from proto/cast/v1 by make proto; not committed."""' > python/cast/v1/__init__.py
+# The same generator as the wheel's and sdist's build hook (setup.py), so the tree and a package
+# hold the same code: grpcio-tools' protoc, .pyi stubs by mypy-protobuf.
+$(GEN_STAMP): $(PROTOS) build_support/cast_protos.py $(VENV)/.installed
+	$(PY) build_support/cast_protos.py python
 	touch $@
 
 proto: $(GEN_STAMP)
@@ -62,9 +60,15 @@ demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
 test-python: setup proto examples bench-deps export-deps node grpcurl web-deps
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q tests --ignore=tests/packaging
 
-test: test-cpp test-java java-demo test-python
+# The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
+# installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
+# with find_package, the Java example built on the installed cast-bom and cast-client.
+package-test: setup proto cpp java
+	$(PY) -m pytest -q tests/packaging
+
+test: test-cpp test-java java-demo test-python package-test
 
 # The shipped design-space experiment (docs/experiments.md): the demo's components as one, two
 # and three SAs, the vision task manager fifo or priority, each run EXPERIMENT_SECONDS, twice.
@@ -129,10 +133,11 @@ test-cpp: cpp
 
 # The Java client library (java_client/): target/cast-client-all.jar for component processes
 # (`java -cp cast-client-all.jar:... cast.client.Runner Class`), the test classes the interop
-# tests run, and cast:cast-client installed into ~/.m2 for users' Maven projects (examples/java).
+# tests run, and cast:cast-bom and cast:cast-client (with its sources and javadoc jars) installed
+# into ~/.m2 for users' Maven projects (examples/java).
 # The first build downloads grpc-java, protobuf and the Maven plugins from Maven Central.
 JAVA_JAR := java_client/target/cast-client-all.jar
-JAVA_SOURCES := java_client/pom.xml $(shell find java_client/src -type f 2>/dev/null) $(wildcard tests/protos/*.proto)
+JAVA_SOURCES := java_client/pom.xml java_client/bom/pom.xml VERSION $(shell find java_client/src -type f 2>/dev/null) $(wildcard tests/protos/*.proto)
 MVN := mvn -B -ntp
 .PHONY: java java-deps test-java
 
@@ -142,7 +147,7 @@ java-deps:
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q openjdk-17-jdk-headless maven; }
 
 $(JAVA_JAR): $(JAVA_SOURCES) $(PROTOS)
-	cd java_client && $(MVN) -q install -DskipTests
+	cd java_client && $(MVN) -q -f bom/pom.xml install && $(MVN) -q install -DskipTests
 	touch $@
 
 java: java-deps $(JAVA_JAR)
@@ -203,7 +208,7 @@ $(GRPCURL):
 grpcurl: $(GRPCURL)
 
 lint: setup proto
-	$(VENV)/bin/ruff check python tests
+	$(VENV)/bin/ruff check python tests setup.py build_support
 	$(VENV)/bin/mypy
 
 clean:

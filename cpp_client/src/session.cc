@@ -6,6 +6,8 @@
 
 #include <algorithm>
 
+#include "cast/version.h"
+
 namespace cast::detail {
 
 namespace {
@@ -91,6 +93,7 @@ Millis Session::registerWith(Link& link, const std::string& language, const std:
   req.set_kind(kind);
   req.set_pid(static_cast<std::int64_t>(::getpid()));
   req.set_host(host);
+  req.set_library_version(libraryVersion());
   Server& s = link.server;
   auto resp = unaryCall<v1::RegisterResponse>(
       *tokens_, timeout_, [&](auto* ctx, auto* r) { return s.dir->Register(ctx, req, r); });

@@ -66,18 +66,23 @@ def test_page_commands_run_the_example(tmp_path: Path) -> None:
 
 
 @pytest.mark.timeout(900)  # it builds the whole library from scratch: minutes on a busy 2-core machine
-def test_the_example_builds_on_its_own_with_its_cmake(tmp_path: Path, server_factory: Any) -> None:
-    """A user's project: the example directory alone, configured and built with the page's CMake."""
+def test_the_example_builds_with_the_library_as_a_subdirectory(tmp_path: Path, server_factory: Any) -> None:
+    """A user's project that builds the library from source: cpp_client and the example, each added as a
+    subdirectory (against an installed library instead: tests/packaging/test_packages.py)."""
     cmake = shutil.which("cmake")
     assert cmake, "cmake is not installed: run `make cpp` (it installs the build tools)"
+    shutil.copytree(EXAMPLE, tmp_path / "project" / "hello")
+    (tmp_path / "project" / "CMakeLists.txt").write_text(
+        "cmake_minimum_required(VERSION 3.16)\nproject(robot LANGUAGES CXX)\n"
+        f"add_subdirectory({(ROOT / 'cpp_client').as_posix()} cast)\nadd_subdirectory(hello)\n")
     build = tmp_path / "build"
-    configure = subprocess.run([cmake, "-S", str(EXAMPLE), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release"],
+    configure = subprocess.run([cmake, "-S", str(tmp_path / "project"), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release"],
                                capture_output=True, text=True, timeout=300)
     assert configure.returncode == 0, configure.stdout + configure.stderr
     made = subprocess.run([cmake, "--build", str(build), "-j2", "--target", "hello_cpp"],
                           capture_output=True, text=True, timeout=900)
     assert made.returncode == 0, made.stdout[-4000:] + made.stderr[-4000:]
-    binary = build / "hello_cpp"
+    binary = build / "hello" / "hello_cpp"
     assert binary.is_file()
     # Run the freshly built executable with the launch contract, as the orchestrator would.
     handle = server_factory({"system": "hello", "subarchitectures": {"greetings": {}}})

@@ -12,3 +12,4 @@
 #include "cast/runner.h"
 #include "cast/schemas.h"
 #include "cast/types.h"
+#include "cast/version.h"

@@ -73,6 +73,7 @@ final class Session {
             .setKind(kind)
             .setPid(ProcessHandle.current().pid())
             .setHost(hostName())
+            .setLibraryVersion(Version.library())
             .build();
     RegisterResponse resp = transport.call(server, server.dir, s -> s.register(req));
     sessionId = resp.getSessionId();

@@ -1,0 +1,48 @@
+"""The build hook of cast-grpc: the wire API's Python code goes into every sdist and wheel.
+
+Everything else about the package is in pyproject.toml. The generated ``cast.v1`` modules are
+never committed (``make proto`` makes them in a checkout), so the build makes them itself with
+grpcio-tools' protoc (a build requirement) from ``proto/cast/v1``:
+
+- ``build_py`` (wheels): into the build directory, after the package's own files are copied;
+- ``sdist``: into the sdist's tree, beside the ``proto/`` files that MANIFEST.in adds, so an
+  sdist holds the code and can rebuild it.
+
+An editable install (``make setup``: ``pip install -e .``) generates nothing: it imports the
+checkout's ``python/cast/v1``, which ``make proto`` keeps current.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from setuptools import setup
+from setuptools.command.build_py import build_py
+from setuptools.command.sdist import sdist
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE / "build_support"))
+from cast_protos import generate  # noqa: E402
+
+
+class BuildPyWithProtos(build_py):
+    """``build_py`` that also generates ``cast/v1`` into the build directory."""
+
+    def run(self) -> None:
+        """Copy the package, then generate the wire API's code next to it (not for editable installs)."""
+        super().run()
+        if not self.editable_mode:
+            generate(HERE / "proto", Path(self.build_lib), "the cast-grpc build (setup.py)")
+
+
+class SdistWithProtos(sdist):
+    """``sdist`` whose tree holds the generated ``python/cast/v1`` too."""
+
+    def make_release_tree(self, base_dir: str, files: list[str]) -> None:
+        """Lay out the sdist's files, then generate the code into it from its own ``proto/``."""
+        super().make_release_tree(base_dir, files)
+        generate(Path(base_dir) / "proto", Path(base_dir) / "python", "the cast-grpc build (setup.py)")
+
+
+setup(cmdclass={"build_py": BuildPyWithProtos, "sdist": SdistWithProtos})
