@@ -44,8 +44,8 @@ def _export(args: argparse.Namespace) -> int:
         print(problem, file=sys.stderr)
     if config is None or problems.errors:
         count = len(problems.errors)
-        print(f"cast export: {args.config} has {count} error{'s' if count != 1 else ''} for {args.to}; nothing was "
-              "written", file=sys.stderr)
+        print(f"cast export: {args.config} has {count} error{'s' if count != 1 else ''}; nothing was written",
+              file=sys.stderr)
         return 2
     out = Path(args.output)
     command = shlex.join(["cast", "export", args.config, "--to", args.to,

@@ -166,7 +166,7 @@ def _server(ctx: PodContext, server: ServerConfig, options: KubernetesOptions) -
         "kind": "Service",
         "metadata": ctx.metadata(name, labels),
         "spec": {"selector": ctx.selector(name),
-                 "ports": [{"name": "grpc", "port": port, "targetPort": "grpc", "appProtocol": "grpc"}]},
+                 "ports": [{"name": "grpc", "port": port, "targetPort": "grpc"}]},
     }
     tmp, tmp_mount = tmp_volume()
     mounts: list[dict[str, Any]] = [{"name": "system-secret", "mountPath": SECRET_DIR, "readOnly": True}, tmp_mount]
@@ -199,7 +199,7 @@ def _server(ctx: PodContext, server: ServerConfig, options: KubernetesOptions) -
         "spec": {
             "automountServiceAccountToken": False,
             "enableServiceLinks": False,
-            "terminationGracePeriodSeconds": int(config.orchestrator.stop_timeout),
+            "terminationGracePeriodSeconds": ctx.grace_seconds,
             **ctx.node_selector(server.host),
             "securityContext": pod_security(),
             "containers": [container],

@@ -24,6 +24,7 @@ on a read-only root file system with a ``/tmp`` of its own.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,11 @@ class PodContext:
             "app.kubernetes.io/managed-by": "cast-export",
             **extra,
         }
+
+    @property
+    def grace_seconds(self) -> int:
+        """Seconds between SIGTERM and SIGKILL: the stop timeout, in whole seconds (at least 1)."""
+        return max(1, math.ceil(self.config.orchestrator.stop_timeout))
 
     def selector(self, name: str) -> dict[str, str]:
         """The labels that select one workload's pods."""
@@ -181,7 +187,7 @@ def component_workload(ctx: PodContext, comp: ComponentConfig) -> dict[str, Any]
     pod: dict[str, Any] = {
         "automountServiceAccountToken": False,
         "enableServiceLinks": False,  # no <SERVICE>_PORT variables beside the launch contract
-        "terminationGracePeriodSeconds": int(config.orchestrator.stop_timeout),  # SIGTERM, then SIGKILL
+        "terminationGracePeriodSeconds": ctx.grace_seconds,  # SIGTERM, then SIGKILL
         **ctx.node_selector(comp.host),
         "securityContext": pod_security(),
         "initContainers": init,
