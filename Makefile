@@ -21,7 +21,7 @@ help:
 	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
 	@echo "make cpp     build the C++ client library, its tests and C++ components (build/cpp, bin/)"
-	@echo "make test-cpp   the C++ unit tests (GoogleTest via ctest)"
+	@echo "make test-cpp   the C++ tests (GoogleTest via ctest; some against a real cast serve)"
 	@echo "make java-demo   the demo's Java components (examples/java-demo/target/cast-demo.jar)"
 	@echo "make node    the Node.js example component's runtime, packages and schema (examples/node)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20; RECORD=demo.mcap also records it)"
@@ -128,7 +128,8 @@ cpp: cpp-deps
 	cmake -S cpp_client -B $(CPP_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
 	cmake --build $(CPP_BUILD) -j2
 
-test-cpp: cpp
+# setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server).
+test-cpp: cpp setup proto
 	ctest --test-dir $(CPP_BUILD) --output-on-failure
 
 # The Java client library (java_client/): target/cast-client-all.jar for component processes

@@ -135,9 +135,16 @@ struct WriteStream::Call {
       queued.clear();
       wake.notify_all();
     }
-    auto error = std::make_shared<UnavailableError>(
-        "the write stream to " + endpoint + " broke (" + describe(status) +
-        "): this write may or may not have been applied; the client reconnects by itself, retry the call later");
+    std::shared_ptr<CastError> error;
+    if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED) {
+      // The server refused the token the call was opened with: it applied
+      // none of its requests, which fail as a refused unary call would.
+      error = errorForStatus(status, errorTrailer(context.GetServerTrailingMetadata()));
+    } else {
+      error = std::make_shared<UnavailableError>(
+          "the write stream to " + endpoint + " broke (" + describe(status) +
+          "): this write may or may not have been applied; the client reconnects by itself, retry the call later");
+    }
     for (auto& kv : left) kv.second(nullptr, error);
     std::lock_guard<std::mutex> lock(mu);
     ended = true;
@@ -246,29 +253,28 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
   // request sent again: keep a copy for that only then, values may be large.
   std::optional<v1::WriteRequest> again;
   if (!tokens_->path().empty()) again = request;
+  struct Outcome {
+    v1::WriteReply reply;
+    std::shared_ptr<CastError> error;
+  };
   for (int attempt = 0;; ++attempt) {
-    auto promise = std::make_shared<std::promise<v1::WriteReply>>();
-    std::future<v1::WriteReply> future = promise->get_future();
+    auto promise = std::make_shared<std::promise<Outcome>>();
+    std::future<Outcome> future = promise->get_future();
     send(attempt == 0 ? request : *again,
          [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
-           if (reply) {
-             promise->set_value(*reply);
-           } else {
-             fail(*promise, *failed);
-           }
+           promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
          },
          true);
     if (timeout && future.wait_for(*timeout) != std::future_status::ready) {
       throw DeadlineExceededError("no reply from " + server_.endpoint + " to a write within " +
                                   std::to_string(timeout->count()) + " ms: it may or may not have been applied");
     }
-    v1::WriteReply reply = future.get();
-    std::shared_ptr<CastError> error = replyError(reply);
-    if (!error) return reply;
+    Outcome outcome = future.get();
+    if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and
     // send once more (on a stream opened with the new token).
-    if (attempt == 0 && again && error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
-    error->raise();
+    if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
+    outcome.error->raise();
   }
 }
 

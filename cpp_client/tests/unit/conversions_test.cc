@@ -67,6 +67,17 @@ TEST(Conversions, AnEventCarriesItsEntryOnlyWhenSent) {
   EXPECT_EQ(r.version, 7u);
   EXPECT_EQ(r.timeNs, 2000000003);
   EXPECT_FALSE(r.entry.has_value());
+  EXPECT_EQ(r.skipped, 0u);
+  EXPECT_EQ(WorkingMemoryChange(r).skipped(), 0u);
+
+  // What a Latest watch's server skipped travels with the change.
+  e.set_skipped(3);
+  e.set_first_skipped_revision(38);
+  const WorkingMemoryChange conflated(detail::eventFromPb(e));
+  EXPECT_EQ(conflated.skipped(), 3u);
+  EXPECT_EQ(conflated.firstSkippedRevision(), 38u);
+  e.clear_skipped();
+  e.clear_first_skipped_revision();
 
   *e.mutable_entry() = entryPb();
   e.set_operation(v1::OPERATION_DELETE);
@@ -132,6 +143,51 @@ TEST(Conversions, AWriteGivesItsRevisionAndVersion) {
   const WriteResult r = detail::writeResult(w);
   EXPECT_EQ(r.revision, 9u);
   EXPECT_EQ(r.version, 1795460940838790ULL);
+}
+
+// The Write stream's requests carry what the unary calls took.
+TEST(Conversions, WriteRequestsCarryTheUnaryCallsRequests) {
+  v1::WriteRequest add = detail::addRequest("vision", "roi:1", "demo.Roi", "\x08\x01");
+  ASSERT_TRUE(add.has_add());
+  EXPECT_EQ(add.add().address().id(), "roi:1");
+  EXPECT_EQ(add.add().value().type_url(), "type.googleapis.com/demo.Roi");
+  EXPECT_EQ(add.id(), 0u);  // the stream numbers it when it is sent
+
+  v1::WriteRequest overwrite = detail::overwriteRequest("vision", "roi:1", "demo.Roi", "", 7);
+  EXPECT_TRUE(overwrite.overwrite().has_expected_version());
+  EXPECT_EQ(overwrite.overwrite().expected_version(), 7u);
+  EXPECT_FALSE(detail::overwriteRequest("vision", "roi:1", "demo.Roi", "", std::nullopt)
+                   .overwrite()
+                   .has_expected_version());
+  EXPECT_EQ(detail::deleteRequest("vision", "roi:1", 0).delete_().expected_version(), 0u);
+  EXPECT_TRUE(detail::deleteRequest("vision", "roi:1", 0).delete_().has_expected_version());
+
+  std::vector<detail::BatchOp> ops(3);
+  ops[0] = {Operation::Add, "vision", "a", "demo.Roi", "x", std::nullopt};
+  ops[1] = {Operation::Overwrite, "vision", "b", "demo.Roi", "y", 4};
+  ops[2] = {Operation::Delete, "vision", "c", "", "", std::nullopt};
+  v1::WriteRequest batch = detail::batchRequest(ops);
+  ASSERT_EQ(batch.batch().operations_size(), 3);
+  EXPECT_EQ(batch.batch().operations(0).add().address().id(), "a");
+  EXPECT_EQ(batch.batch().operations(1).overwrite().expected_version(), 4u);
+  EXPECT_EQ(batch.batch().operations(2).delete_().address().id(), "c");
+
+  EXPECT_EQ(detail::unlockRequest("vision", "roi:1").unlock().address().id(), "roi:1");
+}
+
+// timeout_ms 0 means "no bound" on the wire, so a lock's own timeout is sent
+// as at least 1 ms, and a lock that does not wait sends none.
+TEST(Conversions, ALockSendsItsTimeoutInMilliseconds) {
+  using std::chrono::milliseconds;
+  v1::WriteRequest lock = detail::lockRequest("vision", "roi:1", LockMode::ODR, false, milliseconds(2500));
+  EXPECT_EQ(lock.lock().mode(), v1::LOCK_MODE_ODR);
+  EXPECT_FALSE(lock.lock().no_wait());
+  EXPECT_EQ(lock.timeout_ms(), 2500u);
+  EXPECT_EQ(detail::lockRequest("vision", "roi:1", LockMode::O, false, std::nullopt).timeout_ms(), 0u);
+  EXPECT_EQ(detail::lockRequest("vision", "roi:1", LockMode::O, false, milliseconds(0)).timeout_ms(), 1u);
+  v1::WriteRequest tryLock = detail::lockRequest("vision", "roi:1", LockMode::O, true, milliseconds(2500));
+  EXPECT_TRUE(tryLock.lock().no_wait());
+  EXPECT_EQ(tryLock.timeout_ms(), 0u);
 }
 
 }  // namespace

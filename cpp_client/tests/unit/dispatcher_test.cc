@@ -6,6 +6,7 @@
 #include <atomic>
 #include <set>
 #include <stdexcept>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -145,6 +146,27 @@ TEST(Dispatcher, StopReleasesAWaitingSubmitter) {
   producer.join();  // returns: stop() woke it, its call is dropped
   stopper.join();
   SUCCEED();
+}
+
+// Callbacks pending behind a busy one run highest priority first, in the
+// order they were queued within a priority.
+TEST(Dispatcher, TheHighestPriorityPendingCallbackRunsFirst) {
+  using cast::Priority;
+  cast::detail::Dispatcher d("test");
+  std::atomic<bool> release{false};
+  std::vector<std::string> ran;  // only the dispatcher thread appends
+  d.submit([&] {
+    while (!release) std::this_thread::sleep_for(1ms);
+  });
+  d.submit([&] { ran.push_back("low 1"); }, Priority::Low);
+  d.submit([&] { ran.push_back("medium 1"); });
+  d.submit([&] { ran.push_back("low 2"); }, Priority::Low);
+  d.submit([&] { ran.push_back("high 1"); }, Priority::High);
+  d.submit([&] { ran.push_back("medium 2"); }, Priority::Medium);
+  d.submit([&] { ran.push_back("high 2"); }, Priority::High);
+  release = true;
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(ran, (std::vector<std::string>{"high 1", "high 2", "medium 1", "medium 2", "low 1", "low 2"}));
 }
 
 }  // namespace

@@ -158,6 +158,16 @@ class FakeTransport : public detail::Transport {
     cancelled.push_back(watchId);
   }
 
+  // Delivers an event as a server's stream would (conflated ones included).
+  void deliver(const detail::EventRecord& event, const std::vector<std::uint32_t>& watchIds) {
+    detail::EventSink sink;
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      sink = sink_;
+    }
+    sink(event, watchIds);
+  }
+
   // Simulates the watch stream ending with an error.
   void failWatches(std::shared_ptr<CastError> error) {
     detail::ErrorSink onError;

@@ -1,0 +1,255 @@
+// Writes and locks on the WorkingMemory.Write stream (src/write_stream.cc)
+// against the repository's Python server: the same results and named errors
+// as the unary calls gave, pipelined writes in call order with their errors
+// on the futures, many threads at once, a value of 1.5 MiB end to end, a
+// renewed token, and a stream that breaks.
+#include <google/protobuf/wrappers.pb.h>
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <fstream>
+#include <future>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "cast/cast.h"
+#include "cast_server.h"
+
+namespace {
+
+using namespace std::chrono_literals;
+using cast::BatchWrite;
+using cast::LockMode;
+using cast::testing::CastServer;
+using cast::testing::sharedServer;
+using cast::testing::waitFor;
+using google::protobuf::BytesValue;
+using google::protobuf::Int64Value;
+
+Int64Value number(std::int64_t n) {
+  Int64Value v;
+  v.set_value(n);
+  return v;
+}
+
+bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+TEST(WriteStream, WritesAndLocksAnswerAsTheUnaryCallsDid) {
+  auto a = sharedServer().connect("ws-writer", "vision");
+  auto b = sharedServer().connect("ws-other", "vision");
+  const cast::WriteResult added = a->add("ws-x", number(1));
+  const cast::WriteResult overwritten = a->overwrite("ws-x", number(2), "", added.version);
+  EXPECT_GT(overwritten.revision, added.revision);
+  EXPECT_GT(overwritten.version, added.version);
+  EXPECT_THROW(a->add("ws-x", number(3)), cast::AlreadyExistsError);
+  EXPECT_THROW(a->overwrite("ws-x", number(3), "", added.version), cast::ConsistencyError);
+  EXPECT_THROW(a->overwrite("ws-missing", number(3)), cast::NotFoundError);
+  try {
+    a->add("ws-y", number(1), "language");
+    FAIL() << "a write outside the own SA was accepted";
+  } catch (const cast::PermissionDeniedError& e) {
+    EXPECT_TRUE(contains(e.message(), "'ws-writer'")) << e.message();
+  }
+
+  // A batch: all or nothing, in order.
+  EXPECT_EQ(a->batch({BatchWrite::add("ws-b1", number(1)), BatchWrite::overwrite("ws-b1", number(2)),
+                      BatchWrite::deleteEntry("ws-b1")})
+                .size(),
+            3u);
+  EXPECT_THROW(a->batch({BatchWrite::add("ws-b2", number(1)), BatchWrite::add("ws-x", number(1))}),
+               cast::AlreadyExistsError);
+  EXPECT_FALSE(a->exists("ws-b2"));
+
+  // Locks: another holder is named, a timed wait ends, a waiting lock is
+  // granted when the holder lets go.
+  cast::LockGuard held = b->lock("ws-x", LockMode::OD);
+  EXPECT_EQ(held.depth(), 1u);
+  EXPECT_EQ(b->lock("ws-x", LockMode::OD).depth(), 2u);  // re-entrant; that guard unlocks at once
+  try {
+    a->overwrite("ws-x", number(9));
+    FAIL() << "a write against another component's lock was accepted";
+  } catch (const cast::LockedError& e) {
+    EXPECT_TRUE(contains(e.message(), "ws-other")) << e.message();
+  }
+  EXPECT_FALSE(a->tryLock("ws-x"));
+  EXPECT_THROW(a->lock("ws-x", LockMode::OD, "", 300ms), cast::DeadlineExceededError);
+  std::thread letGo([&held] {
+    std::this_thread::sleep_for(200ms);
+    held.unlock();
+  });
+  cast::LockGuard mine = a->lock("ws-x", LockMode::OD, "", 20s);
+  letGo.join();
+  EXPECT_TRUE(mine.held());
+  EXPECT_EQ(a->unlock("ws-x"), 0u);
+  mine.release();
+  EXPECT_THROW(a->unlock("ws-x"), cast::LockedError);  // no longer held
+
+  const cast::WriteResult deleted = a->deleteEntry("ws-x", "", overwritten.version);
+  EXPECT_EQ(deleted.version, overwritten.version);
+  EXPECT_FALSE(b->exists("ws-x"));
+}
+
+TEST(WriteStream, PipelinedWritesAreAppliedInCallOrderWithTheirErrorsOnTheFutures) {
+  auto a = sharedServer().connect("ws-pipeliner", "vision");
+  std::vector<std::future<cast::WriteResult>> adds;
+  for (int i = 0; i < 200; ++i) adds.push_back(a->addAsync("ws-p" + std::to_string(i), number(i)));
+  std::future<cast::WriteResult> duplicate = a->addAsync("ws-p0", number(0));
+  std::uint64_t last = 0;
+  for (auto& f : adds) {
+    const cast::WriteResult r = f.get();
+    EXPECT_GT(r.revision, last);
+    last = r.revision;
+  }
+  EXPECT_THROW(duplicate.get(), cast::AlreadyExistsError);
+
+  const cast::WriteResult first = a->add("ws-count", number(0));
+  std::vector<std::future<cast::WriteResult>> overwrites;
+  for (int i = 1; i <= 50; ++i) overwrites.push_back(a->overwriteAsync("ws-count", number(i)));
+  std::future<cast::WriteResult> stale = a->overwriteAsync("ws-count", number(-1), "", first.version);
+  std::uint64_t version = first.version;
+  for (auto& f : overwrites) {
+    const cast::WriteResult r = f.get();
+    EXPECT_GT(r.version, version);
+    version = r.version;
+  }
+  EXPECT_THROW(stale.get(), cast::ConsistencyError);
+  // A write that waits for its reply comes after the pipelined ones.
+  EXPECT_EQ(a->overwrite("ws-count", number(51), "", version).version, version + 1);
+  EXPECT_EQ(a->get<Int64Value>("ws-count").value(), 51);
+  for (int i : {0, 99, 199}) EXPECT_EQ(a->get<Int64Value>("ws-p" + std::to_string(i)).value(), i);
+}
+
+TEST(WriteStream, ManyThreadsWriteAtOnce) {
+  auto a = sharedServer().connect("ws-threads", "vision");
+  std::vector<std::thread> threads;
+  std::vector<std::string> failures(4);
+  for (int t = 0; t < 4; ++t) {
+    threads.emplace_back([&a, &failures, t] {
+      try {
+        const std::string id = "ws-thread" + std::to_string(t);
+        cast::WriteResult r = a->add(id, number(0));
+        std::vector<std::future<cast::WriteResult>> pipelined;
+        for (int i = 1; i <= 50; ++i) {
+          // Each thread's versioned overwrites check that its own writes keep their order.
+          r = a->overwrite(id, number(i), "", r.version);
+          pipelined.push_back(a->addAsync(id + "-" + std::to_string(i), number(i)));
+        }
+        for (auto& f : pipelined) f.get();
+      } catch (const std::exception& e) {
+        failures[static_cast<std::size_t>(t)] = e.what();
+      }
+    });
+  }
+  for (auto& t : threads) t.join();
+  for (int t = 0; t < 4; ++t) {
+    EXPECT_EQ(failures[static_cast<std::size_t>(t)], "");
+    EXPECT_EQ(a->get<Int64Value>("ws-thread" + std::to_string(t)).value(), 50);
+    EXPECT_TRUE(a->exists("ws-thread" + std::to_string(t) + "-50"));
+  }
+}
+
+TEST(WriteStream, AValueOfOneAndAHalfMebibytesIsWrittenReadAndWatched) {
+  auto writer = sharedServer().connect("ws-big-writer", "vision");
+  auto watcher = sharedServer().connect("ws-big-watcher", "vision");
+  std::string bytes(1536 * 1024, '\0');
+  for (std::size_t i = 0; i < bytes.size(); ++i) bytes[i] = static_cast<char>((i * 131) % 251);
+  std::mutex mu;
+  std::vector<std::string> seen;
+  watcher->onChange(cast::addressFilter("ws-big").withEntry(), [&](const cast::WorkingMemoryChange& change) {
+    std::string value = change.entry<BytesValue>().value.value();
+    std::lock_guard<std::mutex> lock(mu);
+    seen.push_back(std::move(value));
+  });
+  BytesValue big;
+  big.set_value(bytes);
+  writer->add("ws-big", big);
+  EXPECT_TRUE(watcher->get<BytesValue>("ws-big").value() == bytes);
+  bytes[12345] = static_cast<char>(bytes[12345] ^ 0x5a);
+  big.set_value(bytes);
+  writer->overwriteAsync("ws-big", big).get();
+  ASSERT_TRUE(waitFor([&] {
+    std::lock_guard<std::mutex> lock(mu);
+    return seen.size() == 2;
+  }));
+  std::lock_guard<std::mutex> lock(mu);
+  EXPECT_EQ(seen[0].size(), bytes.size());
+  EXPECT_TRUE(seen[1] == bytes);
+}
+
+void writeToken(const std::string& path, const std::string& token) {
+  {
+    std::ofstream out(path + ".tmp");
+    out << token;
+  }
+  std::rename((path + ".tmp").c_str(), path.c_str());  // whole, as the orchestrator renews it
+}
+
+TEST(WriteStream, ARefusedTokenIsReadAgainFromItsFileAndTheWriteSentOnceMore) {
+  CastServer& server = sharedServer();
+  const std::string path = server.dir() + "/ws-renewed.token";
+  writeToken(path, server.token("ws-renewed", "vision"));
+  cast::TransportOptions options;
+  options.tokenFile = path;
+  auto renewed = server.connect("ws-renewed", "vision", options);
+  auto reader = server.connect("ws-token-reader", "vision");
+  renewed->add("ws-t1", number(1));
+
+  // A token the server refuses (another secret) replaces the file's: the
+  // stream opened with it is refused, and the file has nothing newer.
+  writeToken(path, server.token("ws-renewed", "vision", false, "another-secret-0123456789abcdef-012345"));
+  std::this_thread::sleep_for(1100ms);  // the token file is looked at once a second at most
+  EXPECT_THROW(renewed->add("ws-t2", number(2)), cast::UnauthenticatedError);
+  EXPECT_FALSE(reader->exists("ws-t2"));
+
+  // Renewed again: the refusal makes the client read the file at once, and
+  // send the write once more, on a stream opened with the new token.
+  writeToken(path, server.token("ws-renewed", "vision"));
+  renewed->add("ws-t2", number(2));
+  EXPECT_EQ(reader->get<Int64Value>("ws-t2").value(), 2);
+}
+
+TEST(WriteStream, ABrokenStreamFailsWhatIsOutstandingAndTheNextWriteReconnects) {
+  CastServer server;  // its own: this test kills it
+  auto holder = server.connect("ws-holder", "vision");
+  auto waiter = server.connect("ws-waiter", "vision");
+  holder->add("ws-l", number(1));
+  cast::LockGuard held = holder->lock("ws-l");
+  std::promise<std::string> outcome;
+  std::thread waiting([&] {
+    try {
+      waiter->lock("ws-l", LockMode::OD, "", std::nullopt).release();
+      outcome.set_value("granted");
+    } catch (const cast::UnavailableError& e) {
+      outcome.set_value(e.message());
+    } catch (const cast::CastError& e) {
+      outcome.set_value(std::string(e.name()) + ": " + e.message());
+    }
+  });
+  std::this_thread::sleep_for(300ms);  // the lock request reaches the server and waits there
+  server.kill();
+  std::future<std::string> failed = outcome.get_future();
+  ASSERT_EQ(failed.wait_for(20s), std::future_status::ready);
+  waiting.join();
+  const std::string message = failed.get();
+  EXPECT_TRUE(contains(message, "the write stream to " + server.endpoint() + " broke")) << message;
+  EXPECT_TRUE(contains(message, "may or may not have been applied")) << message;
+  EXPECT_THROW(waiter->add("ws-away", number(1)), cast::UnavailableError);
+
+  server.restart();
+  EXPECT_TRUE(waitFor([&] {
+    try {
+      waiter->add("ws-after", number(1));
+      return true;
+    } catch (const cast::UnavailableError&) {
+      return false;
+    } catch (const cast::AlreadyExistsError&) {
+      return true;  // an earlier try was applied after all
+    }
+  })) << server.log();
+  EXPECT_EQ(holder->get<Int64Value>("ws-after").value(), 1);
+  held.release();  // that lock ended with the first server
+}
+
+}  // namespace
