@@ -102,7 +102,11 @@ class _Call:
         self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
         self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
         self.lock = threading.Lock()
+        # Followers (and drain) wait on `changed`, the pump on `pump_wake`: notifying a condition nobody
+        # waits on is cheap, waking a thread that only goes back to sleep is not (on every write).
         self.changed = threading.Condition(self.lock)  # replies settled, reader left, or the call ended
+        self.pump_wake = threading.Condition(self.lock)  # a detached request, the reader left, or the end
+        self.followers = 0  # threads waiting on `changed`
         self.reading = False  # a thread is reading the stream (at most one)
         self.ended = False  # gRPC reported the call over: read what is left, then it is broken
         self.broken = False  # over: nothing more will be read; the next write opens a new call
@@ -121,14 +125,14 @@ class _Call:
         self.pending[request_id] = future
         if detached:
             self.detached.add(request_id)
-            self.changed.notify_all()  # the pump reads for it
+            self.pump_wake.notify()  # the pump reads for it
         self.requests.put(request)
         return future
 
     def _on_done(self, _: object) -> None:
         with self.lock:
             self.ended = True
-            self.changed.notify_all()
+            self._wake_all()
 
     def _lead(self) -> bool:
         """Read one message and settle its replies (the caller is the reader); False once the call is over."""
@@ -152,8 +156,9 @@ class _Call:
         for future, reply in settled:
             if future is not None:
                 _settle(future, reply, None)
-        with self.lock:
-            self.changed.notify_all()  # followers whose reply this was, and drain()
+        if self.followers:  # read without the lock: a follower counts itself before it checks its future
+            with self.lock:
+                self.changed.notify_all()  # followers whose reply this was, and drain()
         return True
 
     def _fail(self, error: CastError | None, status: str) -> None:
@@ -173,12 +178,20 @@ class _Call:
                 "applied; the client reconnects by itself, retry the call later"
             ))
         with self.lock:
-            self.changed.notify_all()  # the waiters of what just failed
+            self._wake_all()  # the waiters of what just failed, and the pump (to end)
 
     def _release(self) -> None:
         with self.lock:
             self.reading = False
-            self.changed.notify_all()
+            if self.followers:
+                self.changed.notify_all()  # one of them reads next
+            if self.detached or self.ended:
+                self.pump_wake.notify()
+
+    def _wake_all(self) -> None:
+        """Wake followers and the pump. Call with :attr:`lock` held."""
+        self.changed.notify_all()
+        self.pump_wake.notify()
 
     def wait(self, future: Future[wm_pb2.WriteReply], timeout: float | None) -> wm_pb2.WriteReply:
         """The reply of ``future``: read the stream while nobody else does, else wait for who does.
@@ -190,14 +203,19 @@ class _Call:
         end = None if timeout is None else time.monotonic() + timeout
         while True:
             with self.lock:
-                while not future.done() and (self.reading or self.broken):
-                    remaining = None if end is None else end - time.monotonic()
-                    if remaining is not None and remaining <= 0:
-                        future.cancel()
-                        raise DeadlineExceededError(
-                            f"no reply to a write within {timeout} s: it may or may not have been applied"
-                        )
-                    self.changed.wait(remaining)
+                # Counted before the future is checked: the reader settles, then looks at the count.
+                self.followers += 1
+                try:
+                    while not future.done() and (self.reading or self.broken):
+                        remaining = None if end is None else end - time.monotonic()
+                        if remaining is not None and remaining <= 0:
+                            future.cancel()
+                            raise DeadlineExceededError(
+                                f"no reply to a write within {timeout} s: it may or may not have been applied"
+                            )
+                        self.changed.wait(remaining)
+                finally:
+                    self.followers -= 1
                 if future.done():
                     break
                 self.reading = True
@@ -212,7 +230,7 @@ class _Call:
         while True:
             with self.lock:
                 while not self.broken and (self.reading or not (self.detached or self.ended)):
-                    self.changed.wait()
+                    self.pump_wake.wait()
                 if self.broken:
                     return
                 self.reading = True
@@ -225,7 +243,11 @@ class _Call:
 
     def drain(self, timeout: float) -> None:
         """Wait until every outstanding request is answered (or ``timeout``). Call with :attr:`lock` held."""
-        self.changed.wait_for(lambda: not self.pending, timeout)
+        self.followers += 1
+        try:
+            self.changed.wait_for(lambda: not self.pending, timeout)
+        finally:
+            self.followers -= 1
 
     def close(self) -> None:
         """Half-close: the server answers what it has and ends the call."""

@@ -84,48 +84,66 @@ class WriteStream:
         self._system = system
         self._auth = auth
         self._context = context
-        self._replies: asyncio.Queue[wm_pb2.WriteReply | None] = asyncio.Queue()
+        self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
+        self._late = asyncio.Event()  # a waiting request was answered
         self._waiting: set[asyncio.Task[None]] = set()
 
     async def run(self, messages: AsyncIterator[wm_pb2.WriteRequests]) -> AsyncIterator[wm_pb2.WriteReplies]:
         """Yield the replies until the client has closed its side and every request is answered.
 
+        While no request waits, this reads a message, applies it and sends
+        its replies in one message, in one coroutine like a bare echo stream
+        (each hand-off between tasks would cost an event-loop round per
+        write). While some wait, it also watches for their late replies.
         Replies that are ready together go out in one message: with many
         requests in flight, the per-message cost of gRPC is shared by them.
         """
-        reader = asyncio.ensure_future(self._read(messages))
-        replies = self._replies
+        source = messages.__aiter__()
+        reading: asyncio.Future[wm_pb2.WriteRequests] | None = None
         try:
             while True:
-                reply = await replies.get()
-                if reply is None:
-                    return
-                out = wm_pb2.WriteReplies()
-                out.replies.append(reply)
-                ended = False
-                while not replies.empty():
-                    more = replies.get_nowait()
-                    if more is None:
-                        ended = True
+                if reading is None and not self._waiting:
+                    try:
+                        message = await source.__anext__()
+                    except StopAsyncIteration:
                         break
-                    out.replies.append(more)
-                yield out
-                if ended:
-                    return
+                    self._apply(message)
+                else:
+                    if reading is None:
+                        reading = asyncio.ensure_future(source.__anext__())
+                    late = asyncio.ensure_future(self._late.wait())
+                    await asyncio.wait((reading, late), return_when=asyncio.FIRST_COMPLETED)
+                    late.cancel()
+                    self._late.clear()
+                    if reading.done():
+                        done, reading = reading, None
+                        try:
+                            self._apply(done.result())
+                        except StopAsyncIteration:
+                            break
+                if self._ready:
+                    yield self._take()
+            while self._waiting:  # the client closed its side: answer what still waits, then end
+                await asyncio.wait(set(self._waiting))
+                if self._ready:
+                    yield self._take()
+            if self._ready:
+                yield self._take()
         finally:
-            reader.cancel()
+            if reading is not None:
+                reading.cancel()
             for task in list(self._waiting):
                 task.cancel()  # a lock still waiting for a client that left: give up the wait
 
-    async def _read(self, messages: AsyncIterator[wm_pb2.WriteRequests]) -> None:
-        try:
-            async for message in messages:
-                for request in message.requests:
-                    self._handle(request)
-            while self._waiting:
-                await asyncio.wait(set(self._waiting))
-        finally:
-            self._replies.put_nowait(None)
+    def _apply(self, message: wm_pb2.WriteRequests) -> None:
+        for request in message.requests:
+            self._handle(request)
+
+    def _take(self) -> wm_pb2.WriteReplies:
+        out = wm_pb2.WriteReplies()
+        out.replies.extend(self._ready)
+        self._ready.clear()
+        return out
 
     def _handle(self, request: wm_pb2.WriteRequest) -> None:
         """Apply one request now; answer it now, or from a task if it must wait."""
@@ -143,24 +161,27 @@ class WriteStream:
                 step = next(steps)
             except StopIteration as done:
                 answer(reply, done.value)
-                self._replies.put_nowait(reply)
+                self._put(reply)
                 return
             pending, result = settle_at_once(self._system, steps, step)
             if pending is None:
                 answer(reply, result)
-                self._replies.put_nowait(reply)
+                self._put(reply)
                 return
         except CastError as exc:
-            self._replies.put_nowait(_error_reply(request_id, exc))
+            self._put(_error_reply(request_id, exc))
             return
         except Exception as exc:  # a bug answers this request, never ends the others
             log.exception("internal error in write request %d", request_id)
-            self._replies.put_nowait(_error_reply(request_id, _internal(exc)))
+            self._put(_error_reply(request_id, _internal(exc)))
             return
         timeout = request.timeout_ms / 1000 if request.timeout_ms else None
         task = asyncio.ensure_future(self._finish(reply, steps, pending, answer, timeout))
         self._waiting.add(task)
         task.add_done_callback(self._waiting.discard)
+
+    def _put(self, reply: wm_pb2.WriteReply) -> None:
+        self._ready.append(reply)
 
     async def _finish(
         self,
@@ -173,11 +194,11 @@ class WriteStream:
         try:
             result = await resume_async(self._system, steps, step, timeout)
         except CastError as exc:
-            self._replies.put_nowait(_error_reply(reply.id, exc))
-            return
+            self._put(_error_reply(reply.id, exc))
         except Exception as exc:  # as in _handle: answer, never leave the request open
             log.exception("internal error in write request %d", reply.id)
-            self._replies.put_nowait(_error_reply(reply.id, _internal(exc)))
-            return
-        answer(reply, result)
-        self._replies.put_nowait(reply)
+            self._put(_error_reply(reply.id, _internal(exc)))
+        else:
+            answer(reply, result)
+            self._put(reply)
+        self._late.set()
