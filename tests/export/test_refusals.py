@@ -139,6 +139,7 @@ def test_bad_options_are_refused_before_anything_is_read(tmp_path: Path) -> None
         (["--to", "kubernetes", "--user", "x"], "--user is for --to systemd only"),
         (["--to", "kubernetes", "--namespace", "Not_Valid"], "--namespace 'Not_Valid' is no Kubernetes namespace"),
         (["--to", "systemd", "--root", "relative"], "--root relative: give the checkout's absolute path"),
+        (["--to", "kubernetes", "--volume-size", "lots"], "--volume-size 'lots': give a Kubernetes quantity"),
     ):
         result = cast(ROOT, "export", "configs/minimal.yaml", "-o", str(tmp_path / "out"), *argv)
         assert result.code == 2 and words in result.err, (argv, result.err)

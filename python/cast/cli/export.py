@@ -26,6 +26,7 @@ from cast.export.validate import validate_objects
 __all__ = ["add_command"]
 
 _DNS_LABEL = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?\Z")
+_QUANTITY = re.compile(r"[1-9][0-9]*(\.[0-9]+)?(Ki|Mi|Gi|Ti|Pi|Ei|k|M|G|T|P|E)?\Z")
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -33,11 +34,10 @@ def _export(args: argparse.Namespace) -> int:
     for option, value in (("--namespace", args.namespace), ("--volume-size", args.volume_size),
                           ("--secret-file", args.secret_file), ("--validate", args.validate or None)):
         if value is not None and not kubernetes:
-            raise InvalidArgumentError(f"{option} is for --to kubernetes only (the systemd units read the secret "
-                                       f"from {SECRET_PATH} on each host)")
+            raise InvalidArgumentError(f"{option} is for --to kubernetes only")
     for option, value in (("--root", args.root), ("--cast", args.cast), ("--user", args.user)):
         if value is not None and kubernetes:
-            raise InvalidArgumentError(f"{option} is for --to systemd only (the images hold the checkout at /opt/cast)")
+            raise InvalidArgumentError(f"{option} is for --to systemd only")
     here = Path.cwd()
     config, problems = read_for_engine(args.config, args.to, here, parse_sets(args.set))
     for problem in sorted(problems.items, key=lambda p: (p.warning, p.position.file, p.position.line)):
@@ -70,9 +70,12 @@ def _kubernetes(config: SystemConfig, args: argparse.Namespace, here: Path, out:
     if not _DNS_LABEL.match(namespace):
         raise InvalidArgumentError(f"--namespace {namespace!r} is no Kubernetes namespace name: 1 to 63 lower-case "
                                    "letters, digits and '-', starting and ending with a letter or digit")
+    size = args.volume_size or "1Gi"
+    if not _QUANTITY.match(size):
+        raise InvalidArgumentError(f"--volume-size {size!r}: give a Kubernetes quantity such as 1Gi, 500Mi or 10G")
     secret = find_system_secret(args.secret_file, os.environ, out)
     options = KubernetesOptions(namespace=namespace, root=here, secret=secret.value,
-                                volume_size=args.volume_size or "1Gi", command=command)
+                                volume_size=size, command=command)
     files = kubernetes_files(config, options)
     images = config.images
     lines = [f"namespace {namespace}; the directory (what components dial): "
