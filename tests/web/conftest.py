@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from playwright.sync_api import Browser, Page, sync_playwright
+from playwright.sync_api import Browser, Page, expect, sync_playwright
 
 from tests.conftest import ROOT, wait_for
 from tests.orchestrator.conftest import CastRun, start_cast_run
@@ -29,6 +29,7 @@ COMPONENTS = Path(__file__).resolve().parent / "components"
 LINK = re.compile(r"open (http://127\.0\.0\.1:\d+/login\?key=[\w-]+)")
 NEXT_LINK = re.compile(r"the next one, for another browser: (http://\S+/login\?key=[\w-]+)")
 TIMEOUT_MS = 30_000  # a guard against a hang, not a measurement
+expect.set_options(timeout=TIMEOUT_MS)  # every expect(...) of these tests waits up to this for the page to show it
 
 CONFIG = f"""
 system: webtest

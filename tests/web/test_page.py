@@ -6,7 +6,7 @@ Each check compares the page with what the `cast` tools say about the same syste
 
 from __future__ import annotations
 
-from google.protobuf.wrappers_pb2 import Int32Value, StringValue
+from google.protobuf.wrappers_pb2 import BytesValue, Int32Value, StringValue
 from playwright.sync_api import Page, expect
 
 import cast
@@ -64,7 +64,8 @@ def test_a_write_by_a_component_appears_and_the_entries_are_the_working_memorys(
         shown = set(attribute_list(page, "#entries tbody tr", "data-entry-id"))
         return listed if listed == shown else None
 
-    wait_for(same, 30, "the entries shown to be those `cast ls motor` lists")
+    listed = wait_for(same, 30, "the entries shown to be those `cast ls motor` lists")
+    expect(page.locator("#wm-count")).to_contain_text(f"{len(listed)} entries")
     row.click()
     expect(page.locator("#value")).to_contain_text('"planned: fetch the cup"')  # rendered through its schema
     expect(page.locator("#value-head")).to_contain_text("google.protobuf.StringValue")
@@ -75,6 +76,7 @@ def test_a_clicked_value_follows_its_entry_live_and_the_type_filter_narrows(page
     post_goal(web_run, "goal-live", "first wording")
     with cast.connect(runtime_dir=web_run.run.runtime_dir, subarchitecture="vision") as script:
         script.add("goal-count", Int32Value(value=3))  # a second type in vision, for the filter
+        script.add("camera", BytesValue(value=bytes(1_100_000)))  # too big to render
     page.goto(f"{web_run.base}/#memories")
     page.click('#wm-sas button[data-wm="vision"]')
     page.locator('#entries tr[data-entry-id="goal-live"]').click()
@@ -89,6 +91,10 @@ def test_a_clicked_value_follows_its_entry_live_and_the_type_filter_narrows(page
     page.select_option("#wm-type", "google.protobuf.StringValue")
     expect(page.locator('#entries tr[data-entry-id="goal-count"]')).to_have_count(0)
     expect(page.locator('#entries tr[data-entry-id="goal-live"]')).to_have_count(1)
+    page.select_option("#wm-type", "google.protobuf.BytesValue")
+    page.locator('#entries tr[data-entry-id="camera"]').click()
+    expect(page.locator("#value")).to_contain_text("a value of 1,100,004 bytes: more than the 1,048,576 this page")
+    expect(page.locator("#value")).to_contain_text("`cast get vision camera` prints it")
 
 
 def test_a_task_decision_appears_in_the_task_view(page: Page, web_run: WebRun) -> None:

@@ -23,10 +23,12 @@ from cast.web.source import SystemSource
 from cast.web.state import architecture, entries_json, entry_json, task_managers
 from cast.web.values import ValueDecoder
 
-__all__ = ["ENTRIES_SHOWN", "LiveModel"]
+__all__ = ["ENTRIES_SHOWN", "VALUE_SHOWN", "LiveModel"]
 
 ENTRIES_SHOWN = 500
 """The most entries of one WM the page lists (the most recently written; a type filter finds older ones)."""
+VALUE_SHOWN = 1 << 20
+"""The largest value (bytes) the page renders as JSON."""
 
 
 class LiveModel:
@@ -106,13 +108,24 @@ class LiveModel:
                 listed.clear()
             listed.update(e.type for e in listing.entries)
             types = sorted(listed | self.feed.types(sa) | ({type_name} if type_name else set()))
-            total = self._totals.get(sa, len(listing.entries))
+            # A listing under the limit is the whole WM (exact now); else the count of the last refresh.
+            complete = not type_name and len(listing.entries) < ENTRIES_SHOWN
+            total = len(listing.entries) if complete else max(self._totals.get(sa, 0), len(listing.entries))
         return entries_json(sa, listing, total, ENTRIES_SHOWN, types)
 
     def value(self, sa: str, entry_id: str) -> dict[str, Any]:
-        """One entry with its value rendered as JSON; NotFoundError if it is not there."""
+        """One entry with its value rendered as JSON; NotFoundError if it is not there.
+
+        A value over :data:`VALUE_SHOWN` bytes is not rendered (a browser would choke on megabytes of
+        JSON): the page says how big it is and which command shows it.
+        """
         entry = self.source.get(sa, entry_id)
-        return entry_json(entry, self.decoder.to_json(sa, entry.type, entry.value.value))
+        data = entry.value.value
+        if len(data) > VALUE_SHOWN:
+            return entry_json(entry, {"@type": entry.type, "@error": (
+                f"a value of {len(data):,} bytes: more than the {VALUE_SHOWN:,} this page shows; `cast get {sa} "
+                f"{entry_id}` prints it")})
+        return entry_json(entry, self.decoder.to_json(sa, entry.type, data))
 
     def close(self) -> None:
         """Stop polling and watching, close the connections. Once; later calls do nothing."""

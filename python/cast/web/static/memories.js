@@ -87,8 +87,10 @@ export class Memories {
   async load() {
     if (!this.sa) return;
     const query = new URLSearchParams({ sa: this.sa, ...(this.type ? { type: this.type } : {}) });
+    const ticket = (this.loads = (this.loads || 0) + 1);
     const listing = await this.api(`/api/entries?${query}`);
-    if (!listing || listing.subarchitecture !== this.sa) return;
+    // Only the answer to the latest request counts: an older one (another SA or type) may arrive after it.
+    if (!listing || ticket !== this.loads) return;
     const before = new Map((this.listing?.entries || []).map((e) => [`${e.subarchitecture}/${e.id}`, e.version]));
     this.fresh = new Set(listing.entries.filter((e) => this.listing && before.get(`${e.subarchitecture}/${e.id}`)
       !== e.version).map((e) => e.id));
