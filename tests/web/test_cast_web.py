@@ -9,8 +9,9 @@ import socket
 import subprocess
 from pathlib import Path
 
-from tests.conftest import stop_process
+from tests.conftest import start_server, stop_process, wait_for
 from tests.orchestrator.conftest import CAST
+from tests.recording.conftest import cli_env
 from tests.web.conftest import WebRun, http
 
 
@@ -83,3 +84,31 @@ def test_cast_web_with_no_system_says_so(tmp_path: Path) -> None:
     out = cast("web", "--endpoint", f"127.0.0.1:{port}", "--listen", "127.0.0.1:0", env=env)
     assert out.returncode == 2
     assert f"cast web: no system answers at 127.0.0.1:{port}" in out.stderr
+
+
+def test_the_page_says_when_the_system_stops_answering(tmp_path: Path) -> None:
+    server = start_server(tmp_path, {"system": "brief", "subarchitectures": {"a": {}}})
+    env = {**cli_env(), "CAST_RUNTIME_DIR": str(tmp_path / "none")}
+    proc = subprocess.Popen([CAST, "web", "--endpoint", server.endpoint, "--listen", "127.0.0.1:0"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline() for _ in range(3)]
+        link = re.search(r"open (http://\S+/login\?key=\S+) ", lines[1])
+        assert link is not None, lines
+        base = link.group(1).split("/login")[0]
+        cookie = http(link.group(1))[1]["set-cookie"].split(";")[0]
+        assert json.loads(http(base + "/api/state", {"Cookie": cookie})[2])["error"] == ""
+        server.stop()
+        state = wait_for(lambda: (s := json.loads(http(base + "/api/state", {"Cookie": cookie})[2]))["error"] and s,
+                         30, "the page to say the system does not answer")
+        assert state["error"] == f"no answer from {server.endpoint} (has the system stopped?)"
+        assert state["connected"] is False and state["system"] == "brief"  # the last state is kept
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+        out = proc.stdout.read()
+        assert f"cast web: cannot read the system: no answer from {server.endpoint}" in out
+        assert "reconnecting" not in out  # the client library's warnings are not repeated every few seconds
+    finally:
+        stop_process(proc, 5)
+        server.stop()

@@ -11,6 +11,7 @@ is the one-time login link.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import threading
 from typing import Any
@@ -34,6 +35,9 @@ def _web(args: argparse.Namespace) -> int:
     from cast.web.server import WebServer  # the web framework, only for this command
     from cast.web.view import WEB_ID, WebView
 
+    # The page and this command say when the system does not answer; the client library's warning per
+    # reconnection attempt of the watch stream would only repeat it every few seconds.
+    logging.getLogger("cast.client").setLevel(logging.ERROR)
     address = parse_web_listen(args.listen, "--listen")
     where = reach(args, WEB_ID, privileged=False)
     stop = threading.Event()

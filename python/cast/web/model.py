@@ -62,11 +62,18 @@ class LiveModel:
             try:
                 self.refresh()
             except CastError as exc:
-                if exc.message != self._error:
-                    self._notice(f"cannot read the system: {exc.message} (trying again every {self._interval:g} s)")
+                why = self._why(exc)
+                if why != self._error:
+                    self._notice(f"cannot read the system: {why} (trying again every {self._interval:g} s)")
                 with self._mutex:
-                    self._error = exc.message
+                    self._error = why
                     self._version += 1
+
+    def _why(self, exc: CastError) -> str:
+        # The client's words for UNAVAILABLE speak to a writer ("a write ... may or may not have been applied").
+        if exc.code == "UNAVAILABLE":
+            return f"no answer from {self.source.endpoint} (has the system stopped?)"
+        return exc.message
 
     def refresh(self) -> None:
         """Ask the servers once and render the state."""
