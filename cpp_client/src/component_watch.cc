@@ -47,6 +47,7 @@ void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>&
   for (std::uint32_t wid : watchIds) {
     Priority priority;
     std::function<void()> job;
+    bool latestJob = false;
     {
       std::lock_guard<std::mutex> lock(mu);
       auto it = callbacks.find(wid);
@@ -67,6 +68,7 @@ void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>&
           continue;
         }
         latest.emplace(key, LatestSlot{record, record->skipped, record->firstSkippedRevision});
+        latestJob = true;
         job = [weak, key] {
           auto core = weak.lock();
           if (!core) return;
@@ -100,8 +102,10 @@ void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>&
         callback(*change);
       };
     }
-    // Not under mu: submit waits while the queue is full.
-    dispatcher->submit(std::move(job), priority);
+    // Not under mu: submit waits while the queue is full, which stops
+    // reading the stream. A Latest watch's callback is queued at once: it
+    // has one per entry at most, so these never pile up.
+    dispatcher->submit(std::move(job), priority, !latestJob);
   }
 }
 

@@ -15,10 +15,10 @@ Dispatcher::Dispatcher(std::string name, std::size_t capacity)
 
 Dispatcher::~Dispatcher() { stop(); }
 
-void Dispatcher::submit(std::function<void()> fn, Priority priority) {
+void Dispatcher::submit(std::function<void()> fn, Priority priority, bool wait) {
   {
     std::unique_lock<std::mutex> lock(state_->mu);
-    if (!onThread()) {
+    if (wait && !onThread()) {
       state_->idle.wait(lock, [this] { return state_->pending < state_->capacity || state_->stopping; });
     }
     if (state_->stopping) return;

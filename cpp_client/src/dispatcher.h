@@ -32,9 +32,9 @@ class Dispatcher {
   Dispatcher& operator=(const Dispatcher&) = delete;
 
   // Queues `fn` behind the callbacks of its priority, first waiting while the
-  // queue is full (never on the dispatcher thread itself, which would wait
-  // for itself); ignored once stop() was called.
-  void submit(std::function<void()> fn, Priority priority = Priority::Medium);
+  // queue is full if `wait` (never on the dispatcher thread itself, which
+  // would wait for itself); ignored once stop() was called.
+  void submit(std::function<void()> fn, Priority priority = Priority::Medium, bool wait = true);
   // Waits until everything queued so far has run; false on timeout. Called
   // on the dispatcher thread itself it cannot wait for itself: returns false.
   bool drain(std::chrono::milliseconds timeout);

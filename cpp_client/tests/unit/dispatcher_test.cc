@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <future>
 #include <set>
 #include <stdexcept>
 #include <string>
@@ -167,6 +168,23 @@ TEST(Dispatcher, TheHighestPriorityPendingCallbackRunsFirst) {
   release = true;
   ASSERT_TRUE(d.drain(5000ms));
   EXPECT_EQ(ran, (std::vector<std::string>{"high 1", "high 2", "medium 1", "medium 2", "low 1", "low 2"}));
+}
+
+// A callback queued without waiting (a Latest watch's) goes in even when the
+// queue is full.
+TEST(Dispatcher, ASubmitThatMayNotWaitIsQueuedAtOnce) {
+  cast::detail::Dispatcher d("test", 1);
+  std::atomic<bool> release{false};
+  std::atomic<int> ran{0};
+  d.submit([&] {
+    while (!release) std::this_thread::sleep_for(1ms);
+  });
+  auto submitted = std::async(std::launch::async, [&] { d.submit([&] { ++ran; }, cast::Priority::Medium, false); });
+  EXPECT_EQ(submitted.wait_for(5s), std::future_status::ready) << "the queue is full, and it must not wait";
+  release = true;
+  submitted.wait();
+  ASSERT_TRUE(d.drain(5000ms));
+  EXPECT_EQ(ran.load(), 1);
 }
 
 }  // namespace
