@@ -128,11 +128,13 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
     built = run([sys.executable, "-m", "build", "--outdir", str(work / "dist"), str(ROOT)], work, timeout=600)
     [wheel] = (work / "dist").glob("cast_grpc-*.whl")
     [sdist] = (work / "dist").glob("cast_grpc-*.tar.gz")
-    venv.EnvBuilder(with_pip=True).create(work / "venv")
+    # A venv without its own pip (ensurepip costs seconds): this environment's pip installs into it.
+    venv.EnvBuilder(with_pip=False).create(work / "venv")
     # Nothing of the tree's environment: no PYTHONPATH, no CAST_* variables, the venv first on PATH.
     env = {k: v for k, v in os.environ.items() if not k.startswith(("CAST_", "PYTHON", "VIRTUAL_ENV"))}
     env.update(PATH=f"{work / 'venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}", CAST_SECRET=SECRET)
-    run([str(work / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet", str(wheel)], work, env, 600)
+    run([sys.executable, "-m", "pip", "--python", str(work / "venv" / "bin" / "python"), "install", "--quiet",
+         str(wheel)], work, env, 600)
     shutil.copytree(ROOT / "examples" / "quickstart", work / "quickstart")
     handle = Installed(work, wheel, sdist, built, work / "venv", env)
     with handle.serve(work / "quickstart" / "system.yaml") as endpoint:
