@@ -100,7 +100,8 @@ def test_the_client_file_map_is_there() -> None:
     roots = header.split()[1:]
     assert roots == ["python/cast/client/", "cpp_client/", "java_client/src/main/java/cast/client/"]
     assert [row.split()[0] for row in rows] == [
-        "component", "transport", "grpc_transport", "watch_stream", "session", "conversions", "credentials"]
+        "component", "transport", "grpc_transport", "write_stream", "watch_stream", "session", "conversions",
+        "credentials"]
     missing = [f"{root}{name}" for row in rows for root, name in zip(roots, row.split()[1:], strict=True)
                if not (ROOT / root / name).is_file()]
     assert not missing, missing
