@@ -39,10 +39,11 @@ import java.util.logging.Logger;
  * token of the moment. Before each send the token is checked (a {@code stat} of the token file
  * at most once a second, {@link Credentials}); when the orchestrator has renewed it, a new call
  * opens with the new token once the old call's outstanding requests are answered (so no write
- * overtakes an earlier one). A request refused as UNAUTHENTICATED is sent once more when the
- * token file holds another token (a refused request changed nothing). A call that breaks fails
- * its outstanding requests with UnavailableError, as a broken unary call, and the next write
- * opens a new one.
+ * overtakes an earlier one). A request refused as UNAUTHENTICATED (alone, or with its whole
+ * call when the server refused the call's token as it opened) is sent once more when the token
+ * file holds another token (a refused request changed nothing). A call that breaks otherwise
+ * fails its outstanding requests with UnavailableError, as a broken unary call, and the next
+ * write opens a new one.
  *
  * <p>Requests go to gRPC at once while it takes them ({@code isReady}); otherwise they queue up
  * and go together, in messages of about {@link #MESSAGE_BYTES}, when it is ready again, and a
@@ -158,7 +159,15 @@ final class WriteStream {
    * result; a refusal thrown as the named error the unary call would have thrown.
    */
   WriteReply call(WriteRequest.Builder request, Duration wait) {
-    WriteReply reply = await(submit(request), wait);
+    WriteReply reply;
+    try {
+      reply = await(submit(request), wait);
+    } catch (UnauthenticatedError refused) { // the whole call was refused: its token, when it opened
+      if (!credentials.refresh()) {
+        throw refused;
+      }
+      return checked(await(submit(request), wait));
+    }
     if (reply.hasError() && reply.getError().getCode().equals("UNAUTHENTICATED") && credentials.refresh()) {
       reply = await(submit(request), wait); // renewed in its file: the new token goes on a new call
     }
@@ -380,9 +389,16 @@ final class WriteStream {
       }
     }
 
-    /** What an outstanding request of a broken call fails with. */
-    synchronized UnavailableError brokenError() {
+    /**
+     * What an outstanding request of a broken call fails with: UnavailableError, or the
+     * server's UnauthenticatedError when it refused the call's token as it opened (then
+     * nothing was applied).
+     */
+    synchronized CastError brokenError() {
       Status s = endStatus == null ? Status.UNAVAILABLE : endStatus;
+      if (s.getCode() == Status.Code.UNAUTHENTICATED) {
+        return Errors.fromStatus(s);
+      }
       return new UnavailableError(
           "the write stream to " + server.endpoint + " broke (" + s.getCode()
               + (s.getDescription() == null ? "" : ": " + s.getDescription())

@@ -80,31 +80,55 @@ class WriteStreamFaultsTest {
   @Test
   void aRenewedTokenGoesOnANewStreamAndARefusedWriteIsSentOnceMoreWithIt() throws Exception {
     try (RealServer server = new RealServer()) {
-      Path file = Files.createTempFile("cast-junit-token", "");
-      long expires = System.currentTimeMillis() / 1000 + 2;
-      Files.writeString(file, RealServer.token("renewed", "vision", false, expires));
-      RealServer.Calls calls = new RealServer.Calls();
-      LaunchContract contract =
-          new LaunchContract(server.endpoint(), "renewed", "vision", "", Args.empty(), null, file.toString());
-      try (Connection wm = server.connect(contract, calls)) {
-        wm.add("t", Int64Value.of(1));
+      long expires = System.currentTimeMillis() / 1000 + 4; // time to connect both and write once
+      // "open": its stream is open before the token expires; "late": its first write comes after.
+      Path openFile = Files.createTempFile("cast-junit-token", "");
+      Path lateFile = Files.createTempFile("cast-junit-token", "");
+      Files.writeString(openFile, RealServer.token("open", "vision", false, expires));
+      Files.writeString(lateFile, RealServer.token("late", "vision", false, expires));
+      RealServer.Calls openCalls = new RealServer.Calls();
+      RealServer.Calls lateCalls = new RealServer.Calls();
+      try (Connection open =
+              server.connect(
+                  new LaunchContract(server.endpoint(), "open", "vision", "", Args.empty(), null, openFile.toString()),
+                  openCalls);
+          Connection late =
+              server.connect(
+                  new LaunchContract(server.endpoint(), "late", "vision", "", Args.empty(), null, lateFile.toString()),
+                  lateCalls)) {
+        open.add("t", Int64Value.of(1));
         RealServer.waitFor(
-            () -> System.currentTimeMillis() / 1000.0 > expires + 0.3, Duration.ofSeconds(10), "the token to expire");
-        UnauthenticatedError expired =
-            assertThrows(UnauthenticatedError.class, () -> wm.overwrite("t", Int64Value.of(2)));
-        assertTrue(expired.getMessage().contains("expired"), expired.getMessage());
+            () -> System.currentTimeMillis() / 1000.0 > expires + 0.3, Duration.ofSeconds(10), "the tokens to expire");
+        // "late" opens its stream now (a delete registers no schema first): the server refuses the whole call.
+        UnauthenticatedError refused = assertThrows(UnauthenticatedError.class, () -> late.deleteEntry("t"));
+        assertTrue(refused.getMessage().contains("expired"), refused.getMessage());
         // Renewed as the orchestrator does (write and rename). The file was just checked, so the
         // next write goes with the old token, is refused, and goes again on a new stream.
-        Path next = file.resolveSibling(file.getFileName() + ".new");
-        Files.writeString(next, RealServer.token("renewed", "vision", false, 0));
-        Files.move(next, file, StandardCopyOption.REPLACE_EXISTING, StandardCopyOption.ATOMIC_MOVE);
-        wm.overwrite("t", Int64Value.of(3));
-        assertEquals(3, wm.get("t", Int64Value.class).getValue());
-        assertEquals(2, calls.count("WorkingMemory/Write"), calls.methods.toString());
+        renew(lateFile, RealServer.token("late", "vision", false, 0));
+        late.deleteEntry("t");
+        assertFalse(late.exists("t"));
+        // "open": a request on its open stream is refused alone; then the same with the renewed token.
+        UnauthenticatedError expired =
+            assertThrows(UnauthenticatedError.class, () -> open.add("t", Int64Value.of(2)));
+        assertTrue(expired.getMessage().contains("expired"), expired.getMessage());
+        renew(openFile, RealServer.token("open", "vision", false, 0));
+        open.add("t", Int64Value.of(3));
+        assertEquals(3, late.get("t", Int64Value.class).getValue());
+        assertEquals(2, openCalls.count("WorkingMemory/Write"), openCalls.methods.toString());
+        // Three calls when the retry used the old token once more (the file is checked at most
+        // once a second), two when the write came more than a second after the refusal.
+        assertTrue(lateCalls.count("WorkingMemory/Write") >= 2, lateCalls.methods.toString());
       } finally {
-        Files.deleteIfExists(file);
+        Files.deleteIfExists(openFile);
+        Files.deleteIfExists(lateFile);
       }
     }
+  }
+
+  private static void renew(Path file, String token) throws java.io.IOException {
+    Path next = file.resolveSibling(file.getFileName() + ".new");
+    Files.writeString(next, token);
+    Files.move(next, file, StandardCopyOption.REPLACE_EXISTING, StandardCopyOption.ATOMIC_MOVE);
   }
 
   @Test
