@@ -149,3 +149,13 @@ def test_watcher_limit() -> None:
         Subscription(host, lambda: None)
     first.close()
     Subscription(host, lambda: None)
+
+
+def test_any_matching_filter_that_asks_for_the_entry_gets_it() -> None:
+    host, sub, _ = make()
+    # The first filter matches without the entry; a later one that matches too asks for it.
+    sub.add_watch(1, [EventFilter(subarchitecture="vision"), EventFilter(type="t.A", include_entry=True)])
+    host.add(V, "vision", "x", "t.A", b"a")
+    host.add(V, "vision", "y", "t.B", b"b")
+    got = [(m.event.id, m.include_entry) for m in sub.poll()]
+    assert got == [("x", True), ("y", False)]

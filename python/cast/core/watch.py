@@ -188,10 +188,13 @@ class Subscription:
                 for w in watches:
                     if ev.revision < w.next[sa]:
                         continue
-                    for f in w.filters:
+                    for i, f in enumerate(w.filters):
                         if f.matches(ev):
                             ids.append(w.watch_id)
-                            include = include or f.include_entry
+                            # Any matching filter that asks for the entry gets it, not only the first.
+                            include = include or f.include_entry or any(
+                                g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
+                            )
                             break
                 if ids:
                     match = Match(ev, ids, include)
