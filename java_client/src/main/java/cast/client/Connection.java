@@ -13,9 +13,9 @@ package cast.client;
  *
  * <p>It has the working-memory calls, errors and watches of an unmanaged component
  * with the same names ({@code newId}, {@code add}, {@code overwrite}, {@code deleteEntry},
- * {@code get}, {@code getEntry}, {@code getAll}, {@code exists}, {@code lock},
- * {@code tryLock}, {@code unlock}, {@code batch}, {@code onChange}); callbacks run on its
- * dispatcher thread. It has no lifecycle: nothing calls {@code configure}, {@code start},
+ * {@code addAsync}, {@code overwriteAsync}, {@code get}, {@code getEntry}, {@code getAll},
+ * {@code exists}, {@code lock}, {@code tryLock}, {@code unlock}, {@code batch}, {@code onChange});
+ * callbacks run on its dispatcher thread. It has no lifecycle: nothing calls {@code configure}, {@code start},
  * {@code run} or {@code stop}. {@link #close()} runs the callbacks already queued, then
  * ends its session (releasing its locks) and closes its channels.
  */
