@@ -142,6 +142,39 @@ class WriteStreamTest {
   }
 
   @Test
+  void manyThreadsWriteAtOnceOnTheOneStream() throws Exception {
+    RealServer.Calls calls = new RealServer.Calls();
+    try (Connection wm = server.connect("threads", "motor", false, calls)) {
+      List<Thread> writers = new ArrayList<>();
+      List<Long> revisions = new CopyOnWriteArrayList<>();
+      List<Throwable> failures = new CopyOnWriteArrayList<>();
+      for (int t = 0; t < 4; t++) {
+        int thread = t;
+        writers.add(new Thread(() -> {
+          try {
+            for (int i = 0; i < 100; i++) {
+              revisions.add(wm.add("w" + thread + "-" + i, Int64Value.of(i)).revision());
+              if (i % 10 == 0) {
+                revisions.add(wm.overwriteAsync("w" + thread + "-" + i, Int64Value.of(-i)).get().revision());
+              }
+            }
+          } catch (Throwable e) {
+            failures.add(e);
+          }
+        }));
+      }
+      writers.forEach(Thread::start);
+      for (Thread t : writers) {
+        t.join(60_000);
+      }
+      assertEquals(List.of(), failures);
+      assertEquals(440, revisions.stream().distinct().count(), "every write applied once");
+      assertEquals(-90, wm.get("w3-90", Int64Value.class).getValue());
+    }
+    assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+  }
+
+  @Test
   void aValueOfOneAndAHalfMebibytesIsWrittenReadBackAndWatched() throws Exception {
     byte[] bytes = new byte[1536 * 1024];
     new Random(19).nextBytes(bytes);
