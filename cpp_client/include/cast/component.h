@@ -10,7 +10,8 @@
 //
 // Every method may be called from any thread. Callbacks (onChange, task
 // hooks, watchFailed) run on the component's one dispatcher thread, one at a
-// time, in the order the events arrived (revision order per WM).
+// time, in the order the events arrived (revision order per WM) within a
+// priority (WatchOptions).
 #pragma once
 
 #include <google/protobuf/message.h>

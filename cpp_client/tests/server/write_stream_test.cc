@@ -2,13 +2,15 @@
 // against the repository's Python server: the same results and named errors
 // as the unary calls gave, pipelined writes in call order with their errors
 // on the futures, many threads at once, a value of 1.5 MiB end to end, a
-// renewed token, and a stream that breaks.
+// renewed token, and a stream that breaks (which also shows that every kind
+// of write travels on the stream).
 #include <google/protobuf/wrappers.pb.h>
 #include <gtest/gtest.h>
 #include <unistd.h>
 
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <future>
 #include <string>
 #include <thread>
@@ -215,6 +217,7 @@ TEST(WriteStream, ABrokenStreamFailsWhatIsOutstandingAndTheNextWriteReconnects) 
   auto holder = server.connect("ws-holder", "vision");
   auto waiter = server.connect("ws-waiter", "vision");
   holder->add("ws-l", number(1));
+  waiter->add("ws-w", number(1));  // registers the type's schema (a unary call) while the server is there
   cast::LockGuard held = holder->lock("ws-l");
   std::promise<std::string> outcome;
   std::thread waiting([&] {
@@ -235,7 +238,26 @@ TEST(WriteStream, ABrokenStreamFailsWhatIsOutstandingAndTheNextWriteReconnects) 
   const std::string message = failed.get();
   EXPECT_TRUE(contains(message, "the write stream to " + server.endpoint() + " broke")) << message;
   EXPECT_TRUE(contains(message, "may or may not have been applied")) << message;
-  EXPECT_THROW(waiter->add("ws-away", number(1)), cast::UnavailableError);
+  // Every kind of write goes on the stream: with the server away, each fails
+  // as the stream it tried does.
+  const std::vector<std::pair<const char*, std::function<void()>>> writes = {
+      {"add", [&] { waiter->add("ws-away", number(1)); }},
+      {"overwrite", [&] { waiter->overwrite("ws-l", number(2)); }},
+      {"deleteEntry", [&] { waiter->deleteEntry("ws-l"); }},
+      {"batch", [&] { waiter->batch({BatchWrite::add("ws-away", number(1))}); }},
+      {"tryLock", [&] { waiter->tryLock("ws-l"); }},
+      {"unlock", [&] { waiter->unlock("ws-l"); }},
+      {"addAsync", [&] { waiter->addAsync("ws-away", number(1)).get(); }},
+      {"overwriteAsync", [&] { waiter->overwriteAsync("ws-l", number(2)).get(); }},
+  };
+  for (const auto& [name, write] : writes) {
+    try {
+      write();
+      ADD_FAILURE() << name << " succeeded with the server away";
+    } catch (const cast::UnavailableError& e) {
+      EXPECT_TRUE(contains(e.message(), "the write stream to " + server.endpoint())) << name << ": " << e.message();
+    }
+  }
 
   server.restart();
   EXPECT_TRUE(waitFor([&] {
