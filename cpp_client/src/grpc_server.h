@@ -21,6 +21,10 @@
 
 namespace cast::detail {
 
+// The largest gRPC message either way (servers set the same). Large values
+// (images, point clouds) must pass; gRPC's default is 4 MB.
+inline constexpr int kMaxMessageBytes = 64 * 1024 * 1024;
+
 // The channel credentials for `tls` (plaintext without); sets the name to
 // verify the server's certificate against in `args`. InvalidArgumentError for
 // a TLS file that cannot be read. Defined in credentials.cc.

@@ -24,8 +24,6 @@ namespace cast {
 namespace detail {
 namespace {
 
-// Large values (images, point clouds) must pass; gRPC's default is 4 MB.
-constexpr int kMaxMessageBytes = 64 * 1024 * 1024;
 // How much longer than a lock's own timeout the client waits for the server's
 // answer to it (the server gives up the wait itself; this covers the trip).
 constexpr Millis kLockReplyMargin{5000};

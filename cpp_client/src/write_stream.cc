@@ -19,6 +19,13 @@ namespace {
 constexpr Millis kTokenDrain{30000};
 // How long replacing a stream waits for the old one to end after its half-close.
 constexpr Millis kEndGrace{2000};
+// The writer puts queued requests together in a message up to this size
+// (one larger request goes alone), so that many large values in flight never
+// make a message over kMaxMessageBytes, which would end the stream.
+constexpr std::size_t kMessageFill = 8 * 1024 * 1024;
+// What a request may take on the wire at most: a message's limit, less room
+// for the message's own framing.
+constexpr std::size_t kMaxRequestBytes = kMaxMessageBytes - 64 * 1024;
 
 // Puts `error` into `promise` as the exception of its own class.
 template <class T>
@@ -60,13 +67,13 @@ struct WriteStream::Call {
 
   // Registers `request` under the next id and sends it (it is moved out);
   // false, with nothing taken, if the call broke or is closing.
-  bool send(v1::WriteRequest& request, ReplyHandler& onReply, bool direct) {
+  bool send(v1::WriteRequest& request, std::size_t size, ReplyHandler& onReply, bool direct) {
     std::unique_lock<std::mutex> lock(mu);
     if (broken || halfClosed) return false;
     request.set_id(nextId++);
     pending.emplace(request.id(), std::move(onReply));
     if (!direct || writing || !queued.empty()) {
-      queued.push_back(std::move(request));
+      queued.emplace_back(std::move(request), size);
       wake.notify_one();
       return true;
     }
@@ -84,8 +91,9 @@ struct WriteStream::Call {
     return true;
   }
 
-  // The writer thread: everything queued goes in one message, one message
-  // at a time; after a half-close, what is left and then the end.
+  // The writer thread: what is queued goes in one message (up to
+  // kMessageFill), one message at a time; after a half-close, what is left
+  // and then the end.
   void write() {
     std::unique_lock<std::mutex> lock(mu);
     for (;;) {
@@ -98,9 +106,14 @@ struct WriteStream::Call {
         return;
       }
       v1::WriteRequests message;
-      message.mutable_requests()->Reserve(static_cast<int>(queued.size()));
-      for (auto& request : queued) *message.add_requests() = std::move(request);
-      queued.clear();
+      std::size_t taken = 0;
+      std::size_t bytes = 0;
+      while (taken < queued.size() && (taken == 0 || bytes + queued[taken].second <= kMessageFill)) {
+        bytes += queued[taken].second;
+        *message.add_requests() = std::move(queued[taken].first);
+        ++taken;
+      }
+      queued.erase(queued.begin(), queued.begin() + static_cast<std::ptrdiff_t>(taken));
       lock.unlock();
       stream->Write(message);
       lock.lock();
@@ -187,7 +200,7 @@ struct WriteStream::Call {
   std::condition_variable wake;     // something to write, a write done, or the end: for the writer
   std::condition_variable changed;  // a reply came (pending shrank), or the call ended
   std::map<std::uint64_t, ReplyHandler> pending;
-  std::vector<v1::WriteRequest> queued;  // registered, waiting for the writer
+  std::vector<std::pair<v1::WriteRequest, std::size_t>> queued;  // registered, waiting for the writer (with size)
   std::uint64_t nextId = 1;
   bool writing = false;     // a Write (or the half-close) is under way
   bool halfClosed = false;  // nothing more is accepted; the writer ends the sending side
@@ -228,6 +241,18 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
 }
 
 void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool direct) {
+  // Refused here, not by gRPC: a message over the limit would end the stream
+  // and fail every write in flight with it.
+  const std::size_t size = request.ByteSizeLong();
+  if (size > kMaxRequestBytes) {
+    onReply(nullptr, std::make_shared<InvalidArgumentError>(
+                         "a write of " + std::to_string(size) + " bytes is over the " +
+                         std::to_string(kMaxRequestBytes) + "-byte limit of one request on the connection to " +
+                         server_.endpoint + " (gRPC messages up to 64 MiB); the server takes values up to its "
+                         "limits.max_value_bytes (8 MiB by default): keep large data elsewhere and write a "
+                         "reference to it"));
+    return;
+  }
   const std::string token = tokens_->token();
   // Twice at most: a call that broke (or was replaced) just now gives way to a new one.
   for (int attempt = 0; attempt < 2; ++attempt) {
@@ -241,7 +266,7 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
                                                           " is closed: no more writes"));
       return;
     }
-    if (call->send(request, onReply, direct)) return;
+    if (call->send(request, size, onReply, direct)) return;
   }
   onReply(nullptr, std::make_shared<UnavailableError>("the write stream to " + server_.endpoint +
                                                       " broke twice while this write was sent: it was not applied; "

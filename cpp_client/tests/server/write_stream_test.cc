@@ -180,6 +180,39 @@ TEST(WriteStream, AValueOfOneAndAHalfMebibytesIsWrittenReadAndWatched) {
   EXPECT_TRUE(seen[1] == bytes);
 }
 
+// 64 values of 1 MiB in flight at once (queued ones share messages, which
+// must stay under gRPC's limit), and a request over that limit refused before
+// it is sent: sent, it would end the stream and fail the others with it.
+TEST(WriteStream, ManyLargeValuesInFlightAndOneOverTheMessageLimit) {
+  auto writer = sharedServer().connect("ws-huge", "vision");
+  std::string bytes(1024 * 1024, 'x');
+  BytesValue value;
+  value.set_value(bytes);
+  cast::WriteResult last = writer->add("ws-huge", value);
+  std::vector<std::future<cast::WriteResult>> inFlight;  // 64 MiB together
+  for (int i = 0; i < 64; ++i) {
+    bytes[0] = static_cast<char>(i);
+    value.set_value(bytes);
+    inFlight.push_back(writer->overwriteAsync("ws-huge", value));
+  }
+  BytesValue huge;
+  huge.set_value(std::string(65 * 1024 * 1024, 'y'));
+  try {
+    writer->add("ws-too-big", huge);
+    FAIL() << "a 65 MiB write was sent";
+  } catch (const cast::InvalidArgumentError& e) {
+    EXPECT_TRUE(contains(e.message(), "-byte limit of one request")) << e.message();
+    EXPECT_TRUE(contains(e.message(), "limits.max_value_bytes")) << e.message();
+  }
+  for (auto& f : inFlight) {
+    const cast::WriteResult r = f.get();
+    EXPECT_GT(r.version, last.version);
+    last = r;
+  }
+  EXPECT_EQ(writer->get<BytesValue>("ws-huge").value()[0], static_cast<char>(63));
+  EXPECT_FALSE(writer->exists("ws-too-big"));
+}
+
 void writeToken(const std::string& path, const std::string& token) {
   {
     std::ofstream out(path + ".tmp");
