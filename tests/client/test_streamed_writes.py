@@ -216,3 +216,16 @@ def test_a_broken_stream_fails_outstanding_calls_and_the_next_write_reconnects(r
     assert "may or may not have been applied" in str(errors[0])
     waiter.add("after", Pose(x=9))  # a new stream
     assert waiter.get("after", Pose).x == 9
+
+
+def test_many_large_values_in_flight_and_a_request_over_the_message_limit(remote: Any) -> None:
+    c = remote("w")
+    image = b"\x01" * (1024 * 1024)
+    futures = [c.add_async(f"img{i}", BytesValue(value=image)) for i in range(64)]  # 64 MiB in flight
+    assert [f.result(60).version for f in futures] == sorted(f.result().version for f in futures)
+    assert c.get("img63", BytesValue).value == image
+    big = b"\x02" * (7 * 1024 * 1024)
+    with pytest.raises(cast.InvalidArgumentError, match="message limit of 67108864 bytes"):
+        c.batch([("overwrite", f"img{i}", BytesValue(value=big)) for i in range(10)])  # 70 MiB in one request
+    assert c.get("img0", BytesValue).value == image  # refused before it was sent: nothing changed
+    c.overwrite("img0", BytesValue(value=big))  # and the stream goes on

@@ -28,9 +28,16 @@ from typing import Any, cast
 
 import grpc
 
-from cast.client.channel import ServerLink, map_rpc_error
+from cast.client.channel import MAX_MESSAGE_BYTES, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
-from cast.errors import CastError, DeadlineExceededError, UnauthenticatedError, UnavailableError, error_for_code
+from cast.errors import (
+    CastError,
+    DeadlineExceededError,
+    InvalidArgumentError,
+    UnauthenticatedError,
+    UnavailableError,
+    error_for_code,
+)
 from cast.v1 import working_memory_pb2 as wm_pb2
 
 __all__ = ["WriteStream", "reply_result"]
@@ -39,6 +46,11 @@ log = logging.getLogger("cast.client")
 
 # How long a token change waits for the old stream's outstanding replies before opening the new one.
 _DRAIN_S = 30.0
+# What one message gathers of queued requests: large values in flight (64 images of 1 MiB) must not
+# make a message over gRPC's limit, which would break the stream for every write on it.
+_MESSAGE_BYTES = 4 * 1024 * 1024
+# The largest request sent: gRPC's message limit, less room for the message's own framing.
+_MAX_REQUEST_BYTES = MAX_MESSAGE_BYTES - 1024
 
 
 def reply_result(reply: wm_pb2.WriteReply) -> wm_pb2.WriteReply:
@@ -59,20 +71,24 @@ def _settle(future: Future[wm_pb2.WriteReply], reply: wm_pb2.WriteReply | None, 
         pass  # the caller gave up waiting (its deadline) and cancelled it
 
 
-def _messages(requests: queue.SimpleQueue[wm_pb2.WriteRequest | None]) -> Iterator[wm_pb2.WriteRequests]:
+def _messages(requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None]) -> Iterator[wm_pb2.WriteRequests]:
     """The stream's messages: each request as soon as it is queued, with whatever queued up behind it.
 
     gRPC sends one message at a time; what is queued meanwhile goes in the
-    next one, so many writes in flight share the per-message cost.
+    next one (up to about :data:`_MESSAGE_BYTES`), so many writes in flight
+    share the per-message cost. Queue items are (request, its size).
     """
+    carried: tuple[wm_pb2.WriteRequest, int] | None = None
     while True:
-        first = requests.get()
-        if first is None:
+        item = carried if carried is not None else requests.get()
+        carried = None
+        if item is None:
             return
         message = wm_pb2.WriteRequests()
         append = message.requests.append
-        append(first)
-        while True:
+        append(item[0])
+        total = item[1]
+        while total < _MESSAGE_BYTES:
             try:
                 more = requests.get_nowait()
             except queue.Empty:
@@ -80,7 +96,11 @@ def _messages(requests: queue.SimpleQueue[wm_pb2.WriteRequest | None]) -> Iterat
             if more is None:
                 yield message
                 return
-            append(more)
+            if total + more[1] > _MESSAGE_BYTES:
+                carried = more  # it starts the next message
+                break
+            append(more[0])
+            total += more[1]
         yield message
 
 
@@ -98,7 +118,7 @@ class _Call:
     def __init__(self, server: ServerLink, token: str) -> None:
         self.token = token
         self.endpoint = server.endpoint
-        self.requests: queue.SimpleQueue[wm_pb2.WriteRequest | None] = queue.SimpleQueue()
+        self.requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None] = queue.SimpleQueue()
         self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
         self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
         self.lock = threading.Lock()
@@ -118,15 +138,15 @@ class _Call:
         self.pump = threading.Thread(target=self._pump, name="cast-write-replies", daemon=True)
         self.pump.start()
 
-    def send(self, request: wm_pb2.WriteRequest, detached: bool) -> Future[wm_pb2.WriteReply]:
-        """Queue ``request`` with the next id; the future of its reply. Call with :attr:`lock` held."""
+    def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool) -> Future[wm_pb2.WriteReply]:
+        """Queue ``request`` (``size`` bytes) with the next id; the future of its reply. Call with :attr:`lock` held."""
         future: Future[wm_pb2.WriteReply] = Future()
         request.id = request_id = next(self.ids)
         self.pending[request_id] = future
         if detached:
             self.detached.add(request_id)
             self.pump_wake.notify()  # the pump reads for it
-        self.requests.put(request)
+        self.requests.put((request, size))
         return future
 
     def _on_done(self, _: object) -> None:
@@ -276,6 +296,13 @@ class WriteStream:
         return self._submit(request, detached)[1]
 
     def _submit(self, request: wm_pb2.WriteRequest, detached: bool) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
+        size = request.ByteSize()
+        if size > _MAX_REQUEST_BYTES:
+            # Sent, it would end the stream (and every write in flight on it) with RESOURCE_EXHAUSTED.
+            raise InvalidArgumentError(
+                f"write request of {size} bytes is over gRPC's message limit of {MAX_MESSAGE_BYTES} bytes: "
+                "write smaller values, or split the batch"
+            )
         token = self._tokens.token()
         with self._lock:
             if self._closed:
@@ -285,11 +312,11 @@ class WriteStream:
                 call = self._open(call, token)
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, detached)
+                    return call, call.send(request, size, detached)
             call = self._open(call, token)  # it broke just now: one more try on a new call
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, detached)
+                    return call, call.send(request, size, detached)
         raise UnavailableError(
             f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
             "was not sent; the client reconnects by itself, retry the call later"
