@@ -155,6 +155,7 @@ def test_the_wheel_and_sdist_hold_the_generated_code_and_current_metadata(instal
     metadata = zipfile.ZipFile(installed.wheel).read(f"cast_grpc-{VERSION}.dist-info/METADATA").decode()
     assert f"\nVersion: {VERSION}\n" in metadata
     assert "\nLicense-Expression: BSD-3-Clause\n" in metadata
+    assert "\nLicense-File: LICENSE\n" in metadata and f"cast_grpc-{VERSION}.dist-info/licenses/LICENSE" in names
     requires = [line.split(": ", 1)[1] for line in metadata.splitlines() if line.startswith("Requires-Dist: ")]
     assert any(r.startswith("grpcio>=") for r in requires) and any(r.startswith("protobuf>=") for r in requires)
     # Lower bounds only, but for the one package whose 0.x minor releases change its API.
@@ -164,7 +165,7 @@ def test_the_wheel_and_sdist_hold_the_generated_code_and_current_metadata(instal
         members = {m.name.split("/", 1)[1] for m in sdist.getmembers() if "/" in m.name}
     assert {f"proto/cast/v1/{stem}.proto" for stem in PROTOS} <= members
     assert {f"python/cast/v1/{stem}_pb2.py" for stem in PROTOS} <= members
-    assert {"VERSION", "setup.py", "build_support/cast_protos.py", "CHANGELOG.md"} <= members
+    assert {"VERSION", "setup.py", "build_support/cast_protos.py", "CHANGELOG.md", "LICENSE"} <= members
 
 
 def test_the_installed_cast_serves_and_runs_the_quick_start(installed: Installed) -> None:
