@@ -83,7 +83,8 @@ final class GrpcTransport implements Transport {
   private final ScheduledExecutorService scheduler;
   private volatile DecisionStream decisions;
   private final AtomicInteger sessions = new AtomicInteger();
-  private final WriteStream.Results results; // completes the futures of addAsync/overwriteAsync
+  private final WriteStream.Worker results; // completes the futures of addAsync/overwriteAsync
+  private final WriteStream.Worker pump; // sends what addAsync/overwriteAsync queued
 
   /** Connects to the directory of {@code contract} and describes the system (TLS as the contract says). */
   GrpcTransport(LaunchContract contract) {
@@ -106,7 +107,8 @@ final class GrpcTransport implements Transport {
             });
     pool.setRemoveOnCancelPolicy(true);
     this.scheduler = pool;
-    this.results = new WriteStream.Results(name);
+    this.results = new WriteStream.Worker("cast-write-results-" + name);
+    this.pump = new WriteStream.Worker("cast-write-pump-" + name);
     this.directory = openServer(contract.endpoint());
     servers.put(contract.endpoint(), directory);
     try {
@@ -258,7 +260,7 @@ final class GrpcTransport implements Transport {
     if (stream == null) {
       synchronized (lock) {
         if (server.writes == null) {
-          server.writes = new WriteStream(server, credentials, callTimeout);
+          server.writes = new WriteStream(server, credentials, callTimeout, pump);
         }
         stream = server.writes;
       }
@@ -466,6 +468,7 @@ final class GrpcTransport implements Transport {
         writes.close(Duration.ofSeconds(2)); // outstanding replies first: they may be async results
       }
     }
+    pump.shutdown();
     results.shutdown(); // what is queued still runs
     watches.close();
     for (GrpcServer server : all) {

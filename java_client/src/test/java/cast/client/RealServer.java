@@ -4,6 +4,7 @@ import io.grpc.CallOptions;
 import io.grpc.Channel;
 import io.grpc.ClientCall;
 import io.grpc.ClientInterceptor;
+import io.grpc.ForwardingClientCall;
 import io.grpc.MethodDescriptor;
 import java.io.BufferedReader;
 import java.io.IOException;
@@ -15,6 +16,7 @@ import java.time.Duration;
 import java.util.List;
 import java.util.concurrent.CopyOnWriteArrayList;
 import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicInteger;
 
 /**
  * A real CAST server for the JUnit tests that need one: {@code cast serve} from the
@@ -26,14 +28,28 @@ import java.util.concurrent.TimeUnit;
 final class RealServer implements AutoCloseable {
   static final String SECRET = "junit-secret-0123456789abcdef-0123456789";
 
-  /** The gRPC methods a connection called, by full name ("cast.v1.WorkingMemory/Write"), in order. */
+  /**
+   * The gRPC methods a connection called, by full name ("cast.v1.WorkingMemory/Write"), in
+   * order, and the messages it sent on its Write calls.
+   */
   static final class Calls implements ClientInterceptor {
     final List<String> methods = new CopyOnWriteArrayList<>();
+    final AtomicInteger writeMessages = new AtomicInteger();
 
     @Override
     public <Q, R> ClientCall<Q, R> interceptCall(MethodDescriptor<Q, R> method, CallOptions options, Channel next) {
       methods.add(method.getFullMethodName());
-      return next.newCall(method, options);
+      ClientCall<Q, R> call = next.newCall(method, options);
+      if (!method.getFullMethodName().equals("cast.v1.WorkingMemory/Write")) {
+        return call;
+      }
+      return new ForwardingClientCall.SimpleForwardingClientCall<Q, R>(call) {
+        @Override
+        public void sendMessage(Q message) {
+          writeMessages.incrementAndGet();
+          super.sendMessage(message);
+        }
+      };
     }
 
     /** How many calls of {@code method} ("WorkingMemory/Write") were made. */

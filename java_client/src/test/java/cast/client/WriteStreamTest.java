@@ -115,6 +115,7 @@ class WriteStreamTest {
     RealServer.Calls calls = new RealServer.Calls();
     try (Connection wm = server.connect("pipeliner", "vision", false, calls)) {
       WriteResult first = wm.add("p1", Int64Value.of(0));
+      int messagesBefore = calls.writeMessages.get();
       List<CompletableFuture<WriteResult>> inFlight = new ArrayList<>();
       for (int i = 1; i <= 200; i++) {
         inFlight.add(wm.overwriteAsync("p1", Int64Value.of(i)));
@@ -125,6 +126,9 @@ class WriteStreamTest {
       for (CompletableFuture<WriteResult> f : inFlight) {
         assertEquals(++revision, f.get(60, TimeUnit.SECONDS).revision(), "applied in call order");
       }
+      // What queued up while a message was sent went together in the next: fewer messages than writes.
+      int messages = calls.writeMessages.get() - messagesBefore;
+      assertTrue(messages <= 101, messages + " messages for 202 writes");
       ExecutionException e = assertThrows(ExecutionException.class, () -> taken.get(60, TimeUnit.SECONDS));
       assertInstanceOf(AlreadyExistsError.class, e.getCause());
       e = assertThrows(ExecutionException.class, () -> stale.get(60, TimeUnit.SECONDS));
