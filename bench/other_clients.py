@@ -50,6 +50,8 @@ JAVA_TEST_CLASSES = ROOT / "java_client" / "target" / "test-classes"
 JAVA_BENCH_CLASS = "cast.bench.Bench"
 TIMEOUT_S = 180
 SA = "bench"  # m3_latency, the Python floor, writes in this SA
+# Issue 19: a client in a compiled language, on the write stream too, should not be held to Python's pace.
+ADD_RATIO = 1.5
 
 
 def cpp_command() -> list[str] | str:
@@ -384,12 +386,12 @@ def run(
                     f"({m['p50_us'] / py_p50:.2f} x Python's); judged at steady state, after {jit_warm:,} warm-up "
                     "calls; see docs/performance.md, M7"
                 )
-        ok_add = add >= py_add
+        ok_add = add >= ADD_RATIO * py_add
         ok_lat = judged_p50 <= lat_target
         met = met and ok_add and ok_lat and m["lost"] == 0
         misses = []
         if not ok_add:
-            misses.append(f"Add {add} calls/s < Python's {py_add}")
+            misses.append(f"Add {add} calls/s < {ADD_RATIO} x Python's {py_add}")
         if not ok_lat:
             misses.append(f"latency p50 {judged_p50} µs > 1.2 x Python's ({lat_target:.0f} µs)")
         if m["lost"]:
@@ -400,7 +402,7 @@ def run(
         "id": "M7",
         "what": "C++ and Java clients: sequential Add; write -> event latency to a watcher in the same language "
         "(floor: the Python client, measured here too: Add in blocks taken in turn with theirs)",
-        "target": "Add calls/s >= the Python client's; latency p50 <= 1.2 x the Python client's",
+        "target": f"Add calls/s >= {ADD_RATIO} x the Python client's; latency p50 <= 1.2 x the Python client's",
         "figures": figures
         or [
             {"name": "Python Add (calls/s)", "value": py_add},

@@ -92,6 +92,27 @@ def plot_xy(path: Path, xs: Sequence[float], ys: Sequence[float], xlabel: str, y
     plt.close(fig)
 
 
+def plot_panels(path: Path, xs: Sequence[float], panels: dict[str, dict[str, Sequence[float]]], xlabel: str,
+                title: str) -> None:
+    """One panel per title (its y label), each with one or more named series over the same xs (log x)."""
+    fig, axes = plt.subplots(2, (len(panels) + 1) // 2, figsize=(10, 7), squeeze=False)
+    for ax, (ylabel, series) in zip(axes.flat, panels.items(), strict=False):
+        for label, ys in series.items():
+            ax.plot(xs, ys, marker="o", label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, which="both", alpha=0.3)
+        if len(series) > 1:
+            ax.legend()
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def machine_info(floors: dict[str, Any], redis_version: str) -> dict[str, Any]:
     """Cores and versions, and the floors for the report header."""
     import os

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = ["Results", "fig", "rows"]
@@ -16,8 +16,6 @@ def fig(name: str, value: float, floor: float | None = None, peer: float | None 
     if peer is not None:
         out["peer"] = peer
     return out
-
-
 
 
 @dataclass
@@ -38,6 +36,11 @@ class Results:
     d1: dict[str, Any]
     o1: dict[str, Any]  # the row itself (bench/metrics_overhead.py)
     rec1: dict[str, Any]  # the row itself (bench/recording.py)
+    # Issue 19 (bench/rows_round2.py): Zenoh's put -> subscriber at M3's spacing, pipelined adds, M8, M9.
+    zenoh: dict[str, Any] = field(default_factory=dict)
+    m1p: dict[str, Any] = field(default_factory=dict)
+    m8: dict[str, Any] = field(default_factory=dict)
+    m9: dict[str, Any] = field(default_factory=dict)
 
     @property
     def unary_cps(self) -> float:
@@ -67,19 +70,10 @@ class Results:
 
 def rows(r: Results) -> list[dict[str, Any]]:
     """Every row, in the table's order."""
-    return [_m1_row(r), _m2_row(r), _m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7, _durability_row(r.d1),
-            _r1_row(r), r.o1, r.rec1]
+    from bench import rows_round2 as r2  # it builds on fig() above
 
-
-def _m1_row(r: Results) -> dict[str, Any]:
-    """The M1 row."""
-    return {
-        "id": "M1",
-        "what": "sequential Add, Get, Overwrite from one Python client (calls/s)",
-        "target": ">= 0.8 x bare grpcio unary echo calls/s",
-        "figures": [fig(f"{k} (calls/s)", v, floor=round(r.unary_cps)) for k, v in r.m1.items()],
-        "met": all(v >= 0.8 * r.unary_cps for v in r.m1.values()),
-    }
+    return [r2.m1_row(r), r2.m1p_row(r.m1p), _m2_row(r), r2.m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7,
+            r2.m8_row(r.m8), r2.m9_row(r.m9), _durability_row(r.d1), _r1_row(r), r.o1, r.rec1]
 
 
 def _m2_row(r: Results) -> dict[str, Any]:
@@ -90,34 +84,6 @@ def _m2_row(r: Results) -> dict[str, Any]:
         "target": ">= 3 x redis-py sequential SET ops/s",
         "figures": [fig("entries/s", r.m2["entries_per_s"], peer=r.peer["set_ops_per_s"])],
         "met": r.m2["entries_per_s"] >= 3 * r.peer["set_ops_per_s"],
-    }
-
-
-def _m3_row(r: Results) -> dict[str, Any]:
-    """The M3 row."""
-    return {
-        "id": "M3",
-        "what": "write -> event latency, Python writer -> Python watcher (µs)",
-        "target": "p50 <= 1.5 x grpcio unary p50 (same 2 ms spacing) and <= 2 x Redis notification p50; "
-        "p99 <= 3000 µs",
-        "figures": [
-            fig("p50 (µs)", r.m3["p50_us"], floor=r.spaced_p50, peer=r.redis_p50),
-            fig("p99 (µs)", r.m3["p99_us"], peer=r.peer["notification"]["p99_us"]),
-            fig("lost", r.m3["lost"]),
-        ],
-        "note": (
-            f"2 x Redis's notification p50 is {2 * r.redis_p50:.0f} µs, below the floor of a gRPC write -> "
-            f"event on this stack: half a bare unary round trip to carry the write in "
-            f"({r.unary_p50 / 2:.0f} µs) plus half a bare stream ping-pong to carry the event out "
-            f"({r.echo['stream_ping_pong_p50_us'] / 2:.0f} µs), {r.write_event_floor:.0f} µs before any work; "
-            "no Python gRPC write -> event path can meet that part; see docs/performance.md"
-        )
-        if 2 * r.redis_p50 < r.write_event_floor
-        else "",
-        "met": r.m3["p50_us"] <= 1.5 * r.spaced_p50
-        and r.m3["p50_us"] <= 2 * r.redis_p50
-        and r.m3["p99_us"] <= 3000
-        and r.m3["lost"] == 0,
     }
 
 

@@ -15,12 +15,16 @@ from bench import (
     cast_cases,
     durability,
     floors,
+    images,
+    many_components,
     metrics_overhead,
     other_clients,
     recording,
     redis_peer,
     report,
     stalled_watcher,
+    stream_cases,
+    zenoh_peer,
 )
 from bench.harness import ROOT
 from bench.rows import Results, rows
@@ -57,7 +61,9 @@ def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, 
     tcp = floors.tcp(n)
     log("peer: redis")
     peer = redis_peer.run(n, work)
-    echo, m1, m2, m3, m4, scaling = _on_one_server(q, n, rounds, work, log)
+    log("peer: zenoh put -> subscriber")
+    zenoh = _zenoh_latency(n)
+    echo, m1, m1p, m2, m3, m4, scaling = _on_one_server(q, n, rounds, work, log)
     log("M5 in process")
     m5 = cast_cases.m5_in_process(n)
     log("M6 large WM")
@@ -75,11 +81,22 @@ def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, 
     m7 = other_clients.run(work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"],
                            rounds=rounds, jit_warm=5000 if q else 20_000, log=log)
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
+    m8 = images.run(work / "m8", 60 if q else 300, log)
+    m9 = many_components.run(work / "m9", [10, 100, 500], 100 if q else 1000, log)
     log("O1 what the metrics cost")
     o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 1000 if q else 10_000, 1 if q else 3, log)
     log("REC1 what recording costs")
     rec1 = recording.run(work / "rec1", 1000 if q else 5000, 5000 if q else 50_000, log)
-    return Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1), scaling, m7_samples
+    results = Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1, zenoh=zenoh, m1p=m1p, m8=m8, m9=m9)
+    return results, scaling, m7_samples
+
+
+def _zenoh_latency(n: int) -> dict[str, Any]:
+    """Zenoh's put -> subscriber at M3's spacing, or why it could not be measured."""
+    try:
+        return zenoh_peer.latency(n, floors.GAP_S)
+    except (RuntimeError, OSError, ImportError) as exc:
+        return {"error": str(exc)}
 
 
 def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str], None]) -> tuple[Any, ...]:
@@ -94,9 +111,12 @@ def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str]
             "stream_ping_pong_p50_us": statistics.median(e["stream_ping_pong"]["p50_us"] for e in lat_runs),
             "unary_spaced_p50_us": statistics.median(e["unary_spaced"]["p50_us"] for e in lat_runs),
         }
-        log("M1 sequential, in blocks interleaved with the grpc echo floor")
-        m1 = cast_cases.m1_interleaved(server, echo_floor, n * rounds)
+        log("M1 sequential, in blocks interleaved with the grpc echo and stream ping-pong floors")
+        m1 = stream_cases.m1_both_floors(server, echo_floor, n * rounds)
         echo["unary_calls_per_s"] = m1.pop("echo_per_s")
+        echo["stream_calls_per_s"] = m1.pop("stream_per_s")
+        log("M1P pipelined adds (64 in flight), in blocks with sequential adds")
+        m1p = stream_cases.pipelined_adds(server, n * rounds)
         log("M2 batch")
         m2 = cast_cases.m2_batch(server, 50 if q else 300)
         log("M3 write -> event latency")
@@ -112,7 +132,7 @@ def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str]
     finally:
         echo_floor.close()
         server.stop()
-    return echo, m1, m2, m3, m4, scaling
+    return echo, m1, m1p, m2, m3, m4, scaling
 
 
 def _write(out: Path, results: Results, command: str) -> None:
@@ -123,10 +143,17 @@ def _write(out: Path, results: Results, command: str) -> None:
             "raw TCP ping-pong p50": f"{tcp['p50_us']} µs ({tcp['round_trips_per_s']} round trips/s)",
             "grpcio unary echo": f"{results.unary_cps:.0f} calls/s, p50 {results.unary_p50} µs back to back, "
             f"{results.spaced_p50} µs with 2 ms spacing",
-            "grpcio bidi-stream ping-pong p50": f"{echo['stream_ping_pong_p50_us']} µs",
+            "grpcio bidi-stream ping-pong": f"{echo['stream_calls_per_s']:.0f} calls/s in M1's blocks, p50 "
+            f"{echo['stream_ping_pong_p50_us']} µs back to back",
             "redis-py SET / GET": f"{peer['set_ops_per_s']} / {peer['get_ops_per_s']} ops/s",
             "Redis SET -> keyspace notification": f"p50 {results.redis_p50} µs, "
             f"p99 {peer['notification']['p99_us']} µs",
+            "Zenoh put -> subscriber (peer mode, loopback, 2 ms spacing)": f"p50 {results.zenoh.get('p50_us')} µs, "
+            f"p99 {results.zenoh.get('p99_us')} µs (eclipse-zenoh {_zenoh_version()})",
+            "grpcio unary echo of 1 MiB (M8's floor)": ", ".join(
+                f"{f['mb_per_s']} MB/s (p50 {f['p50_us']} µs)" for f in results.m8.get("floor", [])
+            )
+            or "not measured",
         },
         peer["version"],
     )
@@ -135,8 +162,15 @@ def _write(out: Path, results: Results, command: str) -> None:
     report.write_json(out / "latest.json", table, machine)
 
 
+def _zenoh_version() -> str:
+    try:
+        return zenoh_peer.zenoh_version()
+    except ImportError:
+        return "not installed"
+
+
 def _plot(out: Path, results: Results, scaling: dict[int, float], m7_samples: dict[str, Any]) -> None:
-    """The latency CDF, fan-out scaling and WM size plots."""
+    """The latency CDF, fan-out scaling, WM size and M9 plots."""
     report.plot_latency_cdf(
         out / "latency_cdf.png",
         {
@@ -150,6 +184,21 @@ def _plot(out: Path, results: Results, scaling: dict[int, float], m7_samples: di
     sizes = sorted(int(k) for k in results.m6["rates"])
     report.plot_xy(out / "wm_size.png", sizes, [results.m6["rates"][str(s)] for s in sizes], "entries in the WM",
                    "sequential Add/s", "Add throughput against WM size")
+    m9 = {int(k): v for k, v in results.m9.get("counts", {}).items() if "error" not in v}
+    ns = sorted(m9)
+    if ns:
+        report.plot_panels(
+            out / "many_components.png",
+            ns,
+            {
+                "write -> event (µs)": {q: [m9[n][f"{q}_us"] for n in ns] for q in ("p50", "p99")},
+                "server CPU while writing (cores)": {"CPU": [m9[n]["busy_cpu"] for n in ns]},
+                "server RSS per session (KiB)": {"RSS": [m9[n]["rss_per_session_kib"] for n in ns]},
+                "time to register all (s)": {"register": [m9[n]["register_s"] for n in ns]},
+            },
+            "component sessions",
+            "M9: many components, one writer adding at 100/s",
+        )
 
 
 if __name__ == "__main__":

@@ -21,6 +21,24 @@
 //                               stamping CLOCK_MONOTONIC just before each one;
 //                               prints {"REVISION": NS, ...} (the overwrites)
 //
+// Image-sized entries (M8, bench/images.py):
+//
+//   cast_bench image-write SIZE N GAP_US
+//                               adds "img" (a BytesValue of SIZE bytes), then N
+//                               sequential overwrites, the i-th started at
+//                               start + i * GAP_US (0: back to back), stamping
+//                               CLOCK_MONOTONIC just before each; deletes "img"
+//                               (the watchers' end mark) and prints
+//                               {"REVISION": NS, ...} (the overwrites)
+//   cast_bench image-watch DELIVERY
+//                               onChange(addressFilter("img") with the entry,
+//                               Delivery queue|latest); prints "ready", then at
+//                               the DELETE of "img" one line {"stamps": {"REVISION":
+//                               NS, ...}, "bytes": B, "events": E, "skipped": S}:
+//                               every overwrite received (its value decoded), the
+//                               value bytes, the events received (add and delete
+//                               too) and the changes a latest watch skipped
+//
 // CLOCK_MONOTONIC is shared by every process of a Linux machine, so the stamps
 // compare with the other process's and with Python's time.perf_counter_ns.
 #include <google/protobuf/wrappers.pb.h>
@@ -137,8 +155,64 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
   return 0;
 }
 
+int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
+  google::protobuf::BytesValue value;
+  value.set_value(std::string(static_cast<std::size_t>(size), 'i'));
+  std::map<std::uint64_t, std::int64_t> sent;
+  c.add("img", value);
+  const auto start = Clock::now();
+  for (long i = 0; i < n; ++i) {
+    // An absolute schedule, so the rate holds whatever each overwrite took.
+    if (gapUs > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gapUs * i));
+    const std::int64_t t0 = nowNs();
+    sent[c.overwrite("img", value).revision] = t0;
+  }
+  c.deleteEntry("img");  // the watchers' end mark; a later run adds it again
+  std::cout << stampsJson(sent) << std::endl;
+  return 0;
+}
+
+int imageWatchMode(cast::Component& c, const std::string& delivery) {
+  std::mutex mu;
+  std::condition_variable done;
+  bool ended = false;
+  std::map<std::uint64_t, std::int64_t> stamps;
+  std::uint64_t bytes = 0, events = 0, skipped = 0;
+  cast::WatchOptions options;
+  options.delivery = delivery == "latest" ? cast::Delivery::Latest : cast::Delivery::Queue;
+  c.onChange(
+      cast::addressFilter("img").withEntry(),
+      [&](const cast::WorkingMemoryChange& change) {
+        const std::int64_t t = nowNs();
+        if (change.operation() == cast::Operation::Delete) {
+          std::lock_guard<std::mutex> lock(mu);
+          ++events;
+          skipped += change.skipped();
+          ended = true;
+          done.notify_all();
+          return;
+        }
+        const auto size = change.entry<google::protobuf::BytesValue>().value.value().size();  // decoded, as a consumer would
+        std::lock_guard<std::mutex> lock(mu);
+        ++events;
+        skipped += change.skipped();
+        if (change.operation() == cast::Operation::Overwrite) {
+          stamps[change.revision()] = t;
+          bytes += size;
+        }
+      },
+      options);
+  std::cout << "ready" << std::endl;
+  std::unique_lock<std::mutex> lock(mu);
+  done.wait_for(lock, std::chrono::seconds(300), [&] { return ended; });
+  std::cout << "{\"stamps\": " << stampsJson(stamps) << ", \"bytes\": " << bytes << ", \"events\": " << events
+            << ", \"skipped\": " << skipped << "}" << std::endl;
+  return 0;
+}
+
 int usage() {
-  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS (with the CAST_* launch environment)\n";
+  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | image-write SIZE N GAP_US | "
+               "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
 }
 
@@ -148,7 +222,9 @@ int main(int argc, char** argv) {
   if (argc < 3) return usage();
   const std::string mode = argv[1];
   const long n = std::strtol(argv[2], nullptr, 10);
-  if (n <= 0 || (mode == "write" && argc < 4)) return usage();
+  if (mode == "image-watch" && std::string(argv[2]) != "queue" && std::string(argv[2]) != "latest") return usage();
+  if (mode != "image-watch" && n <= 0) return usage();
+  if ((mode == "write" && argc < 4) || (mode == "image-write" && argc < 5)) return usage();
   try {
     const auto contract = cast::LaunchContract::fromEnv();
     cast::UnmanagedComponent component;
@@ -159,6 +235,9 @@ int main(int argc, char** argv) {
     else if (mode == "watch") code = watchMode(component, n);
     else if (mode == "write")
       code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);
+    else if (mode == "image-write")
+      code = imageWriteMode(component, n, std::strtol(argv[3], nullptr, 10), std::strtol(argv[4], nullptr, 10));
+    else if (mode == "image-watch") code = imageWatchMode(component, argv[2]);
     else return usage();
     component.close();
     return code;

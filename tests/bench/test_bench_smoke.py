@@ -11,14 +11,14 @@ import pytest
 
 from tests.conftest import ROOT
 
-IDS = ["D1", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "O1", "R1", "REC1"]
+IDS = ["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "O1", "R1", "REC1"]
 
 
-@pytest.mark.timeout(600)  # every row, quick: one to two minutes on an idle 2-core machine, more on a busy one
+@pytest.mark.timeout(900)  # every row, quick: about three minutes on an idle 2-core machine, more on a busy one
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "bench.run", "--quick", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     table = (tmp_path / "latest.md").read_text()
@@ -49,5 +49,18 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     # REC1 measured the recorded writer against one without (the floor), and the recorder and a replay.
     rec1 = doc["results"]["REC1"]["figures"]
     assert rec1[0]["floor"] > 0 and rec1[1]["name"] == "recorder throughput (changes/s)" and rec1[1]["value"] > 0
-    for plot in ("latency_cdf.png", "fanout.png", "wm_size.png"):
+    # Issue 19: M1 against the stream ping-pong too; M3 against Zenoh; M8 with its floor, four watchers and both
+    # peers; M9 at each count.
+    m1_names = {f["name"] for f in doc["results"]["M1"]["figures"]}
+    assert "add_per_s (calls/s) vs stream ping-pong" in m1_names, m1_names
+    assert doc["results"]["M3"]["figures"][0]["peer"] > 0, doc["results"]["M3"]
+    m8 = {f["name"]: f for f in doc["results"]["M8"]["figures"]}
+    for watcher in ("Python 1", "C++", "Java", "Python 2"):
+        assert f"queue, 30 Hz, {watcher}: p99 (µs)" in m8 and f"latest, 30 Hz, {watcher}: p99 (µs)" in m8, m8
+    assert m8["queue, back to back: MB/s delivered, all watchers"]["floor"] > 0
+    assert "Zenoh, back to back: MB/s delivered, all subscribers" in m8
+    assert "Redis, back to back: MB/s delivered, all subscribers" in m8
+    m9 = {f["name"] for f in doc["results"]["M9"]["figures"]}
+    assert {"10 sessions: p99 (µs)", "500 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
+    for plot in ("latency_cdf.png", "fanout.png", "wm_size.png", "many_components.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"

@@ -2,8 +2,10 @@ package cast.bench;
 
 import cast.client.Component;
 import cast.client.LaunchContract;
+import cast.client.Operation;
 import cast.client.Runner;
 import cast.client.UnmanagedComponent;
+import cast.client.WatchOptions;
 import com.google.protobuf.ByteString;
 import com.google.protobuf.BytesValue;
 import java.io.BufferedReader;
@@ -38,6 +40,11 @@ import java.util.concurrent.TimeUnit;
  *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
  *   <li>{@code write N GAP_MS}: adds "lat", then N-1 overwrites spaced by GAP_MS,
  *       stamping System.nanoTime() just before each; prints {"REVISION": NS, ...}.
+ *   <li>{@code image-watch queue|latest}: (M8, bench/images.py) onChange(addressFilter("img")
+ *       with the entry, WatchOptions with that delivery); prints "ready", then at the DELETE of
+ *       "img" one line {"stamps": {"REVISION": NS, ...}, "bytes": B, "events": E, "skipped": S}:
+ *       every overwrite received (its value decoded), the value bytes, the events received (the
+ *       add and the delete too) and what a latest watch skipped.
  * </ul>
  *
  * <p>On Linux System.nanoTime() reads CLOCK_MONOTONIC, shared by every process of
@@ -52,10 +59,12 @@ public final class Bench {
 
   public static void main(String[] argv) throws Exception {
     if (argv.length < 2 || (argv[0].equals("write") && argv.length < 3)) {
-      System.err.println("usage: Bench add N | blocks WARM | watch N | write N GAP_MS (with the CAST_* launch environment)");
+      System.err.println(
+          "usage: Bench add N | blocks WARM | watch N | write N GAP_MS | image-watch queue|latest"
+              + " (with the CAST_* launch environment)");
       System.exit(2);
     }
-    int n = Integer.parseInt(argv[1]);
+    int n = argv[0].equals("image-watch") ? 0 : Integer.parseInt(argv[1]);
     UnmanagedComponent c = Runner.connect(new UnmanagedComponent() {}, LaunchContract.fromEnv());
     try {
       switch (argv[0]) {
@@ -63,6 +72,7 @@ public final class Bench {
         case "blocks" -> blocks(c, n);
         case "watch" -> watch(c, n);
         case "write" -> write(c, n, Long.parseLong(argv[2]), argv.length > 3 ? Integer.parseInt(argv[3]) : 0);
+        case "image-watch" -> imageWatch(c, argv[1]);
         default -> {
           System.err.println("unknown mode " + argv[0]);
           System.exit(2);
@@ -155,6 +165,42 @@ public final class Bench {
     }
     System.out.println(json(sent));
     c.deleteEntry("lat"); // so that another run on this server can add it again
+  }
+
+  private static void imageWatch(Component c, String delivery) throws InterruptedException {
+    Map<Long, Long> stamps = new TreeMap<>();
+    long[] totals = new long[3]; // bytes, events, skipped
+    CountDownLatch ended = new CountDownLatch(1);
+    WatchOptions options = delivery.equals("latest") ? WatchOptions.latest() : WatchOptions.queue();
+    c.onChange(
+        Component.addressFilter("img").withEntry(),
+        change -> {
+          long t = System.nanoTime();
+          int size =
+              change.operation() == Operation.DELETE
+                  ? 0
+                  : change.entry(BytesValue.class).value().getValue().size(); // decoded, as a consumer would
+          synchronized (stamps) {
+            totals[1] += 1;
+            totals[2] += change.skipped();
+            if (change.operation() == Operation.OVERWRITE) {
+              stamps.put(change.revision(), t);
+              totals[0] += size;
+            }
+          }
+          if (change.operation() == Operation.DELETE) {
+            ended.countDown();
+          }
+        },
+        options);
+    System.out.println("ready");
+    System.out.flush();
+    ended.await(300, TimeUnit.SECONDS);
+    synchronized (stamps) {
+      System.out.println(
+          "{\"stamps\": " + json(stamps) + ", \"bytes\": " + totals[0] + ", \"events\": " + totals[1]
+              + ", \"skipped\": " + totals[2] + "}");
+    }
   }
 
   private static String json(Map<Long, Long> stamps) {

@@ -1,0 +1,57 @@
+"""The Python watcher of M8 (bench/images.py), run as its own process like a component.
+
+`python -m bench.image_watcher queue|latest` with the launch contract (CAST_*) in
+its environment watches the entry "img" of its SA with the entry carried
+(``include_entry``), decodes each value as a consumer would, prints ``ready``
+once the watch is confirmed, and at the DELETE of "img" (the writer's end mark)
+prints one line ``{"stamps": {revision: ns}, "bytes": B, "events": E, "skipped": S}``:
+CLOCK_MONOTONIC (``time.perf_counter_ns``) at each overwrite's callback, the
+value bytes received, the events received (the add and the delete too) and the
+changes a latest watch was told it skipped (on any of them). The
+C++ and Java watchers (cast_bench / cast.bench.Bench ``image-watch``) print the
+same.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+from google.protobuf.wrappers_pb2 import BytesValue
+
+import cast
+from cast.client.runner import LaunchContract
+
+
+def main(delivery: str) -> int:
+    """Watch "img" until its DELETE, then print what arrived."""
+    c = cast.UnmanagedComponent()
+    c._cast_bind(LaunchContract.from_env().connect())
+    stamps: dict[int, int] = {}
+    totals = {"bytes": 0, "events": 0, "skipped": 0}
+    ended = threading.Event()
+
+    def arrived(change: cast.WorkingMemoryChange) -> None:
+        t = time.perf_counter_ns()
+        totals["events"] += 1
+        totals["skipped"] += change.skipped
+        if change.operation is cast.Operation.DELETE:
+            ended.set()
+            return
+        size = len(change.entry(BytesValue).value.value)
+        if change.operation is cast.Operation.OVERWRITE:
+            stamps[change.revision] = t
+            totals["bytes"] += size
+
+    c.on_change(cast.address_filter("img", include_entry=True), arrived, delivery=delivery)
+    print("ready", flush=True)
+    ended.wait(300)
+    print(json.dumps({"stamps": stamps, **totals}), flush=True)
+    c._cast_close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))

@@ -1,0 +1,142 @@
+"""One publisher, subscriber processes: the harness the peers (Zenoh, Redis) share for M3 and M8.
+
+The publisher runs in the benchmark's process and stamps CLOCK_MONOTONIC just
+before each put; each subscriber is a process of its own (as CAST's watchers
+are) that stamps on arrival. A message is an 8-byte sequence number followed
+by padding to the value's size. Before measuring, the publisher sends small
+WARM messages until every subscriber has said ``ready`` (it has the route);
+an END message makes each subscriber print one JSON line in the format of
+CAST's watchers (bench/image_watcher.py), read with
+:func:`bench.delivery_stats.parse_watcher`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from bench.delivery_stats import parse_watcher
+from bench.harness import ROOT
+
+__all__ = ["END", "WARM", "Receiver", "Subscribers", "drive", "frame"]
+
+WARM = 2**64 - 1
+END = 2**64 - 2
+_SEQ = struct.Struct("<Q")
+
+
+def frame(seq: int, size: int) -> bytes:
+    """A message: the sequence number, padded to ``size`` bytes (at least the 8 of the number)."""
+    return _SEQ.pack(seq) + b"p" * max(0, size - _SEQ.size)
+
+
+class Receiver:
+    """The subscriber's side: stamps each message, says ``ready`` at the first WARM, reports at END."""
+
+    def __init__(self) -> None:
+        self.stamps: dict[int, int] = {}
+        self.bytes = 0
+        self.ready = False
+        self.done = threading.Event()
+
+    def on_message(self, payload: bytes) -> None:
+        """One message as the peer's client library handed it over."""
+        t = time.perf_counter_ns()
+        (seq,) = _SEQ.unpack_from(payload)
+        if seq == WARM:
+            if not self.ready:
+                self.ready = True
+                print("ready", flush=True)
+        elif seq == END:
+            self.done.set()
+        else:
+            self.stamps[seq] = t
+            self.bytes += len(payload)
+
+    def report(self) -> None:
+        """Print what arrived (as CAST's watchers do)."""
+        print(json.dumps({"stamps": self.stamps, "bytes": self.bytes, "events": len(self.stamps)}), flush=True)
+
+
+class Subscribers:
+    """``count`` subscriber processes started from ``command`` (each gets its index as a last argument)."""
+
+    def __init__(self, command: Sequence[str], count: int, env: dict[str, str] | None = None) -> None:
+        self._logs = [tempfile.TemporaryFile("w+") for _ in range(count)]
+        self.procs = [
+            subprocess.Popen(
+                [*command, str(i)], stdout=subprocess.PIPE, stderr=self._logs[i], text=True, cwd=ROOT,
+                env={**os.environ, **(env or {})},
+            )
+            for i in range(count)
+        ]
+
+    def handshake(self, warm: Callable[[], object], timeout_s: float = 60) -> None:
+        """Call ``warm()`` every 5 ms until every subscriber printed ``ready``."""
+        stop = threading.Event()
+
+        def keep_warming() -> None:
+            while not stop.is_set():
+                warm()
+                time.sleep(0.005)
+
+        thread = threading.Thread(target=keep_warming, daemon=True)
+        thread.start()
+        try:
+            deadline = time.monotonic() + timeout_s
+            for i, proc in enumerate(self.procs):
+                assert proc.stdout is not None
+                line = proc.stdout.readline().strip()
+                if line != "ready" or time.monotonic() > deadline:
+                    raise RuntimeError(f"subscriber {i} did not start: {line!r} {self._tail(i)}")
+        finally:
+            stop.set()
+            thread.join()
+        time.sleep(0.05)  # WARM messages still on their way arrive before the first measured one
+
+    def results(self, timeout_s: float = 120) -> list[dict[str, Any]]:
+        """Each subscriber's report (after END)."""
+        out = []
+        for i, proc in enumerate(self.procs):
+            text, _ = proc.communicate(timeout=timeout_s)
+            lines = [line for line in text.splitlines() if line.startswith("{")]
+            if not lines:
+                raise RuntimeError(f"subscriber {i} printed no result: {self._tail(i)}")
+            out.append(parse_watcher(json.loads(lines[-1])))
+        return out
+
+    def _tail(self, i: int) -> str:
+        self._logs[i].seek(0)
+        return self._logs[i].read()[-800:]
+
+    def close(self) -> None:
+        """Kill what is still running."""
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log in self._logs:
+            log.close()
+
+
+def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int) -> dict[int, int]:
+    """``frames`` puts, the i-th started at start + i * ``gap_s`` (0: back to back); their stamps (ns)."""
+    pad = b"p" * max(0, size - _SEQ.size)
+    sent: dict[int, int] = {}
+    start = time.perf_counter()
+    for i in range(frames):
+        if gap_s:
+            delay = start + i * gap_s - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        payload = _SEQ.pack(i) + pad  # made before the stamp
+        sent[i] = time.perf_counter_ns()
+        put(payload)
+    return sent
