@@ -62,11 +62,6 @@ class Results:
         """Redis's SET -> keyspace notification p50 (M3's peer)."""
         return float(self.peer["notification"]["p50_us"])
 
-    @property
-    def write_event_floor(self) -> float:
-        """Half a unary round trip in plus half a stream ping-pong out: any gRPC write -> event."""
-        return self.unary_p50 / 2 + float(self.echo["stream_ping_pong_p50_us"]) / 2
-
 
 def rows(r: Results) -> list[dict[str, Any]]:
     """Every row, in the table's order."""

@@ -1,0 +1,104 @@
+"""`python -m bench.only M1|M3|M8|M9 [--quick] [--out DIR]`: one of issue 19's rows alone, with its floors.
+
+For working on one figure without the whole `make bench` (a few minutes) or
+`make bench-quick`: the same code, the same floors measured in the same run,
+the row printed as the table prints it and written to DIR/only-ID.md and .json
+(bench/results/only/ by default). The full run is what the targets are judged on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from bench import floors, images, many_components, redis_peer, report, rows_round2, stream_cases, zenoh_peer
+from bench.cast_cases import Server, m3_latency
+from bench.harness import ROOT
+from bench.rows import Results
+
+__all__ = ["CHOICES", "main"]
+
+CHOICES = ("M1", "M3", "M8", "M9")
+
+
+def _results(echo: dict[str, Any], m1: dict[str, Any] | None = None, m3: dict[str, Any] | None = None,
+             peer: dict[str, Any] | None = None, zenoh: dict[str, Any] | None = None) -> Results:
+    empty: dict[str, Any] = {}
+    return Results(empty, peer or empty, echo, m1 or empty, empty, m3 or empty, empty, empty, empty, empty, empty,
+                   empty, empty, empty, zenoh=zenoh or empty)
+
+
+def _m1(q: bool, work: Path) -> list[dict[str, Any]]:
+    n = 500 if q else 3000
+    server, echo = Server(work, ["bench"]), floors.EchoFloor()
+    try:
+        m1 = stream_cases.m1_both_floors(server, echo, n)
+        m1p = stream_cases.pipelined_adds(server, n)
+    finally:
+        echo.close()
+        server.stop()
+    ech = {"unary_calls_per_s": m1.pop("echo_per_s"), "stream_calls_per_s": m1.pop("stream_per_s")}
+    return [rows_round2.m1_row(_results(ech, m1=m1)), rows_round2.m1p_row(m1p)]
+
+
+def _m3(q: bool, work: Path) -> list[dict[str, Any]]:
+    n = 500 if q else 3000
+    peer = redis_peer.run(n, work)
+    zen = zenoh_peer.latency(n, floors.GAP_S)
+    server, echo = Server(work / "cast", ["bench"]), floors.EchoFloor()
+    try:
+        lat = echo.latencies(n)
+        m3 = m3_latency(server, n)
+    finally:
+        echo.close()
+        server.stop()
+    ech = {"unary_p50_us": lat["unary"]["p50_us"], "unary_spaced_p50_us": lat["unary_spaced"]["p50_us"],
+           "stream_ping_pong_p50_us": lat["stream_ping_pong"]["p50_us"], "unary_calls_per_s": 0}
+    return [rows_round2.m3_row(_results(ech, m3=m3, peer=peer, zenoh=zen))]
+
+
+def _m8(q: bool, work: Path) -> list[dict[str, Any]]:
+    return [rows_round2.m8_row(images.run(work, 60 if q else 300))]
+
+
+def _m9(q: bool, work: Path, out: Path) -> list[dict[str, Any]]:
+    m9 = many_components.run(work, [10, 100, 500], 100 if q else 1000)
+    ok = {int(k): v for k, v in m9["counts"].items() if "error" not in v}
+    ns = sorted(ok)
+    if ns:
+        report.plot_panels(out / "only-many_components.png", ns,
+                           {"write -> event (µs)": {q: [ok[n][f"{q}_us"] for n in ns] for q in ("p50", "p99")},
+                            "server CPU while writing (cores)": {"CPU": [ok[n]["busy_cpu"] for n in ns]}},
+                           "component sessions", "M9")
+    return [rows_round2.m9_row(m9)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one row and print it."""
+    parser = argparse.ArgumentParser(prog="bench.only")
+    parser.add_argument("row", choices=CHOICES)
+    parser.add_argument("--quick", action="store_true", help="the counts of make bench-quick")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "only")
+    args = parser.parse_args(argv)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix="cast-bench-only-"))
+    t0 = time.time()
+    if args.row == "M9":
+        table = _m9(args.quick, work, out)
+    else:
+        table = {"M1": _m1, "M3": _m3, "M8": _m8}[args.row](args.quick, work)
+    machine = report.machine_info({"seconds": round(time.time() - t0, 1)}, redis_peer.redis_server_version())
+    command = f"python -m bench.only {args.row}{' --quick' if args.quick else ''}"
+    report.write_markdown(out / f"only-{args.row}.md", table, machine, command)
+    report.write_json(out / f"only-{args.row}.json", table, machine)
+    print((out / f"only-{args.row}.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
