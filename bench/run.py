@@ -1,4 +1,4 @@
-"""`python -m bench.run [--quick]`: floors, peer and CAST in one run; writes bench/results/."""
+"""`python -m bench.run [--quick]`: floors, peers and CAST in one run; writes bench/results/."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ RESULTS = ROOT / "bench" / "results"
 def main(argv: list[str] | None = None) -> int:
     """Run every benchmark and write the report."""
     parser = argparse.ArgumentParser(prog="bench.run")
-    parser.add_argument("--quick", action="store_true", help="smaller counts (under 2 minutes)")
+    parser.add_argument("--quick", action="store_true", help="smaller counts (about three minutes)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     out: Path = args.out
