@@ -4,10 +4,11 @@ The C++ ``cast_probe`` takes positional string commands and answers
 ``{"ok", "result"}``; the Java ``cast.itest.Driven`` takes JSON commands with
 named fields and answers flat objects. A scenario speaks the Java vocabulary
 (``op`` plus keyword fields: ``id``, ``type``, ``value``, ``sa``,
-``expected_version``, ``mode``, ``timeout_ms``); :class:`CppDriver` translates it
-into the C++ words. Watches differ more (named vs numbered, other filter
-syntax, a polled error vs a ``watch_failed`` event), so they have methods of
-their own. Every answer comes back flat, as Java gives it.
+``expected_version``, ``mode``, ``timeout_ms``, and for the streamed path
+``prefix``, ``n``, ``size``); :class:`CppDriver` translates it into the C++
+words. Watches differ more (named vs numbered, other filter syntax, a polled
+error vs a ``watch_failed`` event), so they have methods of their own. Every
+answer comes back flat, as Java gives it.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from tests.interop.java_support import JavaComponent, counter_json
 
 COUNTER = "cast.testing.Counter"
 __all__ = [
-    "COUNTER", "DRIVERS", "CppDriver", "Driver", "JavaDriver", "counter_json", "local_type", "run_script", "start",
-    "vision_ops",
+    "COUNTER", "DRIVERS", "CppDriver", "Driver", "JavaDriver", "address", "counter_json", "local_type", "run_script",
+    "start", "vision_ops",
 ]
 
 
@@ -39,7 +40,7 @@ class Driver(Protocol):
     def pending(self, token: Any) -> bool: ...
     def answer(self, token: Any, timeout: float = 30.0) -> dict[str, Any]: ...
     def release(self, entry_id: str) -> int | None: ...
-    def watch(self, filters: list[dict[str, Any]], gated: bool = False) -> Any: ...
+    def watch(self, filters: list[dict[str, Any]], gated: bool = False, **options: Any) -> Any: ...
     def watch_events(self, watch: Any, count: int = 0, timeout_ms: int = 0) -> list[dict[str, Any]]: ...
     def failure(self, watch: Any, within: float) -> dict[str, Any] | None: ...
     def active(self, watch: Any) -> bool | None: ...
@@ -62,11 +63,18 @@ def local_type(type_name: str, include_entry: bool = False) -> list[dict[str, An
     return [{"kind": "local_type", "type": type_name, "include_entry": include_entry}]
 
 
+def address(entry_id: str, include_entry: bool = False) -> list[dict[str, Any]]:
+    """Changes of one entry in the component's own SA."""
+    return [{"kind": "address", "id": entry_id, "include_entry": include_entry}]
+
+
 def _cpp_filter(f: dict[str, Any]) -> dict[str, Any]:
     # The C++ probe says "local" for a type in the own SA, and "local" for the own SA of an
     # operation filter; every test component lives in vision.
     if f["kind"] == "local_type":
         out: dict[str, Any] = {"kind": "local", "type": f["type"]}
+    elif f["kind"] == "address":
+        out = {"kind": "address", "id": f["id"]}
     elif f["kind"] == "operation":
         sa = "local" if f.get("sa") == "vision" else f["sa"]
         out = {"kind": "operation", "ops": f.get("operations", []), "sa": sa}
@@ -108,6 +116,10 @@ class CppDriver(CppProbe):
             "try_lock": ["trylock", kw.get("id"), kw.get("mode"), sa],
             "unlock": ["unlock", kw.get("id"), sa],
             "report": ["report", kw.get("name"), kw.get("value")],
+            "add_async": ["addasync", kw.get("prefix"), kw.get("n")],
+            "overwrite_async": ["overwriteasync", kw.get("id"), kw.get("n")],
+            "big_write": ["bigwrite", kw.get("id"), sa, kw.get("size")],
+            "big_read": ["bigread", kw.get("id"), sa],
             "open_gate": ["open_gate"],
             "whoami": ["whoami"],
             "new_id": ["newid"],
@@ -148,10 +160,10 @@ class CppDriver(CppProbe):
         super().ok("release", entry_id, "-")
         return None
 
-    def watch(self, filters: list[dict[str, Any]], gated: bool = False) -> str:
-        """Start a watch; its name."""
+    def watch(self, filters: list[dict[str, Any]], gated: bool = False, **options: Any) -> str:
+        """Start a watch; its name. ``options``: ``delivery``, ``priority``, ``slow_ms`` (a callback that sleeps)."""
         name = f"w{next(self._names)}"
-        spec: dict[str, Any] = {"filters": [_cpp_filter(f) for f in filters]}
+        spec: dict[str, Any] = {"filters": [_cpp_filter(f) for f in filters], **options}
         if gated:
             spec["gated"] = True
         super().ok("watch", name, spec)
@@ -215,10 +227,10 @@ class JavaDriver(JavaComponent):
         depth: int = self.ok("unlock", id=entry_id)["depth"]
         return depth
 
-    def watch(self, filters: list[dict[str, Any]], gated: bool = False) -> int:
-        """Start a watch; its number."""
+    def watch(self, filters: list[dict[str, Any]], gated: bool = False, **options: Any) -> int:
+        """Start a watch; its number. ``options``: ``delivery``, ``priority``, ``slow_ms`` (a callback that sleeps)."""
         spec = [{k: v for k, v in f.items() if v not in (None, False)} for f in filters]
-        watch: int = self.ok("watch", filters=spec, gated=gated or None)["watch"]
+        watch: int = self.ok("watch", filters=spec, gated=gated or None, **options)["watch"]
         return watch
 
     def watch_events(self, watch: Any, count: int = 0, timeout_ms: int = 0) -> list[dict[str, Any]]:

@@ -19,12 +19,17 @@
 //   copy TYPE FROM TO SA           (read, drop unknown fields, add: fidelity)
 //   watch NAME JSON                cancel NAME       open_gate
 //     (JSON: {"filters": [...], "gated": bool}; a gated callback blocks
-//     until open_gate; CAST_PROBE_MAX_PENDING bounds the dispatcher queue)
+//     until open_gate; CAST_PROBE_MAX_PENDING bounds the dispatcher queue;
+//     "delivery": "queue|latest", "priority": "high|medium|low", "slow_ms": N:
+//     options and a callback that sleeps N ms, probe_streamed.cc; each event
+//     has a "seq" number: the order callbacks ran in, across watches)
 //   events NAME COUNT TIMEOUT_MS   (waits for COUNT events, returns them all)
 //   propose NAME PRIORITY [TYPE JSON]
 //   decisions COUNT TIMEOUT_MS     complete TASK_ID OUTCOME REASON
 //   retract TASK_ID                report NAME VALUE   quit
 //   stress THREADS PER_THREAD      (the API from many threads at once)
+//   addasync PREFIX N              overwriteasync ID N   (pipelined writes)
+//   bigwrite ID SA SIZE            bigread ID SA   (a large BytesValue)
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
 #include <poll.h>
@@ -36,12 +41,14 @@
 #include <map>
 #include <mutex>
 #include <sstream>
+#include <thread>
 
 #include "cast/cast.h"
 #include "cast_fidelity.pb.h"
 #include "cast_testing.pb.h"
 #include "probe_json.h"
 #include "probe_stress.h"
+#include "probe_streamed.h"
 
 namespace {
 
@@ -314,6 +321,19 @@ class Probe : public cast::ManagedComponent {
       auto a = split(line, 3);
       return cast::probe::stress(*this, std::stoi(a[1]), std::stoi(a[2]));
     }
+    if (cmd == "addasync" || cmd == "overwriteasync") {  // addasync PREFIX N | overwriteasync ID N
+      auto a = split(line, 3);
+      return cmd == "addasync" ? cast::probe::addAsync(*this, a[1], std::stoi(a[2]))
+                               : cast::probe::overwriteAsync(*this, a[1], std::stoi(a[2]));
+    }
+    if (cmd == "bigwrite") {  // bigwrite ID SA SIZE
+      auto a = split(line, 4);
+      return cast::probe::bigWrite(*this, a[1], sa(a[2]), std::stoul(a[3]));
+    }
+    if (cmd == "bigread") {  // bigread ID SA
+      auto a = split(line, 3);
+      return cast::probe::bigRead(*this, a[1], sa(a[2]));
+    }
     if (cmd == "open_gate") {  // lets gated watch callbacks return
       {
         std::lock_guard<std::mutex> l(mu_);
@@ -406,11 +426,13 @@ class Probe : public cast::ManagedComponent {
     auto w = std::make_shared<Watch>();
     // A gated watch's callback blocks until open_gate: a stuck component.
     const bool gated = spec.fields().count("gated") && spec.fields().at("gated").bool_value();
-    w->handle = onChange(filters, [this, w, gated](const cast::WorkingMemoryChange& c) {
+    const auto slow = cast::probe::slowCallback(spec);
+    auto callback = [this, w, gated, slow](const cast::WorkingMemoryChange& c) {
       if (gated) {
         std::unique_lock<std::mutex> l(mu_);
         cv_.wait(l, [this] { return gateOpen_; });
       }
+      if (slow.count()) std::this_thread::sleep_for(slow);  // a consumer slower than the writer
       Object o;
       o.unum("revision", c.revision())
           .str("operation", cast::toString(c.operation()))
@@ -421,11 +443,14 @@ class Probe : public cast::ManagedComponent {
           .str("source", c.sourceComponent())
           .str("source_sa", c.sourceSubarchitecture());
       if (c.hasEntry() && c.type() == "cast.testing.Counter") o.message("value", c.entry<cast::testing::Counter>().value);
+      cast::probe::describeStreamed(o, c);
       std::lock_guard<std::mutex> l(mu_);
+      o.unum("seq", ++delivered_);  // the order callbacks ran in, across watches (priorities)
       w->events.push_back(o.json());
       w->allOnDispatcher = w->allOnDispatcher && onDispatcherThread();
       cv_.notify_all();
-    });
+    };
+    w->handle = onChange(filters, callback, cast::probe::watchOptions(spec));
     std::lock_guard<std::mutex> l(mu_);
     watches_[name] = w;
     return Object().unum("watch_id", w->handle.watchId()).json();
@@ -438,6 +463,7 @@ class Probe : public cast::ManagedComponent {
   std::map<std::string, std::shared_ptr<Watch>> watches_;
   std::vector<std::string> decisions_;
   bool gateOpen_ = false;
+  std::uint64_t delivered_ = 0;  // callbacks run so far, every watch (guarded by mu_)
 };
 
 }  // namespace

@@ -50,6 +50,7 @@ public class Driven extends ManagedComponent {
   private final Map<Integer, Recorded> watches = new ConcurrentHashMap<>();
   private final Map<String, Task> tasks = new ConcurrentHashMap<>();
   private final java.util.concurrent.CountDownLatch gate = new java.util.concurrent.CountDownLatch(1);
+  private final java.util.concurrent.atomic.AtomicLong delivered = new java.util.concurrent.atomic.AtomicLong();
 
   /** DRIVEN_MAX_PENDING lets a test make the dispatcher queue small (a slow watcher lags sooner). */
   @Override
@@ -228,6 +229,8 @@ public class Driven extends ManagedComponent {
     if (ch.hasEntry() && ch.operation() != Operation.DELETE && ch.type().equals("cast.testing.Counter")) {
       e.add("value", print(ch.entry(Counter.class).value()));
     }
+    Streamed.describe(e, ch);
+    e.addProperty("seq", delivered.incrementAndGet()); // the order callbacks ran in, across watches (priorities)
     synchronized (rec) {
       rec.events.add(e);
       if (!rec.threads.contains(Thread.currentThread().getName())) {
@@ -305,6 +308,7 @@ public class Driven extends ManagedComponent {
           }
           Recorded[] holder = new Recorded[1];
           boolean gated = c.has("gated") && c.get("gated").getAsBoolean();
+          long slowMs = c.has("slow_ms") ? c.get("slow_ms").getAsLong() : 0;
           WatchHandle h =
               onChange(
                   filters,
@@ -312,8 +316,10 @@ public class Driven extends ManagedComponent {
                     if (gated) {
                       gate.await(); // a stuck callback, until "open_gate"
                     }
+                    Thread.sleep(slowMs); // a consumer slower than the writer ("slow_ms")
                     record(holder[0], ch);
-                  });
+                  },
+                  Streamed.options(c)); // "delivery", "priority"
           holder[0] = new Recorded(h);
           watches.put(h.watchId(), holder[0]);
           reply.addProperty("watch", h.watchId());
@@ -375,6 +381,18 @@ public class Driven extends ManagedComponent {
             result(reply, add(str(c, "echo_to"), got, sa));
           }
         }
+        break;
+      case "add_async": // pipelined writes and large values: Streamed.java
+        Streamed.addAsync(this, str(c, "prefix"), c.get("n").getAsInt(), reply);
+        break;
+      case "overwrite_async":
+        Streamed.overwriteAsync(this, str(c, "id"), c.get("n").getAsInt(), reply);
+        break;
+      case "big_write":
+        Streamed.bigWrite(this, str(c, "id"), sa, c.get("size").getAsInt(), reply);
+        break;
+      case "big_read":
+        Streamed.bigRead(this, str(c, "id"), sa, reply);
         break;
       case "open_gate":
         gate.countDown();
