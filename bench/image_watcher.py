@@ -25,13 +25,25 @@ import cast
 from cast.client.runner import LaunchContract
 
 
+class _Watcher(cast.UnmanagedComponent):
+    """Ends the wait when the watch fails (a queue watcher left behind the history), rather than at a timeout."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ended = threading.Event()
+
+    def watch_failed(self, error: cast.CastError) -> None:
+        print(f"image_watcher: the watch failed: {error}", file=sys.stderr, flush=True)
+        self.ended.set()
+
+
 def main(delivery: str) -> int:
     """Watch "img" until its DELETE, then print what arrived."""
-    c = cast.UnmanagedComponent()
+    c = _Watcher()
     c._cast_bind(LaunchContract.from_env().connect())
     stamps: dict[int, int] = {}
     totals = {"bytes": 0, "events": 0, "skipped": 0}
-    ended = threading.Event()
+    ended = c.ended
 
     def arrived(change: cast.WorkingMemoryChange) -> None:
         t = time.perf_counter_ns()

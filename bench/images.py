@@ -41,7 +41,8 @@ SA = "images"
 # enough that a run fills it, so the RSS bound is exercised; 64 frames of slack for a queue watcher.
 HISTORY_BYTES = 64 << 20
 WATCHERS = ("Python 1", "C++", "Java", "Python 2")
-TIMEOUT_S = 300
+TIMEOUT_S = 300  # the writer's whole run
+AFTER_WRITER_S = 60  # how long the watchers may take to finish once the writer is done
 
 
 def _watcher_command(label: str, delivery: str) -> list[str] | str:
@@ -100,7 +101,11 @@ class _Watchers:
     def results(self) -> dict[str, dict[str, Any]]:
         out = {}
         for label, proc, log in zip(self.labels, self.procs, self.logs, strict=True):
-            text, _ = proc.communicate(timeout=TIMEOUT_S)
+            try:
+                text, _ = proc.communicate(timeout=AFTER_WRITER_S)
+            except subprocess.TimeoutExpired:
+                raise RuntimeError(f"{label} watcher had not seen the end {AFTER_WRITER_S} s after the writer: "
+                                   f"{_tail(log)}") from None
             lines = [line for line in text.splitlines() if line.startswith("{")]
             if proc.returncode != 0 or not lines:
                 raise RuntimeError(f"{label} watcher exited {proc.returncode}: {_tail(log)}")

@@ -73,7 +73,7 @@ def _m9(q: bool, work: Path, out: Path) -> list[dict[str, Any]]:
         report.plot_panels(out / "only-many_components.png", ns,
                            {"write -> event (µs)": {q: [ok[n][f"{q}_us"] for n in ns] for q in ("p50", "p99")},
                             "server CPU while writing (cores)": {"CPU": [ok[n]["busy_cpu"] for n in ns]}},
-                           "component sessions", "M9")
+                           "component sessions", "M9", log_y=["write -> event (µs)"])
     return [rows_round2.m9_row(m9)]
 
 

@@ -93,13 +93,18 @@ def plot_xy(path: Path, xs: Sequence[float], ys: Sequence[float], xlabel: str, y
 
 
 def plot_panels(path: Path, xs: Sequence[float], panels: dict[str, dict[str, Sequence[float]]], xlabel: str,
-                title: str) -> None:
-    """One panel per title (its y label), each with one or more named series over the same xs (log x)."""
+                title: str, log_y: Sequence[str] = ()) -> None:
+    """One panel per title (its y label), each with one or more named series over the same xs (log x).
+
+    Panels named in ``log_y`` get a log y axis too (latencies that grow by orders of magnitude).
+    """
     fig, axes = plt.subplots(2, (len(panels) + 1) // 2, figsize=(10, 7), squeeze=False)
     for ax, (ylabel, series) in zip(axes.flat, panels.items(), strict=False):
         for label, ys in series.items():
             ax.plot(xs, ys, marker="o", label=label)
         ax.set_xscale("log")
+        if ylabel in log_y:
+            ax.set_yscale("log")
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(True, which="both", alpha=0.3)

@@ -122,6 +122,11 @@ def _floor_mb(m8: dict[str, Any]) -> float:
     return statistics.fmean(f["mb_per_s"] for f in m8["floor"]) if m8.get("floor") else math.nan
 
 
+def _floor_p50(m8: dict[str, Any]) -> float | None:
+    """The bare 1 MiB unary echo's round-trip p50 (µs), the floor of M8's latencies: one value in, one out."""
+    return round(statistics.fmean(f["p50_us"] for f in m8["floor"]), 1) if m8.get("floor") else None
+
+
 def m8_misses(m8: dict[str, Any]) -> list[str]:
     """What M8 missed (empty: met): p99 at 30 Hz, losses, back-to-back MB/s (queue), server RSS."""
     if "error" in m8:
@@ -183,7 +188,7 @@ def m8_row(m8: dict[str, Any]) -> dict[str, Any]:
         for label, w in hz.get("watchers", {}).items():
             zp50 = _median(zen_hz["watchers"], "p50_us") if "watchers" in zen_hz else None
             zp99 = _median(zen_hz["watchers"], "p99_us") if "watchers" in zen_hz else None
-            figures.append(fig(f"{delivery}, 30 Hz, {label}: p50 (µs)", w["p50_us"], peer=zp50))
+            figures.append(fig(f"{delivery}, 30 Hz, {label}: p50 (µs)", w["p50_us"], floor=_floor_p50(m8), peer=zp50))
             figures.append(fig(f"{delivery}, 30 Hz, {label}: p99 (µs)", w["p99_us"], peer=zp99))
         if "watchers" in hz:
             lost = sum(w["lost"] for w in hz["watchers"].values())

@@ -198,6 +198,7 @@ def _plot(out: Path, results: Results, scaling: dict[int, float], m7_samples: di
             },
             "component sessions",
             "M9: many components, one writer adding at 100/s",
+            log_y=["write -> event (µs)"],
         )
 
 

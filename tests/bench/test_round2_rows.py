@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 from concurrent.futures import Future
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, frame
+from bench.report import plot_panels
 from bench.rows import Results, rows
 from bench.rows_round2 import m1_row, m1p_row, m3_row, m8_misses, m8_row, m8_rss_bound, m9_misses, m9_row
 from bench.stream_cases import window
@@ -90,7 +92,7 @@ def test_window_never_has_more_than_in_flight_unsettled() -> None:
 
 
 def _results(**overrides: Any) -> Results:
-    base = {
+    base: dict[str, Any] = {
         "tcp": {"p50_us": 50.0, "round_trips_per_s": 20000},
         "peer": {"set_ops_per_s": 10000, "get_ops_per_s": 10000, "notification": {"p50_us": 150.0, "p99_us": 300.0}},
         "echo": {"unary_calls_per_s": 1000, "stream_calls_per_s": 1600, "unary_p50_us": 900.0,
@@ -198,3 +200,10 @@ def test_every_row_has_an_id_a_target_and_a_verdict() -> None:
     assert [row["id"] for row in table][:10] == ["M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9"]
     for row in table:
         assert isinstance(row["met"], bool) and row["target"]
+
+
+def test_plot_panels_writes_a_png_with_a_log_panel(tmp_path: Path) -> None:
+    out = tmp_path / "m9.png"
+    plot_panels(out, [10, 100, 500], {"latency (µs)": {"p50": [1, 10, 100], "p99": [2, 20, 200]},
+                                      "cpu": {"cpu": [0.1, 0.5, 0.7]}}, "sessions", "M9", log_y=["latency (µs)"])
+    assert out.read_bytes()[:4] == b"\x89PNG"
