@@ -79,17 +79,46 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
-def event_wire(ev: ChangeEvent, include_entry: bool) -> bytes:
-    """The encoded ``cast.v1.ChangeEvent`` without watch ids, cached on the event."""
+def event_wire(ev: ChangeEvent, include_entry: bool) -> tuple[bytes, bytes]:
+    """The encoded ``cast.v1.ChangeEvent`` without watch ids, as ``(head, value)``: send ``head + value``.
+
+    ``head`` is cached on the event; ``value`` is the stored entry's own bytes
+    (empty without the entry), so the history holds one copy of each value
+    however many streams carry it - a 1 MiB image is not kept twice. The
+    entry's ``value`` field is encoded last, which protobuf allows (fields may
+    come in any order), so that its bytes can follow the cached part as they are.
+    """
     cache = ev.wire
     if cache is None:
         cache = ev.wire = [None, None]
-    encoded = cache[include_entry]
-    if encoded is None:
-        encoded = cache[include_entry] = event_to_pb(ev, [], include_entry).SerializeToString()
-    return encoded
+    record = ev.entry if include_entry else None
+    head = cache[record is not None]
+    if head is None:
+        head = cache[0]
+        if head is None:
+            head = cache[0] = event_to_pb(ev, [], False).SerializeToString()
+        if record is not None:
+            head = cache[1] = head + _entry_head(record)
+    return head, record.data if record is not None else b""
 
 
+def _entry_head(record: EntryRecord) -> bytes:
+    """``ChangeEvent.entry`` encoded up to (not including) the bytes of its value."""
+    rest = entry_pb2.Entry()
+    fill_entry(rest, record)
+    rest.ClearField("value")
+    encoded = rest.SerializeToString()
+    url = (TYPE_URL_PREFIX + record.type).encode()
+    size = len(record.data)
+    any_fields = _ANY_URL_TAG + _varint(len(url)) + url + _ANY_VALUE_TAG + _varint(size)
+    value = _ENTRY_VALUE_TAG + _varint(len(any_fields) + size) + any_fields
+    return _EVENT_ENTRY_TAG + _varint(len(encoded) + len(value) + size) + encoded + value
+
+
+_EVENT_ENTRY_TAG = b"\x4a"  # ChangeEvent.entry: field 9, length-delimited
+_ENTRY_VALUE_TAG = b"\x1a"  # Entry.value: field 3, length-delimited
+_ANY_URL_TAG = b"\x0a"  # Any.type_url: field 1
+_ANY_VALUE_TAG = b"\x12"  # Any.value: field 2
 _EVENTS_TAG = b"\x0a"  # WatchResponse.events: field 1, length-delimited
 _WATCH_IDS_TAG = b"\x52"  # ChangeEvent.watch_ids: field 10, packed
 _SKIPPED_TAG = b"\x58"  # ChangeEvent.skipped: field 11, varint
@@ -106,12 +135,12 @@ def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool, int, int]
     """
     parts: list[bytes] = []
     for ev, watch_ids, include, skipped, first_skipped in events:
-        body = event_wire(ev, include)
+        head, value = event_wire(ev, include)
         packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(_varint(i) for i in watch_ids)
         tail = _WATCH_IDS_TAG + _varint(len(packed)) + packed
         if skipped:
             tail += _SKIPPED_TAG + _varint(skipped) + _FIRST_SKIPPED_TAG + _varint(first_skipped)
-        parts.extend((_EVENTS_TAG, _varint(len(body) + len(tail)), body, tail))
+        parts.extend((_EVENTS_TAG, _varint(len(head) + len(value) + len(tail)), head, value, tail))
     return b"".join(parts)
 
 
