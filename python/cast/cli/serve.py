@@ -19,6 +19,7 @@ __all__ = ["add_command"]
 
 
 def _serve(args: argparse.Namespace) -> int:
+    from cast.server.allocator import return_large_blocks
     from cast.server.app import RunningServer, serve_forever, settings_from_config, system_from_config
     from cast.server.in_process import InProcessComponents
 
@@ -55,6 +56,7 @@ def _serve(args: argparse.Namespace) -> int:
             running.on_stop(endpoint.close)
 
     settings = settings_from_config(config)
+    return_large_blocks()  # freed images go back to the system (cast.server.allocator)
     asyncio.run(serve_forever(system, signer, args.listen, started, settings))
     return 0
 
