@@ -9,7 +9,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from bench import (
     cast_cases,
@@ -36,6 +36,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run every benchmark and write the report."""
     parser = argparse.ArgumentParser(prog="bench.run")
     parser.add_argument("--quick", action="store_true", help="smaller counts (about three minutes)")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the smallest counts, only to show every row runs (the test suite's; figures meaningless)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     out: Path = args.out
@@ -45,48 +47,76 @@ def main(argv: list[str] | None = None) -> int:
     def log(msg: str) -> None:
         print(f"[{time.time() - t_start:6.1f}s] {msg}", flush=True)
 
-    results, scaling, m7_samples = _measure(args.quick, Path(tempfile.mkdtemp(prefix="cast-bench-")), log)
-    _write(out, results, "make bench-quick" if args.quick else "make bench")
+    scale = SMOKE if args.smoke else QUICK if args.quick else FULL
+    results, scaling, m7_samples = _measure(scale, Path(tempfile.mkdtemp(prefix="cast-bench-")), log)
+    command = "python -m bench.run --smoke" if args.smoke else "make bench-quick" if args.quick else "make bench"
+    _write(out, results, command)
     _plot(out, results, scaling, m7_samples)
     log(f"wrote {out / 'latest.md'}")
     print((out / "latest.md").read_text())
     return 0
 
 
-def _measure(q: bool, work: Path, log: Callable[[str], None]) -> tuple[Results, dict[int, float], dict[str, Any]]:
+class Scale(NamedTuple):
+    """How much each row measures: `make bench`, `make bench-quick`, or the test suite's smoke run."""
+
+    quick: bool
+    n: int
+    rounds: int
+    m2_batches: int
+    fan_events: int
+    m6_checkpoints: list[int]
+    m6_probe: int
+    r1_events: int
+    r1_calls: int
+    d1_batches: int
+    jit_warm: int
+    m8_frames: int
+    m9_counts: list[int]
+    m9_writes: int
+    o1: tuple[int, int, int]
+    rec1: tuple[int, int]
+
+
+FULL = Scale(False, 3000, 3, 300, 10_000, [1000, 10_000, 100_000, 1_000_000], 2000, 1_000_000, 2000, 300, 20_000,
+             300, [10, 100, 500], 1000, (3000, 1200, 10_000), (5000, 50_000))
+QUICK = Scale(True, 500, 1, 50, 2000, [1000, 10_000, 100_000], 500, 100_000, 500, 50, 5000,
+              60, [10, 100, 500], 100, (500, 120, 1000), (1000, 5000))
+SMOKE = Scale(True, 100, 1, 10, 500, [1000, 5000], 100, 10_000, 100, 10, 500,
+              15, [10, 20], 20, (100, 20, 200), (200, 500))
+
+
+def _measure(sc: Scale, work: Path, log: Callable[[str], None]) -> tuple[Results, dict[int, float], dict[str, Any]]:
     """Every measurement, in an order that keeps each server's neighbours quiet."""
-    n = 500 if q else 3000
-    rounds = 1 if q else 3
+    n, rounds = sc.n, sc.rounds
     log("floors: raw TCP")
     tcp = floors.tcp(n)
     log("peer: redis")
     peer = redis_peer.run(n, work)
     log("peer: zenoh put -> subscriber")
     zenoh = _zenoh_latency(n)
-    echo, m1, m1p, m2, m3, m4, scaling = _on_one_server(q, n, rounds, work, log)
+    echo, m1, m1p, m2, m3, m4, scaling = _on_one_server(sc, work, log)
     log("M5 in process")
     m5 = cast_cases.m5_in_process(n)
     log("M6 large WM")
-    checkpoints = [1000, 10_000, 100_000] if q else [1000, 10_000, 100_000, 1_000_000]
     m6_floor = floors.EchoFloor()
     try:
-        m6 = cast_cases.m6_large(work / "big", checkpoints, 500 if q else 2000, m6_floor)
+        m6 = cast_cases.m6_large(work / "big", sc.m6_checkpoints, sc.m6_probe, m6_floor)
     finally:
         m6_floor.close()
-    stalled_events = 100_000 if q else 1_000_000
-    log(f"R1 writers with a stalled watcher ({stalled_events:,} events per run)")
-    r1 = stalled_watcher.run(work / "stalled", stalled_events, 500 if q else 2000, rounds)
-    d1 = durability.run(work / "d1", n, 50 if q else 300, n, log)
+    log(f"R1 writers with a stalled watcher ({sc.r1_events:,} events per run)")
+    r1 = stalled_watcher.run(work / "stalled", sc.r1_events, sc.r1_calls, rounds)
+    d1 = durability.run(work / "d1", n, sc.d1_batches, n, log)
     log("M7 C++ and Java clients")
     m7 = other_clients.run(work / "m7", n, python_add_per_s=m1["add_per_s"], python_latency_p50=m3["p50_us"],
-                           rounds=rounds, jit_warm=5000 if q else 20_000, log=log)
+                           rounds=rounds, jit_warm=sc.jit_warm, log=log)
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
-    m8 = images.run(work / "m8", 60 if q else 300, log)
-    m9 = many_components.run(work / "m9", [10, 100, 500], 100 if q else 1000, log)
+    m8 = images.run(work / "m8", sc.m8_frames, log)
+    m9 = many_components.run(work / "m9", sc.m9_counts, sc.m9_writes, log)
     log("O1 what the metrics cost")
-    o1 = metrics_overhead.run(work / "o1", n, 120 if q else 1200, 1000 if q else 10_000, 1 if q else 3, log)
+    o1 = metrics_overhead.run(work / "o1", *sc.o1, 1 if sc.quick else 3, log)
     log("REC1 what recording costs")
-    rec1 = recording.run(work / "rec1", 1000 if q else 5000, 5000 if q else 50_000, log)
+    rec1 = recording.run(work / "rec1", *sc.rec1, log)
     results = Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1, zenoh=zenoh, m1p=m1p, m8=m8, m9=m9)
     return results, scaling, m7_samples
 
@@ -99,8 +129,9 @@ def _zenoh_latency(n: int) -> dict[str, Any]:
         return {"error": str(exc)}
 
 
-def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str], None]) -> tuple[Any, ...]:
+def _on_one_server(sc: Scale, work: Path, log: Callable[[str], None]) -> tuple[Any, ...]:
     """The grpc echo floor, M1 (interleaved with it), M2, M3 and M4 against one `cast serve`."""
+    n, rounds = sc.n, sc.rounds
     server = cast_cases.Server(work / "main", ["bench", "fanout"])
     echo_floor = floors.EchoFloor()
     try:
@@ -118,14 +149,14 @@ def _on_one_server(q: bool, n: int, rounds: int, work: Path, log: Callable[[str]
         log("M1P pipelined adds (64 in flight), in blocks with sequential adds")
         m1p = stream_cases.pipelined_adds(server, n * rounds)
         log("M2 batch")
-        m2 = cast_cases.m2_batch(server, 50 if q else 300)
+        m2 = cast_cases.m2_batch(server, sc.m2_batches)
         log("M3 write -> event latency")
         m3 = cast_cases.m3_latency(server, n)
         log("M4 fan-out")
-        fan_events = 2000 if q else 10000
+        fan_events = sc.fan_events
         m4 = cast_cases.m4_fanout(server, fan_events)
         scaling: dict[int, float] = {}
-        for w in () if q else (1, 2, 4, 8):
+        for w in () if sc.quick else (1, 2, 4, 8):
             log(f"M4 fan-out scaling: {w} watchers")
             scaling[w] = cast_cases.m4_fanout(server, fan_events, watchers=w, processes=min(w, 4))["delivered_per_s"]
         scaling[16] = m4["delivered_per_s"]

@@ -1,4 +1,5 @@
-"""`make bench-quick` produces its table, JSON and plots (never checks the numbers)."""
+"""The bench produces its table, JSON and plots: every row runs (`--smoke`: the smallest counts; never checks
+the numbers, which `make bench` judges)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from tests.conftest import ROOT
 IDS = ["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "O1", "R1", "REC1"]
 
 
-@pytest.mark.timeout(900)  # every row, quick: about three minutes on an idle 2-core machine, more on a busy one
+@pytest.mark.timeout(900)  # every row, smoke counts: about a minute on an idle 2-core machine, more on a busy one
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "bench.run", "--quick", "--out", str(tmp_path)],
+        [sys.executable, "-m", "bench.run", "--smoke", "--out", str(tmp_path)],
         cwd=ROOT, capture_output=True, text=True, timeout=900,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
@@ -61,6 +62,6 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     assert "Zenoh, back to back: MB/s delivered, all subscribers" in m8
     assert "Redis, back to back: MB/s delivered, all subscribers" in m8
     m9 = {f["name"] for f in doc["results"]["M9"]["figures"]}
-    assert {"10 sessions: p99 (µs)", "500 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
+    assert {"10 sessions: p99 (µs)", "20 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png", "many_components.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"
