@@ -35,8 +35,26 @@ def cli_env(**extra: str) -> dict[str, str]:
 
 
 def cast(*args: str, timeout: float = 120, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    """Run a `cast` command to its end."""
-    return subprocess.run([CAST, *args], env=env or cli_env(), capture_output=True, text=True, timeout=timeout)
+    """Run a `cast` command to its end.
+
+    A command still running after ``timeout`` is sent SIGABRT first, which Python's fault handler
+    (``PYTHONFAULTHANDLER``) answers with every thread's stack on stderr: the test fails with where
+    it hung (a rare hang of `cast replay` in fresh-clone runs has not been caught any other way).
+    """
+    run_env = dict(env or cli_env(), PYTHONFAULTHANDLER="1")
+    with subprocess.Popen([CAST, *args], env=run_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True) as proc:
+        try:
+            out, err = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)
+            try:
+                out, err = proc.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out, err = proc.communicate()
+            raise AssertionError(f"cast {' '.join(args)} still ran after {timeout} s; its threads:\n{err}") from None
+    return subprocess.CompletedProcess([CAST, *args], proc.returncode, out, err)
 
 
 @dataclass
