@@ -84,37 +84,6 @@ class Server:
         self.proc.stop()
 
 
-def m1_interleaved(server: Server, echo: EchoFloor, n: int, block: int = 100, prefix: str = "m1") -> dict[str, Any]:
-    """M1: sequential Add, Get, Overwrite from one client, in blocks interleaved with the echo floor's calls.
-
-    Every block of ours follows a block of echo calls and every echo block follows
-    one of ours, so each side starts each block after the same pause and a change
-    in the machine's speed hits both alike. (A block that follows another of our
-    own blocks runs some 8% slower than one that follows a pause: measured, and
-    the reason our three operations each get an echo block of their own.)
-    """
-    c = server.component(prefix, "bench")
-    ids = [f"{prefix}-{i}" for i in range(n + block)]
-    for i in range(block):  # warm-up: connection, schema registration
-        c.add(ids[n + i], VALUE)
-        c.get(ids[n + i], BytesValue)
-        c.overwrite(ids[n + i], VALUE)
-    ops: dict[str, Callable[[str], object]] = {
-        "add": lambda entry_id: c.add(entry_id, VALUE),
-        "get": lambda entry_id: c.get(entry_id, BytesValue),
-        "overwrite": lambda entry_id: c.overwrite(entry_id, VALUE),
-    }
-    seconds = {"echo": 0.0, **dict.fromkeys(ops, 0.0)}
-    for start_i in range(0, n, block):
-        span = ids[start_i : min(n, start_i + block)]
-        for name, op in ops.items():
-            floor, ours = _after_floor_block(echo, span, op)
-            seconds["echo"] += floor
-            seconds[name] += ours
-    c._cast_close()
-    return {"echo_per_s": round(n * len(ops) / seconds["echo"]), **{f"{k}_per_s": round(n / seconds[k]) for k in ops}}
-
-
 def _after_floor_block(echo: EchoFloor, items: list[str], op: Callable[[str], object]) -> tuple[float, float]:
     """One interleaved pair: seconds of ``len(items)`` echo calls, then seconds of ``op`` over ``items``."""
     floor = echo.block_seconds(len(items))
