@@ -182,6 +182,7 @@ class Orchestrator:
         watch_task: asyncio.Future[None] | None = None
         if agents is not None:
             self._security.remote = agents.renew  # tokens of components on other hosts go to their agents
+        self._security.runs = supervisor.runs
         try:
             for tool in tools:  # before any component starts; off the loop that serves the tool's calls
                 await loop.run_in_executor(None, tool.attach, servers.directory.endpoint, self._signer,

@@ -59,6 +59,10 @@ class LaunchSecurity:
         self._issued: dict[str, ComponentConfig] = {}
         self.renewals = 0
         self.remote: RemoteRenewal | None = None  # set when some components run on other hosts
+        # Whether a component's process runs now, ``steady``: and is not being stopped (``Supervisor.runs``).
+        # One that exited gets no fresh token, so a token it leaked stops working within the ttl; one being
+        # stopped still does, so that it can leave cleanly however long its stop takes.
+        self.runs: Callable[..., bool] = lambda _component_id, steady=False: True
 
     def contract(self, comp: ComponentConfig) -> dict[str, str]:
         """``CAST_TOKEN`` (and ``CAST_TOKEN_FILE``, ``CAST_TLS_*`` on this host) for one component."""
@@ -83,10 +87,6 @@ class LaunchSecurity:
             state |= {"cert": str(client.cert.resolve()), "key": str(client.key.resolve())}
         return state
 
-    def forget(self, component_id: str) -> None:
-        """Stop renewing a component's token (it was removed or stopped for good)."""
-        self._issued.pop(component_id, None)
-
     def _token(self, comp: ComponentConfig) -> str:
         return self.signer.issue(Identity(comp.id, comp.subarchitecture, comp.privileged), self.ttl)
 
@@ -96,8 +96,10 @@ class LaunchSecurity:
         return path
 
     async def renew_all(self) -> None:
-        """A fresh token for every component issued one: into its file here, or to its agent."""
+        """A fresh token for every running component issued one: into its file here, or to its agent."""
         for comp in list(self._issued.values()):
+            if not self.runs(comp.id):
+                continue  # a relaunch issues a fresh token through the contract
             token = self._token(comp)
             if not comp.remote:
                 self._write(comp.id, token)
@@ -105,6 +107,11 @@ class LaunchSecurity:
                 try:
                     await self.remote(comp, token)
                 except CastError as exc:
+                    if not self.runs(comp.id, steady=True):
+                        # It exited, or its stop began, while the call was under way: its agent may no longer
+                        # know it, and nothing is left to renew.
+                        log.debug("token of component '%s' not renewed: it ended meanwhile (%s)", comp.id, exc)
+                        continue
                     # Its host is lost or it is restarting: a relaunch issues a fresh token anyway, and one
                     # unreachable host must not hold up the others' renewal.
                     log.warning("cannot renew the token of component '%s' on host '%s': %s", comp.id, comp.host,

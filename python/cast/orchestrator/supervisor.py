@@ -99,6 +99,13 @@ class Supervisor:
         self._tasks: dict[str, asyncio.Task[None]] = {}
         self._stopping = False
 
+    def runs(self, component_id: str, *, steady: bool = False) -> bool:
+        """Whether the component's process runs (its token is worth renewing); ``steady``: and no stop began."""
+        sup = self.components.get(component_id)
+        if sup is None or sup.process is None or not sup.process.running:
+            return False
+        return sup.phase is Phase.RUNNING or not steady
+
     def start_all(self) -> None:
         """Launch every component (they connect concurrently)."""
         for sup in self.components.values():
