@@ -76,3 +76,8 @@ def test_connect_with_an_explicit_token_and_what_it_says_when_nothing_is_found(
         cast.connect(server.endpoint, server.token("explicit", "vision"), component_id="other", env={})
     with pytest.raises(cast.NotFoundError, match="no running system found"):
         cast.connect(env={}, runtime_dir=tmp_path / "none")
+    # A CAST_TOKEN_FILE that is set is the token: empty, it is named, not passed over (as by the runners).
+    (tmp_path / "empty.token").write_text("\n")
+    with pytest.raises(cast.InvalidArgumentError, match="CAST_TOKEN_FILE names .*empty.token, which is empty: point"):
+        cast.connect(env={"CAST_ENDPOINT": server.endpoint, "CAST_TOKEN_FILE": str(tmp_path / "empty.token"),
+                          "CAST_TOKEN": server.token("explicit", "vision")})

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import pytest
 from cast_testing_pb2 import Counter, Pose
@@ -241,3 +242,37 @@ def test_a_launched_component_waits_for_a_server_that_answers_late(server: Serve
     finally:
         proc.kill()
         late.stop()
+
+
+def test_a_component_launched_with_cast_token_file_alone_runs_and_a_bad_file_stops_it(
+    server: ServerHandle, tmp_path: Path
+) -> None:
+    # The launch contract of `cast export --to kubernetes`: CAST_TOKEN_FILE, no CAST_TOKEN (the C++ and Java
+    # runners: tests/interop/test_cpp_session.py, test_java_runner.py).
+    from cast.client.runner import LaunchContract
+
+    env = server.env("filed", "vision", args={"count": 3})
+    token = tmp_path / "filed.token"
+    token.write_text(f"\n{env.pop('CAST_TOKEN')}\n")  # trimmed, as `cast token --write` and cast run's files
+    env["CAST_TOKEN_FILE"] = str(token)
+    runner = [sys.executable, "-m", "cast.run", "itest_components:Writer"]
+    finish(subprocess.Popen(runner, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    reader = server.connect("reader", "vision")
+    try:
+        written = sorted(e.value.value for e in reader.get_all(Counter) if e.value.writer == "filed")
+        assert written == [1001, 1002], written  # three adds, overwrites, the first deleted
+    finally:
+        reader._cast_close()
+    # The file wins over CAST_TOKEN (it is the renewed one), as for cast.connect.
+    assert LaunchContract.from_env({**env, "CAST_TOKEN": "stale.token"}).token == token.read_text().strip()
+    token.write_text(" \n")
+    failed = subprocess.run(runner, env=env, capture_output=True, text=True, timeout=60)
+    assert failed.returncode == 2, failed.stderr
+    assert failed.stderr.strip() == (
+        f"cast.run: CAST_TOKEN_FILE names {token}, which is empty: point it at a token file (`cast run` renews one "
+        "per component), or unset it")
+    with pytest.raises(cast.InvalidArgumentError, match=f"names {tmp_path}/none, which cannot be read: point it at"):
+        LaunchContract.from_env({**env, "CAST_TOKEN_FILE": str(tmp_path / "none")})
+    with pytest.raises(cast.InvalidArgumentError,
+                       match="missing launch environment: CAST_ENDPOINT, CAST_TOKEN or CAST_TOKEN_FILE; start"):
+        LaunchContract.from_env({k: v for k, v in env.items() if k not in ("CAST_ENDPOINT", "CAST_TOKEN_FILE")})

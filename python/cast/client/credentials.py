@@ -8,8 +8,9 @@ These are the pieces of the launch contract beyond the address and identity:
   ``CAST_TLS_SERVER_NAME`` (the name to check the server certificate against,
   when it differs from the host in the address);
 - ``CAST_TOKEN_FILE``: a file holding the current token, rewritten by the
-  orchestrator before the token expires; the client re-reads it when it changes
-  (``CAST_TOKEN`` is the token until then).
+  orchestrator (or a Kubernetes token sidecar) before the token expires; the
+  client re-reads it when it changes. When it is set it is the token, and
+  ``CAST_TOKEN`` is not needed (:func:`read_token_file`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import grpc
 
 from cast.errors import InvalidArgumentError
 
-__all__ = ["ClientTls", "TokenSource"]
+__all__ = ["ClientTls", "TokenSource", "read_token_file"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,23 @@ class ClientTls:
     def channel_options(self) -> list[tuple[str, str]]:
         """Options that name the server to verify, if set."""
         return [("grpc.ssl_target_name_override", self.server_name)] if self.server_name else []
+
+
+def read_token_file(path: str) -> str:
+    """The token in the file ``CAST_TOKEN_FILE`` names, trimmed; InvalidArgumentError if it is empty or unreadable.
+
+    The file is the renewed token, so when it is set it is the token, not ``CAST_TOKEN``: the same rule and
+    words in the runners and the script paths of every language (connect_resolve.cc, ConnectResolver.java).
+    """
+    try:
+        text = Path(path).read_text().strip()
+        problem = "is empty"
+    except (OSError, UnicodeDecodeError):
+        text, problem = "", "cannot be read"
+    if not text:
+        raise InvalidArgumentError(f"CAST_TOKEN_FILE names {path}, which {problem}: point it at a token file "
+                                   "(`cast run` renews one per component), or unset it")
+    return text
 
 
 class TokenSource:

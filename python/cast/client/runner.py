@@ -1,8 +1,10 @@
 """Running a component: the launch contract (docs/design.md section 6) and the lifecycle.
 
 Every component process gets ``CAST_ENDPOINT``, ``CAST_COMPONENT_ID``,
-``CAST_SUBARCHITECTURE``, ``CAST_TOKEN`` and ``CAST_ARGS`` (a JSON object), and
-optionally ``CAST_TOKEN_FILE`` and ``CAST_TLS_*`` (see :mod:`cast.client.credentials`).
+``CAST_SUBARCHITECTURE``, its token and ``CAST_ARGS`` (a JSON object), and
+optionally ``CAST_TLS_*`` (see :mod:`cast.client.credentials`). The token is the
+content of the file ``CAST_TOKEN_FILE`` when that is set (re-read when renewed),
+else ``CAST_TOKEN``.
 The runner connects, calls configure(args), start(), run(), and stop() once
 on SIGINT/SIGTERM, on ``request_stop()``, or when run() raised.
 """
@@ -23,7 +25,7 @@ from typing import Any
 
 from cast.client.channel import Backoff
 from cast.client.component import Component
-from cast.client.credentials import ClientTls, TokenSource
+from cast.client.credentials import ClientTls, TokenSource, read_token_file
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.transport import Transport
 from cast.core.records import Identity
@@ -85,10 +87,16 @@ class LaunchContract:
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> LaunchContract:
-        """Read the contract; InvalidArgumentError naming every missing variable."""
+        """Read the contract; InvalidArgumentError naming every missing variable.
+
+        The token is the file ``CAST_TOKEN_FILE`` names when that is set (the renewed one, so it wins over
+        ``CAST_TOKEN``, as for ``cast.connect``); an empty or unreadable file is an error, not a fallback.
+        """
         env = os.environ if env is None else env
-        names = ("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN")
+        names = ("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE")
         missing = [n for n in names if not env.get(n)]
+        if not env.get("CAST_TOKEN") and not env.get("CAST_TOKEN_FILE"):
+            missing.append("CAST_TOKEN or CAST_TOKEN_FILE")
         if missing:
             raise InvalidArgumentError(
                 f"missing launch environment: {', '.join(missing)}; start the component with `cast run CONFIG`, "
@@ -100,14 +108,15 @@ class LaunchContract:
             raise InvalidArgumentError(f"CAST_ARGS is not valid JSON: {exc}") from None
         if not isinstance(args, dict):
             raise InvalidArgumentError("CAST_ARGS must be a JSON object")
+        token_file = env.get("CAST_TOKEN_FILE", "")
         return cls(
             env["CAST_ENDPOINT"],
             env["CAST_COMPONENT_ID"],
             env["CAST_SUBARCHITECTURE"],
-            env["CAST_TOKEN"],
+            read_token_file(token_file) if token_file else env["CAST_TOKEN"],
             args,
             ClientTls.from_env(env),
-            env.get("CAST_TOKEN_FILE", ""),
+            token_file,
             env.get("CAST_START_BARRIER", "") == "1",
             connect_window_from(env.get("CAST_CONNECT_WINDOW_S", "")),
         )
@@ -257,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m cast.run module:Class``: run one component from the launch environment."""
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1 or argv[0] in ("-h", "--help"):
-        print("usage: python -m cast.run module:Class   (reads CAST_ENDPOINT, CAST_TOKEN, ... from the environment)")
+        print("usage: python -m cast.run module:Class   "
+              "(reads CAST_ENDPOINT, CAST_TOKEN_FILE or CAST_TOKEN, ... from the environment)")
         return 2
     logging.basicConfig(level=os.environ.get("CAST_LOG_LEVEL", "INFO"), format="%(asctime)s %(name)s: %(message)s")
     try:
