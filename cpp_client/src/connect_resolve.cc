@@ -153,6 +153,15 @@ std::string defaultScriptId() {
   return "script-" + std::string(host) + "-" + std::to_string(::getpid());
 }
 
+std::string readTokenFile(const std::string& path) {
+  auto text = readFile(path);
+  if (!text || trim(*text).empty()) {
+    throw InvalidArgumentError("CAST_TOKEN_FILE names " + path + ", which " + (text ? "is empty" : "cannot be read") +
+                               ": point it at a token file (`cast run` renews one per component), or unset it");
+  }
+  return trim(*text);
+}
+
 ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::string, std::string>& env,
                            std::int64_t now) {
   std::string dir = options.runtimeDir;
@@ -186,12 +195,7 @@ ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::st
     plan.token = options.token;
     source = "ConnectOptions::token";
   } else if (auto path = envOr(env, "CAST_TOKEN_FILE"); !path.empty()) {
-    auto text = readFile(path);
-    if (!text || trim(*text).empty()) {
-      throw InvalidArgumentError("CAST_TOKEN_FILE names " + path + ", which " + (text ? "is empty" : "cannot be read") +
-                                 ": point it at a token file (`cast run` renews one per component), or unset it");
-    }
-    plan.token = trim(*text);
+    plan.token = readTokenFile(path);
     plan.tokenFile = path;
     source = "the file " + path + " (CAST_TOKEN_FILE)";
   } else if (auto token = envOr(env, "CAST_TOKEN"); !token.empty()) {

@@ -34,4 +34,10 @@ ConnectPlan resolveConnect(const ConnectOptions& options, const std::map<std::st
 // The component id of a minted token when none is given: script-<host>-<pid>.
 std::string defaultScriptId();
 
+// The token in the file CAST_TOKEN_FILE names, trimmed; InvalidArgumentError
+// naming the variable and the path if it is empty or cannot be read. The file
+// is the renewed token, so when it is set it is the token, not CAST_TOKEN: in
+// cast::connect and in the runner's launch contract alike (and in Python and Java).
+std::string readTokenFile(const std::string& path);
+
 }  // namespace cast::detail

@@ -14,6 +14,7 @@
 #include "cast/grpc_transport.h"
 #include "cast/log.h"
 #include "component_core.h"
+#include "connect_resolve.h"
 #include "connect_window.h"
 #include "process_env.h"
 
@@ -70,8 +71,11 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
     return it == env.end() ? std::string() : it->second;
   };
   std::string missing;
-  for (const char* name : {"CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN"}) {
+  for (const char* name : {"CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE"}) {
     if (get(name).empty()) missing += (missing.empty() ? "" : ", ") + std::string(name);
+  }
+  if (get("CAST_TOKEN").empty() && get("CAST_TOKEN_FILE").empty()) {
+    missing += (missing.empty() ? "" : ", ") + std::string("CAST_TOKEN or CAST_TOKEN_FILE");
   }
   if (!missing.empty()) {
     throw InvalidArgumentError("missing launch environment: " + missing +
@@ -81,9 +85,10 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
   c.endpoint = get("CAST_ENDPOINT");
   c.componentId = get("CAST_COMPONENT_ID");
   c.subarchitecture = get("CAST_SUBARCHITECTURE");
-  c.token = get("CAST_TOKEN");
   c.args = Args::fromJson(get("CAST_ARGS"));
   c.tokenFile = get("CAST_TOKEN_FILE");
+  // The file is the renewed token: when it is set, it is the token (as for cast::connect).
+  c.token = c.tokenFile.empty() ? get("CAST_TOKEN") : detail::readTokenFile(c.tokenFile);
   c.tls = ClientTls::fromEnv(env);
   c.startBarrier = get("CAST_START_BARRIER") == "1";
   const std::string window = get("CAST_CONNECT_WINDOW_S");
@@ -198,8 +203,8 @@ int runComponent(Component& component, std::shared_ptr<detail::Transport> transp
 int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc, char** argv) {
   if (argc > 1 && (std::strcmp(argv[1], "-h") == 0 || std::strcmp(argv[1], "--help") == 0)) {
     std::cout << "usage: " << argv[0]
-              << "   (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS\n"
-                 "   from the environment; `cast run CONFIG` sets them, `cast token` prints them)\n";
+              << "   (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN_FILE or CAST_TOKEN\n"
+                 "   and CAST_ARGS from the environment; `cast run CONFIG` sets them, `cast token` prints them)\n";
     return 0;
   }
   // Signals are caught from the start, so a SIGTERM that arrives while

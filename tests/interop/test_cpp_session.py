@@ -11,6 +11,7 @@ from typing import Any
 
 import grpc
 import pytest
+from cast_testing_pb2 import Counter
 
 import cast
 from cast.v1 import directory_pb2, task_manager_pb2, task_manager_pb2_grpc
@@ -84,7 +85,37 @@ def test_missing_launch_environment_exits_2_naming_every_variable() -> None:
     env["CAST_COMPONENT_ID"] = "lonely"
     status, out = run_once(env)
     assert status == 2
-    assert "missing launch environment: CAST_ENDPOINT, CAST_SUBARCHITECTURE, CAST_TOKEN" in out, out
+    assert "missing launch environment: CAST_ENDPOINT, CAST_SUBARCHITECTURE, CAST_TOKEN or CAST_TOKEN_FILE;" in out, out
+
+
+def test_cast_token_file_alone_is_the_token_and_a_bad_file_exits_2(server: Any, tmp_path: Path) -> None:
+    # The launch contract of `cast export --to kubernetes`: CAST_TOKEN_FILE, no CAST_TOKEN (runner_test.cc has
+    # the rules; Python and Java: tests/integration/test_system.py, test_java_runner.py).
+    env = server.env("cfiled", "vision")
+    token = tmp_path / "cfiled.token"
+    token.write_text(env.pop("CAST_TOKEN") + "\n")
+    env["CAST_TOKEN_FILE"] = str(token)
+    c = CppProbe(env)
+    try:
+        c.ready()
+        assert c.ok("whoami") == {"id": "cfiled", "sa": "vision", "privileged": False}
+        c.ok("add", "Counter", "from-file", "-", {"writer": "cfiled", "value": "7"})
+        assert c.quit() == 0, c.output()
+    finally:
+        c.close()
+    reader = server.connect("reader", "vision")
+    try:
+        assert reader.get("from-file", Counter).value == 7
+    finally:
+        reader._cast_close()
+    token.write_text("")
+    status, out = run_once(env)
+    assert status == 2, out
+    assert (f"CAST_TOKEN_FILE names {token}, which is empty: point it at a token file (`cast run` renews one per "
+            "component), or unset it") in out, out
+    token.unlink()
+    status, out = run_once(env)
+    assert status == 2 and f"CAST_TOKEN_FILE names {token}, which cannot be read" in out, out
 
 
 def test_bad_args_exit_2(server: Any) -> None:

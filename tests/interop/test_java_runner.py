@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import threading
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -27,7 +28,33 @@ def test_missing_launch_environment_exits_2_naming_the_variables() -> None:
     env["CAST_COMPONENT_ID"] = "x"
     r = run_java(env, "cast.itest.Driven")
     assert r.returncode == 2, r.stderr
-    assert "CAST_ENDPOINT, CAST_SUBARCHITECTURE, CAST_TOKEN" in r.stderr
+    assert "missing launch environment: CAST_ENDPOINT, CAST_SUBARCHITECTURE, CAST_TOKEN or CAST_TOKEN_FILE;" in r.stderr
+
+
+def test_cast_token_file_alone_is_the_token_and_an_empty_file_exits_2(server: Any, tmp_path: Path) -> None:
+    # The launch contract of `cast export --to kubernetes`: CAST_TOKEN_FILE, no CAST_TOKEN (ArgsAndContractTest has
+    # the rules; Python and C++: tests/integration/test_system.py, test_cpp_session.py).
+    env = server.env("jfiled", "vision")
+    token = tmp_path / "jfiled.token"
+    token.write_text(env.pop("CAST_TOKEN") + "\n")
+    env["CAST_TOKEN_FILE"] = str(token)
+    jc = JavaComponent(env)
+    try:
+        jc.ready()
+        jc.ok("add", id="from-file", type="cast.testing.Counter", value=counter_json("jfiled", 7))
+        assert jc.quit() == 0, jc.output()
+    finally:
+        jc.close()
+    reader = server.connect("reader", "vision")
+    try:
+        assert reader.get("from-file", Counter).writer == "jfiled"
+    finally:
+        reader._cast_close()
+    token.write_text("")
+    r = run_java(env, "cast.itest.Driven")
+    assert r.returncode == 2, r.stderr
+    assert (f"CAST_TOKEN_FILE names {token}, which is empty: point it at a token file (`cast run` renews one per "
+            "component), or unset it") in r.stderr
 
 
 def test_bad_class_and_usage_exit_2(server: Any) -> None:

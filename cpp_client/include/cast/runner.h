@@ -5,17 +5,18 @@
 //   CAST_COMPONENT_MAIN(Segmenter)
 //
 // makes an executable that reads CAST_ENDPOINT, CAST_COMPONENT_ID,
-// CAST_SUBARCHITECTURE, CAST_TOKEN and CAST_ARGS (a JSON object), and
-// optionally CAST_TOKEN_FILE and CAST_TLS_* (see cast/credentials.h), connects,
+// CAST_SUBARCHITECTURE, its token (the file CAST_TOKEN_FILE names, re-read
+// when renewed, when that is set; else CAST_TOKEN), CAST_ARGS (a JSON object)
+// and optionally CAST_TLS_* (see cast/credentials.h), connects,
 // calls configure(args), start(), run() (with CAST_START_BARRIER=1, as `cast
 // run` launches it, run() waits until every component of the system has
 // finished start(), so a watch made in start() misses nothing another
 // component writes in run()), and stop() once on SIGINT/SIGTERM,
 // on requestStop(), or when a hook threw. Exit codes: 0 ok, 1 the component
-// failed, 2 bad launch environment (missing variables, bad CAST_ARGS, a
-// system that refuses the token or does not answer within the connect window,
-// or a token the server verified as another component or SA than
-// CAST_COMPONENT_ID and CAST_SUBARCHITECTURE name).
+// failed, 2 bad launch environment (missing variables, an empty or unreadable
+// CAST_TOKEN_FILE, bad CAST_ARGS, a system that refuses the token or does not
+// answer within the connect window, or a token the server verified as another
+// component or SA than CAST_COMPONENT_ID and CAST_SUBARCHITECTURE name).
 #pragma once
 
 #include <chrono>
@@ -51,7 +52,8 @@ struct LaunchContract {
   std::chrono::milliseconds connectWindow = kConnectWindow;
 
   // Reads the contract from the process environment; InvalidArgumentError
-  // naming every missing variable, or saying what is wrong with CAST_ARGS.
+  // naming every missing variable, or saying what is wrong with CAST_ARGS or
+  // with the file CAST_TOKEN_FILE names (empty, unreadable).
   static LaunchContract fromEnv();
   // The same from a given environment (for tests).
   static LaunchContract fromEnv(const std::map<std::string, std::string>& env);

@@ -98,7 +98,7 @@ final class ConnectResolver {
       source = "ConnectOptions.token";
     } else if (given(env.get("CAST_TOKEN_FILE"))) {
       tokenFile = env.get("CAST_TOKEN_FILE");
-      token = readTrimmed(Path.of(tokenFile), "CAST_TOKEN_FILE", "a token file (`cast run` renews one per component)");
+      token = readTokenFile(tokenFile);
       source = "the file " + tokenFile + " (CAST_TOKEN_FILE)";
     } else if (given(env.get("CAST_TOKEN"))) {
       token = env.get("CAST_TOKEN");
@@ -180,6 +180,15 @@ final class ConnectResolver {
 
   private static String firstOf(String a, String b, String otherwise) {
     return given(a) ? a : given(b) ? b : otherwise;
+  }
+
+  /**
+   * The token in the file CAST_TOKEN_FILE names, trimmed; InvalidArgumentError naming the variable and
+   * the path if it is empty or cannot be read. The file is the renewed token, so when it is set it is the
+   * token, not CAST_TOKEN: here and in the runner's {@link LaunchContract} alike (and in C++ and Python).
+   */
+  static String readTokenFile(String path) {
+    return readTrimmed(Path.of(path), "CAST_TOKEN_FILE", "a token file (`cast run` renews one per component)");
   }
 
   /** A file's text, trimmed; InvalidArgumentError naming the variable that named it. */

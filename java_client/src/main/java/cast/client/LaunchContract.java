@@ -6,14 +6,16 @@ import java.util.Map;
 
 /**
  * The environment a component process is started with (docs/design.md section 6):
- * CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
- * CAST_ARGS (a JSON object); CAST_START_BARRIER=1 when {@code cast run} launched it.
+ * CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, the token and CAST_ARGS
+ * (a JSON object); CAST_START_BARRIER=1 when {@code cast run} launched it. The token
+ * is the content of the file CAST_TOKEN_FILE names when that is set (re-read when
+ * renewed), else CAST_TOKEN.
  *
  * @param endpoint the directory's address, host:port
  * @param componentId this component's id; the server's answer to Register must agree
  *     (null: any, as for a script connecting with a token)
  * @param subarchitecture this component's SA; the server's answer must agree (null: any)
- * @param token the signed token the orchestrator (or {@code cast token}) issued
+ * @param token the signed token the orchestrator (or {@code cast token}) issued, as first read
  * @param args the component's arguments
  * @param tls TLS settings (CAST_TLS_*), or null for plaintext
  * @param tokenFile CAST_TOKEN_FILE, the file the orchestrator renews the token in, or null
@@ -42,18 +44,24 @@ public record LaunchContract(
     this(endpoint, componentId, subarchitecture, token, args, null, null, false);
   }
 
-  /** The variables that must be set. */
+  /** The variables that must be set, besides the token (CAST_TOKEN or CAST_TOKEN_FILE). */
   public static final List<String> REQUIRED =
-      List.of("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE", "CAST_TOKEN");
+      List.of("CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE");
 
-  /** Read the contract from {@code env}; InvalidArgumentError naming every missing variable. */
+  /**
+   * Read the contract from {@code env}; InvalidArgumentError naming every missing variable. The token is
+   * the file CAST_TOKEN_FILE names when that is set (the renewed one, so it wins over CAST_TOKEN, as for
+   * {@link Cast#connect}); an empty or unreadable file is an error, not a fallback.
+   */
   public static LaunchContract fromEnv(Map<String, String> env) {
     List<String> missing = new ArrayList<>();
     for (String name : REQUIRED) {
-      String v = env.get(name);
-      if (v == null || v.isEmpty()) {
+      if (!given(env.get(name))) {
         missing.add(name);
       }
+    }
+    if (!given(env.get("CAST_TOKEN")) && !given(env.get("CAST_TOKEN_FILE"))) {
+      missing.add("CAST_TOKEN or CAST_TOKEN_FILE");
     }
     if (!missing.isEmpty()) {
       throw new InvalidArgumentError(
@@ -67,16 +75,20 @@ public record LaunchContract(
     } catch (InvalidArgumentError e) {
       throw new InvalidArgumentError("CAST_ARGS: " + e.getMessage());
     }
-    String tokenFile = env.get("CAST_TOKEN_FILE");
+    String tokenFile = given(env.get("CAST_TOKEN_FILE")) ? env.get("CAST_TOKEN_FILE") : null;
     return new LaunchContract(
         env.get("CAST_ENDPOINT"),
         env.get("CAST_COMPONENT_ID"),
         env.get("CAST_SUBARCHITECTURE"),
-        env.get("CAST_TOKEN"),
+        tokenFile != null ? ConnectResolver.readTokenFile(tokenFile) : env.get("CAST_TOKEN"),
         args,
         ClientTls.fromEnv(env),
-        tokenFile == null || tokenFile.isEmpty() ? null : tokenFile,
+        tokenFile,
         "1".equals(env.get("CAST_START_BARRIER")));
+  }
+
+  private static boolean given(String value) {
+    return value != null && !value.isEmpty();
   }
 
   /** Read the contract from the process environment. */

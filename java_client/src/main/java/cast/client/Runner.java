@@ -18,8 +18,8 @@ import java.util.logging.Logger;
  *
  * <pre>java -cp cast-client-all.jar:&lt;component classes&gt; cast.client.Runner com.example.MyComponent</pre>
  *
- * <p>Reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN and
- * CAST_ARGS; connects; calls configure(args), start(), run() (with CAST_START_BARRIER=1,
+ * <p>Reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN_FILE or
+ * CAST_TOKEN ({@link LaunchContract}) and CAST_ARGS; connects; calls configure(args), start(), run() (with CAST_START_BARRIER=1,
  * as {@code cast run} launches it, run() waits until every component of the system has
  * finished start(): a watch made in start() misses nothing written in run()); calls stop() once on
  * SIGTERM/SIGINT, on {@code requestStop()}, or when a hook failed. Exit status: 0
@@ -31,7 +31,8 @@ public final class Runner {
   private static final Logger LOG = Logger.getLogger("cast.run");
   static final String USAGE =
       "usage: java -cp cast-client-all.jar:<classes> cast.client.Runner <fully.qualified.ComponentClass>\n"
-          + "  (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN, CAST_ARGS from the environment)";
+          + "  (reads CAST_ENDPOINT, CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN_FILE or CAST_TOKEN,\n"
+          + "   CAST_ARGS from the environment)";
 
   private Runner() {}
 

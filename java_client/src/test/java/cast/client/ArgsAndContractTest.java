@@ -2,10 +2,13 @@ package cast.client;
 
 import static org.junit.jupiter.api.Assertions.*;
 
+import java.nio.file.Files;
+import java.nio.file.Path;
 import java.util.HashMap;
 import java.util.List;
 import java.util.Map;
 import org.junit.jupiter.api.Test;
+import org.junit.jupiter.api.io.TempDir;
 
 class ArgsAndContractTest {
   static Map<String, String> env(String args) {
@@ -70,8 +73,38 @@ class ArgsAndContractTest {
     e.remove("CAST_TOKEN");
     e.put("CAST_ENDPOINT", "");
     InvalidArgumentError err = assertThrows(InvalidArgumentError.class, () -> LaunchContract.fromEnv(e));
-    assertTrue(err.getMessage().contains("CAST_ENDPOINT, CAST_TOKEN"), err.getMessage());
+    assertTrue(
+        err.getMessage().startsWith("missing launch environment: CAST_ENDPOINT, CAST_TOKEN or CAST_TOKEN_FILE; start"),
+        err.getMessage());
     InvalidArgumentError bad = assertThrows(InvalidArgumentError.class, () -> LaunchContract.fromEnv(env("[]")));
     assertTrue(bad.getMessage().startsWith("CAST_ARGS"), bad.getMessage());
+  }
+
+  /**
+   * The file is the renewed token: set, it is the token (CAST_TOKEN may be absent, as in an exported pod),
+   * and it wins over CAST_TOKEN, as for Cast.connect (ConnectResolverTest). Empty or unreadable, it is
+   * named, not passed over. A real runner: tests/interop/test_java_runner.py.
+   */
+  @Test
+  void theTokenFileIsTheTokenWhenSet(@TempDir Path dir) throws Exception {
+    Path file = dir.resolve("c1.token");
+    Files.writeString(file, "\n  file.token \n");
+    Map<String, String> e = env("{}");
+    e.remove("CAST_TOKEN");
+    e.put("CAST_TOKEN_FILE", file.toString());
+    LaunchContract c = LaunchContract.fromEnv(e);
+    assertEquals("file.token", c.token());
+    assertEquals(file.toString(), c.tokenFile());
+    e.put("CAST_TOKEN", "stale.token");
+    assertEquals("file.token", LaunchContract.fromEnv(e).token());
+    Files.writeString(file, " \n");
+    InvalidArgumentError empty = assertThrows(InvalidArgumentError.class, () -> LaunchContract.fromEnv(e));
+    assertEquals(
+        "CAST_TOKEN_FILE names " + file + ", which is empty: point it at a token file (`cast run` renews one per"
+            + " component), or unset it",
+        empty.getMessage());
+    Files.delete(file);
+    InvalidArgumentError gone = assertThrows(InvalidArgumentError.class, () -> LaunchContract.fromEnv(e));
+    assertTrue(gone.getMessage().startsWith("CAST_TOKEN_FILE names " + file + ", which cannot be read"), gone.getMessage());
   }
 }
