@@ -210,8 +210,8 @@ def test_the_launch_contract_is_in_each_component_containers_environment(full: P
     assert env["CAST_ENDPOINT"] == "server-main:7000" and "CAST_TOKEN" not in env
     assert {env["CAST_TLS_CA"], env["CAST_TLS_CERT"], env["CAST_TLS_KEY"]} == {
         "/var/run/cast/tls/ca", "/var/run/cast/tls/cert", "/var/run/cast/tls/key"}
-    assert container["command"][:2] == ["/bin/sh", "-c"] and container["command"][-4:] == [
-        "python", "-m", "cast.run", "tiny:Writer"]
+    # The runner itself, no shell line: it reads the token from CAST_TOKEN_FILE, never from its environment.
+    assert container["command"] == ["python", "-m", "cast.run", "tiny:Writer"]
     token, renewer = pod["initContainers"]
     assert env["CAST_TOKEN_FILE"] == token["command"][token["command"].index("--write") + 1]
     assert token["command"][:3] == ["cast", "token", "Writer_1"] and "--renew" not in token["command"]
@@ -224,12 +224,18 @@ def test_the_launch_contract_is_in_each_component_containers_environment(full: P
 
 def test_each_language_runs_in_its_image_with_the_checkouts_paths_under_opt_cast(full: Path) -> None:
     found = {name: pod_spec(w)["containers"][0] for name, w in workloads(full).items()}
-    assert found["seg"]["image"] == "cast-cpp:0.1.0" and found["seg"]["command"][-1] == "/opt/cast/bin/seg"
+    assert found["seg"]["image"] == "cast-cpp:0.1.0" and found["seg"]["command"] == ["/opt/cast/bin/seg"]
     assert found["col"]["image"] == "cast-java:0.1.0"
-    assert found["col"]["command"][-4:] == ["-cp", "/opt/cast/java_client/target/cast-client-all.jar:/opt/cast/jars/"
-                                            "x.jar", "cast.client.Runner", "a.B"]
+    assert found["col"]["command"] == ["java", "-cp", "/opt/cast/java_client/target/cast-client-all.jar:/opt/cast/"
+                                       "jars/x.jar", "cast.client.Runner", "a.B"]
     assert found["node-1"]["image"] == "registry.example:5000/robot/node-comp:1"
-    assert found["node-1"]["command"][-2:] == ["node", "comp.js"] and found["node-1"]["workingDir"] == "/opt/cast"
+    assert found["node-1"]["command"] == ["node", "comp.js"] and found["node-1"]["workingDir"] == "/opt/cast"
+    components = [c for w in workloads(full).values() for c in pod_spec(w)["containers"] if c["name"] == "component"]
+    assert len(components) == 7
+    for container in components:  # no shell in between, no token in the environment: CAST_TOKEN_FILE only
+        assert not {"sh", "/bin/sh", "bash", "-c"} & set(container["command"]), container["command"]
+        names = {e["name"] for e in container["env"]}
+        assert "CAST_TOKEN_FILE" in names and "CAST_TOKEN" not in names, names
     python = "registry.example:5000/robot/cast-python:0.1.0"
     assert found["writer-1"]["image"] == found["server-main"]["image"] == python
     assert all(c["image"] == python for w in workloads(full).values() for c in pod_spec(w).get("initContainers", []))

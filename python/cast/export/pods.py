@@ -9,9 +9,10 @@ A component's pod (docs/deploy.md, "Tokens"):
 - with ``auth.token_ttl``, a sidecar ``token-renewer`` (an init container with
   ``restartPolicy: Always``, Kubernetes 1.29 or newer) runs the same with
   ``--renew``: a fresh token every ttl / 3, as ``cast run`` renews a token file;
-- the component's container reads ``CAST_TOKEN`` from that file when it starts
-  (a ``/bin/sh`` line, since every runner needs ``CAST_TOKEN``) and is given
-  ``CAST_TOKEN_FILE``, which the client libraries read again whenever it changes.
+- the component's container runs its command directly (no shell: an image
+  needs none) with ``CAST_TOKEN_FILE`` naming that file and no ``CAST_TOKEN``:
+  every runner takes the token from the file when it is set, and reads it again
+  whenever it changes, so the token is never in the process environment.
 
 The rest of the launch contract is environment variables: ``CAST_ENDPOINT``
 (the directory's Service), ``CAST_COMPONENT_ID``, ``CAST_SUBARCHITECTURE``,
@@ -50,8 +51,6 @@ TOKEN_FILE = f"{TOKEN_DIR}/token"
 TLS_DIR = "/var/run/cast/tls"
 USER_ID = 10001  # the user deploy/images/ create
 CONNECT_WINDOW_S = "300"  # a component may start minutes before its server is ready (image pulls)
-# Every runner needs CAST_TOKEN at start; the file the init container wrote has it (and is renewed in place).
-TOKEN_SHELL = 'CAST_TOKEN="$(cat "$CAST_TOKEN_FILE")" && export CAST_TOKEN && exec "$@"'
 HOST_LABEL = "cast/host"
 
 
@@ -195,7 +194,7 @@ def component_workload(ctx: PodContext, comp: ComponentConfig) -> dict[str, Any]
             "name": "component",
             "image": spec.image,
             "imagePullPolicy": config.images.pull_policy,
-            "command": ["/bin/sh", "-c", TOKEN_SHELL, "cast-component", *spec.argv],
+            "command": spec.argv,  # the token comes from CAST_TOKEN_FILE, which every runner reads
             "workingDir": spec.working_dir,
             "env": env_list(env),
             "securityContext": container_security(),
