@@ -5,6 +5,7 @@
 
 #include <cerrno>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 #include <stdexcept>
@@ -30,6 +31,9 @@ std::string trim(const std::string& text) {
 }
 
 std::optional<std::string> readFile(const std::string& path) {
+  // A directory opens as a stream on Linux and reads as empty: it is a file that cannot be read.
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) return std::nullopt;
   std::ifstream in(path, std::ios::binary);
   if (!in) return std::nullopt;
   std::ostringstream text;

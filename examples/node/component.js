@@ -42,7 +42,7 @@ function quit(message, code) {
 
 function readContract(env) {
   const missing = ['CAST_ENDPOINT', 'CAST_COMPONENT_ID', 'CAST_SUBARCHITECTURE'].filter((name) => !env[name]);
-  if (!env.CAST_TOKEN && !env.CAST_TOKEN_FILE) missing.push('CAST_TOKEN (or CAST_TOKEN_FILE)');
+  if (!env.CAST_TOKEN && !env.CAST_TOKEN_FILE) missing.push('CAST_TOKEN or CAST_TOKEN_FILE');
   if (missing.length) {
     quit(`missing launch environment: ${missing.join(', ')}; start the component with \`cast run CONFIG\`, `
       + 'or set the variables `cast token` prints', 2);
@@ -88,7 +88,22 @@ class Token {
     this.file = env.CAST_TOKEN_FILE || '';
     this.stamp = '';
     this.checked = 0;
-    if (this.file) this.reload(true);
+    if (this.file) {
+      // The file is the token when it is set (the renewed one): empty or unreadable at start is an error, as in
+      // the Python, C++ and Java runners, not a silent fall-back to CAST_TOKEN.
+      let text = '';
+      let problem = 'is empty';
+      try {
+        text = fs.readFileSync(this.file, 'utf8').trim();
+      } catch {
+        problem = 'cannot be read';
+      }
+      if (!text) {
+        quit(`CAST_TOKEN_FILE names ${this.file}, which ${problem}: point it at a token file (\`cast run\` renews `
+          + 'one per component), or unset it', 2);
+      }
+      this.reload(true);
+    }
   }
 
   // Look at the file (modification time and size) at most once a second.

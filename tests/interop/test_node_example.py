@@ -233,13 +233,20 @@ def test_node_speaks_tls_with_a_client_certificate(tmp_path: Path, pki: dict[str
         handle.stop()
 
 
-def test_node_names_what_is_missing_from_its_launch_contract() -> None:
+def test_node_names_what_is_missing_from_its_launch_contract(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
     code, nodejs = run_node({**env, "CAST_ENDPOINT": "127.0.0.1:1"})
     assert code == 2
     assert nodejs.errors == ["error: missing launch environment: CAST_COMPONENT_ID, CAST_SUBARCHITECTURE, CAST_TOKEN "
-                             "(or CAST_TOKEN_FILE); start the component with `cast run CONFIG`, or set the variables "
+                             "or CAST_TOKEN_FILE; start the component with `cast run CONFIG`, or set the variables "
                              "`cast token` prints"]
+    empty = tmp_path / "empty.token"
+    empty.write_text(" \n")
+    code, nodejs = run_node({**env, "CAST_ENDPOINT": "127.0.0.1:1", "CAST_COMPONENT_ID": "c",
+                             "CAST_SUBARCHITECTURE": "vision", "CAST_TOKEN": "stale", "CAST_TOKEN_FILE": str(empty)})
+    assert code == 2
+    assert nodejs.errors == [f"error: CAST_TOKEN_FILE names {empty}, which is empty: point it at a token file "
+                             "(`cast run` renews one per component), or unset it"], nodejs.output()
 
 
 def test_the_example_system_runs_node_next_to_python(tmp_path: Path) -> None:

@@ -17,7 +17,15 @@ import cast
 from cast.client.filters import ChangeFilter
 from cast.v1.entry_pb2 import ChangeEvent
 from tests.conftest import ServerHandle, wait_for
-from tests.recording.conftest import RecordProcess, read_indexed, read_stream, record, recorded_so_far, wait_recorded
+from tests.recording.conftest import (
+    RecordProcess,
+    cli_env,
+    read_indexed,
+    read_stream,
+    record,
+    recorded_so_far,
+    wait_recorded,
+)
 from tests.recording.conftest import cast as cast_cli
 
 OPS = {1: "ADD", 2: "OVERWRITE", 3: "DELETE"}
@@ -241,6 +249,11 @@ def test_bad_input_is_refused_naming_what_is_wrong_and_writes_no_file(server: Se
     assert out.returncode == 2 and "--for 0" in out.stderr
     out = cast_cli("record", "--endpoint", "127.0.0.1:1", "-o", str(path), "--for", "1")
     assert out.returncode == 2 and "no system answers at 127.0.0.1:1" in out.stderr, out.stderr
+    empty = tmp_path / "empty.token"
+    empty.write_text("\n")
+    out = cast_cli("record", "--endpoint", server.endpoint, "-o", str(path), "--for", "1",
+                   env=cli_env(CAST_TOKEN_FILE=str(empty)))
+    assert out.returncode == 2 and f"CAST_TOKEN_FILE names {empty}, which is empty" in out.stderr, out.stderr
     assert not path.exists()
 
 

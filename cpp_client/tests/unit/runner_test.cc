@@ -65,6 +65,9 @@ TEST(LaunchContract, TheTokenFileIsTheTokenWhenSet) {
   std::remove(path.c_str());
   EXPECT_EQ(errorOf(env).rfind("CAST_TOKEN_FILE names " + path + ", which cannot be read: point it at", 0), 0u)
       << errorOf(env);
+  env["CAST_TOKEN_FILE"] = ::testing::TempDir();  // a directory: as in Python and Java, not "is empty"
+  EXPECT_EQ(errorOf(env).rfind("CAST_TOKEN_FILE names " + ::testing::TempDir() + ", which cannot be read", 0), 0u)
+      << errorOf(env);
 }
 
 TEST(LaunchContract, ArgsAreOptionalButMustBeAnObject) {
