@@ -64,18 +64,29 @@ class ServerHandle:
         return self.signer.issue(Identity(component_id, sa, privileged))
 
     def env(
-        self, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None
+        self, component_id: str, sa: str, privileged: bool = False, args: dict[str, Any] | None = None,
+        token_file: Path | None = None,
     ) -> dict[str, str]:
-        """The launch environment of a component process."""
+        """The launch environment of a component process.
+
+        With ``token_file`` the token is written there (on a line of its own, as ``cast token --write`` and
+        ``cast run`` write it) and given as ``CAST_TOKEN_FILE`` alone, as ``cast export`` launches components.
+        """
         env = dict(os.environ)
+        token = self.token(component_id, sa, privileged)
         env.update(
             CAST_ENDPOINT=self.endpoint,
             CAST_COMPONENT_ID=component_id,
             CAST_SUBARCHITECTURE=sa,
-            CAST_TOKEN=self.token(component_id, sa, privileged),
             CAST_ARGS=json.dumps(args or {}),
             PYTHONPATH=PYTHONPATH,
         )
+        if token_file is None:
+            env["CAST_TOKEN"] = token
+        else:
+            token_file.write_text(f"\n{token}\n")
+            env.pop("CAST_TOKEN", None)
+            env["CAST_TOKEN_FILE"] = str(token_file)
         return env
 
     def connect(

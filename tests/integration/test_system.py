@@ -251,10 +251,8 @@ def test_a_component_launched_with_cast_token_file_alone_runs_and_a_bad_file_sto
     # runners: tests/interop/test_cpp_session.py, test_java_runner.py).
     from cast.client.runner import LaunchContract
 
-    env = server.env("filed", "vision", args={"count": 3})
     token = tmp_path / "filed.token"
-    token.write_text(f"\n{env.pop('CAST_TOKEN')}\n")  # trimmed, as `cast token --write` and cast run's files
-    env["CAST_TOKEN_FILE"] = str(token)
+    env = server.env("filed", "vision", args={"count": 3}, token_file=token)  # read trimmed
     runner = [sys.executable, "-m", "cast.run", "itest_components:Writer"]
     finish(subprocess.Popen(runner, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
     reader = server.connect("reader", "vision")

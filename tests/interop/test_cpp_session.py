@@ -91,10 +91,8 @@ def test_missing_launch_environment_exits_2_naming_every_variable() -> None:
 def test_cast_token_file_alone_is_the_token_and_a_bad_file_exits_2(server: Any, tmp_path: Path) -> None:
     # The launch contract of `cast export --to kubernetes`: CAST_TOKEN_FILE, no CAST_TOKEN (runner_test.cc has
     # the rules; Python and Java: tests/integration/test_system.py, test_java_runner.py).
-    env = server.env("cfiled", "vision")
     token = tmp_path / "cfiled.token"
-    token.write_text(env.pop("CAST_TOKEN") + "\n")
-    env["CAST_TOKEN_FILE"] = str(token)
+    env = server.env("cfiled", "vision", token_file=token)
     c = CppProbe(env)
     try:
         c.ready()

@@ -34,10 +34,8 @@ def test_missing_launch_environment_exits_2_naming_the_variables() -> None:
 def test_cast_token_file_alone_is_the_token_and_an_empty_file_exits_2(server: Any, tmp_path: Path) -> None:
     # The launch contract of `cast export --to kubernetes`: CAST_TOKEN_FILE, no CAST_TOKEN (ArgsAndContractTest has
     # the rules; Python and C++: tests/integration/test_system.py, test_cpp_session.py).
-    env = server.env("jfiled", "vision")
     token = tmp_path / "jfiled.token"
-    token.write_text(env.pop("CAST_TOKEN") + "\n")
-    env["CAST_TOKEN_FILE"] = str(token)
+    env = server.env("jfiled", "vision", token_file=token)
     jc = JavaComponent(env)
     try:
         jc.ready()
