@@ -71,12 +71,11 @@ LaunchContract LaunchContract::fromEnv(const std::map<std::string, std::string>&
     return it == env.end() ? std::string() : it->second;
   };
   std::string missing;
+  auto lacks = [&missing](const std::string& what) { missing += (missing.empty() ? "" : ", ") + what; };
   for (const char* name : {"CAST_ENDPOINT", "CAST_COMPONENT_ID", "CAST_SUBARCHITECTURE"}) {
-    if (get(name).empty()) missing += (missing.empty() ? "" : ", ") + std::string(name);
+    if (get(name).empty()) lacks(name);
   }
-  if (get("CAST_TOKEN").empty() && get("CAST_TOKEN_FILE").empty()) {
-    missing += (missing.empty() ? "" : ", ") + std::string("CAST_TOKEN or CAST_TOKEN_FILE");
-  }
+  if (get("CAST_TOKEN").empty() && get("CAST_TOKEN_FILE").empty()) lacks("CAST_TOKEN or CAST_TOKEN_FILE");
   if (!missing.empty()) {
     throw InvalidArgumentError("missing launch environment: " + missing +
                                "; start the component with `cast run CONFIG`, or get the variables from `cast token`");

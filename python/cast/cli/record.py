@@ -30,7 +30,7 @@ from rich.text import Text
 
 from cast.auth import TokenSigner
 from cast.cli.connect import add_tls_options
-from cast.client.credentials import ClientTls, TokenSource, read_token_file
+from cast.client.credentials import ClientTls, TokenSource
 from cast.client.discovery import NoSystemError, find_endpoint, find_secret, find_tls
 from cast.core.records import Identity
 from cast.errors import CastError, InvalidArgumentError
@@ -61,8 +61,7 @@ def reach(args: argparse.Namespace, component_id: str, privileged: bool,
     endpoint = find_endpoint(args.endpoint, runtime, env)
     tls = find_tls(args, runtime, env)
     if not args.secret_file and env.get("CAST_TOKEN_FILE"):
-        path = env["CAST_TOKEN_FILE"]
-        return Reach(endpoint, TokenSource(read_token_file(path), path), Identity("", ""), tls)
+        return Reach(endpoint, TokenSource.from_file(env["CAST_TOKEN_FILE"]), Identity("", ""), tls)
     if not args.secret_file and env.get("CAST_TOKEN"):
         return Reach(endpoint, TokenSource(env["CAST_TOKEN"]), Identity("", ""), tls)
     who = Identity(component_id, "", privileged)

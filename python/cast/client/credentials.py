@@ -111,6 +111,11 @@ class TokenSource:
         if self._path is not None:
             self._refresh(force=True)
 
+    @classmethod
+    def from_file(cls, path: str) -> TokenSource:
+        """The token of the file ``CAST_TOKEN_FILE`` names, re-read when renewed; :func:`read_token_file`'s error."""
+        return cls(read_token_file(path), path)
+
     @property
     def path(self) -> Path | None:
         """The token file, if any."""

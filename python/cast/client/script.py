@@ -36,7 +36,7 @@ from types import TracebackType
 
 from cast.auth import TokenSigner
 from cast.client.component import UnmanagedComponent
-from cast.client.credentials import ClientTls, TokenSource, read_token_file
+from cast.client.credentials import ClientTls, TokenSource
 from cast.client.discovery import find_endpoint, find_secret, find_tls, first_subarchitecture
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
@@ -101,7 +101,7 @@ def _tokens(
         return TokenSource(token), Identity(component_id or "", sa or "", False)
     told = Identity(component_id or env.get("CAST_COMPONENT_ID", ""), sa or env.get("CAST_SUBARCHITECTURE", ""))
     if path := env.get("CAST_TOKEN_FILE"):
-        return TokenSource(read_token_file(path), path), told
+        return TokenSource.from_file(path), told
     if env.get("CAST_TOKEN"):
         return TokenSource(env["CAST_TOKEN"]), told
     secret = find_secret(None, runtime, env)

@@ -25,6 +25,7 @@ import asyncio
 import logging
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Protocol
 
 from cast.auth import TokenSigner, write_token_file
 from cast.client.credentials import ClientTls
@@ -32,12 +33,19 @@ from cast.config.model import ComponentConfig, SystemConfig
 from cast.core.records import Identity
 from cast.errors import CastError
 
-__all__ = ["LaunchSecurity", "RemoteRenewal", "component_tls"]
+__all__ = ["LaunchSecurity", "RemoteRenewal", "Runs", "component_tls"]
 
 log = logging.getLogger("cast.orchestrator")
 
 RemoteRenewal = Callable[[ComponentConfig, str], Awaitable[None]]
 """Sends a remote component's fresh token to its agent (``Agents.renew``)."""
+
+
+class Runs(Protocol):
+    """Whether a component's process runs now; ``steady``: and no stop began (``Supervisor.runs``)."""
+
+    def __call__(self, component_id: str, *, steady: bool = False) -> bool:
+        """True while it runs."""
 
 
 def component_tls(config: SystemConfig) -> ClientTls | None:
@@ -59,10 +67,9 @@ class LaunchSecurity:
         self._issued: dict[str, ComponentConfig] = {}
         self.renewals = 0
         self.remote: RemoteRenewal | None = None  # set when some components run on other hosts
-        # Whether a component's process runs now, ``steady``: and is not being stopped (``Supervisor.runs``).
         # One that exited gets no fresh token, so a token it leaked stops working within the ttl; one being
         # stopped still does, so that it can leave cleanly however long its stop takes.
-        self.runs: Callable[..., bool] = lambda _component_id, steady=False: True
+        self.runs: Runs = lambda _component_id, steady=False: True
 
     def contract(self, comp: ComponentConfig) -> dict[str, str]:
         """``CAST_TOKEN`` (and ``CAST_TOKEN_FILE``, ``CAST_TLS_*`` on this host) for one component."""

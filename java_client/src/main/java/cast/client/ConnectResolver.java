@@ -170,7 +170,8 @@ final class ConnectResolver {
     return "script-" + (host.isEmpty() ? "localhost" : host) + "-" + ProcessHandle.current().pid();
   }
 
-  private static boolean given(String s) {
+  /** Whether an environment variable or option is set and not empty (the launch contract's test too). */
+  static boolean given(String s) {
     return s != null && !s.isEmpty();
   }
 

@@ -1,5 +1,7 @@
 package cast.client;
 
+import static cast.client.ConnectResolver.given;
+
 import java.util.ArrayList;
 import java.util.List;
 import java.util.Map;
@@ -85,10 +87,6 @@ public record LaunchContract(
         ClientTls.fromEnv(env),
         tokenFile,
         "1".equals(env.get("CAST_START_BARRIER")));
-  }
-
-  private static boolean given(String value) {
-    return value != null && !value.isEmpty();
   }
 
   /** Read the contract from the process environment. */
