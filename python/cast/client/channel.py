@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import random
 import threading
+import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import grpc
@@ -24,7 +26,10 @@ if TYPE_CHECKING:
     from cast.client.watch_stream import WatchStream
     from cast.client.write_stream import WriteStream
 
-__all__ = ["CHANNEL_OPTIONS", "TRANSIENT", "Backoff", "ServerLink", "map_rpc_error"]
+__all__ = ["CHANNEL_OPTIONS", "JOIN_S", "TRANSIENT", "Backoff", "ServerLink", "map_rpc_error"]
+
+JOIN_S = 2.0
+"""How long closing a link waits for the threads of its streams to end (they end at once when all is well)."""
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 CHANNEL_OPTIONS = (
@@ -83,10 +88,46 @@ class ServerLink:
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server
         self.beat_now = threading.Event()  # the component's state changed: send a heartbeat at once
+        self._threads: list[threading.Thread] = []  # what close() joins: see track()
+        self._threads_lock = threading.Lock()
 
-    def close(self) -> None:
-        """Close the channel (every stream on it ends)."""
+    def track(self, thread: threading.Thread) -> None:
+        """Have :meth:`close` wait for ``thread``, one that reads or writes a stream of this link.
+
+        A thread still inside a gRPC call when the interpreter shuts down can die holding the
+        call's lock; the call's finaliser then waits for that lock for ever and the process never
+        exits. So no stream thread may outlive close().
+        """
+        with self._threads_lock:
+            self._threads = [t for t in self._threads if t.is_alive()]
+            self._threads.append(thread)
+
+    def open_stream(self, method: Callable[..., Any], request: Any, **kwargs: Any) -> Any:
+        """``method(request, **kwargs)``: a streaming call, with the threads gRPC starts for it tracked.
+
+        Those (the request reader, the channel's poller) are tracked like ours. Python's gRPC gives no
+        handle on them: they are the threads that appeared while the call was made (a thread is listed
+        once its start() returned, and gRPC starts them before the call returns).
+        """
+        before = set(threading.enumerate())
+        call = method(request, **kwargs)
+        for thread in threading.enumerate():
+            if thread not in before:
+                self.track(thread)
+        return call
+
+    def close(self, deadline: float | None = None) -> None:
+        """Close the channel (every stream on it ends), then wait for the tracked threads to end.
+
+        ``deadline`` is a ``time.monotonic()`` instant; the default is :data:`JOIN_S` from now.
+        """
         self.channel.close()
+        end = time.monotonic() + JOIN_S if deadline is None else deadline
+        me = threading.current_thread()
+        with self._threads_lock:
+            threads = [t for t in self._threads if t is not me]
+        for thread in threads:
+            thread.join(max(0.0, end - time.monotonic()))
 
 
 

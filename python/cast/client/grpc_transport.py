@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any
@@ -17,7 +18,7 @@ from typing import Any
 import grpc
 from google.protobuf import descriptor_pb2
 
-from cast.client.channel import CHANNEL_OPTIONS, TRANSIENT, Backoff, ServerLink, map_rpc_error
+from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, ServerLink, map_rpc_error
 from cast.client.conversions import address, any_of, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.session import Session
@@ -350,7 +351,8 @@ class GrpcTransport:
         def read() -> None:
             backoff = Backoff()
             while not self._closing.is_set():
-                call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
+                call = server.open_stream(server.tm.Decisions, tm_pb2.DecisionsRequest(),
+                                          metadata=self._tokens.metadata())
                 self._decision_call = call
                 try:
                     for task in call:
@@ -369,6 +371,7 @@ class GrpcTransport:
         thread = threading.Thread(target=read, name="cast-decisions", daemon=True)
         thread.start()
         self._decision_threads.append(thread)
+        server.track(thread)
 
     # -------------------------------------------------------------- outcomes
 
@@ -431,5 +434,7 @@ class GrpcTransport:
         call = getattr(self, "_decision_call", None)
         if call is not None:
             call.cancel()
+        # The links wait for their streams' threads together, not each for its own JOIN_S.
+        deadline = time.monotonic() + JOIN_S
         for server in self._servers.values():
-            server.close()
+            server.close(deadline)

@@ -58,10 +58,12 @@ class Session:
         """
         for server in list(self._servers()):
             interval = self._register(server, language, kind)
-            threading.Thread(
+            thread = threading.Thread(
                 target=self._heartbeat, args=(server, interval, language, kind, state), name="cast-heartbeat",
                 daemon=True,
-            ).start()
+            )
+            thread.start()
+            server.track(thread)
 
     def _register(self, server: ServerLink, language: str, kind: str) -> float:
         req = dir_pb2.RegisterRequest(
@@ -91,7 +93,7 @@ class Session:
                         return
 
             try:
-                for _ in server.directory.Heartbeat(beats(), metadata=self._tokens.metadata()):
+                for _ in server.open_stream(server.directory.Heartbeat, beats(), metadata=self._tokens.metadata()):
                     backoff.reset()
                 if self._closing.is_set():
                     return

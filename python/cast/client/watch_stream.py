@@ -79,6 +79,7 @@ class WatchStream:
         self._opened = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"cast-watch-{server.endpoint}", daemon=True)
         self._thread.start()
+        server.track(self._thread)
         self._opened.wait()
 
     # ------------------------------------------------------------ requests
@@ -103,7 +104,8 @@ class WatchStream:
             self._requests = requests
             for w in self._watches.values():
                 requests.put(self._create_request(w))
-            self._call = self._server.wm.Watch(iter(requests.get, None), metadata=self._tokens.metadata())
+            self._call = self._server.open_stream(self._server.wm.Watch, iter(requests.get, None),
+                                                  metadata=self._tokens.metadata())
             return self._call
 
     # -------------------------------------------------------------- reader

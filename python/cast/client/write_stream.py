@@ -133,10 +133,12 @@ class _Call:
         self.ids = itertools.count(1)
         metadata = (("authorization", f"Bearer {token}"),)
         # The stubs' type (an iterator) hides what the call object also is: a grpc.Future with a next().
-        self.responses: Any = cast(Any, server.wm.Write(_messages(self.requests), metadata=metadata))
+        self.responses: Any = cast(Any, server.open_stream(server.wm.Write, _messages(self.requests),
+                                                           metadata=metadata))
         self.responses.add_done_callback(self._on_done)
         self.pump = threading.Thread(target=self._pump, name="cast-write-replies", daemon=True)
         self.pump.start()
+        server.track(self.pump)
 
     def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool) -> Future[wm_pb2.WriteReply]:
         """Queue ``request`` (``size`` bytes) with the next id; the future of its reply. Call with :attr:`lock` held."""
