@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import grpc
 import psutil
 import pytest
@@ -76,6 +78,10 @@ def test_stop_kills_a_component_whose_stop_hangs(agent: AgentHandle, wm_server: 
     stopped = stub(agent).Stop(agent_pb2.StopRequest(system="agenttest", component_id="stubborn", timeout_ms=500),
                                metadata=metadata(), timeout=30)
     assert (stopped.exit.pid, stopped.exit.signal, stopped.exit.killed) == (reply.pid, 9, True)
+    # Asked with SIGQUIT before the SIGKILL, the runner printed its threads' stacks: where stop() hangs.
+    attach.wait(lambda: [o for o in attach.of("output", "stubborn") if re.search(r'", line \d+ in stop$', o.text)],
+                what="the stack of the thread in stop()")
+    assert any(o.text.startswith("Thread 0x") for o in attach.of("output", "stubborn"))
     attach.close()
 
 

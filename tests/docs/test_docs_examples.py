@@ -9,13 +9,16 @@ files are those files; the rest name the test that checks them, or are marked as
 from __future__ import annotations
 
 import ast
+import contextlib
 import json
 import os
 import py_compile
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -159,6 +162,32 @@ def java_command(block: Block, work: Path) -> list[str]:
     return ["java", "-cp", classpath, name[1]]
 
 
+EXAMPLE_TIMEOUT_S = 90
+"""Under pytest-timeout's 120 s, so that a hung example is reported with what it printed and its stacks."""
+
+
+def run_example(command: list[str], cwd: Path, env: dict[str, str], block: Block) -> subprocess.CompletedProcess[str]:
+    """Run an example in a session of its own; one that hangs fails with its output and its threads' stacks.
+
+    SIGQUIT makes the Python runner and `cast` print every thread's stack (cast.signals) and the JVM its
+    thread dump; bash ignores it. Then the whole session is killed.
+    """
+    proc = subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=EXAMPLE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGQUIT)
+        time.sleep(1.0)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        raise AssertionError(f"{block.where} did not end within {EXAMPLE_TIMEOUT_S} s; it printed:\n{out}\n"
+                             f"and on stderr (with the stacks of its threads):\n{err}") from None
+    return subprocess.CompletedProcess(command, proc.returncode, out, err)
+
+
 @pytest.mark.parametrize("block", run_blocks(), ids=lambda b: b.where)
 def test_the_example_runs_and_prints_what_the_page_shows(block: Block, server: ServerHandle, tmp_path: Path) -> None:
     work = tmp_path / "work"
@@ -167,9 +196,7 @@ def test_the_example_runs_and_prints_what_the_page_shows(block: Block, server: S
     if block.lang == "sh":
         env = clean_env()
         env.update(CAST_ENDPOINT=server.endpoint, CAST_SECRET=SECRET)
-        proc = subprocess.run(["bash", "-e", "-c", block.code], cwd=work, env=env, capture_output=True, text=True,
-                              timeout=300)
-        check(proc, block)
+        check(run_example(["bash", "-e", "-c", block.code], work, env, block), block)
         return
     args = json.loads(block.attrs.get("args", "{}"))
     env = clean_env()
@@ -192,5 +219,4 @@ def test_the_example_runs_and_prints_what_the_page_shows(block: Block, server: S
         command = java_command(block, work)
     else:
         raise AssertionError(f"{block.where}: no way to run a '{block.lang}' block")
-    proc = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True, timeout=120)
-    check(proc, block)
+    check(run_example(command, work, env, block), block)

@@ -112,7 +112,7 @@ def test_cast_run_places_components_on_an_agents_host(tmp_path: Path) -> None:
         run.send_signal(signal.SIGINT)
         code = run.wait(60)
         stop_seconds = time.monotonic() - stop_at
-        assert code == 0, "\n".join(out.lines[-40:])
+        assert code == 0, "\n".join(out.lines[-200:])  # a killed component's stacks are among them
         summary = json.loads((root / "summary.json").read_text())
         assert {c["id"]: c["host"] for c in summary["components"]} == placed
         assert summary["failures"] == []

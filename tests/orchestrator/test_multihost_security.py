@@ -117,7 +117,7 @@ def test_tls_and_expiring_tokens_reach_a_server_and_a_component_on_another_host(
 
         run.send_signal(signal.SIGINT)
         code = run.wait(60)
-        assert code == 0, "\n".join(out.lines[-40:])
+        assert code == 0, "\n".join(out.lines[-200:])  # a killed component's stacks are among them
         summary = json.loads((root / "summary.json").read_text())
         assert summary["failures"] == []
         assert not any("UNAUTHENTICATED" in line for line in out.lines), "\n".join(out.lines[-40:])

@@ -84,7 +84,7 @@ def test_cast_run_starts_a_server_on_an_agents_host(tmp_path: Path) -> None:
         run.send_signal(signal.SIGINT)
         code = run.wait(60)
         stop_seconds = time.monotonic() - stop_at
-        assert code == 0, "\n".join(out.lines[-40:])
+        assert code == 0, "\n".join(out.lines[-200:])  # a killed component's stacks are among them
         summary = json.loads((root / "summary.json").read_text())
         assert summary["failures"] == []
         # The far server's SA is in the summary too, asked over the network (lwrite's entries, rwatch's report).

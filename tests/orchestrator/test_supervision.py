@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -126,8 +127,12 @@ def test_component_that_ignores_stop_is_killed_and_fails_the_run(tmp_path: Path)
     out = subprocess.run([CAST, "run", str(cfg), "--for", "0.5", "--no-status", "--runtime-dir", str(tmp_path / "rt")],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1, out.stdout + out.stderr
-    assert "stubborn did not stop within 1 s: killed" in out.stdout
+    assert "stubborn did not stop within 1 s: killed (its threads' stacks are in its log)" in out.stdout
     assert "failed: stubborn exited with code -9 when stopped (killed)" in out.stdout
+    # Asked with SIGQUIT before the SIGKILL, the runner wrote where it was stuck: Stubborn.stop's sleep.
+    log = (tmp_path / "rt" / "logs" / "stubborn.log").read_text()
+    assert re.search(r'orch_components\.py", line \d+ in stop', log), log
+    assert "Thread 0x" in log, log
 
 
 def test_killing_the_orchestrator_takes_its_components_along(tmp_path: Path) -> None:

@@ -20,8 +20,9 @@ from pathlib import Path
 from cast.config import load_config
 from cast.config.model import ComponentConfig, ServerConfig, SystemConfig
 from cast.errors import CastError, InvalidArgumentError, LockedError, NotFoundError
-from cast.orchestrator.launchers import LaunchError, launcher_for
+from cast.orchestrator.launchers import LaunchError, launcher_for, stack_dump_signal
 from cast.orchestrator.security import component_tls
+from cast.signals import STACK_DUMP_SIGNAL
 
 __all__ = [
     "PRIVATE_ENV", "SERVER_PREFIX", "LaunchPlan", "check_contract", "load_from_root", "plan_launch", "plan_server",
@@ -42,6 +43,7 @@ class LaunchPlan:
     cwd: Path | None
     name: str = ""  # the process's name in the table and the events, when not a component's id
     token_file: bool = False  # write CAST_TOKEN to a file of this host, named in CAST_TOKEN_FILE (renewed)
+    dump_signal: int | None = None  # sent before the SIGKILL of a stop that timed out (stacks to the log)
 
     @property
     def process_id(self) -> str:
@@ -70,7 +72,7 @@ def plan_server(
         argv += ["--await-run", await_run]
     env = {k: v for k, v in (os.environ if agent_env is None else agent_env).items() if k not in PRIVATE_ENV}
     env["PYTHONUNBUFFERED"] = "1"
-    return LaunchPlan(None, argv, env, None, name=SERVER_PREFIX + server)
+    return LaunchPlan(None, argv, env, None, name=SERVER_PREFIX + server, dump_signal=STACK_DUMP_SIGNAL)
 
 
 def load_from_root(root: Path, config_path: str, sets: Mapping[str, str]) -> SystemConfig:
@@ -167,7 +169,8 @@ def plan_launch(
     launcher = launcher_for(comp.language)
     argv = launcher.command(comp, config, env)
     full_env = {**env, **launcher.environment(comp, config, env), **contract, **_tls_env(config)}
-    return LaunchPlan(comp, argv, full_env, launcher.working_directory(comp), token_file=token_file)
+    return LaunchPlan(comp, argv, full_env, launcher.working_directory(comp), token_file=token_file,
+                      dump_signal=stack_dump_signal(launcher))
 
 
 def _tls_env(config: SystemConfig) -> dict[str, str]:

@@ -129,7 +129,8 @@ class ProcessTable:
             token_file = self.token_dir / _safe(system) / f"{_safe(plan.process_id)}.token"
             write_token_file(token_file, env.get("CAST_TOKEN", ""))
             env = {**env, "CAST_TOKEN_FILE": str(token_file)}
-        process = ComponentProcess(plan.process_id, plan.argv, env, log_path, line, plan.cwd or self.root)
+        process = ComponentProcess(plan.process_id, plan.argv, env, log_path, line, plan.cwd or self.root,
+                                   plan.dump_signal)
         try:
             await process.start()
         except OSError:

@@ -8,6 +8,7 @@ import sys
 
 from cast.cli import agent, export, foxglove, inspection, record, replay, run, serve, sweep, token, web
 from cast.errors import CastError
+from cast.signals import dump_stacks_on_sigquit
 from cast.version import version_line
 
 __all__ = ["build_parser", "main"]
@@ -36,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``cast`` command; the exit status."""
     args = build_parser().parse_args(argv)
+    dump_stacks_on_sigquit()  # a hung `cast` command says where it is with kill -QUIT
     level = getattr(args, "log_level", "WARNING")
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")
     try:

@@ -31,6 +31,7 @@ from cast.client.transport import Transport
 from cast.core.records import Identity
 from cast.core.sessions import ComponentState
 from cast.errors import CastError, InvalidArgumentError, UnavailableError
+from cast.signals import dump_stacks_on_sigquit
 
 __all__ = ["LaunchContract", "load_component_class", "main", "run_component"]
 
@@ -270,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
               "(reads CAST_ENDPOINT, CAST_TOKEN_FILE or CAST_TOKEN, ... from the environment)")
         return 2
     logging.basicConfig(level=os.environ.get("CAST_LOG_LEVEL", "INFO"), format="%(asctime)s %(name)s: %(message)s")
+    # A component that does not stop in time gets SIGQUIT before SIGKILL: its stacks go to its log.
+    dump_stacks_on_sigquit()
     try:
         cls = load_component_class(argv[0])
         contract = LaunchContract.from_env()

@@ -32,6 +32,7 @@ from typing import Protocol
 
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.errors import NotFoundError
+from cast.signals import STACK_DUMP_SIGNAL
 
 __all__ = [
     "LAUNCHERS",
@@ -45,6 +46,7 @@ __all__ = [
     "launcher_for",
     "register_launcher",
     "resolve_executable",
+    "stack_dump_signal",
 ]
 
 # python/cast/orchestrator/launchers.py -> the repository (for an editable install, where builds live).
@@ -69,8 +71,20 @@ class Launcher(Protocol):
         """Where the process starts (None: the orchestrator's working directory)."""
 
 
+def stack_dump_signal(launcher: Launcher) -> int | None:
+    """The signal on which the launcher's processes print their threads' stacks and carry on, if they have one.
+
+    A launcher says so with a ``stack_dump_signal`` attribute (optional, so launchers registered before it
+    existed still work); a stop that times out sends it before the SIGKILL, so the log says where it hung.
+    """
+    found = getattr(launcher, "stack_dump_signal", None)
+    return found if isinstance(found, int) else None
+
+
 class PythonLauncher:
     """``python -m cast.run module:Class``."""
+
+    stack_dump_signal = STACK_DUMP_SIGNAL  # the runner registers faulthandler on it
 
     def command(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> list[str]:
         """This interpreter running the Python runner."""
@@ -167,6 +181,8 @@ class OtherLauncher:
 
 class JavaLauncher:
     """``java -cp <classpath> cast.client.Runner <class>``."""
+
+    stack_dump_signal = STACK_DUMP_SIGNAL  # the JVM prints a thread dump on SIGQUIT and carries on
 
     def classpath(self, component: ComponentConfig, env: Mapping[str, str]) -> list[str]:
         """The class path entries, the client library's first."""

@@ -17,7 +17,10 @@ import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["ComponentProcess", "LineSink"]
+__all__ = ["DUMP_WAIT_S", "ComponentProcess", "LineSink"]
+
+DUMP_WAIT_S = 1.0
+"""How long a process that did not stop in time has to print its stacks before the SIGKILL."""
 
 LineSink = Callable[[str, str], None]
 """Receives (component id, output line) for every line a component prints."""
@@ -51,8 +54,12 @@ class ComponentProcess:
         log_path: Path,
         sink: LineSink,
         cwd: Path | None = None,
+        dump_signal: int | None = None,
     ) -> None:
         self.component_id = component_id
+        # Sent before the SIGKILL of a stop that timed out, when the process prints its threads' stacks on it
+        # (Python's runner and `cast`, the JVM: SIGQUIT); None for one it would only kill (C++, other).
+        self.dump_signal = dump_signal
         self.argv = list(argv)
         self.env = dict(env)
         self.log_path = log_path
@@ -61,6 +68,7 @@ class ComponentProcess:
         self._proc: asyncio.subprocess.Process | None = None
         self._pump: asyncio.Task[None] | None = None
         self.killed = False
+        self.dumped = False  # asked for its stacks (dump_signal) before it was killed
 
     @property
     def pid(self) -> int:
@@ -118,7 +126,10 @@ class ComponentProcess:
         self._kill_group(signal.SIGKILL)
 
     async def stop(self, timeout: float) -> int:
-        """SIGTERM (the runner calls stop()), then SIGKILL after ``timeout`` seconds; return the exit code."""
+        """SIGTERM (the runner calls stop()), then SIGKILL after ``timeout`` seconds; return the exit code.
+
+        Before the SIGKILL, a process with a ``dump_signal`` gets it, so that its log says where it was stuck.
+        """
         assert self._proc is not None
         if self._proc.returncode is None:
             self._kill_group(signal.SIGTERM)
@@ -126,5 +137,20 @@ class ComponentProcess:
                 return await asyncio.wait_for(asyncio.shield(self.wait()), timeout)
             except TimeoutError:
                 self.killed = True
+                await self._dump_stacks()
                 self._kill_group(signal.SIGKILL)
         return await self.wait()
+
+    async def _dump_stacks(self) -> None:
+        """Ask a stuck process for its threads' stacks and give it a moment to write them to its log."""
+        if self.dump_signal is None or self._proc is None or self._proc.returncode is not None:
+            return
+        try:
+            os.kill(self._proc.pid, self.dump_signal)  # the process only: what it started is not ours to ask
+        except (ProcessLookupError, PermissionError):
+            return
+        self.dumped = True
+        # faulthandler writes at once; the JVM at its next safepoint. What is written is read from the pipe
+        # even after the SIGKILL, so this waits only for the writing (or for an exit the dump let happen).
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(asyncio.shield(self._proc.wait()), DUMP_WAIT_S)

@@ -60,6 +60,7 @@ class RemoteProcess:
         self._sink = sink
         self.pid = 0
         self.killed = False
+        self.dumped = False  # the agent asks for the stacks of one it kills too, but its exit event does not say
         self.host_lost = False  # ended because its host was lost (not an exit the agent reported)
         self._exit: asyncio.Future[int] = asyncio.get_running_loop().create_future()
         self.argv: list[str] = []

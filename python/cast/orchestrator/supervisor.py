@@ -24,7 +24,7 @@ from pathlib import Path
 
 from cast.config.model import ComponentConfig, SystemConfig
 from cast.errors import CastError
-from cast.orchestrator.launchers import launcher_for
+from cast.orchestrator.launchers import launcher_for, stack_dump_signal
 from cast.orchestrator.process import ComponentProcess, LineSink
 from cast.orchestrator.remote import Agents, RemoteProcess
 
@@ -123,7 +123,7 @@ class Supervisor:
             return False
         env = {**self._env, **launcher.environment(comp, self.config, self._env), **self._contract(comp)}
         process = ComponentProcess(comp.id, argv, env, self._logs / f"{comp.id}.log", self._sink,
-                                   launcher.working_directory(comp))
+                                   launcher.working_directory(comp), stack_dump_signal(launcher))
         try:
             await process.start()
         except OSError as exc:
@@ -215,7 +215,8 @@ class Supervisor:
                 sup.phase = Phase.STOPPING
                 sup.stop_code = await sup.process.stop(timeout)
                 if sup.process.killed:
-                    self._notify(f"{sup.config.id} did not stop within {timeout:.0f} s: killed")
+                    self._notify(f"{sup.config.id} did not stop within {timeout:.0f} s: killed"
+                                 + (" (its threads' stacks are in its log)" if sup.process.dumped else ""))
                 elif sup.stop_code != 0:
                     self._notify(f"{sup.config.id} stopped with exit code {sup.stop_code}")
                 sup.phase = Phase.STOPPED
