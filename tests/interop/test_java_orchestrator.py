@@ -7,6 +7,7 @@ import signal
 from pathlib import Path
 from typing import Any
 
+import yaml
 from cast_testing_pb2 import Counter
 
 import cast
@@ -59,3 +60,22 @@ def test_sigkilled_java_component_releases_locks_and_tasks_and_is_restarted(tmp_
             py._cast_close()
         run.stop()  # its exit status reports the crash; what matters here is what the crash left behind
     assert "holder crashed (exit code -9); restarting" in run.output()
+
+
+def test_a_java_component_that_does_not_stop_leaves_a_thread_dump_in_its_log(tmp_path: Path) -> None:
+    java_classpath()  # fails the test if the Java build is missing
+    config = tmp_path / "stubborn.yaml"
+    config.write_text(yaml.safe_dump({
+        "system": "stubborn",
+        "orchestrator": {"stop_timeout": 1},
+        "subarchitectures": {"work": {"components": {"stubborn": {
+            "language": "java", "class": "cast.itest.Stubborn", "classpath": [str(TEST_CLASSES)],
+        }}}},
+    }))
+    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    run.wait_running("stubborn")
+    assert run.stop() == 1, run.output()
+    assert "stubborn did not stop within 1 s: killed (its threads' stacks are in its log)" in run.output()
+    # SIGQUIT before the SIGKILL: the JVM's thread dump, with the thread stuck in Stubborn.stop.
+    log = (tmp_path / "runtime" / "logs" / "stubborn.log").read_text()
+    assert "Full thread dump" in log and "at cast.itest.Stubborn.stop(Stubborn.java" in log, log
