@@ -8,9 +8,11 @@ reads, tasks and the rest are unary calls.
 
 from __future__ import annotations
 
+import atexit
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from typing import Any
@@ -45,6 +47,18 @@ _AWAIT_RUN_POLL_S = 1.0
 _LOCK_REPLY_MARGIN_S = 5.0
 
 
+_OPEN: weakref.WeakSet[GrpcTransport] = weakref.WeakSet()
+"""Transports not closed yet: closed at exit, while their threads can still finish (see ServerLink.track)."""
+
+
+@atexit.register
+def _close_open_transports() -> None:
+    # Atexit handlers run before the interpreter stops daemon threads: a script that never closed its
+    # client (no `with cast.connect()`) would otherwise exit with stream threads inside gRPC calls.
+    for transport in list(_OPEN):
+        transport.close()
+
+
 class GrpcTransport:
     """A component's connection to a CAST system through its directory endpoint."""
 
@@ -73,6 +87,7 @@ class GrpcTransport:
         self._routes: dict[str, ServerLink] = {}
         self._session = Session(identity, lambda: list(self._servers.values()), self._call, self._tokens,
                                 self._closing)
+        _OPEN.add(self)
         self._describe()
 
     # --------------------------------------------------------------- routing
@@ -422,8 +437,11 @@ class GrpcTransport:
         return False
 
     def close(self) -> None:
-        """End sessions and streams, close channels."""
+        """End sessions and streams, close channels; once (later calls return at once)."""
+        if self._closing.is_set():
+            return
         self._closing.set()
+        _OPEN.discard(self)
         for server in self._servers.values():
             server.beat_now.set()
         for server in self._servers.values():
