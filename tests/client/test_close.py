@@ -15,12 +15,14 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from pathlib import Path
 
 from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
-from tests.conftest import PYTHONPATH, ServerHandle
+from cast.client.channel import ServerLink
+from tests.conftest import DEFAULT_CONFIG, PYTHONPATH, ServerHandle, serve, start_server
 
 ROUNDS = 10  # before the fix about 4 closes in 10 left a thread behind: 10 rounds see it almost surely
 
@@ -33,17 +35,63 @@ def test_close_leaves_no_thread_of_its_streams_behind(server: ServerHandle) -> N
     for i in range(ROUNDS):
         before = set(threading.enumerate())
         component = server.connect(f"closer{i}", "vision", cls=_Managed if i % 2 else None)
-        seen = threading.Event()
-
-        def saw(_change: cast.WorkingMemoryChange, seen: threading.Event = seen) -> None:
-            seen.set()
-
-        component.on_change(cast.address_filter(f"entry{i}"), saw)
-        component.add(f"entry{i}", Int64Value(value=i))  # opens the write stream
-        assert seen.wait(10), f"round {i}: the watch did not see the add"
+        _write_and_see(component, f"entry{i}")
         component._cast_close()
-        left = [t.name for t in threading.enumerate() if t not in before and t.is_alive()]
-        assert left == [], f"round {i}: threads still running after close(): {left}"
+        _assert_no_thread_left(before, f"round {i}")
+
+
+def test_close_after_a_reconnect_leaves_no_thread_behind(tmp_path: Path) -> None:
+    first = start_server(tmp_path, DEFAULT_CONFIG)
+    before = set(threading.enumerate())
+    component = first.connect("reconnecting", "vision")
+    _write_and_see(component, "before-restart")
+    first.stop()
+    # The same address again: the client opens its streams anew; the broken ones' threads must end too.
+    second = serve(first.config_path, listen=first.endpoint)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                _write_and_see(component, f"after-restart-{time.monotonic_ns()}")
+                break
+            except cast.CastError:
+                assert time.monotonic() < deadline, "the client did not reconnect within 30 s"
+                time.sleep(0.2)
+        component._cast_close()
+        # Less the thread that reads the second server's output (tests/conftest.py's drain).
+        _assert_no_thread_left(before | {t for t in threading.enumerate() if t.name.endswith("(drain)")},
+                               "after a reconnect")
+    finally:
+        second.stop()
+
+
+def _write_and_see(component: cast.Component, entry_id: str) -> None:
+    """Watch ``entry_id``, add it (on the write stream) and see the watch deliver it."""
+    seen = threading.Event()
+    component.on_change(cast.address_filter(entry_id), lambda _change: seen.set())  # type: ignore[misc]
+    component.add(entry_id, Int64Value(value=1))
+    if not seen.wait(10):
+        raise cast.UnavailableError(f"the watch did not see {entry_id} within 10 s")
+
+
+def _assert_no_thread_left(before: set[threading.Thread], when: str) -> None:
+    left = [t for t in threading.enumerate() if t not in before and t.is_alive()]
+    # The channel's poller ends just after the channel's close returned (which waits until the poller
+    # has handled every call's end): it alone may take a moment more. Every other thread must be gone.
+    pollers = [t for t in left if _in_channel_spin(t)]
+    assert [t.name for t in left if t not in pollers] == [], f"{when}: threads still running after close()"
+    for poller in pollers:
+        poller.join(5)
+        assert not poller.is_alive(), f"{when}: the channel's poller did not end"
+
+
+def _in_channel_spin(thread: threading.Thread) -> bool:
+    frame = sys._current_frames().get(thread.ident or 0)
+    while frame is not None:
+        if frame.f_code.co_name == "channel_spin":
+            return True
+        frame = frame.f_back
+    return False
 
 
 UNCLOSED_SCRIPT = textwrap.dedent("""
@@ -76,3 +124,20 @@ def test_a_script_that_never_closes_its_client_still_exits_without_stream_thread
                           text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "LEFT []", done.stdout + done.stderr
+
+
+def test_one_beat_request_wakes_every_heartbeat_generator_however_late_it_waits() -> None:
+    # close() asks for a beat once; a generator gRPC is still reading for an ended stream may wait
+    # after another generator already woke: it must not sleep a heartbeat interval (or for ever).
+    link = ServerLink("127.0.0.1:1")  # no call is made: the channel connects lazily
+    try:
+        seen = link.beats_asked()
+        link.beat_now()
+        woke: list[int] = []
+        waiters = [threading.Thread(target=lambda: woke.append(link.wait_beat(seen, 600))) for _ in range(2)]
+        for waiter in waiters:  # one after the other: the second waits after the first has woken
+            waiter.start()
+            waiter.join(10)
+        assert woke == [seen + 1, seen + 1]
+    finally:
+        link.close()

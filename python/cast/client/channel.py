@@ -10,7 +10,7 @@ from __future__ import annotations
 import random
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import grpc
@@ -87,9 +87,28 @@ class ServerLink:
         self.write_stream: WriteStream | None = None  # opened by the first write (cast.client.write_stream)
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server
-        self.beat_now = threading.Event()  # the component's state changed: send a heartbeat at once
+        # Heartbeat streams wait on a count, not an Event: a waiter clearing an Event could swallow the
+        # wake-up of close() meant for another stream's generator (an old one, still being read by gRPC).
+        self._beats = threading.Condition()
+        self._beat_count = 0
         self._threads: list[threading.Thread] = []  # what close() joins: see track()
         self._threads_lock = threading.Lock()
+
+    def beat_now(self) -> None:
+        """Have every heartbeat stream of this link send at once (the state changed, or the client is closing)."""
+        with self._beats:
+            self._beat_count += 1
+            self._beats.notify_all()
+
+    def beats_asked(self) -> int:
+        """How many times :meth:`beat_now` was called so far (what :meth:`wait_beat` compares with)."""
+        return self._beat_count
+
+    def wait_beat(self, seen: int, every: float) -> int:
+        """Wait until :meth:`beat_now` was called since ``seen``, or ``every`` seconds; the count now."""
+        with self._beats:
+            self._beats.wait_for(lambda: self._beat_count != seen, every)
+            return self._beat_count
 
     def track(self, thread: threading.Thread) -> None:
         """Have :meth:`close` wait for ``thread``, one that reads or writes a stream of this link.
@@ -103,18 +122,19 @@ class ServerLink:
             self._threads.append(thread)
 
     def open_stream(self, method: Callable[..., Any], request: Any, **kwargs: Any) -> Any:
-        """``method(request, **kwargs)``: a streaming call, with the threads gRPC starts for it tracked.
+        """``method(request, **kwargs)``: a streaming call whose request reader gRPC starts is tracked too.
 
-        Those (the request reader, the channel's poller) are tracked like ours. Python's gRPC gives no
-        handle on them: they are the threads that appeared while the call was made (a thread is listed
-        once its start() returned, and gRPC starts them before the call returns).
+        Python's gRPC gives no handle on the thread that reads a request iterator, so the iterator is
+        wrapped to name it: its first ``next`` runs on that thread. (The channel's own poller needs no
+        join: closing the channel waits until it has handled every call's end.)
         """
-        before = set(threading.enumerate())
-        call = method(request, **kwargs)
-        for thread in threading.enumerate():
-            if thread not in before:
-                self.track(thread)
-        return call
+        if hasattr(request, "__next__"):
+            request = self._read_by_tracked_thread(request)
+        return method(request, **kwargs)
+
+    def _read_by_tracked_thread(self, requests: Iterator[Any]) -> Iterator[Any]:
+        self.track(threading.current_thread())
+        yield from requests
 
     def close(self, deadline: float | None = None) -> None:
         """Close the channel (every stream on it ends), then wait for the tracked threads to end.

@@ -443,7 +443,7 @@ class GrpcTransport:
         self._closing.set()
         _OPEN.discard(self)
         for server in self._servers.values():
-            server.beat_now.set()
+            server.beat_now()
         for server in self._servers.values():
             if server.write_stream is not None:
                 server.write_stream.close()

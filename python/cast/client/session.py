@@ -85,10 +85,12 @@ class Session:
             session_id = server.session_id
 
             def beats(session_id: str = session_id, every: float = interval) -> Iterator[dir_pb2.HeartbeatRequest]:
+                asked = server.beats_asked()
                 while True:
                     yield dir_pb2.HeartbeatRequest(session_id=session_id, state=int(state()))  # type: ignore[arg-type]
-                    server.beat_now.wait(every)
-                    server.beat_now.clear()
+                    # Ends with the client: close() sets _closing, then asks for a beat, which every
+                    # generator sees, even one still read by gRPC for a stream that already ended.
+                    asked = server.wait_beat(asked, every)
                     if self._closing.is_set():
                         return
 
@@ -119,7 +121,7 @@ class Session:
     def report_state(self) -> None:
         """Send the component's state to every server now, not at the next heartbeat."""
         for server in self._servers():
-            server.beat_now.set()
+            server.beat_now()
 
     def _check_identity(self, resp: dir_pb2.RegisterResponse) -> None:
         if not resp.component_id:

@@ -100,6 +100,8 @@ class WatchStream:
 
     def _open(self) -> Any:
         with self._mutex:
+            if self._requests is not None:
+                self._requests.put(None)  # the broken stream's request reader ends, instead of waiting for ever
             requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] = queue.SimpleQueue()
             self._requests = requests
             for w in self._watches.values():
