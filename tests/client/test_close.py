@@ -16,12 +16,14 @@ import sys
 import textwrap
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
 from cast.client.channel import ServerLink
+from cast.v1 import working_memory_pb2 as wm_pb2
 from tests.conftest import DEFAULT_CONFIG, PYTHONPATH, ServerHandle, serve, start_server
 
 ROUNDS = 10  # before the fix about 4 closes in 10 left a thread behind: 10 rounds see it almost surely
@@ -75,23 +77,9 @@ def _write_and_see(component: cast.Component, entry_id: str) -> None:
 
 
 def _assert_no_thread_left(before: set[threading.Thread], when: str) -> None:
-    left = [t for t in threading.enumerate() if t not in before and t.is_alive()]
-    # The channel's poller ends just after the channel's close returned (which waits until the poller
-    # has handled every call's end): it alone may take a moment more. Every other thread must be gone.
-    pollers = [t for t in left if _in_channel_spin(t)]
-    assert [t.name for t in left if t not in pollers] == [], f"{when}: threads still running after close()"
-    for poller in pollers:
-        poller.join(5)
-        assert not poller.is_alive(), f"{when}: the channel's poller did not end"
-
-
-def _in_channel_spin(thread: threading.Thread) -> bool:
-    frame = sys._current_frames().get(thread.ident or 0)
-    while frame is not None:
-        if frame.f_code.co_name == "channel_spin":
-            return True
-        frame = frame.f_back
-    return False
+    # The channel's poller too: closing the channel returns while it may still run the last call's end.
+    left = [t.name for t in threading.enumerate() if t not in before and t.is_alive()]
+    assert left == [], f"{when}: threads still running after close()"
 
 
 UNCLOSED_SCRIPT = textwrap.dedent("""
@@ -141,3 +129,24 @@ def test_one_beat_request_wakes_every_heartbeat_generator_however_late_it_waits(
         assert woke == [seen + 1, seen + 1]
     finally:
         link.close()
+
+
+def test_a_link_finds_its_channels_poller_and_closing_ends_it(server: ServerHandle) -> None:
+    # gRPC runs a poller thread per channel while it has streams; after the channel's close() it may
+    # still be inside the last call's end handler, holding that call's lock (about 1 exit in 150 hung
+    # on it). The link finds it by its frame: this fails first if a gRPC release renames what it looks for.
+    link = ServerLink(server.endpoint)
+    ended = threading.Event()
+
+    def requests() -> Iterator[wm_pb2.WatchRequest]:
+        ended.wait(10)
+        yield from ()
+
+    link.open_stream(link.wm.Watch, requests(), metadata=(("authorization", f"Bearer {server.token('p', 'vision')}"),))
+    deadline = time.monotonic() + 10
+    while not (pollers := link._pollers()):
+        assert time.monotonic() < deadline, "no poller found for the channel (has gRPC renamed channel_spin?)"
+        time.sleep(0.01)
+    ended.set()
+    link.close()
+    assert not any(poller.is_alive() for poller in pollers)

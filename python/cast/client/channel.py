@@ -8,6 +8,7 @@ mapping.
 from __future__ import annotations
 
 import random
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -125,8 +126,7 @@ class ServerLink:
         """``method(request, **kwargs)``: a streaming call whose request reader gRPC starts is tracked too.
 
         Python's gRPC gives no handle on the thread that reads a request iterator, so the iterator is
-        wrapped to name it: its first ``next`` runs on that thread. (The channel's own poller needs no
-        join: closing the channel waits until it has handled every call's end.)
+        wrapped to name it: its first ``next`` runs on that thread.
         """
         if hasattr(request, "__next__"):
             request = self._read_by_tracked_thread(request)
@@ -135,6 +135,27 @@ class ServerLink:
     def _read_by_tracked_thread(self, requests: Iterator[Any]) -> Iterator[Any]:
         self.track(threading.current_thread())
         yield from requests
+
+    def _pollers(self) -> list[threading.Thread]:
+        """The channel's poller: the thread gRPC runs while the channel has streams, found by its frame.
+
+        Closing the channel returns once every call has ended, but the poller may still be running the
+        last call's end handler, inside that call's lock. Python's gRPC names it nowhere else (a private
+        attribute and a function name: if they change, nothing is found and nothing breaks).
+        """
+        state = getattr(self.channel, "_call_state", None)
+        if state is None:
+            return []
+        frames = sys._current_frames()
+        found = []
+        for thread in threading.enumerate():
+            frame = frames.get(thread.ident or 0)
+            while frame is not None:
+                if frame.f_code.co_name == "channel_spin" and frame.f_locals.get("state") is state:
+                    found.append(thread)
+                    break
+                frame = frame.f_back
+        return found
 
     def close(self, deadline: float | None = None) -> None:
         """Close the channel (every stream on it ends), then wait for the tracked threads to end.
@@ -146,7 +167,7 @@ class ServerLink:
         me = threading.current_thread()
         with self._threads_lock:
             threads = [t for t in self._threads if t is not me]
-        for thread in threads:
+        for thread in [*threads, *self._pollers()]:
             thread.join(max(0.0, end - time.monotonic()))
 
 
