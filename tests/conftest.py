@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -119,6 +121,31 @@ class ServerHandle:
     def stop(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL)."""
         stop_process(self.process, 10)
+
+
+def run_to_end(
+    command: list[str], what: str, timeout: float, *, cwd: Path | None = None, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """Run ``command`` in a session of its own to its end; one still running after ``timeout`` fails the test.
+
+    Before it is killed, the session gets SIGQUIT, on which the Python runner and `cast` print every
+    thread's stack (cast.signals) and the JVM its thread dump (bash ignores it): the test fails with
+    what ``what`` printed and where it hung.
+    """
+    proc = subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGQUIT)
+        time.sleep(1.0)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        raise AssertionError(f"{what} did not end within {timeout:g} s; it printed:\n{out}\n"
+                             f"and on stderr (with the stacks of its threads):\n{err}") from None
+    return subprocess.CompletedProcess(command, proc.returncode, out, err)
 
 
 def stop_process(process: subprocess.Popen[str], grace: float) -> None:

@@ -9,21 +9,18 @@ files are those files; the rest name the test that checks them, or are marked as
 from __future__ import annotations
 
 import ast
-import contextlib
 import json
 import os
 import py_compile
 import re
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import PYTHONPATH, SECRET, ServerHandle
+from tests.conftest import PYTHONPATH, SECRET, ServerHandle, run_to_end
 from tests.docs.pages import KINDS, MAX_FRAGMENTS, PAGES, ROOT, Block, blocks, normalise, shown
 
 BIN = Path(sys.executable).parent
@@ -167,25 +164,8 @@ EXAMPLE_TIMEOUT_S = 90
 
 
 def run_example(command: list[str], cwd: Path, env: dict[str, str], block: Block) -> subprocess.CompletedProcess[str]:
-    """Run an example in a session of its own; one that hangs fails with its output and its threads' stacks.
-
-    SIGQUIT makes the Python runner and `cast` print every thread's stack (cast.signals) and the JVM its
-    thread dump; bash ignores it. Then the whole session is killed.
-    """
-    proc = subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=EXAMPLE_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGQUIT)
-        time.sleep(1.0)
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        raise AssertionError(f"{block.where} did not end within {EXAMPLE_TIMEOUT_S} s; it printed:\n{out}\n"
-                             f"and on stderr (with the stacks of its threads):\n{err}") from None
-    return subprocess.CompletedProcess(command, proc.returncode, out, err)
+    """Run an example; one that hangs fails with its output and its threads' stacks (tests/conftest.py)."""
+    return run_to_end(command, block.where, EXAMPLE_TIMEOUT_S, cwd=cwd, env=env)
 
 
 @pytest.mark.parametrize("block", run_blocks(), ids=lambda b: b.where)

@@ -21,7 +21,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
 from cast.v1.entry_pb2 import ChangeEvent
-from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, stop_process, wait_for
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, run_to_end, stop_process, wait_for
 
 CAST = str(VENV_BIN / "cast")
 COMPONENTS = Path(__file__).resolve().parent / "components"
@@ -35,26 +35,8 @@ def cli_env(**extra: str) -> dict[str, str]:
 
 
 def cast(*args: str, timeout: float = 120, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    """Run a `cast` command to its end.
-
-    A command still running after ``timeout`` is sent SIGABRT first, which Python's fault handler
-    (``PYTHONFAULTHANDLER``) answers with every thread's stack on stderr: the test fails with where
-    it hung (a rare hang of `cast replay` in fresh-clone runs has not been caught any other way).
-    """
-    run_env = dict(env or cli_env(), PYTHONFAULTHANDLER="1")
-    with subprocess.Popen([CAST, *args], env=run_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                          text=True) as proc:
-        try:
-            out, err = proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGABRT)
-            try:
-                out, err = proc.communicate(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                out, err = proc.communicate()
-            raise AssertionError(f"cast {' '.join(args)} still ran after {timeout} s; its threads:\n{err}") from None
-    return subprocess.CompletedProcess([CAST, *args], proc.returncode, out, err)
+    """Run a `cast` command to its end; one still running after ``timeout`` fails with its threads' stacks."""
+    return run_to_end([CAST, *args], f"cast {' '.join(args)}", timeout, env=env or cli_env())
 
 
 @dataclass

@@ -82,7 +82,6 @@ class GrpcTransport:
         self._watch_servers: dict[int, list[ServerLink]] = {}
         self._sink: EventSink | None = None
         self._on_error: Callable[[CastError], None] = lambda err: log.error("watch failed: %s", err)
-        self._decision_threads: list[threading.Thread] = []
         self._closing = threading.Event()
         self._routes: dict[str, ServerLink] = {}
         self._session = Session(identity, lambda: list(self._servers.values()), self._call, self._tokens,
@@ -366,8 +365,7 @@ class GrpcTransport:
         def read() -> None:
             backoff = Backoff()
             while not self._closing.is_set():
-                call = server.open_stream(server.tm.Decisions, tm_pb2.DecisionsRequest(),
-                                          metadata=self._tokens.metadata())
+                call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
                 self._decision_call = call
                 try:
                     for task in call:
@@ -385,7 +383,6 @@ class GrpcTransport:
 
         thread = threading.Thread(target=read, name="cast-decisions", daemon=True)
         thread.start()
-        self._decision_threads.append(thread)
         server.track(thread)
 
     # -------------------------------------------------------------- outcomes
