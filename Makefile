@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python package-test lint demo bench bench-quick bench-deps clean help soak experiment
+.PHONY: all setup proto examples test test-python package-test lint check demo bench bench-quick bench-deps clean help soak experiment
 
 all: setup proto
 
@@ -17,6 +17,7 @@ help:
 	@echo "make setup   create .venv with pinned dependencies and the cast package"
 	@echo "make proto   generate Python code from proto/ (never committed)"
 	@echo "make test    set up, build and run every test"
+	@echo "make check   the fast loop: ruff, mypy, the core and client tests, the C++ and Java unit tests"
 	@echo "make package-test   build the Python, C++ and Java packages and use each from outside the tree"
 	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
@@ -211,6 +212,12 @@ grpcurl: $(GRPCURL)
 lint: setup proto
 	$(VENV)/bin/ruff check python tests setup.py build_support
 	$(VENV)/bin/mypy
+
+# The fast loop for an edit-test cycle (a few minutes on 2 cores; README, "Developing"): lint, the
+# working-memory core, the Python client both ways (over gRPC and in process), the C++ and Java
+# unit tests. No browser, Redis, Go, ROS or network namespaces.
+check: lint test-cpp test-java
+	$(PY) -m pytest -q tests/core tests/client
 
 clean:
 	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache $(NODE_DIR)/generated
