@@ -10,6 +10,7 @@ import pytest
 
 from tests.conftest import ServerHandle, start_server
 from tests.ros.bridge_support import generate_types
+from tests.ros.builds import JavaBuild, build_cpp, build_java, ros_protos
 from tests.ros.ros_env import ros2_env
 
 ROS_CONFIG = {"system": "ros-test", "subarchitectures": {"vision": {}, "motor": {}, "language": {}}}
@@ -44,3 +45,11 @@ def ros2(tmp_path: Path) -> dict[str, str]:
     """The environment of this test's ROS 2 processes (loopback only, this run's domain)."""
     (tmp_path / "ros-logs").mkdir(exist_ok=True)
     return ros2_env(tmp_path / "ros-logs")
+
+
+@pytest.fixture(scope="session")
+def ros_builds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, JavaBuild]:
+    """The C++ and Java components of tests/ros built on `cast ros-types` output (once per session)."""
+    work = tmp_path_factory.mktemp("ros-builds")
+    protos = ros_protos(work / "protos")
+    return build_cpp(protos, work / "cpp"), build_java(protos, work)

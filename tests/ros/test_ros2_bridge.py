@@ -8,6 +8,7 @@ loopback; the watcher here decodes with the types `cast ros-types` generated.
 from __future__ import annotations
 
 import json
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Any
 import cast
 from tests.conftest import ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import start_bridge
+from tests.ros.builds import JavaBuild
 from tests.ros.ros_env import helper, ros2_python
 
 BRIDGE_SETTINGS: dict[str, Any] = {
@@ -156,3 +158,62 @@ def test_topics_reach_the_wm_with_every_field_and_entries_reach_ros(
             stop_process(p, 5)  # type: ignore[arg-type]
         stop_process(bridge, 10)
         watcher._cast_close()
+
+
+def fnv1a(data: bytes) -> str:
+    h = 0xCBF29CE484222325
+    for b in data:
+        h = ((h ^ b) * 0x100000001B3) & 0xFFFFFFFFFFFFFFFF
+    return f"{h:x}"
+
+
+def test_cpp_and_java_components_decode_bridged_images_and_a_java_command_reaches_rclpy(
+        ros_server: ServerHandle, ros2: dict[str, str], ros_builds: tuple[Path, JavaBuild], tmp_path: Path) -> None:
+    cpp_exe, java = ros_builds
+    python = ros2_python()
+    settings = {"version": 2, "status_period": 0.5, "to_wm": [BRIDGE_SETTINGS["to_wm"][0]],
+                "to_ros": BRIDGE_SETTINGS["to_ros"]}
+    bridge = start_bridge(ros_server, "bridge", "motor", settings, ros2, tmp_path / "bridge.log")
+    image_args = {"type": "ros2.sensor_msgs.msg.Image", "sa": "vision", "count": 1}
+    cpp = subprocess.Popen([str(cpp_exe)], env=ros_server.env("cpp_watcher", "vision", args=image_args),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    jvm = subprocess.Popen(java.command(), env=ros_server.env("java_watcher", "vision", args={**image_args,
+                           "mode": "images"}), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    procs: list[subprocess.Popen[str]] = [cpp, jvm]
+    try:
+        for p in (cpp, jvm):
+            assert p.stdout is not None
+            assert json.loads(p.stdout.readline()) == {"ready": True}
+        watcher = ros_server.connect("watcher", "motor")
+        wait_for(lambda: status_of(watcher, "bridge"), 60, "the bridge's first status entry")
+        publisher = helper(python, "ros2_node.py", "publish", "/camera/image_raw", "image", "30", "10", env=ros2,
+                           log=tmp_path / "images.log")
+        procs.append(publisher)
+        assert publisher.wait(60) == 0, (tmp_path / "images.log").read_text()
+        sent = published(tmp_path / "images.log")
+        for p in (cpp, jvm):
+            out, _ = p.communicate(timeout=60)
+            assert p.returncode == 0, out
+            got = json.loads(out.strip().splitlines()[-1])
+            i = int(got["frame_id"].removeprefix("frame-"))
+            assert got == {"id": "camera", "frame_id": f"frame-{i}", "stamp_ns": sent[i], "height": 480,
+                           "width": 640, "encoding": "rgb8", "is_bigendian": 0, "step": 1920, "size": 921600,
+                           "fnv": fnv1a(bytes((x + i) % 256 for x in range(640 * 3)) * 480)}
+
+        # A Java component writes a command; an rclpy node receives it as geometry_msgs/msg/Twist.
+        echo = helper(python, "ros2_node.py", "echo", "/cmd_vel", "geometry_msgs/msg/Twist", "1", env=ros2,
+                      log=tmp_path / "echo.log")
+        procs.append(echo)
+        wait_for(lambda: "subscribed" in (tmp_path / "echo.log").read_text(), 30, "the echo node")
+        commander = subprocess.Popen(java.command(), env=ros_server.env("java_commander", "motor", args={
+            "mode": "command", "sa": "motor"}), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        procs.append(commander)
+        assert echo.wait(60) == 0, (tmp_path / "echo.log").read_text()
+        lines = (tmp_path / "echo.log").read_text().splitlines()
+        got = json.loads(lines[lines.index("subscribed") + 1])
+        assert got == {"linear": {"x": 0.75, "y": -2.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -1.5e-7}}
+        watcher._cast_close()
+    finally:
+        for p in procs:
+            stop_process(p, 5)
+        stop_process(bridge, 10)
