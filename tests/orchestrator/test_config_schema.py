@@ -16,8 +16,7 @@ import yaml
 from jsonschema import Draft7Validator
 
 from cast.config import model as m
-from cast.config import ros
-from cast.config import read_config
+from cast.config import read_config, ros
 from cast.config.schema import mapping_properties, resolve, system_schema
 from cast.config.schema_gen import generated, main
 from cast.core.records import Limits, Quota

@@ -112,9 +112,8 @@ def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_a
 
 
 def status_of_sa(watcher: object, sa: str) -> object:
-    from cast.v1 import bridge_pb2
-
     import cast
+    from cast.v1 import bridge_pb2
 
     assert isinstance(watcher, cast.Component)
     try:

@@ -18,8 +18,8 @@ from typing import Any
 from cast.config.problems import Problems, did_you_mean
 from cast.config.source import YList, YMap
 
-__all__ = ["QOS_DEFAULT", "RosBridgeConfig", "RosQos", "RosToWm", "RosWatch", "WmToRos", "build_ros", "proto_entry_type",
-           "ros_type_problem"]
+__all__ = ["QOS_DEFAULT", "RosBridgeConfig", "RosQos", "RosToWm", "RosWatch", "WmToRos", "build_ros",
+           "proto_entry_type", "ros_type_problem"]
 
 ROS_VERSIONS = (1, 2)
 STORES = ("latest", "each")

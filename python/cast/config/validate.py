@@ -226,7 +226,8 @@ class _Builder:
                 self.p.error(pos, f"{where}.ros", "a ROS bridge (language: ros) needs a 'ros:' section with its "
                                                   "mappings (docs/ros.md)")
             if str(_get(raw, "kind", d)) == "managed":
-                self.p.error(raw.value_at("kind"), f"{where}.kind", "the ROS bridge is unmanaged: remove 'kind: managed'")
+                self.p.error(raw.value_at("kind"), f"{where}.kind",
+                             "the ROS bridge is unmanaged: remove 'kind: managed'")
             ros = build_ros(raw.get("ros"), f"{where}.ros", sa.name, bool(_get(raw, "privileged", d)),
                             set(self.root.get("subarchitectures") or {}), self.p)
         sa.components[comp_id] = ComponentConfig(

@@ -245,8 +245,8 @@ class RosLauncher:
         version = ros.version if ros is not None else 2
         given = ros.python if ros is not None else ""
         if given:
-            return str(resolve_executable(component, given, env, f"set ros: python: to an interpreter with ROS {version} "
-                                                                  "and the cast package (docs/ros.md)"))
+            hint = f"set ros: python: to an interpreter with ROS {version} and the cast package (docs/ros.md)"
+            return str(resolve_executable(component, given, env, hint))
         if version == 2:
             return env.get("CAST_ROS2_PYTHON") or sys.executable
         chosen = env.get("CAST_ROS1_PYTHON") or "/usr/bin/python3"

@@ -94,12 +94,9 @@ def _stamp_seconds(ros_message: Any) -> float:
     stamp = getattr(getattr(ros_message, "header", None), "stamp", None)
     if stamp is None:
         return 0.0
-    sec = getattr(stamp, "sec", None)
-    if sec is None:
-        sec, nsec = getattr(stamp, "secs", 0), getattr(stamp, "nsecs", 0)
-    else:
-        nsec = getattr(stamp, "nanosec", 0)
-    return float(sec) + float(nsec) * 1e-9
+    if hasattr(stamp, "sec"):
+        return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+    return float(getattr(stamp, "secs", 0)) + float(getattr(stamp, "nsecs", 0)) * 1e-9
 
 
 @dataclass
@@ -368,10 +365,10 @@ class RosBridge(cast.UnmanagedComponent):
             inbound = _Inbound(self, m, Converter(self.catalog, m.type))
             inbound.seed()
             self.inbound.append(inbound)
-        for m in s.to_ros:
-            converter = Converter(self.catalog, m.type)
-            publish = self.side.advertise(m.topic, self.catalog.ros_class(m.type), m.qos)
-            outbound = _Outbound(self, m, converter, publish)
+        for out in s.to_ros:
+            converter = Converter(self.catalog, out.type)
+            publish = self.side.advertise(out.topic, self.catalog.ros_class(out.type), out.qos)
+            outbound = _Outbound(self, out, converter, publish)
             outbound.start()
             self.outbound.append(outbound)
         for inbound in self.inbound:
