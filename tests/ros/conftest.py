@@ -10,7 +10,7 @@ import pytest
 
 from tests.conftest import ServerHandle, start_server
 from tests.ros.bridge_support import generate_types
-from tests.ros.builds import JavaBuild, build_cpp, build_java, ros_protos
+from tests.ros.builds import CPP_TYPES, JAVA_TYPES, JavaBuild, build_cpp, finish_java, ros_protos, start_java
 from tests.ros.ros_env import ros2_env
 
 ROS_CONFIG = {"system": "ros-test", "subarchitectures": {"vision": {}, "motor": {}, "language": {}}}
@@ -51,5 +51,9 @@ def ros2(tmp_path: Path) -> dict[str, str]:
 def ros_builds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, JavaBuild]:
     """The C++ and Java components of tests/ros built on `cast ros-types` output (once per session)."""
     work = tmp_path_factory.mktemp("ros-builds")
-    protos = ros_protos(work / "protos")
-    return build_cpp(protos, work / "cpp"), build_java(protos, work)
+    java = start_java(ros_protos(work / "java-protos", JAVA_TYPES), work)  # on the other core, meanwhile
+    try:
+        cpp = build_cpp(ros_protos(work / "cpp-protos", CPP_TYPES), work / "cpp")
+    finally:
+        built = finish_java(*java)
+    return cpp, built

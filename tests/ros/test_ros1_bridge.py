@@ -59,6 +59,8 @@ SETTINGS = {
 }
 
 
+# The first test to use them builds the C++ and Java components (a few minutes on a busy machine).
+@pytest.mark.timeout(600)
 def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_an_entry(
         ros_server: ServerHandle, ros_builds: tuple[Path, JavaBuild], ros1_types: Path, tmp_path: Path) -> None:
     from ros1.sensor_msgs.msg.image_pb2 import Image

@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 import cast
 from tests.conftest import ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import start_bridge
@@ -167,6 +169,8 @@ def fnv1a(data: bytes) -> str:
     return f"{h:x}"
 
 
+# The first test to use them builds the C++ and Java components (a few minutes on a busy machine).
+@pytest.mark.timeout(600)
 def test_cpp_and_java_components_decode_bridged_images_and_a_java_command_reaches_rclpy(
         ros_server: ServerHandle, ros2: dict[str, str], ros_builds: tuple[Path, JavaBuild], tmp_path: Path) -> None:
     cpp_exe, java = ros_builds
