@@ -229,7 +229,7 @@ clean:
 ROS2_VENV := .venv-ros2
 ROS1_VENV := .venv-ros1
 ROS1_PYTHON ?= /usr/bin/python3
-ROS1_DEBS := ros-core python3-rospy python3-rostopic python3-genmsg python3-std-msgs python3-geometry-msgs python3-sensor-msgs ros-image-publisher libnodeletlib-tools python3-venv
+ROS1_DEBS := ros-core python3-rospy python3-rostopic python3-genmsg python3-genpy python3-std-msgs python3-geometry-msgs python3-sensor-msgs ros-std-msgs ros-geometry-msgs ros-image-publisher libnodeletlib-tools python3-venv
 IMAGE_PUBLISHER_STAMP := build/ros1/image_publisher/.unpacked
 .PHONY: ros-deps ros1-deps ros1-debs ros2-deps
 

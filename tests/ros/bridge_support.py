@@ -15,13 +15,19 @@ BRIDGE_CLASS = {2: "cast.bridges.ros.ros2:Ros2Bridge", 1: "cast.bridges.ros.ros1
 
 
 def start_bridge(server: ServerHandle, component_id: str, sa: str, settings: dict[str, Any], env: dict[str, str],
-                 log: Path, privileged: bool = True) -> subprocess.Popen[str]:
-    """The bridge as `cast run` starts it: its interpreter, the runner, the launch contract and CAST_ROS_BRIDGE."""
+                 log: Path, privileged: bool = True, python_path: str = "") -> subprocess.Popen[str]:
+    """The bridge as `cast run` starts it: its interpreter, the runner, the launch contract and CAST_ROS_BRIDGE.
+
+    ``python_path``: where a team's own message packages are (what sourcing its workspace's setup.bash puts
+    on PYTHONPATH).
+    """
     ros = int(settings.get("version", 2))
     python = ros2_python() if ros == 2 else ros1_python()
     full = {**server.env(component_id, sa, privileged), **{k: v for k, v in env.items() if k.startswith(("ROS", "FAST",
             "RMW", "CMAKE", "PYTHONUNBUFFERED"))}, "CAST_ROS_BRIDGE": json.dumps(settings)}
     full.pop("PYTHONPATH", None)  # the bridge's interpreter has the cast package (editable): nothing of .venv's
+    if python_path:
+        full["PYTHONPATH"] = python_path
     out = log.open("w")
     return subprocess.Popen([str(python), "-m", "cast.run", BRIDGE_CLASS[ros]], env=full, stdout=out,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)

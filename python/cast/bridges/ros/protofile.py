@@ -29,7 +29,8 @@ def _limit(f: Field) -> str:
         notes.append(f"at most {t.string_bound} characters each" if t.array else
                      f"at most {t.string_bound} characters")
     if t.kind in ("int8", "int16", "uint8", "uint16", "octet", "char", "wchar") and not t.is_bytes:
-        notes.append(f"a {t.kind if t.kind != 'octet' else 'byte'} in ROS")
+        kind = t.kind if t.kind != "octet" else "byte"
+        notes.append(f"{'an' if kind.startswith(('int', 'uint')) else 'a'} {kind} in ROS")
     return f" ({'; '.join(notes)})" if notes else ""
 
 
