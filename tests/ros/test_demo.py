@@ -1,4 +1,5 @@
-"""`make demo-ros`: the scene demo on a real ROS 1 camera driver, its answers printed by rostopic echo."""
+"""`make demo-ros`: the scene demo on a real ROS 1 camera driver, its answers printed by rostopic echo (docs/ros.md,
+"The demo")."""
 
 from __future__ import annotations
 

@@ -103,10 +103,10 @@ def test_a_ros2_publisher_that_dies_and_comes_back(
         assert (m.received, m.dropped, m.errors, m.pending) == (len(frames), 0, 0, 0)
         assert set(sent_again) <= set(frames)
         record("ros2 publisher killed and started again", {
-            "poses sent before the kill": len(sent_first),
-            "in the WM": sum(1 for i in sent_first if i in frames),
-            "poses sent by the new publisher": len(sent_again),
-            "in the WM ": sum(1 for i in sent_again if i in frames),
+            "killed publisher: poses sent": len(sent_first),
+            "killed publisher: poses in the WM": sum(1 for i in sent_first if i in frames),
+            "its successor: poses sent": len(sent_again),
+            "its successor: poses in the WM": sum(1 for i in sent_again if i in frames),
             "received by the bridge but not in the WM": m.received - len(frames),
             "recovery s (publisher killed -> its successor's first pose in the WM)":
                 round((first_after(frames, range(100, 130)) - died) / 1e9, 3),

@@ -1,4 +1,5 @@
-"""Every ROS message type is an entry type with no build step: introspection, conversion, .proto generation.
+"""Every ROS message type is an entry type with no build step: introspection, conversion, .proto generation
+(docs/ros.md, "Entry types").
 
 Real ROS: rclpy's and genpy's message classes and serialisers, in their own
 interpreters (tests/ros/ros_env.py); the protobuf side is checked here with
