@@ -37,6 +37,43 @@ def cli(server: ServerHandle, *args: str) -> str:
     return done.stdout
 
 
+def web_page_mappings(server: ServerHandle, tmp_path: Path) -> dict[str, dict[str, str]]:
+    """What the architecture view shows of the bridge's mappings: `cast web` and Debian's chromium, signed in."""
+    from playwright.sync_api import sync_playwright
+
+    from tests.web.conftest import CHROMIUM, LINK
+
+    env = {**os.environ, "CAST_TOKEN": server.token("cast-cli", ""), "CAST_SECRET": SECRET}
+    web = subprocess.Popen([str(VENV_BIN / "cast"), "web", "--endpoint", server.endpoint, "--listen", "127.0.0.1:0"],
+                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    try:
+        assert web.stdout is not None
+        lines: list[str] = []
+        link = None
+        while link is None:
+            line = web.stdout.readline()
+            assert line, "cast web ended:\n" + "".join(lines)
+            lines.append(line)
+            found = LINK.search(line)
+            link = found.group(1) if found else None
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=str(CHROMIUM))
+            page = browser.new_page()
+            page.set_default_timeout(30_000)
+            page.goto(link)
+            page.goto(link.split("/login")[0] + "/#architecture")
+            rows = page.locator('[data-component="bridge"] .mapping')
+            rows.nth(1).wait_for()
+            shown = {row.get_attribute("data-mapping") or "": {"text": row.inner_text(),
+                                                             "class": row.get_attribute("class") or "",
+                                                             "title": row.get_attribute("title") or ""}
+                     for row in rows.all()}
+            browser.close()
+        return shown
+    finally:
+        stop_process(web, 10)
+
+
 def test_components_stats_and_the_web_view_show_the_mappings_rates_errors_and_latency(
         ros_server: ServerHandle, ros2: dict[str, str], ros2_types: Path, tmp_path: Path) -> None:
     from ros2.sensor_msgs.msg.image_pb2 import Image
@@ -91,6 +128,12 @@ def test_components_stats_and_the_web_view_show_the_mappings_rates_errors_and_la
         assert [m["topic"] for m in component["mappings"]] == ["/camera/image_raw", "/display"]
         assert component["mappings"][1]["errors"] == 1 and component["mappings"][0]["delivered"] > 0
         assert time.time() - component["mappings"][0]["status_time"] < 60
+
+        # ... and the page draws them under the bridge's component, in a real browser.
+        shown = web_page_mappings(ros_server, tmp_path)
+        assert shown["/camera/image_raw"]["text"].startswith("ROS → WM /camera/image_raw → vision: ")
+        assert "WM → ROS /display → vision" in shown["/display"]["text"] and "1 errors" in shown["/display"]["text"]
+        assert "bad" in shown["/display"]["class"] and "field is_bigendian: 300" in shown["/display"]["title"]
     finally:
         if publisher is not None:
             stop_process(publisher, 5)

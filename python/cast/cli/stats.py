@@ -38,8 +38,12 @@ def bridge_statuses(client: SystemClient) -> list[bridge_pb2.BridgeStatus]:
     entries = []
     for server, hosted in client.servers():
         for sa in hosted:
-            request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
-            entries.extend(client.call(server.wm.GetByType, request).entries)
+            # Listing counts as no read in the metrics: a system without bridges is not read at all.
+            listed = client.call(server.inspection.ListEntries,
+                                 insp_pb2.ListEntriesRequest(subarchitecture=sa, type=STATUS_TYPE))
+            if listed.entries:
+                request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
+                entries.extend(client.call(server.wm.GetByType, request).entries)
     return statuses_of(entries)
 
 
@@ -124,7 +128,8 @@ def _stats(args: argparse.Namespace) -> int:
         metrics = system_metrics(client)
         bridges = mapping_rows(bridge_statuses(client))
     if args.json:
-        print_json({**metrics, "bridges": bridges})
+        # The shape of `cast run --summary-json`'s metrics, and the bridges' mappings when there are any.
+        print_json({**metrics, "bridges": bridges} if bridges else metrics)
     else:
         _print_tables(metrics)
         _print_bridges(bridges)

@@ -134,8 +134,10 @@ class SystemSource:
         entries: list[entry_pb2.Entry] = []
         for link, hosted in self.servers():
             for sa in hosted:
-                request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
-                entries.extend(self._call(link.wm.GetByType, request).entries)
+                # Listing counts as no read in the metrics the page shows: only a WM with a status is read.
+                if self.entries(sa, STATUS_TYPE).entries:
+                    request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
+                    entries.extend(self._call(link.wm.GetByType, request).entries)
         return statuses_of(entries)
 
     def entries(self, sa: str, type_name: str = "", limit: int = 0) -> insp_pb2.ListEntriesResponse:
