@@ -155,6 +155,21 @@ def test_topics_reach_the_wm_with_every_field_and_entries_reach_ros(
         assert 0 < pose_map.latency_p50_seconds <= pose_map.latency_max_seconds < 5  # a bound, not a benchmark
         assert twist_map.direction == "to_ros" and twist_map.errors == 0
         assert status.node == "/test/cast_bridge" and "domain" in status.middleware
+
+        # A bridge started again counts the entries its predecessor left: keep still bounds them.
+        stop_process(bridge, 10)
+        bridge = start_bridge(ros_server, "bridge", "motor", BRIDGE_SETTINGS, ros2, tmp_path / "bridge-2.log")
+        wait_for(lambda: (lambda s: s and s.mappings[1].received == 0)(status_of(watcher, "bridge")), 60,
+                 "the second bridge's first status")
+        more = helper(python, "ros2_node.py", "publish", "/robot/pose", "pose", "30", "5", "--start", "200",
+                      env=ros2, log=tmp_path / "more.log")
+        procs.append(more)
+        assert more.wait(60) == 0, (tmp_path / "more.log").read_text()
+        wait_for(lambda: len(poses) == 45, 30, "5 more pose entries")
+        kept = wait_for(lambda: (lambda es: es if len(es) == 25 and "frame-204" in {e.value.header.frame_id for e in es}
+                                 else None)(watcher.get_all(PoseStamped, subarchitecture="motor")), 30, "25 kept")
+        frames = sorted(int(e.value.header.frame_id.removeprefix("frame-")) for e in kept)
+        assert frames == [*range(20, 40), *range(200, 205)]
     finally:
         for p in procs:
             stop_process(p, 5)  # type: ignore[arg-type]
