@@ -18,12 +18,12 @@ from cast.web.source import SystemSource
 from tests.conftest import SECRET, VENV_BIN, ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import start_bridge
 from tests.ros.ros_env import helper, ros2_python
-from tests.ros.test_ros2_bridge import status_of
+from tests.ros.test_ros2_bridge import published, status_of
 
 SETTINGS: dict[str, Any] = {
     "version": 2, "status_period": 0.3,
     "to_wm": [{"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image", "subarchitecture": "vision",
-               "id": "camera"}],
+               "id": "camera", "max_rate": 10}],
     "to_ros": [{"watch": {"subarchitecture": "vision", "id": "display"}, "topic": "/display",
                 "type": "sensor_msgs/msg/Image"}],
 }
@@ -93,6 +93,11 @@ def test_components_stats_and_the_web_view_show_the_mappings_rates_errors_and_la
         status = wait_for(lambda: (lambda s: s if s.mappings[0].received == 30 and s.mappings[1].delivered == 1
                                    and s.mappings[0].pending == 0 else None)(status_of(watcher, "bridge")),
                           30, "every image counted")
+        # max_rate: at most 10 a second written (from the first stamp to the last, one more for the start).
+        stamps = sorted(published(tmp_path / "images.log").values())
+        limited = status.mappings[0]
+        assert limited.dropped > 0 and limited.delivered + limited.dropped == 30
+        assert limited.delivered <= 10 * (stamps[-1] - stamps[0]) / 1e9 + 2
         refused = status.mappings[1]
         assert refused.last_error == ("topic /display: entry display of 'vision': field is_bigendian: 300 does not "
                                       "fit a ROS uint8 (0 to 255)")
