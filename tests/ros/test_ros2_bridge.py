@@ -236,3 +236,16 @@ def test_cpp_and_java_components_decode_bridged_images_and_a_java_command_reache
         for p in procs:
             stop_process(p, 5)
         stop_process(bridge, 10)
+
+
+def test_a_type_this_ros_does_not_have_stops_the_bridge_before_it_starts_naming_it(
+        ros_server: ServerHandle, ros2: dict[str, str], tmp_path: Path) -> None:
+    settings = {"version": 2, "to_wm": [{"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Imag"}]}
+    bridge = start_bridge(ros_server, "bridge", "motor", settings, ros2, tmp_path / "bridge.log")
+    try:
+        assert bridge.wait(60) != 0
+    finally:
+        stop_process(bridge, 5)
+    log = (tmp_path / "bridge.log").read_text()
+    assert ("ROS bridge bridge, to_wm[0] (/camera/image_raw): ROS 2 type sensor_msgs/msg/Imag: package sensor_msgs "
+            "has no message Imag (it has: BatteryState, CameraInfo,") in log, log

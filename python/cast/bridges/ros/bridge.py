@@ -41,6 +41,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 import cast
 from cast.bridges.ros.catalog import TypeCatalog
 from cast.bridges.ros.convert import ConversionError, Converter
+from cast.bridges.ros.model import RosTypeError
 from cast.config.ros import RosBridgeConfig, RosQos, RosToWm, WmToRos
 from cast.v1 import bridge_pb2
 
@@ -351,6 +352,17 @@ class RosBridge(cast.UnmanagedComponent):
             raise cast.InvalidArgumentError(f"this is the ROS {self.ros_version} bridge; the settings are for ROS "
                                             f"{self.settings.version}")
         self.catalog = TypeCatalog(self.ros_version)
+        # Every type is read now: a type this interpreter's ROS does not have stops the bridge before it starts.
+        self.converters: dict[str, Converter] = {}
+        mappings = [("to_wm", i, m.topic, m.type) for i, m in enumerate(self.settings.to_wm)] + \
+                   [("to_ros", i, m.topic, m.type) for i, m in enumerate(self.settings.to_ros)]
+        for direction, i, topic, type_name in mappings:
+            try:
+                if type_name not in self.converters:
+                    self.converters[type_name] = Converter(self.catalog, type_name)
+            except RosTypeError as exc:
+                raise cast.InvalidArgumentError(f"ROS bridge {self.component_id}, {direction}[{i}] ({topic}): "
+                                                f"{exc}") from None
         self.inbound: list[_Inbound] = []
         self.outbound: list[_Outbound] = []
         self.reconnections = 0
@@ -362,11 +374,11 @@ class RosBridge(cast.UnmanagedComponent):
         s = self.settings
         self.side = self.make_side(s, s.node or self.component_id.replace("-", "_").replace(".", "_"))
         for m in s.to_wm:
-            inbound = _Inbound(self, m, Converter(self.catalog, m.type))
+            inbound = _Inbound(self, m, self.converters[m.type])
             inbound.seed()
             self.inbound.append(inbound)
         for out in s.to_ros:
-            converter = Converter(self.catalog, out.type)
+            converter = self.converters[out.type]
             publish = self.side.advertise(out.topic, self.catalog.ros_class(out.type), out.qos)
             outbound = _Outbound(self, out, converter, publish)
             outbound.start()
