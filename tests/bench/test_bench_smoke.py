@@ -12,7 +12,7 @@ import pytest
 
 from tests.conftest import ROOT
 
-IDS = ["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "M10", "O1", "R1", "REC1"]
+IDS = sorted(["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "M10", "O1", "R1", "REC1"])
 
 
 @pytest.mark.timeout(900)  # every row, smoke counts: about a minute on an idle 2-core machine, more on a busy one
