@@ -53,7 +53,7 @@ PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"),
 
 # Markers by folder (pyproject.toml lists them); "namespaces" goes to the tests of modules that use
 # tests/netns.py, wherever they live.
-_FOLDER_MARKERS = {"interop": "interop", "web": "browser", "bench": "bench", "packaging": "packaging"}
+_FOLDER_MARKERS = {"interop": "interop", "web": "browser", "bench": "bench", "packaging": "packaging", "ros": "ros"}
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
