@@ -281,7 +281,7 @@ ros-deps: ros2-deps ros1-deps
 # build/python-examples (on the demo's python_path). `make examples` empties that directory: then
 # the stamp is gone too and this runs again.
 ROS_DEMO_TYPES := build/python-examples/ros1/.generated
-$(ROS_DEMO_TYPES): $(EXAMPLES_STAMP) $(ROS1_VENV)/.installed $(wildcard python/cast/bridges/ros/*.py)
+$(ROS_DEMO_TYPES): $(GEN_STAMP) $(EXAMPLES_STAMP) $(ROS1_VENV)/.installed $(wildcard python/cast/bridges/ros/*.py)
 	rm -rf build/ros-demo-protos
 	$(ROS1_VENV)/bin/cast ros-types --ros 1 -q sensor_msgs/Image std_msgs/String -o build/ros-demo-protos
 	$(PY) -m grpc_tools.protoc -Ibuild/ros-demo-protos --python_out=build/python-examples \
