@@ -168,7 +168,7 @@ class ServerConfig:
     listen: str = DEFAULT_LISTEN
     subarchitectures: list[str] = field(default_factory=list)
     persistence: PersistenceConfig | None = None
-    host: str = LOCAL_HOST  # servers run in the orchestrator's process (local) for now
+    host: str = LOCAL_HOST  # another host's agent starts it (docs/multihost.md); the first server stays local
     advertise: str = ""  # HOST:PORT other hosts use to reach it ("": its listen address; port 0: its port)
 
     def address(self, endpoint: str) -> str:
