@@ -180,7 +180,7 @@ def test_a_teams_own_message_package_is_bridged_as_soon_as_it_is_on_the_ros_path
             {"topic": "/tank/reading", "type": "cast_test_msgs/Reading", "subarchitecture": "language",
              "id": "tank"}]}
         bridge = start_bridge(ros_server, "bridge", "language", settings, core.env(), tmp_path / "bridge.log",
-                              python_path=str(python_path))
+                              overlay={"PYTHONPATH": str(python_path)})
         publisher = helper(ros1_python(), "ros1_node.py", "reading", "/tank/reading", env=env,
                            log=tmp_path / "reading.log")
         watcher = ros_server.connect("watcher", "language")

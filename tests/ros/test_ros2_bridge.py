@@ -2,13 +2,17 @@
 
 The bridge runs as `cast run` starts it (its interpreter, the runner, CAST_ROS_BRIDGE);
 the ROS 2 nodes are plain rclpy processes (tests/ros/helpers/ros2_node.py) on
-loopback; the watcher here decodes with the types `cast ros-types` generated.
+loopback; the watcher here decodes with the types `cast ros-types` generated. A team's
+own message package is one the test builds (tests/ros/helpers/build_ros2_msgs.py).
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -18,7 +22,7 @@ import pytest
 
 import cast
 from tests.conftest import ServerHandle, stop_process, wait_for
-from tests.ros.bridge_support import start_bridge
+from tests.ros.bridge_support import generate_types, ros2_message_package, start_bridge
 from tests.ros.builds import JavaBuild
 from tests.ros.ros_env import helper, ros2_python
 
@@ -50,11 +54,11 @@ def published(log: Path) -> dict[int, int]:
     return out
 
 
-def status_of(watcher: cast.Component, bridge: str) -> Any:
+def status_of(watcher: cast.Component, bridge: str, sa: str = "motor") -> Any:
     from cast.v1 import bridge_pb2
 
     try:
-        return watcher.get(f"{bridge}.status", bridge_pb2.BridgeStatus, subarchitecture="motor")
+        return watcher.get(f"{bridge}.status", bridge_pb2.BridgeStatus, subarchitecture=sa)
     except cast.NotFoundError:
         return None
 
@@ -249,3 +253,123 @@ def test_a_type_this_ros_does_not_have_stops_the_bridge_before_it_starts_naming_
     log = (tmp_path / "bridge.log").read_text()
     assert ("ROS bridge bridge, to_wm[0] (/camera/image_raw): ROS 2 type sensor_msgs/msg/Imag: package sensor_msgs "
             "has no message Imag (it has: BatteryState, CameraInfo,") in log, log
+
+
+READING_MSG = """\
+# A reading of a team's own sensor: a message package of the test's own, built with rosidl's generators.
+uint8 LEVEL_LOW=0
+uint8 LEVEL_HIGH=2
+string UNIT="bar"
+std_msgs/Header header
+uint8 level
+float64 value
+int16[3] triple
+string<=16 label
+geometry_msgs/Point[<=4] points
+float32[<=3] gains
+uint8[] blob
+uint8[4] code
+int64 count
+builtin_interfaces/Duration window
+"""
+
+
+# The first run builds the message package (rosidl generators and gcc, about 15 s; cached in build/ros2-msgs).
+@pytest.mark.timeout(300)
+def test_a_teams_own_ros2_message_package_is_bridged_both_ways_as_soon_as_it_is_on_the_ros_path(
+        ros_server: ServerHandle, ros2: dict[str, str], tmp_path: Path) -> None:
+    overlay = ros2_message_package("cast_test_msgs", {"Reading": READING_MSG})
+    settings = {"version": 2, "status_period": 0.3, "to_wm": [
+        {"topic": "/tank/reading", "type": "cast_test_msgs/msg/Reading", "subarchitecture": "language",
+         "store": "each", "id": "tank"}], "to_ros": [
+        {"watch": {"subarchitecture": "language", "id": "setpoint"}, "topic": "/tank/setpoint",
+         "type": "cast_test_msgs/msg/Reading"}]}
+
+    # Not on the ROS path, or only its Python half (PYTHONPATH without LD_LIBRARY_PATH): the bridge stops
+    # before it starts, naming what it cannot find. On the path, it starts (rclpy) meanwhile.
+    lost = {"none": None, "python": {"PYTHONPATH": overlay["PYTHONPATH"]}}
+    refused = {k: start_bridge(ros_server, f"bridge_{k}", "language", settings, ros2, tmp_path / f"bridge-{k}.log",
+                               overlay=o) for k, o in lost.items()}
+    bridge = start_bridge(ros_server, "bridge", "language", settings, ros2, tmp_path / "bridge.log", overlay=overlay)
+    watcher = ros_server.connect("watcher", "language")
+    procs: list[subprocess.Popen[str]] = [*refused.values()]
+    try:
+        # The team's entry types for its own components: cast ros-types on the same path, protoc for Python.
+        sys.path.insert(0, str(generate_types(tmp_path / "types", 2, "cast_test_msgs/msg/Reading", overlay=overlay)))
+        from ros2.cast_test_msgs.msg.reading_pb2 import Reading
+
+        proto = (tmp_path / "types" / "protos" / "ros2" / "cast_test_msgs" / "msg" / "reading.proto").read_text()
+        assert "//   uint8 LEVEL_HIGH = 2\n" in proto and "//   string UNIT = 'bar'\n" in proto, proto
+        assert [f.name for f in Reading.DESCRIPTOR.fields] == [
+            "header", "level", "value", "triple", "label", "points", "gains", "blob", "code", "count", "window"]
+
+        assert [p.wait(60) != 0 for p in refused.values()] == [True, True]
+        log = (tmp_path / "bridge-none.log").read_text()
+        assert "to_wm[0] (/tank/reading): ROS 2 type cast_test_msgs/msg/Reading: no Python package " \
+               "'cast_test_msgs' with messages" in log, log
+        log = (tmp_path / "bridge-python.log").read_text()
+        assert "to_wm[0] (/tank/reading): ROS 2 type cast_test_msgs/msg/Reading: the type support of package " \
+               "cast_test_msgs does not load (libcast_test_msgs__rosidl_generator_py.so: cannot open shared " \
+               "object file" in log, log
+        assert "stop() failed" not in log + (tmp_path / "bridge-none.log").read_text(), log
+
+        python = ros2_python()
+        node_env = {**ros2, **{k: os.pathsep.join(p for p in (v, ros2.get(k, "")) if p) for k, v in overlay.items()}}
+        wait_for(lambda: status_of(watcher, "bridge", "language"), 60, "the bridge's first status entry")
+        publisher = helper(python, "ros2_node.py", "publish", "/tank/reading", "reading", "10", "3", env=node_env,
+                           log=tmp_path / "reading.log")
+        procs.append(publisher)
+        assert publisher.wait(60) == 0, (tmp_path / "reading.log").read_text()
+        sent = published(tmp_path / "reading.log")
+
+        # ROS -> WM: one entry per message, every field as the rclpy node set it.
+        entries = wait_for(lambda: (lambda es: es if len(es) == 3 else None)(
+            watcher.get_all(Reading, subarchitecture="language")), 30, "3 readings in the WM")
+        for i, r in enumerate(sorted((e.value for e in entries), key=lambda r: r.header.frame_id)):
+            assert r.header.frame_id == f"frame-{i}"
+            assert r.header.stamp.sec * 1_000_000_000 + r.header.stamp.nanosec == sent[i]
+            assert (r.level, r.value, list(r.triple), r.label) == (2, -0.125, [-32768, 0, 32767], f"tank {i}: ünïcødé")
+            assert [(p.x, p.y, p.z) for p in r.points] == [(1.0, 2.0, 3.0), (-1.0, float("inf"), 0.0)]
+            assert math.copysign(1.0, r.points[1].z) == -1.0  # -0.0 kept
+            assert list(r.gains) == [0.5, -1.5]
+            assert r.blob == bytes([i]) + bytes(range(256)) and r.code == b"\xca\x57\x00\xff"
+            assert r.count == -(2**63) and (r.window.sec, r.window.nanosec) == (-2, 500)
+        assert {e.id.split("/")[0] for e in entries} == {"tank"} and {e.author for e in entries} == {"bridge"}
+
+        # WM -> ROS: a value that does not fit is refused, naming the field and its bound; the next one goes out.
+        echo = helper(python, "ros2_node.py", "echo", "/tank/setpoint", "cast_test_msgs/msg/Reading", "1",
+                      env=node_env, log=tmp_path / "echo.log")
+        procs.append(echo)
+        wait_for(lambda: "subscribed" in (tmp_path / "echo.log").read_text(), 30, "the echo node")
+        setpoint = Reading(level=1, value=float("-inf"), triple=[1, -2, 3], label="setpoint ✓ 100%", gains=[0.25],
+                           blob=b"\x00\x01\xff", code=b"abcd", count=2**63 - 1)
+        setpoint.header.frame_id = "cast"
+        setpoint.header.stamp.sec, setpoint.header.stamp.nanosec = 5, 6
+        setpoint.points.add(x=0.5, y=-0.5, z=1e-300)
+        setpoint.window.sec, setpoint.window.nanosec = 3, 999_999_999
+        too_long = Reading()
+        too_long.CopyFrom(setpoint)
+        too_long.label = "seventeen letters"
+        watcher.add("setpoint", too_long)
+        for _ in range(100):  # DDS may match the echo after the first write: the same again until it arrives
+            if echo.poll() is not None:
+                break
+            watcher.overwrite("setpoint", setpoint)
+            time.sleep(0.3)
+        assert echo.wait(30) == 0, (tmp_path / "echo.log").read_text()
+        lines = (tmp_path / "echo.log").read_text().splitlines()
+        assert json.loads(lines[lines.index("subscribed") + 1]) == {
+            "header": {"stamp": {"sec": 5, "nanosec": 6}, "frame_id": "cast"}, "level": 1, "value": float("-inf"),
+            "triple": [1, -2, 3], "label": "setpoint ✓ 100%", "points": [{"x": 0.5, "y": -0.5, "z": 1e-300}],
+            "gains": [0.25], "blob": [0, 1, 255], "code": [97, 98, 99, 100], "count": 2**63 - 1,
+            "window": {"sec": 3, "nanosec": 999_999_999}}
+        status = wait_for(lambda: (lambda s: s if s and s.mappings[1].delivered >= 1 else None)(
+            status_of(watcher, "bridge", "language")), 30, "the status to count the setpoint")
+        to_ros = status.mappings[1]
+        assert to_ros.errors == 1, to_ros
+        assert "field label: a string of 17 characters for string<=16 (at most 16)" in to_ros.last_error, to_ros
+    finally:
+        for p in procs:
+            stop_process(p, 5)
+        stop_process(bridge, 10)
+        watcher._cast_close()

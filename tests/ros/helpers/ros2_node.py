@@ -4,7 +4,8 @@
     ros2_node.py echo TOPIC TYPE COUNT
 
 publish: KIND is image (sensor_msgs/msg/Image, 640x480 rgb8, pixel values
-made from the frame number), pose (geometry_msgs/msg/PoseStamped) or twist;
+made from the frame number), pose (geometry_msgs/msg/PoseStamped), twist, or
+reading (cast_test_msgs/msg/Reading, a package the test built: on the ROS path);
 message i carries i in its header's frame_id ("frame-<i>") or pose/twist
 values, so a reader can tell which arrived. It waits until N subscribers
 match before the first message (DDS drops what is published before a reader
@@ -54,6 +55,20 @@ def twist(i: int, stamp_ns: int) -> Any:
     return msg
 
 
+def reading(i: int, stamp_ns: int) -> Any:
+    """A cast_test_msgs/msg/Reading whose every field the test checks (tests/ros/test_ros2_bridge.py)."""
+    from cast_test_msgs.msg import Reading
+    from geometry_msgs.msg import Point
+
+    msg = Reading(level=Reading.LEVEL_HIGH, value=-0.125, triple=[-32768, 0, 32767], label=f"tank {i}: ünïcødé",
+                  points=[Point(x=1.0, y=2.0, z=3.0), Point(x=-1.0, y=float("inf"), z=-0.0)], gains=[0.5, -1.5],
+                  blob=bytes([i]) + bytes(range(256)), code=[0xCA, 0x57, 0x00, 0xFF], count=-(2**63))
+    msg.header.frame_id = f"frame-{i}"
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.window.sec, msg.window.nanosec = -2, 500
+    return msg
+
+
 def to_plain(value: Any) -> Any:
     if hasattr(value, "get_fields_and_field_types"):
         return {name: to_plain(getattr(value, name)) for name in value.get_fields_and_field_types()}
@@ -75,7 +90,7 @@ def main() -> int:
         kind, rate, count = sys.argv[3], float(sys.argv[4]), int(sys.argv[5])
         wait = int(sys.argv[sys.argv.index("--wait-subscribers") + 1]) if "--wait-subscribers" in sys.argv else 1
         first = int(sys.argv[sys.argv.index("--start") + 1]) if "--start" in sys.argv else 0
-        make = {"image": image, "pose": pose, "twist": twist}[kind]
+        make = {"image": image, "pose": pose, "twist": twist, "reading": reading}[kind]
         cls = type(make(0, 0))
         publisher = node.create_publisher(cls, topic, qos)
         deadline = time.monotonic() + 30

@@ -360,6 +360,7 @@ class RosBridge(cast.UnmanagedComponent):
             try:
                 if type_name not in self.converters:
                     self.converters[type_name] = Converter(self.catalog, type_name)
+                    self.catalog.ros_class(type_name)  # a ROS 2 package's compiled half too, not only its Python
             except RosTypeError as exc:
                 raise cast.InvalidArgumentError(f"ROS bridge {self.component_id}, {direction}[{i}] ({topic}): "
                                                 f"{exc}") from None
@@ -426,11 +427,13 @@ class RosBridge(cast.UnmanagedComponent):
             log.debug("status not written: %s", exc.message)
 
     def stop(self) -> None:
-        """Leave ROS; the writer threads end."""
-        if self.side is not None:
-            self.side.close()
-        for inbound in self.inbound:
+        """Leave ROS; the writer threads end (nothing to do when configure refused the settings)."""
+        side: RosSide | None = getattr(self, "side", None)
+        if side is not None:
+            side.close()
+        inbound_all: list[_Inbound] = getattr(self, "inbound", [])
+        for inbound in inbound_all:
             with inbound.cond:
                 inbound.cond.notify_all()
-        for inbound in self.inbound:
+        for inbound in inbound_all:
             inbound.thread.join(5)

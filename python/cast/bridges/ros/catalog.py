@@ -24,7 +24,7 @@ def _introspection(ros: int) -> tuple[Callable[[str], MessageType], Callable[[st
     if ros == 2:
         from cast.bridges.ros import ros2_types
 
-        return ros2_types.describe, ros2_types.message_class
+        return ros2_types.describe, ros2_types.node_class
     if ros == 1:
         from cast.bridges.ros import ros1_types
 

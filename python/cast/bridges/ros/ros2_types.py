@@ -18,7 +18,7 @@ from typing import Any
 
 from cast.bridges.ros.model import MESSAGE_KIND, Constant, Field, FieldType, MessageType, RosTypeError, split_ros_name
 
-__all__ = ["describe", "message_class"]
+__all__ = ["describe", "message_class", "node_class"]
 
 # rosidl_parser's basic type names -> the model's kinds ("long double" has no protobuf type: refused).
 _BASIC = {
@@ -44,6 +44,29 @@ def message_class(name: str) -> Any:
         known = sorted(n for n in dir(module) if not n.startswith("_") and hasattr(getattr(module, n), "SLOT_TYPES"))
         raise RosTypeError(f"ROS 2 type {name}: package {package} has no message {type_name} "
                            f"(it has: {', '.join(known) or 'none'})")
+    return cls
+
+
+def node_class(name: str) -> Any:
+    """The rclpy class of ``pkg/msg/Name`` with its type support loaded, as a publisher or subscription needs it.
+
+    A package's Python half imports without its compiled half (the type support libraries, found on
+    LD_LIBRARY_PATH), and rclpy would only say "Could not import 'rosidl_typesupport_c'" when the
+    bridge subscribes: RosTypeError names the library that did not load and what puts it on the path.
+    """
+    from rosidl_generator_py.import_type_support_impl import UnsupportedTypeSupport
+
+    cls = message_class(name)
+    cause: BaseException | None = None
+    try:
+        cls.__import_type_support__()
+    except (UnsupportedTypeSupport, ImportError) as exc:  # rosidl raises the first while handling an ImportError
+        cause = exc.__context__ or exc
+    if cause is not None or getattr(cls, "_TYPE_SUPPORT", None) is None:
+        package = split_ros_name(name, 2)[0]
+        raise RosTypeError(f"ROS 2 type {name}: the type support of package {package} does not load "
+                           f"({cause or 'no type support imported'}); its libraries (lib/ of the install space that "
+                           f"has it) must be on LD_LIBRARY_PATH, as sourcing its setup.bash puts them")
     return cls
 
 
