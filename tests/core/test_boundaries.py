@@ -55,6 +55,9 @@ ABOVE = {
     # cast sweep's planning, report and plots: it runs `cast run` as a process, and reads its summary
     "experiments": ("cast.client", "cast.server", "cast.orchestrator", "cast.agent", "cast.cli", "cast.recording",
                     "cast.liveview"),
+    # the test kit: servers and clients in the test's process, `cast serve` and `cast run` as processes
+    "testing": ("cast.orchestrator", "cast.agent", "cast.cli", "cast.recording", "cast.liveview", "cast.web",
+                "cast.experiments", "cast.export"),
 }
 
 
