@@ -79,7 +79,7 @@ def test_a_running_component_is_handed_over_once_its_watches_are_registered(syst
 
 def test_a_component_whose_hook_fails_ends_with_exit_code_1(system: LocalSystem) -> None:
     running = system.run(Broken, "broken", "vision")
-    assert running.wait() == 1
+    assert running.join() == 1
 
 
 def test_a_bound_component_is_stepped_by_the_test(system: LocalSystem) -> None:

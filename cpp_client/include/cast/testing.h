@@ -157,7 +157,7 @@ class RunningComponentBase {
   std::optional<int> exitCode() const;
   // Waits until the component stops by itself (requestStop(), a hook that
   // threw); its exit code. AssertionError after `timeout`.
-  int wait(std::chrono::milliseconds timeout = kDefaultTimeout);
+  int join(std::chrono::milliseconds timeout = kDefaultTimeout);
   // Asks the component to stop and waits for its end; its exit code (assert
   // it, so that a component that failed quietly fails the test). As under
   // CAST_COMPONENT_MAIN, a run() that does not return within 10 s of the
@@ -306,7 +306,7 @@ class LocalSystem {
     return *found;
   }
 
-  // What the server printed so far (for failure messages).
+  // What the server printed so far (for failure messages; after close(), all it printed).
   std::string output() const;
   // SIGKILL: the server is gone at once, as after a crash; clients see their
   // connections break.
@@ -350,6 +350,7 @@ class LocalSystem {
   Actor* observer_ = nullptr;
   bool closed_ = false;
   int exitCode_ = 0;
+  std::string output_;  // what the server printed, kept when close() removes its log
 };
 
 }  // namespace cast::testing

@@ -267,7 +267,7 @@ std::optional<int> RunningComponentBase::exitCode() const {
   return exitCode_;
 }
 
-int RunningComponentBase::wait(std::chrono::milliseconds timeout) {
+int RunningComponentBase::join(std::chrono::milliseconds timeout) {
   {
     std::unique_lock<std::mutex> lock(mu_);
     if (!cv_.wait_for(lock, timeout, [this] { return ended_; })) {
@@ -281,7 +281,7 @@ int RunningComponentBase::wait(std::chrono::milliseconds timeout) {
 int RunningComponentBase::stop(std::chrono::milliseconds timeout) {
   if (running()) component_.requestStop();
   // The runner gives run() 10 s and the queued callbacks 5 s after the request.
-  return wait(timeout + std::chrono::seconds(15));
+  return join(timeout + std::chrono::seconds(15));
 }
 
 void RunningComponentBase::finish() {
@@ -445,7 +445,7 @@ std::string LocalSystem::listEntries(const std::string& subarchitecture) const {
   return out;
 }
 
-std::string LocalSystem::output() const { return server_ ? server_->output() : ""; }
+std::string LocalSystem::output() const { return closed_ ? output_ : server_->output(); }
 
 void LocalSystem::kill() {
   if (closed_) throw InvalidArgumentError("system '" + name_ + "' is closed: start another one");
@@ -469,6 +469,7 @@ int LocalSystem::close() {
   for (auto& collector : collectors_) collector->close();
   for (auto it = components_.rbegin(); it != components_.rend(); ++it) (*it)->close();
   exitCode_ = server_->stop();
+  output_ = server_->output();  // the log goes with the directory
   std::error_code ignored;
   std::filesystem::remove_all(directory_, ignored);
   return exitCode_;

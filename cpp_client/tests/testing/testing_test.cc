@@ -111,7 +111,7 @@ TEST(Kit, RunsAComponentAndHandsItOverOnceItsWatchesAreRegistered) {
   EXPECT_FALSE(counter.running());
 
   auto& broken = system.run<Broken>("broken", "vision");
-  EXPECT_EQ(broken.wait(), 1);
+  EXPECT_EQ(broken.join(), 1);
 }
 
 TEST(Kit, StepsABoundComponentAndActsAsOthers) {
@@ -121,10 +121,7 @@ TEST(Kit, StepsABoundComponentAndActsAsOthers) {
   counter.start();
   auto& camera = system.actAs("camera", "vision");
   camera.add("go", text("now"));
-  system.waitForEntry<Int64Value>("vision", "count",
-                                  std::function<bool(const Int64Value&)>([](const Int64Value& v) {
-                                    return v.value() == 2;
-                                  }));
+  system.waitForEntry<Int64Value>("vision", "count", [](const Int64Value& v) { return v.value() == 2; });
   EXPECT_THROW(camera.add("note", text("hi"), "language"), cast::PermissionDeniedError);
   system.actAs("boss", "vision", true).add("order", text("go"), "language");
   EXPECT_EQ(system.assertEntry<StringValue>("language", "order").author, "boss");

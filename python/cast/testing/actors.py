@@ -120,7 +120,7 @@ class RunningComponent(Generic[C]):
         """Whether its lifecycle is still going (it was not stopped and did not fail)."""
         return self._thread.is_alive()
 
-    def wait(self, timeout: float = DEFAULT_TIMEOUT_S) -> int:
+    def join(self, timeout: float = DEFAULT_TIMEOUT_S) -> int:
         """Wait until the component stops by itself (``request_stop()``, a failed hook); its exit code."""
         self._thread.join(timeout)
         if self._thread.is_alive():
@@ -136,4 +136,4 @@ class RunningComponent(Generic[C]):
         """
         if self._thread.is_alive():
             self.component.request_stop()
-        return self.wait(timeout + 15.0)  # the runner gives run() 10 s and the callbacks 5 s after stop()
+        return self.join(timeout + 15.0)  # the runner gives run() 10 s and the callbacks 5 s after stop()
