@@ -128,9 +128,10 @@ cpp: cpp-deps
 	cmake -S cpp_client -B $(CPP_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
 	cmake --build $(CPP_BUILD) -j2
 
-# setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server).
+# setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server,
+# the testing kit's and the hello example's tests, which find `cast` on PATH as a user's would).
 test-cpp: cpp setup proto
-	ctest --test-dir $(CPP_BUILD) --output-on-failure
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" ctest --test-dir $(CPP_BUILD) --output-on-failure
 
 # The Java client library (java_client/): target/cast-client-all.jar for component processes
 # (`java -cp cast-client-all.jar:... cast.client.Runner Class`), the test classes the interop
