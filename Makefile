@@ -59,14 +59,15 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
+# CAST_TEST_MVN: the Maven command of the tests that build Java projects (MVN, with its local repository).
 test-python: setup proto examples bench-deps export-deps node grpcurl web-deps
-	$(PY) -m pytest -q tests --ignore=tests/packaging
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
 # with find_package, the Java example built on the installed cast-bom and cast-client.
 package-test: setup proto cpp java
-	$(PY) -m pytest -q tests/packaging
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
 test: test-cpp test-java java-demo test-python package-test
 

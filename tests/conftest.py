@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -185,6 +186,20 @@ def wait_for(condition: Callable[[], Any], timeout: float = 60.0, what: str = "c
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.02)
+
+
+def maven() -> list[str]:
+    """The tests' Maven command: ``$CAST_TEST_MVN`` (the Makefile's MVN, say with a local repository of its
+    own), else ``mvn -B -ntp``."""
+    return shlex.split(os.environ.get("CAST_TEST_MVN") or "mvn -B -ntp")
+
+
+def maven_repository() -> Path:
+    """The local Maven repository that command installs into and reads from."""
+    for word in maven():
+        if word.startswith("-Dmaven.repo.local="):
+            return Path(word.split("=", 1)[1])
+    return Path.home() / ".m2" / "repository"
 
 
 def register_session(channel: Any, metadata: Any) -> str:

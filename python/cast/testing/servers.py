@@ -173,9 +173,10 @@ class RunProcess:
         cwd: Path | None = None, until: str = "components started in", timeout: float = START_TIMEOUT_S,
     ) -> None:
         self.runtime_dir = runtime_dir
+        self.cwd = cwd or config.parent
         argv = [sys.executable, "-m", "cast.cli", "run", str(config), "--no-status", "--runtime-dir",
                 str(runtime_dir), "--exit-with-stdin", *run_args]
-        self.process = subprocess.Popen(argv, cwd=cwd or config.parent, env=_child_env(env), stdin=subprocess.PIPE,
+        self.process = subprocess.Popen(argv, cwd=self.cwd, env=_child_env(env), stdin=subprocess.PIPE,
                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._lines = _Lines(self.process)
         if self._lines.wait_for(until, timeout) is None or self.process.poll() is not None:

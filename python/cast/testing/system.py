@@ -293,6 +293,26 @@ class LocalSystem:
         """What the directory knows of each component, by id (``cast.v1`` ComponentInfo: ``state``, ``kind``, ...)."""
         return {c.id: c for c in self._directory_view().describe().components}
 
+    def wait_for_component(self, component_id: str, state: str = "running", timeout: float = DEFAULT_TIMEOUT_S) -> Any:
+        """Wait until the directory shows a component in ``state``; its ComponentInfo.
+
+        ``state`` in the words of ``cast components``: expected, starting,
+        started, running, stopping, disconnected. The failure says what the
+        directory showed last.
+        """
+        from cast.v1 import directory_pb2
+
+        wanted = directory_pb2.ComponentState.Value(f"COMPONENT_STATE_{state.upper()}")
+
+        def reached() -> Any:
+            info = self.components().get(component_id)
+            shown = "not known" if info is None else \
+                directory_pb2.ComponentState.Name(info.state).removeprefix("COMPONENT_STATE_").lower()
+            assert info is not None and info.state == wanted, f"component '{component_id}' is {shown}"
+            return info
+
+        return wait_for(reached, timeout, f"component '{component_id}' to be {state}")
+
     # ------------------------------------------------------------ the server
 
     def output(self) -> str:
@@ -407,6 +427,7 @@ def run_system(
     config: str | os.PathLike[str] | Mapping[str, Any], *run_args: str, env: Mapping[str, str] | None = None,
     cwd: str | os.PathLike[str] | None = None, until: str = "components started in",
     timeout: float = 90.0, directory: str | os.PathLike[str] | None = None,
+    runtime_dir: str | os.PathLike[str] | None = None,
 ) -> RunningSystem:
     """Run a whole system with ``cast run CONFIG --no-status``: its servers and every component it launches.
 
@@ -423,12 +444,13 @@ def run_system(
         until: the line that says it is up.
         timeout: seconds to wait for that line.
         directory: where its files go (default: a temporary directory, removed when closed).
+        runtime_dir: the runtime directory (default: ``runtime`` in ``directory``).
 
     """
     where, own = _directory(directory)
     try:
         path = _config_file(config, None, where)
-        runtime = where / "runtime"
+        runtime = Path(runtime_dir) if runtime_dir is not None else where / "runtime"
         server = RunProcess(path, runtime, run_args, env, Path(cwd) if cwd is not None else None, until, timeout)
     except BaseException:
         if own:
@@ -455,15 +477,41 @@ class RunningSystem(LocalSystem):
                                  f"{self.output()}")
         return line
 
-    def cli(self, *args: str, check: bool = True, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
-        """A ``cast`` command run against this system (its runtime directory); with ``check``, it must succeed."""
+    @property
+    def process(self) -> subprocess.Popen[str]:
+        """The `cast run` process."""
+        return self._server.process
+
+    @property
+    def cwd(self) -> Path:
+        """Where :meth:`cli` runs the tools: the working directory of `cast run`, unless set."""
+        return self._server.cwd
+
+    @cwd.setter
+    def cwd(self, path: Path) -> None:
+        self._server.cwd = Path(path)
+
+    def state(self) -> dict[str, Any]:
+        """The running system's ``system.json`` (its endpoint, servers, configuration, pid)."""
+        return self._server.state()
+
+    def cli_environment(self) -> dict[str, str]:
+        """The environment that aims the ``cast`` tools at this run: this process's, with its runtime directory."""
         env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
         env["CAST_RUNTIME_DIR"] = str(self.runtime_dir)
-        done = subprocess.run([sys.executable, "-m", "cast.cli", *args], env=env, capture_output=True, text=True,
-                              timeout=timeout, cwd=self.directory)
+        return env
+
+    def cli(self, *args: str, check: bool = True, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+        """A ``cast`` command run against this system (in :attr:`cwd`); with ``check``, it must succeed."""
+        done = subprocess.run([sys.executable, "-m", "cast.cli", *args], env=self.cli_environment(),
+                              capture_output=True, text=True, timeout=timeout, cwd=self.cwd)
         if check and done.returncode != 0:
             raise AssertionError(f"cast {' '.join(args)} exited {done.returncode}:\n{done.stdout}{done.stderr}")
         return done
+
+    def cli_json(self, *args: str) -> Any:
+        """A ``cast`` command's ``--json`` output, parsed (it must succeed)."""
+        return json.loads(self.cli(*args, "--json").stdout)
 
     _stop_signal = signal.SIGTERM
     _stop_timeout = 60.0
