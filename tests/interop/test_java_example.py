@@ -30,7 +30,8 @@ def squeeze(text: str) -> str:
 
 
 def test_page_shows_the_example_files() -> None:
-    assert blocks("java") == [(EXAMPLE / "src/main/java/cast/examples/MyComponent.java").read_text()]
+    assert blocks("java") == [(EXAMPLE / "src/main/java/cast/examples/MyComponent.java").read_text(),
+                              (EXAMPLE / "src/test/java/cast/examples/MyComponentTest.java").read_text()]
     assert blocks("proto") == [(EXAMPLE / "src/main/proto/greeting.proto").read_text()]
     assert blocks("yaml") == [shown("examples/java/system.yaml")]
     [pom_snippet] = blocks("xml")
