@@ -127,6 +127,35 @@ def test_launch_environment_starts_a_component_process(system: LocalSystem, tmp_
     system.assert_entry("language", "greeting", StringValue, StringValue(value="greeter"))
 
 
+def test_the_runners_started_hook_comes_once_before_run_and_when_the_lifecycle_ends_early(
+    system: LocalSystem,
+) -> None:
+    from cast.client.grpc_transport import GrpcTransport
+    from cast.client.runner import run_component
+    from cast.core.records import Identity
+
+    seen: list[str] = []
+
+    class Ordered(cast.UnmanagedComponent):
+        def start(self) -> None:
+            seen.append("start")
+
+        def run(self) -> None:
+            seen.append("run")
+            self.request_stop()
+
+    def transport(component_id: str) -> GrpcTransport:
+        return GrpcTransport(system.endpoint, system.token(component_id, "vision"), Identity(component_id, "vision"))
+
+    assert run_component(Ordered(), transport("ordered"), {}, handle_signals=False,
+                         started=lambda: seen.append("started")) == 0
+    assert seen == ["start", "started", "run"]
+    seen.clear()
+    assert run_component(Broken(), transport("broken"), {}, handle_signals=False,
+                         started=lambda: seen.append("started")) == 1
+    assert seen == ["started"]
+
+
 # ------------------------------------------------------------------ collecting and waiting
 
 
