@@ -196,11 +196,12 @@ def test_the_quick_start_tests_pass_with_the_wheels_testing_kit(installed: Insta
         installed.env, 600)
     work = installed.work / "quickstart-tests"
     shutil.copytree(ROOT / "examples" / "quickstart", work)
-    out = run([python, "-m", "pytest", "-v", "-p", "no:cacheprovider"], work, installed.env, 300)
+    env = {k: v for k, v in installed.env.items() if not k.startswith("PYTEST_")}  # none of this run's options
+    out = run([python, "-m", "pytest", "-v", "-p", "no:cacheprovider"], work, env, 300)
     print(f"\n--- the quick start's tests (pytest, cast.testing from the wheel):\n{out}")
     assert re.search(r"test_hello.py::test_hello_adds_three_greetings_and_stops_once_it_saw_them PASSED", out), out
     assert re.search(r"=+ 2 passed in ", out), out
-    plugins = run([python, "-m", "pytest", "--version", "--version"], work, installed.env)
+    plugins = run([python, "-m", "pytest", "--version", "--version"], work, env)
     assert str(installed.venv) in plugins and "cast/testing/pytest_plugin.py" in plugins, plugins
 
 
