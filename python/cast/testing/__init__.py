@@ -20,7 +20,8 @@ the same names in their own casing; docs/python.md, "Testing your components".
 from cast.testing.actors import Actor, RunningComponent
 from cast.testing.changes import ChangeCollector
 from cast.testing.describe import describe_change, describe_entry, describe_value
-from cast.testing.system import DEFAULT_SUBARCHITECTURES, LocalSystem, RunningSystem, run_system, start_system
+from cast.testing.launched import RunningSystem, run_system
+from cast.testing.system import DEFAULT_SUBARCHITECTURES, LocalSystem, start_system
 from cast.testing.waiting import DEFAULT_TIMEOUT_S, wait_for
 
 __all__ = [
