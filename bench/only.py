@@ -1,4 +1,4 @@
-"""`python -m bench.only M1|M3|M8|M9 [--quick] [--out DIR]`: one of issue 19's rows alone, with its floors.
+"""`python -m bench.only M1|M3|M8|M9|M10 [--quick] [--out DIR]`: one row alone, with its floors or peers.
 
 For working on one figure without the whole `make bench` (a few minutes) or
 `make bench-quick`: the same code, the same floors measured in the same run,
@@ -15,14 +15,25 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench import floors, images, many_components, redis_peer, report, rows_round2, stream_cases, zenoh_peer
+from bench import (
+    floors,
+    images,
+    many_components,
+    redis_peer,
+    report,
+    ros_bridge,
+    rows_ros,
+    rows_round2,
+    stream_cases,
+    zenoh_peer,
+)
 from bench.cast_cases import Server, m3_latency
 from bench.harness import ROOT
 from bench.rows import Results
 
 __all__ = ["CHOICES", "main"]
 
-CHOICES = ("M1", "M3", "M8", "M9")
+CHOICES = ("M1", "M3", "M8", "M9", "M10")
 
 
 def _results(echo: dict[str, Any], m1: dict[str, Any] | None = None, m3: dict[str, Any] | None = None,
@@ -77,6 +88,10 @@ def _m9(q: bool, work: Path, out: Path) -> list[dict[str, Any]]:
     return [rows_round2.m9_row(m9)]
 
 
+def _m10(q: bool, work: Path) -> list[dict[str, Any]]:
+    return [rows_ros.m10_row(ros_bridge.run(work, 90 if q else 150, lambda text: print(text, flush=True)))]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one row and print it."""
     parser = argparse.ArgumentParser(prog="bench.only")
@@ -91,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.row == "M9":
         table = _m9(args.quick, work, out)
     else:
-        table = {"M1": _m1, "M3": _m3, "M8": _m8}[args.row](args.quick, work)
+        table = {"M1": _m1, "M3": _m3, "M8": _m8, "M10": _m10}[args.row](args.quick, work)
     machine = report.machine_info({"seconds": round(time.time() - t0, 1)}, redis_peer.redis_server_version())
     command = f"python -m bench.only {args.row}{' --quick' if args.quick else ''}"
     report.write_markdown(out / f"only-{args.row}.md", table, machine, command)

@@ -41,6 +41,7 @@ class Results:
     m1p: dict[str, Any] = field(default_factory=dict)
     m8: dict[str, Any] = field(default_factory=dict)
     m9: dict[str, Any] = field(default_factory=dict)
+    m10: dict[str, Any] = field(default_factory=dict)  # the ROS bridge (bench/ros_bridge.py)
 
     @property
     def unary_cps(self) -> float:
@@ -66,9 +67,10 @@ class Results:
 def rows(r: Results) -> list[dict[str, Any]]:
     """Every row, in the table's order."""
     from bench import rows_round2 as r2  # it builds on fig() above
+    from bench.rows_ros import m10_row
 
     return [r2.m1_row(r), r2.m1p_row(r.m1p), _m2_row(r), r2.m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7,
-            r2.m8_row(r.m8), r2.m9_row(r.m9), _durability_row(r.d1), _r1_row(r), r.o1, r.rec1]
+            r2.m8_row(r.m8), r2.m9_row(r.m9), m10_row(r.m10), _durability_row(r.d1), _r1_row(r), r.o1, r.rec1]
 
 
 def _m2_row(r: Results) -> dict[str, Any]:

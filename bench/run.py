@@ -22,6 +22,7 @@ from bench import (
     recording,
     redis_peer,
     report,
+    ros_bridge,
     stalled_watcher,
     stream_cases,
     zenoh_peer,
@@ -76,14 +77,15 @@ class Scale(NamedTuple):
     m9_writes: int
     o1: tuple[int, int, int]
     rec1: tuple[int, int]
+    m10_frames: int = 150
 
 
 FULL = Scale(False, 3000, 3, 300, 10_000, [1000, 10_000, 100_000, 1_000_000], 2000, 1_000_000, 2000, 300, 20_000,
              300, [10, 100, 500], 1000, (3000, 1200, 10_000), (5000, 50_000))
 QUICK = Scale(True, 500, 1, 50, 2000, [1000, 10_000, 100_000], 500, 100_000, 500, 50, 5000,
-              60, [10, 100, 500], 100, (500, 120, 1000), (1000, 5000))
+              60, [10, 100, 500], 100, (500, 120, 1000), (1000, 5000), 90)
 SMOKE = Scale(True, 100, 1, 10, 500, [1000, 5000], 100, 10_000, 100, 10, 500,
-              15, [10, 20], 20, (100, 20, 200), (200, 500))
+              15, [10, 20], 20, (100, 20, 200), (200, 500), 15)
 
 
 def _measure(sc: Scale, work: Path, log: Callable[[str], None]) -> tuple[Results, dict[int, float], dict[str, Any]]:
@@ -113,11 +115,13 @@ def _measure(sc: Scale, work: Path, log: Callable[[str], None]) -> tuple[Results
     m7_samples: dict[str, Any] = m7.pop("samples_us", {})
     m8 = images.run(work / "m8", sc.m8_frames, log)
     m9 = many_components.run(work / "m9", sc.m9_counts, sc.m9_writes, log)
+    m10 = ros_bridge.run(work / "m10", sc.m10_frames, log)
     log("O1 what the metrics cost")
     o1 = metrics_overhead.run(work / "o1", *sc.o1, 1 if sc.quick else 3, log)
     log("REC1 what recording costs")
     rec1 = recording.run(work / "rec1", *sc.rec1, log)
-    results = Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1, zenoh=zenoh, m1p=m1p, m8=m8, m9=m9)
+    results = Results(tcp, peer, echo, m1, m2, m3, m4, m5, m6, m7, r1, d1, o1, rec1, zenoh=zenoh, m1p=m1p, m8=m8, m9=m9,
+                      m10=m10)
     return results, scaling, m7_samples
 
 

@@ -53,6 +53,22 @@ GEN_DIR = _GEN_DIR
 PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"), str(ROOT / "python")])
 
 
+# Markers by folder (pyproject.toml lists them); "namespaces" goes to the tests of modules that use
+# tests/netns.py, wherever they live.
+_FOLDER_MARKERS = {"interop": "interop", "web": "browser", "bench": "bench", "packaging": "packaging", "ros": "ros"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark each test with what it needs beyond the Python environment."""
+    for item in items:
+        parts = item.path.relative_to(ROOT / "tests").parts
+        if len(parts) > 1 and parts[0] in _FOLDER_MARKERS:
+            item.add_marker(_FOLDER_MARKERS[parts[0]])
+        module = getattr(item, "module", None)
+        if module is not None and any(getattr(v, "__module__", None) == "tests.netns" for v in vars(module).values()):
+            item.add_marker("namespaces")
+
+
 @dataclass
 class ServerHandle:
     """A `cast serve` process on a free port."""

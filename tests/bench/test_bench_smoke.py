@@ -12,7 +12,7 @@ import pytest
 
 from tests.conftest import ROOT
 
-IDS = ["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "O1", "R1", "REC1"]
+IDS = sorted(["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "M10", "O1", "R1", "REC1"])
 
 
 @pytest.mark.timeout(900)  # every row, smoke counts: about a minute on an idle 2-core machine, more on a busy one
@@ -63,5 +63,9 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     assert "Redis, back to back: MB/s delivered, all subscribers" in m8
     m9 = {f["name"] for f in doc["results"]["M9"]["figures"]}
     assert {"10 sessions: p99 (µs)", "20 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
+    # M10: the ROS bridge beside rclpy -> rclpy (the peer column), both sizes.
+    m10 = {f["name"]: f for f in doc["results"]["M10"]["figures"]}
+    for size in ("1 KiB", "1 MiB"):
+        assert m10[f"{size}: ROS -> WM p50 (µs)"]["peer"] > 0, doc["results"]["M10"]
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png", "many_components.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"

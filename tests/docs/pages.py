@@ -33,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 # The pages whose every code block is tested.
-PAGES = ("docs/python.md", "docs/cpp.md", "docs/java.md", "docs/design.md")
+PAGES = ("docs/python.md", "docs/cpp.md", "docs/java.md", "docs/design.md", "docs/ros.md")
 KINDS = ("save", "run", "output", "test", "file", "excerpt", "tested-by", "fragment")
 MAX_FRAGMENTS = 2
 

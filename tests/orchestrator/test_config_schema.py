@@ -16,7 +16,7 @@ import yaml
 from jsonschema import Draft7Validator
 
 from cast.config import model as m
-from cast.config import read_config
+from cast.config import read_config, ros
 from cast.config.schema import mapping_properties, resolve, system_schema
 from cast.config.schema_gen import generated, main
 from cast.core.records import Limits, Quota
@@ -143,6 +143,11 @@ def test_every_section_maps_onto_its_model_with_the_same_defaults() -> None:
          {"name", "policy_options", "position"}),
         ((), m.SystemConfig, {"system": "name", "include": "files", "components": "subarchitectures",
                             "persistence": "servers"}, {"source"}),
+        (("#ros_bridge",), ros.RosBridgeConfig, {}, set()),
+        (("#ros_to_wm",), ros.RosToWm, {}, set()),
+        (("#ros_to_ros",), ros.WmToRos, {}, set()),
+        (("#ros_watch",), ros.RosWatch, {}, set()),
+        (("#ros_qos",), ros.RosQos, {}, set()),
     ]
     for section, cls, renamed, derived in sections:
         keys = props(*section)
@@ -202,14 +207,37 @@ def test_every_key_of_a_component_reaches_the_model(tmp_path: Path) -> None:
           w:
             components:
               p: {class: "m:C", in_process: true, restart: never}
+              r:
+                language: ros
+                ros:
+                  version: 1
+                  python: /usr/bin/python3
+                  node: bridge
+                  namespace: /robot
+                  status_period: 2.5
+                  to_wm:
+                    - {topic: /scan, type: sensor_msgs/LaserScan, subarchitecture: w, store: each, id: laser, keep: 7,
+                       max_rate: 5, buffer: 9, qos: {reliability: best_effort, durability: transient_local,
+                       history: keep_all, depth: 3}}
+                  to_ros:
+                    - {watch: {subarchitecture: v, type: ros1.geometry_msgs.msg.Twist, author: planner},
+                       topic: cmd_vel, type: geometry_msgs/Twist}
         hosts: {arm: "10.0.0.2:7070"}
         """))
     config, found = read_config(path, environ={})
     assert config is not None and not found.items, [str(p) for p in found.items]
-    c, p = config.components
+    c, p, r = config.components
     assert set(props("#component")) - {"subarchitecture"} == {
         "language", "kind", "class", "run", "args", "privileged", "manual", "restart", "classpath", "quota",
-        "in_process", "host"}  # each is set below, so a new key makes this test say so
+        "in_process", "host", "ros"}  # each is set below, so a new key makes this test say so
+    assert r.ros == ros.RosBridgeConfig(
+        version=1, python="/usr/bin/python3", node="bridge", namespace="/robot", status_period=2.5,
+        to_wm=(ros.RosToWm("/scan", "sensor_msgs/LaserScan", "w", "each", "laser", 7, 5.0, 9,
+                           ros.RosQos("best_effort", "transient_local", "keep_all", 3)),),
+        to_ros=(ros.WmToRos(ros.RosWatch("v", "ros1.geometry_msgs.msg.Twist", "", "planner"), "cmd_vel",
+                            "geometry_msgs/Twist"),))
+    assert ros.RosBridgeConfig.from_dict(r.ros.to_dict()) == r.ros
+    assert set(props("#ros_bridge")) == {f.name for f in fields(ros.RosBridgeConfig)}
     assert (c.language, c.kind, c.cls, c.run, c.args, c.privileged, c.manual) == (
         "java", "managed", "a.B", "ignored", {"n": 1}, True, True)
     assert c.restart == m.RestartPolicy("always", 7, 2.0, 9.0)

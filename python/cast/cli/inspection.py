@@ -13,6 +13,7 @@ from typing import Any
 
 import grpc
 
+from cast.bridges.status import mapping_rows
 from cast.cli import stats
 from cast.cli.connect import ServerStubs, SystemClient, add_tls_options, connect
 from cast.cli.render import SchemaDecoder, iso_time, print_json, print_table
@@ -200,6 +201,7 @@ def _components(args: argparse.Namespace) -> int:
                 usage = held.setdefault(c.id, [0, 0])
                 usage[0] += c.entries
                 usage[1] += c.bytes
+        mappings = mapping_rows(stats.bridge_statuses(client))
     rows = [{
         "id": c.id, "subarchitecture": c.subarchitecture, "language": c.language,
         "library_version": c.library_version, "kind": c.kind,
@@ -207,6 +209,10 @@ def _components(args: argparse.Namespace) -> int:
         "pid": c.pid, "host": c.host, "sessions": c.sessions,
         "entries": held.get(c.id, [0, 0])[0], "bytes": held.get(c.id, [0, 0])[1],
     } for c in desc.components]
+    for row in rows:
+        mine = [m for m in mappings if m["bridge"] == row["id"]]
+        if mine:
+            row["mappings"] = mine
     if args.json:
         print_json(rows)
     else:
@@ -218,7 +224,16 @@ def _components(args: argparse.Namespace) -> int:
                       r["state"], r["pid"] or "", r["host"], r["sessions"], r["entries"], mib(r["bytes"])]
                      for r in rows],
                     numeric=["pid", "sessions", "entries", "holds"])
+        if mappings:
+            print_table(f"{len(mappings)} bridge mappings (docs/ros.md)",
+                        ["bridge", "direction", "topic", "ROS type", "SA", "entry", "received", "delivered",
+                         "dropped", "errors", "rate/s", "pending", "last error"],
+                        [[m["bridge"], m["direction"], m["topic"], m["ros_type"], m["subarchitecture"], m["entry"],
+                          m["received"], m["delivered"], m["dropped"], m["errors"], f"{m['rate_hz']:.1f}",
+                          m["pending"], m["last_error"]] for m in mappings],
+                        numeric=["received", "delivered", "dropped", "errors", "rate/s", "pending"])
     return 0
+
 
 
 # --------------------------------------------------------------------- tasks

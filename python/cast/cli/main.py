@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from cast.cli import agent, export, foxglove, inspection, record, replay, run, serve, sweep, token, web
+from cast.cli import agent, export, foxglove, inspection, record, replay, ros_types, run, serve, sweep, token, web
 from cast.errors import CastError
 from cast.signals import dump_stacks_on_sigquit
 from cast.version import version_line
@@ -31,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_command(sub)
     export.add_command(sub)
     web.add_command(sub)
+    ros_types.add_command(sub)
     return parser
 
 

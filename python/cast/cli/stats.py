@@ -11,13 +11,16 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
+from cast.bridges.status import STATUS_TYPE, mapping_rows, statuses_of
 from cast.cli.connect import SystemClient, connect
 from cast.cli.render import print_json, print_table
 from cast.core.metrics_view import merge_snapshots
 from cast.server.metrics_wire import snapshot_from_pb
+from cast.v1 import bridge_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
+from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["add_command", "system_metrics"]
+__all__ = ["add_command", "bridge_statuses", "system_metrics"]
 
 NO_SA = "(none)"
 """How the tables show the SA of a caller that belongs to none (a tool, a script)."""
@@ -28,6 +31,20 @@ def system_metrics(client: SystemClient) -> dict[str, Any]:
     snapshots = [snapshot_from_pb(client.call(server.inspection.GetMetrics, insp_pb2.GetMetricsRequest()))
                  for server, _ in client.servers()]
     return merge_snapshots(snapshots)
+
+
+def bridge_statuses(client: SystemClient) -> list[bridge_pb2.BridgeStatus]:
+    """The status entry of every bridge of the system (``cast.v1.BridgeStatus``, in any SA: docs/ros.md)."""
+    entries = []
+    for server, hosted in client.servers():
+        for sa in hosted:
+            # Listing counts as no read in the metrics: a system without bridges is not read at all.
+            listed = client.call(server.inspection.ListEntries,
+                                 insp_pb2.ListEntriesRequest(subarchitecture=sa, type=STATUS_TYPE))
+            if listed.entries:
+                request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
+                entries.extend(client.call(server.wm.GetByType, request).entries)
+    return statuses_of(entries)
 
 
 def _ms(seconds: float) -> str:
@@ -94,13 +111,28 @@ def _print_tables(m: dict[str, Any]) -> None:
                     reports, numeric=["count", "sum", "min", "max", "mean", "last"])
 
 
+def _print_bridges(rows: list[dict[str, Any]]) -> None:
+    inbound = [r for r in rows if r["direction"] == "to_wm"]
+    if inbound:
+        print_table("ROS -> WM latency (ms: header stamp, or receipt, -> write acknowledged; the last 1,000 "
+                    "messages of each bridge mapping)",
+                    ["bridge", "topic", "SA", "entry", "messages", "p50", "p99", "max", "rate/s", "dropped", "errors"],
+                    [[r["bridge"], r["topic"], r["subarchitecture"], r["entry"], r["delivered"],
+                      _ms(r["latency_p50_s"]), _ms(r["latency_p99_s"]), _ms(r["latency_max_s"]), f"{r['rate_hz']:.1f}",
+                      r["dropped"], r["errors"]] for r in inbound],
+                    numeric=["messages", "p50", "p99", "max", "rate/s", "dropped", "errors"])
+
+
 def _stats(args: argparse.Namespace) -> int:
     with connect(args) as client:
         metrics = system_metrics(client)
+        bridges = mapping_rows(bridge_statuses(client))
     if args.json:
-        print_json(metrics)
+        # The shape of `cast run --summary-json`'s metrics, and the bridges' mappings when there are any.
+        print_json({**metrics, "bridges": bridges} if bridges else metrics)
     else:
         _print_tables(metrics)
+        _print_bridges(bridges)
     return 0
 
 

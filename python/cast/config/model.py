@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from cast.config.problems import Position
+from cast.config.ros import RosBridgeConfig
 from cast.core.policies import TaskPolicy, make_policy
 from cast.core.records import Limits, Quota
 
@@ -29,7 +30,8 @@ __all__ = [
     "TlsConfig",
 ]
 
-LANGUAGES = ("python", "cpp", "java", "other")  # other: any program speaking the gRPC API, started by run:
+LANGUAGES = ("python", "cpp", "java", "other", "ros")  # other: any program speaking the gRPC API, started by run:;
+# ros: the ROS bridge (cast.bridges.ros), configured by its ros: section
 KINDS = ("unmanaged", "managed")
 RESTART_MODES = ("never", "on-failure", "always")
 DURABILITY_MODES = ("always", "batch", "none")
@@ -76,6 +78,7 @@ class ComponentConfig:
     quota: Quota | None = None  # what it may hold on each server (entries, bytes; 0: unbounded)
     classpath: list[str] = field(default_factory=list)  # java: extra entries, absolute
     host: str = LOCAL_HOST  # where it runs: local, or a name under hosts: (started by that host's agent)
+    ros: RosBridgeConfig | None = None  # ros: the bridge's ROS generation, node and mappings (docs/ros.md)
     base_dir: Path = field(default_factory=Path.cwd)  # directory of the file that defines it
     position: Position = field(default_factory=lambda: Position("<config>"))
     positions: dict[str, Position] = field(default_factory=dict)  # of each key's value, for later checks

@@ -38,6 +38,7 @@ from cast.config.model import (
     TlsConfig,
 )
 from cast.config.problems import Position, Problems, did_you_mean
+from cast.config.ros import build_ros
 from cast.config.schema import PY_CLASS_PATTERN, defaults, runtime_schema
 from cast.config.schema_check import Path as KeyPath
 from cast.config.schema_check import check_tree, dotted
@@ -219,6 +220,16 @@ class _Builder:
                          f"an in_process component runs inside its server, on the orchestrator's host: remove "
                          f"'host: {host}' or 'in_process: true'")
             host = LOCAL_HOST
+        ros = None
+        if language == "ros":
+            if raw.get("ros") is None and not self.written((*path, "ros")):
+                self.p.error(pos, f"{where}.ros", "a ROS bridge (language: ros) needs a 'ros:' section with its "
+                                                  "mappings (docs/ros.md)")
+            if str(_get(raw, "kind", d)) == "managed":
+                self.p.error(raw.value_at("kind"), f"{where}.kind",
+                             "the ROS bridge is unmanaged: remove 'kind: managed'")
+            ros = build_ros(raw.get("ros"), f"{where}.ros", sa.name, bool(_get(raw, "privileged", d)),
+                            set(self.root.get("subarchitectures") or {}), self.p)
         sa.components[comp_id] = ComponentConfig(
             id=comp_id,
             subarchitecture=sa.name,
@@ -235,6 +246,7 @@ class _Builder:
             quota=self.quota(raw),
             classpath=[str(p) for p in classpath],
             host=host,
+            ros=ros,
             base_dir=Path(raw.pos.file).resolve().parent,
             position=pos,
             positions=dict(raw.value_pos),

@@ -23,6 +23,7 @@ Launchers give the working directory too (None: the orchestrator's).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import sys
@@ -43,6 +44,7 @@ __all__ = [
     "Launcher",
     "OtherLauncher",
     "PythonLauncher",
+    "RosLauncher",
     "launcher_for",
     "register_launcher",
     "resolve_executable",
@@ -225,8 +227,53 @@ class JavaLauncher:
         return None
 
 
+class RosLauncher:
+    """The ROS bridge: ``<interpreter with ROS> -m cast.run cast.bridges.ros.ros2:Ros2Bridge`` (or ``ros1:Ros1Bridge``).
+
+    The interpreter is the one that has rclpy (ROS 2) or rospy (ROS 1) and the
+    cast package: ``ros: python:`` (relative to the file, or a name on PATH),
+    else ``$CAST_ROS2_PYTHON`` / this interpreter for ROS 2, ``$CAST_ROS1_PYTHON``
+    / ``/usr/bin/python3`` (Debian's, the one rospy imports in) for ROS 1. Its
+    ``ros:`` section travels as JSON in ``CAST_ROS_BRIDGE`` (docs/ros.md).
+    """
+
+    stack_dump_signal = STACK_DUMP_SIGNAL  # the Python runner's
+
+    def python(self, component: ComponentConfig, env: Mapping[str, str]) -> str:
+        """The interpreter that runs the bridge; LaunchError saying how to get one."""
+        ros = component.ros
+        version = ros.version if ros is not None else 2
+        given = ros.python if ros is not None else ""
+        if given:
+            hint = f"set ros: python: to an interpreter with ROS {version} and the cast package (docs/ros.md)"
+            return str(resolve_executable(component, given, env, hint))
+        if version == 2:
+            return env.get("CAST_ROS2_PYTHON") or sys.executable
+        chosen = env.get("CAST_ROS1_PYTHON") or "/usr/bin/python3"
+        if not Path(chosen).is_file():
+            raise LaunchError(f"component '{component.id}': no ROS 1 interpreter at {chosen}: install ROS 1 (Debian: "
+                              "python3-rospy) or set ros: python: / $CAST_ROS1_PYTHON (docs/ros.md)")
+        return chosen
+
+    def command(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> list[str]:
+        """The bridge's interpreter running the Python runner on the bridge of its ROS generation."""
+        version = component.ros.version if component.ros is not None else 2
+        bridge = "cast.bridges.ros.ros2:Ros2Bridge" if version == 2 else "cast.bridges.ros.ros1:Ros1Bridge"
+        return [self.python(component, env), "-m", "cast.run", bridge]
+
+    def environment(self, component: ComponentConfig, config: SystemConfig, env: Mapping[str, str]) -> dict[str, str]:
+        """``CAST_ROS_BRIDGE``: the ``ros:`` section as JSON; output unbuffered."""
+        ros = component.ros.to_dict() if component.ros is not None else {}
+        return {"CAST_ROS_BRIDGE": json.dumps(ros), "PYTHONUNBUFFERED": "1"}
+
+    def working_directory(self, component: ComponentConfig) -> Path | None:
+        """The orchestrator's."""
+        return None
+
+
 LAUNCHERS: dict[str, Launcher] = {
     "python": PythonLauncher(), "cpp": CppLauncher(), "java": JavaLauncher(), "other": OtherLauncher(),
+    "ros": RosLauncher(),
 }
 
 

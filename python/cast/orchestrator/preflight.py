@@ -48,7 +48,7 @@ def preflight(
             try:
                 launcher_for(comp.language).command(comp, config, env)
             except CastError as exc:
-                key = "run" if comp.language in ("cpp", "other") else "class"
+                key = {"cpp": "run", "other": "run", "ros": "ros"}.get(comp.language, "class")
                 message = exc.message.removeprefix(f"component '{comp.id}': ")
                 if builds_required:
                     problems.error(comp.at(key), f"{where}.{key}", message)

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from cast.bridges.status import mapping_rows
 from cast.errors import CastError
 from cast.web.feed import ChangeFeed
 from cast.web.rates import RateWindow, Sample
@@ -81,12 +82,13 @@ class LiveModel:
         metrics = self.source.metrics()
         counters = self.source.task_counters()
         tasks = self.source.tasks()
+        mappings = mapping_rows(self.source.bridge_statuses())
         self._window.add(Sample(time.monotonic(), {sa.name: sa.revision for sa in sas}, metrics))
         self.feed.poll()
         state = {
             "system": self.source.name, "endpoint": self.source.endpoint, "time": time.time(),
             "connected": self.feed.connected, "error": "", "metrics_enabled": metrics["enabled"],
-            **architecture(sas, components, self._window),
+            **architecture(sas, components, self._window, mappings),
             "tasks": task_managers(counters, tasks, metrics),
             "decisions": self.feed.decisions(),
         }

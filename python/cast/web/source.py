@@ -15,13 +15,14 @@ from typing import Any, TypeVar
 
 import grpc
 
+from cast.bridges.status import STATUS_TYPE, statuses_of
 from cast.client.channel import ServerLink, map_rpc_error
 from cast.client.credentials import ClientTls, TokenSource
 from cast.core.metrics_view import merge_snapshots
 from cast.errors import CastError, NotFoundError
 from cast.server.metrics_wire import snapshot_from_pb
+from cast.v1 import bridge_pb2, entry_pb2
 from cast.v1 import directory_pb2 as dir_pb2
-from cast.v1 import entry_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
@@ -127,6 +128,17 @@ class SystemSource:
         for link, _ in self.servers():
             out.extend(self._call(link.tm.ListTasks, tm_pb2.ListTasksRequest()).tasks)
         return out
+
+    def bridge_statuses(self) -> list[bridge_pb2.BridgeStatus]:
+        """The status entry of every bridge (``cast.v1.BridgeStatus``, in any SA: docs/ros.md)."""
+        entries: list[entry_pb2.Entry] = []
+        for link, hosted in self.servers():
+            for sa in hosted:
+                # Listing counts as no read in the metrics the page shows: only a WM with a status is read.
+                if self.entries(sa, STATUS_TYPE).entries:
+                    request = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=STATUS_TYPE)
+                    entries.extend(self._call(link.wm.GetByType, request).entries)
+        return statuses_of(entries)
 
     def entries(self, sa: str, type_name: str = "", limit: int = 0) -> insp_pb2.ListEntriesResponse:
         """The entries of one WM without values (the most recent ``limit``, oldest first; 0: all)."""

@@ -28,8 +28,13 @@ def _seconds(ts: Any) -> float | None:
 
 
 def architecture(sas: list[dir_pb2.SubarchitectureInfo], components: list[dir_pb2.ComponentInfo],
-                 window: RateWindow) -> dict[str, Any]:
-    """SAs (their WM's size and events/s now), components (language, host, state, restarts) and cross-SA traffic."""
+                 window: RateWindow, mappings: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """SAs (their WM's size and events/s now), components (language, host, state, restarts) and cross-SA traffic.
+
+    ``mappings``: the rows of bridges' status entries (cast.bridges.status); a
+    bridge's component lists its own, with their rates and errors.
+    """
+    mappings = mappings or []
     events = window.events_per_s()
     within = window.within()
     return {
@@ -43,6 +48,7 @@ def architecture(sas: list[dir_pb2.SubarchitectureInfo], components: list[dir_pb
             "id": c.id, "subarchitecture": c.subarchitecture, "language": c.language, "kind": c.kind,
             "privileged": c.privileged, "state": _state(c.state), "host": c.host, "pid": c.pid,
             "sessions": c.sessions, "restarts": max(0, c.sessions - 1),
+            "mappings": [m for m in mappings if m["bridge"] == c.id],
         } for c in components],
         "traffic": window.traffic(),
         "rates": {"events_per_s": events, "latency": window.latency()},

@@ -4,6 +4,16 @@ import { el, langName, rate, svg } from "./util.js";
 
 const STATE_CLASS = { running: "ok", started: "wait", starting: "wait", stopping: "wait", disconnected: "bad" };
 
+// A bridge's mappings (docs/ros.md): which way, the topic, how many a second, and what went wrong last.
+function mappingRow(m) {
+  const way = m.direction === "to_wm" ? "ROS → WM" : "WM → ROS";
+  const errors = m.errors ? ` · ${m.errors} errors` : "";
+  const dropped = m.dropped ? ` · ${m.dropped} dropped` : "";
+  return el("div", { class: `mapping ${m.errors ? "bad" : ""}`, "data-mapping": m.topic,
+                     title: m.last_error ? `last error: ${m.last_error}` : `${m.ros_type} ↔ ${m.entry_type}` },
+    `${way} ${m.topic} → ${m.subarchitecture}: ${rate(m.rate_hz)}/s · ${m.delivered}${dropped}${errors}`);
+}
+
 function componentRow(c) {
   const restarts = c.restarts > 0 ? `↻ ${c.restarts}` : "";
   const where = [c.kind, c.host ? `on ${c.host}` : "", c.pid ? `pid ${c.pid}` : "", c.privileged ? "privileged" : ""]
@@ -13,7 +23,8 @@ function componentRow(c) {
     el("span", { class: "id" }, c.id),
     el("span", { class: `lang ${c.language}` }, langName(c.language)),
     el("span", { class: `restarts ${c.restarts > 0 ? "some" : ""}`, title: "restarts" }, restarts),
-    el("span", { class: "sub" }, `${c.state}${where ? " · " + where : ""}`));
+    el("span", { class: "sub" }, `${c.state}${where ? " · " + where : ""}`),
+    ...(c.mappings || []).map(mappingRow));
 }
 
 function saBox(sa, components) {

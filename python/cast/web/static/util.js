@@ -68,7 +68,7 @@ export function shortType(type) {
 
 /** A language's badge text. */
 export function langName(lang) {
-  return { python: "Python", cpp: "C++", java: "Java" }[lang] || lang || "?";
+  return { python: "Python", cpp: "C++", java: "Java", ros: "ROS bridge" }[lang] || lang || "?";
 }
 
 /** Bytes for people. */
