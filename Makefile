@@ -62,14 +62,15 @@ examples: $(EXAMPLES_STAMP)
 demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
+# CAST_TEST_MVN: the Maven command of the tests that build Java projects (MVN, with its local repository).
 test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps ros-demo-types
-	$(PY) -m pytest -q tests --ignore=tests/packaging
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
 # with find_package, the Java example built on the installed cast-bom and cast-client.
 package-test: setup proto cpp java
-	$(PY) -m pytest -q tests/packaging
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
 test: test-cpp test-java java-demo test-python package-test
 
@@ -131,17 +132,21 @@ cpp: cpp-deps
 	cmake -S cpp_client -B $(CPP_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
 	cmake --build $(CPP_BUILD) -j2
 
-# setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server).
+# setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server,
+# the testing kit's and the hello example's tests, which find `cast` on PATH as a user's would).
 test-cpp: cpp setup proto
-	ctest --test-dir $(CPP_BUILD) --output-on-failure
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" ctest --test-dir $(CPP_BUILD) --output-on-failure
 
 # The Java client library (java_client/): target/cast-client-all.jar for component processes
 # (`java -cp cast-client-all.jar:... cast.client.Runner Class`), the test classes the interop
-# tests run, and cast:cast-bom and cast:cast-client (with its sources and javadoc jars) installed
-# into ~/.m2 for users' Maven projects (examples/java).
+# tests run, and cast:cast-bom, cast:cast-client and cast:cast-testing (with their sources and
+# javadoc jars) installed into ~/.m2 for users' Maven projects (examples/java).
 # The first build downloads grpc-java, protobuf and the Maven plugins from Maven Central.
 JAVA_JAR := java_client/target/cast-client-all.jar
 JAVA_SOURCES := java_client/pom.xml java_client/bom/pom.xml VERSION $(shell find java_client/src -type f 2>/dev/null) $(wildcard tests/protos/*.proto)
+# cast:cast-testing (java_client/testing): the kit for testing components, on cast-client.
+JAVA_TESTING_JAR := java_client/testing/target/cast-testing-$(shell cat VERSION).jar
+JAVA_TESTING_SOURCES := java_client/testing/pom.xml $(shell find java_client/testing/src -type f 2>/dev/null)
 MVN := mvn -B -ntp
 .PHONY: java java-deps test-java
 
@@ -154,7 +159,11 @@ $(JAVA_JAR): $(JAVA_SOURCES) $(PROTOS)
 	cd java_client && $(MVN) -q -f bom/pom.xml install && $(MVN) -q install -DskipTests
 	touch $@
 
-java: java-deps $(JAVA_JAR)
+$(JAVA_TESTING_JAR): $(JAVA_TESTING_SOURCES) $(JAVA_JAR)
+	cd java_client && $(MVN) -q -f testing/pom.xml install -DskipTests
+	touch $@
+
+java: java-deps $(JAVA_JAR) $(JAVA_TESTING_JAR)
 
 # The demo's Java colour recogniser (examples/java-demo): a Maven project on cast:cast-client
 # that generates the demo's entry types from examples/proto; configs/demo/colour-java.yaml
@@ -173,6 +182,7 @@ java-demo: java $(JAVA_DEMO_JAR)
 # server (`cast serve` from .venv, java_client/src/test/java/cast/client/RealServer.java).
 test-java: setup proto java
 	cd java_client && $(MVN) surefire:test
+	cd java_client && $(MVN) -f testing/pom.xml test-compile surefire:test
 
 # The Node.js example component (examples/node): Debian's nodejs and npm when node or npm is
 # missing (apt-get update only then), its packages with `npm ci` (again when package-lock.json

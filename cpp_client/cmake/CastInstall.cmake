@@ -7,6 +7,7 @@
 #   PREFIX/lib/libcast_client.a|.so    the library (BUILD_SHARED_LIBS chooses)
 #   PREFIX/lib/libcast_v1_proto.a      the wire API's code (linked into a shared library; a
 #                                      static one needs it beside it)
+#   PREFIX/lib/libcast_testing.a|.so   the testing kit (cast/testing.h, the component `testing`)
 #   PREFIX/lib/cmake/cast/             castConfig.cmake, castConfigVersion.cmake, castTargets*.cmake,
 #                                      CastProtobuf.cmake (cast_add_entry_types)
 #   PREFIX/lib/pkgconfig/cast.pc
@@ -14,7 +15,7 @@ include(CMakePackageConfigHelpers)
 
 set(CAST_CMAKE_DIR "${CMAKE_INSTALL_LIBDIR}/cmake/cast")
 
-install(TARGETS cast_client cast_v1_proto EXPORT castTargets
+install(TARGETS cast_client cast_testing cast_v1_proto EXPORT castTargets
   ARCHIVE DESTINATION "${CMAKE_INSTALL_LIBDIR}"
   LIBRARY DESTINATION "${CMAKE_INSTALL_LIBDIR}"
   RUNTIME DESTINATION "${CMAKE_INSTALL_BINDIR}")

@@ -9,6 +9,7 @@
 #include <cstring>
 #include <future>
 #include <iostream>
+#include <mutex>
 #include <thread>
 
 #include "cast/grpc_transport.h"
@@ -129,7 +130,7 @@ std::shared_ptr<detail::Transport> LaunchContract::connect(std::chrono::millisec
 }
 
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
-                 bool handleSignals, bool startBarrier) {
+                 bool handleSignals, bool startBarrier, const std::function<void()>& onStarted) {
   if (handleSignals) installSignalHandlers();
   component.bind(transport);
   const Logger& log = component.log();
@@ -151,6 +152,10 @@ int runComponent(Component& component, std::shared_ptr<detail::Transport> transp
 
   std::promise<void> runDone;
   auto runFinished = runDone.get_future();
+  std::once_flag saidStarted;
+  auto sayStarted = [&] {
+    if (onStarted) std::call_once(saidStarted, onStarted);
+  };
   std::thread worker([&] {
     try {
       component.configure(args);
@@ -167,6 +172,7 @@ int runComponent(Component& component, std::shared_ptr<detail::Transport> transp
       // follows, run() never runs.
       if (go) {
         component.setState(ComponentState::Running);
+        sayStarted();
         component.run();
       }
     } catch (...) {
@@ -174,6 +180,7 @@ int runComponent(Component& component, std::shared_ptr<detail::Transport> transp
       failed = true;
       stopOnce();
     }
+    sayStarted();  // also when the lifecycle ended before run(): nobody waits forever
     runDone.set_value();
   });
 

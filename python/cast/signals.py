@@ -12,10 +12,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import faulthandler
+import os
 import signal
 import sys
+import threading
 
-__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "until_terminated"]
+__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "terminate_when_stdin_closes", "until_terminated"]
 
 STACK_DUMP_SIGNAL = signal.SIGQUIT
 """The signal on which a Python or Java process of ours prints every thread's stack and carries on."""
@@ -41,3 +43,24 @@ async def until_terminated() -> None:
         with contextlib.suppress(NotImplementedError):
             loop.add_signal_handler(sig, stop.set)
     await stop.wait()
+
+
+def terminate_when_stdin_closes() -> threading.Thread:
+    """From now on, the end of standard input is a SIGTERM to this process (``--exit-with-stdin``).
+
+    A process that starts ours with a pipe as its standard input keeps the other end open for as
+    long as it lives; when it ends, however it ends (a failed test, a crash, SIGKILL), the kernel
+    closes that end, our read sees the end of the file, and we stop as on SIGTERM: the clean
+    shutdown. So a test kit leaves no server behind, even when its own process is killed.
+    Whatever arrives on standard input before its end is read and ignored.
+    """
+
+    def watch() -> None:
+        with contextlib.suppress(OSError):
+            while os.read(0, 4096):
+                pass
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=watch, name="cast-stdin-lifeline", daemon=True)
+    thread.start()
+    return thread

@@ -12,7 +12,6 @@ import queue
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ import grpc
 
 from cast.auth import TokenSigner
 from cast.core.records import Identity
+from cast.testing import wait_for
 from cast.v1 import agent_pb2, agent_pb2_grpc
 from tests.conftest import stop_process
 
@@ -195,15 +195,14 @@ class Attachment:
         return [f for f in found if component_id is None or getattr(f, "component_id", None) == component_id]
 
     def wait(self, condition: Callable[[], Any], timeout: float = 30.0, what: str = "events") -> Any:
-        """Poll ``condition`` until truthy (a guard timeout, not a measurement)."""
-        deadline = time.monotonic() + timeout
-        while True:
+        """Poll ``condition`` until truthy (cast.testing.wait_for: a guard timeout, not a measurement); the
+        failure lists the events so far."""
+        def seen() -> Any:
             value = condition()
-            if value:
-                return value
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out waiting for {what}; events: {self.events}; error: {self.error}")
-            time.sleep(0.02)
+            assert value, f"events: {self.events}; error: {self.error}"
+            return value
+
+        return wait_for(seen, timeout, what)
 
     def close(self) -> None:
         """End the request stream (the orchestrator goes away cleanly)."""

@@ -106,7 +106,7 @@ def test_tasks_counts_and_live_tasks(demo: CastRun) -> None:
 
 
 def test_inspection_without_a_running_system_says_so(demo: CastRun, tmp_path: Path) -> None:
-    env = {k: v for k, v in demo.env().items() if k != "CAST_RUNTIME_DIR"}
+    env = {k: v for k, v in demo.cli_environment().items() if k != "CAST_RUNTIME_DIR"}
     out = subprocess.run([CAST, "components"], cwd=str(tmp_path), env=env, capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 2

@@ -69,7 +69,7 @@ def test_joining_commands(demo: CastRun) -> None:
     ])
     running = "import json,sys; sys.exit(not any(c['id'] == 'visitor' and c['state'] == 'running' " \
               "for c in json.load(sys.stdin)))"
-    out = shell(script, {**demo.env(), "RUNNING": running})
+    out = shell(script, {**demo.cli_environment(), "RUNNING": running})
     assert out.returncode == 0, out.stderr
     rows = json.loads(out.stdout)
     visitor = next(r for r in rows if r["id"] == "visitor")
@@ -82,7 +82,7 @@ def test_inspection_commands(demo: CastRun) -> None:
     assert [line.split()[1] for line in lines] == ["components", "ls", "get", "watch", "tasks", "stats"]
     outputs = {}
     for line in lines:
-        out = shell(line, demo.env())
+        out = shell(line, demo.cli_environment())
         assert out.returncode == 0, f"{line}: {out.stderr}"
         outputs[line.split()[1]] = out.stdout
     assert "coordinator" in outputs["components"]

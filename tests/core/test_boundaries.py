@@ -58,6 +58,9 @@ ABOVE = {
     # the ROS bridge: a component on the client library (and the configuration's mapping model)
     "bridges": ("cast.server", "cast.orchestrator", "cast.agent", "cast.cli", "cast.recording", "cast.liveview",
                 "cast.web", "cast.experiments", "cast.export"),
+    # the test kit: servers and clients in the test's process, `cast serve` and `cast run` as processes
+    "testing": ("cast.orchestrator", "cast.agent", "cast.cli", "cast.recording", "cast.liveview", "cast.web",
+                "cast.experiments", "cast.export"),
 }
 
 

@@ -11,6 +11,10 @@ A marker is an HTML comment on the line right before a block's opening fence:
   exit 0;
 - ``<!-- output -->``: what the ``run`` block before it prints on stdout, compared after
   normalising what changes from run to run (generated ids, versions, times);
+- ``<!-- test -->``: the block is a test file of the testing kit (cast.testing, cast/testing.h,
+  cast-testing), run by its language's test framework in the page's working directory: pytest,
+  GoogleTest (compiled against the library `make cpp` built), JUnit 5 under Maven (on the
+  artifacts `make java` installed). Every test in it must pass;
 - ``<!-- file PATH -->`` / ``<!-- excerpt PATH -->``: the block is that file of the repository
   (without a first line that only points an editor at a JSON schema), or a part of it (whitespace
   aside); the page says which test builds or runs the file;
@@ -30,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 # The pages whose every code block is tested.
 PAGES = ("docs/python.md", "docs/cpp.md", "docs/java.md", "docs/design.md", "docs/ros.md")
-KINDS = ("save", "run", "output", "file", "excerpt", "tested-by", "fragment")
+KINDS = ("save", "run", "output", "test", "file", "excerpt", "tested-by", "fragment")
 MAX_FRAGMENTS = 2
 
 FENCE = re.compile(r"^```(?P<lang>[\w+-]*)\n(?P<code>.*?)^```[ \t]*$", re.M | re.S)

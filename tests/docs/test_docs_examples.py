@@ -2,8 +2,10 @@
 
 How each block is tested is said by its marker (see tests/docs/pages.py): examples run against a
 real server started on port 0 (C++ ones compiled against the library `make cpp` built, Java ones
-against java_client/target/cast-client-all.jar) and print what the page shows; blocks that show
-files are those files; the rest name the test that checks them, or are marked as fragments.
+against java_client/target/cast-client-all.jar) and print what the page shows; the pages' tests
+of the testing kit pass under pytest, GoogleTest and JUnit, each starting its own systems; blocks
+that show files are those files; the rest name the test that checks them, or are marked as
+fragments.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import PYTHONPATH, SECRET, ServerHandle, run_to_end
+from tests.conftest import PYTHONPATH, SECRET, ServerHandle, maven, run_to_end
 from tests.docs.pages import KINDS, MAX_FRAGMENTS, PAGES, ROOT, Block, blocks, normalise, shown
 
 BIN = Path(sys.executable).parent
@@ -200,3 +202,99 @@ def test_the_example_runs_and_prints_what_the_page_shows(block: Block, server: S
     else:
         raise AssertionError(f"{block.where}: no way to run a '{block.lang}' block")
     check(run_example(command, work, env, block), block)
+
+
+# ------------------------------------------------------------------ the pages' tests of the testing kit
+
+
+def kit_test_blocks() -> list[Block]:
+    return [b for page in PAGES for b in blocks(page) if b.kind == "test"]
+
+
+JAVA_TEST_POM = """<?xml version="1.0" encoding="UTF-8"?>
+<project xmlns="http://maven.apache.org/POM/4.0.0">
+  <modelVersion>4.0.0</modelVersion>
+  <groupId>docs</groupId>
+  <artifactId>page-test</artifactId>
+  <version>1</version>
+  <properties>
+    <maven.compiler.release>17</maven.compiler.release>
+    <project.build.sourceEncoding>UTF-8</project.build.sourceEncoding>
+  </properties>
+  <dependencyManagement>
+    <dependencies>
+      <dependency>
+        <groupId>cast</groupId><artifactId>cast-bom</artifactId><version>{version}</version>
+        <type>pom</type><scope>import</scope>
+      </dependency>
+    </dependencies>
+  </dependencyManagement>
+  <dependencies>
+    <dependency><groupId>cast</groupId><artifactId>cast-client</artifactId></dependency>
+    <dependency><groupId>cast</groupId><artifactId>cast-testing</artifactId><scope>test</scope></dependency>
+    <dependency>
+      <groupId>org.junit.jupiter</groupId><artifactId>junit-jupiter</artifactId><version>5.10.2</version>
+      <scope>test</scope>
+    </dependency>
+  </dependencies>
+  <build>
+    <plugins>
+      <plugin>
+        <groupId>org.apache.maven.plugins</groupId><artifactId>maven-compiler-plugin</artifactId><version>3.13.0</version>
+      </plugin>
+      <plugin>
+        <groupId>org.apache.maven.plugins</groupId><artifactId>maven-resources-plugin</artifactId><version>3.3.1</version>
+      </plugin>
+      <plugin>
+        <groupId>org.apache.maven.plugins</groupId><artifactId>maven-surefire-plugin</artifactId><version>3.2.5</version>
+      </plugin>
+    </plugins>
+  </build>
+</project>
+"""
+
+
+@pytest.mark.timeout(600)  # a compile or a Maven build on a busy 2-core machine, then the tests' own servers
+@pytest.mark.parametrize("block", kit_test_blocks(), ids=lambda b: b.where)
+def test_the_pages_tests_pass_with_the_testing_kit(block: Block, tmp_path: Path) -> None:
+    work = tmp_path / "work"
+    work.mkdir()
+    prepare(block, work)
+    env = clean_env()  # `cast` on PATH: the kits find the server there, as in a user's activated environment
+    if block.lang == "python":
+        (work / "test_page.py").write_text(block.code)
+        env = {k: v for k, v in env.items() if not k.startswith(("PYTEST_", "PYTHONPATH"))}
+        command = [sys.executable, "-m", "pytest", "-v", "-p", "no:cacheprovider", "test_page.py"]
+        passed = r"=+ (\d+) passed in "
+    elif block.lang == "cpp":
+        need_cpp()
+        source = work / "page_test.cc"
+        source.write_text(block.code)
+        libs = subprocess.run(["pkg-config", "--libs", "grpc++", "protobuf", "libcrypto", "gtest_main"],
+                              capture_output=True, text=True, check=True).stdout.split()
+        binary = work / "page_test"
+        made = subprocess.run(
+            ["c++", "-std=c++17", f"-I{ROOT / 'cpp_client' / 'include'}", str(source),
+             str(CPP_BUILD / "libcast_testing.a"), str(CPP_BUILD / "libcast_client.a"),
+             str(CPP_BUILD / "libcast_v1_proto.a"), *libs, "-o", str(binary)],
+            capture_output=True, text=True, timeout=300,
+        )
+        assert made.returncode == 0, f"{block.where} does not compile:\n{made.stderr[-6000:]}"
+        command = [str(binary)]
+        passed = r"\[  PASSED  \] (\d+) tests?\."
+    elif block.lang == "java":
+        need_java()
+        name = re.search(r"^class (\w+)", block.code, re.M)
+        assert name, f"{block.where}: no test class"
+        (work / "src" / "test" / "java").mkdir(parents=True)
+        (work / "src" / "test" / "java" / f"{name[1]}.java").write_text(block.code)
+        (work / "pom.xml").write_text(JAVA_TEST_POM.format(version=(ROOT / "VERSION").read_text().strip()))
+        command = [*maven(), "test"]
+        passed = r"Tests run: (\d+), Failures: 0, Errors: 0, Skipped: 0\n"
+    else:
+        raise AssertionError(f"{block.where}: no test framework for a '{block.lang}' block")
+    done = run_to_end(command, block.where, 480, cwd=work, env=env)
+    printed = done.stdout + done.stderr
+    assert done.returncode == 0, f"{block.where}'s tests failed ({done.returncode}):\n{printed[-8000:]}"
+    counted = re.search(passed, printed)
+    assert counted and int(counted[1]) >= 2, f"{block.where}: fewer tests passed than the page has:\n{printed[-4000:]}"

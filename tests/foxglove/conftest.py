@@ -29,6 +29,7 @@ from google.protobuf.message import Message
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
+from cast.testing import wait_for
 from tests.conftest import stop_process
 from tests.recording.conftest import CAST, cli_env
 from tests.recording.conftest import recorders as recorders  # the fixture, for the recording comparison
@@ -160,14 +161,17 @@ class FoxgloveClient:
                 self._subscribe_again(int(unknown.group(1)))
 
     def wait(self, condition: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
-        """Read frames until ``condition()`` holds; its value. The timeout guards against a hang only."""
-        deadline = time.monotonic() + timeout
-        while not (value := condition()):
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out waiting for {what}; channels {self.channels}, subscriptions "
-                                     f"{self._subscriptions}, {len(self.messages)} messages, status {self.status}")
-            self._pump(0.2)
-        return value
+        """Read frames until ``condition()`` holds; its value (cast.testing.wait_for: the timeout guards against a
+        hang only, and its failure says what had come)."""
+        def pumped() -> Any:
+            value = condition()
+            if not value:
+                self._pump(0.2)
+            assert value, (f"channels {self.channels}, subscriptions {self._subscriptions}, {len(self.messages)} "
+                           f"messages, status {self.status}")
+            return value
+
+        return wait_for(pumped, timeout, what)
 
     def channel(self, topic: str) -> dict[str, Any]:
         """The advertised channel of a topic, waiting for its advertisement."""

@@ -15,16 +15,7 @@ from cast_testing_pb2 import Counter, Pose
 
 import cast
 from cast.v1 import directory_pb2
-from tests.conftest import ServerHandle
-
-
-def wait_until(predicate, timeout: float = 30.0, what: str = "condition") -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+from tests.conftest import ServerHandle, wait_for
 
 
 def finish(proc, timeout: float = 60.0) -> str:  # type: ignore[no-untyped-def]
@@ -45,7 +36,7 @@ def test_many_writers_in_several_sas_one_watcher_sees_every_event_once_in_order(
     for proc in writers:
         finish(proc)
     expected_per_writer = 40 + 40 + len(range(0, 40, 3))  # adds, overwrites, deletes
-    wait_until(lambda: len(events) >= 6 * expected_per_writer, what="all events")
+    wait_for(lambda: len(events) >= 6 * expected_per_writer, what="all events")
     watcher.drain(5)
     time.sleep(0.2)
     assert len(events) == 6 * expected_per_writer  # nothing twice
@@ -97,7 +88,7 @@ def test_managed_component_task_is_adopted_through_the_task_manager(server: Serv
 def test_sigterm_calls_the_stop_hook(server: ServerHandle) -> None:
     proc = server.spawn("itest_components:StopRecorder", "recorder", "vision")
     reader = server.connect("reader", "vision")
-    wait_until(lambda: reader.exists("started"), what="component start")
+    wait_for(lambda: reader.exists("started"), what="component start")
     proc.send_signal(signal.SIGTERM)
     finish(proc)
     assert reader.get("stopped", Pose).label == "stop hook ran"
@@ -107,7 +98,7 @@ def test_sigterm_calls_the_stop_hook(server: ServerHandle) -> None:
 def test_a_killed_components_locks_are_released(server: ServerHandle) -> None:
     proc = server.spawn("itest_components:Crasher", "crasher", "vision")
     other = server.connect("other", "vision")
-    wait_until(lambda: other.exists("ready"), what="crasher ready")
+    wait_for(lambda: other.exists("ready"), what="crasher ready")
     with pytest.raises(cast.LockedError, match="locked \\(ODR\\) by component 'crasher'"):
         other.get("held", Pose)
     os.kill(proc.pid, signal.SIGKILL)
@@ -154,7 +145,7 @@ def test_in_process_component_under_cast_serve(server_factory) -> None:  # type:
         }
     )
     reader = handle.connect("reader", "language")
-    wait_until(lambda: len(reader.get_all(Counter, subarchitecture="vision")) == 3, what="in-process writes")
+    wait_for(lambda: len(reader.get_all(Counter, subarchitecture="vision")) == 3, what="in-process writes")
     entries = reader.get_all(Counter, subarchitecture="vision")
     # Each was added, then overwritten once with the version its add returned (the Writer checks it).
     assert {e.author for e in entries} == {"inside"} and len({e.version for e in entries}) == 1
@@ -186,7 +177,7 @@ def test_the_directory_shows_a_component_running_as_soon_as_its_run_begins(serve
                 info = next(c for c in desc.components if c.id == "announcer")
                 return directory_pb2.ComponentState.Name(info.state)
 
-            wait_until(lambda: state() == "COMPONENT_STATE_RUNNING", timeout=10, what="RUNNING in the directory")
+            wait_for(lambda: state() == "COMPONENT_STATE_RUNNING", timeout=10, what="RUNNING in the directory")
         finally:
             reader._cast_close()
     finally:

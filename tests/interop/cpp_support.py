@@ -12,14 +12,12 @@ from __future__ import annotations
 import json
 import os
 import queue
-import signal
-import subprocess
-import threading
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from cast.testing import RunningSystem, run_system
 from tests.interop.child import ChildProcess
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -113,83 +111,7 @@ class CppProbe(CppProcess):
         return self.wait(timeout)
 
 
-class CastRun:
-    """A ``cast run CONFIG --no-status`` process with its own runtime directory, and ways to reach it."""
-
-    def __init__(self, config: Path, runtime_dir: Path, extra: list[str] | None = None) -> None:
-        import sys
-
-        self.runtime_dir = runtime_dir
-        # The orchestrator issues identities itself: no launch contract of ours may leak into it.
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        if "CAST_CPP_BIN_DIR" in os.environ:
-            env["CAST_CPP_BIN_DIR"] = os.environ["CAST_CPP_BIN_DIR"]
-        self.proc = subprocess.Popen(
-            [str(Path(sys.executable).parent / "cast"), "run", str(config), "--no-status",
-             "--runtime-dir", str(runtime_dir), *(extra or [])],
-            cwd=config.parent, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )
-        self.lines: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
-
-    def _pump(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    def output(self) -> str:
-        """What ``cast run`` printed so far."""
-        return "".join(self.lines[-80:])
-
-    def state(self, timeout: float = 60.0) -> dict[str, Any]:
-        """The running system's description (system.json), once it is written."""
-        import time
-
-        path = self.runtime_dir / "system.json"
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"cast run exited ({self.proc.returncode})\n{self.output()}")
-            try:
-                state: dict[str, Any] = json.loads(path.read_text())
-                if state.get("endpoint"):
-                    return state
-            except (OSError, ValueError):
-                pass
-            time.sleep(0.05)
-        raise AssertionError(f"cast run wrote no {path} within {timeout} s\n{self.output()}")
-
-    def endpoint(self) -> str:
-        """The directory address of the running system."""
-        return str(self.state()["endpoint"])
-
-    def token(self, component_id: str, sa: str, privileged: bool = False) -> str:
-        """A token the running system accepts (signed with its secret)."""
-        from cast.auth import TokenSigner
-        from cast.core.records import Identity
-
-        self.state()  # the secret is written before the system description
-        secret = (self.runtime_dir / "secret").read_bytes().strip()
-        return TokenSigner(secret).issue(Identity(component_id, sa, privileged))
-
-    def connect(self, component_id: str, sa: str, cls: Any = None) -> Any:
-        """A Python component bound to the running system over gRPC (close with ``_cast_close()``)."""
-        from cast import UnmanagedComponent
-        from cast.client.grpc_transport import GrpcTransport
-        from cast.core.records import Identity
-
-        component = (cls or UnmanagedComponent)()
-        identity = Identity(component_id, sa, False)
-        component._cast_bind(GrpcTransport(self.endpoint(), self.token(component_id, sa), identity))
-        return component
-
-    def stop(self, timeout: float = 60.0) -> int:
-        """SIGINT, as Ctrl-C would; the exit status."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(10)
-            raise AssertionError(f"cast run did not stop within {timeout} s\n{self.output()}") from None
+def cast_run(config: Path, runtime_dir: Path, extra: list[str] | None = None) -> RunningSystem:
+    """``cast run CONFIG --no-status`` (the kit's run_system) with the C++ components of build/cpp/bin."""
+    env = {"CAST_CPP_BIN_DIR": os.environ["CAST_CPP_BIN_DIR"]} if "CAST_CPP_BIN_DIR" in os.environ else None
+    return run_system(config, *(extra or []), env=env, directory=runtime_dir.parent, runtime_dir=runtime_dir)

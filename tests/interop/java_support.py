@@ -14,8 +14,6 @@ import math
 import os
 import queue
 import shutil
-import signal
-import subprocess
 import threading
 from pathlib import Path
 from typing import Any
@@ -23,6 +21,7 @@ from typing import Any
 import pytest
 from google.protobuf.message import Message
 
+from cast.testing import RunningSystem, run_system
 from tests.interop.child import ChildProcess
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -226,91 +225,6 @@ def field_diffs(want: Message, got: Message) -> list[str]:
 # ------------------------------------------------------------------ cast run
 
 
-class CastRun:
-    """A `cast run CONFIG --no-status` process with its own runtime directory."""
-
-    def __init__(self, config: Path, runtime_dir: Path, cwd: Path) -> None:
-        import sys
-
-        self.cast = str(Path(sys.executable).parent / "cast")
-        self.runtime_dir = runtime_dir
-        self.cwd = cwd
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        self.proc = subprocess.Popen(
-            [self.cast, "run", str(config), "--no-status", "--runtime-dir", str(runtime_dir)],
-            cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )
-        self.lines: list[str] = []
-        connected = threading.Event()
-
-        def pump() -> None:
-            assert self.proc.stdout is not None
-            for line in self.proc.stdout:
-                self.lines.append(line)
-                if "components started in" in line:
-                    connected.set()
-            connected.set()
-
-        threading.Thread(target=pump, daemon=True).start()
-        if not connected.wait(90) or self.proc.poll() is not None:
-            self.proc.kill()
-            raise AssertionError(f"cast run did not start:\n{self.output()}")
-
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def endpoint(self) -> str:
-        return str(json.loads((self.runtime_dir / "system.json").read_text())["endpoint"])
-
-    def token(self, component_id: str, sa: str, privileged: bool = False) -> str:
-        from cast.auth import TokenSigner
-        from cast.core.records import Identity
-
-        secret = (self.runtime_dir / "secret").read_bytes().strip()
-        return TokenSigner(secret).issue(Identity(component_id, sa, privileged))
-
-    def connect(self, component_id: str, sa: str, cls: Any = None) -> Any:
-        """A Python component joining the running system (close with ._cast_close())."""
-        from cast import UnmanagedComponent
-        from cast.client.grpc_transport import GrpcTransport
-        from cast.core.records import Identity
-
-        component = (cls or UnmanagedComponent)()
-        transport = GrpcTransport(self.endpoint(), self.token(component_id, sa), Identity(component_id, sa, False))
-        component._cast_bind(transport)
-        return component
-
-    def components(self) -> dict[str, Any]:
-        """The system's components as the directory describes them (id -> ComponentInfo)."""
-        from tests.conftest import components
-
-        return components(self.endpoint(), self.token("tool", "tools"))
-
-    def wait_running(self, component_id: str, timeout: float = 30.0) -> Any:
-        """Wait until a component reports RUNNING (its start() returned); its ComponentInfo."""
-        import time
-
-        from cast.v1 import directory_pb2
-
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            info = self.components().get(component_id)
-            if info is not None and info.state == directory_pb2.COMPONENT_STATE_RUNNING:
-                return info
-            time.sleep(0.05)
-        raise AssertionError(f"{component_id} did not reach RUNNING within {timeout} s\n{self.output()}")
-
-    def cli(self, *args: str) -> subprocess.CompletedProcess[str]:
-        """A `cast` command aimed at this run."""
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        env["CAST_RUNTIME_DIR"] = str(self.runtime_dir)
-        return subprocess.run([self.cast, *args], cwd=self.cwd, env=env, capture_output=True, text=True, timeout=60)
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            raise AssertionError(f"cast run did not stop within 60 s:\n{self.output()}") from None
+def cast_run(config: Path, runtime_dir: Path, cwd: Path) -> RunningSystem:
+    """``cast run CONFIG --no-status`` (the kit's run_system) in ``cwd``."""
+    return run_system(config, cwd=cwd, directory=runtime_dir.parent, runtime_dir=runtime_dir)

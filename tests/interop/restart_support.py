@@ -12,6 +12,7 @@ from typing import Any
 from cast_testing_pb2 import Counter
 
 import cast
+from cast.testing import wait_for
 from tests.reliability.conftest import write_config
 
 
@@ -37,15 +38,12 @@ def write_until(c: Any, prefix: str, n: int) -> None:
 
 
 def eventually(predicate: Callable[[], Any], timeout: float = 30.0) -> Any:
-    """The first truthy value of ``predicate`` within ``timeout`` seconds; None if it never was one
-    (the caller asserts, with the output that explains the failure)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    return None
+    """The first truthy value of ``predicate`` within ``timeout`` seconds (cast.testing.wait_for); None if it
+    never was one (the caller asserts, with the output that explains the failure)."""
+    try:
+        return wait_for(predicate, timeout)
+    except AssertionError:
+        return None
 
 
 def readable(component: Any, entry_id: str) -> bool:

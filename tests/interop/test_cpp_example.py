@@ -39,7 +39,8 @@ def clean_env() -> dict[str, str]:
 
 
 def test_page_snippets_are_the_example_files() -> None:
-    assert block("cpp") == (EXAMPLE / "hello.cc").read_text()
+    assert [block("cpp", i) for i in range(3)] == [(EXAMPLE / name).read_text()
+                                                   for name in ("hello.h", "hello.cc", "hello_test.cc")]
     assert block("proto") == (EXAMPLE / "greeting.proto").read_text()
     assert block("cmake") == (EXAMPLE / "CMakeLists.txt").read_text()
     assert block("yaml") == shown("examples/cpp/hello/system.yaml")

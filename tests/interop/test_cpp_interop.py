@@ -272,7 +272,7 @@ def test_cpp_routes_by_sa_across_two_servers(tmp_path: Any) -> None:
 
     import yaml
 
-    from tests.interop.cpp_support import CastRun
+    from tests.interop.cpp_support import cast_run
 
     config = tmp_path / "two.yaml"
     config.write_text(yaml.safe_dump({
@@ -280,13 +280,13 @@ def test_cpp_routes_by_sa_across_two_servers(tmp_path: Any) -> None:
         "subarchitectures": {"vision": {}, "motor": {}},
         "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
     }))
-    run = CastRun(config, tmp_path / "runtime")
+    run = cast_run(config, tmp_path / "runtime")
     probe = None
     try:
         servers = run.state()["servers"]
         assert len({s["endpoint"] for s in servers.values()}) == 2, servers
         env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        env.update(CAST_ENDPOINT=run.endpoint(), CAST_COMPONENT_ID="crouter", CAST_SUBARCHITECTURE="vision",
+        env.update(CAST_ENDPOINT=run.endpoint, CAST_COMPONENT_ID="crouter", CAST_SUBARCHITECTURE="vision",
                    CAST_TOKEN=run.token("crouter", "vision", privileged=True), CAST_ARGS="{}")
         probe = CppProbe(env)
         probe.ready()
@@ -297,7 +297,7 @@ def test_cpp_routes_by_sa_across_two_servers(tmp_path: Any) -> None:
         assert sorted((e["sa"], e["id"]) for e in events) == [("motor", "there"), ("vision", "here")]
         # Each revision counts on its own server: both writes are revision 1 of their WM.
         assert [e["revision"] for e in events] == [1, 1]
-        py = run.connect("pyrouter", "motor")
+        py = run.act_as("pyrouter", "motor")
         try:
             assert py.get("there", Counter).value == 2
         finally:

@@ -12,7 +12,7 @@ from typing import Any
 
 from tests.conftest import ServerHandle
 from tests.interop import scenarios_reliability as s
-from tests.interop.cpp_support import CastRun
+from tests.interop.cpp_support import cast_run
 from tests.reliability.conftest import write_config
 
 
@@ -62,7 +62,7 @@ def test_the_orchestrator_renews_tokens_of_cpp_components(tmp_path: Path) -> Non
             "args": {"tasks": 3, "work_ms": 4000},
         }}}},
     })
-    run = CastRun(config, tmp_path / "runtime")
+    run = cast_run(config, tmp_path / "runtime")
     try:
         run.state()
         # The tasks are adopted at once (policy always) and completed 4 s later, when the

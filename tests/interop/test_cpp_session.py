@@ -16,7 +16,7 @@ from cast_testing_pb2 import Counter
 import cast
 from cast.v1 import directory_pb2, task_manager_pb2, task_manager_pb2_grpc
 from tests.conftest import components
-from tests.interop.cpp_support import CastRun, CppProbe, CppProcess, cpp_executable
+from tests.interop.cpp_support import CppProbe, CppProcess, cast_run, cpp_executable
 from tests.interop.restart_support import PyWorker, holder_config, readable
 from tests.interop.restart_support import eventually as wait_for
 
@@ -204,22 +204,22 @@ def test_sigkilled_cpp_component_is_restarted_by_the_orchestrator(tmp_path: Path
         "language": "cpp", "run": "cast_test_tasker",
         "args": {"tasks": 1, "work_ms": 600000, "hold": "held", "prefix": "cpp-"},
     })
-    run = CastRun(config, tmp_path / "runtime")
+    run = cast_run(config, tmp_path / "runtime")
     py = None
     try:
         tool = run.token("tool", "vision")
 
         def holder_running(sessions: int) -> Any:
-            info = components(run.endpoint(), tool).get("holder")
+            info = components(run.endpoint, tool).get("holder")
             ok = info and info.state == directory_pb2.COMPONENT_STATE_RUNNING and info.sessions == sessions
             return info if ok else None
 
         first = wait_for(lambda: holder_running(1), 60)
         assert first, run.output()
         assert (first.language, first.kind) == ("cpp", "managed")
-        py = run.connect("pyworker", "vision", cls=PyWorker)
+        py = run.bind(PyWorker, "pyworker", "vision")
         assert wait_for(lambda: not readable(py, "held"), 10), "the C++ component holds its lock"
-        assert wait_for(lambda: [t.name for t in live_tasks(run.endpoint(), tool, "vision")] == ["cpp-0"], 10)
+        assert wait_for(lambda: [t.name for t in live_tasks(run.endpoint, tool, "vision")] == ["cpp-0"], 10)
         py.propose_task("python-task")  # queued behind the C++ task
         assert not py.adopted_event.wait(0.5)
         # A blocking Python lock waits for the C++ one; it gets it when the session ends,
@@ -235,14 +235,14 @@ def test_sigkilled_cpp_component_is_restarted_by_the_orchestrator(tmp_path: Path
         assert py.adopted_event.wait(10), "the killed component's task was not released"
         assert [t.name for t in py.adopted] == ["python-task"]
         # Restarted at once; its start() waits for the lock Python now holds.
-        second = wait_for(lambda: (i := components(run.endpoint(), tool).get("holder")) and i.sessions == 2 and i, 30)
+        second = wait_for(lambda: (i := components(run.endpoint, tool).get("holder")) and i.sessions == 2 and i, 30)
         assert second, f"not restarted\n{run.output()}"
         assert second.pid != first.pid
         got[0].unlock()
         assert wait_for(lambda: holder_running(2), 30), f"the restarted component did not start\n{run.output()}"
         assert wait_for(lambda: not readable(py, "held"), 10), "the restarted component takes its lock again"
         # It proposes again, behind the Python task that now runs.
-        assert wait_for(lambda: sorted(t.name for t in live_tasks(run.endpoint(), tool, "vision"))
+        assert wait_for(lambda: sorted(t.name for t in live_tasks(run.endpoint, tool, "vision"))
                         == ["cpp-0", "python-task"], 10)
     finally:
         if py is not None:

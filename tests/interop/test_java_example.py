@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import shutil
 import subprocess
@@ -12,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import VENV_BIN, maven
 from tests.docs.pages import fenced, section, shown
-from tests.interop.java_support import ROOT, CastRun, java_classpath
+from tests.interop.java_support import ROOT, cast_run, java_classpath
 
 EXAMPLE = ROOT / "examples" / "java"
 PAGE = "docs/java.md"
@@ -28,7 +30,8 @@ def squeeze(text: str) -> str:
 
 
 def test_page_shows_the_example_files() -> None:
-    assert blocks("java") == [(EXAMPLE / "src/main/java/cast/examples/MyComponent.java").read_text()]
+    assert blocks("java") == [(EXAMPLE / "src/main/java/cast/examples/MyComponent.java").read_text(),
+                              (EXAMPLE / "src/test/java/cast/examples/MyComponentTest.java").read_text()]
     assert blocks("proto") == [(EXAMPLE / "src/main/proto/greeting.proto").read_text()]
     assert blocks("yaml") == [shown("examples/java/system.yaml")]
     [pom_snippet] = blocks("xml")
@@ -44,7 +47,9 @@ def test_the_example_builds_and_answers_greetings_under_cast_run(tmp_path: Path)
     shutil.copytree(EXAMPLE, work, ignore=shutil.ignore_patterns("target"))
     commands = blocks("sh")[-1].strip().splitlines()
     assert commands == ["make java", "cd examples/java && mvn -q package", "cast run system.yaml"]
-    build = subprocess.run(["mvn", "-B", "-q", "package"], cwd=work, capture_output=True, text=True, timeout=300)
+    # `mvn package` runs the example's own test too (MyComponentTest, cast-testing): `cast` on PATH for it.
+    env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
+    build = subprocess.run([*maven(), "-q", "package"], cwd=work, env=env, capture_output=True, text=True, timeout=300)
     assert build.returncode == 0, f"mvn package failed:\n{build.stdout}\n{build.stderr}"
     assert (work / "target" / "classes" / "cast" / "examples" / "MyComponent.class").exists()
 
@@ -62,12 +67,12 @@ def test_the_example_builds_and_answers_greetings_under_cast_run(tmp_path: Path)
 
     import cast
 
-    run = CastRun(work / "system.yaml", tmp_path / "runtime", work)
+    run = cast_run(work / "system.yaml", tmp_path / "runtime", work)
     py = None
     try:
         # "Connected" means registered; the callback exists once start() returned (state RUNNING).
-        run.wait_running("answerer")
-        py = run.connect("greeter", "greetings")
+        run.wait_for_component("answerer", "running", 30)
+        py = run.act_as("greeter", "greetings")
         answered = threading.Event()
         py.on_change(cast.address_filter("reply-g1"), lambda change: answered.set())
         py.add("g1", Greeting(text="world", **{"from": "greeter"}))

@@ -16,7 +16,7 @@ from cast_testing_pb2 import Counter, Pose
 import cast
 from cast.v1 import directory_pb2
 from tests.interop import scenarios_interop as s
-from tests.interop.java_support import CastRun, JavaComponent, counter_json, java_classpath
+from tests.interop.java_support import JavaComponent, cast_run, counter_json, java_classpath
 
 # Probes in their own language's commands, and behind the shared driver (for the shared scenarios).
 java = s.starter_fixture("java", raw=True)
@@ -162,13 +162,13 @@ def test_java_routes_by_sa_across_two_servers(tmp_path: Path) -> None:
         "servers": {"main": {"subarchitectures": ["vision"]}, "motion": {"subarchitectures": ["motor"]}},
     }))
     java_classpath()  # fails the test if the Java build is missing
-    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    run = cast_run(config, tmp_path / "runtime", tmp_path)
     jc = None
     try:
         state = json.loads((tmp_path / "runtime" / "system.json").read_text())
         assert len({s["endpoint"] for s in state["servers"].values()}) == 2, state
         env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        env.update(CAST_ENDPOINT=run.endpoint(), CAST_COMPONENT_ID="jrouter", CAST_SUBARCHITECTURE="vision",
+        env.update(CAST_ENDPOINT=run.endpoint, CAST_COMPONENT_ID="jrouter", CAST_SUBARCHITECTURE="vision",
                    CAST_TOKEN=run.token("jrouter", "vision", privileged=True), CAST_ARGS="{}")
         jc = JavaComponent(env)
         jc.ready()
@@ -179,7 +179,7 @@ def test_java_routes_by_sa_across_two_servers(tmp_path: Path) -> None:
         assert sorted((e["sa"], e["id"]) for e in events) == [("motor", "there"), ("vision", "here")]
         # Each revision counts on its own server: both writes are revision 1 of their WM.
         assert [int(e["revision"]) for e in events] == [1, 1]
-        py = run.connect("pyrouter", "motor")
+        py = run.act_as("pyrouter", "motor")
         try:
             assert py.get("there", Counter).value == 2
             assert py.get("here", Counter, subarchitecture="vision").value == 1

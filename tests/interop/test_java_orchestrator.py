@@ -11,13 +11,14 @@ import yaml
 from cast_testing_pb2 import Counter
 
 import cast
+from cast.testing import RunningSystem
 from cast.v1 import directory_pb2
-from tests.interop.java_support import TEST_CLASSES, CastRun, java_classpath
+from tests.interop.java_support import TEST_CLASSES, cast_run, java_classpath
 from tests.interop.restart_support import PyWorker, holder_config, readable
 from tests.interop.restart_support import eventually as wait_for
 
 
-def components(run: CastRun) -> dict[str, directory_pb2.ComponentInfo]:
+def components(run: RunningSystem) -> dict[str, directory_pb2.ComponentInfo]:
     return dict(run.components())
 
 
@@ -31,14 +32,14 @@ def test_sigkilled_java_component_releases_locks_and_tasks_and_is_restarted(tmp_
     config = holder_config(tmp_path, {
         "language": "java", "class": "cast.itest.Holder", "classpath": [str(TEST_CLASSES)],
     })
-    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    run = cast_run(config, tmp_path / "runtime", tmp_path)
     py = None
     try:
         running = directory_pb2.COMPONENT_STATE_RUNNING
         first = wait_for(lambda: (c := components(run).get("holder")) and c.state == running and c)
         assert first, run.output()
         assert (first.language, first.kind, first.sessions) == ("java", "managed", 1)
-        py = run.connect("pyworker", "vision", cls=PyWorker)
+        py = run.bind(PyWorker, "pyworker", "vision")
         assert wait_for(lambda: locked_by_other(py), 10)
         py.propose_task("python-task")
         assert not py.adopted_event.wait(1.0), "the Java task holds the only slot"
@@ -72,8 +73,8 @@ def test_a_java_component_that_does_not_stop_leaves_a_thread_dump_in_its_log(tmp
             "language": "java", "class": "cast.itest.Stubborn", "classpath": [str(TEST_CLASSES)],
         }}}},
     }))
-    run = CastRun(config, tmp_path / "runtime", tmp_path)
-    run.wait_running("stubborn")
+    run = cast_run(config, tmp_path / "runtime", tmp_path)
+    run.wait_for_component("stubborn", "running", 30)
     assert run.stop() == 1, run.output()
     assert "stubborn did not stop within 1 s: killed (its threads' stacks are in its log)" in run.output()
     # SIGQUIT before the SIGKILL: the JVM's thread dump, with the thread stuck in Stubborn.stop.

@@ -17,7 +17,7 @@ from cast_testing_pb2 import Counter
 import cast
 from tests.conftest import ServerHandle
 from tests.interop import scenarios_reliability as s
-from tests.interop.java_support import TEST_CLASSES, CastRun
+from tests.interop.java_support import TEST_CLASSES, cast_run
 
 
 def test_java_watch_resumes_without_gap_or_duplicate_after_a_server_restart(tmp_path: Path) -> None:
@@ -66,11 +66,11 @@ def test_the_orchestrator_renews_tokens_of_java_components(tmp_path: Path) -> No
             "language": "java", "kind": "managed", "class": "cast.itest.Echo", "classpath": [str(TEST_CLASSES)],
         }}}},
     }, sort_keys=False))
-    run = CastRun(config, tmp_path / "runtime", tmp_path)
+    run = cast_run(config, tmp_path / "runtime", tmp_path)
     py = None
     try:
-        run.wait_running("echo")
-        py = run.connect("pywriter", "vision")
+        run.wait_for_component("echo", "running", 30)
+        py = run.act_as("pywriter", "vision")
         time.sleep(3.5)  # the token the Java component started with has expired by now
         answered = threading.Event()
         py.on_change(cast.address_filter("echo-late"), lambda change: answered.set())

@@ -18,7 +18,7 @@ import yaml
 from google.protobuf.wrappers_pb2 import Int64Value
 
 from tests.conftest import wait_for
-from tests.interop.cpp_support import CastRun, cpp_executable
+from tests.interop.cpp_support import cast_run, cpp_executable
 from tests.interop.java_support import TEST_CLASSES, java_classpath
 from tests.orchestrator.conftest import COMPONENTS
 from tests.orchestrator.test_start_barrier import WRITES, seen
@@ -51,10 +51,10 @@ def test_watchers_in_three_languages_see_every_write_of_writers_in_three_languag
         "python_path": [str(COMPONENTS)],
         "subarchitectures": {"a": {"components": writers}, "b": {"components": _components("watcher")}},
     }, sort_keys=False))
-    run = CastRun(config, tmp_path / "runtime")
+    run = cast_run(config, tmp_path / "runtime")
     reader = None
     try:
-        reader = run.connect("reader", "b")
+        reader = run.act_as("reader", "b")
         pairs = {(w, src) for w in _components("watcher") for src in writers}
 
         def reports() -> dict[tuple[str, str], int]:

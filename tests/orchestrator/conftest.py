@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -24,6 +22,7 @@ from cast.config.problems import Problems
 from cast.orchestrator.orchestrator import Orchestrator, RunOptions, RunResult
 from cast.orchestrator.output import Output
 from cast.orchestrator.preflight import preflight
+from cast.testing import RunningSystem, run_system
 from tests.conftest import ROOT, wait_for
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
@@ -103,70 +102,16 @@ def embedded(tmp_path: Path) -> Iterator[Callable[..., Embedded]]:
             handle.stop()
 
 
-@dataclass
-class CastRun:
-    """A `cast run` process with its own runtime directory."""
-
-    process: subprocess.Popen[str]
-    cwd: Path
-    runtime_dir: Path
-    lines: list[str] = field(default_factory=list)
-
-    def env(self) -> dict[str, str]:
-        """Environment for CLI commands aimed at this run."""
-        env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-        env["CAST_RUNTIME_DIR"] = str(self.runtime_dir)
-        return env
-
-    def cli(self, *args: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-        """Run a `cast` command against this system."""
-        out = subprocess.run([CAST, *args], cwd=self.cwd, env=self.env(), capture_output=True, text=True,
-                             timeout=timeout)
-        if check:
-            assert out.returncode == 0, f"cast {' '.join(args)} failed ({out.returncode}):\n{out.stderr}"
-        return out
-
-    def cli_json(self, *args: str) -> Any:
-        return json.loads(self.cli(*args, "--json").stdout)
-
-    def state(self) -> dict[str, Any]:
-        return dict(json.loads((self.runtime_dir / "system.json").read_text()))
-
-    def stop(self, sig: int = signal.SIGTERM) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(sig)
-        return self.process.wait(60)
-
-    def output(self) -> str:
-        return "".join(self.lines)
+CastRun = RunningSystem
+"""A `cast run` process with its own runtime directory: the kit's (cast.testing.run_system)."""
 
 
 def start_cast_run(
     cwd: Path, config: Path, *extra: str, env: dict[str, str] | None = None, until: str = "components started in"
 ) -> CastRun:
-    """Start `cast run CONFIG --no-status` and wait for the line ``until`` (default: every component started)."""
-    runtime = cwd / "runtime"
-    base = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
-    proc = subprocess.Popen(
-        [CAST, "run", str(config), "--no-status", "--runtime-dir", str(runtime), *extra],
-        cwd=cwd, env={**base, **(env or {})}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    run = CastRun(proc, cwd, runtime)
-    connected = threading.Event()
-
-    def pump() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            run.lines.append(line)
-            if until in line:
-                connected.set()
-        connected.set()
-
-    threading.Thread(target=pump, daemon=True).start()
-    if not connected.wait(90) or proc.poll() is not None:
-        proc.kill()
-        raise AssertionError(f"cast run did not start:\n{run.output()}")
-    return run
+    """Start `cast run CONFIG --no-status` in ``cwd`` (runtime directory ``cwd/runtime``) and wait for the line
+    ``until`` (default: every component started)."""
+    return run_system(config, *extra, env=env, cwd=cwd, until=until, directory=cwd)
 
 
 def build_examples() -> Path:

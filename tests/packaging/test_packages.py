@@ -3,15 +3,21 @@
 - Python: ``python -m build`` makes the sdist and the wheel; the wheel goes into a fresh virtual
   environment (its dependencies from the package index, pip's cache reused), whose ``cast serve``
   is the server of every test here, and whose ``python -m cast.run`` runs the quick start's
-  component.
+  component; with pytest added to it, the quick start's tests pass with the wheel's testing kit
+  (its pytest plugin found through the package's entry point).
 - C++: ``cmake --install`` of the library ``make cpp`` built, to a temporary prefix;
   ``examples/cpp/hello`` (copied out, so ``../../../cpp_client`` does not exist) is configured
-  with ``find_package(cast 0.1 CONFIG REQUIRED)`` against it, built and run; pkg-config's
-  ``cast.pc`` links a program of its own.
-- Java: ``examples/java`` (copied out) builds on the cast-bom and cast-client that ``make java``
-  installed into the local Maven repository, and its component runs on the class path the build
+  with ``find_package(cast 0.1 CONFIG REQUIRED COMPONENTS testing)`` against it, built, its
+  GoogleTest test run by ctest (cast::testing finding the wheel's ``cast`` on PATH), and run;
+  pkg-config's ``cast.pc`` links a program of its own.
+- Java: ``examples/java`` (copied out) builds on the cast-bom, cast-client and cast-testing that
+  ``make java`` installed into the local Maven repository (``$CAST_TEST_MVN``'s), its JUnit test
+  passing against the wheel's ``cast serve``, and its component runs on the class path the build
   wrote (the installed jars, not the tree's cast-client-all.jar), against the wheel's `cast serve`
   of its own system (its greeting.proto is another file than the C++ example's of the same name).
+
+Each out-of-tree test run of the three examples' tests prints what its test framework printed
+(``pytest -s`` shows it), the output a release's notes show.
 
 ``make package-test`` runs this module after ``make setup proto cpp java``; a missing tool or
 build fails the test, it never skips. ``CAST_PACKAGE_TEST_CPP_BUILD`` names another CMake build
@@ -39,7 +45,7 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import ROOT, SECRET, wait_for
+from tests.conftest import ROOT, SECRET, maven, maven_repository, wait_for
 
 VERSION = (ROOT / "VERSION").read_text().strip()
 CPP_BUILD = Path(os.environ.get("CAST_PACKAGE_TEST_CPP_BUILD") or ROOT / "build" / "cpp")
@@ -151,6 +157,9 @@ def test_the_wheel_and_sdist_hold_the_generated_code_and_current_metadata(instal
         for suffix in ("_pb2.py", "_pb2.pyi", "_pb2_grpc.py", "_pb2_grpc.pyi"):
             assert f"cast/v1/{stem}{suffix}" in names, f"the wheel lacks cast/v1/{stem}{suffix}"
     assert {"cast/py.typed", "cast/v1/__init__.py", "cast/config/system.schema.json"} <= names
+    assert {"cast/testing/__init__.py", "cast/testing/pytest_plugin.py"} <= names
+    entry_points = zipfile.ZipFile(installed.wheel).read(f"cast_grpc-{VERSION}.dist-info/entry_points.txt").decode()
+    assert "[pytest11]\ncast = cast.testing.pytest_plugin" in entry_points, entry_points
     assert not any(n.startswith("tests/") for n in names)
     metadata = zipfile.ZipFile(installed.wheel).read(f"cast_grpc-{VERSION}.dist-info/METADATA").decode()
     assert f"\nVersion: {VERSION}\n" in metadata
@@ -181,6 +190,21 @@ def test_the_installed_cast_serves_and_runs_the_quick_start(installed: Installed
     assert (hello["language"], hello["library_version"], hello["state"]) == ("python", VERSION, "disconnected")
 
 
+def test_the_quick_start_tests_pass_with_the_wheels_testing_kit(installed: Installed) -> None:
+    python = str(installed.venv / "bin" / "python")
+    run([sys.executable, "-m", "pip", "--python", python, "install", "--quiet", "pytest"], installed.work,
+        installed.env, 600)
+    work = installed.work / "quickstart-tests"
+    shutil.copytree(ROOT / "examples" / "quickstart", work)
+    env = {k: v for k, v in installed.env.items() if not k.startswith("PYTEST_")}  # none of this run's options
+    out = run([python, "-m", "pytest", "-v", "-p", "no:cacheprovider"], work, env, 300)
+    print(f"\n--- the quick start's tests (pytest, cast.testing from the wheel):\n{out}")
+    assert re.search(r"test_hello.py::test_hello_adds_three_greetings_and_stops_once_it_saw_them PASSED", out), out
+    assert re.search(r"=+ 2 passed in ", out), out
+    plugins = run([python, "-m", "pytest", "--version", "--version"], work, env)
+    assert str(installed.venv) in plugins and "cast/testing/pytest_plugin.py" in plugins, plugins
+
+
 # --------------------------------------------------------------------------------------------- C++
 
 @pytest.fixture(scope="module")
@@ -196,6 +220,8 @@ def prefix(installed: Installed) -> Path:
 
 def test_the_installed_library_has_headers_package_and_pkg_config(prefix: Path) -> None:
     assert (prefix / "include" / "cast" / "cast.h").is_file()
+    assert (prefix / "include" / "cast" / "testing.h").is_file()
+    assert list((prefix / "lib").glob("libcast_testing.*"))
     assert (prefix / "include" / "cast" / "v1" / "directory.grpc.pb.h").is_file()
     package = prefix / "lib" / "cmake" / "cast"
     assert {"castConfig.cmake", "castConfigVersion.cmake", "castTargets.cmake", "CastProtobuf.cmake"} <= {
@@ -211,6 +237,10 @@ def test_hello_builds_with_find_package_and_runs(installed: Installed, prefix: P
     run([cmake, "-S", str(work / "src"), "-B", str(work / "build"), f"-DCMAKE_PREFIX_PATH={prefix}",
          "-DCMAKE_BUILD_TYPE=Release"], work)
     run([cmake, "--build", str(work / "build"), "-j2"], work, timeout=600)
+    # Its test, with cast::testing finding the wheel's `cast` on PATH (installed.env: the venv first, no CAST_SERVE).
+    tested = run(["ctest", "--test-dir", str(work / "build"), "--output-on-failure", "-V"], work, installed.env, 300)
+    print(f"\n--- the C++ example's tests (ctest, GoogleTest, cast::testing from the prefix):\n{tested}")
+    assert "[  PASSED  ] 2 tests." in tested and "100% tests passed" in tested, tested
     out = run([str(work / "build" / "hello_cpp")], work, installed.launch_env("hello-cpp", "greetings", {"count": 3}),
               60)
     assert [line.replace("hello-cpp:", "hello:") for line in hello_lines(out)] == HELLO_LINES, out
@@ -259,15 +289,20 @@ def test_the_library_builds_shared_with_build_shared_libs(installed: Installed) 
 # -------------------------------------------------------------------------------------------- Java
 
 def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installed: Installed) -> None:
-    mvn = tool("mvn", "run `make java` (it installs a JDK and Maven)")
+    tool("mvn", "run `make java` (it installs a JDK and Maven)")
     java = tool("java", "run `make java` (it installs a JDK and Maven)")
-    repository = Path.home() / ".m2" / "repository" / "cast"
-    for artifact in ("cast-bom", "cast-client"):
+    repository = maven_repository() / "cast"
+    for artifact in ("cast-bom", "cast-client", "cast-testing"):
         if not (repository / artifact / VERSION).is_dir():
-            pytest.fail(f"cast:{artifact}:{VERSION} is not installed in ~/.m2: run `make java` first")
+            pytest.fail(f"cast:{artifact}:{VERSION} is not installed in {repository.parent}: run `make java` first")
     work = installed.work / "java"
     shutil.copytree(ROOT / "examples" / "java", work, ignore=shutil.ignore_patterns("target"))
-    run([mvn, "-B", "-ntp", "-q", "package"], work, timeout=600)
+    # `mvn package` runs its JUnit test too, against the wheel's `cast` on PATH (installed.env).
+    built = run([*maven(), "package"], work, installed.env, timeout=600)
+    tested = "\n".join(line for line in built.splitlines()
+                       if re.search(r"T E S T S|Running cast|Tests run:|MyComponentTest|BUILD", line))
+    print(f"\n--- the Java example's tests (Maven, JUnit 5, cast-testing from the local repository):\n{tested}")
+    assert "Tests run: 1, Failures: 0, Errors: 0, Skipped: 0" in built and "BUILD SUCCESS" in built, built[-6000:]
     classpath = (work / "target" / "classpath.txt").read_text().strip()
     jars = classpath.split(os.pathsep)
     assert jars[0] == str(repository / "cast-client" / VERSION / f"cast-client-{VERSION}.jar"), jars[0]

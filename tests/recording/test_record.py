@@ -338,7 +338,7 @@ def test_a_cast_run_system_on_two_servers_is_found_through_its_runtime_directory
         wait_for(lambda: len(run.cli_json("ls", "vision")) >= 2, what="the worker's results")
         path = tmp_path / "two.mcap"
         out = subprocess.run([CAST, "record", "-o", str(path), "--from-revision", "1", "--for", "2"], cwd=tmp_path,
-                             env=run.env(), capture_output=True, text=True, timeout=60)
+                             env=run.cli_environment(), capture_output=True, text=True, timeout=60)
         assert out.returncode == 0, out.stderr
     finally:
         assert run.stop() == 0, run.output()

@@ -16,8 +16,8 @@ from tests.web.conftest import WebRun, http
 
 
 def test_cast_web_attaches_to_the_running_system_and_stops_cleanly(web_run: WebRun) -> None:
-    proc = subprocess.Popen([CAST, "web", "--listen", "127.0.0.1:0"], env=web_run.run.env(), cwd=web_run.run.cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen([CAST, "web", "--listen", "127.0.0.1:0"], env=web_run.run.cli_environment(),
+                            cwd=web_run.run.cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert proc.stdout is not None
         first, second, third = (proc.stdout.readline() for _ in range(3))
@@ -48,7 +48,7 @@ def cast(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None)
 
 
 def test_bad_addresses_are_refused_naming_them_and_nothing_starts(web_run: WebRun, tmp_path: Path) -> None:
-    env = web_run.run.env()
+    env = web_run.run.cli_environment()
     out = cast("web", "--listen", "127.0.0.1:x", env=env)
     assert out.returncode == 2
     assert "cast web: --listen '127.0.0.1:x': give HOST:PORT with a port from 0 to 65535" in out.stderr

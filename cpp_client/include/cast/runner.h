@@ -79,9 +79,14 @@ struct LaunchContract {
 // the component to stop. With startBarrier (a component `cast run`
 // launched), the component reports STARTED after start() and run() waits
 // for the system's start barrier (Transport::awaitRun); asked to stop while
-// waiting, it skips run() (stop() is still called once).
+// waiting, it skips run() (stop() is still called once). `onStarted`, if
+// given, is called once on the lifecycle's thread when run() is about to begin
+// (start() returned: its watches are registered), or when the lifecycle ended
+// before that (a hook threw, or the component was stopped first): what
+// cast::testing waits for before it hands a running component to a test.
 int runComponent(Component& component, std::shared_ptr<detail::Transport> transport, const Args& args,
-                 bool handleSignals = true, bool startBarrier = false);
+                 bool handleSignals = true, bool startBarrier = false,
+                 const std::function<void()>& onStarted = nullptr);
 
 // The whole main(): reads the launch environment, makes the component, runs it.
 int runMain(const std::function<std::unique_ptr<Component>()>& factory, int argc, char** argv);

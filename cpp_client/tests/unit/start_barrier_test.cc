@@ -93,6 +93,38 @@ TEST(StartBarrier, WithoutTheBarrierRunFollowsStartAndAwaitRunIsNeverCalled) {
             0);
 }
 
+TEST(StartBarrier, OnStartedComesOnceBeforeRunAndAlsoWhenTheComponentStopsAtTheBarrier) {
+  Rig rig;
+  std::atomic<int> called{0};
+  std::atomic<int> runsWhenCalled{-1};
+  auto exit = std::async(std::launch::async, [&] {
+    return cast::runComponent(rig.component, rig.transport, cast::Args(), false, false, [&] {
+      runsWhenCalled = rig.component.runs.load();
+      ++called;
+    });
+  });
+  ASSERT_TRUE(eventually([&] { return rig.component.runs == 1; }));
+  EXPECT_EQ(called, 1);
+  EXPECT_EQ(runsWhenCalled, 0) << "onStarted came after run() began";
+  rig.component.requestStop();
+  EXPECT_EQ(exit.get(), 0);
+  EXPECT_EQ(called, 1);
+
+  // Stopped at the barrier, run() never begins: onStarted still comes, once, so nobody waits for ever.
+  Rig held;
+  held.transport->holdBarrier();
+  std::atomic<int> heldCalls{0};
+  auto heldExit = std::async(std::launch::async, [&] {
+    return cast::runComponent(held.component, held.transport, cast::Args(), false, true, [&] { ++heldCalls; });
+  });
+  ASSERT_TRUE(eventually([&] { return held.transport->awaitRunCount() > 0; }));
+  EXPECT_EQ(heldCalls, 0);
+  held.component.requestStop();
+  EXPECT_EQ(heldExit.get(), 0);
+  EXPECT_EQ(heldCalls, 1);
+  EXPECT_EQ(held.component.runs, 0);
+}
+
 TEST(StartBarrier, AReleasedBarrierLetsRunBeginAtOnce) {
   // A component that joins later or was restarted finds the barrier released.
   Rig rig;

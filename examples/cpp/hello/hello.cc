@@ -1,37 +1,4 @@
-#include <iostream>
-
-#include "cast/cast.h"
-#include "greeting.pb.h"
-
-using examples::hello::Greeting;
-
-// Adds greetings to its own working memory and watches them arrive.
-class Hello : public cast::UnmanagedComponent {
- public:
-  void configure(const cast::Args& args) override { count_ = args.getInt("count", 3); }
-
-  void start() override {
-    onChange(cast::localTypeFilter<Greeting>(), [this](const cast::WorkingMemoryChange& change) {
-      Greeting greeting = get<Greeting>(change.id());
-      std::cout << change.operation() << " " << change.id() << " (revision " << change.revision()
-                << "): " << greeting.text() << std::endl;
-      if (++seen_ == count_) requestStop();
-    });
-  }
-
-  void run() override {
-    for (int i = 0; i < count_; ++i) {
-      Greeting greeting;
-      greeting.set_text("hello " + std::to_string(i));
-      greeting.set_number(i);
-      add(newId(), greeting);
-    }
-    waitForStop();
-  }
-
- private:
-  std::int64_t count_ = 3;
-  std::int64_t seen_ = 0;  // only the dispatcher thread touches it
-};
+// The component's executable: CAST_COMPONENT_MAIN reads the launch contract and runs Hello.
+#include "hello.h"
 
 CAST_COMPONENT_MAIN(Hello)

@@ -99,6 +99,10 @@ def _run(args: argparse.Namespace) -> int:
         record=Path(args.record) if args.record else None,
         web=args.web,
     )
+    if args.exit_with_stdin:
+        from cast.signals import terminate_when_stdin_closes
+
+        terminate_when_stdin_closes()
     console = Console(highlight=False, soft_wrap=True)
     if not console.is_terminal:
         console = Console(highlight=False, soft_wrap=True, width=120)  # logs and pipes: room for the tables
@@ -143,4 +147,7 @@ def add_commands(sub: Any) -> None:
     run.add_argument("--web", nargs="?", const=WEB_LISTEN, metavar="HOST:PORT",
                      help=f"also serve the live web view (default address {WEB_LISTEN}, loopback only; port 0 picks "
                           "a free one; the login link is printed); docs/web.md")
+    run.add_argument("--exit-with-stdin", action="store_true",
+                     help="stop, as on SIGTERM, when standard input ends: started with a pipe, the system stops "
+                          "when the process that started it ends, however it ends (the test kits use it)")
     run.set_defaults(fn=_run)

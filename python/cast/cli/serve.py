@@ -56,6 +56,10 @@ def _serve(args: argparse.Namespace) -> int:
             running.on_stop(endpoint.close)
 
     settings = settings_from_config(config)
+    if args.exit_with_stdin:
+        from cast.signals import terminate_when_stdin_closes
+
+        terminate_when_stdin_closes()
     return_large_blocks()  # freed images go back to the system (cast.server.allocator)
     asyncio.run(serve_forever(system, signer, args.listen, started, settings))
     return 0
@@ -137,6 +141,9 @@ def add_command(sub: Any) -> None:
     serve.add_argument("--no-metrics", action="store_true",
                        help="count nothing (the metrics are on by default; `cast stats` then shows zeros); for "
                             "measuring what counting costs")
+    serve.add_argument("--exit-with-stdin", action="store_true",
+                       help="stop, as on SIGTERM, when standard input ends: started with a pipe, the server stops "
+                            "when the process that started it ends, however it ends (the test kits use it)")
     serve.set_defaults(fn=_serve, log_level="INFO")
 
 

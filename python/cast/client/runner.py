@@ -19,7 +19,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -175,11 +175,15 @@ def load_component_class(spec: str) -> type[Component]:
 class _Lifecycle:
     """Drives one component through configure, start, run and stop."""
 
-    def __init__(self, component: Component, transport: Transport, args: dict[str, Any], barrier: bool) -> None:
+    def __init__(
+        self, component: Component, transport: Transport, args: dict[str, Any], barrier: bool,
+        started: Callable[[], None] | None = None,
+    ) -> None:
         self.component = component
         self.transport = transport
         self.args = args
         self.barrier = barrier
+        self.started = started
         self.failed = False
         self._stopped = threading.Lock()
         self._stop_called = False
@@ -212,11 +216,19 @@ class _Lifecycle:
                 if not self.transport.await_run(c._stopping):
                     return  # asked to stop before the system got going: stop() follows, run() never ran
             c._set_state(ComponentState.RUNNING)
+            self._say_started()
             c.run()
         except Exception:
             log.exception("%s failed", c.component_id)
             self.failed = True
             self.stop()
+        finally:
+            self._say_started()  # also when the lifecycle ended before run(): nobody waits forever
+
+    def _say_started(self) -> None:
+        started, self.started = self.started, None
+        if started is not None:
+            started()
 
     def close(self) -> None:
         self.component._cast_close()
@@ -224,18 +236,22 @@ class _Lifecycle:
 
 def run_component(
     component: Component, transport: Transport, args: dict[str, Any], handle_signals: bool = True,
-    barrier: bool = False,
+    barrier: bool = False, started: Callable[[], None] | None = None,
 ) -> int:
     """Run a component to the end; return the process exit code (0 ok, 1 failed).
 
     With ``barrier`` (a component `cast run` launched), run() waits after start()
     until every component of the system has started (cast.core.barrier).
+    ``started`` is called once, on the lifecycle's thread, when run() is about to
+    begin (start() returned: its watches are registered), or when the lifecycle
+    ended before that (a hook failed, or the component was stopped first): what
+    cast.testing waits for before it hands a running component to a test.
 
     run() executes on a worker thread so that a signal can call stop() while
     run() is busy; after run() returns the component keeps serving callbacks
     until it is asked to stop.
     """
-    life = _Lifecycle(component, transport, args, barrier)
+    life = _Lifecycle(component, transport, args, barrier, started)
     signalled: list[int] = []
     if handle_signals:
         # The handler runs on the main thread, possibly while that thread holds the

@@ -186,12 +186,22 @@ public final class Runner {
     private final Args args;
     private final boolean startBarrier;
     private final AtomicBoolean stopCalled = new AtomicBoolean();
+    private final AtomicBoolean saidStarted = new AtomicBoolean();
+    private final Runnable onStarted;
     volatile boolean failed;
 
-    Lifecycle(Component component, Args args, boolean startBarrier) {
+    Lifecycle(Component component, Args args, boolean startBarrier, Runnable onStarted) {
       this.component = component;
       this.args = args;
       this.startBarrier = startBarrier;
+      this.onStarted = onStarted;
+    }
+
+    /** onStarted, once. */
+    private void sayStarted() {
+      if (onStarted != null && saidStarted.compareAndSet(false, true)) {
+        onStarted.run();
+      }
     }
 
     /** Call stop() exactly once. */
@@ -223,11 +233,14 @@ public final class Runner {
           }
         }
         component.setState(ComponentState.RUNNING);
+        sayStarted();
         component.run();
       } catch (Throwable e) {
         LOG.log(Level.SEVERE, component.componentId() + " failed", e);
         failed = true;
         stop();
+      } finally {
+        sayStarted(); // also when the lifecycle ended before run(): nobody waits forever
       }
     }
   }
@@ -247,7 +260,18 @@ public final class Runner {
    * run() waits after start() until every component of the system has started.
    */
   public static int runComponent(Component component, Args args, boolean handleSignals, boolean startBarrier) {
-    Lifecycle life = new Lifecycle(component, args, startBarrier);
+    return runComponent(component, args, handleSignals, startBarrier, null);
+  }
+
+  /**
+   * The same; {@code onStarted} (may be null) is called once, on the lifecycle's thread, when
+   * run() is about to begin (start() returned: its watches are registered), or when the
+   * lifecycle ended before that (a hook threw, or the component was stopped first): what
+   * cast-testing waits for before it hands a running component to a test.
+   */
+  public static int runComponent(
+      Component component, Args args, boolean handleSignals, boolean startBarrier, Runnable onStarted) {
+    Lifecycle life = new Lifecycle(component, args, startBarrier, onStarted);
     CountDownLatch finished = new CountDownLatch(1);
     Thread hook = null;
     if (handleSignals) {

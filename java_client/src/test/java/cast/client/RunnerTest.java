@@ -119,6 +119,27 @@ class RunnerTest {
     assertTrue(okSession.closed && badSession.closed);
   }
 
+  /** Fails in start(). */
+  static final class FailsInStart extends UnmanagedComponent {
+    @Override
+    public void start() {
+      throw new IllegalStateException("no camera attached");
+    }
+  }
+
+  @Test
+  void onStartedComesOnceBeforeRunAndAlsoWhenTheLifecycleEndsBeforeRun() {
+    FakeTransport.Memory memory = new FakeTransport.Memory("vision");
+    Lifecycle ok = FakeTransport.connect(new Lifecycle(false), memory, "ok", "vision");
+    List<String> seen = new ArrayList<>();
+    assertEquals(0, Runner.runComponent(ok, Args.empty(), false, false, () -> seen.add("started after " + ok.calls)));
+    assertEquals(List.of("started after configure(0) start "), seen);
+    FailsInStart failing = FakeTransport.connect(new FailsInStart(), memory, "failing", "vision");
+    AtomicInteger called = new AtomicInteger();
+    assertEquals(1, Runner.runComponent(failing, Args.empty(), false, false, called::incrementAndGet));
+    assertEquals(1, called.get(), "a waiter for start() would wait for ever");
+  }
+
   /** Run {@code c} (start barrier on) on a thread; its exit status lands in {@code status}. */
   private static Thread runWithBarrier(Component c, AtomicInteger status) {
     Thread t = new Thread(() -> status.set(Runner.runComponent(c, Args.empty(), false, true)), "barrier-test");
