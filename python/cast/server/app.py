@@ -23,6 +23,7 @@ from cast.server.malformed import SafeRegistrar
 from cast.server.reflection import add_reflection
 from cast.server.routes import Routes
 from cast.server.rpc import Authenticator
+from cast.server.shared_socket import SharedSocket
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.wire import wire_system
 from cast.server.working_memory import WorkingMemoryServicer
@@ -73,7 +74,11 @@ def settings_from_config(config: SystemConfig) -> ServerSettings:
 
 
 def system_from_config(
-    config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None, metrics: bool = True
+    config: SystemConfig,
+    lease_ms: int = 10_000,
+    server: ServerConfig | None = None,
+    metrics: bool = True,
+    shared_memory: bool = True,
 ) -> System:
     """A :class:`System` hosting the SAs of ``server`` (default: every SA), expecting every component.
 
@@ -83,6 +88,8 @@ def system_from_config(
     memory only). TLS and token rules are the server's
     (:func:`settings_from_config`), given to :func:`start_server`.
     ``metrics``: whether the server counts what callers do (cast.core.metrics).
+    ``shared_memory``: False turns shared memory off whatever the configuration
+    says (``cast serve --no-shared-memory``).
     """
     if server is None:
         hosted = list(config.subarchitectures)
@@ -101,6 +108,7 @@ def system_from_config(
         journal=journal,
         quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
         metrics=metrics,
+        shared_memory=config.shared_memory if shared_memory else None,
     )
     for comp in config.components:
         # With hosts: a component shows the host the configuration places it on (local or a hosts: name).
@@ -130,6 +138,7 @@ class RunningServer:
     host: str
     port: int
     routes: Routes
+    shared: SharedSocket | None = None  # the shared-memory socket, when the system keeps shared memory
     _tasks: list[asyncio.Task[None]] = field(default_factory=list)
     _on_stop: list[Callable[[], None]] = field(default_factory=list)
 
@@ -152,6 +161,8 @@ class RunningServer:
         for task in self._tasks:
             task.cancel()
         await self.server.stop(grace)
+        if self.shared is not None:
+            self.shared.close()
         await asyncio.get_running_loop().run_in_executor(None, self.system.close)
 
 
@@ -194,11 +205,13 @@ async def start_server(
     )
     server = grpc.aio.server(options=options)
     auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
+    shared = SharedSocket(system, auth) if system.shared is not None else None
     # Requests whose bytes do not parse are answered INVALID_ARGUMENT (cast.server.malformed).
     registrar: Any = SafeRegistrar(server)
     add_working_memory(WorkingMemoryServicer(system, auth), registrar)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), registrar)
-    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth, routes), registrar)
+    directory = DirectoryServicer(system, auth, routes, shared.info() if shared is not None else None)
+    directory_pb2_grpc.add_DirectoryServicer_to_server(directory, registrar)
     inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), registrar)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     foreign: Any = SafeRegistrar(server, wrap=False)  # generic handlers only, deserializers untouched
@@ -216,7 +229,7 @@ async def start_server(
     routes.listening(f"{advertised}:{port}")
     for name in ("", *SERVICE_NAMES):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
-    running = RunningServer(server, system, advertised, port, routes)
+    running = RunningServer(server, system, advertised, port, routes, shared)
     running._tasks.append(asyncio.ensure_future(_expire_sessions(system)))
     return running
 
