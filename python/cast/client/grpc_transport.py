@@ -44,6 +44,8 @@ log = logging.getLogger("cast.client")
 
 # Deadline of one AwaitRun long-poll: how soon a stop request ends the wait for the start barrier.
 _AWAIT_RUN_POLL_S = 1.0
+# How long asking a server where its shared memory is may take: it is asked on the way of a write or a watch.
+_DESCRIBE_S = 5.0
 # How much longer than a lock's own timeout the client waits for the server's answer to it.
 _LOCK_REPLY_MARGIN_S = 5.0
 
@@ -145,7 +147,7 @@ class GrpcTransport:
         def describe() -> dir_pb2.SystemDescription:
             # The server itself says where its shared memory is: ask it, not the directory.
             desc: dir_pb2.SystemDescription = self._call(server.directory.DescribeSystem,
-                                                         dir_pb2.DescribeSystemRequest())
+                                                         dir_pb2.DescribeSystemRequest(), timeout=_DESCRIBE_S)
             return desc
 
         server.shared = SharedLink(server.endpoint, self._tokens, describe)

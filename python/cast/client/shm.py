@@ -111,11 +111,16 @@ class ReadCall:
             self.session.send(wire.received(self.number, self.count, False))
         return self.session.claim(ref)
 
-    def end(self) -> None:
-        """The call is over: the server takes back what it sent and this call never received."""
+    def end(self, answered: bool = False) -> None:
+        """The call is over: the server takes back what it sent and this call never received.
+
+        ``answered``: the whole answer was read, so nothing was sent that did
+        not arrive; with no reference in it there is nothing to say.
+        """
         if not self.ended:
             self.ended = True
-            self.session.send(wire.received(self.number, self.count, True))
+            if self.count or not answered:
+                self.session.send(wire.received(self.number, self.count, True))
 
 
 class _Segment:
@@ -168,6 +173,7 @@ class ClientSession:
 
     def stage(self, data: bytes | memoryview) -> Staged | None:
         """``data`` copied into a free region of the staging area; None when there is no room (send the bytes)."""
+        self.poll()  # a session the server ended (it restarted) is noticed before a write names it
         if self.dead:
             return None
         size = len(data)
@@ -236,21 +242,38 @@ class ClientSession:
                 )
 
     def give_back(self, value_id: int) -> None:
-        """A lease is gone: RELEASE it (from a finalizer: never blocks on a lock another thread holds)."""
+        """A lease is gone: RELEASE it.
+
+        Called from finalizers, on any thread, maybe inside a send of this
+        session: it never waits for the send lock. If another thread holds it,
+        that thread sends this too when it lets the lock go (:meth:`_sent`).
+        """
         self._unsent.append(value_id)
         if self._send_lock.acquire(blocking=False):
             try:
                 self._flush()
             finally:
-                self._send_lock.release()
+                self._sent()
 
     # -------------------------------------------------------------- frames
 
     def send(self, frame: bytes) -> None:
         """Send a frame (with the RELEASEs waiting); nothing once the session is over."""
-        with self._send_lock:
+        self._send_lock.acquire()
+        try:
             self._flush()
             self._write(frame)
+        finally:
+            self._sent()
+
+    def _sent(self) -> None:
+        """Let the send lock go; then send what was given back meanwhile by a thread that could not take it."""
+        self._send_lock.release()
+        while self._unsent and self._send_lock.acquire(blocking=False):
+            try:
+                self._flush()
+            finally:
+                self._send_lock.release()
 
     def _flush(self) -> None:
         ids = []
@@ -349,8 +372,6 @@ class ClientSession:
 
     def close(self) -> None:
         """End the session (what it holds lent is given back by the server)."""
-        with self._send_lock:
-            self._flush()
         self._end("closed")
 
     def __del__(self) -> None:
@@ -478,11 +499,13 @@ class SharedLink:
         """A read call's session part (None without a session): its metadata, and its end when the call is over."""
         session = self.session()
         call = session.new_call() if session is not None else None
+        answered = False
         try:
             yield call
+            answered = True
         finally:
             if call is not None:
-                call.end()
+                call.end(answered)
 
     def check(self) -> None:
         """Read what the server sent; a session it ended is noticed now (a stream to it broke)."""

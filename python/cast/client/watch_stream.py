@@ -125,12 +125,16 @@ class WatchStream:
             if first:
                 self._opened.set()
                 first = False
+            upgrade = False
             try:
                 for resp in call:
                     if not self.connected:
                         self.connected = True
                         backoff.reset()
+                        upgrade = self._read is None and self._sharing_now()
                     self._handle(resp)
+                    if upgrade:
+                        call.cancel()  # opened again at once, with the session: it resumes where this one is
                 error: CastError = UnavailableError(f"the watch stream to {self._server.endpoint} ended")
             except grpc.RpcError as exc:
                 error = map_rpc_error(exc)
@@ -141,6 +145,8 @@ class WatchStream:
             self._end_shared()
             if self._closed or self._closing.is_set():
                 return
+            if upgrade:
+                continue
             if error.code not in TRANSIENT:
                 self._fail(error)
                 return
@@ -148,6 +154,15 @@ class WatchStream:
             self.reconnects += 1
             if self._closing.wait(backoff.next()):
                 return
+
+    def _sharing_now(self) -> bool:
+        """Whether a shared-memory session with the server is open now, though it was not when this stream opened.
+
+        A stream opened while its server was away (restarting) could not have
+        one; once the server answers, the stream is opened again with it.
+        """
+        shared = self._server.shared
+        return shared is not None and shared.session() is not None
 
     def _end_shared(self) -> None:
         """The call is over: say what it received (the server takes back the rest) and see if the session ended."""
