@@ -261,7 +261,8 @@ def test_forged_and_stale_references_are_refused_with_a_clear_error_and_change_n
                       (f"{writer._transport._directory.shared.session().id.hex()}/1",
                        grpc.StatusCode.PERMISSION_DENIED)):  # another component's session
         with pytest.raises(grpc.RpcError) as refused:
-            stub.Get(wm_pb2.GetRequest(address=good.address), metadata=h.metadata("other") + (("cast-shared-memory", bad),))
+            stub.Get(wm_pb2.GetRequest(address=good.address),
+                     metadata=h.metadata("other") + (("cast-shared-memory", bad),))
         assert refused.value.code() == code
     after = writer.get_entry("img", BytesValue)
     assert (after.version, after.revision, after.value) == (before.version, before.revision, before.value)
@@ -313,7 +314,7 @@ def test_views_hold_their_value_past_the_history_and_the_window_sends_the_rest_a
     for v in views:
         v.release()
     with pytest.raises(cast.InvalidArgumentError, match="released"):
-        views[0].data
+        views[0].field(1)
     wait_for(lambda: h.shared()["lent_bytes"] == 0, what="the views' values given back")
     assert h.shared()["values"] <= 3  # the entry's and what the 2 MiB history keeps
 
