@@ -431,3 +431,19 @@ def test_the_tools_show_shared_memory_and_one_setting_turns_it_off(host: Any) ->
 
 def inspection_of(h: Host) -> insp_grpc.InspectionStub:
     return insp_grpc.InspectionStub(h.channel)
+
+
+def test_the_configuration_sets_shared_memory_and_refuses_what_is_wrong(tmp_path: Path) -> None:
+    from cast.config import ConfigError, load_config
+
+    path = tmp_path / "system.yaml"
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {threshold_bytes: 1000, window_bytes: 4096}\n")
+    assert load_config(path, environ={}).shared_memory == SharedSettings(True, 1000, 1 << 30, 4096)
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {enabled: false}\n")
+    assert not load_config(path, environ={}).shared_memory.enabled
+    assert load_config(path, environ={}).shared_memory == SharedSettings(enabled=False)
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {enable: false, threshold_bytes: 0}\n")
+    with pytest.raises(ConfigError) as refused:
+        load_config(path, environ={})
+    text = str(refused.value)
+    assert "shared_memory.enable" in text and "did you mean 'enabled'" in text and "threshold_bytes" in text

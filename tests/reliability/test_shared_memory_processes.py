@@ -22,12 +22,15 @@ from typing import Any
 import grpc
 import pytest
 import yaml
+from google.protobuf.wrappers_pb2 import BytesValue
 
 from cast.auth import TokenSigner
 from cast.client import shm_wire as wire
 from cast.core.records import Identity
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
@@ -207,3 +210,41 @@ def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(tmp_pat
     finally:
         stop_all(procs)
         spaces.close()
+
+
+def test_record_replay_and_the_tools_with_values_in_shared_memory(tmp_path: Path, peers: Peers) -> None:
+    from tests.recording.conftest import cast, read_indexed, record
+
+    config = write_config(tmp_path / "system.yaml", CONFIG)
+    server = serve(config, cwd=tmp_path)
+    plain = serve(config, cwd=tmp_path, extra=("--no-shared-memory",))
+    try:
+        recorder = record(server.endpoint, tmp_path / "rec.mcap")
+        reader = peers.start(server, "reader", "read")
+        reader.wait("WATCHING")
+        peers.start(server, "writer", "write", "3").wait("DONE")
+        wait_for(lambda: got(reader) == [(k, 1) for k in range(3)], what="three values by shared memory")
+        assert any("lent" in line for line in cast("stats", "--endpoint", server.endpoint).stdout.splitlines())
+        listing = cast("ls", "--endpoint", server.endpoint).stdout
+        assert "in shared memory" in listing, listing
+        assert recorder.stop() == 0, recorder.stderr()
+        # The recorder, on the host, was lent the values; the file holds their bytes, unchanged.
+        values = read_indexed(tmp_path / "rec.mcap").on("/vision/google.protobuf.BytesValue")
+        sys.path.insert(0, str(COMPONENTS))
+        from shm_peer import frame
+
+        assert [BytesValue.FromString(m.data).value for m in values] == [frame(k) for k in range(3)]
+        # Replayed into a server with shared memory off: the same bytes, and that server offers none.
+        out = cast("replay", str(tmp_path / "rec.mcap"), "--endpoint", plain.endpoint, "--rate", "max")
+        assert out.returncode == 0, out.stderr
+        with grpc.insecure_channel(plain.endpoint) as channel:
+            meta = (("authorization", f"Bearer {plain.token('t', 'vision')}"),)
+            desc = dir_grpc.DirectoryStub(channel).DescribeSystem(dir_pb2.DescribeSystemRequest(), metadata=meta)
+            entry = wm_grpc.WorkingMemoryStub(channel).Get(
+                wm_pb2.GetRequest(address={"id": "img", "subarchitecture": "vision"}), metadata=meta).entry
+        assert not desc.HasField("shared_memory")
+        assert BytesValue.FromString(entry.value.value).value == frame(2)
+        assert "shared memory: off" in cast("stats", "--endpoint", plain.endpoint).stdout
+    finally:
+        server.stop()
+        plain.stop()

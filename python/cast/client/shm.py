@@ -59,6 +59,7 @@ METADATA_KEY = "cast-shared-memory"
 
 _CONNECT_S = 2.0  # the handshake's bound
 _SEGMENT_WAIT_S = 5.0  # how long a claim waits for the SEGMENT frame sent before the message naming it
+_SEND_S = 5.0  # how long a frame may wait for room in the socket: the server reads it at once unless stuck
 _RETRY_S = 5.0  # how long after a failure the link tries again
 _RETRY_ELSEWHERE_S = 60.0  # ... when the server is elsewhere or offers none (a restart of it may change that)
 _RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
@@ -286,11 +287,15 @@ class ClientSession:
         if self.dead:
             return
         view = memoryview(frame)
+        end = time.monotonic() + _SEND_S
         while view:
             try:
                 sent = self._sock.send(view)
             except (BlockingIOError, InterruptedError):
-                select.select([], [self._sock], [], 1.0)
+                if time.monotonic() > end:
+                    self._end(f"the server has not read its socket for {_SEND_S:g} s")
+                    return
+                select.select([], [self._sock], [], 0.1)
                 continue
             except OSError as exc:
                 self._end(f"write failed: {exc}")

@@ -99,6 +99,12 @@ class SharedSession:
         self.send_segment: Callable[[Segment], bool] | None = None
         self.closed = False
 
+    def forget_staging_fd(self) -> None:
+        """Close the staging area's descriptor once the client has it (the mapping keeps the memory file)."""
+        if self.staging_fd >= 0:
+            os.close(self.staging_fd)
+            self.staging_fd = -1
+
     def describe(self) -> str:
         """How messages name it: ``shared-memory session 1a2b... of component 'x'``."""
         return f"shared-memory session {self.id.hex()} of component '{self.who.component_id}'"
@@ -207,7 +213,7 @@ class SharedMemory:
         session.calls.clear()
         session.lent_bytes = 0
         session.staging.close()
-        os.close(session.staging_fd)
+        session.forget_staging_fd()
 
     def session_for(self, who: Identity, session_id: bytes) -> SharedSession | None:
         """The session a read names (None when this server has none by that id: the read then gets bytes).

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import resource
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -174,6 +176,19 @@ async def _expire_sessions(system: System) -> None:
             log.warning("session of component '%s' expired: its locks and tasks were released", component_id)
 
 
+def raise_open_files_limit() -> None:
+    """Raise this process's limit of open files to what the system allows it.
+
+    Each client holds a connection, and one on the host a shared-memory
+    session too: the usual soft limit of 1,024 would refuse the 500th
+    component; the hard limit is the system's bound, as Go's runtime does.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or soft < hard:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+
+
 def _split_listen(listen: str) -> tuple[str, str]:
     host, sep, port = listen.rpartition(":")
     if not sep or not port.isdigit():
@@ -205,6 +220,7 @@ async def start_server(
     )
     server = grpc.aio.server(options=options)
     auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
+    raise_open_files_limit()
     shared = SharedSocket(system, auth) if system.shared is not None else None
     # Requests whose bytes do not parse are answered INVALID_ARGUMENT (cast.server.malformed).
     registrar: Any = SafeRegistrar(server)
@@ -223,6 +239,8 @@ async def start_server(
     else:
         port = server.add_insecure_port(listen)
     if port == 0:
+        if shared is not None:
+            shared.close()
         raise OSError(f"cannot listen on {listen}: address in use or not available")
     await server.start()
     advertised = "127.0.0.1" if host in ("0.0.0.0", "[::]", "::") else host

@@ -150,7 +150,8 @@ class _Connection:
         self.session = session
         frame = wire.welcome(session.id, bytes.fromhex(shared.server_id), shared.settings.threshold_bytes,
                              shared.settings.window_bytes, session.staging_bytes)
-        self.send(frame, session.staging_fd)
+        if self.send(frame, session.staging_fd) and not self._pending:
+            session.forget_staging_fd()  # the client has it; the server's mapping is all the server needs
 
     def _too_slow(self) -> None:
         if self.session is None:
