@@ -29,10 +29,10 @@ from cast.client import shm_wire as wire
 from cast.core.records import Identity
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
-from cast.v1 import working_memory_pb2 as wm_pb2
-from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
 from tests.netns import Lines, Namespaces, stop_all
 from tests.reliability.conftest import kill9, serve, write_config
