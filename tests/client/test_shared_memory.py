@@ -22,7 +22,7 @@ from google.protobuf.wrappers_pb2 import BytesValue
 
 import cast
 from cast.auth import TokenSigner
-from cast.client import shm
+from cast.client import shm, shm_session
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.journal import Journal
 from cast.core.records import Identity, Limits
@@ -76,7 +76,7 @@ class Host:
     def metadata(self, cid: str, sa: str = "vision") -> tuple[tuple[str, str], ...]:
         return (("authorization", f"Bearer {self.signer.issue(Identity(cid, sa))}"),)
 
-    def session(self, cid: str, sa: str = "vision") -> shm.ClientSession:
+    def session(self, cid: str, sa: str = "vision") -> shm_session.ClientSession:
         """A raw session of ``cid``, as any client opens one."""
         info = dir_grpc.DirectoryStub(self.channel).DescribeSystem(dir_pb2.DescribeSystemRequest(),
                                                                     metadata=self.metadata(cid, sa)).shared_memory
@@ -115,7 +115,7 @@ def image(size: int, seed: int = 0) -> BytesValue:
     return BytesValue(value=bytes((seed + i) % 251 for i in range(256)) * (size // 256))
 
 
-def staged_add(session: shm.ClientSession, entry_id: str, value: BytesValue) -> wm_pb2.AddRequest:
+def staged_add(session: shm_session.ClientSession, entry_id: str, value: BytesValue) -> wm_pb2.AddRequest:
     """An Add whose value a raw client staged in its session."""
     data = value.SerializeToString()
     staged = session.stage(data)
@@ -157,13 +157,13 @@ def test_a_writer_cannot_change_a_value_after_its_write_was_acknowledged(
     host: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     passed: list[int] = []  # the memory files of the segments, as they reach a client
-    segment_init = shm._Segment.__init__
+    segment_init = shm_session._Segment.__init__
 
     def keep(segment: Any, fd: int, size: int) -> None:
         passed.append(os.dup(fd))
         segment_init(segment, fd, size)
 
-    monkeypatch.setattr(shm._Segment, "__init__", keep)
+    monkeypatch.setattr(shm_session._Segment, "__init__", keep)
     h = host()
     reader = h.component("reader")
     seen: list[bytes] = []

@@ -20,7 +20,7 @@ from cast.v1 import entry_pb2, task_manager_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 
 if TYPE_CHECKING:
-    from cast.client.shm import ReadCall
+    from cast.client.shm_session import ReadCall
 
 __all__ = [
     "TYPE_URL_PREFIX",

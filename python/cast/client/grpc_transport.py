@@ -24,7 +24,8 @@ from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, Ser
 from cast.client.conversions import address, any_of, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.session import Session
-from cast.client.shm import ClientSession, SharedLink, Staged
+from cast.client.shm import SharedLink
+from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
 from cast.client.write_stream import WriteStream, reply_result

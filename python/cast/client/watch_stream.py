@@ -13,7 +13,7 @@ import grpc
 from cast.client.channel import TRANSIENT, Backoff, ServerLink, map_rpc_error
 from cast.client.conversions import event_from_pb, filter_to_pb
 from cast.client.credentials import TokenSource
-from cast.client.shm import ReadCall
+from cast.client.shm_session import ReadCall
 from cast.client.transport import EventSink
 from cast.core.watch import EventFilter
 from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
