@@ -26,7 +26,10 @@ namespace {
 
 // How much longer than a lock's own timeout the client waits for the server's
 // answer to it (the server gives up the wait itself; this covers the trip).
-constexpr Millis kLockReplyMargin{5000};
+// How much longer than a blocking lock's own timeout the client waits for the
+// server's answer: the server ends the wait itself at the timeout, the margin
+// is the answer's way back (docs/client-protocol.md, "Deadlines").
+constexpr Millis kLockReplyMargin{1000};
 
 class GrpcTransport final : public Transport {
  public:
@@ -378,7 +381,7 @@ class GrpcTransport final : public Transport {
       }
     }
     // A Write stream per server, opened by its first write.
-    for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_);
+    for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_, timeout_);
   }
 
   // An SA the directory does not know goes to the directory's server, which

@@ -47,8 +47,12 @@ std::map<std::string, std::uint64_t> WatchStream::create(std::uint32_t watchId,
       throw UnavailableError("server " + server_.endpoint + " unreachable: the watch was not created within " +
                              std::to_string(timeout.count()) + " ms");
     }
-    throw DeadlineExceededError("the server at " + server_.endpoint + " did not confirm watch " +
-                                std::to_string(watchId) + " within " + std::to_string(timeout.count()) + " ms");
+    // The server looks hung: the stream is opened again and the other watches resume.
+    if (context_) context_->TryCancel();
+    throw DeadlineExceededError(server_.endpoint + " did not confirm watch " + std::to_string(watchId) + " within " +
+                                std::to_string(timeout.count()) +
+                                " ms: the server looks hung, so the watch stream was ended; it opens again by "
+                                "itself and its other watches resume");
   }
   if (pending->error) {
     watches_.erase(watchId);

@@ -2,6 +2,7 @@
 // client's client/write_stream.py.
 #include "write_stream.h"
 
+#include <algorithm>
 #include <condition_variable>
 #include <map>
 #include <thread>
@@ -43,6 +44,26 @@ std::string describe(const grpc::Status& status) {
   return status.error_message().empty() ? code : code + ": " + status.error_message();
 }
 
+// How an error names a request: "add of 'x'", "lock of 'x'", "batch of 3 writes".
+std::string describe(const v1::WriteRequest& request) {
+  switch (request.operation_case()) {
+    case v1::WriteRequest::kAdd: return "add of '" + request.add().address().id() + "'";
+    case v1::WriteRequest::kOverwrite: return "overwrite of '" + request.overwrite().address().id() + "'";
+    case v1::WriteRequest::kDelete: return "delete of '" + request.delete_().address().id() + "'";
+    case v1::WriteRequest::kBatch: return "batch of " + std::to_string(request.batch().operations_size()) + " writes";
+    case v1::WriteRequest::kLock: return "lock of '" + request.lock().address().id() + "'";
+    case v1::WriteRequest::kUnlock: return "unlock of '" + request.unlock().address().id() + "'";
+    default: return "request";
+  }
+}
+
+std::string seconds(Millis ms) {
+  std::string out = std::to_string(static_cast<double>(ms.count()) / 1000.0);
+  out.erase(out.find_last_not_of('0') + 1);  // 3.000000 -> 3.
+  if (!out.empty() && out.back() == '.') out.pop_back();
+  return out + " s";
+}
+
 }  // namespace
 
 std::shared_ptr<CastError> replyError(const v1::WriteReply& reply) {
@@ -52,9 +73,13 @@ std::shared_ptr<CastError> replyError(const v1::WriteReply& reply) {
 }
 
 // One open Write call: its outstanding requests, the requests waiting to be
-// written, a thread writing them and a thread reading replies.
+// written, a thread writing them, a thread reading replies and a thread
+// watching their deadlines.
 struct WriteStream::Call {
-  Call(std::string endpoint, std::string token) : endpoint(std::move(endpoint)), token(std::move(token)) {}
+  using Clock = std::chrono::steady_clock;
+
+  Call(std::string endpoint, std::string token, Millis lookEvery)
+      : endpoint(std::move(endpoint)), token(std::move(token)), lookEvery(lookEvery) {}
   ~Call() { join(); }
 
   // Starts the call; may wait for the connection (close() cancels it).
@@ -63,15 +88,24 @@ struct WriteStream::Call {
     stream = server.wm->Write(&context);
     reader = std::thread([this] { read(); });
     writer = std::thread([this] { write(); });
+    watcher = std::thread([this] { watch(); });
   }
 
   // Registers `request` under the next id and sends it (it is moved out);
   // false, with nothing taken, if the call broke or is closing.
-  bool send(v1::WriteRequest& request, std::size_t size, ReplyHandler& onReply, bool direct) {
+  bool send(v1::WriteRequest& request, std::size_t size, ReplyHandler& onReply, bool direct,
+            std::optional<Millis> timeout) {
     std::unique_lock<std::mutex> lock(mu);
     if (broken || halfClosed) return false;
     request.set_id(nextId++);
     pending.emplace(request.id(), std::move(onReply));
+    if (timeout) {
+      const Clock::time_point at = Clock::now() + *timeout;
+      deadlines.emplace(request.id(), Deadline{at, *timeout, describe(request)});
+      sent = true;
+      // The watcher sleeps until its earliest deadline; only an earlier one wakes it.
+      if (!watchUntil || at < *watchUntil) deadlineWake.notify_one();
+    }
     if (!direct || writing || !queued.empty()) {
       queued.emplace_back(std::move(request), size);
       wake.notify_one();
@@ -130,8 +164,9 @@ struct WriteStream::Call {
       {
         std::lock_guard<std::mutex> lock(mu);
         for (const auto& reply : message.replies()) {
+          deadlines.erase(reply.id());
           auto it = pending.find(reply.id());
-          if (it == pending.end()) continue;
+          if (it == pending.end()) continue;  // its deadline passed: its sender has the error
           answered.emplace_back(std::move(it->second), &reply);
           pending.erase(it);
         }
@@ -141,27 +176,88 @@ struct WriteStream::Call {
     }
     const grpc::Status status = stream->Finish();
     std::map<std::uint64_t, ReplyHandler> left;
+    std::string why;  // the watcher's reason, or the status
+    bool endedByWatcher = false;
     {
       std::lock_guard<std::mutex> lock(mu);
       broken = true;
       left.swap(pending);
       queued.clear();
+      deadlines.clear();
+      endedByWatcher = !stalled.empty();
+      why = endedByWatcher ? stalled : describe(status);
       wake.notify_all();
+      deadlineWake.notify_all();
     }
     std::shared_ptr<CastError> error;
-    if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED) {
+    if (status.error_code() == grpc::StatusCode::UNAUTHENTICATED && !endedByWatcher) {
       // The server refused the token the call was opened with: it applied
       // none of its requests, which fail as a refused unary call would.
       error = errorForStatus(status, errorTrailer(context.GetServerTrailingMetadata()));
     } else {
       error = std::make_shared<UnavailableError>(
-          "the write stream to " + endpoint + " broke (" + describe(status) +
+          "the write stream to " + endpoint + " broke (" + why +
           "): this write may or may not have been applied; the client reconnects by itself, retry the call later");
     }
     for (auto& kv : left) kv.second(nullptr, error);
     std::lock_guard<std::mutex> lock(mu);
     ended = true;
     changed.notify_all();
+  }
+
+  // The watcher thread: ends the call when an outstanding request passes its
+  // deadline (write_stream.h). It sleeps until the earliest deadline; while
+  // requests are sent it looks again every `lookEvery`, so that a sender need
+  // not wake it each time.
+  void watch() {
+    std::unique_lock<std::mutex> lock(mu);
+    Clock::time_point now;
+    for (;;) {
+      if (broken) return;
+      now = Clock::now();
+      std::optional<Clock::time_point> until;
+      if (!deadlines.empty()) {
+        const auto oldest = std::min_element(deadlines.begin(), deadlines.end(),
+                                             [](const auto& a, const auto& b) { return a.second.at < b.second.at; });
+        if (oldest->second.at <= now) break;
+        until = oldest->second.at;
+      } else if (sent) {
+        until = now + lookEvery;
+      }
+      sent = false;
+      watchUntil = until;
+      if (until) {
+        deadlineWake.wait_until(lock, *until);
+      } else {
+        deadlineWake.wait(lock);
+      }
+    }
+    std::vector<std::pair<ReplyHandler, std::shared_ptr<CastError>>> expired;
+    for (auto it = deadlines.begin(); it != deadlines.end();) {
+      if (it->second.at > now) {
+        ++it;
+        continue;
+      }
+      const Deadline& d = it->second;
+      if (stalled.empty()) {
+        stalled = endpoint + " answered no request within its deadline (" + d.what + " waited " + seconds(d.timeout) +
+                  "): the server looks hung, so the stream was ended";
+      }
+      auto p = pending.find(it->first);
+      if (p != pending.end()) {
+        expired.emplace_back(std::move(p->second),
+                             std::make_shared<DeadlineExceededError>(
+                                 "no reply from " + endpoint + " to the " + d.what + " within " + seconds(d.timeout) +
+                                 ": it may or may not have been applied; the write stream was ended and the next "
+                                 "write opens a new one"));
+        pending.erase(p);
+      }
+      it = deadlines.erase(it);
+    }
+    if (pending.empty()) changed.notify_all();
+    lock.unlock();
+    for (auto& [handler, error] : expired) handler(nullptr, error);
+    context.TryCancel();  // the reader sees the end and fails the others
   }
 
   bool usable() {
@@ -185,21 +281,34 @@ struct WriteStream::Call {
   }
 
   void join() {
-    for (std::thread* t : {&writer, &reader}) {
+    for (std::thread* t : {&writer, &reader, &watcher}) {
       if (t->joinable() && t->get_id() != std::this_thread::get_id()) t->join();
     }
   }
 
+  struct Deadline {
+    Clock::time_point at;
+    Millis timeout;
+    std::string what;
+  };
+
   const std::string endpoint;
   const std::string token;
+  const Millis lookEvery;
   grpc::ClientContext context;
   std::unique_ptr<grpc::ClientReaderWriter<v1::WriteRequests, v1::WriteReplies>> stream;
   std::thread reader;
   std::thread writer;
+  std::thread watcher;
   std::mutex mu;
-  std::condition_variable wake;     // something to write, a write done, or the end: for the writer
-  std::condition_variable changed;  // a reply came (pending shrank), or the call ended
+  std::condition_variable wake;          // something to write, a write done, or the end: for the writer
+  std::condition_variable changed;       // a reply came (pending shrank), or the call ended
+  std::condition_variable deadlineWake;  // a deadline earlier than the watcher's, or the end
   std::map<std::uint64_t, ReplyHandler> pending;
+  std::map<std::uint64_t, Deadline> deadlines;        // outstanding ids with a deadline
+  std::optional<Clock::time_point> watchUntil;        // when the watcher looks next (nullopt: when told)
+  bool sent = false;                                  // a request was sent since the watcher last looked
+  std::string stalled;                                // why the watcher ended the call
   std::vector<std::pair<v1::WriteRequest, std::size_t>> queued;  // registered, waiting for the writer (with size)
   std::uint64_t nextId = 1;
   bool writing = false;     // a Write (or the half-close) is under way
@@ -208,14 +317,16 @@ struct WriteStream::Call {
   bool ended = false;       // the reader has failed what was outstanding and is done
 };
 
-WriteStream::WriteStream(Server& server, std::shared_ptr<TokenSource> tokens)
-    : server_(server), tokens_(std::move(tokens)) {}
+WriteStream::WriteStream(Server& server, std::shared_ptr<TokenSource> tokens, Millis callTimeout)
+    : server_(server), tokens_(std::move(tokens)), callTimeout_(callTimeout) {}
 
 WriteStream::~WriteStream() { close(); }
 
 // Called with openMu_ held: the call to send on, opened when there is none,
-// it broke, or the token changed; nullptr once closed.
-std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token) {
+// it broke, or the token changed; nullptr once closed, or when no connection
+// could be made within `connectWait` (`*unreachable` then true).
+std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token, Millis connectWait,
+                                                        bool* unreachable) {
   std::shared_ptr<Call> call;
   {
     std::lock_guard<std::mutex> lock(stateMu_);
@@ -230,7 +341,19 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
     call->end(kEndGrace);
     call->join();
   }
-  auto fresh = std::make_shared<Call>(server_.endpoint, token);
+  // Opening a call waits while the channel connects, as long as gRPC's
+  // connect timeout (20 s) when the server accepts TCP but answers nothing:
+  // bounded here, so that a write ends by its deadline. A channel that failed
+  // to connect (the server is away) fails the call at once, as before.
+  const auto until = std::chrono::system_clock::now() + connectWait;
+  for (auto state = server_.channel->GetState(true);
+       state == GRPC_CHANNEL_IDLE || state == GRPC_CHANNEL_CONNECTING; state = server_.channel->GetState(true)) {
+    if (!server_.channel->WaitForStateChange(state, until)) {
+      *unreachable = true;
+      return nullptr;
+    }
+  }
+  auto fresh = std::make_shared<Call>(server_.endpoint, token, callTimeout_);
   {
     std::lock_guard<std::mutex> lock(stateMu_);
     if (closed_) return nullptr;
@@ -240,7 +363,7 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
   return fresh;
 }
 
-void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool direct) {
+void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool direct, std::optional<Millis> timeout) {
   // Refused here, not by gRPC: a message over the limit would end the stream
   // and fail every write in flight with it.
   const std::size_t size = request.ByteSizeLong();
@@ -257,16 +380,24 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
   // Twice at most: a call that broke (or was replaced) just now gives way to a new one.
   for (int attempt = 0; attempt < 2; ++attempt) {
     std::shared_ptr<Call> call;
+    bool unreachable = false;
     {
       std::lock_guard<std::mutex> lock(openMu_);
-      call = current(token);
+      call = current(token, timeout.value_or(callTimeout_), &unreachable);
+    }
+    if (unreachable) {
+      onReply(nullptr, std::make_shared<UnavailableError>(
+                           "the write stream to " + server_.endpoint + " could not be opened: the server "
+                           "completed no connection within " + seconds(timeout.value_or(callTimeout_)) +
+                           ", so this write was not sent; the client reconnects by itself, retry the call later"));
+      return;
     }
     if (!call) {
       onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
                                                           " is closed: no more writes"));
       return;
     }
-    if (call->send(request, size, onReply, direct)) return;
+    if (call->send(request, size, onReply, direct, timeout)) return;
   }
   onReply(nullptr, std::make_shared<UnavailableError>("the write stream to " + server_.endpoint +
                                                       " broke twice while this write was sent: it was not applied; "
@@ -285,15 +416,12 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
   for (int attempt = 0;; ++attempt) {
     auto promise = std::make_shared<std::promise<Outcome>>();
     std::future<Outcome> future = promise->get_future();
+    // Answered by the reply, or by the call's watcher past `timeout` (DeadlineExceededError).
     send(attempt == 0 ? request : *again,
          [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
            promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
          },
-         true);
-    if (timeout && future.wait_for(*timeout) != std::future_status::ready) {
-      throw DeadlineExceededError("no reply from " + server_.endpoint + " to a write within " +
-                                  std::to_string(timeout->count()) + " ms: it may or may not have been applied");
-    }
+         true, timeout);
     Outcome outcome = future.get();
     if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and
@@ -316,7 +444,7 @@ std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request) {
            promise->set_value(writeResult(reply->write()));
          }
        },
-       false);
+       false, callTimeout_);
   return future;
 }
 

@@ -18,6 +18,14 @@
 // earlier one). A stream that breaks fails its outstanding requests with
 // UnavailableError, as a broken unary call, and the next write opens a new
 // one.
+//
+// Every request has a deadline (the call timeout; a blocking lock's own
+// timeout plus a margin). A thread per stream watches them: when the oldest
+// outstanding request passes its deadline, its sender gets
+// DeadlineExceededError and the stream is ended (its other requests fail with
+// UnavailableError), since a server that answers nothing in that time is hung,
+// or the path to it is; keepalive alone notices that only when the
+// connection's ping goes unanswered.
 #pragma once
 
 #include <chrono>
@@ -45,17 +53,20 @@ std::shared_ptr<CastError> replyError(const v1::WriteReply& reply);
 
 class WriteStream {
  public:
-  WriteStream(Server& server, std::shared_ptr<TokenSource> tokens);
+  // `callTimeout`: the deadline of an asynchronous write.
+  WriteStream(Server& server, std::shared_ptr<TokenSource> tokens, Millis callTimeout);
   ~WriteStream();
   WriteStream(const WriteStream&) = delete;
   WriteStream& operator=(const WriteStream&) = delete;
 
   // Sends `request` (its id is set here) and calls `onReply` once, on the
-  // stream's reader thread or right here: keep it short, it holds up the
-  // replies behind it. `direct`: when nothing else is being sent, write it
-  // from this thread at once (a caller that waits for the reply); otherwise
+  // stream's reader or deadline thread or right here: keep it short, it holds
+  // up the replies behind it. `direct`: when nothing else is being sent, write
+  // it from this thread at once (a caller that waits for the reply); otherwise
   // it goes to the stream's writer thread with whatever queues up behind it.
-  void send(v1::WriteRequest& request, ReplyHandler onReply, bool direct);
+  // Past `timeout` (nullopt: none) it is answered DeadlineExceededError and
+  // the stream ends.
+  void send(v1::WriteRequest& request, ReplyHandler onReply, bool direct, std::optional<Millis> timeout);
   // Sends `request` and waits up to `timeout` (nullopt: as long as it takes)
   // for its reply, DeadlineExceededError past it. A reply's error is thrown as
   // the unary call would throw it; a refused token is read again from its
@@ -71,10 +82,11 @@ class WriteStream {
 
  private:
   struct Call;
-  std::shared_ptr<Call> current(const std::string& token);
+  std::shared_ptr<Call> current(const std::string& token, Millis connectWait, bool* unreachable);
 
   Server& server_;
   std::shared_ptr<TokenSource> tokens_;
+  Millis callTimeout_;
   std::mutex openMu_;   // held while choosing, replacing or opening the call
   std::mutex stateMu_;  // guards call_ and closed_ (close() takes it without waiting for an opening)
   std::shared_ptr<Call> call_;

@@ -23,6 +23,7 @@ import os
 import secrets
 import time
 from collections import OrderedDict
+from collections.abc import Mapping
 from pathlib import Path
 
 import jwt
@@ -128,14 +129,18 @@ def _flag(value: object) -> bool:
     return value
 
 
-def load_secret(path: str | os.PathLike[str] | None = None) -> bytes | None:
-    """The secret from ``path``, ``$CAST_SECRET``, ``$CAST_SECRET_FILE`` or ``.cast/secret``; None if none."""
+def load_secret(path: str | os.PathLike[str] | None = None, env: Mapping[str, str] | None = None) -> bytes | None:
+    """The secret from ``path``, ``$CAST_SECRET``, ``$CAST_SECRET_FILE`` or ``.cast/secret``; None if none.
+
+    ``env``: where the variables are looked up (default ``os.environ``).
+    """
     if path is not None:
         return Path(path).read_bytes().strip()
-    env = os.environ.get("CAST_SECRET")
-    if env:
-        return env.encode()
-    env_file = os.environ.get("CAST_SECRET_FILE")
+    env = os.environ if env is None else env
+    secret = env.get("CAST_SECRET")
+    if secret:
+        return secret.encode()
+    env_file = env.get("CAST_SECRET_FILE")
     if env_file:
         return Path(env_file).read_bytes().strip()
     if DEFAULT_SECRET_PATH.exists():

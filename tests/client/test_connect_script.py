@@ -81,3 +81,22 @@ def test_connect_with_an_explicit_token_and_what_it_says_when_nothing_is_found(
     with pytest.raises(cast.InvalidArgumentError, match="CAST_TOKEN_FILE names .*empty.token, which is empty: point"):
         cast.connect(env={"CAST_ENDPOINT": server.endpoint, "CAST_TOKEN_FILE": str(tmp_path / "empty.token"),
                           "CAST_TOKEN": server.token("explicit", "vision")})
+
+
+def test_every_variable_connect_reads_comes_from_env_when_it_is_given(
+    server: ServerHandle, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The process's own environment names nothing, or something wrong: only `env` counts.
+    for name in ("CAST_ENDPOINT", "CAST_TOKEN", "CAST_TOKEN_FILE", "CAST_SECRET"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("CAST_SECRET_FILE", str(tmp_path / "missing-secret"))
+    monkeypatch.chdir(tmp_path)  # no .cast/secret here either
+    secret_file = tmp_path / "secret"
+    secret_file.write_text(SECRET + "\n")
+    env = {"CAST_ENDPOINT": server.endpoint, "CAST_SECRET_FILE": str(secret_file),
+           "CAST_RUNTIME_DIR": str(tmp_path / "runtime")}
+    with cast.connect(env=env, component_id="from-env", subarchitecture="vision") as wm:
+        wm.add("from-env", StringValue(value="ok"))
+        assert wm.component_id == "from-env"
+    with pytest.raises(cast.NotFoundError, match="no token secret"):
+        cast.connect(env={**env, "CAST_SECRET_FILE": ""}, component_id="no-secret", subarchitecture="vision")

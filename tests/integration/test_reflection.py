@@ -70,3 +70,20 @@ def test_grpcurl_lists_the_services_and_decodes_an_entry_value(server: ServerHan
     assert got.returncode == 0, got.stderr
     value = json.loads(got.stdout)["entry"]["value"]
     assert value == {"@type": "type.googleapis.com/cast.testing.Pose", "x": 1.5, "label": "door", "tags": ["a"]}
+
+
+def test_grpcurl_describes_every_service_the_server_lists(server: ServerHandle) -> None:
+    assert GRPCURL.exists(), f"{GRPCURL} is missing: `make grpcurl` builds it"
+    base = [str(GRPCURL), "-plaintext", "-H", f"authorization: Bearer {server.token('tool', 'vision')}"]
+    listed = subprocess.run([*base, server.endpoint, "list"], capture_output=True, text=True, timeout=60)
+    assert listed.returncode == 0, listed.stderr
+    services = listed.stdout.split()
+    described = subprocess.run([*base, server.endpoint, "describe"], capture_output=True, text=True, timeout=60)
+    assert described.returncode == 0, described.stderr
+    for service in services:
+        assert f"{service} is a service:" in described.stdout, described.stdout
+    for method in ("grpc.reflection.v1.ServerReflection.ServerReflectionInfo",
+                   "grpc.reflection.v1alpha.ServerReflection.ServerReflectionInfo", "cast.v1.WorkingMemory.Get"):
+        one = subprocess.run([*base, server.endpoint, "describe", method], capture_output=True, text=True,
+                             timeout=60)
+        assert one.returncode == 0 and f"{method} is a method:" in one.stdout, one.stdout + one.stderr

@@ -39,6 +39,9 @@ CHANNEL_OPTIONS = (
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
     ("grpc.keepalive_time_ms", 10_000),
     ("grpc.keepalive_timeout_ms", 5_000),
+    # Since gRPC 1.5x a ping's own timeout (one minute by default) decides when an unanswered keepalive
+    # ends the connection, not keepalive_timeout_ms: without it a hung server is noticed after a minute.
+    ("grpc.http2.ping_timeout_ms", 5_000),
     ("grpc.keepalive_permit_without_calls", 1),
     # Try again soon after the server went away (gRPC's default backoff grows to two minutes),
     # so a restarted server is found within a few seconds.

@@ -47,10 +47,10 @@ def find_secret(explicit: str | None, runtime: RuntimeDir, env: Mapping[str, str
     if explicit:
         return Path(explicit).read_bytes().strip()
     if env.get("CAST_SECRET") or env.get("CAST_SECRET_FILE"):
-        found = load_secret()
+        found = load_secret(env=env)
         if found:
             return found
-    secret = runtime.read_secret() or load_secret()
+    secret = runtime.read_secret() or load_secret(env=env)
     if secret is None:
         raise NoSystemError(
             f"no token secret: none in {runtime.secret_path} (written by a running `cast run`); pass --secret-file, "

@@ -28,7 +28,7 @@ from cast.client.shm import SharedLink
 from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
-from cast.client.write_stream import WriteStream, reply_result
+from cast.client.write_stream import LOCK_REPLY_MARGIN_S, WriteStream, reply_result
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -47,8 +47,6 @@ log = logging.getLogger("cast.client")
 _AWAIT_RUN_POLL_S = 1.0
 # How long asking a server where its shared memory is may take: it is asked on the way of a write or a watch.
 _DESCRIBE_S = 5.0
-# How much longer than a lock's own timeout the client waits for the server's answer to it.
-_LOCK_REPLY_MARGIN_S = 5.0
 
 
 _Staging = tuple[tuple[ClientSession, Staged], ...]
@@ -178,7 +176,7 @@ class GrpcTransport:
         if stream is None:
             with self._lock:
                 if server.write_stream is None:
-                    server.write_stream = WriteStream(server, self._tokens)
+                    server.write_stream = WriteStream(server, self._tokens, self._timeout)
                 stream = server.write_stream
         return stream
 
@@ -338,13 +336,20 @@ class GrpcTransport:
     # ----------------------------------------------------------------- locks
 
     def lock(self, sa: str, entry_id: str, mode: LockMode, timeout: float | None, no_wait: bool) -> int:
-        """Take a lock; the wait is bounded by the call's deadline."""
+        """Take a lock, waiting up to ``timeout`` (None: as long as it takes) unless ``no_wait``.
+
+        The server ends the wait itself at ``timeout`` (DEADLINE_EXCEEDED); the client gives up
+        :data:`LOCK_REPLY_MARGIN_S` later, the answer's way back. A lock that does not wait has the
+        call timeout, as any other call.
+        """
         request = wm_pb2.WriteRequest(timeout_ms=0 if timeout is None else max(1, round(timeout * 1000)))
         request.lock.address.id, request.lock.address.subarchitecture = entry_id, sa
         request.lock.mode, request.lock.no_wait = int(mode), no_wait  # type: ignore[assignment]
-        # The server gives up the wait itself (DEADLINE_EXCEEDED); the margin covers the round trip.
-        reply = self._write(sa, request, timeout=None if timeout is None else timeout + _LOCK_REPLY_MARGIN_S)
-        return int(reply.lock.depth)
+        if no_wait:
+            deadline: float | None = self._timeout
+        else:
+            deadline = None if timeout is None else timeout + LOCK_REPLY_MARGIN_S
+        return int(self._write(sa, request, timeout=deadline).lock.depth)
 
     def unlock(self, sa: str, entry_id: str) -> int:
         """Release one level of a lock."""

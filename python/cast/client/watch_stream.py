@@ -243,9 +243,16 @@ class WatchStream:
             self._watches.pop(watch_id, None)
             if not self.connected:
                 raise UnavailableError(
-                    f"server {self._server.endpoint} unreachable: the watch was not created within {timeout} s"
+                    f"server {self._server.endpoint} unreachable: the watch was not created within {timeout:g} s"
                 )
-            raise DeadlineExceededError(f"the server did not confirm watch {watch_id} within {timeout} s")
+            with self._mutex:
+                call = self._call
+            if call is not None:
+                call.cancel()  # the server looks hung: the stream is opened again, the other watches resume
+            raise DeadlineExceededError(
+                f"{self._server.endpoint} did not confirm watch {watch_id} within {timeout:g} s: the server looks "
+                "hung, so the watch stream was ended; it opens again by itself and its other watches resume"
+            )
         result = box[0]
         if isinstance(result, CastError):
             self._watches.pop(watch_id, None)

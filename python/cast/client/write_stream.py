@@ -13,6 +13,14 @@ new token, after the old one's outstanding requests are answered (so no
 write overtakes an earlier one). A stream that breaks fails its outstanding
 requests with UnavailableError, as a broken unary call, and the next write
 opens a new one.
+
+Every request has a deadline (the call timeout; a blocking lock's own timeout
+plus :data:`LOCK_REPLY_MARGIN_S`). A thread per stream watches them: when the
+oldest outstanding request passes its deadline, its caller gets
+DeadlineExceededError and the stream is ended, since a server that answers
+nothing in that time is hung (or the path to it is); the others fail with
+UnavailableError, and the next write opens a new stream. Keepalive alone would
+notice a hung server only when the connection's ping goes unanswered.
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ from cast.errors import (
 )
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["WriteStream", "reply_result"]
+__all__ = ["LOCK_REPLY_MARGIN_S", "WriteStream", "reply_result"]
 
 log = logging.getLogger("cast.client")
 
@@ -51,6 +59,13 @@ _DRAIN_S = 30.0
 _MESSAGE_BYTES = 4 * 1024 * 1024
 # The largest request sent: gRPC's message limit, less room for the message's own framing.
 _MAX_REQUEST_BYTES = MAX_MESSAGE_BYTES - 1024
+
+LOCK_REPLY_MARGIN_S = 1.0
+"""How much longer than a blocking lock's own timeout the client waits for the server's answer.
+
+The server ends the wait itself at the timeout (DEADLINE_EXCEEDED); the margin is the answer's way
+back. Past it the server is taken for hung, as for any other request past its deadline.
+"""
 
 
 def reply_result(reply: wm_pb2.WriteReply) -> wm_pb2.WriteReply:
@@ -68,7 +83,16 @@ def _settle(future: Future[wm_pb2.WriteReply], reply: wm_pb2.WriteReply | None, 
         else:
             future.set_result(reply)  # type: ignore[arg-type]
     except InvalidStateError:
-        pass  # the caller gave up waiting (its deadline) and cancelled it
+        pass  # settled already: its deadline passed
+
+
+def _what(request: wm_pb2.WriteRequest) -> str:
+    """How an error names the request: "add of 'x'", "lock of 'x'", "batch of 3 writes"."""
+    kind = request.WhichOneof("operation") or "request"
+    if kind == "batch":
+        return f"batch of {len(request.batch.operations)} writes"
+    body = getattr(request, kind)
+    return f"{kind} of '{body.address.id}'"
 
 
 def _messages(requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None]) -> Iterator[wm_pb2.WriteRequests]:
@@ -112,24 +136,34 @@ class _Call:
     else does, settling every reply it finds, so a sequential write costs no
     hand-off to a reader thread and back. The pump thread reads only for
     futures nobody waits on (the async calls) and to see the end of a call
-    that broke while idle.
+    that broke while idle. The watch thread ends the call when a request
+    passes its deadline (the module's docstring).
     """
 
-    def __init__(self, server: ServerLink, token: str) -> None:
+    def __init__(self, server: ServerLink, token: str, look_every: float) -> None:
         self.token = token
         self.endpoint = server.endpoint
         self.requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None] = queue.SimpleQueue()
         self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
         self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
+        self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
         self.lock = threading.Lock()
-        # Followers (and drain) wait on `changed`, the pump on `pump_wake`: notifying a condition nobody
-        # waits on is cheap, waking a thread that only goes back to sleep is not (on every write).
+        # Followers (and drain) wait on `changed`, the pump on `pump_wake`, the watch thread on
+        # `watch_wake`: notifying a condition nobody waits on is cheap, waking a thread that only goes
+        # back to sleep is not (on every write).
         self.changed = threading.Condition(self.lock)  # replies settled, reader left, or the call ended
         self.pump_wake = threading.Condition(self.lock)  # a detached request, the reader left, or the end
+        self.watch_wake = threading.Condition(self.lock)  # a deadline earlier than the watch thread's, or the end
         self.followers = 0  # threads waiting on `changed`
         self.reading = False  # a thread is reading the stream (at most one)
         self.ended = False  # gRPC reported the call over: read what is left, then it is broken
         self.broken = False  # over: nothing more will be read; the next write opens a new call
+        self.stalled = ""  # why the watch thread ended the call (a request past its deadline)
+        # The watch thread looks again at the latest by `watch_until` (None: when told). While requests
+        # are sent it keeps looking every `look_every` s, so that a sender need not wake it each time.
+        self.watch_until: float | None = None
+        self.sent = False  # a request was sent since the watch thread last looked
+        self.look_every = look_every
         self.ids = itertools.count(1)
         metadata = (("authorization", f"Bearer {token}"),)
         # The stubs' type (an iterator) hides what the call object also is: a grpc.Future with a next().
@@ -139,12 +173,25 @@ class _Call:
         self.pump = threading.Thread(target=self._pump, name="cast-write-replies", daemon=True)
         self.pump.start()
         server.track(self.pump)
+        self.watch = threading.Thread(target=self._watch, name="cast-write-deadlines", daemon=True)
+        self.watch.start()
+        server.track(self.watch)
 
-    def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool) -> Future[wm_pb2.WriteReply]:
-        """Queue ``request`` (``size`` bytes) with the next id; the future of its reply. Call with :attr:`lock` held."""
+    def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool,
+             timeout: float | None) -> Future[wm_pb2.WriteReply]:
+        """Queue ``request`` (``size`` bytes) with the next id; the future of its reply. Call with :attr:`lock` held.
+
+        ``timeout``: seconds until its deadline (None: none, a lock that waits as long as it takes).
+        """
         future: Future[wm_pb2.WriteReply] = Future()
         request.id = request_id = next(self.ids)
         self.pending[request_id] = future
+        if timeout is not None:
+            deadline = time.monotonic() + timeout
+            self.deadlines[request_id] = (deadline, timeout, _what(request))
+            self.sent = True
+            if self.watch_until is None or deadline < self.watch_until:
+                self.watch_wake.notify()
         if detached:
             self.detached.add(request_id)
             self.pump_wake.notify()  # the pump reads for it
@@ -165,7 +212,7 @@ class _Call:
             return False
         except grpc.RpcError as exc:
             error = map_rpc_error(exc)
-            self._fail(error, str(error))
+            self._fail(error, self.stalled or str(error))
             return False
         except Exception as exc:  # noqa: BLE001 - whatever happened, the outstanding calls must fail
             self._fail(None, f"{type(exc).__name__}: {exc}")
@@ -175,8 +222,9 @@ class _Call:
             settled = [(pop(reply.id, None), reply) for reply in message.replies]
             for reply in message.replies:
                 self.detached.discard(reply.id)
+                self.deadlines.pop(reply.id, None)
         for future, reply in settled:
-            if future is not None:
+            if future is not None:  # None: its deadline passed, the caller has its error
                 _settle(future, reply, None)
         if self.followers:  # read without the lock: a follower counts itself before it checks its future
             with self.lock:
@@ -190,8 +238,9 @@ class _Call:
             left = list(self.pending.values())
             self.pending.clear()
             self.detached.clear()
+            self.deadlines.clear()
         for future in left:
-            if error is not None and error.code == "UNAUTHENTICATED":
+            if error is not None and error.code == "UNAUTHENTICATED" and not self.stalled:
                 # Refused when it opened, before any request was read: nothing was applied.
                 _settle(future, None, error)
                 continue
@@ -200,7 +249,7 @@ class _Call:
                 "applied; the client reconnects by itself, retry the call later"
             ))
         with self.lock:
-            self._wake_all()  # the waiters of what just failed, and the pump (to end)
+            self._wake_all()  # the waiters of what just failed, the pump and the watch thread (to end)
 
     def _release(self) -> None:
         with self.lock:
@@ -211,31 +260,25 @@ class _Call:
                 self.pump_wake.notify()
 
     def _wake_all(self) -> None:
-        """Wake followers and the pump. Call with :attr:`lock` held."""
+        """Wake followers, the pump and the watch thread. Call with :attr:`lock` held."""
         self.changed.notify_all()
         self.pump_wake.notify()
+        self.watch_wake.notify()
 
-    def wait(self, future: Future[wm_pb2.WriteReply], timeout: float | None) -> wm_pb2.WriteReply:
+    def wait(self, future: Future[wm_pb2.WriteReply]) -> wm_pb2.WriteReply:
         """The reply of ``future``: read the stream while nobody else does, else wait for who does.
 
-        ``timeout`` bounds the wait as a follower; the reader returns when the
-        reply arrives or the call breaks (keepalive finds a dead server within
-        seconds, and a lock's own wait is bounded by the server).
+        The reader returns when the reply arrives or the call ends; the watch
+        thread settles a request past its deadline and ends the call, so no
+        wait outlasts the request's deadline.
         """
-        end = None if timeout is None else time.monotonic() + timeout
         while True:
             with self.lock:
                 # Counted before the future is checked: the reader settles, then looks at the count.
                 self.followers += 1
                 try:
                     while not future.done() and (self.reading or self.broken):
-                        remaining = None if end is None else end - time.monotonic()
-                        if remaining is not None and remaining <= 0:
-                            future.cancel()
-                            raise DeadlineExceededError(
-                                f"no reply to a write within {timeout} s: it may or may not have been applied"
-                            )
-                        self.changed.wait(remaining)
+                        self.changed.wait()
                 finally:
                     self.followers -= 1
                 if future.done():
@@ -263,6 +306,42 @@ class _Call:
             if not alive:
                 return
 
+    def _watch(self) -> None:
+        """End the call when an outstanding request passes its deadline (the module's docstring)."""
+        with self.lock:
+            while True:
+                if self.broken:
+                    return
+                now = time.monotonic()
+                if self.deadlines:
+                    deadline, timeout, what = min(self.deadlines.values())
+                    if deadline <= now:
+                        break
+                    self.watch_until = deadline
+                elif self.sent:
+                    self.watch_until = now + self.look_every
+                else:
+                    self.watch_until = None
+                self.sent = False
+                self.watch_wake.wait(None if self.watch_until is None else self.watch_until - now)
+            self.stalled = (f"{self.endpoint} answered no request within its deadline ({what} waited {timeout:g} s): "
+                            "the server looks hung, so the stream was ended")
+            expired = []
+            for request_id, (deadline, waited, what) in list(self.deadlines.items()):
+                if deadline <= now:
+                    del self.deadlines[request_id]
+                    self.detached.discard(request_id)
+                    future = self.pending.pop(request_id, None)
+                    if future is not None:
+                        expired.append((future, waited, what))
+            self.changed.notify_all()  # followers whose request expired
+        for future, waited, what in expired:
+            _settle(future, None, DeadlineExceededError(
+                f"no reply from {self.endpoint} to the {what} within {waited:g} s: it may or may not have been "
+                "applied; the write stream was ended and the next write opens a new one"
+            ))
+        self.responses.cancel()  # the reader sees the end and fails the others
+
     def drain(self, timeout: float) -> None:
         """Wait until every outstanding request is answered (or ``timeout``). Call with :attr:`lock` held."""
         self.followers += 1
@@ -283,21 +362,23 @@ class _Call:
 class WriteStream:
     """The Write stream of one component to one server, opened on the first write and after a break."""
 
-    def __init__(self, server: ServerLink, tokens: TokenSource) -> None:
+    def __init__(self, server: ServerLink, tokens: TokenSource, call_timeout: float) -> None:
         self._server = server
         self._tokens = tokens
+        self._timeout = call_timeout
         self._lock = threading.Lock()  # one sender at a time: ids and queue order agree
         self._call: _Call | None = None
         self._closed = False
 
-    def submit(self, request: wm_pb2.WriteRequest, detached: bool = True) -> Future[wm_pb2.WriteReply]:
-        """Send ``request`` (its id is set here); the future of its reply (use :func:`reply_result`).
+    def submit(self, request: wm_pb2.WriteRequest) -> Future[wm_pb2.WriteReply]:
+        """Send ``request`` (its id is set here) without waiting; the future of its reply (use :func:`reply_result`).
 
-        ``detached``: nobody will wait in :meth:`call` for it, so the pump thread reads its reply.
+        The pump thread reads its reply; past the call timeout the future fails with DeadlineExceededError.
         """
-        return self._submit(request, detached)[1]
+        return self._submit(request, True, self._timeout)[1]
 
-    def _submit(self, request: wm_pb2.WriteRequest, detached: bool) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
+    def _submit(self, request: wm_pb2.WriteRequest, detached: bool,
+                timeout: float | None) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
         size = request.ByteSize()
         if size > _MAX_REQUEST_BYTES:
             # Sent, it would end the stream (and every write in flight on it) with RESOURCE_EXHAUSTED.
@@ -314,11 +395,11 @@ class WriteStream:
                 call = self._open(call, token)
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, size, detached)
+                    return call, call.send(request, size, detached, timeout)
             call = self._open(call, token)  # it broke just now: one more try on a new call
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, size, detached)
+                    return call, call.send(request, size, detached, timeout)
         raise UnavailableError(
             f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
             "was not sent; the client reconnects by itself, retry the call later"
@@ -329,18 +410,19 @@ class WriteStream:
             with old.lock:
                 old.drain(_DRAIN_S)  # the new token's stream must not overtake the old one's writes
             old.close()
-        self._call = _Call(self._server, token)
+        self._call = _Call(self._server, token, self._timeout)
         return self._call
 
     def call(self, request: wm_pb2.WriteRequest, timeout: float | None) -> wm_pb2.WriteReply:
-        """Send ``request`` and wait for its result; its error raised as the unary call would.
+        """Send ``request`` and wait for its result, at most ``timeout`` s (None: as long as it takes).
 
-        A refused token is re-read from its file once, and the request sent
-        again if it changed (a refused request changed nothing).
+        Its error is raised as the unary call would; DeadlineExceededError past
+        ``timeout``. A refused token is re-read from its file once, and the
+        request sent again if it changed (a refused request changed nothing).
         """
-        call, future = self._submit(request, detached=False)
+        call, future = self._submit(request, False, timeout)
         try:
-            reply = call.wait(future, timeout)
+            reply = call.wait(future)
         except UnauthenticatedError:
             if not self._tokens.refresh():
                 raise
@@ -352,8 +434,8 @@ class WriteStream:
         return reply_result(reply)
 
     def _retry(self, request: wm_pb2.WriteRequest, timeout: float | None) -> wm_pb2.WriteReply:
-        call, future = self._submit(request, detached=False)
-        return call.wait(future, timeout)
+        call, future = self._submit(request, False, timeout)
+        return call.wait(future)
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop sending; wait up to ``timeout`` for outstanding replies, then end the stream."""

@@ -215,6 +215,7 @@ async def start_server(
         # Notice dead peers (a crashed component's streams) even on an idle connection.
         ("grpc.keepalive_time_ms", 10_000),
         ("grpc.keepalive_timeout_ms", 5_000),
+        ("grpc.http2.ping_timeout_ms", 5_000),  # what decides it since gRPC 1.5x (cast.client.channel)
         ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
         ("grpc.keepalive_permit_without_calls", 1),
     )

@@ -56,8 +56,11 @@ import java.util.logging.Logger;
 final class GrpcTransport implements Transport {
   private static final Logger LOG = Logger.getLogger("cast.client");
   static final Duration DEFAULT_CALL_TIMEOUT = Duration.ofSeconds(30);
-  /** How much longer than a lock's own timeout the client waits for the server's answer to it. */
-  static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(5);
+  /**
+   * How much longer than a blocking lock's own timeout the client waits for the server's answer:
+   * the server ends the wait itself at the timeout, the margin is the answer's way back.
+   */
+  static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(1);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
       Set.of(

@@ -444,12 +444,20 @@ final class WatchStream {
       return done.get(timeout, TimeUnit.MILLISECONDS);
     } catch (TimeoutException e) {
       forget(watchId);
+      String seconds = timeout / 1000.0 + " s";
       if (!connected) {
         throw new UnavailableError(
-            "server " + server.endpoint + " unreachable: the watch was not created within " + transport.callTimeout());
+            "server " + server.endpoint + " unreachable: the watch was not created within " + seconds);
+      }
+      synchronized (mutex) {
+        if (requests != null) { // the server looks hung: the call opens again and the other watches resume
+          requests.cancel("no answer to a watch's creation within " + seconds, null);
+        }
       }
       throw new DeadlineExceededError(
-          "the server at " + server.endpoint + " did not confirm watch " + watchId + " within " + transport.callTimeout());
+          server.endpoint + " did not confirm watch " + watchId + " within " + seconds
+              + ": the server looks hung, so the watch stream was ended; it opens again by itself and its other"
+              + " watches resume");
     } catch (ExecutionException e) {
       forget(watchId);
       throw Errors.fromThrowable(e.getCause());

@@ -16,6 +16,8 @@ import java.util.Map;
 import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.CountDownLatch;
 import java.util.concurrent.Executor;
+import java.util.concurrent.ScheduledFuture;
+import java.util.concurrent.ScheduledThreadPoolExecutor;
 import java.util.concurrent.TimeUnit;
 import java.util.logging.Logger;
 
@@ -25,9 +27,16 @@ import java.util.logging.Logger;
  * senders, the reply reader and gRPC's onReady take it briefly, and messages are handed to
  * gRPC outside it by one thread at a time (the one that set {@code sending}). The twin of
  * {@code _Call} in python/cast/client/write_stream.py.
+ *
+ * <p>A request sent with a deadline fails with DeadlineExceededError when it passes unanswered,
+ * and the call is then ended (its other requests fail with UnavailableError; the next write opens
+ * a new call): a server that answers nothing in that time is hung, or the path to it is, and
+ * keepalive alone would notice only when the connection's ping goes unanswered.
  */
 final class WriteCall implements ClientResponseObserver<WriteRequests, WriteReplies> {
   private static final Logger LOG = Logger.getLogger("cast.client");
+  /** Where the deadlines of every call of the process are timed: one daemon thread. */
+  private static final ScheduledThreadPoolExecutor DEADLINES = deadlineTimer();
 
   private final GrpcServer server;
   final String token; // the token its metadata carried
@@ -39,6 +48,7 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
   private final Map<Long, CompletableFuture<WriteReply>> pending = new HashMap<>();
   private long lastId;
   private boolean sending; // a thread is in sendQueued: it takes along whatever is queued
+  private final Map<Long, ScheduledFuture<?>> timers = new HashMap<>(); // outstanding ids with a deadline
   private boolean broken;
   private Status endStatus;
   private ClientCallStreamObserver<WriteRequests> requests;
@@ -68,12 +78,27 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
     return broken;
   }
 
+  private static ScheduledThreadPoolExecutor deadlineTimer() {
+    ScheduledThreadPoolExecutor timer =
+        new ScheduledThreadPoolExecutor(
+            1,
+            r -> {
+              Thread t = new Thread(r, "cast-write-deadlines");
+              t.setDaemon(true);
+              return t;
+            });
+    timer.setRemoveOnCancelPolicy(true); // answered requests' timers go at once, not after their delay
+    return timer;
+  }
+
   /**
    * Queue {@code request} ({@code size} bytes) under the next id; the future of its reply, or
    * null when the call has broken. Waits while the outbox is full. When nobody is sending, a
    * synchronous caller sends what is queued itself; an asynchronous one hands that to the pump.
+   * Past {@code deadline} (null: none) the future fails with DeadlineExceededError and the call
+   * ends.
    */
-  CompletableFuture<WriteReply> send(WriteRequest.Builder request, long size, boolean async) {
+  CompletableFuture<WriteReply> send(WriteRequest.Builder request, long size, boolean async, Duration deadline) {
     CompletableFuture<WriteReply> reply = new CompletableFuture<>();
     boolean sendHere;
     synchronized (this) {
@@ -83,6 +108,11 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
       }
       long id = ++lastId;
       pending.put(id, reply);
+      if (deadline != null) {
+        String what = describe(request);
+        timers.put(
+            id, DEADLINES.schedule(() -> expire(id, deadline, what), deadline.toNanos(), TimeUnit.NANOSECONDS));
+      }
       outbox.add(request.setId(id).build());
       outboxBytes += size;
       if (sending) {
@@ -179,6 +209,10 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
     synchronized (this) {
       for (WriteReply reply : replies.getRepliesList()) {
         answered.add(pending.remove(reply.getId()));
+        ScheduledFuture<?> timer = timers.remove(reply.getId());
+        if (timer != null) {
+          timer.cancel(false);
+        }
       }
       if (pending.isEmpty()) {
         notifyAll();
@@ -209,6 +243,8 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
       endStatus = status;
       left = new ArrayList<>(pending.values());
       pending.clear();
+      timers.values().forEach(timer -> timer.cancel(false));
+      timers.clear();
       outbox.clear();
       outboxBytes = 0;
       notifyAll();
@@ -220,6 +256,46 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
     for (CompletableFuture<WriteReply> reply : left) {
       reply.completeExceptionally(brokenError());
     }
+  }
+
+  /**
+   * Request {@code id} passed its deadline unanswered: it fails with DeadlineExceededError, and
+   * the call ends (the server looks hung), failing the others.
+   */
+  private void expire(long id, Duration waited, String what) {
+    CompletableFuture<WriteReply> reply;
+    ClientCallStreamObserver<WriteRequests> stream;
+    String seconds = waited.toMillis() / 1000.0 + " s";
+    synchronized (this) {
+      timers.remove(id);
+      reply = pending.remove(id);
+      if (reply == null || broken) {
+        return; // answered meanwhile, or the call ended and failed it
+      }
+      stream = requests;
+    }
+    reply.completeExceptionally(
+        new DeadlineExceededError(
+            "no reply from " + server.endpoint + " to the " + what + " within " + seconds
+                + ": it may or may not have been applied; the write stream was ended and the next write opens a"
+                + " new one"));
+    stream.cancel(
+        server.endpoint + " answered no request within its deadline (" + what + " waited " + seconds
+            + "): the server looks hung, so the stream was ended",
+        null);
+  }
+
+  /** How an error names a request: "add of 'x'", "lock of 'x'", "batch of 3 writes". */
+  private static String describe(WriteRequest.Builder request) {
+    return switch (request.getOperationCase()) {
+      case ADD -> "add of '" + request.getAdd().getAddress().getId() + "'";
+      case OVERWRITE -> "overwrite of '" + request.getOverwrite().getAddress().getId() + "'";
+      case DELETE -> "delete of '" + request.getDelete().getAddress().getId() + "'";
+      case BATCH -> "batch of " + request.getBatch().getOperationsCount() + " writes";
+      case LOCK -> "lock of '" + request.getLock().getAddress().getId() + "'";
+      case UNLOCK -> "unlock of '" + request.getUnlock().getAddress().getId() + "'";
+      default -> "request";
+    };
   }
 
   /**

@@ -12,7 +12,6 @@ import java.util.concurrent.LinkedBlockingQueue;
 import java.util.concurrent.RejectedExecutionException;
 import java.util.concurrent.ThreadPoolExecutor;
 import java.util.concurrent.TimeUnit;
-import java.util.concurrent.TimeoutException;
 
 /**
  * A component's writes and locks on one {@code WorkingMemory.Write} stream to one server
@@ -115,7 +114,7 @@ final class WriteStream {
    * asynchronous one leaves it to the pump and returns at once, so the requests it queues go
    * together.
    */
-  CompletableFuture<WriteReply> submit(WriteRequest.Builder request, boolean async) {
+  CompletableFuture<WriteReply> submit(WriteRequest.Builder request, boolean async, Duration deadline) {
     long size = request.build().getSerializedSize();
     if (size > GrpcServer.MAX_MESSAGE_BYTES) {
       throw new InvalidArgumentError(
@@ -134,7 +133,7 @@ final class WriteStream {
         if (c == null || c.isBroken() || !c.token.equals(token)) {
           c = open(c, token);
         }
-        CompletableFuture<WriteReply> reply = c.send(request, size, async);
+        CompletableFuture<WriteReply> reply = c.send(request, size, async, deadline);
         if (reply != null) {
           return reply;
         }
@@ -157,20 +156,21 @@ final class WriteStream {
 
   /**
    * Send {@code request} and wait up to {@code wait} (null: as long as it takes) for its
-   * result; a refusal thrown as the named error the unary call would have thrown.
+   * result; a refusal thrown as the named error the unary call would have thrown,
+   * DeadlineExceededError past {@code wait} (the call it went on then ends: {@link WriteCall}).
    */
   WriteReply call(WriteRequest.Builder request, Duration wait) {
     WriteReply reply;
     try {
-      reply = await(submit(request, false), wait);
+      reply = await(submit(request, false, wait));
     } catch (UnauthenticatedError refused) { // the whole call was refused: its token, when it opened
       if (!credentials.refresh()) {
         throw refused;
       }
-      return checked(await(submit(request, false), wait));
+      return checked(await(submit(request, false, wait)));
     }
     if (reply.hasError() && reply.getError().getCode().equals("UNAUTHENTICATED") && credentials.refresh()) {
-      reply = await(submit(request, false), wait); // renewed in its file: the new token goes on a new call
+      reply = await(submit(request, false, wait)); // renewed in its file: the new token goes on a new call
     }
     return checked(reply);
   }
@@ -183,7 +183,7 @@ final class WriteStream {
     CompletableFuture<WriteResult> out = new CompletableFuture<>();
     CompletableFuture<WriteReply> sent;
     try {
-      sent = submit(request, true);
+      sent = submit(request, true, callTimeout);
     } catch (CastError e) {
       out.completeExceptionally(e);
       return out;
@@ -214,13 +214,10 @@ final class WriteStream {
     return reply;
   }
 
-  private WriteReply await(CompletableFuture<WriteReply> reply, Duration wait) {
+  /** The reply; a request with a deadline is failed by its call when the deadline passes. */
+  private static WriteReply await(CompletableFuture<WriteReply> reply) {
     try {
-      return wait == null ? reply.get() : reply.get(wait.toNanos(), TimeUnit.NANOSECONDS);
-    } catch (TimeoutException e) {
-      throw new DeadlineExceededError(
-          "no reply from " + server.endpoint + " to a write within " + wait.toMillis() / 1000.0
-              + " s: it may or may not have been applied");
+      return reply.get();
     } catch (ExecutionException e) {
       throw Errors.fromThrowable(e.getCause());
     } catch (InterruptedException e) {
