@@ -16,6 +16,7 @@ from cast.client.filters import (
 )
 from cast.client.script import Connection, connect
 from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange
+from cast.client.views import ValueView
 from cast.core.policies import Decision, TaskPolicy
 from cast.core.records import LockMode, Operation, WriteResult
 from cast.core.tasks import TaskOutcome, TaskState
@@ -65,6 +66,7 @@ __all__ = [
     "UnauthenticatedError",
     "UnavailableError",
     "UnmanagedComponent",
+    "ValueView",
     "WatchHandle",
     "WorkingMemoryAddress",
     "WorkingMemoryChange",

@@ -60,7 +60,8 @@ def _ls(args: argparse.Namespace) -> int:
             req = insp_pb2.ListEntriesRequest(subarchitecture=sa, type=args.type or "", limit=args.limit)
             resp = client.call(server.inspection.ListEntries, req)
             rows.extend(_entry_json(e) for e in resp.entries)
-            held.append(f"{sa} holds {mib(resp.bytes)} of {mib(resp.max_bytes)}")
+            shared = f", {mib(resp.shared_bytes)} of it in shared memory" if resp.shared_bytes else ""
+            held.append(f"{sa} holds {mib(resp.bytes)} of {mib(resp.max_bytes)}{shared}")
     if args.json:
         print_json(rows)
     else:

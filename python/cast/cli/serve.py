@@ -26,7 +26,8 @@ def _serve(args: argparse.Namespace) -> int:
     config = load_config(args.config, parse_sets(args.set))
     sys.path[:0] = [str(p) for p in config.python_path]  # in-process components import from there
     server = _chosen_server(config, args.server)
-    system = system_from_config(config, lease_ms=args.lease_ms, server=server, metrics=not args.no_metrics)
+    system = system_from_config(config, lease_ms=args.lease_ms, server=server, metrics=not args.no_metrics,
+                                shared_memory=not args.no_shared_memory)
     signer = TokenSigner(load_or_create_secret(args.secret_file))
     in_process = InProcessComponents(system)
 
@@ -144,6 +145,9 @@ def add_command(sub: Any) -> None:
     serve.add_argument("--exit-with-stdin", action="store_true",
                        help="stop, as on SIGTERM, when standard input ends: started with a pipe, the server stops "
                             "when the process that started it ends, however it ends (the test kits use it)")
+    serve.add_argument("--no-shared-memory", action="store_true",
+                       help="keep no shared memory: every value travels as bytes, also to clients on this host "
+                            "(the configuration's shared_memory.enabled: false does the same; docs/client-protocol.md)")
     serve.set_defaults(fn=_serve, log_level="INFO")
 
 

@@ -104,6 +104,19 @@ def _print_tables(m: dict[str, Any]) -> None:
                 [*([w, _sa(h["subarchitecture"]), *_hist_row(h)] for w, h in watchers.items()),
                  ["all", "", *_hist_row(m["delivery_latency"]["all"])]],
                 numeric=["events", "mean", "p50", "p90", "p99"])
+    shared = m.get("shared_memory")
+    if shared:
+        print_table("shared memory (values of at least " + _size(shared["threshold_bytes"]) + ")",
+                    ["segments", "values held", "lent now", "sessions", "staged writes", "lent", "unplaced",
+                     "over window"],
+                    [[f"{shared['segments']} ({_size(shared['segment_bytes'])} of {_size(shared['max_bytes'])})",
+                      f"{shared['values']} ({_size(shared['value_bytes'])})", _size(shared["lent_bytes"]),
+                      shared["sessions"], f"{shared['staged_writes']} ({_size(shared['staged_bytes'])})",
+                      f"{shared['lent']} ({_size(shared['lent_total_bytes'])})", shared["unplaced"],
+                      shared["over_window"]]],
+                    numeric=["sessions", "unplaced", "over window"])
+    else:
+        print("shared memory: off")
     reports = [[cid, name, r["count"], f"{r['sum']:g}", f"{r['min']:g}", f"{r['max']:g}", f"{r['mean']:g}",
                 f"{r['last']:g}"] for cid, named in m["reports"].items() for name, r in named.items()]
     if reports:

@@ -24,6 +24,7 @@ from cast.v1 import task_manager_pb2_grpc as tm_grpc
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
 if TYPE_CHECKING:
+    from cast.client.shm import SharedLink
     from cast.client.watch_stream import WatchStream
     from cast.client.write_stream import WriteStream
 
@@ -89,6 +90,7 @@ class ServerLink:
         self.inspection = insp_grpc.InspectionStub(self.channel)  # Report: a component's outcomes
         self.watch_stream: WatchStream | None = None
         self.write_stream: WriteStream | None = None  # opened by the first write (cast.client.write_stream)
+        self.shared: SharedLink | None = None  # shared memory with this server, if on its host (cast.client.shm)
         self.session_id = ""
         self.registered = threading.Event()  # a session is open on this server
         # Heartbeat streams wait on a count, not an Event: a waiter clearing an Event could swallow the

@@ -24,6 +24,7 @@ from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
 from cast.client.transport import Transport
 from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange, decode, entry_of
+from cast.client.views import ValueView
 from cast.core.records import BatchOp, ChangeEvent, Identity, LockMode, Operation, WriteResult
 from cast.core.schemas import files_of
 from cast.core.sessions import ComponentState
@@ -268,6 +269,15 @@ class Component:
         record = self._transport.get(self._sa(subarchitecture), entry_id)
         where = f"entry '{entry_id}' in subarchitecture '{record.subarchitecture}'"
         return decode(cls, record.type, record.data, where)
+
+    def get_view(self, entry_id: str, *, subarchitecture: str | None = None) -> ValueView:
+        """An entry's value, serialised, as a read-only view that is not a copy (:class:`cast.ValueView`).
+
+        On the server's host a large value is shared memory the server lends
+        while the view is held; numpy wraps it or a field of it
+        (``view.field(1)``) without copying. Elsewhere it is the bytes received.
+        """
+        return ValueView(self._transport.get(self._sa(subarchitecture), entry_id))
 
     def get_entry(self, entry_id: str, cls: type[M], *, subarchitecture: str | None = None) -> Entry[M]:
         """An entry with its version and author (for versioned overwrites)."""

@@ -8,14 +8,19 @@ is :mod:`cast.server.conversions`.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from google.protobuf import any_pb2, timestamp_pb2
 
 from cast.core.records import ChangeEvent, EntryRecord, Operation
 from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
 from cast.core.watch import EventFilter
-from cast.errors import InvalidArgumentError
+from cast.errors import InvalidArgumentError, UnavailableError
 from cast.v1 import entry_pb2, task_manager_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+
+if TYPE_CHECKING:
+    from cast.client.shm_session import ReadCall
 
 __all__ = [
     "TYPE_URL_PREFIX",
@@ -59,22 +64,35 @@ def any_of(type_name: str, data: bytes) -> any_pb2.Any:
     return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
 
 
-def entry_from_pb(entry: entry_pb2.Entry) -> EntryRecord:
-    """Record form of a wire entry (client side)."""
+def entry_from_pb(entry: entry_pb2.Entry, call: ReadCall | None = None) -> EntryRecord:
+    """Record form of a wire entry (client side).
+
+    An entry whose value was lent by shared memory (``shared_value``) holds a
+    read-only view of it and its lease, from the read ``call`` it came on.
+    """
+    data: bytes | memoryview = entry.value.value
+    lease = None
+    if entry.HasField("shared_value"):
+        if call is None:
+            raise UnavailableError(
+                f"entry '{entry.address.id}' came by shared memory on a call that named no session: read it again"
+            )
+        data, lease = call.claim(entry.shared_value)
     return EntryRecord(
         entry.address.subarchitecture,
         entry.address.id,
         entry.type,
-        entry.value.value,
+        data,
         entry.version,
         entry.author,
         ns(entry.modified),
         entry.revision,
+        lease,
     )
 
 
-def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
-    """Record form of a wire event (client side); ``seq`` is 0."""
+def event_from_pb(pb: entry_pb2.ChangeEvent, call: ReadCall | None = None) -> ChangeEvent:
+    """Record form of a wire event (client side); ``seq`` is 0; ``call``: as :func:`entry_from_pb`."""
     event = ChangeEvent(
         0,
         pb.revision,
@@ -86,7 +104,7 @@ def event_from_pb(pb: entry_pb2.ChangeEvent) -> ChangeEvent:
         pb.source_subarchitecture,
         pb.version,
         ns(pb.time),
-        entry_from_pb(pb.entry) if pb.HasField("entry") else None,
+        entry_from_pb(pb.entry, call) if pb.HasField("entry") else None,
     )
     if pb.skipped:
         event.skipped, event.first_skipped_revision = pb.skipped, pb.first_skipped_revision

@@ -89,6 +89,8 @@ class Dispatcher:
             except Exception:
                 log.exception("callback %s failed", getattr(fn, "__qualname__", fn))
             finally:
+                # Not kept until the next call: a change may hold a value lent by shared memory (cast.client.shm).
+                fn = args = None  # type: ignore[assignment]
                 with self._lock:
                     self._pending -= 1
                     if self._waiters:

@@ -24,6 +24,8 @@ from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, Ser
 from cast.client.conversions import address, any_of, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.session import Session
+from cast.client.shm import SharedLink
+from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
 from cast.client.write_stream import LOCK_REPLY_MARGIN_S, WriteStream, reply_result
@@ -31,7 +33,7 @@ from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operatio
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter
-from cast.errors import CastError
+from cast.errors import CastError, DeadlineExceededError, UnavailableError
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
@@ -43,6 +45,21 @@ log = logging.getLogger("cast.client")
 
 # Deadline of one AwaitRun long-poll: how soon a stop request ends the wait for the start barrier.
 _AWAIT_RUN_POLL_S = 1.0
+# How long asking a server where its shared memory is may take: it is asked on the way of a write or a watch.
+_DESCRIBE_S = 5.0
+
+
+_Staging = tuple[tuple[ClientSession, Staged], ...]
+"""The values of one write request staged in shared memory, and the sessions they are staged in."""
+
+_IN_DOUBT = (UnavailableError, DeadlineExceededError)
+"""A write that failed so may yet be applied: its staged bytes must stay as they are (cast.client.shm)."""
+
+
+def _unstage(staged: _Staging, error: BaseException | None) -> None:
+    """The write is over: free its staging regions, unless its outcome is unknown."""
+    for session, region in staged:
+        session.unstage(region, known=not isinstance(error, _IN_DOUBT))
 
 
 _OPEN: weakref.WeakSet[GrpcTransport] = weakref.WeakSet()
@@ -77,6 +94,7 @@ class GrpcTransport:
         self._lock = threading.Lock()
         self._directory = ServerLink(endpoint, tls)
         self._servers: dict[str, ServerLink] = {endpoint: self._directory}
+        self._attach_shared(self._directory)
         self._watch_servers: dict[int, list[ServerLink]] = {}
         self._sink: EventSink | None = None
         self._on_error: Callable[[CastError], None] = lambda err: log.error("watch failed: %s", err)
@@ -89,16 +107,18 @@ class GrpcTransport:
 
     # --------------------------------------------------------------- routing
 
-    def _call(self, fn: Callable[..., Any], request: Any, timeout: float | None = -1.0) -> Any:
+    def _call(
+        self, fn: Callable[..., Any], request: Any, timeout: float | None = -1.0, metadata: tuple[Any, ...] = ()
+    ) -> Any:
         deadline = self._timeout if timeout == -1.0 else timeout
         try:
-            return fn(request, metadata=self._tokens.metadata(), timeout=deadline)
+            return fn(request, metadata=self._tokens.metadata() + metadata, timeout=deadline)
         except grpc.RpcError as exc:
             error = map_rpc_error(exc)
         # A refused token may just have been renewed in its file: read it and try once more.
         if error.code == "UNAUTHENTICATED" and self._tokens.refresh():
             try:
-                return fn(request, metadata=self._tokens.metadata(), timeout=deadline)
+                return fn(request, metadata=self._tokens.metadata() + metadata, timeout=deadline)
             except grpc.RpcError as exc:
                 error = map_rpc_error(exc)
         raise error from None
@@ -116,8 +136,20 @@ class GrpcTransport:
                     server = self._servers.get(sa.endpoint)
                     if server is None:
                         server = self._servers[sa.endpoint] = ServerLink(sa.endpoint, self._tls)
+                        self._attach_shared(server)
                     self._routes[sa.name] = server
         return desc
+
+    def _attach_shared(self, server: ServerLink) -> None:
+        """Shared memory with ``server`` when on its host (cast.client.shm), opened when first needed."""
+
+        def describe() -> dir_pb2.SystemDescription:
+            # The server itself says where its shared memory is: ask it, not the directory.
+            desc: dir_pb2.SystemDescription = self._call(server.directory.DescribeSystem,
+                                                         dir_pb2.DescribeSystemRequest(), timeout=_DESCRIBE_S)
+            return desc
+
+        server.shared = SharedLink(server.endpoint, self._tokens, describe)
 
     def _server(self, sa: str) -> ServerLink:
         # An SA the directory does not know is sent to the directory's server,
@@ -148,61 +180,95 @@ class GrpcTransport:
                 stream = server.write_stream
         return stream
 
-    def _write(self, sa: str, request: wm_pb2.WriteRequest, timeout: float | None = -1.0) -> wm_pb2.WriteReply:
+    def _write(
+        self, sa: str, request: wm_pb2.WriteRequest, timeout: float | None = -1.0, staged: _Staging = ()
+    ) -> wm_pb2.WriteReply:
         """One write or lock on the Write stream of ``sa``'s server (cast.client.write_stream)."""
-        return self._stream(sa).call(request, self._timeout if timeout == -1.0 else timeout)
+        error: BaseException | None = None
+        try:
+            return self._stream(sa).call(request, self._timeout if timeout == -1.0 else timeout)
+        except BaseException as exc:
+            error = exc
+            raise
+        finally:
+            _unstage(staged, error)
 
-    def _write_async(self, sa: str, request: wm_pb2.WriteRequest) -> Future[WriteResult]:
+    def _write_async(self, sa: str, request: wm_pb2.WriteRequest, staged: _Staging = ()) -> Future[WriteResult]:
         result: Future[WriteResult] = Future()
 
         def done(sent: Future[wm_pb2.WriteReply]) -> None:
             try:
                 reply = reply_result(sent.result())
             except BaseException as exc:  # noqa: BLE001 - every failure goes to the caller's future
+                _unstage(staged, exc)
                 result.set_exception(exc)
                 return
+            _unstage(staged, None)
             result.set_result(WriteResult(reply.write.revision, reply.write.version))
 
-        self._stream(sa).submit(request).add_done_callback(done)
+        try:
+            self._stream(sa).submit(request).add_done_callback(done)
+        except BaseException as exc:
+            _unstage(staged, exc)
+            raise
         return result
 
-    @staticmethod
-    def _add_request(sa: str, entry_id: str, type_name: str, data: bytes) -> wm_pb2.WriteRequest:
-        request = wm_pb2.WriteRequest()
-        fill_write(request.add, sa, entry_id, type_name, data)
-        return request
+    def _fill(
+        self, req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest, sa: str, entry_id: str, type_name: str,
+        data: bytes | memoryview, server_sa: str = "",
+    ) -> _Staging:
+        """Fill a write's value: staged in shared memory when large and on the server's host, else its bytes.
 
-    @staticmethod
-    def _overwrite_request(
-        sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
-    ) -> wm_pb2.WriteRequest:
+        ``server_sa``: the SA whose server the request goes to, when not ``sa`` (a batch goes to its first's).
+        """
+        link = self._server(server_sa or sa).shared
+        session = link.session() if link is not None else None
+        staged = session.stage(data) if session is not None and len(data) >= session.threshold else None
+        if session is None or staged is None:
+            fill_write(req, sa, entry_id, type_name, data if isinstance(data, bytes) else bytes(data))
+            return ()
+        fill_write(req, sa, entry_id, type_name, b"")
+        req.staged_value.CopyFrom(session.staged_value(staged))
+        return ((session, staged),)
+
+    def _add_request(self, sa: str, entry_id: str, type_name: str, data: bytes) -> tuple[wm_pb2.WriteRequest, _Staging]:
         request = wm_pb2.WriteRequest()
-        fill_write(request.overwrite, sa, entry_id, type_name, data)
+        return request, self._fill(request.add, sa, entry_id, type_name, data)
+
+    def _overwrite_request(
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+    ) -> tuple[wm_pb2.WriteRequest, _Staging]:
+        request = wm_pb2.WriteRequest()
+        staged = self._fill(request.overwrite, sa, entry_id, type_name, data)
         if expected_version is not None:
             request.overwrite.expected_version = expected_version
-        return request
+        return request, staged
 
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        reply = self._write(sa, self._add_request(sa, entry_id, type_name, data))
+        request, staged = self._add_request(sa, entry_id, type_name, data)
+        reply = self._write(sa, request, staged=staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
         """Create an entry without waiting: the future of its result."""
-        return self._write_async(sa, self._add_request(sa, entry_id, type_name, data))
+        request, staged = self._add_request(sa, entry_id, type_name, data)
+        return self._write_async(sa, request, staged)
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        reply = self._write(sa, self._overwrite_request(sa, entry_id, type_name, data, expected_version))
+        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version)
+        reply = self._write(sa, request, staged=staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def overwrite_async(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting: the future of its result."""
-        return self._write_async(sa, self._overwrite_request(sa, entry_id, type_name, data, expected_version))
+        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version)
+        return self._write_async(sa, request, staged)
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
@@ -221,6 +287,7 @@ class GrpcTransport:
         # each nested message and copying it in (this is the hot loop of Batch).
         write_request = wm_pb2.WriteRequest()
         items = write_request.batch.operations
+        staged: _Staging = ()
         for op in ops:
             item = items.add()
             write: wm_pb2.AddRequest | wm_pb2.OverwriteRequest | wm_pb2.DeleteRequest
@@ -234,26 +301,32 @@ class GrpcTransport:
                 write.address.id = op.id
                 write.address.subarchitecture = op.subarchitecture
             else:
-                fill_write(write, op.subarchitecture, op.id, op.type, op.data)
+                staged += self._fill(write, op.subarchitecture, op.id, op.type, op.data, ops[0].subarchitecture)
             if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
                 write.expected_version = op.expected_version
-        reply = self._write(ops[0].subarchitecture, write_request)
+        reply = self._write(ops[0].subarchitecture, write_request, staged=staged)
         return [WriteResult(r.revision, r.version) for r in reply.batch.results]
 
     # ----------------------------------------------------------------- reads
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
-        """Read one entry."""
+        """Read one entry (a large value lent by shared memory when on the server's host)."""
         req = wm_pb2.GetRequest()
         req.address.id, req.address.subarchitecture = entry_id, sa
-        resp = self._call(self._server(sa).wm.Get, req)
-        return entry_from_pb(resp.entry)
+        server = self._server(sa)
+        assert server.shared is not None
+        with server.shared.read() as call:
+            resp = self._call(server.wm.Get, req, metadata=call.metadata if call is not None else ())
+            return entry_from_pb(resp.entry, call)
 
     def get_by_type(self, sa: str, type_name: str, limit: int) -> list[EntryRecord]:
         """Read the entries of one type, newest first."""
         req = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=type_name, limit=limit)
-        resp = self._call(self._server(sa).wm.GetByType, req)
-        return [entry_from_pb(e) for e in resp.entries]
+        server = self._server(sa)
+        assert server.shared is not None
+        with server.shared.read() as call:
+            resp = self._call(server.wm.GetByType, req, metadata=call.metadata if call is not None else ())
+            return [entry_from_pb(e, call) for e in resp.entries]
 
     def exists(self, sa: str, entry_id: str) -> bool:
         """Whether an entry exists."""
@@ -458,3 +531,5 @@ class GrpcTransport:
         deadline = time.monotonic() + JOIN_S
         for server in self._servers.values():
             server.close(deadline)
+            if server.shared is not None:
+                server.shared.close()

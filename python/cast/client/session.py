@@ -105,6 +105,8 @@ class Session:
                     return
                 reason = map_rpc_error(exc).message
             server.registered.clear()
+            if server.shared is not None:
+                server.shared.check()  # a server that died ended the shared-memory session too: unmap its memory now
             log.warning(
                 "session with %s lost (%s): its locks and tasks are released; registering again",
                 server.endpoint, reason,

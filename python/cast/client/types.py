@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import builtins
 from dataclasses import dataclass
-from typing import Generic, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Generic, NamedTuple, TypeVar
 
 from google.protobuf.message import DecodeError, Message
 
 from cast.core.records import ChangeEvent, EntryRecord
 from cast.core.tasks import TaskRecord
 from cast.errors import InvalidArgumentError
+
+if TYPE_CHECKING:
+    from cast.client.views import ValueView
 
 __all__ = ["Entry", "Task", "WorkingMemoryAddress", "WorkingMemoryChange", "decode", "entry_of"]
 
@@ -29,13 +32,13 @@ class WorkingMemoryAddress(NamedTuple):
     subarchitecture: str
 
 
-def decode(cls: type[M], type_name_: str, data: bytes, what: str) -> M:
+def decode(cls: type[M], type_name_: str, data: bytes | memoryview, what: str) -> M:
     """The value as ``cls``: InvalidArgumentError for another type, or for bytes that do not parse."""
     expected = cls.DESCRIPTOR.full_name
     if type_name_ != expected:
         raise InvalidArgumentError(f"{what} has type {type_name_}, not {expected}: read it with the right class")
     try:
-        return cls.FromString(data)
+        return cls.FromString(data)  # type: ignore[arg-type]  # upb parses any buffer: shared memory too
     except (DecodeError, RuntimeError) as exc:
         # A value stored corrupt (or with another schema) is the caller's error to see, not a protobuf crash.
         raise InvalidArgumentError(
@@ -126,6 +129,14 @@ class WorkingMemoryChange:
         if self._ev.entry is None:
             raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
         return entry_of(cls, self._ev.entry)
+
+    def view(self) -> ValueView:
+        """The value the event carries, not copied: shared memory on the server's host (:class:`cast.ValueView`)."""
+        from cast.client.views import ValueView  # views builds on this module
+
+        if self._ev.entry is None:
+            raise InvalidArgumentError("this change carries no entry: ask for it with include_entry=True")
+        return ValueView(self._ev.entry)
 
     def __repr__(self) -> str:
         return (

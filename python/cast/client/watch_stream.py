@@ -13,6 +13,7 @@ import grpc
 from cast.client.channel import TRANSIENT, Backoff, ServerLink, map_rpc_error
 from cast.client.conversions import event_from_pb, filter_to_pb
 from cast.client.credentials import TokenSource
+from cast.client.shm_session import ReadCall
 from cast.client.transport import EventSink
 from cast.core.watch import EventFilter
 from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
@@ -76,6 +77,7 @@ class WatchStream:
         self._closed = False
         self._requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] | None = None
         self._call: Any = None
+        self._read: ReadCall | None = None  # the call's part of the shared-memory session (cast.client.shm)
         self._opened = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"cast-watch-{server.endpoint}", daemon=True)
         self._thread.start()
@@ -106,8 +108,11 @@ class WatchStream:
             self._requests = requests
             for w in self._watches.values():
                 requests.put(self._create_request(w))
-            self._call = self._server.open_stream(self._server.wm.Watch, iter(requests.get, None),
-                                                  metadata=self._tokens.metadata())
+            shared = self._server.shared
+            session = shared.session() if shared is not None else None
+            self._read = read = session.new_call() if session is not None else None
+            metadata = self._tokens.metadata() + (read.metadata if read is not None else ())
+            self._call = self._server.open_stream(self._server.wm.Watch, iter(requests.get, None), metadata=metadata)
             return self._call
 
     # -------------------------------------------------------------- reader
@@ -120,18 +125,28 @@ class WatchStream:
             if first:
                 self._opened.set()
                 first = False
+            upgrade = False
             try:
                 for resp in call:
                     if not self.connected:
                         self.connected = True
                         backoff.reset()
+                        upgrade = self._read is None and self._sharing_now()
                     self._handle(resp)
+                    if upgrade:
+                        call.cancel()  # opened again at once, with the session: it resumes where this one is
                 error: CastError = UnavailableError(f"the watch stream to {self._server.endpoint} ended")
             except grpc.RpcError as exc:
                 error = map_rpc_error(exc)
+            except CastError as exc:  # an event that could not be read (its shared memory): read the stream again
+                call.cancel()
+                error = UnavailableError(f"an event could not be read: {exc.message}")
             self.connected = False
+            self._end_shared()
             if self._closed or self._closing.is_set():
                 return
+            if upgrade:
+                continue
             if error.code not in TRANSIENT:
                 self._fail(error)
                 return
@@ -140,10 +155,28 @@ class WatchStream:
             if self._closing.wait(backoff.next()):
                 return
 
+    def _sharing_now(self) -> bool:
+        """Whether a shared-memory session with the server is open now, though it was not when this stream opened.
+
+        A stream opened while its server was away (restarting) could not have
+        one; once the server answers, the stream is opened again with it.
+        """
+        shared = self._server.shared
+        return shared is not None and shared.session() is not None
+
+    def _end_shared(self) -> None:
+        """The call is over: say what it received (the server takes back the rest) and see if the session ended."""
+        read, self._read = self._read, None
+        if read is not None:
+            read.end()
+        if self._server.shared is not None:
+            self._server.shared.check()
+
     def _handle(self, resp: wm_pb2.WatchResponse) -> None:
         if resp.events:
+            read = self._read
             for pb in resp.events:
-                event = event_from_pb(pb)
+                event = event_from_pb(pb, read)
                 self._sink(event, pb.watch_ids)
                 if event.revision > self._seen.get(event.subarchitecture, 0):
                     self._seen[event.subarchitecture] = event.revision

@@ -10,6 +10,7 @@ from cast.config.problems import Position
 from cast.config.ros import RosBridgeConfig
 from cast.core.policies import TaskPolicy, make_policy
 from cast.core.records import Limits, Quota
+from cast.core.shared import SharedSettings
 
 __all__ = [
     "DURABILITY_MODES",
@@ -228,6 +229,7 @@ class SystemConfig:
     name: str
     subarchitectures: dict[str, SubarchitectureConfig]
     limits: Limits = field(default_factory=Limits)
+    shared_memory: SharedSettings = field(default_factory=SharedSettings)
     source: str = "<config>"
     servers: list[ServerConfig] = field(default_factory=list)
     python_path: list[Path] = field(default_factory=list)

@@ -46,6 +46,7 @@ from cast.config.source import SourceTree, YList, YMap
 from cast.config.syspath import extended_sys_path
 from cast.core.policies import BUILTIN_POLICIES, DEFAULT_POLICY, TaskPolicy, make_policy, policy_class
 from cast.core.records import Limits, Quota
+from cast.core.shared import SharedSettings
 from cast.errors import InvalidArgumentError
 
 __all__ = ["build_config"]
@@ -109,6 +110,7 @@ class _Builder:
             name=name,
             subarchitectures=sas,
             limits=self.limits(),
+            shared_memory=self.shared_memory(),
             source=str(root.pos.file),
             servers=servers,
             python_path=python_path,
@@ -458,6 +460,12 @@ class _Builder:
         raw = self.root.get("limits") or YMap(self.root.pos)
         d = defaults("limits")
         return Limits(**{key: int(_get(raw, key, d)) for key in d})
+
+    def shared_memory(self) -> SharedSettings:
+        raw = self.root.get("shared_memory") or YMap(self.root.pos)
+        d = defaults("shared_memory")
+        return SharedSettings(bool(_get(raw, "enabled", d)),
+                              **{key: int(_get(raw, key, d)) for key in d if key != "enabled"})
 
     def orchestrator(self) -> OrchestratorOptions:
         raw = self.root.get("orchestrator") or YMap(self.root.pos)

@@ -28,12 +28,21 @@ from collections.abc import Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
+from cast.core.arena import Placed
 from cast.core.metrics import Metrics
 from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
+from cast.core.shared import Lent, SharedSession
 from cast.core.system import System
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Match, Subscription
-from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, LockedError, NoSessionError
+from cast.errors import (
+    CastError,
+    DeadlineExceededError,
+    HistoryExpiredError,
+    InvalidArgumentError,
+    LockedError,
+    NoSessionError,
+)
 
 __all__ = [
     "DURABLE", "Access", "Durable", "Steps", "Unlocked", "event_for", "resume_async", "run_async", "run_sync",
@@ -101,8 +110,11 @@ class Access:
     # Answered, refusals included, only once what they saw is durable.
 
     def write(self, op: BatchOp) -> Steps[WriteResult]:
-        """One add, overwrite or delete."""
+        """One add, overwrite or delete (a large value is kept in shared memory first: cast.core.shared)."""
         m = self._metrics
+        shared = self.system.shared
+        if shared is not None:
+            op = shared.place(op)
         try:
             result = self._host.write(self.who, op)
         except CastError:
@@ -118,6 +130,9 @@ class Access:
     def batch(self, ops: Sequence[BatchOp]) -> Steps[list[WriteResult]]:
         """Writes in order, all or nothing."""
         m = self._metrics
+        shared = self.system.shared
+        if shared is not None:
+            ops = [shared.place(op) for op in ops]
         try:
             results = self._host.batch(self.who, ops)
         except CastError:
@@ -229,6 +244,29 @@ class Access:
         """Whether an event goes to this caller with its entry: asked for, and not under another's ODR lock."""
         holder = match.event.odr_holder
         return match.include_entry and (holder is None or holder == self.who.component_id)
+
+    # ---------------------------------------------------------- shared memory
+    # Large values on one host (cast.core.shared): a write may name its bytes in the writer's staging area, and a
+    # read for a session may get values lent by reference.
+
+    def staged(
+        self, session_id: bytes, offset: int, size: int, entry_id: str
+    ) -> tuple[bytes | memoryview, Placed | None]:
+        """The bytes a write staged in the caller's session, copied into the server's shared memory."""
+        shared = self.system.shared
+        if shared is None:
+            raise InvalidArgumentError(
+                f"the value of entry '{entry_id}' is staged in shared memory, which this server has turned off "
+                "(shared_memory.enabled: false): send the value's bytes (value.value)"
+            )
+        return shared.staged(self.who, session_id, offset, size, entry_id)
+
+    def lend(self, session: SharedSession, call: int, held: object) -> Lent | None:
+        """Lend a record's value (its ``shared``) to the caller's ``session`` on ``call``; None: send its bytes."""
+        shared = self.system.shared
+        if shared is None or not isinstance(held, Placed):
+            return None
+        return shared.lend(session, call, held)
 
     # ---------------------------------------------------------------- helpers
 

@@ -137,6 +137,11 @@ class MemoryHost(Locking):
         with self._mutex:
             return self._wm(sa).total_bytes
 
+    def shared_bytes(self, sa: str) -> int:
+        """Bytes of the visible values of one WM kept in shared memory (cast.core.shared)."""
+        with self._mutex:
+            return sum(len(r.data) for r in self._wm(sa).entries.values() if r.shared is not None)
+
     def _usage_locked(self) -> dict[str, list[int]]:
         total: dict[str, list[int]] = {}
         for wm in self._wms.values():

@@ -121,6 +121,8 @@ class Metrics:
         self._refused: dict[str, list[int]] = {}  # component -> [writes refused]
         self._watching: dict[str, Watching] = {}
         self._task_waits: dict[str, Histogram] = {sa: Histogram() for sa in self._sas}
+        # The shared memory's own state (cast.core.shared.SharedMemory.snapshot), when the server keeps one.
+        self.shared: Callable[[], dict[str, int]] | None = None
 
     @property
     def active(self) -> Metrics | None:
@@ -287,6 +289,7 @@ class Metrics:
             "delivery_latency": {"all": histogram_json(everyone.counts, everyone.sum_ns / 1e9, BUCKETS_S),
                                  "watchers": latency},
             "reports": self.reports.snapshot(),
+            "shared_memory": self.shared() if self.shared is not None else None,
         }
 
 

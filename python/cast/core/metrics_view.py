@@ -60,7 +60,7 @@ def empty_snapshot(system: str = "", bounds: Sequence[float] = ()) -> dict[str, 
     return {"enabled": True, "system": system, "servers": 0, "uptime_s": 0.0, "buckets_s": list(bounds),
             "components": {}, "subarchitectures": {}, "traffic": [],
             "delivery_latency": {"all": histogram_json([0] * (len(bounds) + 1), 0.0, bounds), "watchers": {}},
-            "reports": {}}
+            "reports": {}, "shared_memory": None}
 
 
 def _add_counters(into: dict[str, Any], more: dict[str, Any]) -> None:
@@ -127,6 +127,12 @@ def merge_snapshots(snapshots: Sequence[dict[str, Any]]) -> dict[str, Any]:
                 mine[name] = {"count": count, "sum": total, "min": min(known["min"], r["min"]),
                               "max": max(known["max"], r["max"]), "last": latest["last"], "mean": total / count,
                               "last_time": latest["last_time"]}
+        shared = snap.get("shared_memory")
+        if shared:
+            mine = out["shared_memory"] = out["shared_memory"] or {}
+            for name, value in shared.items():
+                # Every figure adds up over servers, but the threshold, which is each server's setting.
+                mine[name] = max(mine.get(name, 0), value) if name == "threshold_bytes" else mine.get(name, 0) + value
     out["components"] = dict(sorted(out["components"].items()))
     out["traffic"] = [traffic[key] for key in sorted(traffic)]
     out["delivery_latency"]["watchers"] = dict(sorted(out["delivery_latency"]["watchers"].items()))

@@ -31,7 +31,7 @@ from cast.errors import (
 
 __all__ = ["Overlay", "Planned", "ValueValidator", "WritePlanner"]
 
-ValueValidator = Callable[[str, bytes], None]
+ValueValidator = Callable[[str, bytes | memoryview], None]
 """Called with (type, bytes) before a write; raises InvalidArgumentError if the bytes do not parse."""
 
 
@@ -176,7 +176,7 @@ class WritePlanner:
             check_outran(version, self.version_floor, now, sa, entry_id)
         if tally is not None:
             tally.entries[sa] = delta + 1
-        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
+        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0, op.placed)
         return Planned(wm, Operation.ADD, record, None, who)
 
     def _plan_change(
@@ -207,5 +207,5 @@ class WritePlanner:
             version = self.version_floor
         if version * 1000 > now:
             check_outran(version, self.version_floor, now, sa, entry_id)
-        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0)
+        record = EntryRecord(sa, entry_id, op.type, op.data, version, who.component_id, now, 0, op.placed)
         return Planned(wm, Operation.OVERWRITE, record, current, who)

@@ -11,6 +11,8 @@ import enum
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from cast.core.arena import Placed
+
 __all__ = [
     "BatchOp",
     "ChangeEvent",
@@ -58,14 +60,19 @@ class Identity(NamedTuple):
 
 
 class BatchOp(NamedTuple):
-    """One write of a batch: ``data``/``type`` are ignored for DELETE."""
+    """One write of a batch: ``data``/``type`` are ignored for DELETE.
+
+    ``placed``: the value is in the server's shared memory (``data`` is then
+    its read-only view there; :mod:`cast.core.shared`).
+    """
 
     operation: Operation
     subarchitecture: str
     id: str
     type: str = ""
-    data: bytes = b""
+    data: bytes | memoryview = b""
     expected_version: int | None = None
+    placed: Placed | None = None
 
 
 class WriteResult(NamedTuple):
@@ -76,20 +83,27 @@ class WriteResult(NamedTuple):
 
 
 class EntryRecord:
-    """One entry as stored: never mutated after creation."""
+    """One entry as stored: never mutated after creation.
 
-    __slots__ = ("author", "data", "id", "modified_ns", "revision", "size", "subarchitecture", "type", "version")
+    ``data`` is bytes, or a read-only view of shared memory; ``shared`` then
+    holds that memory for as long as the record lives (on the server the
+    value's place in its arena, in a client the lease of a value it was lent).
+    """
+
+    __slots__ = ("author", "data", "id", "modified_ns", "revision", "shared", "size", "subarchitecture", "type",
+                 "version")
 
     def __init__(
         self,
         subarchitecture: str,
         id: str,  # noqa: A002 - the wire name
         type: str,  # noqa: A002 - the wire name
-        data: bytes,
+        data: bytes | memoryview,
         version: int,
         author: str,
         modified_ns: int,
         revision: int,
+        shared: object | None = None,
     ) -> None:
         self.subarchitecture = subarchitecture
         self.id = id
@@ -99,6 +113,7 @@ class EntryRecord:
         self.author = author
         self.modified_ns = modified_ns
         self.revision = revision
+        self.shared = shared
         # The bytes it counts for against memory bounds (cast.core.room): its value and its id.
         self.size = len(data) + len(id)
 

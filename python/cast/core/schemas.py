@@ -246,13 +246,13 @@ class SchemaRegistry:
             self._classes[type_name] = cls
         return cls
 
-    def validate(self, type_name: str, data: bytes) -> None:
+    def validate(self, type_name: str, data: bytes | memoryview) -> None:
         """INVALID_ARGUMENT if ``data`` does not parse as ``type_name`` (unknown types pass)."""
         cls = self._message_class(type_name)
         if cls is None:
             return
         try:
-            cls.FromString(data)
+            cls.FromString(data)  # type: ignore[arg-type]  # upb parses any buffer: a view of shared memory too
         except (DecodeError, RuntimeError) as exc:
             raise InvalidArgumentError(
                 f"value does not parse as {type_name} ({exc}): the bytes were written with another type "

@@ -23,6 +23,7 @@ from cast.core.policies import TaskPolicy
 from cast.core.records import TASK_TYPE, Identity, Limits, Operation, Quota
 from cast.core.schemas import SchemaRegistry
 from cast.core.sessions import ComponentInfo, SessionTable
+from cast.core.shared import SharedMemory, SharedSettings
 from cast.core.tasks import TaskBoard, TaskRecord, TaskState
 from cast.core.versions import epoch_floor
 
@@ -47,6 +48,7 @@ class System:
         own_files: Sequence[FileDescriptor] = (),
         encode_task: Callable[[TaskRecord], bytes] | None = None,
         metrics: bool = True,
+        shared_memory: SharedSettings | None = None,
     ) -> None:
         """Wire the parts together.
 
@@ -55,6 +57,8 @@ class System:
         entry) come from the server layer (cast.server.wire), so that the core
         knows nothing of the wire. ``metrics``: count what callers do
         (cast.core.metrics; a server's ``--no-metrics`` turns it off).
+        ``shared_memory``: large values kept in shared memory for readers on
+        this host (cast.core.shared); None or not enabled: none.
         """
         self.name = name
         # The system's own files are the server's, like the well-known ones: client copies are ignored.
@@ -67,8 +71,13 @@ class System:
         self.host = MemoryHost(
             subarchitectures, limits, validator=self.schemas.validate, version_floor=version_floor, quotas=quotas
         )
+        settings = shared_memory or SharedSettings(enabled=False)
+        # None when turned off: every value is then bytes, as it arrived.
+        self.shared = SharedMemory(settings, self.host.limits) if settings.enabled else None
         self.tasks = TaskBoard(self.host, policies, publish=self._publish_task)
         self.metrics = Metrics(name, self.host.subarchitectures, enabled=metrics)
+        if self.shared is not None:
+            self.metrics.shared = self.shared.snapshot
         self.tasks.metrics = self.metrics.active
         self.sessions = SessionTable(self._session_ended, lease_ms=lease_ms)
         self.barrier = StartBarrier()  # released unless `cast run` holds it (cast.core.barrier)
@@ -138,6 +147,8 @@ class System:
             self.schemas.on_added = None
             self.journal.close()  # applies what it writes on the way
             self.host.detach_journal()
+        if self.shared is not None:
+            self.shared.close()
 
     def expect(self, info: ComponentInfo) -> None:
         """Record a configured component so the directory lists it before it connects."""

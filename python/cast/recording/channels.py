@@ -346,8 +346,9 @@ class ChannelMap:
         out: list[ChannelMessage] = []
         entry = event.entry
         if entry is not None and event.operation is not Operation.DELETE:
-            out.append(ChannelMessage(self.channel(event.subarchitecture, event.type), event.time_ns, sequence,
-                                      entry.data))
+            # A copy: the message outlives the event, and a value lent by shared memory is only lent while it lives.
+            data = entry.data if isinstance(entry.data, bytes) else bytes(entry.data)
+            out.append(ChannelMessage(self.channel(event.subarchitecture, event.type), event.time_ns, sequence, data))
         out.append(ChannelMessage(_CHANGES, event.time_ns, sequence, change_record(event).SerializeToString()))
         return out
 

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import resource
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,6 +25,7 @@ from cast.server.malformed import SafeRegistrar
 from cast.server.reflection import add_reflection
 from cast.server.routes import Routes
 from cast.server.rpc import Authenticator
+from cast.server.shared_socket import SharedSocket
 from cast.server.task_manager import TaskManagerServicer
 from cast.server.wire import wire_system
 from cast.server.working_memory import WorkingMemoryServicer
@@ -73,7 +76,11 @@ def settings_from_config(config: SystemConfig) -> ServerSettings:
 
 
 def system_from_config(
-    config: SystemConfig, lease_ms: int = 10_000, server: ServerConfig | None = None, metrics: bool = True
+    config: SystemConfig,
+    lease_ms: int = 10_000,
+    server: ServerConfig | None = None,
+    metrics: bool = True,
+    shared_memory: bool = True,
 ) -> System:
     """A :class:`System` hosting the SAs of ``server`` (default: every SA), expecting every component.
 
@@ -83,6 +90,8 @@ def system_from_config(
     memory only). TLS and token rules are the server's
     (:func:`settings_from_config`), given to :func:`start_server`.
     ``metrics``: whether the server counts what callers do (cast.core.metrics).
+    ``shared_memory``: False turns shared memory off whatever the configuration
+    says (``cast serve --no-shared-memory``).
     """
     if server is None:
         hosted = list(config.subarchitectures)
@@ -101,6 +110,7 @@ def system_from_config(
         journal=journal,
         quotas={comp.id: comp.quota for comp in config.components if comp.quota is not None},
         metrics=metrics,
+        shared_memory=config.shared_memory if shared_memory else None,
     )
     for comp in config.components:
         # With hosts: a component shows the host the configuration places it on (local or a hosts: name).
@@ -130,6 +140,7 @@ class RunningServer:
     host: str
     port: int
     routes: Routes
+    shared: SharedSocket | None = None  # the shared-memory socket, when the system keeps shared memory
     _tasks: list[asyncio.Task[None]] = field(default_factory=list)
     _on_stop: list[Callable[[], None]] = field(default_factory=list)
 
@@ -152,6 +163,8 @@ class RunningServer:
         for task in self._tasks:
             task.cancel()
         await self.server.stop(grace)
+        if self.shared is not None:
+            self.shared.close()
         await asyncio.get_running_loop().run_in_executor(None, self.system.close)
 
 
@@ -161,6 +174,19 @@ async def _expire_sessions(system: System) -> None:
         await asyncio.sleep(period)
         for component_id in system.sessions.expire():
             log.warning("session of component '%s' expired: its locks and tasks were released", component_id)
+
+
+def raise_open_files_limit() -> None:
+    """Raise this process's limit of open files to what the system allows it.
+
+    Each client holds a connection, and one on the host a shared-memory
+    session too: the usual soft limit of 1,024 would refuse the 500th
+    component; the hard limit is the system's bound, as Go's runtime does.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or soft < hard:
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 
 
 def _split_listen(listen: str) -> tuple[str, str]:
@@ -195,11 +221,14 @@ async def start_server(
     )
     server = grpc.aio.server(options=options)
     auth = Authenticator(signer, reads_require_token=settings.reads_require_token)
+    raise_open_files_limit()
+    shared = SharedSocket(system, auth) if system.shared is not None else None
     # Requests whose bytes do not parse are answered INVALID_ARGUMENT (cast.server.malformed).
     registrar: Any = SafeRegistrar(server)
     add_working_memory(WorkingMemoryServicer(system, auth), registrar)
     task_manager_pb2_grpc.add_TaskManagerServicer_to_server(TaskManagerServicer(system, auth), registrar)
-    directory_pb2_grpc.add_DirectoryServicer_to_server(DirectoryServicer(system, auth, routes), registrar)
+    directory = DirectoryServicer(system, auth, routes, shared.info() if shared is not None else None)
+    directory_pb2_grpc.add_DirectoryServicer_to_server(directory, registrar)
     inspection_pb2_grpc.add_InspectionServicer_to_server(InspectionServicer(system, auth), registrar)
     health_servicer = health.aio.HealthServicer()  # type: ignore[attr-defined]
     foreign: Any = SafeRegistrar(server, wrap=False)  # generic handlers only, deserializers untouched
@@ -211,13 +240,15 @@ async def start_server(
     else:
         port = server.add_insecure_port(listen)
     if port == 0:
+        if shared is not None:
+            shared.close()
         raise OSError(f"cannot listen on {listen}: address in use or not available")
     await server.start()
     advertised = "127.0.0.1" if host in ("0.0.0.0", "[::]", "::") else host
     routes.listening(f"{advertised}:{port}")
     for name in ("", *SERVICE_NAMES):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
-    running = RunningServer(server, system, advertised, port, routes)
+    running = RunningServer(server, system, advertised, port, routes, shared)
     running._tasks.append(asyncio.ensure_future(_expire_sessions(system)))
     return running
 

@@ -8,14 +8,17 @@ direction is :mod:`cast.client.conversions`.
 from __future__ import annotations
 
 from cast.client.conversions import TYPE_URL_PREFIX, any_of, timestamp
+from cast.core.arena import Placed
 from cast.core.records import ChangeEvent, EntryRecord, Operation
 from cast.core.sessions import ComponentInfo, ComponentState
+from cast.core.shared import Lent
 from cast.core.tasks import TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import InvalidArgumentError
 from cast.v1 import directory_pb2, entry_pb2, task_manager_pb2
 
 __all__ = [
+    "BY_REFERENCE",
     "component_state",
     "component_to_pb",
     "entry_to_pb",
@@ -35,8 +38,12 @@ def entry_to_pb(record: EntryRecord) -> entry_pb2.Entry:
     return pb
 
 
-def fill_entry(pb: entry_pb2.Entry, record: EntryRecord) -> None:
-    """Write a stored entry into ``pb`` in place.
+BY_REFERENCE = 2
+"""An event's ``include_entry`` in :func:`watch_events_wire` when its entry's value goes by reference."""
+
+
+def fill_entry(pb: entry_pb2.Entry, record: EntryRecord, lent: Lent | None = None) -> None:
+    """Write a stored entry into ``pb`` in place; ``lent``: its value goes by reference (``shared_value``).
 
     Setting the fields of a message in place costs about a third of building the
     nested messages and copying them in, and this is on the path of every read.
@@ -45,7 +52,12 @@ def fill_entry(pb: entry_pb2.Entry, record: EntryRecord) -> None:
     pb.address.subarchitecture = record.subarchitecture
     pb.type = record.type
     pb.value.type_url = TYPE_URL_PREFIX + record.type
-    pb.value.value = record.data
+    if lent is not None:
+        shared = pb.shared_value
+        shared.segment, shared.offset, shared.size, shared.value_id = lent
+    else:
+        data = record.data
+        pb.value.value = data if isinstance(data, bytes) else bytes(data)
     pb.version = record.version
     pb.author = record.author
     pb.modified.seconds, pb.modified.nanos = divmod(record.modified_ns, 1_000_000_000)
@@ -79,7 +91,7 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
-def event_wire(ev: ChangeEvent, include_entry: bool) -> tuple[bytes, bytes]:
+def event_wire(ev: ChangeEvent, include_entry: int) -> tuple[bytes, bytes | memoryview]:
     """The encoded ``cast.v1.ChangeEvent`` without watch ids, as ``(head, value)``: send ``head + value``.
 
     ``head`` is cached on the event; ``value`` is the stored entry's own bytes
@@ -87,19 +99,34 @@ def event_wire(ev: ChangeEvent, include_entry: bool) -> tuple[bytes, bytes]:
     however many streams carry it - a 1 MiB image is not kept twice. The
     entry's ``value`` field is encoded last, which protobuf allows (fields may
     come in any order), so that its bytes can follow the cached part as they are.
+    ``include_entry`` :data:`BY_REFERENCE`: the entry's value in shared memory
+    is named (``shared_value``) instead, the same for every reader it is lent to.
     """
     cache = ev.wire
     if cache is None:
-        cache = ev.wire = [None, None]
+        cache = ev.wire = [None, None, None]
     record = ev.entry if include_entry else None
-    head = cache[record is not None]
+    slot = 0 if record is None else (2 if include_entry == BY_REFERENCE else 1)
+    head = cache[slot]
     if head is None:
         head = cache[0]
         if head is None:
             head = cache[0] = event_to_pb(ev, [], False).SerializeToString()
         if record is not None:
-            head = cache[1] = head + _entry_head(record)
-    return head, record.data if record is not None else b""
+            head = cache[slot] = head + (_entry_reference(record) if slot == 2 else _entry_head(record))
+    if slot == 1:
+        return head, record.data  # type: ignore[union-attr]
+    return head, b""
+
+
+def _entry_reference(record: EntryRecord) -> bytes:
+    """``ChangeEvent.entry`` encoded whole, its value named in shared memory (``shared_value``), not carried."""
+    placed = record.shared
+    assert isinstance(placed, Placed)
+    pb = entry_pb2.Entry()
+    fill_entry(pb, record, Lent(placed.segment, placed.offset, placed.length, placed.value_id))
+    encoded = pb.SerializeToString()
+    return _EVENT_ENTRY_TAG + _varint(len(encoded)) + encoded
 
 
 def _entry_head(record: EntryRecord) -> bytes:
@@ -125,7 +152,7 @@ _SKIPPED_TAG = b"\x58"  # ChangeEvent.skipped: field 11, varint
 _FIRST_SKIPPED_TAG = b"\x60"  # ChangeEvent.first_skipped_revision: field 12, varint
 
 
-def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool, int, int]]) -> bytes:
+def watch_events_wire(events: list[tuple[ChangeEvent, list[int], int, int, int]]) -> bytes:
     """An encoded ``cast.v1.WatchResponse`` of ``(event, watch_ids, include_entry, skipped, first_skipped)``.
 
     Protobuf lets fields of a message be concatenated, so each event's cached
@@ -133,7 +160,7 @@ def watch_events_wire(events: list[tuple[ChangeEvent, list[int], bool, int, int]
     (its watch ids, and what a latest-delivery watch skipped): fan-out to many
     streams costs one encoding per event, not one per event per stream.
     """
-    parts: list[bytes] = []
+    parts: list[bytes | memoryview] = []
     for ev, watch_ids, include, skipped, first_skipped in events:
         head, value = event_wire(ev, include)
         packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(_varint(i) for i in watch_ids)

@@ -18,8 +18,10 @@ from cast.v1 import directory_pb2_grpc as dir_grpc
 __all__ = ["DirectoryServicer", "describe"]
 
 
-def describe(system: System, routes: Routes) -> dir_pb2.SystemDescription:
-    """The wire description of a system, with where each of its SAs is served."""
+def describe(
+    system: System, routes: Routes, shared: dir_pb2.SharedMemoryInfo | None = None
+) -> dir_pb2.SystemDescription:
+    """The wire description of a system, with where each of its SAs is served and its shared memory offered."""
     revisions = system.host.revisions()
     usage = system.host.usage()
     components = []
@@ -44,16 +46,20 @@ def describe(system: System, routes: Routes) -> dir_pb2.SystemDescription:
         + [dir_pb2.SubarchitectureInfo(name=sa, endpoint=ep) for sa, ep in routes.remote.items()],
         components=components,
         endpoint=routes.endpoint,
+        shared_memory=shared,
     )
 
 
 class DirectoryServicer(dir_grpc.DirectoryServicer):
     """Serves the directory of one :class:`System`."""
 
-    def __init__(self, system: System, auth: Authenticator, routes: Routes) -> None:
+    def __init__(
+        self, system: System, auth: Authenticator, routes: Routes, shared: dir_pb2.SharedMemoryInfo | None = None
+    ) -> None:
         self._system = system
         self._auth = auth
         self._routes = routes
+        self._shared = shared  # where this server offers its shared memory (cast.server.shared_socket)
 
     @rpc
     async def DescribeSystem(
@@ -61,7 +67,7 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
     ) -> dir_pb2.SystemDescription:
         """Describe SAs, endpoints and components."""
         self._auth.identify_read(context)
-        return describe(self._system, self._routes)
+        return describe(self._system, self._routes, self._shared)
 
     @rpc
     async def Register(
@@ -74,7 +80,8 @@ class DirectoryServicer(dir_grpc.DirectoryServicer):
             who, request.language, request.kind, request.pid, request.host, request.library_version
         )
         return dir_pb2.RegisterResponse(
-            session_id=session_id, lease_ms=sessions.lease_ms, system=describe(self._system, self._routes),
+            session_id=session_id, lease_ms=sessions.lease_ms,
+            system=describe(self._system, self._routes, self._shared),
             component_id=who.component_id, subarchitecture=who.subarchitecture, privileged=who.privileged,
         )
 

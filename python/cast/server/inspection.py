@@ -42,7 +42,7 @@ class InspectionServicer(insp_grpc.InspectionServicer):
         sa = request.subarchitecture
         return insp_pb2.ListEntriesResponse(
             entries=entries, revision=revision, pending_writes=host.pending_writes(sa), bytes=host.total_bytes(sa),
-            max_bytes=host.limits.max_total_bytes,
+            max_bytes=host.limits.max_total_bytes, shared_bytes=host.shared_bytes(sa),
         )
 
     @rpc

@@ -59,6 +59,9 @@ def snapshot_to_pb(snap: dict[str, Any]) -> insp_pb2.GetMetricsResponse:
         for name, r in named.items():
             pb.reports.add(component=cid, name=name, count=r["count"], sum=r["sum"], min=r["min"], max=r["max"],
                            last=r["last"], last_time=timestamp(round(r["last_time"] * 1e9)))
+    shared = snap.get("shared_memory")
+    if shared is not None:
+        pb.shared_memory.CopyFrom(insp_pb2.SharedMemoryMetrics(**shared))
     return pb
 
 
@@ -86,7 +89,9 @@ def snapshot_from_pb(pb: insp_pb2.GetMetricsResponse) -> dict[str, Any]:
             "count": r.count, "sum": r.sum, "min": r.min, "max": r.max, "last": r.last,
             "mean": r.sum / r.count if r.count else 0.0,
             "last_time": r.last_time.seconds + r.last_time.nanos / 1e9}
+    shared = ({field.name: getattr(pb.shared_memory, field.name) for field in pb.shared_memory.DESCRIPTOR.fields}
+              if pb.HasField("shared_memory") else None)
     return {"enabled": pb.enabled, "system": pb.system, "servers": 1, "uptime_s": pb.uptime_seconds,
             "buckets_s": bounds, "components": components, "subarchitectures": sas, "traffic": traffic,
             "delivery_latency": {"all": histogram_json(everyone, total, bounds), "watchers": watchers},
-            "reports": reports}
+            "reports": reports, "shared_memory": shared}

@@ -46,6 +46,10 @@ class Authenticator:
                 return ANONYMOUS
         return self.identify(context)
 
+    def verify(self, token: str) -> Identity:
+        """The identity a token states (a shared-memory session's HELLO carries one); UNAUTHENTICATED if bad."""
+        return self._signer.verify(token)
+
     def identify(self, context: Context) -> Identity:
         """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""
         for key, value in context.invocation_metadata() or ():

@@ -10,11 +10,13 @@ import grpc
 
 from cast.core.access import Access, run_async
 from cast.core.records import BatchOp
+from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError
-from cast.server.conversions import fill_entry, filter_from_pb, watch_events_wire
+from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.server.shared_socket import lend, read_session
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.server.write_stream import WriteStream
 from cast.v1 import working_memory_pb2 as wm_pb2
@@ -45,14 +47,16 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     @rpc
     async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
         """Create an entry."""
-        return await self._write(self._access(context), write_op(request))  # who, before what
+        access = self._access(context)  # who, before what
+        return await self._write(access, write_op(request, access))
 
     @rpc
     async def Overwrite(
         self, request: wm_pb2.OverwriteRequest, context: Context
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
-        return await self._write(self._access(context), write_op(request))  # who, before what
+        access = self._access(context)  # who, before what
+        return await self._write(access, write_op(request, access))
 
     @rpc
     async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
@@ -61,10 +65,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 
     @rpc
     async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
-        """Read one entry."""
-        record = self._access(context, read=True).get(request.address.subarchitecture, request.address.id)
+        """Read one entry (its value lent by reference to a caller on this host that asks: cast.core.shared)."""
+        access = self._access(context, read=True)
+        read = read_session(access, context)
+        record = access.get(request.address.subarchitecture, request.address.id)
         response = wm_pb2.GetResponse()
-        fill_entry(response.entry, record)
+        fill_entry(response.entry, record, lend(access, read, record.shared))
         return response
 
     @rpc
@@ -73,11 +79,12 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     ) -> wm_pb2.GetByTypeResponse:
         """Read the entries of one type, newest first."""
         access = self._access(context, read=True)
+        read = read_session(access, context)
         records, revision = access.get_by_type(request.subarchitecture, request.type, request.limit)
         response = wm_pb2.GetByTypeResponse(revision=revision)
         entries = response.entries
         for record in records:
-            fill_entry(entries.add(), record)
+            fill_entry(entries.add(), record, lend(access, read, record.shared))
         return response
 
     @rpc
@@ -105,7 +112,7 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
     async def Batch(self, request: wm_pb2.BatchRequest, context: Context) -> wm_pb2.BatchResponse:
         """Apply many writes in order, all or nothing."""
         access = self._access(context)
-        ops = batch_ops(request)
+        ops = batch_ops(request, access)
         results = await run_async(self._system, access.batch(ops))
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
@@ -136,7 +143,8 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         Event batches are yielded already encoded (bytes); :func:`add_to_server`
         registers a serializer that passes them through.
         """
-        stream = _WatchStream(self._access(context, read=True))
+        access = self._access(context, read=True)
+        stream = _WatchStream(access, read_session(access, context))
         try:
             async for response in stream.run(request_iterator):
                 yield response
@@ -147,8 +155,9 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 class _WatchStream:
     """One Watch call: reads create/cancel requests, writes control messages and event batches."""
 
-    def __init__(self, access: Access) -> None:
+    def __init__(self, access: Access, read: tuple[SharedSession, int] | None = None) -> None:
         self._access = access
+        self._lending = read  # the caller's shared-memory session and call: values lent by reference
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
@@ -218,9 +227,24 @@ class _WatchStream:
             reader.cancel()
 
     def _events(self, matches: list[Match]) -> bytes:
-        """The batch as an encoded WatchResponse (see :func:`cast.convert.watch_events_wire`)."""
-        carries = self._access.carries_entry
-        return watch_events_wire([(m.event, m.watch_ids, carries(m), m.skipped, m.first_skipped) for m in matches])
+        """The batch as an encoded WatchResponse (see :func:`cast.convert.watch_events_wire`).
+
+        With a shared-memory session, an entry whose value is in shared memory
+        goes by reference, lent to the session, while its window allows.
+        """
+        access = self._access
+        carries = access.carries_entry
+        read = self._lending
+        if read is None:
+            return watch_events_wire([(m.event, m.watch_ids, carries(m), m.skipped, m.first_skipped) for m in matches])
+        events = []
+        for m in matches:
+            include: int = carries(m)
+            entry = m.event.entry
+            if include and entry is not None and entry.shared is not None and lend(access, read, entry.shared):
+                include = BY_REFERENCE
+            events.append((m.event, m.watch_ids, include, m.skipped, m.first_skipped))
+        return watch_events_wire(events)
 
     def close(self) -> None:
         self._sub.close()

@@ -53,9 +53,9 @@ def _unlock_answer(reply: wm_pb2.WriteReply, depth: Any) -> None:
 def _call(access: Access, kind: str, body: Any) -> tuple[Steps[Any], _Answer]:
     """The steps of one request and how its result goes into the reply."""
     if kind == "add" or kind == "overwrite" or kind == "delete":
-        return access.write(write_op(body)), _write_answer
+        return access.write(write_op(body, access)), _write_answer
     if kind == "batch":
-        return access.batch(batch_ops(body)), _batch_answer
+        return access.batch(batch_ops(body, access)), _batch_answer
     address = body.address
     if kind == "lock":
         mode = lock_mode(body.mode)

@@ -131,7 +131,7 @@ class ChangeFeed:
         decided = event.operation is not Operation.DELETE  # a task entry is deleted once it is over: no decision
         if decided and event.type == TASK_TYPE and event.entry is not None and event.entry.data:
             try:
-                task = task_json(tm_pb2.Task.FromString(event.entry.data))
+                task = task_json(tm_pb2.Task.FromString(bytes(event.entry.data)))
             except DecodeError:
                 return  # not the server's task entry: the change is listed, not as a decision
             with self._mutex:

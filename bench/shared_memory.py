@@ -1,0 +1,115 @@
+"""Large values by shared memory against bytes through gRPC and against Zenoh, in one run.
+
+A Python writer (bench/image_writer.py) overwrites a 1 MiB and then a 6 MiB
+entry, at 30 Hz and back to back, and four Python watchers
+(bench/image_watcher.py) decode every value; first with the server's shared
+memory turned off (``cast serve --no-shared-memory``: every value as bytes in
+gRPC messages), then on (the writer stages each value, the watchers are lent
+it). Zenoh (bench/zenoh_peer.py: a Python publisher, four Python subscribers)
+carries the same values in the same run. Figures per phase: the watchers'
+p50 and p99 latency (write start -> callback; the first tenth of the frames
+left out), the frames lost, and the MB/s delivered to the four together.
+
+``python -m bench.shared_memory [FRAMES]`` (default 150 per phase).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from bench import zenoh_peer
+from bench.cast_cases import Server
+from bench.delivery_stats import parse_watcher, totals, watcher_figures
+from bench.harness import PYTHON, ROOT
+
+__all__ = ["run"]
+
+SA = "images"
+WATCHERS = 4
+HZ = 30
+SIZES = (1 << 20, 6 << 20)
+HISTORY_BYTES = 64 << 20
+
+
+def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float) -> dict[str, Any]:
+    watchers = []
+    for i in range(WATCHERS):
+        env = {**os.environ, **server.env(f"{tag}-w{i}", SA)}
+        watchers.append(subprocess.Popen([PYTHON, "-m", "bench.image_watcher", "queue"], env=env, cwd=ROOT,
+                                         stdout=subprocess.PIPE, stderr=tempfile.TemporaryFile("w+"), text=True))
+    try:
+        for proc in watchers:
+            assert proc.stdout is not None
+            if proc.stdout.readline().strip() != "ready":
+                raise RuntimeError("a watcher did not start")
+        env = {**os.environ, **server.env(f"{tag}-writer", SA)}
+        out = subprocess.run([PYTHON, "-m", "bench.image_writer", str(size), str(frames), str(round(gap_s * 1e6))],
+                             env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
+        if out.returncode != 0:
+            raise RuntimeError(f"the writer failed: {out.stderr[-800:]}")
+        sent = {int(k): int(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+        got = []
+        for proc in watchers:
+            text, _ = proc.communicate(timeout=120)
+            got.append(parse_watcher(json.loads([x for x in text.splitlines() if x.startswith("{")][-1])))
+    finally:
+        for proc in watchers:
+            if proc.poll() is None:
+                proc.kill()
+    return _figures(sent, got, extra=2)
+
+
+def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dict[str, Any]:
+    warm = min(30, len(sent) // 10)
+    late = dict(sorted(sent.items())[warm:])
+    per = []
+    for g in got:
+        whole, steady = watcher_figures(sent, g, extra), watcher_figures(late, g, extra)
+        per.append({**whole, "p50_us": steady["p50_us"], "p99_us": steady["p99_us"]})
+    return {"watchers": per, "total": totals(sent, got)}
+
+
+def run(workdir: Path, frames: int) -> dict[str, Any]:
+    """Every phase; raw figures."""
+    out: dict[str, Any] = {}
+    for name, args in (("bytes", ("--no-shared-memory",)), ("shared", ())):
+        server = Server(workdir / name, [SA], limits={"history_bytes": HISTORY_BYTES}, serve_args=args)
+        try:
+            for size in SIZES:
+                for pace, gap in (("30 Hz", 1 / HZ), ("back to back", 0.0)):
+                    key = f"{name} {size >> 20} MiB {pace}"
+                    print(f"running {key}", file=sys.stderr, flush=True)
+                    out[key] = _phase(server, f"{name}{size}{pace[0]}", size, frames, gap)
+        finally:
+            server.stop()
+    for size in SIZES:
+        for pace, gap in (("30 Hz", 1 / HZ), ("back to back", 0.0)):
+            key = f"zenoh {size >> 20} MiB {pace}"
+            print(f"running {key}", file=sys.stderr, flush=True)
+            run_ = zenoh_peer.large(frames, gap, size)
+            out[key] = _figures(run_["sent"], run_["watchers"], extra=0)
+    return out
+
+
+def table(results: dict[str, Any]) -> str:
+    """The figures as Markdown."""
+    lines = ["| path | p50 ms (4 watchers) | p99 ms (4 watchers) | lost | MB/s to the four |", "|---|---|---|---|---|"]
+    for key, r in results.items():
+        p50 = "/".join(f"{w['p50_us'] / 1000:.1f}" for w in r["watchers"])
+        p99 = "/".join(f"{w['p99_us'] / 1000:.1f}" for w in r["watchers"])
+        lost = sum(w["lost"] for w in r["watchers"])
+        lines.append(f"| {key} | {p50} | {p99} | {lost} | {r['total']['mb_per_s']:,.0f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    with tempfile.TemporaryDirectory() as tmp:
+        results = run(Path(tmp), int(sys.argv[1]) if len(sys.argv) > 1 else 150)
+    print(json.dumps(results))
+    print(table(results))

@@ -1,0 +1,184 @@
+"""Large values by shared memory with a server on this host: is there a session (docs/client-protocol.md).
+
+Each server link has a :class:`SharedLink`. On first need it asks the server
+where its shared memory is (``SystemDescription.shared_memory``), connects to
+that Unix socket (abstract namespace: only reachable from the server's host),
+checks that the server runs as this process's OS user, says HELLO with the
+token and gets WELCOME: a session id, the staging area (a memory file) and the
+threshold. If any of that fails, the link says why once at INFO and values
+travel as bytes; ``CAST_SHARED_MEMORY=off`` in the environment turns it off.
+
+The session itself is :class:`cast.client.shm_session.ClientSession`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from cast.client import shm_wire as wire
+from cast.client.credentials import TokenSource
+from cast.client.shm_session import ClientSession, ReadCall
+from cast.v1 import directory_pb2 as dir_pb2
+
+__all__ = ["ENV", "SharedLink", "Unreachable", "connect", "turned_off"]
+
+log = logging.getLogger("cast.client")
+
+ENV = "CAST_SHARED_MEMORY"
+"""``off`` (or ``0``, ``false``, ``no``) in a process's environment: it never uses shared memory."""
+
+_CONNECT_S = 2.0  # the handshake's bound
+_RETRY_S = 5.0  # how long after a failure the link tries again
+_RETRY_ELSEWHERE_S = 60.0  # ... when the server is elsewhere or offers none (a restart of it may change that)
+_UCRED = struct.Struct("3i")
+
+
+def turned_off() -> bool:
+    """Whether this process's environment turns shared memory off (:data:`ENV`)."""
+    return os.environ.get(ENV, "").strip().lower() in ("off", "0", "false", "no")
+
+
+class Unreachable(ValueError):
+    """The server's socket cannot be reached from here: it is on another host or in another network namespace."""
+
+
+def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str) -> ClientSession:
+    """Open a session with the server whose shared memory ``info`` names; OSError or ValueError saying why not."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    try:
+        sock.settimeout(_CONNECT_S)
+        try:
+            sock.connect("\0" + info.socket)
+        except (FileNotFoundError, ConnectionRefusedError) as exc:
+            raise Unreachable(f"its socket is not reachable from here ({exc.strerror}): another host or network "
+                              "namespace") from None
+        pid, uid, _ = _UCRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
+        if uid != os.geteuid():
+            raise ValueError(f"the process behind its socket ({pid}) runs as OS user {uid}, this one as "
+                             f"{os.geteuid()}")
+        wire.send(sock, wire.hello(token))
+        reader = wire.FrameReader()
+        end = time.monotonic() + _CONNECT_S
+        while True:
+            data, fds = wire.receive(sock)
+            if not data:
+                raise ValueError("the server closed the connection after HELLO")
+            frames = reader.feed(data, fds)
+            if frames:
+                break
+            if time.monotonic() > end:
+                raise ValueError(f"no WELCOME within {_CONNECT_S:g} s")
+        first = frames[0]
+        for fd in reader.stray() + [f.fd for f in frames[1:] if f.fd is not None]:
+            os.close(fd)
+        if first.kind == wire.REFUSED:
+            raise ValueError(f"refused: {first.body.decode(errors='replace')}")
+        if first.kind != wire.WELCOME or first.fd is None:
+            raise ValueError(f"answered HELLO with a frame of kind {first.kind}")
+        sock.setblocking(False)
+        session = ClientSession(sock, first.body, first.fd, endpoint)
+        if session.server_id != info.server_id:
+            session.close()
+            raise ValueError(f"its socket belongs to another server (id {session.server_id}, not "
+                             f"{info.server_id})")
+        return session
+    except BaseException:
+        sock.close()
+        raise
+
+
+class SharedLink:
+    """Shared memory with one server for one client: the session, opened when first needed, or why there is none."""
+
+    def __init__(self, endpoint: str, tokens: TokenSource,
+                 describe: Callable[[], dir_pb2.SystemDescription]) -> None:
+        self.endpoint = endpoint
+        self._tokens = tokens
+        self._describe = describe
+        self._lock = threading.Lock()
+        self._session: ClientSession | None = None
+        self._retry_at = 0.0
+        self._told = False  # the fallback was said at INFO
+        self.reason = ""  # why values travel as bytes, while they do
+        self._closed = False
+
+    def session(self) -> ClientSession | None:
+        """The live session, opened now if none is (at most every few seconds after a failure); None: bytes."""
+        session = self._session
+        if session is not None and not session.dead:
+            return session
+        if self._closed or time.monotonic() < self._retry_at:
+            return None
+        with self._lock:
+            session = self._session
+            if session is not None and not session.dead:
+                return session
+            if self._closed or time.monotonic() < self._retry_at:
+                return None
+            self._session = self._open()
+            return self._session
+
+    def _open(self) -> ClientSession | None:
+        if turned_off():
+            self._fallback(f"turned off by {ENV}={os.environ.get(ENV)}", forever=True)
+            return None
+        try:
+            info = self._describe().shared_memory
+        except Exception as exc:  # noqa: BLE001 - any failure of the question is a reason to use bytes
+            self._fallback(f"the server did not say where it is: {exc}")
+            return None
+        if not info.socket:
+            self._fallback("the server offers none (shared_memory.enabled is false there)", _RETRY_ELSEWHERE_S)
+            return None
+        try:
+            session = connect(info, self._tokens.token(), self.endpoint)
+        except Unreachable as exc:
+            self._fallback(str(exc), _RETRY_ELSEWHERE_S)
+            return None
+        except (OSError, ValueError, wire.ProtocolError) as exc:
+            self._fallback(str(exc))
+            return None
+        self.reason = ""
+        log.debug("values of at least %d bytes travel by shared memory with %s", session.threshold, self.endpoint)
+        return session
+
+    def _fallback(self, reason: str, retry_s: float = _RETRY_S, forever: bool = False) -> None:
+        self.reason = reason
+        self._retry_at = float("inf") if forever else time.monotonic() + retry_s
+        if not self._told:
+            self._told = True
+            log.info("shared memory with the server at %s is not used (%s): values travel as bytes",
+                     self.endpoint, reason)
+
+    @contextmanager
+    def read(self) -> Iterator[ReadCall | None]:
+        """A read call's session part (None without a session): its metadata, and its end when the call is over."""
+        session = self.session()
+        call = session.new_call() if session is not None else None
+        answered = False
+        try:
+            yield call
+            answered = True
+        finally:
+            if call is not None:
+                call.end(answered)
+
+    def check(self) -> None:
+        """Read what the server sent; a session it ended is noticed now (a stream to it broke)."""
+        session = self._session
+        if session is not None:
+            session.poll()
+
+    def close(self) -> None:
+        """End the session."""
+        self._closed = True
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()

@@ -1,0 +1,363 @@
+"""One session with a server's shared memory, after its WELCOME (docs/client-protocol.md).
+
+:class:`ClientSession`
+
+- *stages* a large value: copies it into a free region of the staging area and
+  names it in the write (``StagedValue``); the region is reused once the
+  write's reply came (never while its outcome is unknown);
+- *claims* a value the server lent (``SharedValue`` in an entry): a read-only
+  view of the segment it is in (mapped once, when its SEGMENT frame came) and
+  a :class:`Lease` that gives the value back (RELEASE) when the last object
+  holding it is gone;
+- counts the references each call received and says so when the call ends
+  (RECEIVED), so that the server takes back what never arrived.
+
+No thread of its own: frames from the server (SEGMENT, RETIRE, REFUSED, the
+end) are read whenever the session is used. How a session is opened, and
+when there is none: :mod:`cast.client.shm`.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import mmap
+import os
+import select
+import socket
+import threading
+import time
+import weakref
+
+from cast.client import shm_wire as wire
+from cast.core.arena import Extents, round_up
+from cast.errors import UnavailableError
+from cast.v1 import entry_pb2
+from cast.v1 import working_memory_pb2 as wm_pb2
+
+__all__ = ["METADATA_KEY", "ClientSession", "Lease", "ReadCall", "Staged"]
+
+log = logging.getLogger("cast.client")
+
+METADATA_KEY = "cast-shared-memory"
+"""The call metadata that names a read's session and call: ``<session id hex>/<call number>``."""
+
+_SEGMENT_WAIT_S = 5.0  # how long a claim waits for the SEGMENT frame sent before the message naming it
+_SEND_S = 5.0  # how long a frame may wait for room in the socket: the server reads it at once unless stuck
+_RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
+
+
+class Staged:
+    """A region of the staging area holding one value, until its write's reply came."""
+
+    __slots__ = ("offset", "size", "taken")
+
+    def __init__(self, offset: int, size: int, taken: int) -> None:
+        self.offset = offset
+        self.size = size  # the value's bytes
+        self.taken = taken  # whole pages
+
+
+class Lease:
+    """A value the server lent: given back (RELEASE) once this object is gone (records and views hold it)."""
+
+    __slots__ = ("__weakref__", "session", "value_id")
+
+    def __init__(self, session: ClientSession, value_id: int) -> None:
+        self.session = session
+        self.value_id = value_id
+        weakref.finalize(self, session.give_back, value_id)
+
+
+class ReadCall:
+    """One read call (a Get, a watch stream): its metadata, and the references it received."""
+
+    __slots__ = ("count", "ended", "metadata", "number", "session")
+
+    def __init__(self, session: ClientSession, number: int) -> None:
+        self.session = session
+        self.number = number
+        self.count = 0
+        self.ended = False
+        self.metadata = ((METADATA_KEY, f"{session.id.hex()}/{number}"),)
+
+    def claim(self, ref: entry_pb2.SharedValue) -> tuple[memoryview, Lease]:
+        """The bytes of a value lent on this call, and its lease."""
+        self.count += 1
+        if self.count % _RECEIVED_EVERY == 0:
+            self.session.send(wire.received(self.number, self.count, False))
+        return self.session.claim(ref)
+
+    def end(self, answered: bool = False) -> None:
+        """The call is over: the server takes back what it sent and this call never received.
+
+        ``answered``: the whole answer was read, so nothing was sent that did
+        not arrive; with no reference in it there is nothing to say.
+        """
+        if not self.ended:
+            self.ended = True
+            if self.count or not answered:
+                self.session.send(wire.received(self.number, self.count, True))
+
+
+class _Segment:
+    __slots__ = ("map", "size", "view")
+
+    def __init__(self, fd: int, size: int) -> None:
+        try:
+            self.map = mmap.mmap(fd, size, prot=mmap.PROT_READ)
+        finally:
+            os.close(fd)  # the mapping keeps the memory file
+        self.size = size
+        self.view = memoryview(self.map)
+
+    def close(self) -> bool:
+        try:
+            self.view.release()
+            self.map.close()
+        except BufferError:  # a value of it is still held: later
+            self.view = memoryview(self.map)
+            return False
+        return True
+
+
+class ClientSession:
+    """One session with a server's shared memory (after WELCOME)."""
+
+    def __init__(self, sock: socket.socket, body: bytes, staging_fd: int, endpoint: str) -> None:
+        _, self.id, server_id, self.threshold, self.window, staging_size = wire.parse_welcome(body)
+        self.server_id = server_id.hex()
+        self.endpoint = endpoint
+        self._sock = sock
+        try:
+            self._staging = mmap.mmap(staging_fd, staging_size)
+        finally:
+            os.close(staging_fd)
+        self._staging_view = memoryview(self._staging)
+        self._regions = Extents(staging_size)
+        self._quarantined = 0  # staged bytes of writes whose outcome is unknown: never reused
+        self._reader = wire.FrameReader()
+        self._segments: dict[int, _Segment] = {}
+        self._retired: list[_Segment] = []
+        self._read_lock = threading.Lock()
+        self._state = threading.Lock()  # the staging regions and the segment table
+        self._send_lock = threading.Lock()
+        self._unsent: collections.deque[int] = collections.deque()  # value ids given back, not yet sent
+        self._calls = 0
+        self.dead = ""  # why the session ended ("" while it lives)
+
+    # ---------------------------------------------------------------- writes
+
+    def stage(self, data: bytes | memoryview) -> Staged | None:
+        """``data`` copied into a free region of the staging area; None when there is no room (send the bytes)."""
+        self.poll()  # a session the server ended (it restarted) is noticed before a write names it
+        if self.dead:
+            return None
+        size = len(data)
+        taken = round_up(size)
+        with self._state:
+            offset = self._regions.take(taken)
+        if offset is None:
+            return None
+        try:
+            self._staging_view[offset: offset + size] = data
+        except ValueError:  # the session ended meanwhile (its staging area is unmapped)
+            return None
+        return Staged(offset, size, taken)
+
+    def staged_value(self, staged: Staged) -> wm_pb2.StagedValue:
+        """What a write request says of a staged value."""
+        return wm_pb2.StagedValue(session=self.id, offset=staged.offset, size=staged.size)
+
+    def unstage(self, staged: Staged, known: bool) -> None:
+        """The write's reply came (``known``): its region is free again; else it stays taken for good.
+
+        A write whose outcome is unknown (its stream broke, its deadline
+        passed) may still be applied later, and the server would then copy
+        whatever the region holds: so nothing is written there again.
+        """
+        with self._state:
+            if known:
+                self._regions.give(staged.offset, staged.taken)
+            else:
+                self._quarantined += staged.taken
+
+    # ----------------------------------------------------------------- reads
+
+    def new_call(self) -> ReadCall:
+        """A read call on this session (its metadata names it)."""
+        with self._state:
+            self._calls += 1
+            return ReadCall(self, self._calls)
+
+    def claim(self, ref: entry_pb2.SharedValue) -> tuple[memoryview, Lease]:
+        """A read-only view of a lent value's bytes and its lease; UnavailableError if its segment never came."""
+        lease = Lease(self, ref.value_id)  # given back whatever happens next
+        segment = self._segments.get(ref.segment)
+        if segment is None:
+            segment = self._await_segment(ref.segment)
+        end = ref.offset + ref.size
+        if end > segment.size:
+            raise UnavailableError(
+                f"the server at {self.endpoint} named bytes {ref.offset}..{end} of shared-memory segment "
+                f"{ref.segment}, which has {segment.size}: read again"
+            )
+        return segment.view[ref.offset: end], lease
+
+    def _await_segment(self, segment_id: int) -> _Segment:
+        # Sent before the message naming it: it is in the socket already, or comes at once.
+        end = time.monotonic() + _SEGMENT_WAIT_S
+        while True:
+            self.poll(wait=max(0.0, min(0.1, end - time.monotonic())))
+            segment = self._segments.get(segment_id)
+            if segment is not None:
+                return segment
+            if self.dead or time.monotonic() >= end:
+                raise UnavailableError(
+                    f"shared-memory segment {segment_id} of the server at {self.endpoint} did not arrive "
+                    f"({self.dead or f'within {_SEGMENT_WAIT_S:g} s'}): read again"
+                )
+
+    def give_back(self, value_id: int) -> None:
+        """A lease is gone: RELEASE it.
+
+        Called from finalizers, on any thread, maybe inside a send of this
+        session: it never waits for the send lock. If another thread holds it,
+        that thread sends this too when it lets the lock go (:meth:`_sent`).
+        """
+        self._unsent.append(value_id)
+        if self._send_lock.acquire(blocking=False):
+            try:
+                self._flush()
+            finally:
+                self._sent()
+
+    # -------------------------------------------------------------- frames
+
+    def send(self, frame: bytes) -> None:
+        """Send a frame (with the RELEASEs waiting); nothing once the session is over."""
+        self._send_lock.acquire()
+        try:
+            self._flush()
+            self._write(frame)
+        finally:
+            self._sent()
+
+    def _sent(self) -> None:
+        """Let the send lock go; then send what was given back meanwhile by a thread that could not take it."""
+        self._send_lock.release()
+        while self._unsent and self._send_lock.acquire(blocking=False):
+            try:
+                self._flush()
+            finally:
+                self._send_lock.release()
+
+    def _flush(self) -> None:
+        ids = []
+        while self._unsent:
+            ids.append(self._unsent.popleft())
+        for start in range(0, len(ids), 8000):
+            self._write(wire.release(ids[start: start + 8000]))
+
+    def _write(self, frame: bytes) -> None:
+        if self.dead:
+            return
+        view = memoryview(frame)
+        end = time.monotonic() + _SEND_S
+        while view:
+            try:
+                sent = self._sock.send(view)
+            except (BlockingIOError, InterruptedError):
+                if time.monotonic() > end:
+                    self._end(f"the server has not read its socket for {_SEND_S:g} s")
+                    return
+                select.select([], [self._sock], [], 0.1)
+                continue
+            except OSError as exc:
+                self._end(f"write failed: {exc}")
+                return
+            view = view[sent:]
+
+    def poll(self, wait: float = 0.0) -> None:
+        """Read what the server sent (SEGMENT, RETIRE, REFUSED, the end); wait up to ``wait`` s for something."""
+        if self.dead:
+            return
+        if not (self._read_lock.acquire(timeout=wait) if wait else self._read_lock.acquire(blocking=False)):
+            return  # another thread is reading: it handles what came
+        try:
+            if wait:
+                select.select([self._sock], [], [], wait)
+            while not self.dead:
+                try:
+                    data, fds = wire.receive(self._sock)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except (OSError, wire.ProtocolError) as exc:
+                    self._end(f"read failed: {exc}")
+                    break
+                if not data:
+                    self._end("the server closed the session")
+                    break
+                try:
+                    frames = self._reader.feed(data, fds)
+                except wire.ProtocolError as exc:
+                    self._end(str(exc))
+                    break
+                for frame in frames:
+                    self._handle(frame)
+        finally:
+            self._read_lock.release()
+        self._close_retired()
+
+    def _handle(self, frame: wire.Frame) -> None:
+        if frame.kind == wire.SEGMENT:
+            segment_id, size = wire.parse_segment(frame.body)
+            assert frame.fd is not None
+            with self._state:
+                self._segments[segment_id] = _Segment(frame.fd, size)
+        elif frame.kind == wire.RETIRE:
+            with self._state:
+                gone = self._segments.pop(wire.parse_retire(frame.body), None)
+                if gone is not None:
+                    self._retired.append(gone)
+        elif frame.kind == wire.REFUSED:
+            self._end(f"the server ended it: {frame.body.decode(errors='replace')}")
+        elif frame.fd is not None:
+            os.close(frame.fd)
+
+    def _close_retired(self) -> None:
+        with self._state:
+            self._retired = [s for s in self._retired if not s.close()]
+
+    def _end(self, why: str) -> None:
+        if self.dead:
+            return
+        self.dead = why or "closed"
+        log.debug("shared-memory session with %s ended: %s", self.endpoint, self.dead)
+        try:
+            self._sock.close()
+        except OSError:
+            pass
+        for fd in self._reader.stray():
+            os.close(fd)
+        with self._state:
+            # Mappings still held by values go when those do (their leases keep this object).
+            self._retired.extend(self._segments.values())
+            self._segments.clear()
+            self._retired = [s for s in self._retired if not s.close()]
+            try:
+                self._staging_view.release()
+                self._staging.close()
+            except BufferError:
+                pass
+
+    def close(self) -> None:
+        """End the session (what it holds lent is given back by the server)."""
+        self._end("closed")
+
+    def __del__(self) -> None:
+        if not self.dead:
+            try:
+                self._sock.close()
+            except Exception:  # noqa: BLE001 - an interpreter shutting down
+                pass

@@ -1,0 +1,213 @@
+"""The frames of a shared-memory session on the server's Unix socket.
+
+The protocol is docs/client-protocol.md, "Large values by shared memory".
+
+A session is one Unix stream connection to the socket a server names in
+``SystemDescription.shared_memory``. Every frame is a little-endian ``u32``
+length (of what follows, at least 1) and then that many bytes: a ``u8`` kind
+and its fields. A frame that carries a memory file is sent in one
+``sendmsg`` with the descriptor as ``SCM_RIGHTS``; the descriptor arrives
+no later than the frame's first byte, so a receiver keeps the descriptors it
+gets in order and gives the next one to each frame that carries one.
+
+Shared by the client library and the server (:mod:`cast.server.shared_socket`):
+protobuf-free, gRPC-free.
+"""
+
+from __future__ import annotations
+
+import array
+import os
+import socket
+import struct
+from collections import deque
+from typing import NamedTuple
+
+__all__ = [
+    "HELLO", "RECEIVED", "REFUSED", "RELEASE", "RETIRE", "SEGMENT", "VERSION", "WELCOME", "Frame", "FrameReader",
+    "ProtocolError", "encode", "hello", "received", "refused", "release", "retire", "segment", "send", "welcome",
+]
+
+VERSION = 1
+"""The protocol's version, sent in HELLO and WELCOME."""
+
+# Client -> server
+HELLO = 1  # u16 version, then the token (UTF-8) to the end
+RELEASE = 2  # n x u64 value ids given back
+RECEIVED = 3  # u64 call, u64 count, u8 ended
+# Server -> client
+WELCOME = 10  # u16 version, 16 bytes session, 16 bytes server id, u64 threshold, u64 window, u64 staging size; 1 fd
+REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
+SEGMENT = 12  # u32 segment id, u64 size; 1 fd
+RETIRE = 13  # u32 segment id
+
+MAX_FRAME = 1 << 16
+"""The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits)."""
+
+WITH_FD = frozenset({WELCOME, SEGMENT})
+
+_LEN = struct.Struct("<I")
+_WELCOME = struct.Struct("<H16s16sQQQ")
+_SEGMENT = struct.Struct("<IQ")
+_RECEIVED = struct.Struct("<QQB")
+_U32 = struct.Struct("<I")
+_U16 = struct.Struct("<H")
+
+
+class ProtocolError(Exception):
+    """A frame that breaks the protocol: the connection is closed."""
+
+
+class Frame(NamedTuple):
+    """One decoded frame: its kind, its fields (after the kind byte), and the memory file it carries, if any."""
+
+    kind: int
+    body: bytes
+    fd: int | None
+
+
+def encode(kind: int, body: bytes = b"") -> bytes:
+    """A frame: length, kind, fields."""
+    return _LEN.pack(len(body) + 1) + bytes((kind,)) + body
+
+
+def hello(token: str) -> bytes:
+    """HELLO: the protocol version and the caller's token."""
+    return encode(HELLO, _U16.pack(VERSION) + token.encode())
+
+
+def release(value_ids: list[int]) -> bytes:
+    """RELEASE: values given back (one lease each)."""
+    return encode(RELEASE, struct.pack(f"<{len(value_ids)}Q", *value_ids))
+
+
+def received(call: int, count: int, ended: bool) -> bytes:
+    """RECEIVED: ``count`` references received on ``call`` so far; ``ended``: the call is over."""
+    return encode(RECEIVED, _RECEIVED.pack(call, count, ended))
+
+
+def welcome(session: bytes, server_id: bytes, threshold: int, window: int, staging: int) -> bytes:
+    """WELCOME (sent with the staging area's memory file)."""
+    return encode(WELCOME, _WELCOME.pack(VERSION, session, server_id, threshold, window, staging))
+
+
+def refused(reason: str) -> bytes:
+    """REFUSED: why the session is refused or ended."""
+    return encode(REFUSED, reason.encode())
+
+
+def segment(segment_id: int, size: int) -> bytes:
+    """SEGMENT (sent with the segment's memory file)."""
+    return encode(SEGMENT, _SEGMENT.pack(segment_id, size))
+
+
+def retire(segment_id: int) -> bytes:
+    """RETIRE: unmap the segment once nothing of it is held."""
+    return encode(RETIRE, _U32.pack(segment_id))
+
+
+def parse_hello(body: bytes) -> tuple[int, str]:
+    """(version, token) of a HELLO."""
+    if len(body) < 2:
+        raise ProtocolError("HELLO too short")
+    return _U16.unpack_from(body)[0], body[2:].decode(errors="replace")
+
+
+def parse_release(body: bytes) -> list[int]:
+    """The value ids of a RELEASE."""
+    if len(body) % 8:
+        raise ProtocolError("RELEASE is not a whole number of u64 ids")
+    return list(struct.unpack(f"<{len(body) // 8}Q", body))
+
+
+def parse_received(body: bytes) -> tuple[int, int, bool]:
+    """(call, count, ended) of a RECEIVED."""
+    if len(body) != _RECEIVED.size:
+        raise ProtocolError("RECEIVED has the wrong size")
+    call, count, ended = _RECEIVED.unpack(body)
+    return call, count, bool(ended)
+
+
+def parse_welcome(body: bytes) -> tuple[int, bytes, bytes, int, int, int]:
+    """(version, session, server id, threshold, window, staging size) of a WELCOME."""
+    if len(body) != _WELCOME.size:
+        raise ProtocolError("WELCOME has the wrong size")
+    return _WELCOME.unpack(body)
+
+
+def parse_segment(body: bytes) -> tuple[int, int]:
+    """(segment id, size) of a SEGMENT."""
+    if len(body) != _SEGMENT.size:
+        raise ProtocolError("SEGMENT has the wrong size")
+    return _SEGMENT.unpack(body)
+
+
+def parse_retire(body: bytes) -> int:
+    """The segment id of a RETIRE."""
+    if len(body) != _U32.size:
+        raise ProtocolError("RETIRE has the wrong size")
+    return int(_U32.unpack(body)[0])
+
+
+def send(sock: socket.socket, frame: bytes, fd: int | None = None) -> None:
+    """Send one whole frame (with ``fd`` as SCM_RIGHTS); blocking sockets only."""
+    if fd is None:
+        sock.sendall(frame)
+        return
+    sent = sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, array.array("i", [fd]))])
+    if sent < len(frame):
+        sock.sendall(frame[sent:])
+
+
+def receive(sock: socket.socket, size: int = MAX_FRAME) -> tuple[bytes, list[int]]:
+    """One ``recvmsg``: the bytes read (empty at the end) and the descriptors that came with them."""
+    data, ancillary, flags, _ = sock.recvmsg(size, socket.CMSG_SPACE(16 * 4))
+    fds: list[int] = []
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+            usable = len(payload) - len(payload) % 4
+            fds.extend(array.array("i", payload[:usable]))
+    if flags & socket.MSG_CTRUNC:
+        for fd in fds:
+            os.close(fd)
+        raise ProtocolError("more memory files arrived than one read takes")
+    return data, fds
+
+
+class FrameReader:
+    """Bytes and descriptors in, whole frames out, each with the descriptor it carries."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._fds: deque[int] = deque()
+
+    def feed(self, data: bytes, fds: list[int]) -> list[Frame]:
+        """Add what one read gave; the frames now complete."""
+        self._buf += data
+        self._fds.extend(fds)
+        out = []
+        buf = self._buf
+        at = 0
+        while len(buf) - at >= 4:
+            (length,) = _LEN.unpack_from(buf, at)
+            if not 1 <= length <= MAX_FRAME:
+                raise ProtocolError(f"frame of {length} bytes (1 to {MAX_FRAME} allowed)")
+            if len(buf) - at - 4 < length:
+                break
+            kind = buf[at + 4]
+            body = bytes(buf[at + 5: at + 4 + length])
+            at += 4 + length
+            fd = None
+            if kind in WITH_FD:
+                if not self._fds:
+                    raise ProtocolError(f"frame of kind {kind} came without its memory file")
+                fd = self._fds.popleft()
+            out.append(Frame(kind, body, fd))
+        del buf[:at]
+        return out
+
+    def stray(self) -> list[int]:
+        """Descriptors no frame claimed (to close)."""
+        fds = list(self._fds)
+        self._fds.clear()
+        return fds

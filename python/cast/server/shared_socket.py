@@ -1,0 +1,291 @@
+"""The server's shared-memory socket: the sessions of clients on its host.
+
+The protocol is docs/client-protocol.md, "Large values by shared memory". A
+Unix stream socket in the abstract namespace (``@cast-<server id>``): it
+has no file, so nothing is left behind when the server dies, and it is
+reachable only from the server's network namespace, which is what "on the
+server's host" means here (a client in another namespace or on another
+machine cannot connect, and gets bytes). A connection becomes a session once
+its HELLO passes: the peer runs as the server's own OS user (``SO_PEERCRED``)
+and its token is valid. The session's identity is the token's; its staging
+area, and each arena segment before the first value lent from it, reach the
+client as memory files (``SCM_RIGHTS``). The rules are the core's
+(:mod:`cast.core.shared`); this module only moves frames.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import socket
+import struct
+from collections import deque
+
+from cast.client import shm_wire as wire
+from cast.core.access import Access
+from cast.core.arena import Segment
+from cast.core.shared import Lent, SharedSession
+from cast.core.system import System
+from cast.errors import CastError, InvalidArgumentError
+from cast.server.rpc import Authenticator, Context
+from cast.v1 import directory_pb2
+
+__all__ = ["METADATA_KEY", "SharedSocket", "read_session"]
+
+log = logging.getLogger("cast.server")
+
+METADATA_KEY = "cast-shared-memory"
+"""Call metadata naming the caller's session and call: ``<session id hex>/<call number>``."""
+
+_HELLO_S = 5.0  # how long a connection may take to say HELLO
+_RETIRE_EVERY_S = 1.0  # how often empty segments are looked for
+_UCRED = struct.Struct("3i")  # pid, uid, gid
+
+
+def read_session(access: Access, context: Context) -> tuple[SharedSession, int] | None:
+    """The session and call a read names in its metadata, or None (it gets bytes).
+
+    A malformed value is INVALID_ARGUMENT; another component's session is
+    PERMISSION_DENIED (:meth:`cast.core.shared.SharedMemory.session_for`).
+    """
+    shared = access.system.shared
+    if shared is None:
+        return None
+    for key, value in context.invocation_metadata() or ():
+        if key == METADATA_KEY:
+            text = value.decode() if isinstance(value, bytes) else value
+            session_hex, sep, call = text.partition("/")
+            try:
+                session_id = bytes.fromhex(session_hex)
+                number = int(call)
+            except ValueError:
+                number = -1
+            if not sep or number < 0 or len(session_id) != 16:
+                raise InvalidArgumentError(
+                    f"{METADATA_KEY} metadata {text!r} is not SESSION/CALL (the session id in hex from WELCOME, "
+                    "a call number): docs/client-protocol.md, \"Large values by shared memory\""
+                )
+            session = shared.session_for(access.who, session_id)
+            return None if session is None else (session, number)
+    return None
+
+
+class _Connection:
+    """One client's connection: frames in and out, and its session once HELLO passed."""
+
+    def __init__(self, owner: SharedSocket, sock: socket.socket) -> None:
+        self._owner = owner
+        self._sock = sock
+        self._loop = owner.loop
+        self._reader = wire.FrameReader()
+        self._pending: deque[tuple[bytes, int | None]] = deque()  # frames waiting for room in the socket
+        self.session: SharedSession | None = None
+        self.closed = False
+        self._loop.add_reader(sock.fileno(), self._readable)
+        self._hello_timer = self._loop.call_later(_HELLO_S, self._too_slow)
+
+    # --------------------------------------------------------------- reading
+
+    def _readable(self) -> None:
+        try:
+            data, fds = wire.receive(self._sock)
+        except (BlockingIOError, InterruptedError):
+            return
+        except (OSError, wire.ProtocolError) as exc:
+            self.close(f"read failed: {exc}")
+            return
+        if not data:
+            self.close("")
+            return
+        try:
+            frames = self._reader.feed(data, fds)
+        except wire.ProtocolError as exc:
+            self.refuse(f"bad frame: {exc}")
+            return
+        for fd in self._reader.stray():
+            os.close(fd)  # clients send no memory files
+        for frame in frames:
+            if self.closed:
+                return
+            try:
+                self._handle(frame)
+            except (wire.ProtocolError, CastError) as exc:
+                self.refuse(str(exc) if isinstance(exc, wire.ProtocolError) else exc.message)
+                return
+
+    def _handle(self, frame: wire.Frame) -> None:
+        shared = self._owner.system.shared
+        assert shared is not None
+        if self.session is None:
+            if frame.kind != wire.HELLO:
+                raise wire.ProtocolError(f"the first frame must be HELLO ({wire.HELLO}), not kind {frame.kind}")
+            self._hello(frame.body)
+            return
+        if frame.kind == wire.RELEASE:
+            shared.give_back(self.session, wire.parse_release(frame.body))
+        elif frame.kind == wire.RECEIVED:
+            call, count, ended = wire.parse_received(frame.body)
+            shared.received(self.session, call, count, ended)
+        else:
+            raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
+
+    def _hello(self, body: bytes) -> None:
+        self._hello_timer.cancel()
+        version, token = wire.parse_hello(body)
+        if version != wire.VERSION:
+            raise wire.ProtocolError(f"protocol version {version} is not served (this server speaks {wire.VERSION})")
+        pid, uid, _ = _UCRED.unpack(self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
+        if uid != os.geteuid():
+            raise wire.ProtocolError(
+                f"process {pid} runs as OS user {uid} and this server as {os.geteuid()}: shared memory is "
+                "offered to the server's own OS user only; values travel as bytes"
+            )
+        who = self._owner.auth.verify(token)  # UNAUTHENTICATED, as a CastError: refused with its message
+        shared = self._owner.system.shared
+        assert shared is not None
+        session = shared.open_session(who)
+        session.send_segment = self._send_segment
+        self.session = session
+        frame = wire.welcome(session.id, bytes.fromhex(shared.server_id), shared.settings.threshold_bytes,
+                             shared.settings.window_bytes, session.staging_bytes)
+        if self.send(frame, session.staging_fd) and not self._pending:
+            session.forget_staging_fd()  # the client has it; the server's mapping is all the server needs
+
+    def _too_slow(self) -> None:
+        if self.session is None:
+            self.refuse(f"no HELLO within {_HELLO_S:g} s")
+
+    # --------------------------------------------------------------- writing
+
+    def _send_segment(self, segment: Segment) -> bool:
+        return self.send(wire.segment(segment.id, segment.size), segment.fd)
+
+    def send(self, frame: bytes, fd: int | None = None) -> bool:
+        """Send a frame now, or as soon as the socket has room (in order); False once closed."""
+        if self.closed:
+            return False
+        if not self._pending:
+            try:
+                if fd is None:
+                    sent = self._sock.send(frame)
+                else:
+                    sent = self._sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError as exc:
+                self.close(f"write failed: {exc}")
+                return False
+            if sent == len(frame):
+                return True
+            frame, fd = frame[sent:], None if sent else fd
+            self._loop.add_writer(self._sock.fileno(), self._writable)
+        # A descriptor waiting here belongs to a live segment or the session's staging area: it stays open.
+        self._pending.append((frame, fd))
+        return True
+
+    def _writable(self) -> None:
+        while self._pending:
+            frame, fd = self._pending[0]
+            try:
+                if fd is None:
+                    sent = self._sock.send(frame)
+                else:
+                    sent = self._sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                self.close(f"write failed: {exc}")
+                return
+            if sent < len(frame):
+                self._pending[0] = (frame[sent:], None)
+                return
+            self._pending.popleft()
+        self._loop.remove_writer(self._sock.fileno())
+
+    def refuse(self, reason: str) -> None:
+        """Tell the client why (REFUSED), then close."""
+        if not self.closed:
+            with contextlib.suppress(OSError):
+                self._sock.send(wire.refused(reason))
+        self.close(reason)
+
+    def close(self, reason: str) -> None:
+        """End the connection and its session (everything it held is given back)."""
+        if self.closed:
+            return
+        self.closed = True
+        self._hello_timer.cancel()
+        with contextlib.suppress(Exception):
+            self._loop.remove_reader(self._sock.fileno())
+            self._loop.remove_writer(self._sock.fileno())
+        self._sock.close()
+        self._pending.clear()
+        shared = self._owner.system.shared
+        if self.session is not None and shared is not None:
+            shared.close_session(self.session)
+        self._owner.connections.discard(self)
+        if reason:
+            log.info("shared-memory connection closed: %s", reason)
+
+
+class SharedSocket:
+    """The listening socket of one server's shared memory, and its connections."""
+
+    def __init__(self, system: System, auth: Authenticator) -> None:
+        assert system.shared is not None
+        self.system = system
+        self.auth = auth
+        self.name = f"cast-{system.shared.server_id}"
+        self.connections: set[_Connection] = set()
+        self.loop = asyncio.get_running_loop()
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_NONBLOCK | socket.SOCK_CLOEXEC)
+        self._sock.bind("\0" + self.name)
+        self._sock.listen(64)
+        self.loop.add_reader(self._sock.fileno(), self._accept)
+        self._retirer = asyncio.ensure_future(self._retire())
+
+    def info(self) -> directory_pb2.SharedMemoryInfo:
+        """What DescribeSystem tells clients of it."""
+        shared = self.system.shared
+        assert shared is not None
+        return directory_pb2.SharedMemoryInfo(socket=self.name, server_id=shared.server_id)
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, _ = self._sock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                log.warning("shared-memory socket: accept failed: %s", exc)
+                return
+            sock.setblocking(False)
+            self.connections.add(_Connection(self, sock))
+
+    async def _retire(self) -> None:
+        shared = self.system.shared
+        assert shared is not None
+        while True:
+            await asyncio.sleep(_RETIRE_EVERY_S)
+            for segment_id in shared.retire_empty():
+                for connection in list(self.connections):
+                    if connection.session is not None:
+                        connection.send(wire.retire(segment_id))
+
+    def close(self) -> None:
+        """Stop listening and end every session."""
+        self._retirer.cancel()
+        with contextlib.suppress(Exception):
+            self.loop.remove_reader(self._sock.fileno())
+        self._sock.close()
+        for connection in list(self.connections):
+            connection.close("")
+
+
+def lend(access: Access, read: tuple[SharedSession, int] | None, record_shared: object) -> Lent | None:
+    """Lend a record's value to the reader's session, when it has one and the value is in shared memory."""
+    if read is None or record_shared is None:
+        return None
+    return access.lend(read[0], read[1], record_shared)

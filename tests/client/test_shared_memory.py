@@ -1,0 +1,449 @@
+"""Large values by shared memory on one host (docs/client-protocol.md, "Large values by shared memory").
+
+A real server on port 0 (in a thread of this process, which is on its host)
+with shared memory on; components over gRPC. The raw protocol (a session's
+frames, requests built by hand) plays the writer or reader that misbehaves.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import mmap
+import os
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+from google.protobuf.wrappers_pb2 import BytesValue
+
+import cast
+from cast.auth import TokenSigner
+from cast.client import shm, shm_session
+from cast.client.grpc_transport import GrpcTransport
+from cast.core.journal import Journal
+from cast.core.records import Identity, Limits
+from cast.core.shared import SharedSettings
+from cast.core.system import System
+from cast.server.wire import wire_system
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import inspection_pb2 as insp_pb2
+from cast.v1 import inspection_pb2_grpc as insp_grpc
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
+from tests.client.conftest import ThreadServer
+from tests.conftest import wait_for
+
+MIB = 1 << 20
+BYTES_VALUE = "google.protobuf.BytesValue"
+
+
+class Host:
+    """A server with shared memory, and components of it over gRPC."""
+
+    def __init__(self, tmp_path: Path, settings: SharedSettings | None = None, limits: Limits | None = None,
+                 journal: bool = False) -> None:
+        self.journal = journal
+        self.tmp_path = tmp_path
+        self.settings = settings or SharedSettings()
+        self.limits = limits or Limits()
+        self.system = self._system()
+        self.server = ThreadServer(self.system)
+        assert self.server.running is not None
+        self.endpoint = self.server.running.endpoint
+        self.signer: TokenSigner = self.server.signer
+        self.made: list[cast.Component] = []
+        self.channel = grpc.insecure_channel(self.endpoint)
+
+    def _system(self) -> System:
+        journal = Journal(self.tmp_path / "wm.db", "batch", 64) if self.journal else None
+        return wire_system("t", ["vision", "language"], limits=self.limits, journal=journal,
+                           shared_memory=self.settings)
+
+    def component(self, cid: str, sa: str = "vision", privileged: bool = False) -> Any:
+        identity = Identity(cid, sa, privileged)
+        c = cast.UnmanagedComponent()
+        transport = GrpcTransport(self.endpoint, self.signer.issue(identity), identity)
+        c._cast_bind(transport)
+        self.made.append(c)
+        transport._directory.shared.session()  # its session, or its fallback, now (as its first large call would)
+        return c
+
+    def metadata(self, cid: str, sa: str = "vision") -> tuple[tuple[str, str], ...]:
+        return (("authorization", f"Bearer {self.signer.issue(Identity(cid, sa))}"),)
+
+    def session(self, cid: str, sa: str = "vision") -> shm_session.ClientSession:
+        """A raw session of ``cid``, as any client opens one."""
+        info = dir_grpc.DirectoryStub(self.channel).DescribeSystem(dir_pb2.DescribeSystemRequest(),
+                                                                    metadata=self.metadata(cid, sa)).shared_memory
+        return shm.connect(info, self.signer.issue(Identity(cid, sa)), self.endpoint)
+
+    def stub(self) -> wm_grpc.WorkingMemoryStub:
+        return wm_grpc.WorkingMemoryStub(self.channel)
+
+    def shared(self) -> dict[str, int]:
+        assert self.system.shared is not None
+        gc.collect()
+        return self.system.shared.snapshot()
+
+    def close(self) -> None:
+        for c in self.made:
+            c._cast_close()
+        self.channel.close()
+        self.server.stop()
+        self.system.close()
+
+
+@pytest.fixture
+def host(tmp_path: Path) -> Iterator[Callable[..., Host]]:
+    made: list[Host] = []
+
+    def make(**options: Any) -> Host:
+        made.append(Host(tmp_path, **options))
+        return made[-1]
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def image(size: int, seed: int = 0) -> BytesValue:
+    return BytesValue(value=bytes((seed + i) % 251 for i in range(256)) * (size // 256))
+
+
+def staged_add(session: shm_session.ClientSession, entry_id: str, value: BytesValue) -> wm_pb2.AddRequest:
+    """An Add whose value a raw client staged in its session."""
+    data = value.SerializeToString()
+    staged = session.stage(data)
+    assert staged is not None
+    request = wm_pb2.AddRequest()
+    request.address.id, request.address.subarchitecture = entry_id, "vision"
+    request.value.type_url = "type.googleapis.com/" + BYTES_VALUE
+    request.staged_value.CopyFrom(session.staged_value(staged))
+    return request
+
+
+def test_large_values_go_by_reference_to_readers_on_the_host_and_read_back_identical(host: Any) -> None:
+    h = host()
+    writer, reader = h.component("writer"), h.component("reader")
+    seen: list[tuple[int, bytes, bool]] = []
+    reader.on_change(cast.address_filter("img", include_entry=True),
+                     lambda ch: seen.append((ch.revision, ch.entry(BytesValue).value.value, ch.view().shared)))
+    frames = [image(MIB, seed) for seed in range(3)]
+    writer.add("img", frames[0])
+    writer.overwrite("img", frames[1])
+    writer.overwrite("img", frames[2])
+    writer.add("small", BytesValue(value=b"tiny"))
+    wait_for(lambda: len(seen) == 3, what="three events")
+    assert seen == [(i + 1, frames[i].value, True) for i in range(3)]
+    assert reader.get("img", BytesValue) == frames[2]
+    assert [e.value for e in reader.get_all(BytesValue)] == [BytesValue(value=b"tiny"), frames[2]]
+    with reader.get_view("img") as view:
+        assert view.shared and view.type == BYTES_VALUE and view.version == writer.get_entry("img", BytesValue).version
+        assert bytes(view.field(1)) == frames[2].value  # the pixels, not copied
+        assert view.decode(BytesValue) == frames[2]
+    with reader.get_view("small") as view:
+        assert not view.shared and bytes(view.data) == BytesValue(value=b"tiny").SerializeToString()
+    stats = h.shared()
+    assert stats["staged_writes"] == 3 and stats["lent"] >= 5 and stats["sessions"] == 2
+    wait_for(lambda: h.shared()["lent_bytes"] == 0, what="every lent value given back")
+
+
+def test_a_writer_cannot_change_a_value_after_its_write_was_acknowledged(
+    host: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    passed: list[int] = []  # the memory files of the segments, as they reach a client
+    segment_init = shm_session._Segment.__init__
+
+    def keep(segment: Any, fd: int, size: int) -> None:
+        passed.append(os.dup(fd))
+        segment_init(segment, fd, size)
+
+    monkeypatch.setattr(shm_session._Segment, "__init__", keep)
+    h = host()
+    reader = h.component("reader")
+    seen: list[bytes] = []
+    reader.on_change(cast.address_filter("img", include_entry=True),
+                     lambda ch: seen.append(bytes(ch.view().field(1))))
+    session = h.session("writer")
+    original = image(MIB)
+    request = staged_add(session, "img", original)
+    h.stub().Add(request, metadata=h.metadata("writer"))  # acknowledged
+    staging = session._staging_view  # the writer still has its staging area mapped, writable
+    staging[0: MIB] = b"\xff" * MIB
+    wait_for(lambda: seen, what="the event")
+    assert seen == [original.value] and reader.get("img", BytesValue) == original
+    # The value now lives in the server's memory file; the writer gets it lent like any reader and cannot write it.
+    call = session.new_call()
+    entry = h.stub().Get(wm_pb2.GetRequest(address={"id": "img", "subarchitecture": "vision"}),
+                         metadata=h.metadata("writer") + call.metadata).entry
+    assert entry.HasField("shared_value") and not entry.value.value
+    session.poll(wait=1.0)
+    assert passed
+    # The memory file as it was passed (opened read-write), and opened again by its path, read-write.
+    again = os.open(f"/proc/self/fd/{passed[-1]}", os.O_RDWR)
+    try:
+        for fd in (passed[-1], again):
+            with pytest.raises(PermissionError):
+                os.pwrite(fd, b"\x00", entry.shared_value.offset)
+            with pytest.raises(PermissionError):
+                mmap.mmap(fd, 4096, offset=entry.shared_value.offset - entry.shared_value.offset % 4096)
+            with pytest.raises(PermissionError):
+                os.ftruncate(fd, 0)
+    finally:
+        for fd in (again, *passed):
+            os.close(fd)
+    call.end()
+    assert reader.get("img", BytesValue) == original
+    session.close()
+
+
+def test_a_reader_cannot_write_what_it_was_lent(host: Any) -> None:
+    h = host()
+    writer, reader = h.component("writer"), h.component("reader")
+    writer.add("img", image(MIB))
+    with reader.get_view("img") as view:
+        assert view.shared
+        data = view.data
+        with pytest.raises(TypeError):
+            data[0:1] = b"x"  # read-only
+        with pytest.raises(TypeError):
+            view.field(1)[0:1] = b"x"
+        del data
+    assert reader.get("img", BytesValue) == image(MIB)
+
+
+def test_forged_and_stale_references_are_refused_with_a_clear_error_and_change_nothing(host: Any) -> None:
+    h = host()
+    writer = h.component("writer")
+    writer.add("img", image(MIB))
+    before = writer.get_entry("img", BytesValue)
+    stub = h.stub()
+    session = h.session("writer")
+    good = staged_add(session, "img", image(MIB, 7))
+
+    def overwrite(change: Callable[[wm_pb2.OverwriteRequest], None], who: str = "writer") -> grpc.RpcError:
+        request = wm_pb2.OverwriteRequest(address=good.address, value=good.value, staged_value=good.staged_value)
+        change(request)
+        with pytest.raises(grpc.RpcError) as refused:
+            stub.Overwrite(request, metadata=h.metadata(who))
+        return refused.value
+
+    def forged(r: wm_pb2.OverwriteRequest) -> None:
+        r.staged_value.session = b"\x07" * 16
+
+    def outside(r: wm_pb2.OverwriteRequest) -> None:
+        r.staged_value.offset = session._regions.size - 10
+
+    def both(r: wm_pb2.OverwriteRequest) -> None:
+        r.value.value = b"\x0a\x01x"
+
+    def over(r: wm_pb2.OverwriteRequest) -> None:
+        r.staged_value.size = 9 * MIB
+
+    cases = [(forged, "writer", grpc.StatusCode.INVALID_ARGUMENT, "which this server does not have"),
+             (outside, "writer", grpc.StatusCode.INVALID_ARGUMENT, "outside the staging area"),
+             (both, "writer", grpc.StatusCode.INVALID_ARGUMENT, "has both bytes"),
+             (over, "writer", grpc.StatusCode.INVALID_ARGUMENT, "limits.max_value_bytes"),
+             (lambda r: None, "other", grpc.StatusCode.PERMISSION_DENIED, "may not use the shared-memory session")]
+    for change, who, code, words in cases:
+        error = overwrite(change, who)
+        assert error.code() == code and words in (error.details() or ""), error.details()
+    session.close()
+    wait_for(lambda: h.shared()["sessions"] == 1, what="the raw session's end")
+    stale = overwrite(lambda r: None)  # its session ended
+    assert stale.code() == grpc.StatusCode.INVALID_ARGUMENT and "which this server does not have" in stale.details()
+    for bad, code in (("nothex/1", grpc.StatusCode.INVALID_ARGUMENT),
+                      (f"{writer._transport._directory.shared.session().id.hex()}/1",
+                       grpc.StatusCode.PERMISSION_DENIED)):  # another component's session
+        with pytest.raises(grpc.RpcError) as refused:
+            stub.Get(wm_pb2.GetRequest(address=good.address),
+                     metadata=h.metadata("other") + (("cast-shared-memory", bad),))
+        assert refused.value.code() == code
+    after = writer.get_entry("img", BytesValue)
+    assert (after.version, after.revision, after.value) == (before.version, before.revision, before.value)
+
+
+def test_the_rules_are_the_same_for_values_in_shared_memory(host: Any) -> None:
+    h = host()
+    writer, other = h.component("writer"), h.component("other")
+    seer = h.component("seer", "language")
+    latest: list[tuple[int, int]] = []
+    gate = threading.Event()
+
+    def slow(ch: cast.WorkingMemoryChange) -> None:
+        gate.wait(10)
+        latest.append((ch.entry(BytesValue).value.value[0], ch.skipped))
+
+    seer.on_change(cast.address_filter("img", subarchitecture="vision", include_entry=True), slow, delivery="latest")
+    first = writer.add("img", image(MIB, 0))
+    with pytest.raises(cast.ConsistencyError):
+        writer.overwrite("img", image(MIB, 1), expected_version=first.version + 5)
+    with other.lock("img", cast.LockMode.O):
+        with pytest.raises(cast.LockedError, match="locked .* by component 'other'"):
+            writer.overwrite("img", image(MIB, 2))
+    with pytest.raises(cast.PermissionDeniedError):
+        seer.overwrite("img", image(MIB, 3), subarchitecture="vision")
+    assert writer.get("img", BytesValue) == image(MIB, 0)
+    for seed in range(1, 6):
+        writer.overwrite("img", image(MIB, seed))
+    gate.set()
+    wait_for(lambda: latest and latest[-1][0] == 5, what="the newest value")
+    assert sum(skipped for _, skipped in latest) + len(latest) == 6  # the add and five overwrites, none lost
+    wait_for(lambda: h.shared()["lent_bytes"] == 0, what="every lent value given back")
+    # The refused writes' copies are gone: the arena holds the entry and the history's values only.
+    assert h.shared()["values"] == 6
+
+
+def test_views_hold_their_value_past_the_history_and_the_window_sends_the_rest_as_bytes(host: Any) -> None:
+    h = host(settings=SharedSettings(window_bytes=3 * MIB + 64), limits=Limits(history_bytes=2 * MIB))
+    writer, reader = h.component("writer"), h.component("reader")
+    writer.add("img", image(MIB, 0))
+    views = [reader.get_view("img")]
+    for seed in range(1, 4):
+        writer.overwrite("img", image(MIB, seed))
+        views.append(reader.get_view("img"))
+    # Three lent (the window), the fourth as bytes; each still reads the value of its version.
+    assert [v.shared for v in views] == [True, True, True, False]
+    assert [bytes(v.field(1)) for v in views] == [image(MIB, seed).value for seed in range(4)]
+    assert h.shared()["over_window"] == 1
+    for v in views:
+        v.release()
+    with pytest.raises(cast.InvalidArgumentError, match="released"):
+        views[0].field(1)
+    wait_for(lambda: h.shared()["lent_bytes"] == 0, what="the views' values given back")
+    assert h.shared()["values"] <= 3  # the entry's and what the 2 MiB history keeps
+
+
+def test_a_client_told_it_is_on_another_host_gets_identical_values_as_bytes(
+    host: Any, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    h = host()
+    writer, reader = h.component("writer"), h.component("reader")
+    monkeypatch.setenv(shm.ENV, "off")
+    caplog.set_level(logging.INFO, logger="cast.client")
+    remote = h.component("remote")
+    got: list[bytes] = []
+    remote.on_change(cast.address_filter("img", include_entry=True), lambda ch: got.append(ch.entry(BytesValue)
+                                                                                           .value.value))
+    remote.add("from-remote", image(MIB, 9))
+    writer.add("img", image(MIB, 1))
+    wait_for(lambda: got, what="the event")
+    assert got == [image(MIB, 1).value]
+    with remote.get_view("img") as view:
+        assert not view.shared and bytes(view.field(1)) == image(MIB, 1).value
+    assert reader.get("from-remote", BytesValue) == image(MIB, 9)
+    said = [r.getMessage() for r in caplog.records if "is not used" in r.getMessage()]
+    assert len(said) == 1 and f"turned off by {shm.ENV}=off" in said[0]
+    # The remote one's write came as bytes; the server still keeps it in shared memory for the host's readers.
+    stats = h.shared()
+    assert stats["staged_writes"] == 1 and stats["values"] == 2
+
+
+def test_memory_stays_bounded_with_a_slow_queue_watcher_and_with_latest(host: Any) -> None:
+    window = 4 * MIB
+    history = 6 * MIB
+    h = host(settings=SharedSettings(window_bytes=window), limits=Limits(history_bytes=history))
+    writer = h.component("writer")
+    slow_queue, slow_latest = h.component("q"), h.component("l")
+    gate = threading.Event()
+    got: dict[str, list[int]] = {"queue": [], "latest": []}
+
+    def reader(name: str) -> Callable[[cast.WorkingMemoryChange], None]:
+        def take(ch: cast.WorkingMemoryChange) -> None:
+            gate.wait(20)
+            got[name].append(ch.entry(BytesValue).value.value[0])
+        return take
+
+    slow_queue.on_change(cast.address_filter("img", include_entry=True), reader("queue"))
+    slow_latest.on_change(cast.address_filter("img", include_entry=True), reader("latest"), delivery="latest")
+    # And a raw watcher that never reads its stream at all: what it was lent stays lent.
+    session = h.session("stalled")
+    call = session.new_call()
+    created = threading.Event()
+
+    def requests() -> Iterator[wm_pb2.WatchRequest]:
+        yield wm_pb2.WatchRequest(create=wm_pb2.WatchCreate(watch_id=1, filters=[
+            {"id": "img", "subarchitecture": "vision", "include_entry": True}]))
+        created.wait(30)
+
+    stalled = h.stub().Watch(requests(), metadata=h.metadata("stalled") + call.metadata)
+    next(stalled)  # WatchCreated; nothing more is read
+    writer.add("img", image(MIB, 0))
+    peak = 0
+    for seed in range(1, 60):
+        writer.overwrite("img", image(MIB, seed))
+        peak = max(peak, h.shared()["value_bytes"])
+    # History, the entry, and what each of the three readers may hold lent: never more, however far behind.
+    bound = history + MIB + 3 * (window + MIB)
+    assert peak <= bound, f"{peak} bytes held, over {bound}"
+    gate.set()
+    wait_for(lambda: got["latest"] and got["latest"][-1] == 59 % 251, what="latest's newest value")
+    wait_for(lambda: len(got["queue"]) == 60, what="every value to the queue watcher")
+    assert got["queue"] == [seed % 251 for seed in range(60)]  # in order, none lost
+    created.set()
+    stalled.cancel()
+    session.close()
+    wait_for(lambda: h.shared()["lent_bytes"] == 0, what="every lent value given back")
+    assert h.shared()["value_bytes"] <= history + MIB
+
+
+def test_values_in_shared_memory_are_durable_with_the_journal(tmp_path: Path) -> None:
+    h = Host(tmp_path, journal=True)
+    try:
+        writer = h.component("writer")
+        writer.add("img", image(2 * MIB, 3))
+        assert h.shared()["staged_writes"] == 1
+    finally:
+        h.close()
+    again = Host(tmp_path, journal=True)
+    try:
+        reader = again.component("reader")
+        assert reader.get("img", BytesValue) == image(2 * MIB, 3)
+    finally:
+        again.close()
+
+
+def test_the_tools_show_shared_memory_and_one_setting_turns_it_off(host: Any) -> None:
+    h = host()
+    writer = h.component("writer")
+    writer.add("img", image(MIB))
+    inspection = insp_grpc.InspectionStub(h.channel)
+    listing = inspection.ListEntries(insp_pb2.ListEntriesRequest(subarchitecture="vision"), metadata=h.metadata("t"))
+    assert listing.shared_bytes == len(image(MIB).SerializeToString())
+    metrics = inspection.GetMetrics(insp_pb2.GetMetricsRequest(), metadata=h.metadata("t"))
+    assert metrics.shared_memory.staged_writes == 1 and metrics.shared_memory.segments == 1
+    off = host(settings=SharedSettings(enabled=False))
+    desc = dir_grpc.DirectoryStub(off.channel).DescribeSystem(dir_pb2.DescribeSystemRequest(),
+                                                               metadata=off.metadata("t"))
+    assert not desc.HasField("shared_memory")
+    assert not inspection_of(off).GetMetrics(insp_pb2.GetMetricsRequest(), metadata=off.metadata("t")).HasField(
+        "shared_memory")
+    c = off.component("c")
+    c.add("img", image(MIB))
+    with c.get_view("img") as view:
+        assert not view.shared and bytes(view.field(1)) == image(MIB).value
+
+
+def inspection_of(h: Host) -> insp_grpc.InspectionStub:
+    return insp_grpc.InspectionStub(h.channel)
+
+
+def test_the_configuration_sets_shared_memory_and_refuses_what_is_wrong(tmp_path: Path) -> None:
+    from cast.config import ConfigError, load_config
+
+    path = tmp_path / "system.yaml"
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {threshold_bytes: 1000, window_bytes: 4096}\n")
+    assert load_config(path, environ={}).shared_memory == SharedSettings(True, 1000, 1 << 30, 4096)
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {enabled: false}\n")
+    assert not load_config(path, environ={}).shared_memory.enabled
+    assert load_config(path, environ={}).shared_memory == SharedSettings(enabled=False)
+    path.write_text("subarchitectures: {vision: {}}\nshared_memory: {enable: false, threshold_bytes: 0}\n")
+    with pytest.raises(ConfigError) as refused:
+        load_config(path, environ={})
+    text = str(refused.value)
+    assert "shared_memory.enable" in text and "did you mean 'enabled'" in text and "threshold_bytes" in text

@@ -1,0 +1,153 @@
+"""The server's shared memory, in the core: the arena's seals and reuse, staging, leases, the window, the bounds."""
+
+from __future__ import annotations
+
+import gc
+import mmap
+import os
+
+import pytest
+
+from cast.core.arena import PAGE, Arena, Segment
+from cast.core.records import BatchOp, Identity, Limits, Operation
+from cast.core.shared import SharedMemory, SharedSettings
+from cast.errors import InvalidArgumentError, PermissionDeniedError
+
+WRITER = Identity("writer", "vision")
+OTHER = Identity("other", "vision")
+MIB = 1 << 20
+
+
+def memory(window: int = 64 * MIB, max_bytes: int = 1 << 30, threshold: int = 64 * 1024) -> SharedMemory:
+    return SharedMemory(SharedSettings(True, threshold, max_bytes, window), Limits(max_value_bytes=8 * MIB))
+
+
+def test_nobody_can_write_a_segment_through_its_memory_file_but_the_servers_own_mapping() -> None:
+    segment = Segment(1, 4 * PAGE)
+    try:
+        segment.view[0:5] = b"first"  # the server's mapping, made before the seals, writes
+        with pytest.raises(PermissionError):
+            os.pwrite(segment.fd, b"x", 0)
+        with pytest.raises(PermissionError):
+            mmap.mmap(segment.fd, PAGE)  # a writable shared mapping
+        with pytest.raises(PermissionError):
+            os.ftruncate(segment.fd, PAGE)
+        # Opened again by path, read-write: the seals are the file's, not the descriptor's.
+        again = os.open(f"/proc/self/fd/{segment.fd}", os.O_RDWR)
+        try:
+            with pytest.raises(PermissionError):
+                os.pwrite(again, b"x", 0)
+        finally:
+            os.close(again)
+        reader = mmap.mmap(segment.fd, 4 * PAGE, prot=mmap.PROT_READ)
+        assert reader[0:5] == b"first"
+        with pytest.raises(TypeError):
+            memoryview(reader)[0:1] = b"y"
+        reader.close()
+    finally:
+        assert segment.close()
+
+
+def test_values_are_copied_in_page_aligned_and_their_extents_reused_once_nothing_holds_them() -> None:
+    arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
+    source = bytearray(b"a" * 100_000)
+    first = arena.put(source)
+    assert first is not None and first.offset % PAGE == 0 and bytes(first.view) == bytes(source)
+    source[:] = b"b" * 100_000
+    assert bytes(first.view) == b"a" * 100_000  # a copy: what the writer does afterwards changes nothing
+    second = arena.put(b"c" * 10)
+    assert second is not None and second.offset >= first.offset + 100_000
+    offset = first.offset
+    del first
+    gc.collect()
+    third = arena.put(b"d" * 5000)
+    assert third is not None and third.offset == offset  # reused
+    assert arena.stats()["values"] == 2
+
+
+def test_a_lent_value_is_not_reused_until_given_back() -> None:
+    arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
+    placed = arena.put(b"x" * 10_000)
+    assert placed is not None
+    offset, value_id = placed.offset, placed.value_id
+    arena.lease(placed)
+    del placed
+    other = arena.put(b"y" * 10_000)
+    assert other is not None and other.offset != offset
+    assert arena.stats()["lent_bytes"] == 10_000
+    arena.give_back([value_id])
+    again = arena.put(b"z" * 10_000)
+    assert again is not None and again.offset == offset
+
+
+def test_a_full_arena_leaves_values_as_bytes() -> None:
+    shared = memory(max_bytes=64 * MIB)
+    ops = [shared.place(BatchOp(Operation.ADD, "vision", f"e{i}", "t", os.urandom(8 * MIB))) for i in range(9)]
+    placed = [op for op in ops if op.placed is not None]
+    assert len(placed) == 8  # the one 64 MiB segment max_bytes allows is full
+    assert isinstance(ops[-1].data, bytes) and ops[-1].placed is None
+    assert shared.snapshot()["unplaced"] == 1
+    assert shared.place(BatchOp(Operation.ADD, "vision", "small", "t", b"tiny")).placed is None  # under the threshold
+
+
+def test_a_staged_value_is_copied_from_its_own_session_and_refusals_name_what_is_wrong() -> None:
+    shared = memory()
+    session = shared.open_session(WRITER)
+    staging = mmap.mmap(session.staging_fd, session.staging_bytes)  # as the client maps it
+    staging[0:200_000] = b"v" * 200_000
+    data, placed = shared.staged(WRITER, session.id, 0, 200_000, "img")
+    assert placed is not None and bytes(data) == b"v" * 200_000
+    staging[0:10] = b"changed..."
+    assert bytes(placed.view[0:10]) == b"v" * 10
+    with pytest.raises(PermissionDeniedError, match="may not use the shared-memory session .* of component 'writer'"):
+        shared.staged(OTHER, session.id, 0, 10, "img")
+    with pytest.raises(InvalidArgumentError, match="outside the staging area"):
+        shared.staged(WRITER, session.id, session.staging_bytes - 10, 20, "img")
+    with pytest.raises(InvalidArgumentError, match="limits.max_value_bytes"):
+        shared.staged(WRITER, session.id, 0, 9 * MIB, "img")
+    with pytest.raises(InvalidArgumentError, match="which this server does not have"):
+        shared.staged(WRITER, b"\x01" * 16, 0, 10, "img")
+    staging.close()
+    shared.close_session(session)
+    with pytest.raises(InvalidArgumentError, match="which this server does not have"):
+        shared.staged(WRITER, session.id, 0, 10, "img")  # stale: its session ended
+    with pytest.raises(PermissionDeniedError):
+        reader = shared.open_session(WRITER)
+        shared.session_for(OTHER, reader.id)
+
+
+def test_the_window_bounds_what_one_session_holds_lent_and_a_call_gives_back_what_never_arrived() -> None:
+    shared = memory(window=3 * MIB)
+    session = shared.open_session(WRITER)
+    sent: list[int] = []
+    session.send_segment = lambda segment: sent.append(segment.id) is None
+    values = [shared.arena.put(os.urandom(MIB)) for _ in range(4)]
+    lent = [shared.lend(session, 7, v) for v in values if v is not None]
+    assert [x is not None for x in lent] == [True, True, True, False]  # the fourth is over the window: bytes
+    assert sent == [1]  # the segment's memory file went once, before the first value in it
+    assert session.lent_bytes == 3 * MIB and shared.snapshot()["over_window"] == 1
+    shared.give_back(session, [999])  # a value it does not hold: ignored
+    assert session.lent_bytes == 3 * MIB
+    # The call ends having received only its first reference: the second and third never arrived.
+    shared.received(session, 7, 1, True)
+    assert session.lent_bytes == MIB  # the first, received, is held until its RELEASE
+    shared.give_back(session, [lent[0].value_id, lent[0].value_id])  # type: ignore[union-attr]  # once is all
+    assert session.lent_bytes == 0 and shared.snapshot()["lent_bytes"] == 0
+
+
+def test_an_ended_session_gives_back_everything_and_empty_segments_are_retired() -> None:
+    shared = SharedMemory(SharedSettings(True, 1, 256 * MIB, 256 * MIB), Limits(max_value_bytes=8 * MIB))
+    session = shared.open_session(WRITER)
+    session.send_segment = lambda segment: True
+    values = [shared.arena.put(os.urandom(8 * MIB)) for _ in range(9)]  # two segments of 64 MiB
+    assert shared.snapshot()["segments"] == 2
+    for v in values:
+        assert v is not None and shared.lend(session, 1, v) is not None
+    del values, v
+    gc.collect()
+    assert shared.snapshot()["values"] == 9  # lent: held
+    shared.close_session(session)
+    assert shared.snapshot()["values"] == 0 and shared.snapshot()["sessions"] == 0
+    assert shared.retire_empty() == [2]  # the first stays for the next value
+    assert shared.snapshot()["segments"] == 1
+    shared.close()

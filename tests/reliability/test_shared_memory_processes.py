@@ -1,0 +1,249 @@
+"""Shared memory between processes: kill -9 of a writer, a reader, the server; another OS user; another host.
+
+`cast serve` (shared memory on, as configured by default) and writer and
+reader processes (components/shm_peer.py). Nothing of shared memory is ever
+a file (``/dev/shm`` is checked unchanged); what a process that died held is
+given back, and what a live one mapped of a dead server is unmapped once it
+notices. A client of another OS user, or in another network namespace, gets
+the same values as bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+import yaml
+from google.protobuf.wrappers_pb2 import BytesValue
+
+from cast.auth import TokenSigner
+from cast.client import shm_wire as wire
+from cast.core.records import Identity
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import inspection_pb2 as insp_pb2
+from cast.v1 import inspection_pb2_grpc as insp_grpc
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.v1 import working_memory_pb2_grpc as wm_grpc
+from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
+from tests.netns import Lines, Namespaces, stop_all
+from tests.reliability.conftest import kill9, serve, write_config
+
+COMPONENTS = Path(__file__).resolve().parent / "components"
+PEER = str(COMPONENTS / "shm_peer.py")
+CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
+
+
+def dev_shm() -> set[str]:
+    return set(os.listdir("/dev/shm"))
+
+
+def memory_files(pid: int) -> list[str]:
+    """The shared-memory files a process maps (``memfd:cast-...`` in its maps)."""
+    with open(f"/proc/{pid}/maps") as maps:
+        return [line.split()[-2] if line.rstrip().endswith("(deleted)") else line.split()[-1]
+                for line in maps if "memfd:cast-" in line]
+
+
+def shared(handle: ServerHandle) -> dict[str, Any]:
+    """The server's shared-memory figures (what `cast stats` shows)."""
+    with grpc.insecure_channel(handle.endpoint) as channel:
+        pb = insp_grpc.InspectionStub(channel).GetMetrics(
+            insp_pb2.GetMetricsRequest(), metadata=(("authorization", f"Bearer {handle.token('t', 'vision')}"),),
+            timeout=10).shared_memory
+    return {f.name: getattr(pb, f.name) for f in pb.DESCRIPTOR.fields}
+
+
+class Peers:
+    """Writer and reader processes of one test, ended at its end."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen[str]] = []
+
+    def start(self, handle: ServerHandle, cid: str, *args: str, prefix: tuple[str, ...] = (),
+              env: dict[str, str] | None = None) -> Lines:
+        proc = subprocess.Popen([*prefix, sys.executable, PEER, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, env={**handle.env(cid, "vision"), **(env or {})})
+        self.procs.append(proc)
+        return Lines(proc)
+
+    def close(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait(10)
+
+
+@pytest.fixture
+def peers() -> Iterator[Peers]:
+    made = Peers()
+    yield made
+    made.close()
+
+
+def got(reader: Lines) -> list[tuple[int, int]]:
+    """(frame, shared) of each value a reader printed."""
+    return [(int(x.split()[2]), int(x.split()[3])) for x in reader.lines if x.startswith("GOT")]
+
+
+def test_kill_9_of_a_writer_a_reader_or_the_server_leaves_nothing_behind(tmp_path: Path, peers: Peers) -> None:
+    before = dev_shm()
+    config = write_config(tmp_path / "system.yaml", CONFIG)
+    server = serve(config, cwd=tmp_path)
+    try:
+        holder = peers.start(server, "holder", "read", "hold")
+        holder.wait("WATCHING")
+        writer = peers.start(server, "writer", "write", "4")
+        writer.wait("DONE")
+        wait_for(lambda: got(holder) == [(k, 1) for k in range(4)], what="four values by shared memory")
+        assert shared(server)["sessions"] == 2 and shared(server)["lent_bytes"] > 0  # the holder's views
+        os.kill(holder.proc.pid, signal.SIGKILL)
+        wait_for(lambda: shared(server)["lent_bytes"] == 0 and shared(server)["sessions"] == 1,
+                 what="the killed reader's values given back")
+        os.kill(writer.proc.pid, signal.SIGKILL)
+        wait_for(lambda: shared(server)["sessions"] == 0, what="the killed writer's session ended")
+        assert dev_shm() == before
+
+        reader = peers.start(server, "reader", "read")
+        reader.wait("WATCHING")
+        writer = peers.start(server, "writer2", "write", "3")
+        writer.wait("DONE")
+        wait_for(lambda: got(reader) == [(k, 1) for k in range(3)], what="three values by shared memory")
+        assert memory_files(reader.proc.pid) and memory_files(writer.proc.pid)
+        kill9(server)
+        # The live processes notice (their streams to it broke) and unmap what they mapped of it.
+        wait_for(lambda: not memory_files(reader.proc.pid) and not memory_files(writer.proc.pid),
+                 what="the dead server's memory unmapped by the live processes")
+        assert dev_shm() == before
+
+        # A server started again in the same place: nothing of the dead one to clean, values by shared memory again.
+        server = serve(config, cwd=tmp_path)
+        again = peers.start(server, "again", "read")
+        again.wait("WATCHING")
+        writer = peers.start(server, "writer3", "write", "2")
+        writer.wait("DONE")
+        wait_for(lambda: got(again) == [(0, 1), (1, 1)], what="values by shared memory from the new server")
+        assert dev_shm() == before
+    finally:
+        server.stop()
+
+
+def test_a_client_of_another_os_user_gets_bytes_and_cannot_open_the_servers_memory(
+    tmp_path: Path, peers: Peers
+) -> None:
+    config = write_config(tmp_path / "system.yaml", CONFIG)
+    server = serve(config, cwd=tmp_path)
+    try:
+        # uid 65534 (nobody); it may read this machine's files only so that it can run the same Python.
+        other = ("setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", "--inh-caps=+dac_read_search",
+                 "--ambient-caps=+dac_read_search")
+        stranger = peers.start(server, "stranger", "read", prefix=other)
+        stranger.wait("WATCHING")
+        local = peers.start(server, "local", "read")
+        local.wait("WATCHING")
+        writer = peers.start(server, "writer", "write", "2")
+        writer.wait("DONE")
+        wait_for(lambda: got(stranger) == [(0, 0), (1, 0)] and got(local) == [(0, 1), (1, 1)],
+                 what="the same values: by shared memory to the server's user, as bytes to the other")
+        assert any("this one as 65534" in line for line in stranger.lines), stranger.lines  # its own check
+        # The server's check, met by a client that skips its own: HELLO with a valid token is refused.
+        with grpc.insecure_channel(server.endpoint) as channel:
+            info = dir_grpc.DirectoryStub(channel).DescribeSystem(
+                dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {server.token('t', 'vision')}"),),
+                timeout=10).shared_memory
+        hello = (f"import socket; from cast.client import shm_wire as w; s = socket.socket(socket.AF_UNIX); "
+                 f"s.connect('\\0{info.socket}'); w.send(s, w.hello({server.token('stranger', 'vision')!r})); "
+                 "print(w.FrameReader().feed(*w.receive(s)))")
+        refused = subprocess.run([*other, sys.executable, "-c", hello], capture_output=True, text=True, timeout=60,
+                                 env={**os.environ, "PYTHONPATH": PYTHONPATH})
+        assert f"kind={wire.REFUSED}" in refused.stdout and "server's own OS user only" in refused.stdout, refused
+        memfds = [f"/proc/{server.process.pid}/fd/{fd}" for fd in os.listdir(f"/proc/{server.process.pid}/fd")
+                  if os.readlink(f"/proc/{server.process.pid}/fd/{fd}").startswith("/memfd:cast-arena")]
+        assert memfds
+        probe = subprocess.run([*other, sys.executable, "-c", f"open({memfds[0]!r}, 'rb')"], capture_output=True,
+                               text=True, timeout=60)
+        assert probe.returncode != 0 and "PermissionError" in probe.stderr, probe.stderr
+    finally:
+        server.stop()
+
+
+def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(tmp_path: Path) -> None:
+    spaces = Namespaces(second_octet=215)
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        srv_ns, far_ns = spaces.add("shm"), spaces.add("far")
+        srv_ip, _ = spaces.link(srv_ns, far_ns)
+        config = tmp_path / "system.yaml"
+        config.write_text(yaml.safe_dump(CONFIG))
+        env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
+        server = subprocess.Popen([*Namespaces.exec(srv_ns), str(VENV_BIN / "cast"), "serve", str(config),
+                                   "--listen", f"{srv_ip}:0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                  text=True, env=env, cwd=tmp_path)
+        procs.append(server)
+        assert server.stdout is not None
+        endpoint = server.stdout.readline().strip().removeprefix("listening on ")
+        signer = TokenSigner(SECRET.encode())
+
+        def peer(ns: str, cid: str, *args: str) -> Lines:
+            cenv = dict(env, CAST_ENDPOINT=endpoint, CAST_COMPONENT_ID=cid, CAST_SUBARCHITECTURE="vision",
+                        CAST_TOKEN=signer.issue(Identity(cid, "vision")), CAST_ARGS=json.dumps({}))
+            proc = subprocess.Popen([*Namespaces.exec(ns), sys.executable, PEER, *args], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=cenv)
+            procs.append(proc)
+            return Lines(proc)
+
+        far, near = peer(far_ns, "far", "read"), peer(srv_ns, "near", "read")
+        far.wait("WATCHING")
+        near.wait("WATCHING")
+        peer(srv_ns, "writer", "write", "3").wait("DONE")
+        wait_for(lambda: got(far) == [(k, 0) for k in range(3)] and got(near) == [(k, 1) for k in range(3)],
+                 what="every value: as bytes across the namespaces, by shared memory beside the server")
+        assert any("not reachable from here" in line for line in far.lines), far.lines
+    finally:
+        stop_all(procs)
+        spaces.close()
+
+
+def test_record_replay_and_the_tools_with_values_in_shared_memory(tmp_path: Path, peers: Peers) -> None:
+    from tests.recording.conftest import cast, read_indexed, record
+
+    config = write_config(tmp_path / "system.yaml", CONFIG)
+    server = serve(config, cwd=tmp_path)
+    plain = serve(config, cwd=tmp_path, extra=("--no-shared-memory",))
+    try:
+        recorder = record(server.endpoint, tmp_path / "rec.mcap")
+        reader = peers.start(server, "reader", "read")
+        reader.wait("WATCHING")
+        peers.start(server, "writer", "write", "3").wait("DONE")
+        wait_for(lambda: got(reader) == [(k, 1) for k in range(3)], what="three values by shared memory")
+        assert any("lent" in line for line in cast("stats", "--endpoint", server.endpoint).stdout.splitlines())
+        listing = cast("ls", "--endpoint", server.endpoint).stdout
+        assert "in shared memory" in listing, listing
+        assert recorder.stop() == 0, recorder.stderr()
+        # The recorder, on the host, was lent the values; the file holds their bytes, unchanged.
+        values = read_indexed(tmp_path / "rec.mcap").on("/vision/google.protobuf.BytesValue")
+        sys.path.insert(0, str(COMPONENTS))
+        from shm_peer import frame
+
+        assert [BytesValue.FromString(m.data).value for m in values] == [frame(k) for k in range(3)]
+        # Replayed into a server with shared memory off: the same bytes, and that server offers none.
+        out = cast("replay", str(tmp_path / "rec.mcap"), "--endpoint", plain.endpoint, "--rate", "max")
+        assert out.returncode == 0, out.stderr
+        with grpc.insecure_channel(plain.endpoint) as channel:
+            meta = (("authorization", f"Bearer {plain.token('t', 'vision')}"),)
+            desc = dir_grpc.DirectoryStub(channel).DescribeSystem(dir_pb2.DescribeSystemRequest(), metadata=meta)
+            entry = wm_grpc.WorkingMemoryStub(channel).Get(
+                wm_pb2.GetRequest(address={"id": "img", "subarchitecture": "vision"}), metadata=meta).entry
+        assert not desc.HasField("shared_memory")
+        assert BytesValue.FromString(entry.value.value).value == frame(2)
+    finally:
+        server.stop()
+        plain.stop()
