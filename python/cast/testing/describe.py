@@ -31,7 +31,7 @@ def describe_value(value: Message) -> str:
     return _cut(f"{value.DESCRIPTOR.full_name} {{{body}}}")
 
 
-def describe_bytes(type_name: str, data: bytes) -> str:
+def describe_bytes(type_name: str, data: bytes | memoryview) -> str:
     """A stored value given by its type name and bytes: decoded if its class is loaded here."""
     try:
         descriptor = descriptor_pool.Default().FindMessageTypeByName(type_name)
