@@ -38,7 +38,7 @@ def describe_bytes(type_name: str, data: bytes | memoryview) -> str:
     except KeyError:
         return f"{type_name} ({len(data)} bytes)"
     try:
-        value = message_factory.GetMessageClass(descriptor).FromString(data)
+        value = message_factory.GetMessageClass(descriptor).FromString(bytes(data))
     except DecodeError:
         return f"{type_name} ({len(data)} bytes that do not parse)"
     return describe_value(value)
