@@ -43,8 +43,15 @@ PEER = str(COMPONENTS / "shm_peer.py")
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
 
 
+# What other programs of a test run put in /dev/shm while this one runs (make test runs two at once):
+# Fast DDS's shared-memory transport and its tracing (the ROS 2 tests), iceoryx2 and Zenoh (the bench's peers).
+_OTHERS = ("fastdds_", "fastrtps_", "fast_datasharing", "sem.fastdds_", "sem.fastrtps_", "iox2", "sem.iox2",
+           "lttng-ust-wait-")
+
+
 def dev_shm() -> set[str]:
-    return set(os.listdir("/dev/shm"))
+    """The files in /dev/shm, but those of other programs (:data:`_OTHERS`)."""
+    return {name for name in os.listdir("/dev/shm") if not name.startswith(_OTHERS) and not name.endswith(".zenoh")}
 
 
 def memory_files(pid: int) -> list[str]:
