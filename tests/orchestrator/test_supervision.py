@@ -224,6 +224,26 @@ def test_a_second_ctrl_c_kills_what_is_still_stopping(tmp_path: Path) -> None:
     wait_for(lambda: all(gone(p) for p in pids), timeout=10, what="every process to be gone")
 
 
+def test_a_second_ctrl_c_before_a_components_turn_to_stop_still_reports_it_killed(tmp_path: Path) -> None:
+    # Stopped in reverse start order: "later" is stopping (its stop() hangs) when the second Ctrl-C
+    # comes, "earlier" has not had its turn; both are killed, and both kills are the run's outcome.
+    cfg = write_config(tmp_path / "impatient.yaml", {
+        "orchestrator": {"stop_timeout": 600},
+        "subarchitectures": {"work": {"components": {"earlier": {"class": "orch_components:Stubborn"},
+                                                     "later": {"class": "orch_components:Stubborn"}}}},
+    })
+    run = start_cast_run(tmp_path, cfg)
+    pids = [c["pid"] for c in run.cli_json("components")]
+    run.process.send_signal(signal.SIGINT)
+    wait_for(lambda: "cast: stopping:" in run.output(), what="the orderly stop to begin")
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(120) == 1  # far sooner than the 600 s stop timeout
+    out = run.output()
+    assert "earlier exited with code -9 when stopped (killed)" in out, out
+    assert "later exited with code -9 when stopped (killed)" in out, out
+    wait_for(lambda: all(gone(p) for p in pids), timeout=10, what="every process to be gone")
+
+
 def test_a_component_that_cannot_start_is_not_restarted(tmp_path: Path, embedded: Callable[..., Embedded]) -> None:
     cfg = write_config(tmp_path / "missing.yaml", {
         "subarchitectures": {"work": {"components": {

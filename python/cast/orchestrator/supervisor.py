@@ -211,10 +211,14 @@ class Supervisor:
         self._stopping = True
         for sup in reversed(list(self.components.values())):
             task = self._tasks.get(sup.config.id)
-            if sup.process is not None and sup.process.running:
+            # A second Ctrl-C may have killed it before its turn came: how it ended is still this stop's outcome.
+            killed_early = sup.process is not None and sup.process.killed
+            if sup.process is not None and (sup.process.running or killed_early):
                 sup.phase = Phase.STOPPING
                 sup.stop_code = await sup.process.stop(timeout)
-                if sup.process.killed:
+                if killed_early:  # "stopping now: killing every component" said why
+                    self._notify(f"{sup.config.id} killed before its turn to stop")
+                elif sup.process.killed:
                     self._notify(f"{sup.config.id} did not stop within {timeout:.0f} s: killed"
                                  + (" (its threads' stacks are in its log)" if sup.process.dumped else ""))
                 elif sup.stop_code != 0:
