@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -42,8 +43,15 @@ PEER = str(COMPONENTS / "shm_peer.py")
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
 
 
+# What other programs of a test run put in /dev/shm while this one runs (make test runs two at once):
+# Fast DDS's shared-memory transport and its tracing (the ROS 2 tests), iceoryx2 and Zenoh (the bench's peers).
+_OTHERS = ("fastdds_", "fastrtps_", "fast_datasharing", "sem.fastdds_", "sem.fastrtps_", "iox2", "sem.iox2",
+           "lttng-ust-wait-")
+
+
 def dev_shm() -> set[str]:
-    return set(os.listdir("/dev/shm"))
+    """The files in /dev/shm, but those of other programs (:data:`_OTHERS`)."""
+    return {name for name in os.listdir("/dev/shm") if not name.startswith(_OTHERS) and not name.endswith(".zenoh")}
 
 
 def memory_files(pid: int) -> list[str]:
@@ -247,3 +255,42 @@ def test_record_replay_and_the_tools_with_values_in_shared_memory(tmp_path: Path
     finally:
         server.stop()
         plain.stop()
+
+
+def test_a_call_that_opens_the_session_on_a_hung_server_ends_by_its_deadline(tmp_path: Path) -> None:
+    """The session is opened on the way of the first large write or read: that opening spends the call's time."""
+    from cast import UnmanagedComponent
+    from cast.client.grpc_transport import GrpcTransport
+    from cast.errors import DeadlineExceededError
+
+    timeout, margin = 2.0, 1.5  # the call timeout; what a loaded 2-core machine may add before the call returns
+    handle = serve(write_config(tmp_path / "system.yaml", CONFIG))
+    clients = {}
+    try:
+        for name in ("get", "add"):  # a client per call, bound before the stop, with no session yet
+            clients[name] = client = UnmanagedComponent()
+            client._cast_bind(GrpcTransport(handle.endpoint, handle.token(f"c-{name}", "vision"),
+                                            Identity(f"c-{name}", "vision"), call_timeout=timeout))
+        os.kill(handle.process.pid, signal.SIGSTOP)
+        took: dict[str, float] = {}
+        try:
+            calls = {"get": lambda: clients["get"].get("frame", BytesValue),
+                     "add": lambda: clients["add"].add("frame", BytesValue(value=bytes(1 << 20)))}
+            for name, call in calls.items():
+                started = time.monotonic()
+                with pytest.raises(DeadlineExceededError):
+                    call()
+                took[name] = time.monotonic() - started
+        finally:
+            os.kill(handle.process.pid, signal.SIGCONT)
+        print(f"\ncall timeout {timeout:g} s, the server stopped: "
+              + ", ".join(f"{k} {v:.2f} s" for k, v in took.items()))
+        assert all(v <= timeout + margin for v in took.values()), took
+        # Once the server answers again, the session opens (on a call after the retry pause) and values travel by it.
+        clients["add"].add("later", BytesValue(value=bytes(1 << 20)))
+        assert wait_for(lambda: isinstance(clients["get"]._transport.get("vision", "later").data, memoryview),
+                        timeout=15), "no session with the server after it answered again"
+    finally:
+        for client in clients.values():
+            client._cast_close()
+        kill9(handle)

@@ -50,6 +50,26 @@ _AWAIT_RUN_POLL_S = 1.0
 _DESCRIBE_S = 5.0
 
 
+class _Budget:
+    """What is left of one call's timeout: opening the shared-memory session on the call's way spends from it.
+
+    Without it a hung server would hold a call for the session's opening and then for the whole call timeout.
+    """
+
+    def __init__(self, timeout: float | None) -> None:
+        self._end = None if timeout is None else time.monotonic() + timeout
+
+    def left(self) -> float | None:
+        """Seconds left (None: no deadline); DeadlineExceededError once none are."""
+        if self._end is None:
+            return None
+        left = self._end - time.monotonic()
+        if left <= 0:
+            raise DeadlineExceededError("the call's deadline passed while opening shared memory with the server: "
+                                        "nothing was sent; the server may be hung or overloaded, retry later")
+        return left
+
+
 _Staging = tuple[tuple[ClientSession, Staged], ...]
 """The values of one write request staged in shared memory, and the sessions they are staged in."""
 
@@ -144,10 +164,11 @@ class GrpcTransport:
     def _attach_shared(self, server: ServerLink) -> None:
         """Shared memory with ``server`` when on its host (cast.client.shm), opened when first needed."""
 
-        def describe() -> dir_pb2.SystemDescription:
+        def describe(within: float | None) -> dir_pb2.SystemDescription:
             # The server itself says where its shared memory is: ask it, not the directory.
+            timeout = _DESCRIBE_S if within is None else min(_DESCRIBE_S, within)
             desc: dir_pb2.SystemDescription = self._call(server.directory.DescribeSystem,
-                                                         dir_pb2.DescribeSystemRequest(), timeout=_DESCRIBE_S)
+                                                         dir_pb2.DescribeSystemRequest(), timeout=timeout)
             return desc
 
         server.shared = SharedLink(server.endpoint, self._tokens, describe)
@@ -194,7 +215,8 @@ class GrpcTransport:
         finally:
             _unstage(staged, error)
 
-    def _write_async(self, sa: str, request: wm_pb2.WriteRequest, staged: _Staging = ()) -> Future[WriteResult]:
+    def _write_async(self, sa: str, request: wm_pb2.WriteRequest, staged: _Staging,
+                     budget: _Budget) -> Future[WriteResult]:
         result: Future[WriteResult] = Future()
 
         def done(sent: Future[wm_pb2.WriteReply]) -> None:
@@ -208,7 +230,7 @@ class GrpcTransport:
             result.set_result(WriteResult(reply.write.revision, reply.write.version))
 
         try:
-            self._stream(sa).submit(request).add_done_callback(done)
+            self._stream(sa).submit(request, budget.left()).add_done_callback(done)
         except BaseException as exc:
             _unstage(staged, exc)
             raise
@@ -216,14 +238,14 @@ class GrpcTransport:
 
     def _fill(
         self, req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest, sa: str, entry_id: str, type_name: str,
-        data: bytes | memoryview, server_sa: str = "",
+        data: bytes | memoryview, budget: _Budget, server_sa: str = "",
     ) -> _Staging:
         """Fill a write's value: staged in shared memory when large and on the server's host, else its bytes.
 
         ``server_sa``: the SA whose server the request goes to, when not ``sa`` (a batch goes to its first's).
         """
         link = self._server(server_sa or sa).shared
-        session = link.session() if link is not None else None
+        session = link.session(budget.left()) if link is not None else None
         staged = session.stage(data) if session is not None and len(data) >= session.threshold else None
         if session is None or staged is None:
             fill_write(req, sa, entry_id, type_name, data if isinstance(data, bytes) else bytes(data))
@@ -232,44 +254,49 @@ class GrpcTransport:
         req.staged_value.CopyFrom(session.staged_value(staged))
         return ((session, staged),)
 
-    def _add_request(self, sa: str, entry_id: str, type_name: str, data: bytes) -> tuple[wm_pb2.WriteRequest, _Staging]:
+    def _add_request(self, sa: str, entry_id: str, type_name: str, data: bytes,
+                     budget: _Budget) -> tuple[wm_pb2.WriteRequest, _Staging]:
         request = wm_pb2.WriteRequest()
-        return request, self._fill(request.add, sa, entry_id, type_name, data)
+        return request, self._fill(request.add, sa, entry_id, type_name, data, budget)
 
     def _overwrite_request(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None, budget: _Budget
     ) -> tuple[wm_pb2.WriteRequest, _Staging]:
         request = wm_pb2.WriteRequest()
-        staged = self._fill(request.overwrite, sa, entry_id, type_name, data)
+        staged = self._fill(request.overwrite, sa, entry_id, type_name, data, budget)
         if expected_version is not None:
             request.overwrite.expected_version = expected_version
         return request, staged
 
     def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
         """Create an entry."""
-        request, staged = self._add_request(sa, entry_id, type_name, data)
-        reply = self._write(sa, request, staged=staged)
+        budget = _Budget(self._timeout)
+        request, staged = self._add_request(sa, entry_id, type_name, data, budget)
+        reply = self._write(sa, request, budget.left(), staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
         """Create an entry without waiting: the future of its result."""
-        request, staged = self._add_request(sa, entry_id, type_name, data)
-        return self._write_async(sa, request, staged)
+        budget = _Budget(self._timeout)
+        request, staged = self._add_request(sa, entry_id, type_name, data, budget)
+        return self._write_async(sa, request, staged, budget)
 
     def overwrite(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version)
-        reply = self._write(sa, request, staged=staged)
+        budget = _Budget(self._timeout)
+        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version, budget)
+        reply = self._write(sa, request, budget.left(), staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def overwrite_async(
         self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting: the future of its result."""
-        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version)
-        return self._write_async(sa, request, staged)
+        budget = _Budget(self._timeout)
+        request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version, budget)
+        return self._write_async(sa, request, staged, budget)
 
     def delete(self, sa: str, entry_id: str, expected_version: int | None) -> WriteResult:
         """Delete an entry."""
@@ -286,6 +313,7 @@ class GrpcTransport:
             return []
         # Filling the request in place is about three times cheaper than building
         # each nested message and copying it in (this is the hot loop of Batch).
+        budget = _Budget(self._timeout)
         write_request = wm_pb2.WriteRequest()
         items = write_request.batch.operations
         staged: _Staging = ()
@@ -302,10 +330,11 @@ class GrpcTransport:
                 write.address.id = op.id
                 write.address.subarchitecture = op.subarchitecture
             else:
-                staged += self._fill(write, op.subarchitecture, op.id, op.type, op.data, ops[0].subarchitecture)
+                staged += self._fill(write, op.subarchitecture, op.id, op.type, op.data, budget,
+                                     ops[0].subarchitecture)
             if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
                 write.expected_version = op.expected_version
-        reply = self._write(ops[0].subarchitecture, write_request, staged=staged)
+        reply = self._write(ops[0].subarchitecture, write_request, budget.left(), staged)
         return [WriteResult(r.revision, r.version) for r in reply.batch.results]
 
     # ----------------------------------------------------------------- reads
@@ -314,19 +343,19 @@ class GrpcTransport:
         """Read one entry (a large value lent by shared memory when on the server's host)."""
         req = wm_pb2.GetRequest()
         req.address.id, req.address.subarchitecture = entry_id, sa
-        server = self._server(sa)
+        server, budget = self._server(sa), _Budget(self._timeout)
         assert server.shared is not None
-        with server.shared.read() as call:
-            resp = self._call(server.wm.Get, req, metadata=call.metadata if call is not None else ())
+        with server.shared.read(budget.left()) as call:
+            resp = self._call(server.wm.Get, req, budget.left(), call.metadata if call is not None else ())
             return entry_from_pb(resp.entry, call)
 
     def get_by_type(self, sa: str, type_name: str, limit: int) -> list[EntryRecord]:
         """Read the entries of one type, newest first."""
         req = wm_pb2.GetByTypeRequest(subarchitecture=sa, type=type_name, limit=limit)
-        server = self._server(sa)
+        server, budget = self._server(sa), _Budget(self._timeout)
         assert server.shared is not None
-        with server.shared.read() as call:
-            resp = self._call(server.wm.GetByType, req, metadata=call.metadata if call is not None else ())
+        with server.shared.read(budget.left()) as call:
+            resp = self._call(server.wm.GetByType, req, budget.left(), call.metadata if call is not None else ())
             return [entry_from_pb(e, call) for e in resp.entries]
 
     def exists(self, sa: str, entry_id: str) -> bool:

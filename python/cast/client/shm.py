@@ -49,11 +49,15 @@ class Unreachable(ValueError):
     """The server's socket cannot be reached from here: it is on another host or in another network namespace."""
 
 
-def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str) -> ClientSession:
-    """Open a session with the server whose shared memory ``info`` names; OSError or ValueError saying why not."""
+def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str, within: float = _CONNECT_S) -> ClientSession:
+    """Open a session with the server whose shared memory ``info`` names, in ``within`` seconds at most.
+
+    OSError or ValueError saying why not.
+    """
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
     try:
-        sock.settimeout(_CONNECT_S)
+        end = time.monotonic() + within
+        sock.settimeout(within)
         try:
             sock.connect("\0" + info.socket)
         except (FileNotFoundError, ConnectionRefusedError) as exc:
@@ -65,8 +69,8 @@ def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str) -> Client
                              f"{os.geteuid()}")
         wire.send(sock, wire.hello(token))
         reader = wire.FrameReader()
-        end = time.monotonic() + _CONNECT_S
         while True:
+            sock.settimeout(max(0.001, end - time.monotonic()))
             data, fds = wire.receive(sock)
             if not data:
                 raise ValueError("the server closed the connection after HELLO")
@@ -74,7 +78,7 @@ def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str) -> Client
             if frames:
                 break
             if time.monotonic() > end:
-                raise ValueError(f"no WELCOME within {_CONNECT_S:g} s")
+                raise ValueError(f"no WELCOME within {within:g} s")
         first = frames[0]
         for fd in reader.stray() + [f.fd for f in frames[1:] if f.fd is not None]:
             os.close(fd)
@@ -98,7 +102,7 @@ class SharedLink:
     """Shared memory with one server for one client: the session, opened when first needed, or why there is none."""
 
     def __init__(self, endpoint: str, tokens: TokenSource,
-                 describe: Callable[[], dir_pb2.SystemDescription]) -> None:
+                 describe: Callable[[float | None], dir_pb2.SystemDescription]) -> None:
         self.endpoint = endpoint
         self._tokens = tokens
         self._describe = describe
@@ -109,8 +113,11 @@ class SharedLink:
         self.reason = ""  # why values travel as bytes, while they do
         self._closed = False
 
-    def session(self) -> ClientSession | None:
-        """The live session, opened now if none is (at most every few seconds after a failure); None: bytes."""
+    def session(self, within: float | None = None) -> ClientSession | None:
+        """The live session, opened now if none is (at most every few seconds after a failure); None: bytes.
+
+        ``within``: the longest opening it may take (a call's time left); None: its own bounds.
+        """
         session = self._session
         if session is not None and not session.dead:
             return session
@@ -122,15 +129,16 @@ class SharedLink:
                 return session
             if self._closed or time.monotonic() < self._retry_at:
                 return None
-            self._session = self._open()
+            self._session = self._open(within)
             return self._session
 
-    def _open(self) -> ClientSession | None:
+    def _open(self, within: float | None) -> ClientSession | None:
         if turned_off():
             self._fallback(f"turned off by {ENV}={os.environ.get(ENV)}", forever=True)
             return None
         try:
-            info = self._describe().shared_memory
+            started = time.monotonic()
+            info = self._describe(within).shared_memory
         except Exception as exc:  # noqa: BLE001 - any failure of the question is a reason to use bytes
             self._fallback(f"the server did not say where it is: {exc}")
             return None
@@ -138,7 +146,10 @@ class SharedLink:
             self._fallback("the server offers none (shared_memory.enabled is false there)", _RETRY_ELSEWHERE_S)
             return None
         try:
-            session = connect(info, self._tokens.token(), self.endpoint)
+            left = _CONNECT_S if within is None else min(_CONNECT_S, within - (time.monotonic() - started))
+            if left <= 0:
+                raise ValueError("no time left in the call that asked for it")
+            session = connect(info, self._tokens.token(), self.endpoint, left)
         except Unreachable as exc:
             self._fallback(str(exc), _RETRY_ELSEWHERE_S)
             return None
@@ -158,9 +169,12 @@ class SharedLink:
                      self.endpoint, reason)
 
     @contextmanager
-    def read(self) -> Iterator[ReadCall | None]:
-        """A read call's session part (None without a session): its metadata, and its end when the call is over."""
-        session = self.session()
+    def read(self, within: float | None = None) -> Iterator[ReadCall | None]:
+        """A read call's session part (None without a session): its metadata, and its end when the call is over.
+
+        ``within``: the longest opening the session may take (see :meth:`session`).
+        """
+        session = self.session(within)
         call = session.new_call() if session is not None else None
         answered = False
         try:

@@ -370,12 +370,13 @@ class WriteStream:
         self._call: _Call | None = None
         self._closed = False
 
-    def submit(self, request: wm_pb2.WriteRequest) -> Future[wm_pb2.WriteReply]:
+    def submit(self, request: wm_pb2.WriteRequest, timeout: float | None = -1.0) -> Future[wm_pb2.WriteReply]:
         """Send ``request`` (its id is set here) without waiting; the future of its reply (use :func:`reply_result`).
 
-        The pump thread reads its reply; past the call timeout the future fails with DeadlineExceededError.
+        The pump thread reads its reply; past ``timeout`` (-1: the call timeout) the future fails with
+        DeadlineExceededError.
         """
-        return self._submit(request, True, self._timeout)[1]
+        return self._submit(request, True, self._timeout if timeout == -1.0 else timeout)[1]
 
     def _submit(self, request: wm_pb2.WriteRequest, detached: bool,
                 timeout: float | None) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
