@@ -84,6 +84,8 @@ def make_component(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[F
 
     make.system = system  # type: ignore[attr-defined]
     make.mode = request.param  # type: ignore[attr-defined]
+    make.endpoint = server.running.endpoint if server.running is not None else ""  # type: ignore[attr-defined]
+    make.signer = server.signer  # type: ignore[attr-defined]
     yield make
     for component in made:
         component._cast_close()

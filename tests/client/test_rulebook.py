@@ -14,6 +14,8 @@ import pytest
 from cast_testing_pb2 import Counter, Pose
 
 import cast
+from cast.core.access import Access
+from cast.core.records import Identity
 from tests.client.test_component_api import Manager, wait_for
 
 Rule = Callable[[Any], None]
@@ -203,6 +205,73 @@ def completing_a_waiting_task_is_a_task_state_error_over_any_transport(make: Any
         m.task_complete(second)
     assert isinstance(err.value, cast.LockedError)  # and still the FAILED_PRECONDITION family
     m.task_complete(first)
+
+
+@rule
+def a_session_ends_with_its_component_and_releases_its_locks(make: Any) -> None:
+    a, b = _two(make)
+    a.add("x", Counter(value=1))
+    a.lock("x", cast.LockMode.O)
+    with pytest.raises(cast.LockedError, match="locked \\(O\\) by component 'a'"):
+        b.overwrite("x", Counter(value=2))
+    assert _state(make, "a") != "DISCONNECTED"
+    a._cast_close()
+    wait_for(lambda: _state(make, "a") == "DISCONNECTED", 10, "a's session to end")
+    b.overwrite("x", Counter(value=2))  # its lock went with its session
+
+
+@rule
+def each_component_hears_only_the_decisions_about_its_own_tasks(make: Any) -> None:
+    one, two = make(Manager, "one"), make(Manager, "two")
+    one.start()
+    two.start()
+    one.propose_task("first")  # fifo, one at a time: adopted
+    two.propose_task("second")  # waits
+    wait_for(lambda: len(one.decisions) == 1, 10, "one's decision")
+    assert one.decisions == [("adopted", "first", None)]
+    assert two.decisions == []  # its task waits; nothing of one's reached it
+
+
+@rule
+def a_listing_shows_entries_without_values_and_counts_as_a_read(make: Any) -> None:
+    a, _ = _two(make)
+    a.add("x", Pose(label="secret"))
+    a.add("y", Counter(value=1))
+    before = _reads(make, "a")
+    listing = _list(make, "a", "vision", "cast.testing.Pose")
+    assert [(e.id, e.type, e.data) for e in listing] == [("x", "cast.testing.Pose", b"")]
+    assert _reads(make, "a") == before + 1
+
+
+def _state(make: Any, component_id: str) -> str:
+    """The session state the server records for a component."""
+    info = next(i for i in make.system.sessions.components() if i.id == component_id)
+    return str(info.state.name)
+
+
+def _reads(make: Any, component_id: str) -> int:
+    """How many reads the server counted of a component."""
+    counted = make.system.metrics.snapshot()["components"]
+    return int(counted[component_id]["reads"]) if component_id in counted else 0
+
+
+def _list(make: Any, component_id: str, sa: str, type_name: str) -> list[Any]:
+    """The listing a tool gets: over gRPC, Inspection.ListEntries; in process, the rulebook's own call."""
+    identity = Identity(component_id, sa)
+    if make.mode.startswith("grpc"):
+        from cast.client.conversions import entry_from_pb
+        from cast.client.credentials import TokenSource
+        from cast.client.grpc_transport import GrpcTransport
+        from cast.v1 import inspection_pb2
+
+        transport = GrpcTransport(make.endpoint, TokenSource(make.signer.issue(identity)), identity)
+        try:
+            request = inspection_pb2.ListEntriesRequest(subarchitecture=sa, type=type_name)
+            listed = transport._call(transport._directory.inspection.ListEntries, request)
+        finally:
+            transport.close()
+        return [entry_from_pb(e) for e in listed.entries]
+    return list(Access(make.system, identity).list_entries(sa, type_name).entries)
 
 
 @pytest.mark.parametrize("name", sorted(RULES))

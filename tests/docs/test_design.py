@@ -94,6 +94,16 @@ def test_the_folders_named_are_there() -> None:
     assert not missing, missing
 
 
+def test_the_folders_name_every_package_and_test_suite() -> None:
+    (tree,) = [t for t in fenced(section(DESIGN, "2. The parts"), "text") if not t.startswith("role ")]
+    text = " ".join(tree.split())
+    packages = [p.name for p in (ROOT / "python" / "cast").iterdir()
+                if p.is_dir() and (p / "__init__.py").exists() and p.name != "v1"]
+    suites = [p.name for p in (ROOT / "tests").iterdir() if p.is_dir() and any(p.glob("test_*.py"))]
+    assert [p for p in packages if f"{p}/" not in text] == [], "packages the folder list does not name"
+    assert [s for s in suites if s not in text] == [], "test suites the folder list does not name"
+
+
 def test_the_client_file_map_is_there() -> None:
     (table,) = [t for t in fenced(section(DESIGN, "2. The parts"), "text") if t.startswith("role ")]
     header, *rows = table.strip().splitlines()

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from cast.errors import InvalidArgumentError
-from cast.liveview.sink import ListenAddress, parse_listen
+from cast.foxglove.sink import parse_foxglove_listen as parse_listen
+from cast.listen import ListenAddress
 from tests.conftest import ServerHandle
 from tests.recording.conftest import cast
 
@@ -85,6 +86,6 @@ def test_who_can_connect_and_the_url() -> None:
     assert parse_listen("127.0.0.2:1").loopback and parse_listen("[::1]:1").loopback
     assert parse_listen("localhost:1").loopback
     assert not parse_listen("0.0.0.0:1").loopback and not parse_listen("robot.local:1").loopback
-    assert parse_listen("[::1]:0").url(4242) == "ws://[::1]:4242"
+    assert parse_listen("[::1]:0").url("ws", 4242) == "ws://[::1]:4242"
     with pytest.raises(InvalidArgumentError, match="--foxglove '65536'"):
         parse_listen("65536", "--foxglove")

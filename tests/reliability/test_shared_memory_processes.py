@@ -26,7 +26,6 @@ import yaml
 from google.protobuf.wrappers_pb2 import BytesValue
 
 from cast.auth import TokenSigner
-from cast.client import shm_wire as wire
 from cast.core.records import Identity
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
@@ -34,6 +33,7 @@ from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
+from cast.wire import shared_memory as wire
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
 from tests.netns import Lines, Namespaces, stop_all
 from tests.reliability.conftest import kill9, serve, write_config
@@ -167,7 +167,7 @@ def test_a_client_of_another_os_user_gets_bytes_and_cannot_open_the_servers_memo
             info = dir_grpc.DirectoryStub(channel).DescribeSystem(
                 dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {server.token('t', 'vision')}"),),
                 timeout=10).shared_memory
-        hello = (f"import socket; from cast.client import shm_wire as w; s = socket.socket(socket.AF_UNIX); "
+        hello = (f"import socket; from cast.wire import shared_memory as w; s = socket.socket(socket.AF_UNIX); "
                  f"s.connect('\\0{info.socket}'); w.send(s, w.hello({server.token('stranger', 'vision')!r})); "
                  "print(w.FrameReader().feed(*w.receive(s)))")
         refused = subprocess.run([*other, sys.executable, "-c", hello], capture_output=True, text=True, timeout=60,

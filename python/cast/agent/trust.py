@@ -21,6 +21,7 @@ import grpc
 from grpc_health.v1 import health_pb2
 
 from cast.auth import TokenSigner, load_secret
+from cast.core.calls import CALLS, Credential
 from cast.errors import CastError, InvalidArgumentError, UnauthenticatedError
 from cast.orchestrator.agent_link import ORCHESTRATOR_ID
 
@@ -122,10 +123,13 @@ class TrustInterceptor(grpc.aio.ServerInterceptor):  # type: ignore[type-arg]
         handler_call_details: grpc.HandlerCallDetails,
     ) -> Any:
         """The real handler for a trusted call; one that aborts for any other."""
-        method = handler_call_details.method
-        service = method.strip("/").partition("/")[0]
-        if service in _OPEN_SERVICES:
+        call = handler_call_details.method.strip("/")
+        if call.partition("/")[0] in _OPEN_SERVICES:
             return await continuation(handler_call_details)
+        # The agent's calls need the orchestrator (cast.core.calls); so does what else it serves (reflection).
+        needs = CALLS.get(call, Credential.ORCHESTRATOR)
+        if needs is not Credential.ORCHESTRATOR:
+            return _refusal(await continuation(handler_call_details), f"an agent does not serve {call}")
         try:
             self._trust.check(handler_call_details.invocation_metadata)
         except CastError as exc:

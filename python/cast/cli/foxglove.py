@@ -17,8 +17,8 @@ from typing import Any
 
 from cast.cli.record import Reach, add_connection_options, reach, stop_on_signals, unreachable
 from cast.errors import CastError
-from cast.liveview.sink import DEFAULT_LISTEN, FoxgloveSink, listening_line, parse_listen
-from cast.liveview.view import VIEW_ID, LiveView, ViewOptions
+from cast.foxglove.sink import DEFAULT_LISTEN, FoxgloveSink, listening_line, parse_foxglove_listen
+from cast.foxglove.view import VIEW_ID, LiveView, ViewOptions
 
 __all__ = ["add_command"]
 
@@ -43,7 +43,7 @@ def _attach(sink: FoxgloveSink, where: Reach, args: argparse.Namespace, note: Ca
 
 
 def _foxglove(args: argparse.Namespace) -> int:
-    address = parse_listen(args.listen, "--listen")
+    address = parse_foxglove_listen(args.listen, "--listen")
     where = reach(args, VIEW_ID, privileged=False)
     held: list[str] | None = []  # notes held until the first line is out (None: printed as they come)
 

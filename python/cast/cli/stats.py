@@ -15,10 +15,10 @@ from cast.bridges.status import STATUS_TYPE, mapping_rows, statuses_of
 from cast.cli.connect import SystemClient, connect
 from cast.cli.render import print_json, print_table
 from cast.core.metrics_view import merge_snapshots
-from cast.server.metrics_wire import snapshot_from_pb
 from cast.v1 import bridge_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire.metrics import snapshot_from_pb
 
 __all__ = ["add_command", "bridge_statuses", "system_metrics"]
 
@@ -38,7 +38,7 @@ def bridge_statuses(client: SystemClient) -> list[bridge_pb2.BridgeStatus]:
     entries = []
     for server, hosted in client.servers():
         for sa in hosted:
-            # Listing counts as no read in the metrics: a system without bridges is not read at all.
+            # A listing of the status type only (a read of the tool's, counted as such), then the statuses.
             listed = client.call(server.inspection.ListEntries,
                                  insp_pb2.ListEntriesRequest(subarchitecture=sa, type=STATUS_TYPE))
             if listed.entries:

@@ -1,68 +1,27 @@
 """Conversions of the Python client library: wire messages (cast.v1) to the records it hands out.
 
 The same record types the core uses, so that a component in process and one
-over gRPC see identical objects; and the few wire helpers both sides share
-(type URLs, timestamps). Protobuf only; no gRPC here. The server's direction
-is :mod:`cast.server.conversions`.
+over gRPC see identical objects. Protobuf only; no gRPC here. The server's
+direction is :mod:`cast.server.conversions`; what both share is in
+:mod:`cast.wire`.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from google.protobuf import any_pb2, timestamp_pb2
-
 from cast.core.records import ChangeEvent, EntryRecord, Operation
 from cast.core.tasks import TaskOutcome, TaskRecord, TaskState
 from cast.core.watch import EventFilter
-from cast.errors import InvalidArgumentError, UnavailableError
+from cast.errors import UnavailableError
 from cast.v1 import entry_pb2, task_manager_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire.values import TYPE_URL_PREFIX, any_to_type_data, ns
 
 if TYPE_CHECKING:
     from cast.client.shm_session import ReadCall
 
-__all__ = [
-    "TYPE_URL_PREFIX",
-    "address",
-    "any_of",
-    "any_to_type_data",
-    "entry_from_pb",
-    "event_from_pb",
-    "fill_write",
-    "filter_to_pb",
-    "ns",
-    "task_from_pb",
-    "timestamp",
-]
-
-TYPE_URL_PREFIX = "type.googleapis.com/"
-
-
-def timestamp(ns: int) -> timestamp_pb2.Timestamp:
-    """A Timestamp from nanoseconds since the epoch."""
-    return timestamp_pb2.Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
-
-
-def ns(ts: timestamp_pb2.Timestamp) -> int:
-    """Nanoseconds since the epoch of a Timestamp."""
-    return ts.seconds * 1_000_000_000 + ts.nanos
-
-
-def any_to_type_data(value: any_pb2.Any, what: str = "value") -> tuple[str, bytes]:
-    """(type name, bytes) of an Any; INVALID_ARGUMENT if it names no type."""
-    url = value.type_url
-    if not url:
-        raise InvalidArgumentError(
-            f"{what} has no type_url: pack a protobuf message into the Any (Any.Pack) so the entry has a type"
-        )
-    return url[url.rfind("/") + 1 :], value.value
-
-
-def any_of(type_name: str, data: bytes) -> any_pb2.Any:
-    """An Any holding ``data`` of type ``type_name``."""
-    return any_pb2.Any(type_url=TYPE_URL_PREFIX + type_name, value=data)
-
+__all__ = ["address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb"]
 
 def entry_from_pb(entry: entry_pb2.Entry, call: ReadCall | None = None) -> EntryRecord:
     """Record form of a wire entry (client side).

@@ -21,7 +21,7 @@ import grpc
 from google.protobuf import descriptor_pb2
 
 from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, ServerLink, map_rpc_error
-from cast.client.conversions import address, any_of, entry_from_pb, fill_write, task_from_pb
+from cast.client.conversions import address, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.session import Session
 from cast.client.shm import SharedLink
@@ -38,6 +38,7 @@ from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire.values import any_of
 
 __all__ = ["CHANNEL_OPTIONS", "GrpcTransport", "map_rpc_error"]
 

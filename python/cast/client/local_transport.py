@@ -21,9 +21,9 @@ from google.protobuf import descriptor_pb2
 from cast.client.transport import EventSink
 from cast.core.access import Access, event_for, run_sync
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
-from cast.core.sessions import ComponentState
+from cast.core.sessions import ComponentState, SessionStream
 from cast.core.system import System
-from cast.core.tasks import TaskOutcome, TaskRecord
+from cast.core.tasks import DecisionFeed, TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Subscription
 from cast.errors import CastError
 from cast.version import library_version
@@ -56,7 +56,9 @@ class LocalTransport:
         self._room: Callable[[], int] | None = None
         self._on_error: Callable[[CastError], None] = lambda err: None
         self._decision_sink: Callable[[TaskRecord], None] | None = None
+        self._decisions: DecisionFeed | None = None
         self._session_id = ""
+        self._session: SessionStream | None = None
         self._closing = threading.Event()
         self._access = Access(system, identity)
         self._state: Callable[[], ComponentState] | None = None
@@ -202,42 +204,40 @@ class LocalTransport:
         self._access.report(name, value)
 
     def set_decision_sink(self, sink: Callable[[TaskRecord], None]) -> None:
-        """Where task decisions go."""
+        """Where task decisions go: handed over on the thread that decided (cast.core.tasks.DecisionFeed)."""
         self._decision_sink = sink
-        self._system.tasks.add_listener(self._decided)
-        self._decided(self.identity.component_id)
+        self._decisions = self._access.decisions(self._decided)
+        self._decided()
 
-    def _decided(self, component_id: str) -> None:
-        if component_id != self.identity.component_id or self._decision_sink is None:
+    def _decided(self) -> None:
+        if self._decision_sink is None or self._decisions is None:
             return
-        for task in self._system.tasks.take_decisions(component_id):
+        for task in self._decisions.take():
             self._decision_sink(task)
 
     def start_session(self, language: str, kind: str, state: Callable[[], ComponentState]) -> None:
-        """Register and keep the session alive from a timer thread."""
-        sessions = self._system.sessions
+        """Register and keep the session alive from a timer thread (cast.core.sessions.SessionStream)."""
         self._state = state
-        self._session_id = sessions.register(
-            self.identity, language, kind, os.getpid(), socket.gethostname(), library_version()
-        )
-        interval = max(0.05, sessions.lease_ms / 3000)
+        self._session_id = self._access.register(language, kind, os.getpid(), socket.gethostname(), library_version())
+        stream = self._session = self._access.session_stream()
+        interval = max(0.05, self._system.sessions.lease_ms / 3000)
+        stream.beat(self._session_id, state())
 
         def beat() -> None:
             while not self._closing.wait(interval):
                 try:
-                    sessions.heartbeat(self.identity, self._session_id, state())
+                    stream.beat(self._session_id, state())
                 except CastError:
                     return
-            sessions.end(self._session_id)
+            stream.end()
 
-        sessions.heartbeat(self.identity, self._session_id, state())
         threading.Thread(target=beat, name="cast-heartbeat", daemon=True).start()
 
     def report_state(self) -> None:
         """Record the component's state in its session now."""
-        if self._session_id and self._state is not None:
+        if self._session is not None and self._state is not None:
             try:
-                self._system.sessions.heartbeat(self.identity, self._session_id, self._state())
+                self._session.beat(self._session_id, self._state())
             except CastError:
                 pass  # the session ended: nothing to report to
 
@@ -251,9 +251,10 @@ class LocalTransport:
     def close(self) -> None:
         """End the session; stop watching."""
         self._closing.set()
-        if self._session_id:
-            self._system.sessions.end(self._session_id)
-        self._system.tasks.remove_listener(self._decided)
+        if self._session is not None:
+            self._session.end()
+        if self._decisions is not None:
+            self._decisions.close()
         with self._sub_lock:
             if self._sub is not None:
                 self._sub.close()

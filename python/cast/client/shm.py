@@ -22,10 +22,10 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from cast.client import shm_wire as wire
 from cast.client.credentials import TokenSource
 from cast.client.shm_session import ClientSession, ReadCall
 from cast.v1 import directory_pb2 as dir_pb2
+from cast.wire import shared_memory as wire
 
 __all__ = ["ENV", "SharedLink", "Unreachable", "connect", "turned_off"]
 

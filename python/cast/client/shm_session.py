@@ -29,11 +29,11 @@ import threading
 import time
 import weakref
 
-from cast.client import shm_wire as wire
 from cast.core.arena import Extents, round_up
 from cast.errors import UnavailableError
 from cast.v1 import entry_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire import shared_memory as wire
 
 __all__ = ["METADATA_KEY", "ClientSession", "Lease", "ReadCall", "Staged"]
 

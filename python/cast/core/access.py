@@ -29,11 +29,13 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 from cast.core.arena import Placed
+from cast.core.describe import COUNTERS, SystemSummary, describe
 from cast.core.metrics import Metrics
 from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
+from cast.core.sessions import SessionStream
 from cast.core.shared import Lent, SharedSession
 from cast.core.system import System
-from cast.core.tasks import TaskOutcome, TaskRecord
+from cast.core.tasks import DecisionFeed, TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter, Match, Subscription
 from cast.errors import (
     CastError,
@@ -45,8 +47,8 @@ from cast.errors import (
 )
 
 __all__ = [
-    "DURABLE", "Access", "Durable", "Steps", "Unlocked", "event_for", "resume_async", "run_async", "run_sync",
-    "settle_at_once",
+    "DURABLE", "Access", "Durable", "Listing", "Steps", "Unlocked", "event_for", "resume_async", "run_async",
+    "run_sync", "settle_at_once",
 ]
 
 T = TypeVar("T")
@@ -64,6 +66,18 @@ class Unlocked:
     sa: str
     entry_id: str
     blocked: LockedError
+
+
+@dataclass(frozen=True)
+class Listing:
+    """A WM's entries as a tool lists them, without their values."""
+
+    entries: list[EntryRecord]
+    revision: int
+    pending_writes: int
+    bytes: int
+    max_bytes: int
+    shared_bytes: int
 
 
 Steps = Generator[Durable | Unlocked, None, T]
@@ -194,6 +208,55 @@ class Access:
     def tasks(self, sa: str = "") -> Steps[list[TaskRecord]]:
         """The live tasks of one SA or all, once their states are durable."""
         return self._settled(lambda: self.system.tasks.tasks(sa))
+
+    def decisions(self, wake: Callable[[], None]) -> DecisionFeed:
+        """The task manager's decisions about the caller's own tasks, made before and after this call."""
+        return DecisionFeed(self.system.tasks, self.who.component_id, wake)
+
+    # --------------------------------------------------------------- sessions
+
+    def register(self, language: str, kind: str, pid: int, host: str, library_version: str) -> str:
+        """Start a session for the caller (its locks and tasks live as long as it does); its id."""
+        return self.system.sessions.register(self.who, language, kind, pid, host, library_version)
+
+    def session_stream(self) -> SessionStream:
+        """The heartbeats that keep one of the caller's sessions alive, and end it when they end."""
+        return SessionStream(self.system.sessions, self.who)
+
+    # ------------------------------------------------------------- inspection
+    # What tools read: counted as reads of the caller, like any other.
+
+    def describe(self, endpoint: str, served: Mapping[str, str], elsewhere: Mapping[str, str]) -> SystemSummary:
+        """This server's SAs (``served``: where each is; ``elsewhere``: the SAs of other servers) and components."""
+        return describe(self.system, endpoint, served, elsewhere)
+
+    def list_entries(self, sa: str, type_name: str = "", limit: int = 0) -> Listing:
+        """The entries of one WM without their values, oldest write first (the newest ``limit`` if given)."""
+        if not sa:
+            raise InvalidArgumentError("name the subarchitecture to list")
+        host = self._host
+        revision = host.revision(sa)  # NOT_FOUND for an SA not hosted here
+        records = host.all_entries(sa)
+        if type_name:
+            records = [r for r in records if r.type == type_name]
+        if limit:
+            records = records[-limit:]
+        if self._metrics is not None:
+            self._metrics.read(self.who, sa, len(records), 0)
+        # A listing never carries values: an entry another holds ODR-locked is listed, its value is not read.
+        bare = [EntryRecord(r.subarchitecture, r.id, r.type, b"", r.version, r.author, r.modified_ns, r.revision)
+                for r in records]
+        return Listing(bare, revision, host.pending_writes(sa), host.total_bytes(sa), host.limits.max_total_bytes,
+                       host.shared_bytes(sa))
+
+    def task_statistics(self, sa: str = "") -> list[tuple[str, str, dict[str, int]]]:
+        """Per SA (one, or every SA here): its policy and its decisions counted since the server started."""
+        tasks = self.system.tasks
+        out = []
+        for name in [sa] if sa else self._host.subarchitectures:
+            policy = tasks.policy(name).describe()  # NOT_FOUND for an SA not hosted here
+            out.append((name, policy, {k: tasks.counters[name][k] for k in COUNTERS}))
+        return out
 
     # --------------------------------------------------------------- outcomes
 

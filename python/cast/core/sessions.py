@@ -16,9 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from cast.core.records import Identity
-from cast.errors import NotFoundError, PermissionDeniedError
+from cast.errors import InvalidArgumentError, NotFoundError, PermissionDeniedError
 
-__all__ = ["ComponentInfo", "ComponentState", "SessionTable"]
+__all__ = ["ComponentInfo", "ComponentState", "SessionStream", "SessionTable"]
 
 
 class ComponentState(enum.IntEnum):
@@ -152,3 +152,36 @@ class SessionTable:
         """A snapshot of every known component, in the order first seen."""
         with self._mutex:
             return [replace(info) for info in self._components.values()]
+
+
+class SessionStream:
+    """One heartbeat stream of one caller: the one session it keeps alive, which ends with the stream.
+
+    Over gRPC this is a ``Directory.Heartbeat`` call; in process, the in-process transport's timer
+    thread. Either way the session ends when the stream ends (:meth:`end`), releasing the component's
+    locks and tasks.
+    """
+
+    def __init__(self, table: SessionTable, who: Identity) -> None:
+        self._table = table
+        self._who = who
+        self._session_id = ""
+
+    def beat(self, session_id: str, state: ComponentState | None) -> int:
+        """Renew ``session_id`` with ``state``; the lease (ms) until the next beat is due.
+
+        INVALID_ARGUMENT for a second session on one stream. The session is checked before the
+        stream adopts it: a stream that names another component's session must not end that
+        session when it is refused.
+        """
+        if self._session_id and session_id != self._session_id:
+            raise InvalidArgumentError("one heartbeat stream serves one session")
+        self._table.heartbeat(self._who, session_id, state)
+        self._session_id = session_id
+        return self._table.lease_ms
+
+    def end(self) -> None:
+        """The stream ended (the component left, or its connection broke): end its session."""
+        if self._session_id:
+            self._table.end(self._session_id)
+            self._session_id = ""

@@ -24,7 +24,7 @@ from cast.core.policies import AlwaysPolicy, TaskPolicy
 from cast.core.records import EntryRecord, Identity, no_session
 from cast.errors import InvalidArgumentError, NoSessionError, NotFoundError, PermissionDeniedError, TaskStateError
 
-__all__ = ["TaskBoard", "TaskOutcome", "TaskRecord", "TaskState"]
+__all__ = ["DecisionFeed", "TaskBoard", "TaskOutcome", "TaskRecord", "TaskState"]
 
 
 class TaskState(enum.IntEnum):
@@ -290,3 +290,31 @@ class TaskBoard:
             self._decisions.setdefault(task.component, []).append((snapshot, task.subarchitecture, revision))
             for listener in list(self._listeners):
                 listener(task.component)
+
+
+class DecisionFeed:
+    """The task manager's decisions about one component's tasks, handed out once each, oldest first.
+
+    ``wake`` is called (on the thread that decided) whenever new decisions may be ready; the reader
+    then takes them (:meth:`take`). Decisions made before the feed opened are handed out too, so a
+    component that subscribes late misses none. Over gRPC this is a ``TaskManager.Decisions`` call,
+    in process the in-process transport's sink.
+    """
+
+    def __init__(self, tasks: TaskBoard, component_id: str, wake: Callable[[], None]) -> None:
+        self._tasks = tasks
+        self._component_id = component_id
+        self._wake = wake
+        tasks.add_listener(self._decided)
+
+    def _decided(self, component_id: str) -> None:
+        if component_id == self._component_id:
+            self._wake()
+
+    def take(self) -> list[TaskRecord]:
+        """The decisions ready now, not handed out before."""
+        return self._tasks.take_decisions(self._component_id)
+
+    def close(self) -> None:
+        """Stop waking the reader."""
+        self._tasks.remove_listener(self._decided)

@@ -22,13 +22,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cast.attach import AttachedTool
 from cast.auth import TokenSigner
 from cast.config.model import LOCAL_HOST, ComponentConfig, SystemConfig
 from cast.core.sessions import ComponentState
 from cast.orchestrator.output import Output
 from cast.orchestrator.remote import Agents, remote_hosts
 from cast.orchestrator.run_metrics import RunMetrics
-from cast.orchestrator.run_tools import RunTool, make_tools
+from cast.orchestrator.run_tools import make_tools
 from cast.orchestrator.security import LaunchSecurity, component_tls
 from cast.orchestrator.servers import RemoteServer, ServerGroup
 from cast.orchestrator.status import Snapshot, StatusTracker, render_status, render_summary
@@ -143,7 +144,7 @@ class Orchestrator:
             for tool in tools:
                 await loop.run_in_executor(None, tool.close)
 
-    async def _run(self, tools: Sequence[RunTool]) -> RunResult:
+    async def _run(self, tools: Sequence[AttachedTool]) -> RunResult:
         self._prepare()
         loop = self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()

@@ -15,9 +15,9 @@ import grpc
 
 from cast.core.metrics_view import merge_snapshots
 from cast.orchestrator.servers import ServerGroup
-from cast.server.metrics_wire import snapshot_from_pb
 from cast.server.prometheus import MetricsEndpoint, serve_metrics
 from cast.v1 import inspection_pb2, inspection_pb2_grpc
+from cast.wire.metrics import snapshot_from_pb
 
 __all__ = ["RunMetrics"]
 

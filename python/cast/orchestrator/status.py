@@ -8,7 +8,6 @@ summary printed at the end and ``--summary-json`` use the same numbers.
 from __future__ import annotations
 
 import time
-from collections import Counter
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -18,13 +17,13 @@ from rich.table import Table
 from rich.text import Text
 
 from cast.config.model import SystemConfig
+from cast.core.describe import SystemSummary, describe
 from cast.core.sessions import ComponentState
-from cast.core.tasks import TaskState
-from cast.orchestrator.servers import RemoteServer, ServerGroup
+from cast.orchestrator.servers import ServerGroup
 from cast.orchestrator.supervisor import Supervisor
-from cast.v1 import inspection_pb2 as insp_pb2
-from cast.v1 import inspection_pb2_grpc, task_manager_pb2_grpc
-from cast.v1 import task_manager_pb2 as tm_pb2
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc
+from cast.wire.describe import summary_from_pb
 
 __all__ = ["ComponentRow", "Snapshot", "StatusTracker", "SubarchitectureRow", "render_status", "render_summary"]
 
@@ -134,28 +133,15 @@ class StatusTracker:
                         bool(self._config.hosts))
 
     def _local_rows(self) -> list[SubarchitectureRow]:
-        """The SAs of the servers in this process, read from their objects."""
+        """The SAs of the servers in this process, described by their objects (cast.core.describe)."""
         sas: list[SubarchitectureRow] = []
         for server in self._servers.servers:
-            system = server.system
-            live = system.tasks.tasks()
-            for sa in system.host.subarchitectures:
-                sas.append(SubarchitectureRow(
-                    name=sa,
-                    endpoint=server.endpoint,
-                    policy=system.tasks.policy(sa).describe(),
-                    entries=system.host.entry_count(sa),
-                    revision=system.host.revision(sa),
-                    events_per_s=0.0,
-                    waiting=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.WAITING),
-                    running=sum(1 for t in live if t.subarchitecture == sa and t.state is TaskState.ADOPTED),
-                    counters=dict(system.tasks.counters[sa]),
-                    types=system.host.type_counts(sa),
-                ))
+            routes = server.running.routes
+            sas += _rows(describe(server.system, routes.endpoint, routes.local))
         return sas
 
     async def refresh_remote(self) -> None:
-        """Ask each server on another host about its SAs (Inspection and TaskManager calls, as `cast ls` does).
+        """Ask each server on another host to describe itself (``DescribeSystem``, read back by cast.wire.describe).
 
         Their objects live in another process, so the live view shows what the last refresh found; a server
         that does not answer keeps its last rows.
@@ -168,39 +154,29 @@ class StatusTracker:
             if not far.process.running:
                 continue
             try:
-                found = await self._ask(far)
+                async with self._servers.remote_channel(far) as channel:
+                    described = await directory_pb2_grpc.DirectoryStub(channel).DescribeSystem(
+                        dir_pb2.DescribeSystemRequest(), metadata=self._servers.orchestrator_metadata(), timeout=2.0)
             except grpc.RpcError:
                 rows += [r for r in self._remote_rows if r.endpoint == far.address]
                 continue
+            found = _rows(summary_from_pb(described), far.address)
             for row in found:
                 if elapsed > 0 and row.name in before:
                     row.events_per_s = (row.revision - before[row.name]) / elapsed
             rows += found
         self._remote_rows, self._remote_at = rows, now
 
-    async def _ask(self, far: RemoteServer) -> list[SubarchitectureRow]:
-        metadata = self._servers.orchestrator_metadata()
-        rows: list[SubarchitectureRow] = []
-        async with self._servers.remote_channel(far) as channel:
-            inspection = inspection_pb2_grpc.InspectionStub(channel)
-            manager = task_manager_pb2_grpc.TaskManagerStub(channel)
-            stats = await inspection.TaskStatistics(insp_pb2.TaskStatisticsRequest(), metadata=metadata, timeout=2.0)
-            for counted in stats.subarchitectures:
-                sa = counted.subarchitecture
-                listed = await inspection.ListEntries(insp_pb2.ListEntriesRequest(subarchitecture=sa),
-                                                      metadata=metadata, timeout=2.0)
-                live = await manager.ListTasks(tm_pb2.ListTasksRequest(subarchitecture=sa), metadata=metadata,
-                                               timeout=2.0)
-                rows.append(SubarchitectureRow(
-                    name=sa, endpoint=far.address, policy=counted.policy, entries=len(listed.entries),
-                    revision=listed.revision, events_per_s=0.0,
-                    waiting=sum(1 for t in live.tasks if t.state == tm_pb2.TASK_STATE_WAITING),
-                    running=sum(1 for t in live.tasks if t.state == tm_pb2.TASK_STATE_ADOPTED),
-                    counters={k: getattr(counted, k) for k in ("proposed", "adopted", "rejected", "retracted",
-                                                               "completed")},
-                    types=dict(Counter(e.type for e in listed.entries)),
-                ))
-        return rows
+
+def _rows(summary: SystemSummary, endpoint: str = "") -> list[SubarchitectureRow]:
+    """The rows of the SAs a server described as its own (``endpoint``: shown for each, else their own)."""
+    return [
+        SubarchitectureRow(
+            name=sa.name, endpoint=endpoint or sa.endpoint, policy=sa.policy, entries=sa.entries, revision=sa.revision,
+            events_per_s=0.0, waiting=sa.waiting, running=sa.adopted, counters=dict(sa.counters), types=dict(sa.types),
+        )
+        for sa in summary.subarchitectures if sa.hosted
+    ]
 
 
 _PHASE_STYLE = {"running": "green", "restarting": "yellow", "failed": "bold red", "exited": "dim",

@@ -1,13 +1,9 @@
 """``cast run --record FILE``: a recording of the whole run, made by the orchestrator beside its servers.
 
 The file is checked before anything starts (it must not exist; its directory
-must), the recorder attaches once the servers are up and before any component
-starts, under a reader identity the orchestrator signs itself, so the file
-holds every change from the first; it stops after the components and before
-the servers, and the file is finished (summary and indexes) on every way out.
-The recorder runs on its own thread over gRPC, like ``cast record``: the
-orchestrator's event loop, which serves the working memories, is never
-blocked by it.
+must); attached before any component starts, the file holds every change from
+the first, and it is finished (summary and indexes) on every way out. The
+steps are those of every attached tool (:mod:`cast.attach`).
 """
 
 from __future__ import annotations
@@ -16,9 +12,8 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from cast.auth import TokenSigner
+from cast.attach import AttachedTool
 from cast.client.credentials import ClientTls, TokenSource
-from cast.core.records import Identity
 from cast.errors import CastError, InvalidArgumentError
 from cast.recording.channels import Gap
 from cast.recording.mcap_file import RecordingWriter
@@ -27,12 +22,10 @@ from cast.recording.recorder import RECORD_ID, Recorder, RecordOptions
 __all__ = ["RunRecording"]
 
 
-class RunRecording:
-    """The recording of one ``cast run``: checked at construction, then attached, stopped and closed.
+class RunRecording(AttachedTool):
+    """The recording of one ``cast run``: checked at construction, then attached, stopped and closed."""
 
-    The same steps as the live view's (:class:`cast.liveview.in_run.RunView`); ``notice`` must be
-    callable from any thread.
-    """
+    tool_id = RECORD_ID
 
     def __init__(self, path: Path, notice: Callable[[str], None]) -> None:
         if path.exists():
@@ -40,29 +33,25 @@ class RunRecording:
                                        "(a recording is never overwritten)")
         if not path.parent.is_dir():
             raise InvalidArgumentError(f"--record {path}: no directory {path.parent}")
+        super().__init__(notice)
         self.path = path
-        self._notice = notice
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._recorder: Recorder | None = None
         self._writer: RecordingWriter | None = None
         self.error: str = ""
 
-    def attach(self, endpoint: str, signer: TokenSigner, tls: ClientTls | None) -> None:
-        """Start recording the system whose directory is at ``endpoint`` (blocking: call it off the event loop)."""
-        # No expiry: the token never leaves this process, and the recorder resumes its watches with it.
-        tokens = TokenSource(signer.issue(Identity(RECORD_ID, "", False)))
-        try:
-            recorder = Recorder(endpoint, tokens, RecordOptions(), tls)
-            recorder.start()
-        except CastError as exc:
-            self._notice(f"not recording to {self.path}: {exc.message}")
-            return
+    def _start(self, endpoint: str, tokens: TokenSource, tls: ClientTls | None) -> None:
+        recorder = Recorder(endpoint, tokens, RecordOptions(), tls)
+        recorder.start()
         self._recorder = recorder
         self._writer = RecordingWriter(self.path, recorder.header())
         self._thread = threading.Thread(target=self._run, name="cast-run-record", daemon=True)
         self._thread.start()
         self._notice(f"recording every change of {', '.join(recorder.subarchitectures)} to {self.path}")
+
+    def _not_started(self, why: str) -> str:
+        return f"not recording to {self.path}: {why}"
 
     def _run(self) -> None:
         assert self._recorder is not None and self._writer is not None

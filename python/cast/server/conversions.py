@@ -7,20 +7,17 @@ direction is :mod:`cast.client.conversions`.
 
 from __future__ import annotations
 
-from cast.client.conversions import TYPE_URL_PREFIX, any_of, timestamp
 from cast.core.arena import Placed
 from cast.core.records import ChangeEvent, EntryRecord, Operation
-from cast.core.sessions import ComponentInfo, ComponentState
 from cast.core.shared import Lent
 from cast.core.tasks import TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import InvalidArgumentError
-from cast.v1 import directory_pb2, entry_pb2, task_manager_pb2
+from cast.v1 import entry_pb2, task_manager_pb2
+from cast.wire.values import TYPE_URL_PREFIX, any_of, timestamp
 
 __all__ = [
     "BY_REFERENCE",
-    "component_state",
-    "component_to_pb",
     "entry_to_pb",
     "event_to_pb",
     "event_wire",
@@ -210,28 +207,3 @@ def task_to_pb(task: TaskRecord) -> task_manager_pb2.Task:
     if task.decided_ns:
         pb.decided.CopyFrom(timestamp(task.decided_ns))
     return pb
-
-
-def component_to_pb(info: ComponentInfo) -> directory_pb2.ComponentInfo:
-    """Wire form of a directory entry."""
-    return directory_pb2.ComponentInfo(
-        id=info.id,
-        subarchitecture=info.subarchitecture,
-        privileged=info.privileged,
-        language=info.language,
-        kind=info.kind,
-        state=int(info.state),  # type: ignore[arg-type]
-        session_id=info.session_id,
-        pid=info.pid,
-        host=info.host,
-        sessions=info.sessions,
-        library_version=info.library_version,
-    )
-
-
-def component_state(value: int) -> ComponentState | None:
-    """Core state from a wire value (None for unspecified or unknown)."""
-    try:
-        return ComponentState(value)
-    except ValueError:
-        return None

@@ -1,4 +1,10 @@
-"""Shared plumbing of the servicers: identity from metadata, errors to status codes."""
+"""Shared plumbing of the servicers: the caller's identity by the table of calls, errors to status codes.
+
+Each handler is wrapped by :func:`rpc` or :func:`stream_rpc`, which looks its call up in
+:data:`cast.core.calls.CALLS` (``<servicer's SERVICE>/<method>``), establishes the caller the
+credential asks for, and hands it to the handler: no handler decides for itself whether it needs a
+token.
+"""
 
 from __future__ import annotations
 
@@ -10,10 +16,11 @@ from typing import Any, TypeVar
 import grpc
 
 from cast.auth import TokenSigner
+from cast.core.calls import Credential, credential
 from cast.core.records import Identity
 from cast.errors import ERROR_TRAILER, CastError, UnauthenticatedError, error_for_code
 
-__all__ = ["ANONYMOUS", "Authenticator", "Context", "error_class", "rpc", "stream_rpc"]
+__all__ = ["ANONYMOUS", "Authenticator", "Context", "Servicer", "error_class", "rpc", "stream_rpc"]
 
 log = logging.getLogger("cast.server")
 
@@ -45,6 +52,14 @@ class Authenticator:
             if not any(key == "authorization" for key, _ in metadata):
                 return ANONYMOUS
         return self.identify(context)
+
+    def caller(self, context: Context, needs: Credential) -> Identity:
+        """The caller of a call that needs ``needs`` (:mod:`cast.core.calls`)."""
+        if needs is Credential.READ:
+            return self.identify_read(context)
+        if needs is Credential.TOKEN:
+            return self.identify(context)
+        raise UnauthenticatedError(f"a server answers no call that needs {needs.value}")
 
     def verify(self, token: str) -> Identity:
         """The identity a token states (a shared-memory session's HELLO carries one); UNAUTHENTICATED if bad."""
@@ -92,15 +107,32 @@ async def _abort(context: Context, exc: BaseException) -> None:
     await context.abort(grpc.StatusCode.INTERNAL, f"internal server error: {type(exc).__name__}: {exc}")
 
 
-def rpc(
-    fn: Callable[[Any, Req, Context], Awaitable[Resp]],
-) -> Callable[[Any, Req, Context], Awaitable[Resp]]:
-    """Wrap a unary handler: a raised CastError becomes its status code, anything else INTERNAL."""
+class Servicer:
+    """A servicer of one ``cast.v1`` service: :attr:`SERVICE` names it, :attr:`auth` establishes callers."""
+
+    SERVICE = ""
+    auth: Authenticator
+
+    def who(self, call: str, context: Context) -> Identity:
+        """The caller of ``call`` (a method of :attr:`SERVICE`), by the table of calls."""
+        return self.auth.caller(context, credential(f"{self.SERVICE}/{call}"))
+
+
+Handler = Callable[[Any, Req, Context, Identity], Awaitable[Resp]]
+StreamHandler = Callable[[Any, Any, Context, Identity], AsyncIterator[Resp]]
+
+
+def rpc(fn: Handler[Req, Resp]) -> Callable[[Any, Req, Context], Awaitable[Resp]]:
+    """Wrap a unary handler: its caller is established first.
+
+    A raised CastError becomes its status code, anything else INTERNAL.
+    """
+    name = fn.__name__
 
     @functools.wraps(fn)
-    async def wrapper(self: Any, request: Req, context: Context) -> Resp:
+    async def wrapper(self: Servicer, request: Req, context: Context) -> Resp:
         try:
-            return await fn(self, request, context)
+            return await fn(self, request, context, self.who(name, context))
         except Exception as exc:
             if isinstance(exc, grpc.aio.AbortError):
                 raise
@@ -110,15 +142,14 @@ def rpc(
     return wrapper
 
 
-def stream_rpc(
-    fn: Callable[[Any, Any, Context], AsyncIterator[Resp]],
-) -> Callable[[Any, Any, Context], AsyncIterator[Resp]]:
+def stream_rpc(fn: StreamHandler[Resp]) -> Callable[[Any, Any, Context], AsyncIterator[Resp]]:
     """Wrap a streaming handler the same way as :func:`rpc`."""
+    name = fn.__name__
 
     @functools.wraps(fn)
-    async def wrapper(self: Any, request: Any, context: Context) -> AsyncIterator[Resp]:
+    async def wrapper(self: Servicer, request: Any, context: Context) -> AsyncIterator[Resp]:
         try:
-            async for item in fn(self, request, context):
+            async for item in fn(self, request, context, self.who(name, context)):
                 yield item
         except Exception as exc:
             if isinstance(exc, grpc.aio.AbortError):

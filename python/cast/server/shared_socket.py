@@ -23,7 +23,6 @@ import socket
 import struct
 from collections import deque
 
-from cast.client import shm_wire as wire
 from cast.core.access import Access
 from cast.core.arena import Segment
 from cast.core.shared import Lent, SharedSession
@@ -31,6 +30,7 @@ from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.rpc import Authenticator, Context
 from cast.v1 import directory_pb2
+from cast.wire import shared_memory as wire
 
 __all__ = ["METADATA_KEY", "SharedSocket", "read_session"]
 

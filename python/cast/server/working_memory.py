@@ -9,13 +9,13 @@ from collections.abc import AsyncIterator
 import grpc
 
 from cast.core.access import Access, run_async
-from cast.core.records import BatchOp
+from cast.core.records import BatchOp, Identity
 from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
-from cast.server.rpc import Authenticator, Context, rpc, stream_rpc
+from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.server.write_stream import WriteStream
@@ -30,43 +30,42 @@ _BATCH_EVENTS = 4096
 _BATCH_BYTES = 4 * 1024 * 1024
 
 
-class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
+class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
     """Serves every WM of one :class:`System`: translates requests to the caller's :class:`Access`."""
+
+    SERVICE = "cast.v1.WorkingMemory"
 
     def __init__(self, system: System, auth: Authenticator) -> None:
         self._system = system
-        self._auth = auth
-
-    def _access(self, context: Context, read: bool = False) -> Access:
-        return Access(self._system, self._auth.identify_read(context) if read else self._auth.identify(context))
+        self.auth = auth
 
     async def _write(self, access: Access, op: BatchOp) -> wm_pb2.WriteResponse:
         result = await run_async(self._system, access.write(op))
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
-    async def Add(self, request: wm_pb2.AddRequest, context: Context) -> wm_pb2.WriteResponse:
+    async def Add(self, request: wm_pb2.AddRequest, context: Context, who: Identity) -> wm_pb2.WriteResponse:
         """Create an entry."""
-        access = self._access(context)  # who, before what
+        access = Access(self._system, who)
         return await self._write(access, write_op(request, access))
 
     @rpc
     async def Overwrite(
-        self, request: wm_pb2.OverwriteRequest, context: Context
+        self, request: wm_pb2.OverwriteRequest, context: Context, who: Identity
     ) -> wm_pb2.WriteResponse:
         """Replace an entry's value."""
-        access = self._access(context)  # who, before what
+        access = Access(self._system, who)
         return await self._write(access, write_op(request, access))
 
     @rpc
-    async def Delete(self, request: wm_pb2.DeleteRequest, context: Context) -> wm_pb2.WriteResponse:
+    async def Delete(self, request: wm_pb2.DeleteRequest, context: Context, who: Identity) -> wm_pb2.WriteResponse:
         """Delete an entry."""
-        return await self._write(self._access(context), write_op(request))  # who, before what
+        return await self._write(Access(self._system, who), write_op(request))
 
     @rpc
-    async def Get(self, request: wm_pb2.GetRequest, context: Context) -> wm_pb2.GetResponse:
+    async def Get(self, request: wm_pb2.GetRequest, context: Context, who: Identity) -> wm_pb2.GetResponse:
         """Read one entry (its value lent by reference to a caller on this host that asks: cast.core.shared)."""
-        access = self._access(context, read=True)
+        access = Access(self._system, who)
         read = read_session(access, context)
         record = access.get(request.address.subarchitecture, request.address.id)
         response = wm_pb2.GetResponse()
@@ -75,10 +74,10 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 
     @rpc
     async def GetByType(
-        self, request: wm_pb2.GetByTypeRequest, context: Context
+        self, request: wm_pb2.GetByTypeRequest, context: Context, who: Identity
     ) -> wm_pb2.GetByTypeResponse:
         """Read the entries of one type, newest first."""
-        access = self._access(context, read=True)
+        access = Access(self._system, who)
         read = read_session(access, context)
         records, revision = access.get_by_type(request.subarchitecture, request.type, request.limit)
         response = wm_pb2.GetByTypeResponse(revision=revision)
@@ -88,30 +87,30 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
         return response
 
     @rpc
-    async def Exists(self, request: wm_pb2.ExistsRequest, context: Context) -> wm_pb2.ExistsResponse:
+    async def Exists(self, request: wm_pb2.ExistsRequest, context: Context, who: Identity) -> wm_pb2.ExistsResponse:
         """Whether an entry exists."""
         address = request.address
-        exists = self._access(context, read=True).exists(address.subarchitecture, address.id)
+        exists = Access(self._system, who).exists(address.subarchitecture, address.id)
         return wm_pb2.ExistsResponse(exists=exists)
 
     @rpc
-    async def Lock(self, request: wm_pb2.LockRequest, context: Context) -> wm_pb2.LockResponse:
+    async def Lock(self, request: wm_pb2.LockRequest, context: Context, who: Identity) -> wm_pb2.LockResponse:
         """Take a lock, waiting up to the call's deadline unless no_wait."""
-        steps = self._access(context).lock(
+        steps = Access(self._system, who).lock(
             request.address.subarchitecture, request.address.id, lock_mode(request.mode), request.no_wait
         )
         return wm_pb2.LockResponse(depth=await run_async(self._system, steps, context.time_remaining()))
 
     @rpc
-    async def Unlock(self, request: wm_pb2.UnlockRequest, context: Context) -> wm_pb2.UnlockResponse:
+    async def Unlock(self, request: wm_pb2.UnlockRequest, context: Context, who: Identity) -> wm_pb2.UnlockResponse:
         """Release one level of the caller's lock."""
-        steps = self._access(context).unlock(request.address.subarchitecture, request.address.id)
+        steps = Access(self._system, who).unlock(request.address.subarchitecture, request.address.id)
         return wm_pb2.UnlockResponse(depth=await run_async(self._system, steps))
 
     @rpc
-    async def Batch(self, request: wm_pb2.BatchRequest, context: Context) -> wm_pb2.BatchResponse:
+    async def Batch(self, request: wm_pb2.BatchRequest, context: Context, who: Identity) -> wm_pb2.BatchResponse:
         """Apply many writes in order, all or nothing."""
-        access = self._access(context)
+        access = Access(self._system, who)
         ops = batch_ops(request, access)
         results = await run_async(self._system, access.batch(ops))
         response = wm_pb2.BatchResponse()
@@ -122,28 +121,27 @@ class WorkingMemoryServicer(wm_grpc.WorkingMemoryServicer):
 
     @stream_rpc
     async def Write(
-        self, request_iterator: AsyncIterator[wm_pb2.WriteRequests], context: Context
+        self, request_iterator: AsyncIterator[wm_pb2.WriteRequests], context: Context, who: Identity
     ) -> AsyncIterator[wm_pb2.WriteReplies]:
         """Apply a component's writes and locks as they arrive on the stream, answering each by id.
 
         A missing or bad token ends the call at once, as every RPC does; it is
         checked again for each request, since the stream outlives tokens.
         """
-        self._auth.identify(context)
-        stream = WriteStream(self._system, self._auth, context)
+        stream = WriteStream(self._system, lambda: self.who("Write", context))
         async for reply in stream.run(request_iterator):
             yield reply
 
     @stream_rpc
     async def Watch(  # type: ignore[override]  # yields bytes too: see add_to_server
-        self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context
+        self, request_iterator: AsyncIterator[wm_pb2.WatchRequest], context: Context, who: Identity
     ) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
         """Stream event batches for the watches the client creates on this stream.
 
         Event batches are yielded already encoded (bytes); :func:`add_to_server`
         registers a serializer that passes them through.
         """
-        access = self._access(context, read=True)
+        access = Access(self._system, who)
         stream = _WatchStream(access, read_session(access, context))
         try:
             async for response in stream.run(request_iterator):

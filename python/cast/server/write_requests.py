@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from cast.client.conversions import any_to_type_data
 from cast.core.access import Access
 from cast.core.arena import Placed
 from cast.core.records import BatchOp, LockMode, Operation
 from cast.errors import CastError, InvalidArgumentError
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire.values import any_to_type_data
 
 __all__ = ["batch_ops", "lock_mode", "write_op"]
 

@@ -18,9 +18,10 @@ from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from cast.core.access import Access, Steps, resume_async, settle_at_once
+from cast.core.records import Identity
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
-from cast.server.rpc import Authenticator, Context, error_class
+from cast.server.rpc import error_class
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.v1 import working_memory_pb2 as wm_pb2
 
@@ -80,10 +81,9 @@ def _internal(exc: Exception) -> CastError:
 class WriteStream:
     """One Write call of one component."""
 
-    def __init__(self, system: System, auth: Authenticator, context: Context) -> None:
+    def __init__(self, system: System, caller: Callable[[], Identity]) -> None:
         self._system = system
-        self._auth = auth
-        self._context = context
+        self._caller = caller  # the caller's identity, established again for each request (tokens expire)
         self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
         self._late = asyncio.Event()  # a waiting request was answered
         self._waiting: set[asyncio.Task[None]] = set()
@@ -155,7 +155,7 @@ class WriteStream:
                 raise InvalidArgumentError(
                     f"write request {request_id} is empty: set add, overwrite, delete, batch, lock or unlock"
                 )
-            access = Access(self._system, self._auth.identify(self._context))  # who, before what
+            access = Access(self._system, self._caller())  # who, before what
             steps, answer = _call(access, kind, getattr(request, kind))
             try:
                 step = next(steps)

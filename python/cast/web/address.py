@@ -6,8 +6,7 @@ address when it builds its options.
 
 from __future__ import annotations
 
-from cast.errors import InvalidArgumentError
-from cast.liveview.sink import ListenAddress, parse_listen
+from cast.listen import ListenAddress, parse_listen
 
 __all__ = ["DEFAULT_LISTEN", "listening_line", "parse_web_listen"]
 
@@ -16,13 +15,8 @@ DEFAULT_LISTEN = "127.0.0.1:8766"
 
 
 def parse_web_listen(text: str, option: str = "--listen") -> ListenAddress:
-    """``HOST:PORT``, ``[IPv6]:PORT`` or a bare ``PORT`` (on 127.0.0.1); InvalidArgumentError naming ``option``."""
-    try:
-        return parse_listen(text, option)
-    except InvalidArgumentError:
-        raise InvalidArgumentError(
-            f"{option} {text!r}: give HOST:PORT with a port from 0 to 65535, such as {DEFAULT_LISTEN} (the default) "
-            "or 127.0.0.1:0 for a free port; [::1]:PORT for IPv6") from None
+    """Where the web view listens (:func:`cast.listen.parse_listen`, with its default as the example)."""
+    return parse_listen(text, option, DEFAULT_LISTEN)
 
 
 def listening_line(address: ListenAddress, url: str) -> str:

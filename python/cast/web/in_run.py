@@ -1,11 +1,9 @@
 """``cast run --web``: the web view inside the orchestrator, beside the servers it runs.
 
 Bound before anything starts (a taken port stops ``cast run`` with exit 2,
-nothing started), attached once the servers are up under a reader identity the
-orchestrator signs itself, told to stop watching after the components and
-before the servers, closed last. It runs on threads of its own over gRPC, like
-``cast web`` from another terminal: the orchestrator's event loop, which serves
-the working memories, never waits for a browser.
+nothing started); the steps are those of every attached tool
+(:mod:`cast.attach`), and the orchestrator's event loop never waits for a
+browser.
 """
 
 from __future__ import annotations
@@ -13,10 +11,8 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from cast.auth import TokenSigner
+from cast.attach import AttachedTool
 from cast.client.credentials import ClientTls, TokenSource
-from cast.core.records import Identity
-from cast.errors import CastError
 from cast.web.address import listening_line, parse_web_listen
 from cast.web.server import WebServer
 from cast.web.view import WEB_ID, WebView
@@ -24,14 +20,13 @@ from cast.web.view import WEB_ID, WebView
 __all__ = ["RunWeb"]
 
 
-class RunWeb:
-    """The web view of one ``cast run``: bound at construction, then :meth:`attach`, then :meth:`close`.
+class RunWeb(AttachedTool):
+    """The web view of one ``cast run``: bound at construction, then :meth:`attach`, then :meth:`close`."""
 
-    ``notice`` must be callable from any thread.
-    """
+    tool_id = WEB_ID
 
     def __init__(self, listen: str, notice: Callable[[str], None]) -> None:
-        self._notice = notice
+        super().__init__(notice)
         self.server = WebServer(parse_web_listen(listen, "--web"), "--web")
         self._view: WebView | None = None
         self._lock = threading.Lock()
@@ -41,23 +36,15 @@ class RunWeb:
         """The bound port."""
         return self.server.port
 
-    def attach(self, endpoint: str, signer: TokenSigner, tls: ClientTls | None) -> None:
-        """Show the system whose directory is at ``endpoint``; print where, and the login link (or why not).
-
-        Blocking (it asks the servers): call it off the event loop that serves them.
-        """
-        # A reader with no expiry: the token never leaves this process, and the watches resume with it.
-        tokens = TokenSource(signer.issue(Identity(WEB_ID, "", False)))
-        line = listening_line(self.server.address, self.server.url)
-        try:
-            view = WebView(self.server, endpoint, tokens, tls, self._notice)
-        except CastError as exc:
-            self._notice(f"{line}, but it shows nothing: {exc.message}")
-            return
+    def _start(self, endpoint: str, tokens: TokenSource, tls: ClientTls | None) -> None:
+        view = WebView(self.server, endpoint, tokens, tls, self._notice)
         with self._lock:
             self._view = view
-        self._notice(line)
+        self._notice(listening_line(self.server.address, self.server.url))
         self._notice(f"open {view.access.login_link()} (the login link works once; the next is printed when used)")
+
+    def _not_started(self, why: str) -> str:
+        return f"{listening_line(self.server.address, self.server.url)}, but it shows nothing: {why}"
 
     def stop_watching(self) -> None:
         """The components have stopped: stop asking the servers (the page stays up until :meth:`close`)."""

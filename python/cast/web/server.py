@@ -18,7 +18,7 @@ import threading
 import uvicorn
 from starlette.applications import Starlette
 
-from cast.liveview.sink import ListenAddress, ListenError
+from cast.listen import ListenAddress, ListenError
 from cast.web.address import DEFAULT_LISTEN
 
 __all__ = ["WebServer"]
@@ -63,8 +63,7 @@ class WebServer:
     @property
     def url(self) -> str:
         """``http://HOST:PORT`` with the bound port."""
-        host = f"[{self.address.host}]" if ":" in self.address.host else self.address.host
-        return f"http://{host}:{self.port}"
+        return self.address.url("http", self.port)
 
     def serve(self, app: Starlette) -> None:
         """Serve ``app`` on the bound socket from a thread of its own (returns at once)."""

@@ -20,12 +20,12 @@ from cast.client.channel import ServerLink, map_rpc_error
 from cast.client.credentials import ClientTls, TokenSource
 from cast.core.metrics_view import merge_snapshots
 from cast.errors import CastError, NotFoundError
-from cast.server.metrics_wire import snapshot_from_pb
 from cast.v1 import bridge_pb2, entry_pb2
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire.metrics import snapshot_from_pb
 
 __all__ = ["SystemSource"]
 

@@ -12,64 +12,23 @@ may skip messages for a slow viewer, a recording never does (docs/foxglove.md).
 
 from __future__ import annotations
 
-import ipaddress
-import re
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import foxglove
 from foxglove.websocket import WebSocketServer
 
 from cast.errors import CastError, InvalidArgumentError
+from cast.listen import ListenAddress, ListenError, parse_listen
 from cast.recording.channels import ChannelMessage, ChannelSpec, changes_channel, gaps_channel
 
-__all__ = ["DEFAULT_LISTEN", "FoxgloveSink", "ListenAddress", "ListenError", "listening_line", "parse_listen"]
+__all__ = ["DEFAULT_LISTEN", "FoxgloveSink", "listening_line", "parse_foxglove_listen"]
 
 DEFAULT_LISTEN = "127.0.0.1:8765"
 """Foxglove's own default port, on loopback: the app's "Foxglove WebSocket" connection offers this address."""
 
-_HOST_PORT = re.compile(r"^(?:\[(?P<v6>[0-9A-Fa-f:.%\w]+)\]|(?P<host>[^:\[\]\s]+)):(?P<port>\d{1,5})$")
-
-
-class ListenError(CastError):
-    """The live view cannot listen where it was told (the address is taken or not this machine's)."""
-
-    code = "UNAVAILABLE"
-
-
-@dataclass(frozen=True)
-class ListenAddress:
-    """Where the live view listens: host and port (0: a free port, told once bound)."""
-
-    host: str
-    port: int
-
-    @property
-    def loopback(self) -> bool:
-        """Whether only this machine can connect (127.0.0.0/8, ::1, localhost)."""
-        if self.host == "localhost":
-            return True
-        try:
-            return ipaddress.ip_address(self.host).is_loopback
-        except ValueError:
-            return False  # a host name: it may resolve to any interface
-
-    def url(self, port: int | None = None) -> str:
-        """The ``ws://`` URL a Foxglove client opens (with the bound port, if given)."""
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"ws://{host}:{self.port if port is None else port}"
-
-
-def parse_listen(text: str, option: str = "--listen") -> ListenAddress:
-    """``HOST:PORT``, ``[IPv6]:PORT`` or a bare ``PORT`` (on 127.0.0.1); InvalidArgumentError naming ``option``."""
-    given = text.strip()
-    match = _HOST_PORT.match(f"127.0.0.1:{given}" if given.isdigit() else given)
-    port = int(match.group("port")) if match else -1
-    if match is None or not 0 <= port <= 65535:
-        raise InvalidArgumentError(
-            f"{option} {text!r}: give HOST:PORT with a port from 0 to 65535, such as {DEFAULT_LISTEN} (Foxglove's "
-            f"default) or 127.0.0.1:0 for a free port; [::1]:PORT for IPv6")
-    return ListenAddress(match.group("v6") or match.group("host"), port)
+def parse_foxglove_listen(text: str, option: str = "--listen") -> ListenAddress:
+    """Where the live view listens (:func:`cast.listen.parse_listen`, with Foxglove's default as the example)."""
+    return parse_listen(text, option, DEFAULT_LISTEN)
 
 
 def listening_line(address: ListenAddress, url: str) -> str:
@@ -115,7 +74,7 @@ class FoxgloveSink:
     @property
     def url(self) -> str:
         """The ``ws://HOST:PORT`` to open in Foxglove, with the bound port."""
-        return self.address.url(self.port)
+        return self.address.url("ws", self.port)
 
     def announce(self, spec: ChannelSpec) -> foxglove.Channel | None:
         """The SDK channel of a spec, created (and so advertised to clients) on first use; None without a schema."""

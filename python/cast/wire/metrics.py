@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from cast.client.conversions import timestamp
 from cast.core.metrics_view import COUNTERS, histogram_json
 from cast.v1 import inspection_pb2 as insp_pb2
+from cast.wire.values import timestamp
 
 __all__ = ["snapshot_from_pb", "snapshot_to_pb"]
 

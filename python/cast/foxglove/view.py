@@ -21,7 +21,7 @@ from cast.client.channel import ServerLink, map_rpc_error
 from cast.client.credentials import ClientTls, TokenSource
 from cast.core.records import TASK_TYPE
 from cast.errors import CastError
-from cast.liveview.sink import FoxgloveSink
+from cast.foxglove.sink import FoxgloveSink
 from cast.recording.channels import Gap
 from cast.recording.recorder import Recorder, RecordOptions
 from cast.v1 import inspection_pb2 as insp_pb2
