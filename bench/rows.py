@@ -158,7 +158,7 @@ def _r1_row(r: Results) -> dict[str, Any]:
     """The R1 row."""
     return {
         "id": "R1",
-        "what": f"writers while a watcher has stopped reading, {r.r1['events']:,} events per run (issue 7), "
+        "what": f"writers while a watcher has stopped reading, {r.r1['events']:,} events per run, "
         "against the same writes with no watcher",
         "target": "writers slowed by at most 20% (>= 0.8 x the rate without the watcher)",
         "figures": [
@@ -190,7 +190,7 @@ def _durability_row(d1: dict[str, dict[str, float]]) -> dict[str, Any]:
     gets_ok = all(d1[mode]["get_per_s"] >= 0.9 * memory["get_per_s"] for mode in ("none", "batch", "always"))
     return {
         "id": "D1",
-        "what": "durability modes (issue 12): M1, M2, M3 against a server per mode, taking turns; the floor "
+        "what": "durability modes: M1, M2, M3 against a server per mode, taking turns; the floor "
         "column is memory only",
         "target": "no target for writes (the cost is shown); reads never wait for the journal: Get >= 0.9 x "
         "memory only in every mode; no event lost",
