@@ -1,4 +1,4 @@
-"""D1: what durability costs (issue 12): M1, M2 and M3 against one server per mode, in one run.
+"""D1: what durability costs: M1, M2 and M3 against one server per mode, in one run.
 
 Four `cast serve` processes run side by side, memory only and with a journal
 in `none`, `batch` and `always`. The modes take turns in blocks (block order

@@ -171,7 +171,7 @@ def _peer(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
 
 
 def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Every phase of M8 (``frames`` writes each) and its peers and floor; raw results for bench/rows_round2.py."""
+    """Every phase of M8 (``frames`` writes each) and its peers and floor; raw results for bench/rows_scale.py."""
     writer = cpp_command()
     if isinstance(writer, str):
         return {"error": writer}

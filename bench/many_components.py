@@ -1,6 +1,6 @@
 """M9: many components. N sessions, each with heartbeats and one watch, while one writer adds at 100/s.
 
-The sessions are opened by load-generator processes (bench/m9_load.py, grpc.aio,
+The sessions are opened by load-generator processes (bench/session_load.py, grpc.aio,
 one channel per session), ``PROCESSES`` of them sharing the N sessions; the
 writer is a Python component in this process adding a 100-byte BytesValue
 every 10 ms (an absolute schedule), stamping CLOCK_MONOTONIC before each add.
@@ -56,7 +56,7 @@ class _Load:
             path = workdir / f"tokens-{count}-{p}.json"
             path.write_text(json.dumps(tokens))
             self.procs.append(subprocess.Popen(
-                [PYTHON, "-m", "bench.m9_load", server.endpoint, SA, str(path)],
+                [PYTHON, "-m", "bench.session_load", server.endpoint, SA, str(path)],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
             ))
         for proc in self.procs:
@@ -155,7 +155,7 @@ def one_count(workdir: Path, count: int, writes: int) -> dict[str, Any]:
 
 
 def run(workdir: Path, counts: list[int], writes: int, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """M9 at each count; raw results for bench/rows_round2.py."""
+    """M9 at each count; raw results for bench/rows_scale.py."""
     workdir.mkdir(parents=True, exist_ok=True)
     out = {}
     for count in counts:

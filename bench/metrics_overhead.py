@@ -1,4 +1,4 @@
-"""O1: what the metrics cost (issue 18): a writer's rate against a server that counts and one that does not.
+"""O1: what the metrics cost: a writer's rate against a server that counts and one that does not.
 
 Two `cast serve` processes run side by side, one as users run it (metrics on)
 and one with ``--no-metrics``, each with a watcher process taking every event
@@ -217,7 +217,7 @@ def run(work: Path, calls: int, batches: int, fan_events: int, rounds: int = 3,
               for kind, by in times.items()}
     return {
         "id": "O1",
-        "what": "a writer's rate against a server counting its metrics (issue 18), the same with --no-metrics as "
+        "what": "a writer's rate against a server counting its metrics, the same with --no-metrics as "
         "the floor; a watcher process takes every event with its value",
         "target": f">= {TARGET} x the rate with --no-metrics (sequential Overwrite and Batch)",
         "figures": [

@@ -22,8 +22,9 @@ from bench import (
     redis_peer,
     report,
     ros_bridge,
+    rows_calls,
     rows_ros,
-    rows_round2,
+    rows_scale,
     stream_cases,
     zenoh_peer,
 )
@@ -53,7 +54,7 @@ def _m1(q: bool, work: Path) -> list[dict[str, Any]]:
         echo.close()
         server.stop()
     ech = {"unary_calls_per_s": m1.pop("echo_per_s"), "stream_calls_per_s": m1.pop("stream_per_s")}
-    return [rows_round2.m1_row(_results(ech, m1=m1)), rows_round2.m1p_row(m1p)]
+    return [rows_calls.m1_row(_results(ech, m1=m1)), rows_calls.m1p_row(m1p)]
 
 
 def _m3(q: bool, work: Path) -> list[dict[str, Any]]:
@@ -69,11 +70,11 @@ def _m3(q: bool, work: Path) -> list[dict[str, Any]]:
         server.stop()
     ech = {"unary_p50_us": lat["unary"]["p50_us"], "unary_spaced_p50_us": lat["unary_spaced"]["p50_us"],
            "stream_ping_pong_p50_us": lat["stream_ping_pong"]["p50_us"], "unary_calls_per_s": 0}
-    return [rows_round2.m3_row(_results(ech, m3=m3, peer=peer, zenoh=zen))]
+    return [rows_calls.m3_row(_results(ech, m3=m3, peer=peer, zenoh=zen))]
 
 
 def _m8(q: bool, work: Path) -> list[dict[str, Any]]:
-    return [rows_round2.m8_row(images.run(work, 60 if q else 300))]
+    return [rows_scale.m8_row(images.run(work, 60 if q else 300))]
 
 
 def _m9(q: bool, work: Path, out: Path) -> list[dict[str, Any]]:
@@ -85,7 +86,7 @@ def _m9(q: bool, work: Path, out: Path) -> list[dict[str, Any]]:
                            {"write -> event (µs)": {q: [ok[n][f"{q}_us"] for n in ns] for q in ("p50", "p99")},
                             "server CPU while writing (cores)": {"CPU": [ok[n]["busy_cpu"] for n in ns]}},
                            "component sessions", "M9", log_y=["write -> event (µs)"])
-    return [rows_round2.m9_row(m9)]
+    return [rows_scale.m9_row(m9)]
 
 
 def _m10(q: bool, work: Path) -> list[dict[str, Any]]:

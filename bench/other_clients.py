@@ -50,7 +50,7 @@ JAVA_TEST_CLASSES = ROOT / "java_client" / "target" / "test-classes"
 JAVA_BENCH_CLASS = "cast.bench.Bench"
 TIMEOUT_S = 180
 SA = "bench"  # m3_latency, the Python floor, writes in this SA
-# Issue 19: a client in a compiled language, on the write stream too, should not be held to Python's pace.
+# A client in a compiled language, on the write stream too, should not be held to Python's pace.
 ADD_RATIO = 1.5
 
 

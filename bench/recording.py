@@ -1,4 +1,4 @@
-"""REC1: what recording costs (issue 17), how fast a recorder goes, how closely a replay keeps time.
+"""REC1: what recording costs, how fast a recorder goes, how closely a replay keeps time.
 
 - **Overhead**: two `cast serve` processes side by side, each with the same watcher process (bench O1's
   sides, bench/metrics_overhead.py); one also has a `cast record` process attached. A writer on raw stubs
@@ -159,7 +159,7 @@ def run(work: Path, calls: int, changes: int, log: Callable[[str], None] = print
     ratio = round(rates["recorded"] / rates["plain"], 3)
     return {
         "id": "REC1",
-        "what": "recording (issue 17): a writer's rate with `cast record` attached over the same without; the "
+        "what": "recording: a writer's rate with `cast record` attached over the same without; the "
         "recorder reading history into MCAP; `cast replay --rate 1.0` against the recorded intervals",
         "target": f">= {TARGET} x the writer's rate without a recorder",
         "figures": [

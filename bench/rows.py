@@ -1,4 +1,9 @@
-"""The rows of the benchmark table: each id's figures, target and verdict, from one run's results."""
+"""The rows of the benchmark table: each id's figures, target and verdict, from one run's results.
+
+Here: the table's order (``rows``), M2, M4, M5, M6, R1 and D1. One Python client's calls (M1, M1P,
+M3) are in bench/rows_calls.py, the server under size and numbers (M8, M9) in bench/rows_scale.py,
+the ROS bridge (M10) in bench/rows_ros.py; M7, O1 and REC1 come built by the modules that measure them.
+"""
 
 from __future__ import annotations
 
@@ -36,7 +41,8 @@ class Results:
     d1: dict[str, Any]
     o1: dict[str, Any]  # the row itself (bench/metrics_overhead.py)
     rec1: dict[str, Any]  # the row itself (bench/recording.py)
-    # Issue 19 (bench/rows_round2.py): Zenoh's put -> subscriber at M3's spacing, pipelined adds, M8, M9.
+    # Zenoh's put -> subscriber at M3's spacing (M3's peer, bench/rows_calls.py), pipelined adds (M1P), M8 and M9
+    # (bench/rows_scale.py): rows a run can leave out (bench/only.py).
     zenoh: dict[str, Any] = field(default_factory=dict)
     m1p: dict[str, Any] = field(default_factory=dict)
     m8: dict[str, Any] = field(default_factory=dict)
@@ -66,11 +72,13 @@ class Results:
 
 def rows(r: Results) -> list[dict[str, Any]]:
     """Every row, in the table's order."""
-    from bench import rows_round2 as r2  # it builds on fig() above
+    # These modules build on fig() above.
+    from bench.rows_calls import m1_row, m1p_row, m3_row
     from bench.rows_ros import m10_row
+    from bench.rows_scale import m8_row, m9_row
 
-    return [r2.m1_row(r), r2.m1p_row(r.m1p), _m2_row(r), r2.m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7,
-            r2.m8_row(r.m8), r2.m9_row(r.m9), m10_row(r.m10), _durability_row(r.d1), _r1_row(r), r.o1, r.rec1]
+    return [m1_row(r), m1p_row(r.m1p), _m2_row(r), m3_row(r), _m4_row(r), _m5_row(r), _m6_row(r), r.m7,
+            m8_row(r.m8), m9_row(r.m9), m10_row(r.m10), _durability_row(r.d1), _r1_row(r), r.o1, r.rec1]
 
 
 def _m2_row(r: Results) -> dict[str, Any]:
@@ -150,7 +158,7 @@ def _r1_row(r: Results) -> dict[str, Any]:
     """The R1 row."""
     return {
         "id": "R1",
-        "what": f"writers while a watcher has stopped reading, {r.r1['events']:,} events per run (issue 7), "
+        "what": f"writers while a watcher has stopped reading, {r.r1['events']:,} events per run, "
         "against the same writes with no watcher",
         "target": "writers slowed by at most 20% (>= 0.8 x the rate without the watcher)",
         "figures": [
@@ -182,7 +190,7 @@ def _durability_row(d1: dict[str, dict[str, float]]) -> dict[str, Any]:
     gets_ok = all(d1[mode]["get_per_s"] >= 0.9 * memory["get_per_s"] for mode in ("none", "batch", "always"))
     return {
         "id": "D1",
-        "what": "durability modes (issue 12): M1, M2, M3 against a server per mode, taking turns; the floor "
+        "what": "durability modes: M1, M2, M3 against a server per mode, taking turns; the floor "
         "column is memory only",
         "target": "no target for writes (the cost is shown); reads never wait for the journal: Get >= 0.9 x "
         "memory only in every mode; no event lost",

@@ -1,6 +1,6 @@
 """R1: writer throughput with a watcher that has stopped reading, against the same writes with none.
 
-Issue 7 bounds the slowdown at 20%. Rounds alternate (without, with, without,
+The target bounds the slowdown at 20% (docs/reliability.md). Rounds alternate (without, with, without,
 with, ...) and medians are compared, so a passing load on the machine hits both
 sides alike. Two write patterns: batches of 1,000 overwrites (the most events
 per second a writer can make) and sequential single overwrites (the common case).

@@ -1,6 +1,6 @@
-"""M1 against both gRPC floors (unary echo and bidi-stream ping-pong), and pipelined adds (issue 19).
+"""M1 against both gRPC floors (unary echo and bidi-stream ping-pong), and pipelined adds.
 
-Since issue 19 a Python component's writes travel on one WorkingMemory.Write
+A Python component's writes travel on one WorkingMemory.Write
 stream (cast.client.write_stream), so sequential Add and Overwrite are compared
 with the bare stream ping-pong as well as with the bare unary echo; Get stays a
 unary call. Every block of ours follows a floor block, which floor alternating so

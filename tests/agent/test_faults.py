@@ -1,7 +1,7 @@
-"""The agent's half of issue 16's faults: a SIGKILLed orchestrator, a cut link, a SIGKILLed agent.
+"""The agent's half of the faults across hosts: a SIGKILLed orchestrator, a cut link, a SIGKILLed agent.
 
 Tests never assert wall-clock times: each waits within a generous guard timeout and prints what it
-measured (for the closing note's fault table).
+measured (for the fault table of docs/multihost.md, "Faults across hosts").
 """
 
 from __future__ import annotations

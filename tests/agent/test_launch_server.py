@@ -1,4 +1,4 @@
-"""`Agent.Launch` with ``server``: `cast serve --server NAME` with the agent's own secret file (issue 16, item 4)."""
+"""`Agent.Launch` with ``server``: `cast serve --server NAME` with the agent's own secret file."""
 
 from __future__ import annotations
 

@@ -50,7 +50,7 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     # REC1 measured the recorded writer against one without (the floor), and the recorder and a replay.
     rec1 = doc["results"]["REC1"]["figures"]
     assert rec1[0]["floor"] > 0 and rec1[1]["name"] == "recorder throughput (changes/s)" and rec1[1]["value"] > 0
-    # Issue 19: M1 against the stream ping-pong too; M3 against Zenoh; M8 with its floor, four watchers and both
+    # M1 against the stream ping-pong too; M3 against Zenoh; M8 with its floor, four watchers and both
     # peers; M9 at each count.
     m1_names = {f["name"] for f in doc["results"]["M1"]["figures"]}
     assert "add_per_s (calls/s) vs stream ping-pong" in m1_names, m1_names

@@ -1,4 +1,4 @@
-"""Delivery policies (queue, latest) and receiver priorities of on_change (issue 19)."""
+"""Delivery policies (queue, latest) and receiver priorities of on_change."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Component-reported outcomes (issue 18, part 2): ``report(name, value)`` over gRPC and in process.
+"""Component-reported outcomes: ``report(name, value)`` over gRPC and in process.
 
 What a component reports is kept by the server under the component's own id (from its token) as
 count, sum, min, max and last, exactly; a refused report (empty or over-long name, a value that is

@@ -1,4 +1,4 @@
-"""Writes on the Write stream, pipelined writes, large values (issue 19), against a real server.
+"""Writes on the Write stream, pipelined writes, large values, against a real server.
 
 The API-level bodies run on every transport of ``make_component``; the ones
 about the stream itself (it is used, it fails and recovers like a unary call)

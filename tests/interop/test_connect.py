@@ -1,4 +1,4 @@
-"""Plain programs without a component (issue 13, item 8) and stored values that do not parse (item 7),
+"""Plain programs without a component and stored values that do not parse,
 for the C++ and the Java library, against a real `cast serve`.
 
 The programs are cast_test_connect (cpp_client/tests/components) and cast.itest.ConnectScript

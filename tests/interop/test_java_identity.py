@@ -1,4 +1,4 @@
-"""Who a Java component is comes from the server (issue 14, item 3): RegisterResponse carries the identity
+"""Who a Java component is comes from the server: RegisterResponse carries the identity
 the server verified from the token, and a launch environment or connect options that say otherwise are
 refused at start, naming both, against a real `cast serve`. The same rules on an in-memory transport:
 java_client/src/test/java/cast/client/IdentityTest.java."""

@@ -1,4 +1,4 @@
-"""The streamed write path (issue 19) across languages, for the C++ and the Java probe against Python and
+"""The streamed write path across languages, for the C++ and the Java probe against Python and
 against each other: pipelined writes keep call order and report refusals on their futures, 1.5 MiB values
 go both ways (read and watched), latest delivery conflates for a slow callback whichever language writes,
 a probe's high-priority callback runs before its pending low ones, and the named errors of the Write

@@ -425,4 +425,4 @@ def test_component_quotas_reach_the_server(tmp_path: Path) -> None:
                                       "subarchitectures.v.components.c.quota.byts"}, found
 
 
-# ------------------------------------------------------------------- hosts (issue 16)
+# ------------------------------------------------------------------- hosts

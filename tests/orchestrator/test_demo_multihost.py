@@ -1,4 +1,4 @@
-"""The multi-host demo: `cast run configs/demo-multihost.yaml --for N` across three hosts (issue 16, item 6).
+"""The multi-host demo: `cast run configs/demo-multihost.yaml --for N` across three hosts.
 
 Three network namespaces made here: the orchestrator's (`cast run`, its servers and the Python
 components), the robot's (`cast agent` on port 7071, the C++ segmenter) and the workstation's

@@ -1,4 +1,4 @@
-"""Faults across hosts (issue 16, item 5): `cast run` in one network namespace, `cast agent` in another.
+"""Faults across hosts (docs/multihost.md): `cast run` in one network namespace, `cast agent` in another.
 
 One pair of namespaces joined by a veth pair on a private 10.215.x.0/24 serves the whole module;
 each test starts its own agent (some kill it) on a fixed port, and its own `cast run`. A remote

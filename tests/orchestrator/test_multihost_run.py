@@ -1,4 +1,4 @@
-"""`cast run` across hosts: components on another host started through its `cast agent` (issue 16, item 4).
+"""`cast run` across hosts: components on another host started through its `cast agent`.
 
 Two network namespaces joined by a veth pair on a private 10.214.x.0/24 made here: the
 orchestrator (`cast run`, its servers in its process) in one, `cast agent` in the other. Two

@@ -1,4 +1,4 @@
-"""A server on another host (issue 16, item 4): `cast run` starts it through that host's `cast agent`.
+"""A server on another host: `cast run` starts it through that host's `cast agent`.
 
 Two network namespaces joined by a veth pair on a private 10.217.x.0/24 made here: `cast run` (the
 directory server `main`, SA `near`, in its process) in one; `cast agent` in the other, which starts

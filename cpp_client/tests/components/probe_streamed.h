@@ -1,4 +1,4 @@
-// cast_probe's commands for the streamed write path (issue 19), in a file of
+// cast_probe's commands for the streamed write path, in a file of
 // their own: pipelined writes, large values, and the watch options (delivery,
 // priority, a slow callback). tests/interop/test_streamed_interop.py drives them.
 #pragma once

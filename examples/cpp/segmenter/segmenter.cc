@@ -67,7 +67,7 @@ const Placement kLayout[] = {
     {"green", "ball", -0.60, 0.65}, {"yellow", "cone", 0.70, 0.50},
 };
 
-double round2(double v) { return std::round(v * 100.0) / 100.0; }
+double round_to_hundredths(double v) { return std::round(v * 100.0) / 100.0; }
 
 class Segmenter : public cast::UnmanagedComponent {
  public:
@@ -139,7 +139,7 @@ class Segmenter : public cast::UnmanagedComponent {
   void move(const std::string& label, std::uint32_t frame) {
     auto obj = std::find_if(scene_.begin(), scene_.end(), [&](const TrueObject& o) { return o.label == label; });
     std::uniform_real_distribution<double> step(-0.1, 0.1);
-    obj->y = round2(std::min(0.9, std::max(0.1, obj->y + step(rng_))));
+    obj->y = round_to_hundredths(std::min(0.9, std::max(0.1, obj->y + step(rng_))));
     const std::string& id = ids_.at(label);
     // The recognisers write this entry too: lock, read, change, write.
     cast::LockGuard guard = lock(id, cast::LockMode::O, "", std::chrono::seconds(5));

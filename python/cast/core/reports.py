@@ -1,6 +1,6 @@
 """Outcomes components report (``report("answers_correct", 1)``), kept per (component, name).
 
-The store behind issue 18's part 2: the wire call takes the identity from the
+The store behind ``Component.report``: the wire call takes the identity from the
 token, calls :meth:`Reports.report` and maps its errors; the aggregates are in
 the metrics' JSON and Prometheus output (docs/experiments.md, "Metrics").
 """

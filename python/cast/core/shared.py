@@ -106,7 +106,7 @@ class SharedSession:
             self.staging_fd = -1
 
     def describe(self) -> str:
-        """How messages name it: ``shared-memory session 1a2b... of component 'x'``."""
+        """How messages name it: ``shared-memory session ab12... of component 'x'``."""
         return f"shared-memory session {self.id.hex()} of component '{self.who.component_id}'"
 
 

@@ -21,7 +21,7 @@ import java.util.concurrent.CompletionException;
 import java.util.zip.CRC32;
 
 /**
- * Driven's commands for the streamed write path (issue 19): pipelined writes, large values and
+ * Driven's commands for the streamed write path: pipelined writes, large values and
  * the watch options. The same commands as cpp_client/tests/components/probe_streamed.cc, driven
  * by tests/interop/test_streamed_interop.py.
  */

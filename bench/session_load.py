@@ -1,6 +1,6 @@
 """M9's load generator: many component sessions in one process, on grpc.aio (bench/many_components.py).
 
-`python -m bench.m9_load ENDPOINT SA TOKENS_FILE` opens one session per
+`python -m bench.session_load ENDPOINT SA TOKENS_FILE` opens one session per
 (component id, token) pair of the JSON file, each as a component would: its
 own channel, ``Directory.Register``, a ``Directory.Heartbeat`` stream beating
 every lease_ms / 3, and one ``WorkingMemory.Watch`` of the SA's BytesValue

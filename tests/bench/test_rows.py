@@ -1,4 +1,4 @@
-"""Issue 19's benchmark code without servers: delivery figures, row building and target checks."""
+"""The benchmark code that needs no server: delivery figures, row building and target checks."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, frame
 from bench.report import plot_panels
 from bench.rows import Results, rows
-from bench.rows_round2 import m1_row, m1p_row, m3_row, m8_misses, m8_row, m8_rss_bound, m9_misses, m9_row
+from bench.rows_calls import m1_row, m1p_row, m3_row
+from bench.rows_scale import m8_misses, m8_row, m8_rss_bound, m9_misses, m9_row
 from bench.stream_cases import window
 
 MS = 1_000_000  # ns
