@@ -63,8 +63,13 @@ demo: setup proto examples cpp java-demo
 	$(VENV)/bin/cast run configs/demo.yaml --for $(DEMO_SECONDS)$(if $(RECORD), --record $(RECORD))
 
 # CAST_TEST_MVN: the Maven command of the tests that build Java projects (MVN, with its local repository).
+# Two pytest workers, a test file each at a time (pytest-xdist; docs/decisions.md): most tests wait on
+# the processes they start, so two at once nearly halve the suite on 2 cores. TEST_WORKERS=0 runs it
+# in one process. The slowest tests are listed at the end.
+TEST_WORKERS ?= 2
 test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps ros-demo-types
-	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging -n $(TEST_WORKERS) --dist loadfile \
+	  --durations=15
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
