@@ -9,7 +9,7 @@ from collections.abc import Callable
 from cast_testing_pb2 import Pose
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from cast.foxglove.sink import FoxgloveSink, parse_listen
+from cast.foxglove.sink import FoxgloveSink, parse_foxglove_listen
 from cast.recording.channels import ChannelMessage, value_channel
 from tests.conftest import wait_for
 from tests.foxglove.conftest import FoxgloveClient, port_is_free
@@ -17,7 +17,7 @@ from tests.foxglove.conftest import FoxgloveClient, port_is_free
 
 def test_a_type_without_a_schema_is_said_once_and_not_announced(clients: Callable[[str], FoxgloveClient]) -> None:
     notes: list[str] = []
-    sink = FoxgloveSink(parse_listen("127.0.0.1:0"), "test", notes.append)
+    sink = FoxgloveSink(parse_foxglove_listen("127.0.0.1:0"), "test", notes.append)
     try:
         assert sink.port != 0 and sink.url == f"ws://127.0.0.1:{sink.port}"
         client = clients(sink.url)

@@ -58,8 +58,12 @@ def test_killing_random_components_releases_their_locks_and_tasks_and_the_system
     rng = random.Random(7)
     kills = 40 if soak() else 6
     wait_for(lambda: _versions(host, who) > 20, what="the churners to work")
-    for _ in range(kills):
-        victim = rng.choice(churners)
+    # The first victim holds a live task (a waiting one stays so until adopted, an adopted one 0.5 s),
+    # so that one kill at least is seen releasing a task, however slowly the churners get going.
+    wait_for(lambda: system.tasks.tasks("work"), what="a churner to hold a task")
+    first = system.tasks.tasks("work")[0].component
+    for kill in range(kills):
+        victim = first if kill == 0 else rng.choice(churners)
         wait_for(lambda v=victim: sup.components[v].pid and sup.components[v].phase is Phase.RUNNING,
                  what=f"{victim} to run")
         os.kill(sup.components[victim].pid, signal.SIGKILL)
