@@ -66,10 +66,11 @@ demo: setup proto examples cpp java-demo
 # Two pytest workers, a test file each at a time (pytest-xdist; docs/decisions.md): most tests wait on
 # the processes they start, so two at once nearly halve the suite on 2 cores. TEST_WORKERS=0 runs it
 # in one process. The slowest tests are listed at the end.
+# The package tests run among them (they wait on pip, cmake and Maven as much as they compute).
 TEST_WORKERS ?= 2
-test-python: setup proto examples bench-deps export-deps node grpcurl web-deps ros-deps ros-demo-types
-	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests --ignore=tests/packaging -n $(TEST_WORKERS) --dist loadfile \
-	  --durations=15
+test-python: setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
+  ros-demo-types
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
@@ -77,7 +78,7 @@ test-python: setup proto examples bench-deps export-deps node grpcurl web-deps r
 package-test: setup proto cpp java
 	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
-test: test-cpp test-java java-demo test-python package-test
+test: test-cpp test-java test-python
 
 # The shipped design-space experiment (docs/experiments.md): the demo's components as one, two
 # and three SAs, the vision task manager fifo or priority, each run EXPERIMENT_SECONDS, twice.
