@@ -7,8 +7,8 @@ import java.util.Set;
 /**
  * Which change events a callback wants: every set field must match; an empty
  * field matches anything. Immutable: the {@code with...} methods return a new
- * filter. Build them with the helpers of {@link Filters} (also available as
- * static methods of every component).
+ * filter. Build them with the helpers of {@link Filters} (statically imported,
+ * or qualified: {@code Filters.localTypeFilter(...)}).
  *
  * <p>A "local" filter matches the component's own subarchitecture; the SA is
  * filled in when the filter is registered with {@code onChange}, so filters can

@@ -22,9 +22,9 @@ import java.util.logging.Logger;
  * Every method may be called from any thread. Callbacks and hooks run on one
  * dispatcher thread per component, one at a time, in the order the changes and
  * decisions arrived (revision order per working memory). The filter helpers
- * ({@code localTypeFilter}, ...) are inherited from {@link Filters}.
+ * ({@code localTypeFilter}, ...) are static methods of {@link Filters}.
  */
-public abstract class Component extends Filters implements AutoCloseable {
+public abstract class Component implements AutoCloseable {
   private ComponentBinding binding; // null until connected (ComponentBinding.java)
   private final Schemas.Registered schemas = new Schemas.Registered();
   private final CountDownLatch stopping = new CountDownLatch(1);

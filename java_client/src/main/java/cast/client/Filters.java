@@ -4,14 +4,13 @@ import com.google.protobuf.Message;
 import java.util.EnumSet;
 
 /**
- * The filter helpers of the component model (docs/design.md section 5). {@link Component}
- * extends this class so that a component calls them unqualified, as JUnit 3's
- * {@code TestCase} extends {@code Assert}:
- * {@code onChange(localTypeFilter(Pose.class, Operation.ADD), this::onPose)}; a script calls
- * {@code Filters.localTypeFilter(...)}. Nothing outside the library can extend or instantiate it.
+ * The filter helpers of the component model (docs/design.md section 5), Java's form of the free
+ * functions of the Python and C++ libraries. Import them statically to call them unqualified, as
+ * JUnit 5's {@code Assertions}: {@code import static cast.client.Filters.localTypeFilter;} then
+ * {@code onChange(localTypeFilter(Pose.class, Operation.ADD), this::onPose)}.
  */
-public abstract class Filters {
-  Filters() {}
+public final class Filters {
+  private Filters() {}
 
   private static EnumSet<Operation> ops(Operation... operations) {
     EnumSet<Operation> set = EnumSet.noneOf(Operation.class);

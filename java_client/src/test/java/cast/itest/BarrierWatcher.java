@@ -1,5 +1,7 @@
 package cast.itest;
 
+import static cast.client.Filters.operationFilter;
+
 import cast.client.Operation;
 import cast.client.UnmanagedComponent;
 import cast.client.WorkingMemoryChange;

@@ -1,5 +1,7 @@
 package cast.itest;
 
+import static cast.client.Filters.localTypeFilter;
+
 import cast.client.ManagedComponent;
 import cast.client.Operation;
 import cast.client.Task;

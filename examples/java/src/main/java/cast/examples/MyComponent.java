@@ -1,5 +1,7 @@
 package cast.examples;
 
+import static cast.client.Filters.localTypeFilter;
+
 import cast.client.Args;
 import cast.client.ManagedComponent;
 import cast.client.Operation;
