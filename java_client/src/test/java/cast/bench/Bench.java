@@ -1,6 +1,7 @@
 package cast.bench;
 
 import cast.client.Component;
+import cast.client.Filters;
 import cast.client.LaunchContract;
 import cast.client.Operation;
 import cast.client.Runner;
@@ -134,7 +135,7 @@ public final class Bench {
     Map<Long, Long> stamps = new TreeMap<>();
     CountDownLatch done = new CountDownLatch(1);
     c.onChange(
-        Component.addressFilter("lat"),
+        Filters.addressFilter("lat"),
         change -> {
           long t = System.nanoTime();
           synchronized (stamps) {
@@ -173,7 +174,7 @@ public final class Bench {
     CountDownLatch ended = new CountDownLatch(1);
     WatchOptions options = delivery.equals("latest") ? WatchOptions.latest() : WatchOptions.queue();
     c.onChange(
-        Component.addressFilter("img").withEntry(),
+        Filters.addressFilter("img").withEntry(),
         change -> {
           long t = System.nanoTime();
           int size =

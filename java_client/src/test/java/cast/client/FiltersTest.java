@@ -89,15 +89,6 @@ class FiltersTest {
   }
 
   @Test
-  void componentStaticsAreTheSameHelpers() {
-    assertEquals(Filters.localTypeFilter(Counter.class), Component.localTypeFilter(Counter.class));
-    assertEquals(Filters.globalTypeFilter(Pose.class, Operation.ADD), Component.globalTypeFilter(Pose.class, Operation.ADD));
-    assertEquals(Filters.addressFilter("x"), Component.addressFilter("x"));
-    assertEquals(Filters.sourceFilter("c"), Component.sourceFilter("c"));
-    assertEquals(Filters.operationFilter(Operation.ADD), Component.operationFilter(Operation.ADD));
-  }
-
-  @Test
   void badArgumentsAreRefusedWithAClearMessage() {
     InvalidArgumentError e = assertThrows(InvalidArgumentError.class, () -> Filters.addressFilter(""));
     assertTrue(e.getMessage().contains("entry id"), e.getMessage());
