@@ -5,12 +5,15 @@ entry, at 30 Hz and back to back, and four Python watchers
 (bench/image_watcher.py) decode every value; first with the server's shared
 memory turned off (``cast serve --no-shared-memory``: every value as bytes in
 gRPC messages), then on (the writer stages each value, the watchers are lent
-it). Zenoh (bench/zenoh_peer.py: a Python publisher, four Python subscribers)
-carries the same values in the same run. Figures per phase: the watchers'
-p50 and p99 latency (write start -> callback; the first tenth of the frames
-left out), the frames lost, and the MB/s delivered to the four together.
+it). With ``--cpp`` the writer and the four watchers are C++, as M8's writer
+is (``cast_bench image-write`` / ``image-watch``: each watcher reads every byte
+of every image through its ValueView, a checksum). Zenoh (bench/zenoh_peer.py:
+a Python publisher, four Python subscribers) carries the same values in the
+same run. Figures per phase: the watchers' p50 and p99 latency (write start ->
+callback; the first tenth of the frames left out), the frames lost, and the
+MB/s delivered to the four together.
 
-``python -m bench.shared_memory [FRAMES]`` (default 150 per phase).
+``python -m bench.shared_memory [FRAMES] [--cpp]`` (default 150 per phase).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from bench import zenoh_peer
 from bench.cast_cases import Server
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.harness import PYTHON, ROOT
+from bench.other_clients import cpp_command
 
 __all__ = ["run"]
 
@@ -37,11 +41,22 @@ SIZES = (1 << 20, 6 << 20)
 HISTORY_BYTES = 64 << 20
 
 
-def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float) -> dict[str, Any]:
+def _commands(cpp: bool) -> tuple[list[str], list[str]]:
+    """The writer's and a watcher's command (without the writer's arguments)."""
+    if not cpp:
+        return [PYTHON, "-m", "bench.image_writer"], [PYTHON, "-m", "bench.image_watcher", "queue"]
+    command = cpp_command()
+    if isinstance(command, str):
+        raise RuntimeError(command)
+    return [*command, "image-write"], [*command, "image-watch", "queue"]
+
+
+def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, cpp: bool = False) -> dict[str, Any]:
+    writer, watcher = _commands(cpp)
     watchers = []
     for i in range(WATCHERS):
         env = {**os.environ, **server.env(f"{tag}-w{i}", SA)}
-        watchers.append(subprocess.Popen([PYTHON, "-m", "bench.image_watcher", "queue"], env=env, cwd=ROOT,
+        watchers.append(subprocess.Popen(watcher, env=env, cwd=ROOT,
                                          stdout=subprocess.PIPE, stderr=tempfile.TemporaryFile("w+"), text=True))
     try:
         for proc in watchers:
@@ -49,20 +64,27 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float) -> di
             if proc.stdout.readline().strip() != "ready":
                 raise RuntimeError("a watcher did not start")
         env = {**os.environ, **server.env(f"{tag}-writer", SA)}
-        out = subprocess.run([PYTHON, "-m", "bench.image_writer", str(size), str(frames), str(round(gap_s * 1e6))],
+        out = subprocess.run([*writer, str(size), str(frames), str(round(gap_s * 1e6))],
                              env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
         if out.returncode != 0:
             raise RuntimeError(f"the writer failed: {out.stderr[-800:]}")
         sent = {int(k): int(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
         got = []
+        shared = []
         for proc in watchers:
             text, _ = proc.communicate(timeout=120)
-            got.append(parse_watcher(json.loads([x for x in text.splitlines() if x.startswith("{")][-1])))
+            doc = json.loads([x for x in text.splitlines() if x.startswith("{")][-1])
+            got.append(parse_watcher(doc))
+            shared.append(doc.get("shared"))
     finally:
         for proc in watchers:
             if proc.poll() is None:
                 proc.kill()
-    return _figures(sent, got, extra=2)
+    figures = _figures(sent, got, extra=2)
+    if cpp:  # how many values each C++ watcher was lent (the rest came as bytes)
+        for w, n in zip(figures["watchers"], shared, strict=True):
+            w["shared"] = n
+    return figures
 
 
 def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dict[str, Any]:
@@ -75,8 +97,8 @@ def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dic
     return {"watchers": per, "total": totals(sent, got)}
 
 
-def run(workdir: Path, frames: int) -> dict[str, Any]:
-    """Every phase; raw figures."""
+def run(workdir: Path, frames: int, cpp: bool = False) -> dict[str, Any]:
+    """Every phase (with C++ writer and watchers if ``cpp``); raw figures."""
     out: dict[str, Any] = {}
     for name, args in (("bytes", ("--no-shared-memory",)), ("shared", ())):
         server = Server(workdir / name, [SA], limits={"history_bytes": HISTORY_BYTES}, serve_args=args)
@@ -85,7 +107,7 @@ def run(workdir: Path, frames: int) -> dict[str, Any]:
                 for pace, gap in (("30 Hz", 1 / HZ), ("back to back", 0.0)):
                     key = f"{name} {size >> 20} MiB {pace}"
                     print(f"running {key}", file=sys.stderr, flush=True)
-                    out[key] = _phase(server, f"{name}{size}{pace[0]}", size, frames, gap)
+                    out[key] = _phase(server, f"{name}{size}{pace[0]}", size, frames, gap, cpp)
         finally:
             server.stop()
     for size in SIZES:
@@ -109,7 +131,8 @@ def table(results: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
+    numbers = [a for a in sys.argv[1:] if a.isdigit()]
     with tempfile.TemporaryDirectory() as tmp:
-        results = run(Path(tmp), int(sys.argv[1]) if len(sys.argv) > 1 else 150)
+        results = run(Path(tmp), int(numbers[0]) if numbers else 150, cpp="--cpp" in sys.argv[1:])
     print(json.dumps(results))
     print(table(results))

@@ -34,10 +34,15 @@
 //                               onChange(addressFilter("img") with the entry,
 //                               Delivery queue|latest); prints "ready", then at
 //                               the DELETE of "img" one line {"stamps": {"REVISION":
-//                               NS, ...}, "bytes": B, "events": E, "skipped": S}:
-//                               every overwrite received (its value decoded), the
-//                               value bytes, the events received (add and delete
-//                               too) and the changes a latest watch skipped
+//                               NS, ...}, "bytes": B, "events": E, "skipped": S,
+//                               "shared": H, "checksum": C}: every overwrite
+//                               received, each read whole through its ValueView
+//                               (every byte of the image, field 1, summed: no copy
+//                               on the server's host, where the value is lent by
+//                               shared memory), the image bytes, the events
+//                               received (add and delete too), the changes a
+//                               latest watch skipped, and how many values came by
+//                               shared memory
 //
 // CLOCK_MONOTONIC is shared by every process of a Linux machine, so the stamps
 // compare with the other process's and with Python's time.perf_counter_ns.
@@ -177,7 +182,7 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::condition_variable done;
   bool ended = false;
   std::map<std::uint64_t, std::int64_t> stamps;
-  std::uint64_t bytes = 0, events = 0, skipped = 0;
+  std::uint64_t bytes = 0, events = 0, skipped = 0, shared = 0, checksum = 0;
   cast::WatchOptions options;
   options.delivery = delivery == "latest" ? cast::Delivery::Latest : cast::Delivery::Queue;
   c.onChange(
@@ -192,13 +197,19 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
           done.notify_all();
           return;
         }
-        const auto size = change.entry<google::protobuf::BytesValue>().value.value().size();  // decoded, as a consumer would
+        // Every byte of the image read where it is, as a consumer of frames would.
+        const cast::ValueView view = change.view();
+        const cast::ByteSpan pixels = view.field(1);
+        std::uint64_t sum = 0;
+        for (const std::byte b : pixels) sum += static_cast<std::uint8_t>(b);
         std::lock_guard<std::mutex> lock(mu);
         ++events;
         skipped += change.skipped();
+        checksum += sum;
+        shared += view.shared() ? 1 : 0;
         if (change.operation() == cast::Operation::Overwrite) {
           stamps[change.revision()] = t;
-          bytes += size;
+          bytes += pixels.size();
         }
       },
       options);
@@ -206,7 +217,8 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::unique_lock<std::mutex> lock(mu);
   done.wait_for(lock, std::chrono::seconds(300), [&] { return ended; });
   std::cout << "{\"stamps\": " << stampsJson(stamps) << ", \"bytes\": " << bytes << ", \"events\": " << events
-            << ", \"skipped\": " << skipped << "}" << std::endl;
+            << ", \"skipped\": " << skipped << ", \"shared\": " << shared << ", \"checksum\": " << checksum << "}"
+            << std::endl;
   return 0;
 }
 

@@ -2,7 +2,9 @@
 // calls, docs/client-protocol.md call by call. The streams it keeps open live
 // beside it: write_stream.cc (Write: every write and lock), watch_stream.cc
 // (Watch), session.cc (Register and Heartbeat, and the start barrier's
-// AwaitRun); the decision stream is here, being one loop.
+// AwaitRun); the decision stream is here, being one loop. Large values go by
+// shared memory with a server on this host (shm.cc, shm_session.cc): staged
+// here for writes, claimed by conversions.cc for reads and events.
 // Mirrors the Python client's client/grpc_transport.py.
 #include "cast/grpc_transport.h"
 
@@ -30,6 +32,21 @@ namespace {
 // server's answer: the server ends the wait itself at the timeout, the margin
 // is the answer's way back (docs/client-protocol.md, "Deadlines").
 constexpr Millis kLockReplyMargin{1000};
+// How long asking a server where its shared memory is may take: it is asked
+// on the way of a write, a read or a watch.
+constexpr Millis kDescribeShared{5000};
+
+// The values of one write request staged in shared memory, and the sessions
+// they are staged in.
+using Staging = std::vector<std::pair<std::shared_ptr<ClientSession>, Staged>>;
+
+// The write is over: its staging regions are free again, unless its outcome
+// is unknown (its stream broke, its deadline passed): the request may still
+// be applied, and the server would copy whatever the regions then hold.
+void unstage(const Staging& staged, const CastError* error) {
+  const bool known = error == nullptr || (error->code() != "UNAVAILABLE" && error->code() != "DEADLINE_EXCEEDED");
+  for (const auto& [session, region] : staged) session->unstage(region, known);
+}
 
 class GrpcTransport final : public Transport {
  public:
@@ -43,8 +60,11 @@ class GrpcTransport final : public Transport {
         session_(tokens_, timeout_, log_) {
     auto directory = std::make_unique<Server>(endpoint, tls_);
     directory_ = directory.get();
+    attachShared(*directory_);
     servers_[endpoint] = std::move(directory);
-    describe();
+    // The directory's server said where its shared memory is: the session
+    // with it opens now, so that no call waits for it later.
+    directory_->shared->open(describe());
   }
 
   ~GrpcTransport() override { close(); }
@@ -57,23 +77,35 @@ class GrpcTransport final : public Transport {
 
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
-    return writeResult(write(sa, addRequest(sa, id, type, data)).write());
+    Staging staged;
+    v1::WriteRequest request = addRequest(sa, id, type, stage(server(sa), data, staged));
+    name(staged, request);
+    return writeResult(write(sa, std::move(request), staged).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
-    return writeResult(write(sa, overwriteRequest(sa, id, type, data, expectedVersion)).write());
+    Staging staged;
+    v1::WriteRequest request = overwriteRequest(sa, id, type, stage(server(sa), data, staged), expectedVersion);
+    name(staged, request);
+    return writeResult(write(sa, std::move(request), staged).write());
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
-    return writeStream(sa).writeAsync(addRequest(sa, id, type, data));
+    Staging staged;
+    v1::WriteRequest request = addRequest(sa, id, type, stage(server(sa), data, staged));
+    name(staged, request);
+    return writeAsync(sa, std::move(request), std::move(staged));
   }
 
   std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
-    return writeStream(sa).writeAsync(overwriteRequest(sa, id, type, data, expectedVersion));
+    Staging staged;
+    v1::WriteRequest request = overwriteRequest(sa, id, type, stage(server(sa), data, staged), expectedVersion);
+    name(staged, request);
+    return writeAsync(sa, std::move(request), std::move(staged));
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
@@ -83,8 +115,26 @@ class GrpcTransport final : public Transport {
 
   std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) override {
     if (ops.empty()) return {};
-    // A batch is applied by one server: the one of its first operation's SA.
-    v1::WriteReply reply = write(ops.front().subarchitecture, batchRequest(ops));
+    // A batch is applied by one server: the one of its first operation's SA;
+    // its large values are staged in the session with that server.
+    const std::string& target = ops.front().subarchitecture;
+    Server& s = server(target);
+    v1::WriteRequest request = batchRequest(ops);
+    Staging staged;
+    for (std::size_t i = 0; i < ops.size(); ++i) {
+      if (ops[i].operation == Operation::Delete) continue;
+      const std::size_t before = staged.size();
+      stage(s, ops[i].data, staged);
+      if (staged.size() == before) continue;
+      auto* item = request.mutable_batch()->mutable_operations(static_cast<int>(i));
+      google::protobuf::Any* value = item->has_add() ? item->mutable_add()->mutable_value()
+                                                     : item->mutable_overwrite()->mutable_value();
+      value->clear_value();
+      v1::StagedValue* out = item->has_add() ? item->mutable_add()->mutable_staged_value()
+                                             : item->mutable_overwrite()->mutable_staged_value();
+      staged.back().first->describe(staged.back().second, out);
+    }
+    v1::WriteReply reply = write(target, std::move(request), staged);
     std::vector<WriteResult> out;
     for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
     return out;
@@ -92,11 +142,22 @@ class GrpcTransport final : public Transport {
 
   // ---------------------------------------------------------------- reads
 
+  // A read on the server's host asks to be lent its large values (shm.h):
+  // its metadata names the session and the call, and the call's end says
+  // what it received.
+
   EntryRecord get(const std::string& sa, const std::string& id) override {
     v1::GetRequest req;
     *req.mutable_address() = addressPb(sa, id);
     Server& s = server(sa);
-    return entryFromPb(call<v1::GetResponse>([&](auto* ctx, auto* r) { return s.wm->Get(ctx, req, r); }).entry());
+    std::unique_ptr<ReadCall> read = s.shared->read();
+    auto resp = call<v1::GetResponse>([&](auto* ctx, auto* r) {
+      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+      return s.wm->Get(ctx, req, r);
+    });
+    EntryRecord record = entryFromPb(resp.entry(), read.get());
+    if (read) read->end(true);
+    return record;
   }
 
   std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type, std::uint32_t limit) override {
@@ -105,10 +166,15 @@ class GrpcTransport final : public Transport {
     req.set_type(type);
     req.set_limit(limit);
     Server& s = server(sa);
-    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) { return s.wm->GetByType(ctx, req, r); });
+    std::unique_ptr<ReadCall> read = s.shared->read();
+    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) {
+      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+      return s.wm->GetByType(ctx, req, r);
+    });
     std::vector<EntryRecord> out;
     out.reserve(static_cast<std::size_t>(resp.entries_size()));
-    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e));
+    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e, read.get()));
+    if (read) read->end(true);
     return out;
   }
 
@@ -337,6 +403,9 @@ class GrpcTransport final : public Transport {
     if (decisionContext) decisionContext->TryCancel();
     session_.close();
     if (decisions_.joinable()) decisions_.join();
+    // Last: values still held (views, changes) stay readable; they are given
+    // back with the session's end.
+    for (Server* s : allServers()) s->shared->close();
   }
 
  private:
@@ -351,6 +420,64 @@ class GrpcTransport final : public Transport {
   v1::WriteReply write(const std::string& sa, v1::WriteRequest request) {
     return write(sa, std::move(request), std::optional<Millis>(timeout_));
   }
+  // A write with values staged in shared memory: their regions are freed when
+  // it is over (unstage).
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, const Staging& staged) {
+    try {
+      v1::WriteReply reply = write(sa, std::move(request));
+      unstage(staged, nullptr);
+      return reply;
+    } catch (const CastError& e) {
+      unstage(staged, &e);
+      throw;
+    } catch (...) {
+      const UnavailableError unknown("the write failed while it was sent");
+      unstage(staged, &unknown);
+      throw;
+    }
+  }
+  std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged) {
+    if (staged.empty()) return writeStream(sa).writeAsync(std::move(request));
+    return writeStream(sa).writeAsync(std::move(request), [staged = std::move(staged)](
+                                                              const std::shared_ptr<CastError>& error) {
+      unstage(staged, error.get());
+    });
+  }
+
+  // What a write request carries of `data`: nothing when it was staged in
+  // shared memory with `s` (large, on the server's host, room in the staging
+  // area; recorded in `staged`), else the bytes themselves.
+  const std::string& stage(Server& s, const std::string& data, Staging& staged) {
+    static const std::string kNone;
+    std::shared_ptr<ClientSession> session = s.shared->session();
+    if (!session || data.size() < session->threshold()) return data;
+    std::optional<Staged> region = session->stage(data);
+    if (!region) return data;
+    staged.emplace_back(std::move(session), *region);
+    return kNone;
+  }
+  // Names the one value staged for an add or overwrite in its request.
+  static void name(const Staging& staged, v1::WriteRequest& request) {
+    if (staged.empty()) return;
+    v1::StagedValue* out = request.has_add() ? request.mutable_add()->mutable_staged_value()
+                                             : request.mutable_overwrite()->mutable_staged_value();
+    staged.front().first->describe(staged.front().second, out);
+  }
+
+  // Shared memory with `s` when on its host (shm.h), opened when first needed.
+  void attachShared(Server& s) {
+    Server* server = &s;
+    s.shared = std::make_shared<SharedLink>(
+        s.endpoint, tokens_,
+        [this, server] {
+          // The server itself says where its shared memory is: ask it, not the directory.
+          const v1::DescribeSystemRequest req;
+          return call<v1::SystemDescription>(
+              [&](auto* ctx, auto* r) { return server->dir->DescribeSystem(ctx, req, r); },
+              std::optional<Millis>(std::min(kDescribeShared, timeout_)));
+        },
+        log_);
+  }
 
   // A unary call bounded by `deadline` (nullopt: none).
   template <class Resp, class Fn>
@@ -363,8 +490,8 @@ class GrpcTransport final : public Transport {
     return call<Resp>(std::forward<Fn>(fn), std::optional<Millis>(timeout_));
   }
 
-  // Learns which server serves each SA (Directory.DescribeSystem).
-  void describe() {
+  // Learns which server serves each SA (Directory.DescribeSystem); the answer.
+  v1::SystemDescription describe() {
     v1::DescribeSystemRequest req;
     Server* d = directory_;
     auto desc = call<v1::SystemDescription>([&](auto* ctx, auto* r) { return d->dir->DescribeSystem(ctx, req, r); });
@@ -376,12 +503,16 @@ class GrpcTransport final : public Transport {
         routes_[sa.name()] = directory_;
       } else {
         auto& slot = servers_[sa.endpoint()];
-        if (!slot) slot = std::make_unique<Server>(sa.endpoint(), tls_);
+        if (!slot) {
+          slot = std::make_unique<Server>(sa.endpoint(), tls_);
+          attachShared(*slot);
+        }
         routes_[sa.name()] = slot.get();
       }
     }
     // A Write stream per server, opened by its first write.
     for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_, timeout_);
+    return desc;
   }
 
   // An SA the directory does not know goes to the directory's server, which
