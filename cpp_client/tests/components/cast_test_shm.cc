@@ -208,10 +208,12 @@ int readMode(Peer& peer, const std::string& option) {
 }
 
 int getMode(Peer& peer) {
-  cast::ValueView view = peer.getView("img");
-  const int k = which(view.field(1).chars());
-  const bool same = peer.get<google::protobuf::BytesValue>("img").value() == view.field(1).chars();
-  say("READ " + std::to_string(k) + " " + (view.shared() ? "1" : "0") + " " + (same ? "1" : "0"));
+  {
+    const cast::ValueView view = peer.getView("img");
+    const int k = which(view.field(1).chars());
+    const bool same = peer.get<google::protobuf::BytesValue>("img").value() == view.field(1).chars();
+    say("READ " + std::to_string(k) + " " + (view.shared() ? "1" : "0") + " " + (same ? "1" : "0"));
+  }  // the view gives the value back here
   waitForStdinEnd();
   return 0;
 }
