@@ -36,18 +36,6 @@ constexpr Millis kLockReplyMargin{1000};
 // on the way of a write, a read or a watch.
 constexpr Millis kDescribeShared{5000};
 
-// The values of one write request staged in shared memory, and the sessions
-// they are staged in.
-using Staging = std::vector<std::pair<std::shared_ptr<ClientSession>, Staged>>;
-
-// The write is over: its staging regions are free again, unless its outcome
-// is unknown (its stream broke, its deadline passed): the request may still
-// be applied, and the server would copy whatever the regions then hold.
-void unstage(const Staging& staged, const CastError* error) {
-  const bool known = error == nullptr || (error->code() != "UNAVAILABLE" && error->code() != "DEADLINE_EXCEEDED");
-  for (const auto& [session, region] : staged) session->unstage(region, known);
-}
-
 class GrpcTransport final : public Transport {
  public:
   GrpcTransport(const std::string& endpoint, const std::string& token, Identity identity,
@@ -78,24 +66,25 @@ class GrpcTransport final : public Transport {
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
     Staging staged;
-    v1::WriteRequest request = addRequest(sa, id, type, stage(server(sa), data, staged));
-    name(staged, request);
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
+                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
     return writeResult(write(sa, std::move(request), staged).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
     Staging staged;
-    v1::WriteRequest request = overwriteRequest(sa, id, type, stage(server(sa), data, staged), expectedVersion);
-    name(staged, request);
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
     return writeResult(write(sa, std::move(request), staged).write());
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
     Staging staged;
-    v1::WriteRequest request = addRequest(sa, id, type, stage(server(sa), data, staged));
-    name(staged, request);
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
+                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
     return writeAsync(sa, std::move(request), std::move(staged));
   }
 
@@ -103,8 +92,9 @@ class GrpcTransport final : public Transport {
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
     Staging staged;
-    v1::WriteRequest request = overwriteRequest(sa, id, type, stage(server(sa), data, staged), expectedVersion);
-    name(staged, request);
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
     return writeAsync(sa, std::move(request), std::move(staged));
   }
 
@@ -118,22 +108,8 @@ class GrpcTransport final : public Transport {
     // A batch is applied by one server: the one of its first operation's SA;
     // its large values are staged in the session with that server.
     const std::string& target = ops.front().subarchitecture;
-    Server& s = server(target);
-    v1::WriteRequest request = batchRequest(ops);
     Staging staged;
-    for (std::size_t i = 0; i < ops.size(); ++i) {
-      if (ops[i].operation == Operation::Delete) continue;
-      const std::size_t before = staged.size();
-      stage(s, ops[i].data, staged);
-      if (staged.size() == before) continue;
-      auto* item = request.mutable_batch()->mutable_operations(static_cast<int>(i));
-      google::protobuf::Any* value = item->has_add() ? item->mutable_add()->mutable_value()
-                                                     : item->mutable_overwrite()->mutable_value();
-      value->clear_value();
-      v1::StagedValue* out = item->has_add() ? item->mutable_add()->mutable_staged_value()
-                                             : item->mutable_overwrite()->mutable_staged_value();
-      staged.back().first->describe(staged.back().second, out);
-    }
+    v1::WriteRequest request = stagedBatch(*server(target).shared, ops, staged);
     v1::WriteReply reply = write(target, std::move(request), staged);
     std::vector<WriteResult> out;
     for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
@@ -444,25 +420,6 @@ class GrpcTransport final : public Transport {
     });
   }
 
-  // What a write request carries of `data`: nothing when it was staged in
-  // shared memory with `s` (large, on the server's host, room in the staging
-  // area; recorded in `staged`), else the bytes themselves.
-  const std::string& stage(Server& s, const std::string& data, Staging& staged) {
-    static const std::string kNone;
-    std::shared_ptr<ClientSession> session = s.shared->session();
-    if (!session || data.size() < session->threshold()) return data;
-    std::optional<Staged> region = session->stage(data);
-    if (!region) return data;
-    staged.emplace_back(std::move(session), *region);
-    return kNone;
-  }
-  // Names the one value staged for an add or overwrite in its request.
-  static void name(const Staging& staged, v1::WriteRequest& request) {
-    if (staged.empty()) return;
-    v1::StagedValue* out = request.has_add() ? request.mutable_add()->mutable_staged_value()
-                                             : request.mutable_overwrite()->mutable_staged_value();
-    staged.front().first->describe(staged.front().second, out);
-  }
 
   // Shared memory with `s` when on its host (shm.h), opened when first needed.
   void attachShared(Server& s) {

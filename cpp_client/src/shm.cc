@@ -16,6 +16,7 @@
 #include <system_error>
 
 #include "cast/errors.h"
+#include "conversions.h"
 #include "shm_wire.h"
 
 namespace cast::detail {
@@ -297,6 +298,55 @@ void SharedLink::close() {
     s.swap(session_);
   }
   if (s) s->close();
+}
+
+// ------------------------------------------------------------------ writes
+
+namespace {
+
+// Stages `data` in the session of `link` when it is large enough and fits
+// (recorded in `staged`); false: the bytes go in the request.
+bool stage(SharedLink& link, const std::string& data, Staging& staged) {
+  std::shared_ptr<ClientSession> session = link.session();
+  if (!session || data.size() < session->threshold()) return false;
+  std::optional<Staged> region = session->stage(data);
+  if (!region) return false;
+  staged.emplace_back(std::move(session), *region);
+  return true;
+}
+
+// The value fields of an add or overwrite (of a request or a batch item).
+template <class Item>
+std::pair<google::protobuf::Any*, v1::StagedValue*> valueOf(Item* item) {
+  if (item->has_add()) return {item->mutable_add()->mutable_value(), item->mutable_add()->mutable_staged_value()};
+  return {item->mutable_overwrite()->mutable_value(), item->mutable_overwrite()->mutable_staged_value()};
+}
+
+}  // namespace
+
+v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build) {
+  static const std::string kNone;
+  if (!stage(link, data, staged)) return build(data);
+  v1::WriteRequest request = build(kNone);
+  staged.back().first->describe(staged.back().second, valueOf(&request).second);
+  return request;
+}
+
+v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged) {
+  v1::WriteRequest request = batchRequest(ops);
+  for (std::size_t i = 0; i < ops.size(); ++i) {
+    if (ops[i].operation == Operation::Delete || !stage(link, ops[i].data, staged)) continue;
+    auto [value, named] = valueOf(request.mutable_batch()->mutable_operations(static_cast<int>(i)));
+    value->clear_value();
+    staged.back().first->describe(staged.back().second, named);
+  }
+  return request;
+}
+
+void unstage(const Staging& staged, const CastError* error) {
+  const bool known = error == nullptr || (error->code() != "UNAVAILABLE" && error->code() != "DEADLINE_EXCEEDED");
+  for (const auto& [session, region] : staged) session->unstage(region, known);
 }
 
 }  // namespace cast::detail

@@ -15,13 +15,17 @@
 
 #include <chrono>
 #include <functional>
+#include <utility>
+#include <vector>
 #include <memory>
 #include <mutex>
 #include <stdexcept>
 #include <string>
 
 #include "cast/credentials.h"
+#include "cast/errors.h"
 #include "cast/log.h"
+#include "cast/transport.h"
 #include "cast/v1/directory.pb.h"
 #include "shm_session.h"
 
@@ -97,5 +101,27 @@ class SharedLink {
   bool closed_ = false;
   std::string reason_;
 };
+
+// ------------------------------------------------------------------ writes
+// docs/client-protocol.md, "Writing a large value".
+
+// The values of one write request staged in shared memory, and the sessions
+// they are staged in.
+using Staging = std::vector<std::pair<std::shared_ptr<ClientSession>, Staged>>;
+
+// An add or overwrite of `data`: `build(bytes)` makes the request with the
+// bytes it carries, which are none when the value was staged in the session
+// of `link` (large, on the server's host, room in the staging area; recorded
+// in `staged` and named in the request).
+v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build);
+// A batch of `ops`, its large values staged in the session of `link` (the
+// server the batch goes to).
+v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged);
+// The write is over (`error`: why it failed, nullptr if it did not): its
+// staging regions are free again, unless its outcome is unknown (its stream
+// broke, its deadline passed): the request may still be applied, and the
+// server would copy whatever the regions then hold.
+void unstage(const Staging& staged, const CastError* error);
 
 }  // namespace cast::detail
