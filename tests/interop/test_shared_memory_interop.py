@@ -19,7 +19,7 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -108,6 +108,16 @@ def frames_of(reader: Lines) -> list[tuple[int, int]]:
     return [(g[1], g[2]) for g in got(reader)]
 
 
+def has_got(reader: Lines, count: int) -> Callable[[], bool]:
+    """Whether ``reader`` printed ``count`` values, as a condition to wait for."""
+    return lambda: len(got(reader)) == count
+
+
+def frames_are(reader: Lines, expected: list[tuple[int, int]]) -> Callable[[], bool]:
+    """Whether ``reader`` printed these (frame, shared), as a condition to wait for."""
+    return lambda: frames_of(reader) == expected
+
+
 def shared(handle: ServerHandle) -> dict[str, Any]:
     """The server's shared-memory figures (what `cast stats` shows)."""
     with grpc.insecure_channel(handle.endpoint) as channel:
@@ -139,7 +149,7 @@ def test_values_by_shared_memory_are_identical_in_every_language(
     writer = peers.start(writer_lang, shm_server.env(f"writer-{writer_lang}", "vision"), "write", "3")
     writer.wait("DONE")
     for lang, reader in readers.items():
-        wait_for(lambda r=reader: len(got(r)) == 3, what=f"three values to the {lang} reader")
+        wait_for(has_got(reader, 3), what=f"three values to the {lang} reader")
         assert frames_of(reader) == [(k, 1) for k in range(3)], (lang, reader.lines)
     for lang in NATIVE:
         # The view read the bytes of the decoded entry, every byte of them (the checksum).
@@ -185,7 +195,7 @@ def test_shared_memory_turned_off_gives_identical_values_as_bytes(
     writer = peers.start(writer_lang, {**shm_server.env("off-writer", "vision"), **off}, "write", "2")
     writer.wait("DONE")
     for lang, reader in readers.items():
-        wait_for(lambda r=reader: len(got(r)) == 2, what=f"two values to the {lang} reader")
+        wait_for(has_got(reader, 2), what=f"two values to the {lang} reader")
         assert frames_of(reader) == [(0, 0), (1, 0)], (lang, reader.lines)
     wait_for(lambda: frames_of(on) == [(0, 1), (1, 1)], what="the values by shared memory beside them")
     assert shared(shm_server)["staged_writes"] == before["staged_writes"]  # the writer sent bytes
@@ -225,9 +235,10 @@ def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(tmp_pat
             reader.wait("WATCHING")
         peer(srv_ns, NATIVE[0], "writer", "write", "3").wait("DONE")
         for lang in NATIVE:
-            wait_for(lambda f=far[lang], n=near[lang]: frames_of(f) == [(k, 0) for k in range(3)]
-                     and frames_of(n) == [(k, 1) for k in range(3)],
-                     what=f"every value to {lang}: as bytes across the namespaces, by shared memory beside the server")
+            wait_for(frames_are(far[lang], [(k, 0) for k in range(3)]),
+                     what=f"every value to {lang} across the namespaces, as bytes")
+            wait_for(frames_are(near[lang], [(k, 1) for k in range(3)]),
+                     what=f"every value to {lang} beside the server, by shared memory")
             assert said_once(far[lang].lines, "not reachable from here"), far[lang].lines
     finally:
         stop_all(procs)
