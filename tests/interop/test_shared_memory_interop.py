@@ -171,12 +171,15 @@ def test_a_reader_cannot_write_the_memory_it_was_lent(shm_server: ServerHandle, 
     bold.wait("WATCHING")
     witness.wait("WATCHING")
     peers.start(lang, shm_server.env("writer", "vision"), "write", "1").wait("DONE")
+    # Each language tries what it can (C++: mprotect, pwrite and mmap of the memory file opened again by its
+    # path, a child writing through the view), one `name=result` each: none may be allowed.
     attempt = bold.wait("WRITE").split()[1:]
     results = dict(part.split("=", 1) for part in attempt)
-    assert set(results) == {"mprotect", "pwrite", "mmap", "child"}, attempt
-    assert "allowed" not in " ".join(attempt), attempt
-    assert results["child"] == "SIGSEGV", attempt  # a write through the view itself: the kernel stops it
-    assert results["pwrite"] == "EPERM" and results["mmap"] == "EPERM", attempt  # the seal, through a path too
+    assert results and "allowed" not in " ".join(attempt), attempt
+    if lang == "cpp":
+        assert set(results) == {"mprotect", "pwrite", "mmap", "child"}, attempt
+        assert results["child"] == "SIGSEGV", attempt  # a write through the view itself: the kernel stops it
+        assert results["pwrite"] == "EPERM" and results["mmap"] == "EPERM", attempt  # the seal, through a path too
     assert bold.wait("AFTER").split()[1] == "0"  # still frame 0
     wait_for(lambda: frames_of(witness) == [(0, 1)], what="the witness's value")
 
