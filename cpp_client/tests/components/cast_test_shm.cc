@@ -1,7 +1,7 @@
 // cast_test_shm: a writer or a reader of large values as a process of its
-// own, the C++ side of tests/interop/test_shared_memory_interop.py. The same
-// lines as tests/reliability/components/shm_peer.py (Python), so a test
-// drives either:
+// own, the C++ side of tests/interop/test_shared_memory_cpp.py. The same
+// lines as tests/reliability/components/shm_peer.py (Python) and
+// cast.itest.ShmPeer (Java), so a test drives any of them:
 //
 //   cast_test_shm write N    adds "img" (or overwrites it if it exists) and
 //                            overwrites it, N values of 1 MiB in all (value k
@@ -15,7 +15,9 @@
 //                            frame), shared 1 if it came by shared memory,
 //                            same 1 if the decoded entry (entry<BytesValue>)
 //                            has the view's bytes, sum a checksum of every
-//                            byte read through the view. "hold" keeps a view
+//                            byte read through the view; then "MISMATCH
+//                            revision" if the view and the decoded entry
+//                            differ. "hold" keeps a view
 //                            of every value; "trywrite" tries, on the first
 //                            value lent, to write the memory it is in, and
 //                            prints "WRITE mprotect=R pwrite=R mmap=R child=R"
@@ -194,6 +196,7 @@ int readMode(Peer& peer, const std::string& option) {
                   line << "GOT " << change.revision() << " " << k << " " << (view.shared() ? 1 : 0) << " "
                        << (same ? 1 : 0) << " " << checksum(view.data());
                   say(line.str());
+                  if (!same) say("MISMATCH " + std::to_string(change.revision()));
                   std::lock_guard<std::mutex> lock(mu);
                   if (option == "trywrite" && view.shared() && !tried) {
                     tried = true;

@@ -1,5 +1,5 @@
-"""Large values by shared memory across languages, over a real `cast serve` (docs/client-protocol.md, "Large values by
-shared memory").
+"""Large values by shared memory with the C++ client and across languages, over a real `cast serve`
+(docs/client-protocol.md, "Large values by shared memory").
 
 Writers and readers are processes of their own that print the same lines in every language:
 tests/reliability/components/shm_peer.py (Python) and cast_test_shm (C++,
@@ -151,6 +151,7 @@ def test_values_by_shared_memory_are_identical_in_every_language(
     for lang, reader in readers.items():
         wait_for(has_got(reader, 3), what=f"three values to the {lang} reader")
         assert frames_of(reader) == [(k, 1) for k in range(3)], (lang, reader.lines)
+        assert not [x for x in reader.lines if x.startswith("MISMATCH")], reader.lines  # view == decoded entry
     for lang in NATIVE:
         # The view read the bytes of the decoded entry, every byte of them (the checksum).
         sums = [checksum(BytesValue(value=frame(k)).SerializeToString()) for k in range(3)]
