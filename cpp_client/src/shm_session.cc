@@ -333,7 +333,7 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
     pollfd p{socket_, POLLIN, 0};
     ::poll(&p, 1, static_cast<int>(wait.count()));
   }
-  std::string data;
+  std::string& data = received_;
   while (!dead_) {
     std::optional<std::vector<int>> fds;
     try {

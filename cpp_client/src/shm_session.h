@@ -194,8 +194,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::mutex unsentMu_;  // guards unsent_
   std::vector<std::uint64_t> unsent_;  // value ids given back, not yet sent
 
-  std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_
+  std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_ and received_
   shm::FrameReader reader_;
+  std::string received_;  // what one read gave (kept: a read per write or call must not allocate)
 
   mutable std::mutex stateMu_;  // guards what follows
   std::shared_ptr<Mapping> staging_;  // null once the session ended
