@@ -2,7 +2,9 @@
 // calls, docs/client-protocol.md call by call. The streams it keeps open live
 // beside it: write_stream.cc (Write: every write and lock), watch_stream.cc
 // (Watch), session.cc (Register and Heartbeat, and the start barrier's
-// AwaitRun); the decision stream is here, being one loop.
+// AwaitRun); the decision stream is here, being one loop. Large values go by
+// shared memory with a server on this host (shm.cc, shm_session.cc): staged
+// here for writes, claimed by conversions.cc for reads and events.
 // Mirrors the Python client's client/grpc_transport.py.
 #include "cast/grpc_transport.h"
 
@@ -30,6 +32,9 @@ namespace {
 // server's answer: the server ends the wait itself at the timeout, the margin
 // is the answer's way back (docs/client-protocol.md, "Deadlines").
 constexpr Millis kLockReplyMargin{1000};
+// How long asking a server where its shared memory is may take: it is asked
+// on the way of a write, a read or a watch.
+constexpr Millis kDescribeShared{5000};
 
 class GrpcTransport final : public Transport {
  public:
@@ -43,8 +48,11 @@ class GrpcTransport final : public Transport {
         session_(tokens_, timeout_, log_) {
     auto directory = std::make_unique<Server>(endpoint, tls_);
     directory_ = directory.get();
+    attachShared(*directory_);
     servers_[endpoint] = std::move(directory);
-    describe();
+    // The directory's server said where its shared memory is: the session
+    // with it opens now, so that no call waits for it later.
+    directory_->shared->open(describe());
   }
 
   ~GrpcTransport() override { close(); }
@@ -57,23 +65,37 @@ class GrpcTransport final : public Transport {
 
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
-    return writeResult(write(sa, addRequest(sa, id, type, data)).write());
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
+                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
+    return writeResult(write(sa, std::move(request), staged).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
-    return writeResult(write(sa, overwriteRequest(sa, id, type, data, expectedVersion)).write());
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
+    return writeResult(write(sa, std::move(request), staged).write());
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
-    return writeStream(sa).writeAsync(addRequest(sa, id, type, data));
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
+                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
+    return writeAsync(sa, std::move(request), std::move(staged));
   }
 
   std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
-    return writeStream(sa).writeAsync(overwriteRequest(sa, id, type, data, expectedVersion));
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
+    return writeAsync(sa, std::move(request), std::move(staged));
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
@@ -83,8 +105,12 @@ class GrpcTransport final : public Transport {
 
   std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) override {
     if (ops.empty()) return {};
-    // A batch is applied by one server: the one of its first operation's SA.
-    v1::WriteReply reply = write(ops.front().subarchitecture, batchRequest(ops));
+    // A batch is applied by one server: the one of its first operation's SA;
+    // its large values are staged in the session with that server.
+    const std::string& target = ops.front().subarchitecture;
+    Staging staged;
+    v1::WriteRequest request = stagedBatch(*server(target).shared, ops, staged);
+    v1::WriteReply reply = write(target, std::move(request), staged);
     std::vector<WriteResult> out;
     for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
     return out;
@@ -92,11 +118,22 @@ class GrpcTransport final : public Transport {
 
   // ---------------------------------------------------------------- reads
 
+  // A read on the server's host asks to be lent its large values (shm.h):
+  // its metadata names the session and the call, and the call's end says
+  // what it received.
+
   EntryRecord get(const std::string& sa, const std::string& id) override {
     v1::GetRequest req;
     *req.mutable_address() = addressPb(sa, id);
     Server& s = server(sa);
-    return entryFromPb(call<v1::GetResponse>([&](auto* ctx, auto* r) { return s.wm->Get(ctx, req, r); }).entry());
+    std::unique_ptr<ReadCall> read = s.shared->read();
+    auto resp = call<v1::GetResponse>([&](auto* ctx, auto* r) {
+      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+      return s.wm->Get(ctx, req, r);
+    });
+    EntryRecord record = entryFromPb(resp.entry(), read.get());
+    if (read) read->end(true);
+    return record;
   }
 
   std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type, std::uint32_t limit) override {
@@ -105,10 +142,15 @@ class GrpcTransport final : public Transport {
     req.set_type(type);
     req.set_limit(limit);
     Server& s = server(sa);
-    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) { return s.wm->GetByType(ctx, req, r); });
+    std::unique_ptr<ReadCall> read = s.shared->read();
+    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) {
+      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+      return s.wm->GetByType(ctx, req, r);
+    });
     std::vector<EntryRecord> out;
     out.reserve(static_cast<std::size_t>(resp.entries_size()));
-    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e));
+    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e, read.get()));
+    if (read) read->end(true);
     return out;
   }
 
@@ -337,6 +379,9 @@ class GrpcTransport final : public Transport {
     if (decisionContext) decisionContext->TryCancel();
     session_.close();
     if (decisions_.joinable()) decisions_.join();
+    // Last: values still held (views, changes) stay readable; they are given
+    // back with the session's end.
+    for (Server* s : allServers()) s->shared->close();
   }
 
  private:
@@ -351,6 +396,45 @@ class GrpcTransport final : public Transport {
   v1::WriteReply write(const std::string& sa, v1::WriteRequest request) {
     return write(sa, std::move(request), std::optional<Millis>(timeout_));
   }
+  // A write with values staged in shared memory: their regions are freed when
+  // it is over (unstage).
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, const Staging& staged) {
+    try {
+      v1::WriteReply reply = write(sa, std::move(request));
+      unstage(staged, nullptr);
+      return reply;
+    } catch (const CastError& e) {
+      unstage(staged, &e);
+      throw;
+    } catch (...) {
+      const UnavailableError unknown("the write failed while it was sent");
+      unstage(staged, &unknown);
+      throw;
+    }
+  }
+  std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged) {
+    if (staged.empty()) return writeStream(sa).writeAsync(std::move(request));
+    return writeStream(sa).writeAsync(std::move(request), [staged = std::move(staged)](
+                                                              const std::shared_ptr<CastError>& error) {
+      unstage(staged, error.get());
+    });
+  }
+
+
+  // Shared memory with `s` when on its host (shm.h), opened when first needed.
+  void attachShared(Server& s) {
+    Server* server = &s;
+    s.shared = std::make_shared<SharedLink>(
+        s.endpoint, tokens_,
+        [this, server] {
+          // The server itself says where its shared memory is: ask it, not the directory.
+          const v1::DescribeSystemRequest req;
+          return call<v1::SystemDescription>(
+              [&](auto* ctx, auto* r) { return server->dir->DescribeSystem(ctx, req, r); },
+              std::optional<Millis>(std::min(kDescribeShared, timeout_)));
+        },
+        log_);
+  }
 
   // A unary call bounded by `deadline` (nullopt: none).
   template <class Resp, class Fn>
@@ -363,8 +447,8 @@ class GrpcTransport final : public Transport {
     return call<Resp>(std::forward<Fn>(fn), std::optional<Millis>(timeout_));
   }
 
-  // Learns which server serves each SA (Directory.DescribeSystem).
-  void describe() {
+  // Learns which server serves each SA (Directory.DescribeSystem); the answer.
+  v1::SystemDescription describe() {
     v1::DescribeSystemRequest req;
     Server* d = directory_;
     auto desc = call<v1::SystemDescription>([&](auto* ctx, auto* r) { return d->dir->DescribeSystem(ctx, req, r); });
@@ -376,12 +460,16 @@ class GrpcTransport final : public Transport {
         routes_[sa.name()] = directory_;
       } else {
         auto& slot = servers_[sa.endpoint()];
-        if (!slot) slot = std::make_unique<Server>(sa.endpoint(), tls_);
+        if (!slot) {
+          slot = std::make_unique<Server>(sa.endpoint(), tls_);
+          attachShared(*slot);
+        }
         routes_[sa.name()] = slot.get();
       }
     }
     // A Write stream per server, opened by its first write.
     for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_, timeout_);
+    return desc;
   }
 
   // An SA the directory does not know goes to the directory's server, which
