@@ -9,13 +9,16 @@ import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
+import cast.v1.WriteReply;
 import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
+import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.StatusRuntimeException;
 import io.grpc.stub.AbstractStub;
+import io.grpc.stub.MetadataUtils;
 import java.nio.file.Path;
 import java.time.Duration;
 import java.util.ArrayList;
@@ -61,6 +64,10 @@ final class GrpcTransport implements Transport {
    * the server ends the wait itself at the timeout, the margin is the answer's way back.
    */
   static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(1);
+  /** How long asking a server where its shared memory is may take: it is asked on the way of a write or a read. */
+  static final Duration DESCRIBE_TIMEOUT = Duration.ofSeconds(5);
+  static final Metadata.Key<String> SHARED_MEMORY_KEY =
+      Metadata.Key.of(SharedSession.METADATA_KEY, Metadata.ASCII_STRING_MARSHALLER);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
       Set.of(
@@ -124,7 +131,23 @@ final class GrpcTransport implements Transport {
 
   /** A server at {@code endpoint}: a channel of this transport's and its credentials on every call. */
   private GrpcServer openServer(String endpoint) {
-    return new GrpcServer(endpoint, channels, credentials);
+    GrpcServer server = new GrpcServer(endpoint, channels, credentials);
+    // Shared memory with it when on its host (SharedLink.java), opened when first needed. The
+    // server itself says where its shared memory is: it is asked, not the directory.
+    var ask = DescribeSystemRequest.getDefaultInstance();
+    server.shared =
+        new SharedLink(endpoint, credentials::token, () -> call(server, server.dir, DESCRIBE_TIMEOUT, s -> s.describeSystem(ask)));
+    return server;
+  }
+
+  /** {@code stub} naming the shared-memory session and read call {@code read} in its metadata (null: none). */
+  static <S extends AbstractStub<S>> S lending(S stub, SharedSession.ReadCall read) {
+    if (read == null) {
+      return stub;
+    }
+    Metadata md = new Metadata();
+    md.put(SHARED_MEMORY_KEY, read.metadata());
+    return stub.withInterceptors(MetadataUtils.newAttachHeadersInterceptor(md));
   }
 
   // ------------------------------------------------------------------ calls
@@ -275,24 +298,66 @@ final class GrpcTransport implements Transport {
     return Conversions.result(writes(sa).call(request, callTimeout).getWrite());
   }
 
+  /** A write whose values may be staged ({@code staged}): their regions are freed, or kept, once it is over. */
+  private WriteReply write(String sa, WriteRequest.Builder request, StagedWrite staged) {
+    Throwable error = null;
+    try {
+      return writes(sa).call(request, callTimeout);
+    } catch (RuntimeException e) {
+      error = e;
+      throw e;
+    } finally {
+      staged.done(error);
+    }
+  }
+
+  private CompletableFuture<WriteResult> writeAsync(String sa, WriteRequest.Builder request, StagedWrite staged) {
+    CompletableFuture<WriteResult> sent;
+    try {
+      sent = writes(sa).submitWrite(request, results);
+    } catch (RuntimeException e) {
+      staged.done(e);
+      throw e;
+    }
+    // The regions are freed (or kept) before the caller learns the result: a write it makes
+    // then finds them free.
+    CompletableFuture<WriteResult> out = new CompletableFuture<>();
+    sent.whenComplete(
+        (result, error) -> {
+          staged.done(error);
+          if (error != null) {
+            out.completeExceptionally(error);
+          } else {
+            out.complete(result);
+          }
+        });
+    return out;
+  }
+
   @Override
   public WriteResult add(String sa, String id, Any value) {
-    return write(sa, Conversions.writeAdd(sa, id, value));
+    StagedWrite staged = StagedWrite.to(server(sa));
+    var request = Conversions.writeAdd(sa, id, value, staged.stage(value));
+    return Conversions.result(write(sa, request, staged).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
-    return writes(sa).submitWrite(Conversions.writeAdd(sa, id, value), results);
+    StagedWrite staged = StagedWrite.to(server(sa));
+    return writeAsync(sa, Conversions.writeAdd(sa, id, value, staged.stage(value)), staged);
   }
 
   @Override
   public WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
-    return write(sa, Conversions.writeOverwrite(sa, id, value, expectedVersion));
+    StagedWrite staged = StagedWrite.to(server(sa));
+    var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
+    return Conversions.result(write(sa, request, staged).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
-    return writes(sa).submitWrite(Conversions.writeOverwrite(sa, id, value, expectedVersion), results);
+    StagedWrite staged = StagedWrite.to(server(sa));
+    return writeAsync(sa, Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value)), staged);
   }
 
   @Override
@@ -302,7 +367,8 @@ final class GrpcTransport implements Transport {
 
   @Override
   public List<WriteResult> batch(String sa, List<Write> writes) {
-    var reply = writes(sa).call(Conversions.writeBatch(sa, writes), callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa)); // the batch's values, in the session with its server
+    var reply = write(sa, Conversions.writeBatch(sa, writes, staged::stage), staged);
     List<WriteResult> out = new ArrayList<>();
     for (WriteResponse r : reply.getBatch().getResultsList()) {
       out.add(Conversions.result(r));
@@ -318,20 +384,51 @@ final class GrpcTransport implements Transport {
     }
   }
 
+  /** A read call's part of the shared-memory session with {@code server} (null: none, the values come as bytes). */
+  private static SharedSession.ReadCall readCall(GrpcServer server) {
+    SharedLink link = server.shared;
+    return link == null ? null : link.newCall();
+  }
+
+  /** A large value is lent by shared memory when on the server's host (docs/client-protocol.md). */
   @Override
   public StoredEntry get(String sa, String id) {
     var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
-    return Conversions.entry(call(server(sa), server(sa).wm, s -> s.get(req)).getEntry());
+    GrpcServer server = server(sa);
+    SharedSession.ReadCall read = readCall(server);
+    boolean answered = false;
+    try {
+      StoredEntry entry = Conversions.entry(call(server, lending(server.wm, read), s -> s.get(req)).getEntry(), read);
+      answered = true;
+      return entry;
+    } finally {
+      if (read != null) {
+        read.end(answered); // RECEIVED: what the call sent and this client did not get is taken back
+      }
+    }
   }
 
   @Override
   public List<StoredEntry> getByType(String sa, String type, int limit) {
     var req = GetByTypeRequest.newBuilder().setSubarchitecture(sa).setType(type).setLimit(limit).build();
+    GrpcServer server = server(sa);
+    SharedSession.ReadCall read = readCall(server);
     List<StoredEntry> out = new ArrayList<>();
-    for (cast.v1.Entry e : call(server(sa), server(sa).wm, s -> s.getByType(req)).getEntriesList()) {
-      out.add(Conversions.entry(e));
+    boolean answered = false;
+    try {
+      for (cast.v1.Entry e : call(server, lending(server.wm, read), s -> s.getByType(req)).getEntriesList()) {
+        out.add(Conversions.entry(e, read));
+      }
+      answered = true;
+      return out;
+    } finally {
+      if (!answered) {
+        out.forEach(StoredEntry::release); // a value that could not be read fails the call: give back the rest
+      }
+      if (read != null) {
+        read.end(answered);
+      }
     }
-    return out;
   }
 
   @Override
@@ -474,6 +571,12 @@ final class GrpcTransport implements Transport {
     pump.shutdown();
     results.shutdown(); // what is queued still runs
     watches.close();
+    for (GrpcServer server : all) {
+      SharedLink shared = server.shared;
+      if (shared != null) {
+        shared.close(); // the server gives back what the session holds lent
+      }
+    }
     for (GrpcServer server : all) {
       Session session = server.session;
       if (session != null) {

@@ -80,12 +80,43 @@ public final class WorkingMemoryChange {
     return change.entry() != null;
   }
 
-  /** The entry carried by the event (after the write; for DELETE, as it was). */
+  /**
+   * The entry carried by the event (after the write; for DELETE, as it was), its value a new
+   * object. A value that came by shared memory is read during the callback: after the
+   * callback returned it was given back, and this throws InvalidArgumentError (keep a {@link
+   * #view()} to hold it longer).
+   */
   public <T extends Message> Entry<T> entry(Class<T> cls) {
-    if (change.entry() == null) {
+    Transport.StoredEntry e = held();
+    try {
+      return Entry.decode(e, cls);
+    } finally {
+      e.release();
+    }
+  }
+
+  /**
+   * The value the event carries, serialised, as a read-only buffer that is not a copy
+   * ({@link ValueView}): on the server's host a large value is the server's shared memory, lent
+   * while the view is open, also after the callback returned; elsewhere the bytes received.
+   * Take it during the callback, and close it when done.
+   */
+  public ValueView view() {
+    return new ValueView(held());
+  }
+
+  /** The entry, with one more holder of its value (the caller lets go of it). */
+  private Transport.StoredEntry held() {
+    Transport.StoredEntry e = change.entry();
+    if (e == null) {
       throw new InvalidArgumentError("this change carries no entry: ask for it with filter.withEntry()");
     }
-    return Entry.decode(change.entry(), cls);
+    if (!e.retain()) {
+      throw new InvalidArgumentError(
+          "the value of " + this + " came by shared memory and was given back when its callback returned: read"
+              + " it in the callback (entry(cls)), or keep a view() of it");
+    }
+    return e;
   }
 
   @Override
