@@ -63,9 +63,11 @@ final class Dispatcher {
 
     @Override
     public void run() {
+      WorkingMemoryChange delivered = new WorkingMemoryChange(change);
       try {
-        Dispatcher.this.run(watchId, new WorkingMemoryChange(change));
+        Dispatcher.this.run(watchId, delivered);
       } finally {
+        delivered.callbackReturned();
         release(change);
       }
     }
@@ -245,7 +247,9 @@ final class Dispatcher {
    *
    * <p>A value lent by shared memory is held for each callback it is queued for, until that
    * callback returned (or the call was dropped); the change's own hold is let go here. A view
-   * the callback takes ({@link WorkingMemoryChange#view()}) holds it longer.
+   * the callback takes ({@link WorkingMemoryChange#view()}) holds it longer; otherwise the
+   * change keeps a copy of the value once its callback returned
+   * ({@link WorkingMemoryChange#callbackReturned()}).
    */
   void deliver(Transport.Change change) {
     try {
@@ -269,6 +273,7 @@ final class Dispatcher {
               try {
                 run(watchId, delivered);
               } finally {
+                delivered.callbackReturned();
                 release(change);
               }
             };
