@@ -30,7 +30,7 @@ from tests.reliability.conftest import kill9, serve, write_config
 
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
 CLIENTS = [lang for lang in LANGUAGES if lang != "python"]
-"""The languages whose fallback and crashes are tested here (Python's: tests/reliability/test_shared_memory_processes.py)."""
+"""The languages whose fallback and crashes are tested here (Python's: tests/reliability/)."""
 
 
 @pytest.fixture
@@ -61,7 +61,7 @@ def test_values_written_in_one_language_are_read_by_reference_in_every_language(
         out = peers.start(writer, server, f"{writer}-writer", "write", "3")
         out.wait("DONE")
         for lang, reader in readers.items():
-            wait_for(lambda r=reader: by_reference(r, 3), what=f"three frames by shared memory in {lang}")
+            wait_for(lambda: by_reference(reader, 3), what=f"three frames by shared memory in {lang}")  # noqa: B023
             assert not [x for x in reader.lines if x.startswith("MISMATCH")], reader.lines  # view == decoded entry
         stats = shared(server)
         assert stats["staged_writes"] == 3, stats  # the writer staged every frame, none went as bytes

@@ -15,7 +15,9 @@
 
 ``make package-test`` runs this module after ``make setup proto cpp java``; a missing tool or
 build fails the test, it never skips. ``CAST_PACKAGE_TEST_CPP_BUILD`` names another CMake build
-directory of cpp_client to install from (default ``build/cpp``).
+directory of cpp_client to install from (default ``build/cpp``), ``CAST_PACKAGE_TEST_MAVEN_REPO``
+another local Maven repository (default ``~/.m2/repository``; `make java` with
+``MVN='mvn -Dmaven.repo.local=DIR'`` installs there).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from tests.conftest import ROOT, SECRET, wait_for
 
 VERSION = (ROOT / "VERSION").read_text().strip()
 CPP_BUILD = Path(os.environ.get("CAST_PACKAGE_TEST_CPP_BUILD") or ROOT / "build" / "cpp")
+MAVEN_REPO = Path(os.environ.get("CAST_PACKAGE_TEST_MAVEN_REPO") or Path.home() / ".m2" / "repository")
 PROTOS = sorted(p.stem for p in (ROOT / "proto" / "cast" / "v1").glob("*.proto"))
 HELLO_LINES = [f"ADD hello:X:{i + 1} (revision R): hello {i}" for i in range(3)]
 
@@ -258,20 +261,34 @@ def test_the_library_builds_shared_with_build_shared_libs(installed: Installed) 
 
 # -------------------------------------------------------------------------------------------- Java
 
+def shared_sessions(endpoint: str, token: str) -> int:
+    """How many shared-memory sessions the server at ``endpoint`` has open."""
+    import grpc
+
+    from cast.v1 import inspection_pb2, inspection_pb2_grpc
+
+    with grpc.insecure_channel(endpoint) as channel:
+        metrics = inspection_pb2_grpc.InspectionStub(channel).GetMetrics(
+            inspection_pb2.GetMetricsRequest(), metadata=(("authorization", f"Bearer {token}"),), timeout=10)
+    return int(metrics.shared_memory.sessions)
+
+
 def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installed: Installed) -> None:
     mvn = tool("mvn", "run `make java` (it installs a JDK and Maven)")
     java = tool("java", "run `make java` (it installs a JDK and Maven)")
-    repository = Path.home() / ".m2" / "repository" / "cast"
+    repository = MAVEN_REPO / "cast"
     for artifact in ("cast-bom", "cast-client"):
         if not (repository / artifact / VERSION).is_dir():
-            pytest.fail(f"cast:{artifact}:{VERSION} is not installed in ~/.m2: run `make java` first")
+            pytest.fail(f"cast:{artifact}:{VERSION} is not installed in {MAVEN_REPO}: run `make java` first")
     work = installed.work / "java"
     shutil.copytree(ROOT / "examples" / "java", work, ignore=shutil.ignore_patterns("target"))
-    run([mvn, "-B", "-ntp", "-q", "package"], work, timeout=600)
+    run([mvn, "-B", "-ntp", "-q", f"-Dmaven.repo.local={MAVEN_REPO}", "package"], work, timeout=600)
     classpath = (work / "target" / "classpath.txt").read_text().strip()
     jars = classpath.split(os.pathsep)
     assert jars[0] == str(repository / "cast-client" / VERSION / f"cast-client-{VERSION}.jar"), jars[0]
     assert not any(str(ROOT) in jar for jar in jars), "the example used a file of the tree"
+    # junixsocket (shared memory on the server's host) comes along, its native library in its jar.
+    assert {Path(jar).parent.parent.name for jar in jars} >= {"junixsocket-common", "junixsocket-native-common"}, jars
 
     gen = installed.work / "java-gen"
     gen.mkdir()
@@ -302,7 +319,11 @@ def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installe
                 wm.add("g1", Greeting(text="world", **{"from": "greeter"}))
                 assert answered.wait(60), "no answer from the Java component"
                 assert wm.get("reply-g1", Greeting).text == "hello, world"
+                # Both have a shared-memory session with the server: the Java one loaded junixsocket's
+                # native library from the installed jar.
+                assert shared_sessions(endpoint, token) == 2
         finally:
             component.send_signal(signal.SIGTERM)
             output = component.communicate(timeout=60)[0]
     assert component.returncode == 0, output
+    assert "is not used" not in output, output  # no fallback to bytes: shared memory worked

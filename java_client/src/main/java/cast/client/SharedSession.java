@@ -40,11 +40,13 @@ import org.newsclub.net.unix.FileDescriptorCast;
  *
  * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, the end: a server
  * that died is noticed at once), one sends (RELEASE, RECEIVED), so that giving a value back
- * never waits for the server. Segments are mapped with {@link FileChannel#map} and unmapped by
- * the garbage collector once neither this session nor any buffer handed out refers to them
- * (Java unmaps nothing else safely); the staging area, never handed out, is unmapped when the
- * session ends. The twin of python/cast/client/shm_session.py and cpp_client/src/shm_session.cc;
- * {@link SharedLink} opens it.
+ * never waits for the server. Segments are mapped with {@link FileChannel#map}; a segment the
+ * server retired, or every segment once the session ended, is unmapped as soon as no lease of
+ * it is held (the memory of a dead server goes at once, not at some later garbage collection).
+ * So a buffer taken from a view must not be read after the view was closed: its memory may be
+ * gone. The staging area is unmapped when the session ends. The twin of
+ * python/cast/client/shm_session.py and cpp_client/src/shm_session.cc; {@link SharedLink}
+ * opens it.
  */
 final class SharedSession {
   private static final Logger LOG = Logger.getLogger("cast.client");
@@ -63,7 +65,7 @@ final class SharedSession {
   private final AFUNIXSocket socket;
   private final ShmStaging staging;
   private final Object lock = new Object(); // segments, dead, calls, the outbox
-  private final Map<Long, ByteBuffer> segments = new HashMap<>(); // read-only, whole segments
+  private final Map<Long, Segment> segments = new HashMap<>(); // mapped, by id
   private final ArrayDeque<byte[]> outbox = new ArrayDeque<>();
   private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE
   private long calls;
@@ -98,6 +100,19 @@ final class SharedSession {
   /** Why the session ended, or null while it lives. */
   String dead() {
     return dead;
+  }
+
+  /** A segment as mapped here, and how many leases of its values are held. */
+  private static final class Segment {
+    final MappedByteBuffer map; // the mapping itself: what is unmapped
+    final ByteBuffer bytes; // read-only, what values are cut from
+    int held; // leases not given back; guarded by the session's lock
+    boolean retired; // no value of it will be lent again; guarded by the session's lock
+
+    Segment(MappedByteBuffer map) {
+      this.map = map;
+      this.bytes = map.asReadOnlyBuffer();
+    }
   }
 
   // ------------------------------------------------------------------ writes
@@ -188,33 +203,33 @@ final class SharedSession {
 
   private Lease claim(SharedValue ref) {
     long valueId = ref.getValueId();
-    // Given back whatever happens next: the server counted it lent.
-    Runnable giveBack = () -> giveBack(valueId);
-    ByteBuffer segment;
+    Segment segment;
     try {
-      segment = awaitSegment(ref.getSegment());
+      segment = awaitSegment(ref.getSegment()); // counts the lease held
     } catch (UnavailableError e) {
-      giveBack.run();
+      giveBack(valueId, null); // the server counted it lent
       throw e;
     }
     long end = ref.getOffset() + ref.getSize();
-    if (ref.getOffset() < 0 || ref.getSize() < 0 || end > segment.capacity()) {
-      giveBack.run();
+    if (ref.getOffset() < 0 || ref.getSize() < 0 || end > segment.bytes.capacity()) {
+      giveBack(valueId, segment);
       throw new UnavailableError(
           "the server at " + endpoint + " named bytes " + ref.getOffset() + ".." + end + " of shared-memory segment "
-              + ref.getSegment() + ", which has " + segment.capacity() + ": read again");
+              + ref.getSegment() + ", which has " + segment.bytes.capacity() + ": read again");
     }
-    ByteBuffer bytes = segment.duplicate().position((int) ref.getOffset()).limit((int) end).slice();
-    return new Lease(bytes, giveBack);
+    ByteBuffer bytes = segment.bytes.duplicate().position((int) ref.getOffset()).limit((int) end).slice();
+    return new Lease(bytes, () -> giveBack(valueId, segment));
   }
 
-  private ByteBuffer awaitSegment(long segmentId) {
+  /** The segment named, once its SEGMENT frame came, with one more lease of it held. */
+  private Segment awaitSegment(long segmentId) {
     // Sent before the message naming it: it is in the socket already, or comes at once.
     long deadline = System.nanoTime() + TimeUnit.MILLISECONDS.toNanos(SEGMENT_WAIT_MS);
     synchronized (lock) {
       while (true) {
-        ByteBuffer segment = segments.get(segmentId);
+        Segment segment = segments.get(segmentId);
         if (segment != null) {
+          segment.held++;
           return segment;
         }
         long left = deadline - System.nanoTime();
@@ -233,13 +248,24 @@ final class SharedSession {
     }
   }
 
-  /** A lease's last holder let go: RELEASE it (sent by the sender thread; nothing once the session ended). */
-  void giveBack(long valueId) {
+  /**
+   * A lease's last holder let go: RELEASE it (sent by the sender thread; nothing once the
+   * session ended), and unmap its segment if that was retired and this was its last lease.
+   */
+  private void giveBack(long valueId, Segment segment) {
+    boolean unmap = false;
     synchronized (lock) {
       if (dead == null) {
         givenBack.add(valueId);
         lock.notifyAll();
       }
+      if (segment != null) {
+        segment.held--;
+        unmap = segment.retired && segment.held == 0;
+      }
+    }
+    if (unmap) {
+      ShmStaging.unmap(segment.map);
     }
   }
 
@@ -312,16 +338,23 @@ final class SharedSession {
       switch (frame.kind()) {
         case ShmWire.SEGMENT -> {
           long[] f = ShmWire.parseSegment(frame.body());
-          ByteBuffer map = mapReadOnly(frame.fd(), f[1]);
+          Segment segment = new Segment(mapReadOnly(frame.fd(), f[1]));
+          Segment old;
           synchronized (lock) {
-            segments.put(f[0], map);
+            old = segments.put(f[0], segment);
             lock.notifyAll();
+          }
+          if (old != null) {
+            retire(old); // the server never sends a live segment twice; if it did, the old one goes
           }
         }
         case ShmWire.RETIRE -> {
-          long segmentId = ShmWire.parseRetire(frame.body());
+          Segment segment;
           synchronized (lock) {
-            segments.remove(segmentId); // unmapped by the GC once no value of it is held
+            segment = segments.remove(ShmWire.parseRetire(frame.body()));
+          }
+          if (segment != null) {
+            retire(segment);
           }
         }
         case ShmWire.REFUSED -> end("the server ended it: " + ShmWire.text(frame.body()));
@@ -333,18 +366,33 @@ final class SharedSession {
     }
   }
 
+  /** No value of {@code segment} will be lent again: unmap it now if none is held, else when the last goes. */
+  private void retire(Segment segment) {
+    boolean unmap;
+    synchronized (lock) {
+      segment.retired = true;
+      unmap = segment.held == 0;
+    }
+    if (unmap) {
+      ShmStaging.unmap(segment.map);
+    }
+  }
+
   /** End the session: the server gives back everything it lent it. Idempotent. */
   void end(String why) {
+    List<Segment> mapped;
     synchronized (lock) {
       if (dead != null) {
         return;
       }
       dead = why == null ? "closed" : why;
-      segments.clear(); // the mappings go once no value of them is held (the GC unmaps them)
+      mapped = new ArrayList<>(segments.values());
+      segments.clear();
       givenBack.clear();
       outbox.clear();
       lock.notifyAll(); // claims waiting for a segment, and the sender, see the end
     }
+    mapped.forEach(this::retire); // each unmapped once no value of it is held
     LOG.fine("shared-memory session with " + endpoint + " ended: " + why);
     try {
       socket.close();
@@ -377,12 +425,12 @@ final class SharedSession {
   }
 
   /** A segment mapped read-only and shared; its descriptor is closed. */
-  static ByteBuffer mapReadOnly(FileDescriptor fd, long size) throws IOException {
+  static MappedByteBuffer mapReadOnly(FileDescriptor fd, long size) throws IOException {
     try (FileInputStream in = new FileInputStream(fd)) {
       if (size <= 0 || size > Integer.MAX_VALUE) {
         throw new IOException("a shared-memory segment of " + size + " bytes (a Java mapping holds at most 2 GiB)");
       }
-      return in.getChannel().map(FileChannel.MapMode.READ_ONLY, 0, size).asReadOnlyBuffer();
+      return in.getChannel().map(FileChannel.MapMode.READ_ONLY, 0, size);
     }
   }
 

@@ -123,11 +123,12 @@ final class ShmStaging {
   }
 
   /**
-   * Unmap a mapping now, rather than when the garbage collector finds it: safe here because
-   * nothing else refers to the staging area. Without sun.misc.Unsafe (a JVM that lacks it)
-   * the collector does it.
+   * Unmap a mapping now, rather than when the garbage collector finds it (which may be long
+   * after, and keeps the memory file alive meanwhile). Only for a mapping nothing reads any
+   * more: the staging area once the session ended, a retired segment once no lease of it is
+   * held. Without sun.misc.Unsafe (a JVM that lacks it) the collector does it.
    */
-  private static void unmap(MappedByteBuffer buffer) {
+  static void unmap(MappedByteBuffer buffer) {
     try {
       Class<?> unsafe = Class.forName("sun.misc.Unsafe");
       Field the = unsafe.getDeclaredField("theUnsafe");

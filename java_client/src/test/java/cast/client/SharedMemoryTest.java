@@ -180,6 +180,40 @@ class SharedMemoryTest {
   }
 
   @Test
+  void aDeadServersMemoryIsUnmappedOnceNoValueOfItIsHeld() throws Exception {
+    RealServer server = new RealServer();
+    List<Path> arenas = mapped("arena"); // of other tests' servers in this JVM, if any are still mapped
+    List<Path> areas = mapped("staging");
+    try (Connection writer = server.connect("writer", "vision", false, null);
+        Connection reader = server.connect("reader", "vision", false, null)) {
+      writer.add("img", image(MIB, 4));
+      assertEquals(image(MIB, 4), reader.get("img", BytesValue.class)); // lent, decoded, given back
+      ValueView held = reader.getView("img");
+      assertTrue(held.isShared());
+      assertEquals(arenas.size() + 1, mapped("arena").size());
+      assertEquals(areas.size() + 2, mapped("staging").size());
+      server.kill();
+      // The sessions end with the server: their staging areas go at once, the segment once the view is closed.
+      RealServer.waitFor(
+          () -> uncheckedMapped("staging").size() == areas.size(), Duration.ofSeconds(20), "the staging areas unmapped");
+      assertEquals(arenas.size() + 1, mapped("arena").size());
+      assertEquals(ByteBuffer.wrap(image(MIB, 4).getValue().toByteArray()), held.field(1)); // still there, unchanged
+      held.close();
+      assertEquals(arenas, mapped("arena"));
+    } finally {
+      server.close();
+    }
+  }
+
+  static List<Path> uncheckedMapped(String kind) {
+    try {
+      return mapped(kind);
+    } catch (IOException e) {
+      throw new AssertionError(e);
+    }
+  }
+
+  @Test
   void aWriterCannotChangeAValueAfterItsWriteWasAcknowledged() throws Exception {
     try (RealServer server = new RealServer();
         Connection writer = server.connect("writer", "vision", false, null);
