@@ -1,14 +1,19 @@
 """Peers of large values by shared memory in every language, for tests/interop/test_shared_memory_interop.py.
 
 A *peer* is a writer or a reader process with the launch contract in its environment; every
-language's peer takes the same arguments and prints the same lines (``write N``: ``WROTE k``,
-``DONE``; ``read [hold]``: ``WATCHING``, ``GOT revision k shared``, ``MISMATCH revision``,
-``FAILED reason``), so a test runs them alike:
+language's peer takes the same arguments and prints the same lines, so a test runs them alike:
 
-- Python: tests/reliability/components/shm_peer.py
-- Java: cast.itest.ShmPeer (java_client/src/test/java/cast/itest/ShmPeer.java)
+- ``write N``: ``WROTE k`` after each 1 MiB frame, ``DONE``;
+- ``read [hold]``: ``WATCHING``, then ``GOT revision k shared`` per value (``k``: which frame the
+  view's bytes are; ``shared``: 1 when lent by shared memory), ``FAILED reason``. The peers of the
+  client libraries other than Python's (:data:`CLIENTS`) add ``same sum`` to each GOT (1 when the
+  decoded entry has the view's bytes; a checksum of every byte of the view, :func:`checksum`),
+  take ``read trywrite`` (``WRITE way=how ...``: each way they tried to write the memory they were
+  lent, and how it was refused; then ``AFTER k``) and ``get`` (``READ k shared same``).
 
-A language is one entry of :data:`PEERS` (its command line before the arguments).
+The peers: Python tests/reliability/components/shm_peer.py, Java cast.itest.ShmPeer
+(java_client/src/test/java/cast/itest/ShmPeer.java), C++ cast_test_shm (its branch). A language is
+one entry of :data:`PEERS` (its command line before the arguments).
 """
 
 from __future__ import annotations
@@ -38,12 +43,23 @@ PEERS: dict[str, Callable[[], list[str]]] = {
 """Each language's peer command (the build it needs is checked when it is asked for)."""
 
 LANGUAGES = sorted(PEERS)
+CLIENTS = [lang for lang in LANGUAGES if lang != "python"]
+"""The languages whose peers say more (same, sum, trywrite, get), and whose process tests are here
+(Python's are tests/reliability/test_shared_memory_processes.py)."""
 SIZE = 1 << 20
 
 
 def frame(k: int) -> bytes:
     """The bytes of frame ``k`` (as every peer makes them)."""
     return bytes((k * 7 + i) % 253 for i in range(253)) * (SIZE // 253)
+
+
+def checksum(data: bytes) -> int:
+    """The checksum the peers compute over a view's bytes: ``sum = sum * 31 + byte``, modulo 2**64."""
+    total = 0
+    for b in data:
+        total = (total * 31 + b) & 0xFFFFFFFFFFFFFFFF
+    return total
 
 
 def dev_shm() -> set[str]:
@@ -80,6 +96,17 @@ def shared(handle: ServerHandle) -> dict[str, Any]:
 def got(reader: Lines) -> list[tuple[int, int]]:
     """(frame, shared) of each value a reader printed."""
     return [(int(x.split()[2]), int(x.split()[3])) for x in reader.lines if x.startswith("GOT")]
+
+
+def same_and_sums(reader: Lines) -> list[tuple[int, int]]:
+    """(same, sum) of each value a reader of :data:`CLIENTS` printed."""
+    return [(int(x.split()[4]), int(x.split()[5])) for x in reader.lines if x.startswith("GOT")]
+
+
+def memory_files(pid: int) -> list[str]:
+    """The lines of the server's memory files a process maps."""
+    with open(f"/proc/{pid}/maps") as maps:
+        return [line for line in maps if "memfd:cast-" in line]
 
 
 class Peers:

@@ -3,9 +3,10 @@
 The peers (tests/interop/shm_support.py) write and read 1 MiB frames whose every byte tells
 which frame it is; a reader reads each value through its view (every byte) and decodes it too,
 and says whether it came by shared memory. Every language is a parameter: a language added to
-``shm_support.PEERS`` is written to and read by all the others. The rules the server enforces
+``shm_support.PEERS`` is written to and read by all the others, and its own process tests
+(``CLIENTS``: what it cannot write, its fallback, kill -9) run. The rules the server enforces
 (forged and stale references, another OS user) are tested in tests/client/test_shared_memory.py
-and tests/reliability/test_shared_memory_processes.py, the Java client's own side of them in
+and tests/reliability/test_shared_memory_processes.py, and the Java client's own side of them in
 java_client's SharedMemoryTest.
 """
 
@@ -20,17 +21,29 @@ from pathlib import Path
 
 import pytest
 import yaml
+from google.protobuf.wrappers_pb2 import BytesValue
 
 from cast.auth import TokenSigner
 from cast.core.records import Identity
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, wait_for
-from tests.interop.shm_support import LANGUAGES, Peers, dev_shm, dev_shm_mapped, got, mappings, shared
+from tests.interop.shm_support import (
+    CLIENTS,
+    LANGUAGES,
+    Peers,
+    checksum,
+    dev_shm,
+    dev_shm_mapped,
+    frame,
+    got,
+    mappings,
+    memory_files,
+    same_and_sums,
+    shared,
+)
 from tests.netns import Lines, Namespaces, stop_all
 from tests.reliability.conftest import kill9, serve, write_config
 
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
-CLIENTS = [lang for lang in LANGUAGES if lang != "python"]
-"""The languages whose fallback and crashes are tested here (Python's: tests/reliability/)."""
 
 
 @pytest.fixture
@@ -58,14 +71,17 @@ def test_values_written_in_one_language_are_read_by_reference_in_every_language(
         readers = {lang: peers.start(lang, server, f"{lang}-reader", "read") for lang in LANGUAGES}
         for reader in readers.values():
             reader.wait("WATCHING")
-        out = peers.start(writer, server, f"{writer}-writer", "write", "3")
-        out.wait("DONE")
+        peers.start(writer, server, f"{writer}-writer", "write", "3").wait("DONE")
+        sums = [checksum(BytesValue(value=frame(k)).SerializeToString()) for k in range(3)]
         for lang, reader in readers.items():
             wait_for(lambda: by_reference(reader, 3), what=f"three frames by shared memory in {lang}")  # noqa: B023
-            assert not [x for x in reader.lines if x.startswith("MISMATCH")], reader.lines  # view == decoded entry
+            if lang in CLIENTS:  # the view read every byte of the value, and the decoded entry has them
+                assert same_and_sums(reader) == [(1, s) for s in sums], reader.lines
         stats = shared(server)
         assert stats["staged_writes"] == 3, stats  # the writer staged every frame, none went as bytes
         assert stats["sessions"] == len(LANGUAGES) + 1
+        for lang in CLIENTS:  # a read, by getView and get
+            assert peers.start(lang, server, f"{lang}-getter", "get").wait("READ").split()[1:] == ["2", "1", "1"]
         # Every process maps the server's segments read-only; only its own staging area is writable.
         for proc in peers.procs:
             maps = mappings(proc.pid)
@@ -87,6 +103,25 @@ def test_values_written_in_one_language_are_read_by_reference_in_every_language(
 
 
 @pytest.mark.parametrize("language", CLIENTS)
+def test_a_reader_cannot_write_the_memory_it_was_lent(tmp_path: Path, peers: Peers, language: str) -> None:
+    server = serve(write_config(tmp_path / "system.yaml", CONFIG), cwd=tmp_path)
+    try:
+        bold = peers.start(language, server, "bold", "read", "trywrite")
+        witness = peers.start("python", server, "witness", "read")
+        bold.wait("WATCHING")
+        witness.wait("WATCHING")
+        peers.start(language, server, "writer", "write", "1").wait("DONE")
+        attempt = bold.wait("WRITE").split()[1:]
+        results = dict(part.split("=", 1) for part in attempt)
+        assert "allowed" not in " ".join(attempt), attempt
+        assert results["pwrite"] == "EPERM" and results["mmap"] == "EPERM", attempt  # sealed, even by its path
+        assert bold.wait("AFTER").split()[1] == "0"  # still frame 0
+        wait_for(lambda: got(witness) == [(0, 1)], what="the witness's value, unchanged")
+    finally:
+        server.stop()
+
+
+@pytest.mark.parametrize("language", CLIENTS)
 def test_a_process_told_not_to_use_shared_memory_writes_and_reads_identical_values_as_bytes(
     tmp_path: Path, peers: Peers, language: str
 ) -> None:
@@ -97,19 +132,21 @@ def test_a_process_told_not_to_use_shared_memory_writes_and_reads_identical_valu
         near = peers.start(language, server, "near-reader", "read")
         plain.wait("WATCHING")
         near.wait("WATCHING")
-        peers.start(language, server, "plain-writer", "write", "2", env=off).wait("DONE")
+        writer = peers.start(language, server, "plain-writer", "write", "2", env=off)
+        writer.wait("DONE")
         wait_for(lambda: bytes_only(plain, 2), what="two frames as bytes to the reader told not to use it")
         # A value written as bytes is still kept in shared memory by the server, and lent on its host.
         wait_for(lambda: by_reference(near, 2), what="the same frames by shared memory to the other reader")
         assert shared(server)["staged_writes"] == 0
-        said = [x for x in plain.lines if "is not used" in x]
-        assert len(said) == 1 and "turned off by CAST_SHARED_MEMORY=off" in said[0], plain.lines
+        for proc in (plain, writer):
+            said = [x for x in proc.lines if "is not used" in x]
+            assert len(said) == 1 and "turned off by CAST_SHARED_MEMORY=off" in said[0], proc.lines
     finally:
         server.stop()
 
 
 @pytest.mark.parametrize("language", CLIENTS)
-def test_kill_9_of_a_writer_or_a_reader_leaves_nothing_behind_and_gives_its_values_back(
+def test_kill_9_of_a_writer_a_reader_or_the_server_leaves_nothing_behind(
     tmp_path: Path, peers: Peers, language: str
 ) -> None:
     before = dev_shm()
@@ -127,6 +164,17 @@ def test_kill_9_of_a_writer_or_a_reader_leaves_nothing_behind_and_gives_its_valu
         os.kill(writer.proc.pid, signal.SIGKILL)
         wait_for(lambda: shared(server)["sessions"] == 0, what="the killed writer's session ended")
         assert dev_shm() == before
+
+        reader = peers.start(language, server, "reader", "read")
+        reader.wait("WATCHING")
+        writer = peers.start(language, server, "writer2", "write", "2")
+        writer.wait("DONE")
+        wait_for(lambda: by_reference(reader, 2), what="two frames by shared memory")
+        assert memory_files(reader.proc.pid) and memory_files(writer.proc.pid)
+        kill9(server)
+        # Their sessions ended with it: they unmap what they mapped of it (the reader holds no value).
+        wait_for(lambda: not memory_files(reader.proc.pid) and not memory_files(writer.proc.pid),
+                 what="the dead server's memory unmapped by the live processes")
     finally:
         kill9(server)
     assert dev_shm() == before
@@ -136,10 +184,10 @@ def test_kill_9_of_a_writer_or_a_reader_leaves_nothing_behind_and_gives_its_valu
 def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(
     tmp_path: Path, peers: Peers, language: str
 ) -> None:
-    spaces = Namespaces(second_octet=216)
+    spaces = Namespaces(second_octet=217)
     procs: list[subprocess.Popen[str]] = []
     try:
-        srv_ns, far_ns = spaces.add("shm"), spaces.add("far")
+        srv_ns, far_ns = spaces.add("shmj"), spaces.add("farj")
         srv_ip, _ = spaces.link(srv_ns, far_ns)
         config = tmp_path / "system.yaml"
         config.write_text(yaml.safe_dump(CONFIG))
@@ -165,7 +213,8 @@ def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(
                     base_env=contract("writer")).wait("DONE")
         wait_for(lambda: bytes_only(far, 2) and by_reference(near, 2),
                  what="every value: as bytes across the namespaces, by shared memory beside the server")
-        assert any("not reachable from here" in line for line in far.lines), far.lines
+        said = [line for line in far.lines if "is not used" in line]
+        assert len(said) == 1 and "not reachable from here" in said[0], far.lines
     finally:
         peers.close()
         stop_all(procs)
