@@ -9,16 +9,13 @@ import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
-import cast.v1.WriteReply;
 import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
-import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.StatusRuntimeException;
 import io.grpc.stub.AbstractStub;
-import io.grpc.stub.MetadataUtils;
 import java.nio.file.Path;
 import java.time.Duration;
 import java.util.ArrayList;
@@ -66,8 +63,6 @@ final class GrpcTransport implements Transport {
   static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(1);
   /** How long asking a server where its shared memory is may take: it is asked on the way of a write or a read. */
   static final Duration DESCRIBE_TIMEOUT = Duration.ofSeconds(5);
-  static final Metadata.Key<String> SHARED_MEMORY_KEY =
-      Metadata.Key.of(SharedSession.METADATA_KEY, Metadata.ASCII_STRING_MARSHALLER);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
       Set.of(
@@ -136,18 +131,9 @@ final class GrpcTransport implements Transport {
     // server itself says where its shared memory is: it is asked, not the directory.
     var ask = DescribeSystemRequest.getDefaultInstance();
     server.shared =
-        new SharedLink(endpoint, credentials::token, () -> call(server, server.dir, DESCRIBE_TIMEOUT, s -> s.describeSystem(ask)));
+        new SharedLink(
+            endpoint, credentials::token, () -> call(server, server.dir, DESCRIBE_TIMEOUT, s -> s.describeSystem(ask)));
     return server;
-  }
-
-  /** {@code stub} naming the shared-memory session and read call {@code read} in its metadata (null: none). */
-  static <S extends AbstractStub<S>> S lending(S stub, SharedSession.ReadCall read) {
-    if (read == null) {
-      return stub;
-    }
-    Metadata md = new Metadata();
-    md.put(SHARED_MEMORY_KEY, read.metadata());
-    return stub.withInterceptors(MetadataUtils.newAttachHeadersInterceptor(md));
   }
 
   // ------------------------------------------------------------------ calls
@@ -298,66 +284,33 @@ final class GrpcTransport implements Transport {
     return Conversions.result(writes(sa).call(request, callTimeout).getWrite());
   }
 
-  /** A write whose values may be staged ({@code staged}): their regions are freed, or kept, once it is over. */
-  private WriteReply write(String sa, WriteRequest.Builder request, StagedWrite staged) {
-    Throwable error = null;
-    try {
-      return writes(sa).call(request, callTimeout);
-    } catch (RuntimeException e) {
-      error = e;
-      throw e;
-    } finally {
-      staged.done(error);
-    }
-  }
-
-  private CompletableFuture<WriteResult> writeAsync(String sa, WriteRequest.Builder request, StagedWrite staged) {
-    CompletableFuture<WriteResult> sent;
-    try {
-      sent = writes(sa).submitWrite(request, results);
-    } catch (RuntimeException e) {
-      staged.done(e);
-      throw e;
-    }
-    // The regions are freed (or kept) before the caller learns the result: a write it makes
-    // then finds them free.
-    CompletableFuture<WriteResult> out = new CompletableFuture<>();
-    sent.whenComplete(
-        (result, error) -> {
-          staged.done(error);
-          if (error != null) {
-            out.completeExceptionally(error);
-          } else {
-            out.complete(result);
-          }
-        });
-    return out;
-  }
+  // Values of at least the shared-memory threshold are staged on the server's host (StagedWrite.java).
 
   @Override
   public WriteResult add(String sa, String id, Any value) {
     StagedWrite staged = StagedWrite.to(server(sa));
     var request = Conversions.writeAdd(sa, id, value, staged.stage(value));
-    return Conversions.result(write(sa, request, staged).getWrite());
+    return Conversions.result(staged.call(writes(sa), request, callTimeout).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
     StagedWrite staged = StagedWrite.to(server(sa));
-    return writeAsync(sa, Conversions.writeAdd(sa, id, value, staged.stage(value)), staged);
+    return staged.submit(writes(sa), Conversions.writeAdd(sa, id, value, staged.stage(value)), results);
   }
 
   @Override
   public WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
     StagedWrite staged = StagedWrite.to(server(sa));
     var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
-    return Conversions.result(write(sa, request, staged).getWrite());
+    return Conversions.result(staged.call(writes(sa), request, callTimeout).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
     StagedWrite staged = StagedWrite.to(server(sa));
-    return writeAsync(sa, Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value)), staged);
+    var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
+    return staged.submit(writes(sa), request, results);
   }
 
   @Override
@@ -368,7 +321,7 @@ final class GrpcTransport implements Transport {
   @Override
   public List<WriteResult> batch(String sa, List<Write> writes) {
     StagedWrite staged = StagedWrite.to(server(sa)); // the batch's values, in the session with its server
-    var reply = write(sa, Conversions.writeBatch(sa, writes, staged::stage), staged);
+    var reply = staged.call(writes(sa), Conversions.writeBatch(sa, writes, staged::stage), callTimeout);
     List<WriteResult> out = new ArrayList<>();
     for (WriteResponse r : reply.getBatch().getResultsList()) {
       out.add(Conversions.result(r));
@@ -384,21 +337,16 @@ final class GrpcTransport implements Transport {
     }
   }
 
-  /** A read call's part of the shared-memory session with {@code server} (null: none, the values come as bytes). */
-  private static SharedSession.ReadCall readCall(GrpcServer server) {
-    SharedLink link = server.shared;
-    return link == null ? null : link.newCall();
-  }
-
   /** A large value is lent by shared memory when on the server's host (docs/client-protocol.md). */
   @Override
   public StoredEntry get(String sa, String id) {
     var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
     GrpcServer server = server(sa);
-    SharedSession.ReadCall read = readCall(server);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared);
     boolean answered = false;
     try {
-      StoredEntry entry = Conversions.entry(call(server, lending(server.wm, read), s -> s.get(req)).getEntry(), read);
+      var reply = call(server, SharedLink.lending(server.wm, read), s -> s.get(req));
+      StoredEntry entry = Conversions.entry(reply.getEntry(), read);
       answered = true;
       return entry;
     } finally {
@@ -412,11 +360,12 @@ final class GrpcTransport implements Transport {
   public List<StoredEntry> getByType(String sa, String type, int limit) {
     var req = GetByTypeRequest.newBuilder().setSubarchitecture(sa).setType(type).setLimit(limit).build();
     GrpcServer server = server(sa);
-    SharedSession.ReadCall read = readCall(server);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared);
     List<StoredEntry> out = new ArrayList<>();
     boolean answered = false;
     try {
-      for (cast.v1.Entry e : call(server, lending(server.wm, read), s -> s.getByType(req)).getEntriesList()) {
+      var reply = call(server, SharedLink.lending(server.wm, read), s -> s.getByType(req));
+      for (cast.v1.Entry e : reply.getEntriesList()) {
         out.add(Conversions.entry(e, read));
       }
       answered = true;

@@ -45,7 +45,7 @@ final class Lease {
   private final Holders holders;
   private final Cleaner.Cleanable cleanable;
 
-  /** A lease of {@code bytes} (read-only, the whole value) held once; {@code giveBack} runs when the last holder goes. */
+  /** A lease of {@code bytes} (the whole value) held once; {@code giveBack} runs when the last holder goes. */
   Lease(ByteBuffer bytes, Runnable giveBack) {
     this.bytes = bytes.asReadOnlyBuffer();
     this.holders = new Holders(giveBack);

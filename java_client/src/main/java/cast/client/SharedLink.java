@@ -2,6 +2,9 @@ package cast.client;
 
 import cast.v1.SharedMemoryInfo;
 import cast.v1.SystemDescription;
+import io.grpc.Metadata;
+import io.grpc.stub.AbstractStub;
+import io.grpc.stub.MetadataUtils;
 import java.io.FileDescriptor;
 import java.io.IOException;
 import java.io.InputStream;
@@ -111,6 +114,24 @@ final class SharedLink {
   SharedSession.ReadCall newCall() {
     SharedSession s = session();
     return s == null ? null : s.newCall();
+  }
+
+  /** A new read call of {@code link}'s session, or null (no link, or no session: the values come as bytes). */
+  static SharedSession.ReadCall newCall(SharedLink link) {
+    return link == null ? null : link.newCall();
+  }
+
+  static final Metadata.Key<String> METADATA_KEY =
+      Metadata.Key.of(SharedSession.METADATA_KEY, Metadata.ASCII_STRING_MARSHALLER);
+
+  /** {@code stub} naming the session and the read call {@code read} in its metadata (null: as it is). */
+  static <S extends AbstractStub<S>> S lending(S stub, SharedSession.ReadCall read) {
+    if (read == null) {
+      return stub;
+    }
+    Metadata md = new Metadata();
+    md.put(METADATA_KEY, read.metadata());
+    return stub.withInterceptors(MetadataUtils.newAttachHeadersInterceptor(md));
   }
 
   /** Why values travel as bytes, while they do ("" with a session). */
@@ -224,7 +245,8 @@ final class SharedLink {
       session = new SharedSession(socket, welcome, first.fd(), endpoint);
       if (!session.serverId.equals(info.getServerId())) {
         throw new NoSession(
-            "its socket belongs to another server (id " + session.serverId + ", not " + info.getServerId() + ")", false);
+            "its socket belongs to another server (id " + session.serverId + ", not " + info.getServerId() + ")",
+            false);
       }
       socket.setSoTimeout(0);
       session.start(frames.subList(1, frames.size()), reader, in, out);

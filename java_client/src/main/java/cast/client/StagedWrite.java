@@ -1,9 +1,14 @@
 package cast.client;
 
 import cast.v1.StagedValue;
+import cast.v1.WriteReply;
+import cast.v1.WriteRequest;
 import com.google.protobuf.Any;
+import java.time.Duration;
 import java.util.ArrayList;
 import java.util.List;
+import java.util.concurrent.CompletableFuture;
+import java.util.concurrent.Executor;
 
 /**
  * The values of one write request (an add, an overwrite, a batch) staged in the shared-memory
@@ -50,6 +55,44 @@ final class StagedWrite {
     }
     // An interrupted wait, or a failure that is not the server's answer, knows nothing either.
     return !(error instanceof CastError) || "CANCELLED".equals(((CastError) error).code());
+  }
+
+  /** Send {@code request} on {@code stream} and wait for its reply (WriteStream.call); then free or keep regions. */
+  WriteReply call(WriteStream stream, WriteRequest.Builder request, Duration wait) {
+    Throwable error = null;
+    try {
+      return stream.call(request, wait);
+    } catch (RuntimeException e) {
+      error = e;
+      throw e;
+    } finally {
+      done(error);
+    }
+  }
+
+  /**
+   * Send {@code request} without waiting (WriteStream.submitWrite); the regions are freed (or
+   * kept) before the returned future completes, so a write its continuation makes finds them free.
+   */
+  CompletableFuture<WriteResult> submit(WriteStream stream, WriteRequest.Builder request, Executor results) {
+    CompletableFuture<WriteResult> sent;
+    try {
+      sent = stream.submitWrite(request, results);
+    } catch (RuntimeException e) {
+      done(e);
+      throw e;
+    }
+    CompletableFuture<WriteResult> out = new CompletableFuture<>();
+    sent.whenComplete(
+        (result, error) -> {
+          done(error);
+          if (error != null) {
+            out.completeExceptionally(error);
+          } else {
+            out.complete(result);
+          }
+        });
+    return out;
   }
 
   /** The write is over ({@code error}: null if it succeeded): free its regions unless its outcome is unknown. */

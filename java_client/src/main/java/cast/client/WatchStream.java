@@ -287,7 +287,7 @@ final class WatchStream {
       }
       int gen = ++generation;
       requests = null;
-      GrpcTransport.lending(server.wmAsync, read).watch(new Call(gen, read)); // beforeStart sets `requests`
+      SharedLink.lending(server.wmAsync, read).watch(new Call(gen, read)); // beforeStart sets `requests`
       for (Watch w : watches.values()) {
         send(createRequest(w));
       }

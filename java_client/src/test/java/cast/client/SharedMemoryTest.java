@@ -158,7 +158,8 @@ class SharedMemoryTest {
         assertFalse(segments.isEmpty());
         for (Path segment : segments) {
           try (RandomAccessFile file = new RandomAccessFile(segment.toFile(), "rw")) {
-            IOException write = assertThrows(IOException.class, () -> file.getChannel().write(ByteBuffer.wrap(new byte[] {1}), 0));
+            ByteBuffer one = ByteBuffer.wrap(new byte[] {1});
+            IOException write = assertThrows(IOException.class, () -> file.getChannel().write(one, 0));
             assertTrue(write.getMessage().contains("Operation not permitted"), write.getMessage());
             assertThrows(IOException.class, () -> file.getChannel().map(FileChannel.MapMode.READ_WRITE, 0, 4096));
           }
@@ -257,24 +258,26 @@ class SharedMemoryTest {
         Any value = Types.pack(image(MIB, 7));
         ShmStaging.Staged staged = raw.stage(value.getValue());
         StagedValue good = raw.stagedValue(staged);
-        String forged = refused(channel, "writer", good.toBuilder().setSession(ByteString.copyFrom(new byte[16])).build(), value, Status.Code.INVALID_ARGUMENT);
+        Status.Code invalid = Status.Code.INVALID_ARGUMENT;
+        StagedValue forgedSession = good.toBuilder().setSession(ByteString.copyFrom(new byte[16])).build();
+        String forged = refused(channel, "writer", forgedSession, value, invalid);
         assertTrue(forged.contains("which this server does not have"), forged);
-        String outside = refused(channel, "writer", good.toBuilder().setOffset(1L << 40).build(), value, Status.Code.INVALID_ARGUMENT);
+        String outside = refused(channel, "writer", good.toBuilder().setOffset(1L << 40).build(), value, invalid);
         assertTrue(outside.contains("outside the staging area"), outside);
-        String over = refused(channel, "writer", good.toBuilder().setSize(9L * MIB).build(), value, Status.Code.INVALID_ARGUMENT);
+        String over = refused(channel, "writer", good.toBuilder().setSize(9L * MIB).build(), value, invalid);
         assertTrue(over.contains("limits.max_value_bytes"), over);
         String other = refused(channel, "other", good, value, Status.Code.PERMISSION_DENIED);
         assertTrue(other.contains("may not use the shared-memory session"), other);
         raw.end("closed by the test");
         RealServer.waitFor(() -> metrics(server).getSessions() == 1, Duration.ofSeconds(20), "the raw session's end");
-        String stale = refused(channel, "writer", good, value, Status.Code.INVALID_ARGUMENT);
+        String stale = refused(channel, "writer", good, value, invalid);
         assertTrue(stale.contains("which this server does not have"), stale);
         // A read naming a session by forged metadata: malformed, or another component's.
         GetRequest get = GetRequest.newBuilder().setAddress(Conversions.address("vision", "img")).build();
         SharedSession mine = session(writer);
         for (String bad : List.of("nothex/1", mine.idHex + "/1")) {
           Metadata md = new Metadata();
-          md.put(GrpcTransport.SHARED_MEMORY_KEY, bad);
+          md.put(SharedLink.METADATA_KEY, bad);
           StatusRuntimeException e =
               assertThrows(
                   StatusRuntimeException.class,
