@@ -15,7 +15,12 @@ import java.nio.channels.FileChannel;
 import java.nio.file.Files;
 import java.nio.file.Path;
 import java.time.Instant;
+import java.time.Duration;
+import java.util.ArrayList;
 import java.util.List;
+import java.util.concurrent.CopyOnWriteArrayList;
+import java.util.concurrent.CountDownLatch;
+import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicInteger;
 import org.junit.jupiter.api.Test;
 
@@ -218,6 +223,55 @@ class SharedPartsTest {
     InvalidArgumentError late = assertThrows(InvalidArgumentError.class, () -> v.entry(BytesValue.class));
     assertTrue(late.getMessage().contains("read it through that view"), late.getMessage());
     assertThrows(InvalidArgumentError.class, v::view);
+  }
+
+  private static Transport.Change lent(long revision, int watchId, AtomicInteger given) {
+    BytesValue image = BytesValue.newBuilder().setValue(ByteString.copyFromUtf8("x")).build();
+    Lease lease = new Lease(image.toByteString().asReadOnlyByteBuffer(), given::incrementAndGet);
+    return new Transport.Change(revision, Operation.OVERWRITE, new WorkingMemoryAddress("img", "vision"),
+        "google.protobuf.BytesValue", revision, "w", "vision", Instant.EPOCH, stored(image, lease), List.of(watchId));
+  }
+
+  @Test
+  void theDispatcherGivesBackALentValueWhenItsCallbackRanOrANewerOneReplacedIt() throws Exception {
+    Dispatcher d = new Dispatcher("lent", 100, DispatcherTest.LOG);
+    FakeTransport t = new FakeTransport(new FakeTransport.Memory("vision"), new Identity("c", "vision", false));
+    CountDownLatch inCallback = new CountDownLatch(1);
+    CountDownLatch gate = new CountDownLatch(1);
+    List<Long> seen = new CopyOnWriteArrayList<>();
+    ChangeFilter filter = Filters.addressFilter(new WorkingMemoryAddress("img", "vision")).withEntry();
+    ChangeCallback slow =
+        c -> {
+          inCallback.countDown();
+          gate.await(10, TimeUnit.SECONDS);
+          seen.add(c.revision());
+        };
+    int latest = d.watch(t, List.of(filter), slow, WatchOptions.latest()).watchId();
+    List<AtomicInteger> given = new ArrayList<>();
+    List<Transport.Change> changes = new ArrayList<>(); // held here: no lease becomes garbage meanwhile
+    for (int rev = 1; rev <= 6; rev++) {
+      given.add(new AtomicInteger());
+      changes.add(lent(rev, latest, given.get(rev - 1)));
+      d.deliver(changes.get(rev - 1));
+      if (rev == 1) {
+        assertTrue(inCallback.await(10, TimeUnit.SECONDS));
+      }
+    }
+    // The first is in the callback; of the five after it the newest waits: the four it replaced went back.
+    assertEquals(List.of(0, 1, 1, 1, 1, 0), given.stream().map(AtomicInteger::get).toList());
+    gate.countDown();
+    assertTrue(d.drain(Duration.ofSeconds(10)));
+    assertEquals(List.of(1L, 6L), seen);
+    assertEquals(List.of(1, 1, 1, 1, 1, 1), given.stream().map(AtomicInteger::get).toList()); // each once
+    // A queue watch's callback: given back once it ran.
+    int queue = d.watch(t, List.of(filter), c -> seen.add(c.revision()), WatchOptions.queue()).watchId();
+    AtomicInteger last = new AtomicInteger();
+    Transport.Change change = lent(7, queue, last);
+    d.deliver(change);
+    assertTrue(d.drain(Duration.ofSeconds(10)));
+    assertEquals(7L, seen.get(2));
+    assertEquals(1, last.get());
+    d.stop(Duration.ofSeconds(1));
   }
 
   @Test
