@@ -10,7 +10,7 @@ carries the same values in the same run. Figures per phase: the watchers'
 p50 and p99 latency (write start -> callback; the first tenth of the frames
 left out), the frames lost, and the MB/s delivered to the four together.
 
-``python -m bench.shared_memory [FRAMES] [--language java|cpp]`` (default 150 per phase): with
+``python -m bench.shared_memory [FRAMES] [--language python|cpp|java]`` (default 150 per phase): with
 ``--language java`` the writer and the four watchers are the Java client's (``cast.bench.Bench
 image-write`` and ``image-watch``), with ``--language cpp`` the C++ client's (``cast_bench
 image-write`` and ``image-watch``, M8's writer): each watcher reads every byte of each value
@@ -149,10 +149,10 @@ def table(results: dict[str, Any]) -> str:
 
 
 def main(argv: list[str]) -> None:
-    """``[FRAMES] [--language python|java|cpp]``: every phase, then the figures as JSON and as a table."""
+    """``[FRAMES] [--language python|cpp|java]``: every phase, then the figures as JSON and as a table."""
     parser = argparse.ArgumentParser(prog="python -m bench.shared_memory")
     parser.add_argument("frames", nargs="?", type=int, default=150)
-    parser.add_argument("--language", choices=("python", "java", "cpp"), default="python",
+    parser.add_argument("--language", choices=("python", "cpp", "java"), default="python",
                         help="the language of CAST's writer and watchers")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
