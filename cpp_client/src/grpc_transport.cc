@@ -36,6 +36,28 @@ constexpr Millis kLockReplyMargin{1000};
 // on the way of a write, a read or a watch.
 constexpr Millis kDescribeShared{5000};
 
+// What is left of one call's timeout: opening the shared-memory session on
+// the call's way (the first large write, or a read) spends from it, so that
+// a hung server holds the call for its timeout, not for the opening's
+// bounds and then the timeout again.
+class Budget {
+ public:
+  explicit Budget(Millis timeout) : end_(std::chrono::steady_clock::now() + timeout) {}
+  // The time left; DeadlineExceededError once there is none (nothing was sent).
+  Millis left() const {
+    const auto left = std::chrono::duration_cast<Millis>(end_ - std::chrono::steady_clock::now());
+    if (left.count() <= 0) {
+      throw DeadlineExceededError(
+          "the call's deadline passed while opening shared memory with the server: nothing was sent; the server "
+          "may be hung or overloaded, retry later");
+    }
+    return left;
+  }
+
+ private:
+  std::chrono::steady_clock::time_point end_;
+};
+
 class GrpcTransport final : public Transport {
  public:
   GrpcTransport(const std::string& endpoint, const std::string& token, Identity identity,
@@ -63,39 +85,50 @@ class GrpcTransport final : public Transport {
   // Every write and lock goes on the Write stream of its SA's server
   // (write_stream.cc); reads, tasks and the rest are unary calls.
 
+  // A large value opens the session on the write's way if there is none
+  // yet: within the write's own time (Budget).
+
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
+    const Budget budget(timeout_);
     Staging staged;
-    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
-                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
-    return writeResult(write(sa, std::move(request), staged).write());
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
+        budget.left());
+    return writeResult(write(sa, std::move(request), staged, budget).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
+    const Budget budget(timeout_);
     Staging staged;
-    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
-      return overwriteRequest(sa, id, type, bytes, expectedVersion);
-    });
-    return writeResult(write(sa, std::move(request), staged).write());
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged,
+        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
+        budget.left());
+    return writeResult(write(sa, std::move(request), staged, budget).write());
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
+    const Budget budget(timeout_);
     Staging staged;
-    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged,
-                                           [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
-    return writeAsync(sa, std::move(request), std::move(staged));
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
+        budget.left());
+    return writeAsync(sa, std::move(request), std::move(staged), budget);
   }
 
   std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
+    const Budget budget(timeout_);
     Staging staged;
-    v1::WriteRequest request = stagedWrite(*server(sa).shared, data, staged, [&](const std::string& bytes) {
-      return overwriteRequest(sa, id, type, bytes, expectedVersion);
-    });
-    return writeAsync(sa, std::move(request), std::move(staged));
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged,
+        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
+        budget.left());
+    return writeAsync(sa, std::move(request), std::move(staged), budget);
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
@@ -108,9 +141,10 @@ class GrpcTransport final : public Transport {
     // A batch is applied by one server: the one of its first operation's SA;
     // its large values are staged in the session with that server.
     const std::string& target = ops.front().subarchitecture;
+    const Budget budget(timeout_);
     Staging staged;
-    v1::WriteRequest request = stagedBatch(*server(target).shared, ops, staged);
-    v1::WriteReply reply = write(target, std::move(request), staged);
+    v1::WriteRequest request = stagedBatch(*server(target).shared, ops, staged, budget.left());
+    v1::WriteReply reply = write(target, std::move(request), staged, budget);
     std::vector<WriteResult> out;
     for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
     return out;
@@ -120,17 +154,20 @@ class GrpcTransport final : public Transport {
 
   // A read on the server's host asks to be lent its large values (shm.h):
   // its metadata names the session and the call, and the call's end says
-  // what it received.
+  // what it received. Opening the session on its way spends its time (Budget).
 
   EntryRecord get(const std::string& sa, const std::string& id) override {
     v1::GetRequest req;
     *req.mutable_address() = addressPb(sa, id);
     Server& s = server(sa);
-    std::unique_ptr<ReadCall> read = s.shared->read();
-    auto resp = call<v1::GetResponse>([&](auto* ctx, auto* r) {
-      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
-      return s.wm->Get(ctx, req, r);
-    });
+    const Budget budget(timeout_);
+    std::unique_ptr<ReadCall> read = s.shared->read(budget.left());
+    auto resp = call<v1::GetResponse>(
+        [&](auto* ctx, auto* r) {
+          if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+          return s.wm->Get(ctx, req, r);
+        },
+        std::optional<Millis>(budget.left()));
     EntryRecord record = entryFromPb(resp.entry(), read.get());
     if (read) read->end(true);
     return record;
@@ -142,11 +179,14 @@ class GrpcTransport final : public Transport {
     req.set_type(type);
     req.set_limit(limit);
     Server& s = server(sa);
-    std::unique_ptr<ReadCall> read = s.shared->read();
-    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) {
-      if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
-      return s.wm->GetByType(ctx, req, r);
-    });
+    const Budget budget(timeout_);
+    std::unique_ptr<ReadCall> read = s.shared->read(budget.left());
+    auto resp = call<v1::GetByTypeResponse>(
+        [&](auto* ctx, auto* r) {
+          if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+          return s.wm->GetByType(ctx, req, r);
+        },
+        std::optional<Millis>(budget.left()));
     std::vector<EntryRecord> out;
     out.reserve(static_cast<std::size_t>(resp.entries_size()));
     for (const auto& e : resp.entries()) out.push_back(entryFromPb(e, read.get()));
@@ -396,11 +436,22 @@ class GrpcTransport final : public Transport {
   v1::WriteReply write(const std::string& sa, v1::WriteRequest request) {
     return write(sa, std::move(request), std::optional<Millis>(timeout_));
   }
-  // A write with values staged in shared memory: their regions are freed when
-  // it is over (unstage).
-  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, const Staging& staged) {
+  // What is left of a write's `budget`; when nothing is, its regions are
+  // free again (it was not sent) and DeadlineExceededError is thrown.
+  static Millis timeLeft(const Budget& budget, const Staging& staged) {
     try {
-      v1::WriteReply reply = write(sa, std::move(request));
+      return budget.left();
+    } catch (const CastError&) {
+      unstage(staged, nullptr);
+      throw;
+    }
+  }
+  // A write with values staged in shared memory, waiting for what is left of
+  // its `budget`: their regions are freed when it is over (unstage).
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, const Staging& staged, const Budget& budget) {
+    const Millis left = timeLeft(budget, staged);
+    try {
+      v1::WriteReply reply = write(sa, std::move(request), std::optional<Millis>(left));
       unstage(staged, nullptr);
       return reply;
     } catch (const CastError& e) {
@@ -412,12 +463,14 @@ class GrpcTransport final : public Transport {
       throw;
     }
   }
-  std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged) {
-    if (staged.empty()) return writeStream(sa).writeAsync(std::move(request));
-    return writeStream(sa).writeAsync(std::move(request), [staged = std::move(staged)](
-                                                              const std::shared_ptr<CastError>& error) {
-      unstage(staged, error.get());
-    });
+  std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged,
+                                      const Budget& budget) {
+    const Millis left = timeLeft(budget, staged);
+    WriteStream& stream = writeStream(sa);
+    if (staged.empty()) return stream.writeAsync(std::move(request), nullptr, left);
+    return stream.writeAsync(
+        std::move(request),
+        [staged = std::move(staged)](const std::shared_ptr<CastError>& error) { unstage(staged, error.get()); }, left);
   }
 
 
@@ -426,12 +479,13 @@ class GrpcTransport final : public Transport {
     Server* server = &s;
     s.shared = std::make_shared<SharedLink>(
         s.endpoint, tokens_,
-        [this, server] {
+        [this, server](SharedLink::Within within) {
           // The server itself says where its shared memory is: ask it, not the directory.
           const v1::DescribeSystemRequest req;
+          const Millis bound = std::min(kDescribeShared, timeout_);
           return call<v1::SystemDescription>(
               [&](auto* ctx, auto* r) { return server->dir->DescribeSystem(ctx, req, r); },
-              std::optional<Millis>(std::min(kDescribeShared, timeout_)));
+              std::optional<Millis>(within ? std::min(bound, *within) : bound));
         },
         log_);
   }

@@ -25,8 +25,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-// The handshake's bound.
-constexpr std::chrono::milliseconds kConnectWait{2000};
 // How long after a failure the link tries again; when the server is elsewhere
 // or offers none, longer (a restart of it may change that).
 constexpr std::chrono::seconds kRetry{5};
@@ -79,12 +77,13 @@ bool sharedMemoryTurnedOff() {
 }
 
 std::shared_ptr<ClientSession> connectShared(const v1::SharedMemoryInfo& info, const std::string& token,
-                                             const std::string& endpoint) {
+                                             const std::string& endpoint, std::chrono::milliseconds within) {
+  within = std::clamp(within, std::chrono::milliseconds(1), kConnectWait);
+  const auto until = Clock::now() + within;
   Fd sock(::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0));
   if (sock.get() < 0) throw NoSession("no Unix socket: " + errnoText(errno), false);
   // The handshake is bounded: a server that takes the connection but says nothing ends it.
-  timeval bound{static_cast<time_t>(kConnectWait.count() / 1000),
-                static_cast<suseconds_t>(kConnectWait.count() % 1000 * 1000)};
+  timeval bound{static_cast<time_t>(within.count() / 1000), static_cast<suseconds_t>(within.count() % 1000 * 1000)};
   ::setsockopt(sock.get(), SOL_SOCKET, SO_RCVTIMEO, &bound, sizeof bound);
   ::setsockopt(sock.get(), SOL_SOCKET, SO_SNDTIMEO, &bound, sizeof bound);
 
@@ -127,10 +126,11 @@ std::shared_ptr<ClientSession> connectShared(const v1::SharedMemoryInfo& info, c
   shm::FrameReader reader;
   std::vector<shm::Frame> frames;
   std::string data;
-  const auto until = Clock::now() + kConnectWait;
   while (frames.empty()) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - Clock::now());
-    if (left.count() <= 0) throw NoSession("no WELCOME within 2 s", false);
+    if (left.count() <= 0) {
+      throw NoSession("no WELCOME within " + std::to_string(within.count()) + " ms", false);
+    }
     pollfd p{sock.get(), POLLIN, 0};
     if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) continue;
     std::optional<std::vector<int>> fds;
@@ -183,20 +183,31 @@ SharedLink::SharedLink(std::string endpoint, std::shared_ptr<TokenSource> tokens
 
 SharedLink::~SharedLink() { close(); }
 
-std::shared_ptr<ClientSession> SharedLink::session() {
+std::shared_ptr<ClientSession> SharedLink::session(Within within) {
+  const auto started = Clock::now();
   {
     std::lock_guard<std::mutex> lock(mu_);
     if (session_ && !session_->dead()) return session_;
     if (closed_ || forever_ || Clock::now() < retryAt_) return nullptr;
   }
-  // One opening at a time; the others wait for its outcome.
-  std::lock_guard<std::mutex> opening(openMu_);
+  // One opening at a time; the others wait for its outcome, as long as their
+  // call may (past that, bytes: the opening goes on for the next call).
+  std::unique_lock<std::timed_mutex> opening(openMu_, std::defer_lock);
+  if (within) {
+    if (!opening.try_lock_for(*within)) return nullptr;
+  } else {
+    opening.lock();
+  }
   {
     std::lock_guard<std::mutex> lock(mu_);
     if (session_ && !session_->dead()) return session_;
     if (closed_ || forever_ || Clock::now() < retryAt_) return nullptr;
   }
-  std::shared_ptr<ClientSession> fresh = open(nullptr);
+  if (within) {
+    within = *within - std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now() - started);
+    if (within->count() <= 0) return nullptr;
+  }
+  std::shared_ptr<ClientSession> fresh = open(nullptr, within);
   std::lock_guard<std::mutex> lock(mu_);
   if (closed_) {
     if (fresh) fresh->close();
@@ -208,12 +219,12 @@ std::shared_ptr<ClientSession> SharedLink::session() {
 }
 
 void SharedLink::open(const v1::SystemDescription& described) {
-  std::lock_guard<std::mutex> opening(openMu_);
+  std::lock_guard<std::timed_mutex> opening(openMu_);
   {
     std::lock_guard<std::mutex> lock(mu_);
     if (closed_ || forever_ || (session_ && !session_->dead())) return;
   }
-  std::shared_ptr<ClientSession> fresh = open(&described);
+  std::shared_ptr<ClientSession> fresh = open(&described, std::nullopt);
   std::lock_guard<std::mutex> lock(mu_);
   if (closed_) {
     if (fresh) fresh->close();
@@ -223,7 +234,8 @@ void SharedLink::open(const v1::SystemDescription& described) {
   if (fresh) reason_.clear();
 }
 
-std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* described) {
+std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* described, Within within) {
+  const auto started = Clock::now();
   if (sharedMemoryTurnedOff()) {
     fallback(std::string("turned off by ") + kSharedMemoryEnv + "=" + std::getenv(kSharedMemoryEnv),
              kRetryElsewhere, true);
@@ -234,7 +246,7 @@ std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* des
     info = described->shared_memory();
   } else {
     try {
-      info = describe_().shared_memory();
+      info = describe_(within).shared_memory();
     } catch (const CastError& e) {
       fallback("the server did not say where it is: " + e.message(), kRetry);
       return nullptr;
@@ -244,8 +256,17 @@ std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* des
     fallback("the server offers none (shared_memory.enabled is false there)", kRetryElsewhere);
     return nullptr;
   }
+  std::chrono::milliseconds handshake = kConnectWait;
+  if (within) {
+    // What the question left of the call's time.
+    handshake = std::min(handshake, *within - std::chrono::duration_cast<std::chrono::milliseconds>(Clock::now() - started));
+    if (handshake.count() <= 0) {
+      fallback("no time was left for the handshake in the call that asked for it", kRetry);
+      return nullptr;
+    }
+  }
   try {
-    auto session = connectShared(info, tokens_->token(), endpoint_);
+    auto session = connectShared(info, tokens_->token(), endpoint_, handshake);
     log_.debug("values of at least " + std::to_string(session->threshold()) +
                " bytes travel by shared memory with " + endpoint_);
     return session;
@@ -271,8 +292,8 @@ void SharedLink::fallback(const std::string& why, std::chrono::seconds retry, bo
   }
 }
 
-std::unique_ptr<ReadCall> SharedLink::read() {
-  std::shared_ptr<ClientSession> s = session();
+std::unique_ptr<ReadCall> SharedLink::read(Within within) {
+  std::shared_ptr<ClientSession> s = session(within);
   return s ? s->newCall() : nullptr;
 }
 
@@ -306,8 +327,8 @@ namespace {
 
 // Stages `data` in the session of `link` when it is large enough and fits
 // (recorded in `staged`); false: the bytes go in the request.
-bool stage(SharedLink& link, const std::string& data, Staging& staged) {
-  std::shared_ptr<ClientSession> session = link.session();
+bool stage(SharedLink& link, const std::string& data, Staging& staged, SharedLink::Within within) {
+  std::shared_ptr<ClientSession> session = link.session(within);
   if (!session || data.size() < session->threshold()) return false;
   std::optional<Staged> region = session->stage(data);
   if (!region) return false;
@@ -325,18 +346,20 @@ std::pair<google::protobuf::Any*, v1::StagedValue*> valueOf(Item* item) {
 }  // namespace
 
 v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
-                             const std::function<v1::WriteRequest(const std::string& bytes)>& build) {
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                             SharedLink::Within within) {
   static const std::string kNone;
-  if (!stage(link, data, staged)) return build(data);
+  if (!stage(link, data, staged, within)) return build(data);
   v1::WriteRequest request = build(kNone);
   staged.back().first->describe(staged.back().second, valueOf(&request).second);
   return request;
 }
 
-v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged) {
+v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,
+                             SharedLink::Within within) {
   v1::WriteRequest request = batchRequest(ops);
   for (std::size_t i = 0; i < ops.size(); ++i) {
-    if (ops[i].operation == Operation::Delete || !stage(link, ops[i].data, staged)) continue;
+    if (ops[i].operation == Operation::Delete || !stage(link, ops[i].data, staged, within)) continue;
     auto [value, named] = valueOf(request.mutable_batch()->mutable_operations(static_cast<int>(i)));
     value->clear_value();
     staged.back().first->describe(staged.back().second, named);

@@ -432,7 +432,8 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
 }
 
 std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request,
-                                                 std::function<void(const std::shared_ptr<CastError>&)> finished) {
+                                                 std::function<void(const std::shared_ptr<CastError>&)> finished,
+                                                 std::optional<Millis> timeout) {
   auto promise = std::make_shared<std::promise<WriteResult>>();
   std::future<WriteResult> future = promise->get_future();
   send(request,
@@ -446,7 +447,7 @@ std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request,
            promise->set_value(writeResult(reply->write()));
          }
        },
-       false, callTimeout_);
+       false, timeout ? *timeout : callTimeout_);
   return future;
 }
 

@@ -76,9 +76,11 @@ class WriteStream {
   // Sends an add or overwrite and returns at once: the future of its result,
   // or of the error call() would have thrown. `finished`, if given, is called
   // with that error (nullptr for a result) just before the future completes
-  // (the transport frees the write's shared-memory staging there).
+  // (the transport frees the write's shared-memory staging there). Past
+  // `timeout` (nullopt: the call timeout) it fails with DeadlineExceededError.
   std::future<WriteResult> writeAsync(v1::WriteRequest request,
-                                      std::function<void(const std::shared_ptr<CastError>&)> finished = nullptr);
+                                      std::function<void(const std::shared_ptr<CastError>&)> finished = nullptr,
+                                      std::optional<Millis> timeout = std::nullopt);
   // Stops sending (later writes fail with UnavailableError), waits up to
   // `grace` for the outstanding replies, then ends the stream.
   void close(Millis grace = Millis(2000));

@@ -61,7 +61,10 @@ final class GrpcTransport implements Transport {
    * the server ends the wait itself at the timeout, the margin is the answer's way back.
    */
   static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(1);
-  /** How long asking a server where its shared memory is may take: it is asked on the way of a write or a read. */
+  /**
+   * How long asking a server where its shared memory is may take: it is asked on the way of a
+   * write or a read, within that call's time left too ({@link Budget}).
+   */
   static final Duration DESCRIBE_TIMEOUT = Duration.ofSeconds(5);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
@@ -132,7 +135,15 @@ final class GrpcTransport implements Transport {
     var ask = DescribeSystemRequest.getDefaultInstance();
     server.shared =
         new SharedLink(
-            endpoint, credentials::token, () -> call(server, server.dir, DESCRIBE_TIMEOUT, s -> s.describeSystem(ask)));
+            endpoint,
+            credentials::token,
+            within -> {
+              Duration bound = DESCRIBE_TIMEOUT.compareTo(callTimeout) < 0 ? DESCRIBE_TIMEOUT : callTimeout;
+              if (within != null && within.compareTo(bound) < 0) {
+                bound = within;
+              }
+              return call(server, server.dir, bound, s -> s.describeSystem(ask));
+            });
     return server;
   }
 
@@ -284,33 +295,38 @@ final class GrpcTransport implements Transport {
     return Conversions.result(writes(sa).call(request, callTimeout).getWrite());
   }
 
-  // Values of at least the shared-memory threshold are staged on the server's host (StagedWrite.java).
+  // Values of at least the shared-memory threshold are staged on the server's host
+  // (StagedWrite.java); opening the session on a write's way spends the write's time (Budget).
 
   @Override
   public WriteResult add(String sa, String id, Any value) {
-    StagedWrite staged = StagedWrite.to(server(sa));
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
     var request = Conversions.writeAdd(sa, id, value, staged.stage(value));
-    return Conversions.result(staged.call(writes(sa), request, callTimeout).getWrite());
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
-    StagedWrite staged = StagedWrite.to(server(sa));
-    return staged.submit(writes(sa), Conversions.writeAdd(sa, id, value, staged.stage(value)), results);
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    return staged.submit(writes(sa), Conversions.writeAdd(sa, id, value, staged.stage(value)), results, budget);
   }
 
   @Override
   public WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
-    StagedWrite staged = StagedWrite.to(server(sa));
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
     var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
-    return Conversions.result(staged.call(writes(sa), request, callTimeout).getWrite());
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
-    StagedWrite staged = StagedWrite.to(server(sa));
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
     var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
-    return staged.submit(writes(sa), request, results);
+    return staged.submit(writes(sa), request, results, budget);
   }
 
   @Override
@@ -320,8 +336,10 @@ final class GrpcTransport implements Transport {
 
   @Override
   public List<WriteResult> batch(String sa, List<Write> writes) {
-    StagedWrite staged = StagedWrite.to(server(sa)); // the batch's values, in the session with its server
-    var reply = staged.call(writes(sa), Conversions.writeBatch(sa, writes, staged::stage), callTimeout);
+    Budget budget = new Budget(callTimeout);
+    // The batch's values, in the session with its server.
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    var reply = staged.call(writes(sa), Conversions.writeBatch(sa, writes, staged::stage), budget);
     List<WriteResult> out = new ArrayList<>();
     for (WriteResponse r : reply.getBatch().getResultsList()) {
       out.add(Conversions.result(r));
@@ -337,15 +355,19 @@ final class GrpcTransport implements Transport {
     }
   }
 
-  /** A large value is lent by shared memory when on the server's host (docs/client-protocol.md). */
+  /**
+   * A large value is lent by shared memory when on the server's host (docs/client-protocol.md);
+   * opening the session on the read's way spends the read's time ({@link Budget}).
+   */
   @Override
   public StoredEntry get(String sa, String id) {
     var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
     GrpcServer server = server(sa);
-    SharedSession.ReadCall read = SharedLink.newCall(server.shared);
+    Budget budget = new Budget(callTimeout);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared, budget.left());
     boolean answered = false;
     try {
-      var reply = call(server, SharedLink.lending(server.wm, read), s -> s.get(req));
+      var reply = call(server, SharedLink.lending(server.wm, read), budget.left(), s -> s.get(req));
       StoredEntry entry = Conversions.entry(reply.getEntry(), read);
       answered = true;
       return entry;
@@ -360,11 +382,12 @@ final class GrpcTransport implements Transport {
   public List<StoredEntry> getByType(String sa, String type, int limit) {
     var req = GetByTypeRequest.newBuilder().setSubarchitecture(sa).setType(type).setLimit(limit).build();
     GrpcServer server = server(sa);
-    SharedSession.ReadCall read = SharedLink.newCall(server.shared);
+    Budget budget = new Budget(callTimeout);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared, budget.left());
     List<StoredEntry> out = new ArrayList<>();
     boolean answered = false;
     try {
-      var reply = call(server, SharedLink.lending(server.wm, read), s -> s.getByType(req));
+      var reply = call(server, SharedLink.lending(server.wm, read), budget.left(), s -> s.getByType(req));
       for (cast.v1.Entry e : reply.getEntriesList()) {
         out.add(Conversions.entry(e, read));
       }

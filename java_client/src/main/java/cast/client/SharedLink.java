@@ -12,10 +12,12 @@ import java.io.OutputStream;
 import java.net.SocketTimeoutException;
 import java.nio.file.Files;
 import java.nio.file.Path;
+import java.time.Duration;
 import java.util.List;
 import java.util.Locale;
 import java.util.Set;
 import java.util.concurrent.TimeUnit;
+import java.util.concurrent.locks.ReentrantLock;
 import java.util.function.Function;
 import java.util.function.Supplier;
 import java.util.logging.Logger;
@@ -33,7 +35,7 @@ import org.newsclub.net.unix.AFUNIXSocketCredentials;
  * session id, the staging area (a memory file) and the threshold, from the server it asked
  * (its {@code server_id}). If any of that fails, values travel as bytes and the link says why
  * once at INFO; it tries again after a few seconds. {@code CAST_SHARED_MEMORY=off} in the
- * environment turns it off. The twin of python/cast/client/shm.py and cpp_client/src/shm.cc;
+ * environment turns it off. Opened on a call's way, it takes at most the call's time left. The twin of python/cast/client/shm.py and cpp_client/src/shm.cc;
  * the session itself is a {@link SharedSession}.
  */
 final class SharedLink {
@@ -59,26 +61,28 @@ final class SharedLink {
 
   final String endpoint;
   private final Supplier<String> token;
-  private final Supplier<SystemDescription> describe;
+  private final Function<Duration, SystemDescription> describe;
   private final Function<String, String> environment;
+  private final ReentrantLock opening = new ReentrantLock(); // held while a session is being opened
   private volatile SharedSession session;
-  private long retryAt; // System.nanoTime(); guarded by this
-  private boolean told; // the fallback was said at INFO; guarded by this
+  private long retryAt; // System.nanoTime(); guarded by opening
+  private boolean told; // the fallback was said at INFO; guarded by opening
   private volatile String reason = ""; // why values travel as bytes, while they do
   private volatile boolean closed;
 
   /**
    * Shared memory with the server at {@code endpoint}: {@code describe} asks that server (not
-   * the directory) for its description, {@code token} is the token of the moment.
+   * the directory) for its description within the given time (null: its own bound), {@code
+   * token} is the token of the moment.
    */
-  SharedLink(String endpoint, Supplier<String> token, Supplier<SystemDescription> describe) {
+  SharedLink(String endpoint, Supplier<String> token, Function<Duration, SystemDescription> describe) {
     this(endpoint, token, describe, System::getenv);
   }
 
   SharedLink(
       String endpoint,
       Supplier<String> token,
-      Supplier<SystemDescription> describe,
+      Function<Duration, SystemDescription> describe,
       Function<String, String> environment) {
     this.endpoint = endpoint;
     this.token = token;
@@ -93,11 +97,32 @@ final class SharedLink {
 
   /** The live session, opened now if none is (at most every few seconds after a failure); null: bytes. */
   SharedSession session() {
+    return session(null);
+  }
+
+  /**
+   * The live session, as {@link #session()}, opened in at most {@code within} (a call's time
+   * left, waiting for another thread's opening included; null: the opening's own bounds).
+   */
+  SharedSession session(Duration within) {
     SharedSession s = session;
     if (s != null && s.dead() == null) {
       return s;
     }
-    synchronized (this) {
+    long started = System.nanoTime();
+    if (within == null) {
+      opening.lock();
+    } else {
+      try {
+        if (!opening.tryLock(within.toNanos(), TimeUnit.NANOSECONDS)) {
+          return null; // another thread is opening it: this call goes as bytes
+        }
+      } catch (InterruptedException e) {
+        Thread.currentThread().interrupt();
+        return null;
+      }
+    }
+    try {
       s = session;
       if (s != null && s.dead() == null) {
         return s;
@@ -105,20 +130,34 @@ final class SharedLink {
       if (closed || System.nanoTime() - retryAt < 0) {
         return null;
       }
-      session = s = open();
+      Duration left = within == null ? null : within.minusNanos(System.nanoTime() - started);
+      if (left != null && (left.isNegative() || left.isZero())) {
+        return null;
+      }
+      session = s = open(left);
       return s;
+    } finally {
+      opening.unlock();
     }
   }
 
   /** A new read call of the session (its metadata), or null without one. */
   SharedSession.ReadCall newCall() {
-    SharedSession s = session();
+    return newCall((Duration) null);
+  }
+
+  /** A new read call of the session opened in at most {@code within} ({@link #session(Duration)}), or null. */
+  SharedSession.ReadCall newCall(Duration within) {
+    SharedSession s = session(within);
     return s == null ? null : s.newCall();
   }
 
-  /** A new read call of {@code link}'s session, or null (no link, or no session: the values come as bytes). */
-  static SharedSession.ReadCall newCall(SharedLink link) {
-    return link == null ? null : link.newCall();
+  /**
+   * A new read call of {@code link}'s session, opened in at most {@code within}, or null (no
+   * link, or no session: the values come as bytes).
+   */
+  static SharedSession.ReadCall newCall(SharedLink link, Duration within) {
+    return link == null ? null : link.newCall(within);
   }
 
   static final Metadata.Key<String> METADATA_KEY =
@@ -139,7 +178,8 @@ final class SharedLink {
     return reason;
   }
 
-  private SharedSession open() {
+  private SharedSession open(Duration within) {
+    long started = System.nanoTime();
     String env = environment.apply(ENV);
     if (turnsOff(env)) {
       fallback("turned off by " + ENV + "=" + env, Long.MAX_VALUE);
@@ -151,7 +191,7 @@ final class SharedLink {
     }
     SharedMemoryInfo info;
     try {
-      info = describe.get().getSharedMemory();
+      info = describe.apply(within).getSharedMemory();
     } catch (RuntimeException e) { // any failure of the question is a reason to use bytes
       fallback("the server did not say where it is: " + e.getMessage(), RETRY_MS);
       return null;
@@ -160,8 +200,16 @@ final class SharedLink {
       fallback("the server offers none (shared_memory.enabled is false there)", RETRY_ELSEWHERE_MS);
       return null;
     }
+    long handshake = CONNECT_MS;
+    if (within != null) { // what the question left of the call's time
+      handshake = Math.min(handshake, within.minusNanos(System.nanoTime() - started).toMillis());
+      if (handshake <= 0) {
+        fallback("no time was left for the handshake in the call that asked for it", RETRY_MS);
+        return null;
+      }
+    }
     try {
-      SharedSession s = connect(info, token.get(), endpoint);
+      SharedSession s = connect(info, token.get(), endpoint, handshake);
       reason = "";
       LOG.fine("values of at least " + s.threshold + " bytes travel by shared memory with " + endpoint);
       return s;
@@ -187,9 +235,12 @@ final class SharedLink {
   void close() {
     closed = true;
     SharedSession s;
-    synchronized (this) {
+    opening.lock();
+    try {
       s = session;
       session = null;
+    } finally {
+      opening.unlock();
     }
     if (s != null) {
       s.end("closed");
@@ -200,6 +251,14 @@ final class SharedLink {
 
   /** A session with the server whose shared memory {@code info} names, as {@code token}'s holder. */
   static SharedSession connect(SharedMemoryInfo info, String token, String endpoint) throws NoSession, IOException {
+    return connect(info, token, endpoint, CONNECT_MS);
+  }
+
+  /** A session as {@link #connect(SharedMemoryInfo, String, String)}, the handshake bounded by {@code withinMs}. */
+  static SharedSession connect(SharedMemoryInfo info, String token, String endpoint, long withinMs)
+      throws NoSession, IOException {
+    long bound = Math.max(1, Math.min(withinMs, CONNECT_MS));
+    long deadline = System.nanoTime() + TimeUnit.MILLISECONDS.toNanos(bound);
     if (!AFUNIXSocket.isSupported()) {
       throw new NoSession("junixsocket cannot load its native library on this machine", false);
     }
@@ -208,7 +267,7 @@ final class SharedLink {
     try {
       socket.setAncillaryReceiveBufferSize(ANCILLARY_BYTES);
       try {
-        socket.connect(AFUNIXSocketAddress.inAbstractNamespace(info.getSocket()), (int) CONNECT_MS);
+        socket.connect(AFUNIXSocketAddress.inAbstractNamespace(info.getSocket()), (int) bound);
       } catch (IOException e) { // ECONNREFUSED: no such name in this network namespace
         throw new NoSession(
             "its socket is not reachable from here (" + e.getMessage() + "): another host or network namespace", true);
@@ -226,7 +285,7 @@ final class SharedLink {
       out.write(ShmWire.hello(token));
       out.flush();
       ShmWire.Reader reader = new ShmWire.Reader();
-      List<ShmWire.Frame> frames = welcome(socket, in, reader);
+      List<ShmWire.Frame> frames = welcome(socket, in, reader, deadline, bound);
       ShmWire.Frame first = frames.get(0);
       if (first.kind() == ShmWire.REFUSED) {
         throw new NoSession("refused: " + ShmWire.text(first.body()), false);
@@ -260,15 +319,15 @@ final class SharedLink {
     }
   }
 
-  /** The frames of the answer to HELLO (at least one), read within {@link #CONNECT_MS}. */
-  private static List<ShmWire.Frame> welcome(AFUNIXSocket socket, InputStream in, ShmWire.Reader reader)
+  /** The frames of the answer to HELLO (at least one), read by {@code deadline} ({@code bound} ms after the start). */
+  private static List<ShmWire.Frame> welcome(
+      AFUNIXSocket socket, InputStream in, ShmWire.Reader reader, long deadline, long bound)
       throws IOException, NoSession {
-    long deadline = System.nanoTime() + TimeUnit.MILLISECONDS.toNanos(CONNECT_MS);
     byte[] buf = new byte[ShmWire.MAX_FRAME];
     while (true) {
       long left = TimeUnit.NANOSECONDS.toMillis(deadline - System.nanoTime());
       if (left <= 0) {
-        throw new NoSession("no WELCOME within " + CONNECT_MS / 1000.0 + " s", false);
+        throw new NoSession("no WELCOME within " + bound / 1000.0 + " s", false);
       }
       socket.setSoTimeout((int) left);
       int n;

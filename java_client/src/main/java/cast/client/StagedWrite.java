@@ -29,10 +29,13 @@ final class StagedWrite {
     this.session = session;
   }
 
-  /** Staging for a write to {@code server}: its session, opened now if it can be, or none. */
-  static StagedWrite to(GrpcServer server) {
+  /**
+   * Staging for a write to {@code server}: its session, opened now (in at most {@code within},
+   * the write's time left) if it can be, or none.
+   */
+  static StagedWrite to(GrpcServer server, Duration within) {
     SharedLink link = server.shared;
-    return new StagedWrite(link == null ? null : link.session());
+    return new StagedWrite(link == null ? null : link.session(within));
   }
 
   /** {@code value}'s bytes staged, and what the request says of them; null: send the bytes. */
@@ -57,8 +60,12 @@ final class StagedWrite {
     return !(error instanceof CastError) || "CANCELLED".equals(((CastError) error).code());
   }
 
-  /** Send {@code request} on {@code stream} and wait for its reply (WriteStream.call); then free or keep regions. */
-  WriteReply call(WriteStream stream, WriteRequest.Builder request, Duration wait) {
+  /**
+   * Send {@code request} on {@code stream} and wait for its reply (WriteStream.call) for what is
+   * left of {@code budget}; then free or keep regions.
+   */
+  WriteReply call(WriteStream stream, WriteRequest.Builder request, Budget budget) {
+    Duration wait = left(budget);
     Throwable error = null;
     try {
       return stream.call(request, wait);
@@ -74,10 +81,12 @@ final class StagedWrite {
    * Send {@code request} without waiting (WriteStream.submitWrite); the regions are freed (or
    * kept) before the returned future completes, so a write its continuation makes finds them free.
    */
-  CompletableFuture<WriteResult> submit(WriteStream stream, WriteRequest.Builder request, Executor results) {
+  CompletableFuture<WriteResult> submit(
+      WriteStream stream, WriteRequest.Builder request, Executor results, Budget budget) {
+    Duration wait = left(budget);
     CompletableFuture<WriteResult> sent;
     try {
-      sent = stream.submitWrite(request, results);
+      sent = stream.submitWrite(request, results, wait);
     } catch (RuntimeException e) {
       done(e);
       throw e;
@@ -93,6 +102,16 @@ final class StagedWrite {
           }
         });
     return out;
+  }
+
+  /** What is left of {@code budget}; when nothing is, the regions are free again (nothing was sent). */
+  private Duration left(Budget budget) {
+    try {
+      return budget.left();
+    } catch (DeadlineExceededError e) {
+      done(null);
+      throw e;
+    }
   }
 
   /** The write is over ({@code error}: null if it succeeded): free its regions unless its outcome is unknown. */

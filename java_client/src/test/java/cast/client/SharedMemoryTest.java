@@ -403,7 +403,7 @@ class SharedMemoryTest {
         Connection remote = server.connect("remote", "vision", false, null)) {
       GrpcServer s = transport(remote).server("vision");
       s.shared = new SharedLink(s.endpoint, () -> RealServer.token("remote", "vision", false, 0),
-          () -> { throw new AssertionError("a client told not to use it does not ask"); },
+          within -> { throw new AssertionError("a client told not to use it does not ask"); },
           name -> name.equals(SharedLink.ENV) ? "Off" : null);
       List<ByteString> got = new CopyOnWriteArrayList<>();
       remote.onChange(Filters.addressFilter("img").withEntry(), c -> got.add(c.entry(BytesValue.class).value().getValue()));
