@@ -3,22 +3,24 @@
 A *peer* is a writer or a reader process with the launch contract in its environment; every
 language's peer takes the same arguments and prints the same lines, so a test runs them alike:
 
-- ``write N``: ``WROTE k`` after each 1 MiB frame, ``DONE``;
-- ``read [hold]``: ``WATCHING``, then ``GOT revision k shared`` per value (``k``: which frame the
-  view's bytes are; ``shared``: 1 when lent by shared memory), ``FAILED reason``. The peers of the
-  client libraries other than Python's (:data:`CLIENTS`) add ``same sum`` to each GOT (1 when the
-  decoded entry has the view's bytes; a checksum of every byte of the view, :func:`checksum`),
-  take ``read trywrite`` (``WRITE way=how ...``: each way they tried to write the memory they were
-  lent, and how it was refused; then ``AFTER k``) and ``get`` (``READ k shared same``).
+- ``write N [change]``: ``WROTE k`` after each 1 MiB frame, ``DONE``; with ``change``, ``CHANGED k bytes``
+  once write k was acknowledged and the writer wrote 0xFF over its whole staging area;
+- ``read [hold|trywrite]``: ``WATCHING``, then ``GOT revision k shared same sum`` per value (``k``: which
+  frame the view's bytes are; ``shared``: 1 when lent by shared memory; ``same``: 1 when the decoded entry
+  has the view's bytes; ``sum``: a checksum of every byte of the view, :func:`checksum`), ``FAILED reason``;
+  ``trywrite``: ``WRITE way=how ...`` (each way it tried to write the memory it was lent, and how it was
+  refused), then ``AFTER k``;
+- ``get``: ``READ k shared same``;
+- ``deadline SA MS``: two connections of its own with call timeout MS, ``READY``; at ``go`` on stdin a get
+  and a 1 MiB add on SA at once, ``CALL get|add ErrorName|ok milliseconds`` each, ``CALLED``.
 
-The peers: Python tests/reliability/components/shm_peer.py, Java cast.itest.ShmPeer
-(java_client/src/test/java/cast/itest/ShmPeer.java), C++ cast_test_shm (its branch). A language is
-one entry of :data:`PEERS` (its command line before the arguments).
+The peers: Python tests/reliability/components/shm_peer.py, C++ cast_test_shm
+(cpp_client/tests/components/cast_test_shm.cc), Java cast.itest.ShmPeer
+(java_client/src/test/java/cast/itest/ShmPeer.java). A language is one entry of :data:`PEERS`.
 """
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
@@ -30,6 +32,7 @@ import grpc
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
 from tests.conftest import ServerHandle
+from tests.interop.cpp_support import cpp_executable
 from tests.interop.java_support import java_classpath
 from tests.netns import Lines
 
@@ -38,14 +41,15 @@ PYTHON_PEER = str(ROOT / "tests" / "reliability" / "components" / "shm_peer.py")
 
 PEERS: dict[str, Callable[[], list[str]]] = {
     "python": lambda: [sys.executable, PYTHON_PEER],
+    "cpp": lambda: [str(cpp_executable("cast_test_shm"))],
     "java": lambda: ["java", "-cp", java_classpath(), "cast.itest.ShmPeer"],
 }
 """Each language's peer command (the build it needs is checked when it is asked for)."""
 
-LANGUAGES = sorted(PEERS)
+LANGUAGES = list(PEERS)
 CLIENTS = [lang for lang in LANGUAGES if lang != "python"]
-"""The languages whose peers say more (same, sum, trywrite, get), and whose process tests are here
-(Python's are tests/reliability/test_shared_memory_processes.py)."""
+"""The languages whose process tests (kill -9, another network namespace) are here; Python's are
+tests/reliability/test_shared_memory_processes.py."""
 SIZE = 1 << 20
 
 
@@ -60,11 +64,6 @@ def checksum(data: bytes) -> int:
     for b in data:
         total = (total * 31 + b) & 0xFFFFFFFFFFFFFFFF
     return total
-
-
-def dev_shm() -> set[str]:
-    """What /dev/shm holds of CAST's (shared memory never puts anything there; other programs may)."""
-    return {name for name in os.listdir("/dev/shm") if "cast" in name.lower()}
 
 
 def dev_shm_mapped(pid: int) -> list[str]:
@@ -99,7 +98,7 @@ def got(reader: Lines) -> list[tuple[int, int]]:
 
 
 def same_and_sums(reader: Lines) -> list[tuple[int, int]]:
-    """(same, sum) of each value a reader of :data:`CLIENTS` printed."""
+    """(same, sum) of each value a reader printed."""
     return [(int(x.split()[4]), int(x.split()[5])) for x in reader.lines if x.startswith("GOT")]
 
 
@@ -135,3 +134,11 @@ class Peers:
             if proc.poll() is None:
                 proc.kill()
             proc.wait(10)
+
+
+def send(reader: Lines, line: str) -> None:
+    """One line to a peer's stdin."""
+    stdin = reader.proc.stdin
+    assert stdin is not None
+    stdin.write(line + "\n")
+    stdin.flush()

@@ -1,12 +1,16 @@
 // cast_test_shm: a writer or a reader of large values as a process of its
-// own, the C++ side of tests/interop/test_shared_memory_cpp.py. The same
-// lines as tests/reliability/components/shm_peer.py (Python) and
-// cast.itest.ShmPeer (Java), so a test drives any of them:
+// own, the C++ peer of tests/interop/test_shared_memory_interop.py. The same
+// arguments and lines as tests/reliability/components/shm_peer.py (Python)
+// and cast.itest.ShmPeer (Java), so a test drives any of them:
 //
-//   cast_test_shm write N    adds "img" (or overwrites it if it exists) and
+//   cast_test_shm write N [change]
+//                            adds "img" (or overwrites it if it exists) and
 //                            overwrites it, N values of 1 MiB in all (value k
 //                            is frame(k)), printing "WROTE k" after each and
 //                            "DONE" at the end; stays until stdin closes.
+//                            "change": once each write was acknowledged, it
+//                            writes 0xFF over all of its staging area and
+//                            prints "CHANGED k bytes" before "WROTE k".
 //   cast_test_shm read [hold|trywrite]
 //                            watches "img" with its entry; prints "WATCHING"
 //                            once the watch is confirmed, then per value
@@ -27,6 +31,17 @@
 //                            if the watch fails. Stays until stdin closes.
 //   cast_test_shm get        reads "img" with getView and get<BytesValue>;
 //                            prints "READ k shared same".
+//   cast_test_shm deadline SA MS
+//                            two connections of its own (cast::connect as
+//                            $CAST_COMPONENT_ID-get and -add of
+//                            $CAST_SUBARCHITECTURE, tokens minted from
+//                            $CAST_SECRET, call timeout MS), with no
+//                            shared-memory session with SA's server yet (the
+//                            add connection wrote a small value of the type
+//                            in its own SA: the type is registered); prints
+//                            "READY", and at the line "go" a get and a 1 MiB
+//                            add on SA at once, each "CALL get|add
+//                            ErrorName|ok milliseconds", then "CALLED".
 //
 // With the launch contract (CAST_*) in its environment, as `cast run` starts
 // a component.
@@ -38,13 +53,17 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <chrono>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <mutex>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "cast/cast.h"
@@ -113,6 +132,35 @@ std::string mappingOf(const void* address) {
   return "";
 }
 
+// The /proc/self/map_files paths of this process's mappings of the server's
+// `kind` memory files ("staging", "arena").
+std::vector<std::string> memoryFiles(const std::string& kind) {
+  std::ifstream maps("/proc/self/maps");
+  std::vector<std::string> out;
+  std::string line;
+  while (std::getline(maps, line)) {
+    if (line.find("memfd:cast-" + kind) != std::string::npos) {
+      out.push_back("/proc/self/map_files/" + line.substr(0, line.find(' ')));
+    }
+  }
+  return out;
+}
+
+// Writes 0xFF over every staging area this process has mapped, through the
+// memory file (the same pages as the library's mapping); the bytes written.
+std::size_t changeStaging() {
+  std::size_t written = 0;
+  for (const std::string& path : memoryFiles("staging")) {
+    const int fd = ::open(path.c_str(), O_RDWR | O_CLOEXEC);
+    if (fd < 0) continue;
+    const off_t size = ::lseek(fd, 0, SEEK_END);
+    const std::string ones(static_cast<std::size_t>(size > 0 ? size : 0), '\xff');
+    if (::pwrite(fd, ones.data(), ones.size(), 0) == static_cast<ssize_t>(ones.size())) written += ones.size();
+    ::close(fd);
+  }
+  return written;
+}
+
 // Tries every way to write the memory a lent value is in (write_test in
 // the interop test): each must be refused.
 std::string tryWrite(const cast::ValueView& view) {
@@ -166,7 +214,7 @@ void waitForStdinEnd() {
   }
 }
 
-int writeMode(Peer& peer, int n) {
+int writeMode(Peer& peer, int n, bool change) {
   for (int k = 0; k < n; ++k) {
     google::protobuf::BytesValue value;
     value.set_value(frame(k));
@@ -175,6 +223,7 @@ int writeMode(Peer& peer, int n) {
     } else {
       peer.add("img", value);
     }
+    if (change) say("CHANGED " + std::to_string(k) + " " + std::to_string(changeStaging()));
     say("WROTE " + std::to_string(k));
   }
   say("DONE");
@@ -221,19 +270,71 @@ int getMode(Peer& peer) {
   return 0;
 }
 
+std::string env(const char* name) {
+  const char* value = std::getenv(name);
+  return value != nullptr ? value : "";
+}
+
+// Two fresh connections, then a get and a 1 MiB add at once at "go": how
+// each ended, and when.
+int deadlineMode(const std::string& sa, int timeoutMs) {
+  auto open = [&](const std::string& name) {
+    cast::ConnectOptions options;
+    options.componentId = env("CAST_COMPONENT_ID") + "-" + name;
+    options.subarchitecture = env("CAST_SUBARCHITECTURE");
+    options.callTimeout = std::chrono::milliseconds(timeoutMs);
+    return cast::connect(options);
+  };
+  std::unique_ptr<cast::Connection> getter = open("get");
+  std::unique_ptr<cast::Connection> adder = open("add");
+  // The value's type is registered with every server by the first write of
+  // it: done now, in the own SA, so that the add below meets the stopped
+  // server first when it opens the session.
+  google::protobuf::BytesValue warm;
+  warm.set_value("warm");
+  adder->add(env("CAST_COMPONENT_ID") + "-warm", warm);
+  say("READY");
+  std::string line;
+  while (std::getline(std::cin, line) && line != "go") {
+  }
+  auto timed = [](const std::string& name, const std::function<void()>& call) {
+    const auto started = std::chrono::steady_clock::now();
+    std::string outcome = "ok";
+    try {
+      call();
+    } catch (const cast::CastError& e) {
+      outcome = e.name();
+    }
+    const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(std::chrono::steady_clock::now() - started);
+    say("CALL " + name + " " + outcome + " " + std::to_string(ms.count()));
+  };
+  std::thread get([&] { timed("get", [&] { getter->get<google::protobuf::BytesValue>("deadline", sa); }); });
+  std::thread add([&] {
+    google::protobuf::BytesValue value;
+    value.set_value(frame(0));
+    timed("add", [&] { adder->add("deadline", value, sa); });
+  });
+  get.join();
+  add.join();
+  say("CALLED");
+  waitForStdinEnd();
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::cerr << "usage: cast_test_shm write N | read [hold|trywrite] | get\n";
+    std::cerr << "usage: cast_test_shm write N [change] | read [hold|trywrite] | get | deadline SA MS\n";
     return 2;
   }
   const std::string mode = argv[1];
   try {
+    if (mode == "deadline" && argc > 3) return deadlineMode(argv[2], std::stoi(argv[3]));
     Peer peer;
     peer.bind(cast::LaunchContract::fromEnv().connect());
     int code = 2;
-    if (mode == "write" && argc > 2) code = writeMode(peer, std::stoi(argv[2]));
+    if (mode == "write" && argc > 2) code = writeMode(peer, std::stoi(argv[2]), argc > 3 && std::string(argv[3]) == "change");
     if (mode == "read") code = readMode(peer, argc > 2 ? argv[2] : "");
     if (mode == "get") code = getMode(peer);
     peer.close();
