@@ -1,1 +1,4 @@
-"""``cast sweep``: a design comparison run as many ``cast run`` processes, with its report and plots (docs/experiments.md)."""
+"""``cast sweep``: a design comparison run as many ``cast run`` processes, with its report and plots.
+
+docs/experiments.md.
+"""
