@@ -1,6 +1,6 @@
 // The frames of a shared-memory session on a server's Unix socket
 // (docs/client-protocol.md, "Large values by shared memory", "Frames").
-// Mirrors the Python client's client/shm_wire.py; no gRPC, no protobuf.
+// Mirrors python/cast/wire/shared_memory.py; no gRPC, no protobuf.
 //
 // Every frame is a little-endian u32 length (of what follows, 1 to 65,536),
 // a u8 kind and its fields. A frame that carries a memory file arrives with

@@ -35,8 +35,9 @@ import org.newsclub.net.unix.AFUNIXSocketCredentials;
  * session id, the staging area (a memory file) and the threshold, from the server it asked
  * (its {@code server_id}). If any of that fails, values travel as bytes and the link says why
  * once at INFO; it tries again after a few seconds. {@code CAST_SHARED_MEMORY=off} in the
- * environment turns it off. Opened on a call's way, it takes at most the call's time left. The twin of python/cast/client/shm.py and cpp_client/src/shm.cc;
- * the session itself is a {@link SharedSession}.
+ * environment turns it off. Opened on a call's way, it takes at most the call's time left. The
+ * twin of python/cast/client/shm.py and cpp_client/src/shm.cc; the session itself is a {@link
+ * SharedSession}.
  */
 final class SharedLink {
   private static final Logger LOG = Logger.getLogger("cast.client");

@@ -15,7 +15,7 @@ import java.util.List;
  * follows (1 to 65,536), a {@code u8} kind and its fields. A frame that carries a memory file
  * came with it as {@code SCM_RIGHTS}, no later than its first byte: the {@link Reader} keeps the
  * descriptors that arrive in order and gives the next one to each frame of a kind that carries
- * one. The twin of python/cast/client/shm_wire.py. No sockets
+ * one. The twin of python/cast/wire/shared_memory.py. No sockets
  * here: {@link SharedSession} moves the bytes.
  */
 final class ShmWire {
