@@ -22,7 +22,8 @@ lines. With the launch contract (CAST_*) in its environment:
 - ``shm_peer.py deadline SA MS``: two connections of its own (``cast.connect`` as ``$CAST_COMPONENT_ID-get`` and
   ``-add`` of ``$CAST_SUBARCHITECTURE``, tokens minted from ``$CAST_SECRET``, call timeout MS), no shared-memory
   session yet (the add connection wrote a small value of the type in its own SA: the type is registered); prints
-  ``READY``, and at the line ``go`` on stdin a get and a 1 MiB add on SA at once, each ``CALL get|add ErrorName|ok milliseconds``, then ``CALLED``.
+  ``READY``, and at the line ``go`` on stdin a get and a 1 MiB add on SA at once, each
+  ``CALL get|add ErrorName|ok milliseconds``, then ``CALLED``.
 """
 
 from __future__ import annotations
