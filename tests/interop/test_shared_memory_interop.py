@@ -11,7 +11,7 @@ references, another OS user) are tested in tests/client/test_shared_memory.py an
 tests/reliability/test_shared_memory_processes.py, and each library's own side of them in its unit
 tests (C++ cpp_client/tests/server/shared_memory_test.cc, Java SharedMemoryTest).
 
-About 60 s in all on 2 cores (most of it starting JVMs), the longest test about 10 s.
+About 85 s in all on 2 cores shared with other work (most of it starting JVMs), each test 3 to 10 s.
 """
 
 from __future__ import annotations
