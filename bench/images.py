@@ -2,8 +2,11 @@
 
 Watchers, each a process of its own: Python, C++, Java, Python
 (bench/image_watcher.py, ``cast_bench image-watch``, ``cast.bench.Bench
-image-watch``), all watching the entry with its value and decoding it. The
-writer is ``cast_bench image-write`` (sequential overwrites). Four phases per
+image-watch``), all watching the entry with its value; the Python and Java
+watchers decode it, the C++ one reads every byte of the image through its
+``ValueView`` (a checksum; on the server's host the value is lent by shared
+memory). The writer is ``cast_bench image-write`` (sequential overwrites,
+staged in shared memory). Four phases per
 run: ``queue`` and ``latest`` delivery, each at 30 Hz and back to back, each
 with new watcher processes on one ``cast serve`` whose server RSS is sampled
 throughout. Zenoh and Redis do the same (bench/zenoh_peer.py, bench/redis_peer.py:

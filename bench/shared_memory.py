@@ -10,11 +10,16 @@ carries the same values in the same run. Figures per phase: the watchers'
 p50 and p99 latency (write start -> callback; the first tenth of the frames
 left out), the frames lost, and the MB/s delivered to the four together.
 
-``python -m bench.shared_memory [FRAMES]`` (default 150 per phase).
+``python -m bench.shared_memory [FRAMES] [--language python|cpp|java]`` (default 150 per phase): with
+``--language java`` the writer and the four watchers are the Java client's (``cast.bench.Bench
+image-write`` and ``image-watch``), with ``--language cpp`` the C++ client's (``cast_bench
+image-write`` and ``image-watch``, M8's writer): each watcher reads every byte of each value
+through its view (a checksum, checked against what the writer wrote) before it stamps it.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -27,6 +32,7 @@ from bench import zenoh_peer
 from bench.cast_cases import Server
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.harness import PYTHON, ROOT
+from bench.other_clients import cpp_command, java_command
 
 __all__ = ["run"]
 
@@ -37,11 +43,39 @@ SIZES = (1 << 20, 6 << 20)
 HISTORY_BYTES = 64 << 20
 
 
-def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float) -> dict[str, Any]:
+def _commands(language: str) -> tuple[list[str], list[str]]:
+    """The writer's and a watcher's command line (before their arguments) in ``language``."""
+    if language == "python":
+        return [PYTHON, "-m", "bench.image_writer"], [PYTHON, "-m", "bench.image_watcher"]
+    command = java_command() if language == "java" else cpp_command()
+    if isinstance(command, str):
+        raise RuntimeError(command)
+    return [*command, "image-write"], [*command, "image-watch"]
+
+
+def word_sum(data: bytes) -> int:
+    """A value's checksum as the Java and C++ watchers compute it: little-endian 64-bit words summed mod 2**64."""
+    whole = len(data) // 8 * 8
+    words = sum(int.from_bytes(data[i: i + 8], "little") for i in range(0, whole, 8))
+    return (words + sum(data[whole:])) % (1 << 64)
+
+
+def _check_sums(sent: dict[int, int], got: list[dict[str, Any]], docs: list[dict[str, Any]], size: int) -> None:
+    """Each watcher read every byte of what it received: its checksum is the writer's values' (bench.image_writer)."""
+    order = {revision: i for i, revision in enumerate(sorted(sent))}
+    value_sum = [word_sum(bytes([k % 251]) * size) for k in range(2)]
+    for g, doc in zip(got, docs, strict=True):
+        want = sum(value_sum[order[r] % 2] for r in g["stamps"] if r in order) % (1 << 64)
+        if int(doc["checksum"]) != want:
+            raise RuntimeError(f"a watcher's checksum is {doc['checksum']}, not {want}: it read other bytes")
+
+
+def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, language: str = "python") -> dict[str, Any]:
+    writer, watcher = _commands(language)
     watchers = []
     for i in range(WATCHERS):
         env = {**os.environ, **server.env(f"{tag}-w{i}", SA)}
-        watchers.append(subprocess.Popen([PYTHON, "-m", "bench.image_watcher", "queue"], env=env, cwd=ROOT,
+        watchers.append(subprocess.Popen([*watcher, "queue"], env=env, cwd=ROOT,
                                          stdout=subprocess.PIPE, stderr=tempfile.TemporaryFile("w+"), text=True))
     try:
         for proc in watchers:
@@ -49,20 +83,26 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float) -> di
             if proc.stdout.readline().strip() != "ready":
                 raise RuntimeError("a watcher did not start")
         env = {**os.environ, **server.env(f"{tag}-writer", SA)}
-        out = subprocess.run([PYTHON, "-m", "bench.image_writer", str(size), str(frames), str(round(gap_s * 1e6))],
+        out = subprocess.run([*writer, str(size), str(frames), str(round(gap_s * 1e6))],
                              env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
         if out.returncode != 0:
             raise RuntimeError(f"the writer failed: {out.stderr[-800:]}")
         sent = {int(k): int(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
-        got = []
+        docs = []
         for proc in watchers:
             text, _ = proc.communicate(timeout=120)
-            got.append(parse_watcher(json.loads([x for x in text.splitlines() if x.startswith("{")][-1])))
+            docs.append(json.loads([x for x in text.splitlines() if x.startswith("{")][-1]))
+        got = [parse_watcher(doc) for doc in docs]
     finally:
         for proc in watchers:
             if proc.poll() is None:
                 proc.kill()
-    return _figures(sent, got, extra=2)
+    if language != "python":
+        _check_sums(sent, got, docs, size)
+    figures = _figures(sent, got, extra=2)
+    if "shared" in docs[0]:
+        figures["by_shared_memory"] = [int(doc["shared"]) for doc in docs]
+    return figures
 
 
 def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dict[str, Any]:
@@ -75,8 +115,8 @@ def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dic
     return {"watchers": per, "total": totals(sent, got)}
 
 
-def run(workdir: Path, frames: int) -> dict[str, Any]:
-    """Every phase; raw figures."""
+def run(workdir: Path, frames: int, language: str = "python") -> dict[str, Any]:
+    """Every phase (CAST's writer and watchers in ``language``); raw figures."""
     out: dict[str, Any] = {}
     for name, args in (("bytes", ("--no-shared-memory",)), ("shared", ())):
         server = Server(workdir / name, [SA], limits={"history_bytes": HISTORY_BYTES}, serve_args=args)
@@ -85,7 +125,7 @@ def run(workdir: Path, frames: int) -> dict[str, Any]:
                 for pace, gap in (("30 Hz", 1 / HZ), ("back to back", 0.0)):
                     key = f"{name} {size >> 20} MiB {pace}"
                     print(f"running {key}", file=sys.stderr, flush=True)
-                    out[key] = _phase(server, f"{name}{size}{pace[0]}", size, frames, gap)
+                    out[key] = _phase(server, f"{name}{size}{pace[0]}", size, frames, gap, language)
         finally:
             server.stop()
     for size in SIZES:
@@ -108,8 +148,18 @@ def table(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
+def main(argv: list[str]) -> None:
+    """``[FRAMES] [--language python|cpp|java]``: every phase, then the figures as JSON and as a table."""
+    parser = argparse.ArgumentParser(prog="python -m bench.shared_memory")
+    parser.add_argument("frames", nargs="?", type=int, default=150)
+    parser.add_argument("--language", choices=("python", "cpp", "java"), default="python",
+                        help="the language of CAST's writer and watchers")
+    args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        results = run(Path(tmp), int(sys.argv[1]) if len(sys.argv) > 1 else 150)
+        results = run(Path(tmp), args.frames, args.language)
     print(json.dumps(results))
     print(table(results))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

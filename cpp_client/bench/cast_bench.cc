@@ -29,15 +29,26 @@
 //                               start + i * GAP_US (0: back to back), stamping
 //                               CLOCK_MONOTONIC just before each; deletes "img"
 //                               (the watchers' end mark) and prints
-//                               {"REVISION": NS, ...} (the overwrites)
+//                               {"REVISION": NS, ...} (the overwrites). The
+//                               values alternate: SIZE bytes of 0, of 1 (as
+//                               bench/image_writer.py's, so that
+//                               bench/shared_memory.py checks the watchers' sums)
 //   cast_bench image-watch DELIVERY
 //                               onChange(addressFilter("img") with the entry,
 //                               Delivery queue|latest); prints "ready", then at
 //                               the DELETE of "img" one line {"stamps": {"REVISION":
-//                               NS, ...}, "bytes": B, "events": E, "skipped": S}:
-//                               every overwrite received (its value decoded), the
-//                               value bytes, the events received (add and delete
-//                               too) and the changes a latest watch skipped
+//                               NS, ...}, "bytes": B, "events": E, "skipped": S,
+//                               "checksum": C, "shared": H}: every overwrite
+//                               received, each read whole through its ValueView
+//                               before it is stamped (every byte of the image,
+//                               field 1, in a checksum: the sum of its
+//                               little-endian 64-bit words modulo 2**64, as the
+//                               Java watcher's; no copy on the server's host,
+//                               where the value is lent by shared memory), the
+//                               image bytes, the events received (add and delete
+//                               too), the changes a latest watch skipped, the sum
+//                               of the overwrites' checksums and how many of them
+//                               came by shared memory
 //
 // CLOCK_MONOTONIC is shared by every process of a Linux machine, so the stamps
 // compare with the other process's and with Python's time.perf_counter_ns.
@@ -48,6 +59,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -156,20 +168,39 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 }
 
 int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
-  google::protobuf::BytesValue value;
-  value.set_value(std::string(static_cast<std::size_t>(size), 'i'));
+  std::vector<google::protobuf::BytesValue> values(2);  // made before the clock starts
+  for (std::size_t k = 0; k < values.size(); ++k) {
+    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k % 251)));
+  }
   std::map<std::uint64_t, std::int64_t> sent;
-  c.add("img", value);
+  c.add("img", values[0]);
   const auto start = Clock::now();
   for (long i = 0; i < n; ++i) {
     // An absolute schedule, so the rate holds whatever each overwrite took.
     if (gapUs > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gapUs * i));
     const std::int64_t t0 = nowNs();
-    sent[c.overwrite("img", value).revision] = t0;
+    sent[c.overwrite("img", values[static_cast<std::size_t>(i) % 2]).revision] = t0;
   }
   c.deleteEntry("img");  // the watchers' end mark; a later run adds it again
   std::cout << stampsJson(sent) << std::endl;
   return 0;
+}
+
+// The sum of `bytes`' little-endian 64-bit words modulo 2**64, a last
+// partial word as its bytes (Bench.checksum in Java).
+std::uint64_t wordSum(cast::ByteSpan bytes) {
+  const std::size_t whole = bytes.size() / 8 * 8;
+  std::uint64_t sum = 0;
+  for (std::size_t i = 0; i < whole; i += 8) {
+    std::uint64_t word;
+    std::memcpy(&word, bytes.data() + i, sizeof word);
+#if __BYTE_ORDER__ == __ORDER_BIG_ENDIAN__
+    word = __builtin_bswap64(word);
+#endif
+    sum += word;
+  }
+  for (std::size_t i = whole; i < bytes.size(); ++i) sum += static_cast<std::uint8_t>(bytes[i]);
+  return sum;
 }
 
 int imageWatchMode(cast::Component& c, const std::string& delivery) {
@@ -177,13 +208,12 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::condition_variable done;
   bool ended = false;
   std::map<std::uint64_t, std::int64_t> stamps;
-  std::uint64_t bytes = 0, events = 0, skipped = 0;
+  std::uint64_t bytes = 0, events = 0, skipped = 0, shared = 0, checksum = 0;
   cast::WatchOptions options;
   options.delivery = delivery == "latest" ? cast::Delivery::Latest : cast::Delivery::Queue;
   c.onChange(
       cast::addressFilter("img").withEntry(),
       [&](const cast::WorkingMemoryChange& change) {
-        const std::int64_t t = nowNs();
         if (change.operation() == cast::Operation::Delete) {
           std::lock_guard<std::mutex> lock(mu);
           ++events;
@@ -192,13 +222,19 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
           done.notify_all();
           return;
         }
-        const auto size = change.entry<google::protobuf::BytesValue>().value.value().size();  // decoded, as a consumer would
+        // Every byte of the image read where it is, as a consumer of frames would, then the stamp.
+        const cast::ValueView view = change.view();
+        const cast::ByteSpan pixels = view.field(1);
+        const std::uint64_t sum = wordSum(pixels);
+        const std::int64_t t = nowNs();
         std::lock_guard<std::mutex> lock(mu);
         ++events;
         skipped += change.skipped();
         if (change.operation() == cast::Operation::Overwrite) {
           stamps[change.revision()] = t;
-          bytes += size;
+          bytes += pixels.size();
+          checksum += sum;
+          shared += view.shared() ? 1 : 0;
         }
       },
       options);
@@ -206,7 +242,8 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::unique_lock<std::mutex> lock(mu);
   done.wait_for(lock, std::chrono::seconds(300), [&] { return ended; });
   std::cout << "{\"stamps\": " << stampsJson(stamps) << ", \"bytes\": " << bytes << ", \"events\": " << events
-            << ", \"skipped\": " << skipped << "}" << std::endl;
+            << ", \"skipped\": " << skipped << ", \"checksum\": " << checksum << ", \"shared\": " << shared << "}"
+            << std::endl;
   return 0;
 }
 

@@ -296,6 +296,10 @@ std::vector<detail::EntryRecord> Component::readAll(const std::string& type, con
   return core().transport().getByType(targetSa(subarchitecture), type, limit);
 }
 
+ValueView Component::getView(const std::string& id, const std::string& subarchitecture) {
+  return ValueView(std::make_shared<const detail::EntryRecord>(readEntry(id, subarchitecture)));
+}
+
 bool Component::exists(const std::string& id, const std::string& subarchitecture) {
   return core().transport().exists(targetSa(subarchitecture), id);
 }

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <limits>
 
+#include "shm_session.h"
+
 namespace cast::detail {
 
 namespace {
@@ -32,11 +34,19 @@ std::int64_t nanos(const google::protobuf::Timestamp& t) {
   return static_cast<std::int64_t>(t.seconds()) * 1000000000LL + t.nanos();
 }
 
-EntryRecord entryFromPb(const v1::Entry& e) {
+EntryRecord entryFromPb(const v1::Entry& e, ReadCall* call) {
   EntryRecord r;
   r.address = WorkingMemoryAddress{e.address().id(), e.address().subarchitecture()};
   r.type = e.type();
-  r.data = e.value().value();
+  if (e.has_shared_value()) {
+    if (call == nullptr) {
+      throw UnavailableError("entry '" + e.address().id() +
+                             "' came by shared memory on a call that named no session: read it again");
+    }
+    r.lent = call->claim(e.shared_value());
+  } else {
+    r.data = e.value().value();
+  }
   r.version = e.version();
   r.author = e.author();
   r.revision = e.revision();
@@ -44,7 +54,7 @@ EntryRecord entryFromPb(const v1::Entry& e) {
   return r;
 }
 
-EventRecord eventFromPb(const v1::ChangeEvent& e) {
+EventRecord eventFromPb(const v1::ChangeEvent& e, ReadCall* call) {
   EventRecord r;
   r.revision = e.revision();
   r.operation = static_cast<Operation>(e.operation());
@@ -54,7 +64,7 @@ EventRecord eventFromPb(const v1::ChangeEvent& e) {
   r.sourceSubarchitecture = e.source_subarchitecture();
   r.version = e.version();
   r.timeNs = nanos(e.time());
-  if (e.has_entry()) r.entry = entryFromPb(e.entry());
+  if (e.has_entry()) r.entry = entryFromPb(e.entry(), call);
   r.skipped = e.skipped();
   r.firstSkippedRevision = e.first_skipped_revision();
   return r;

@@ -33,11 +33,17 @@ std::string typeFromUrl(const std::string& url);
 // A timestamp as nanoseconds since the epoch.
 std::int64_t nanos(const google::protobuf::Timestamp& t);
 
-// An entry as the component model holds it (value bytes kept serialised).
-EntryRecord entryFromPb(const v1::Entry& e);
+class ReadCall;
 
-// A change event; its entry only if the server sent one (include_entry).
-EventRecord eventFromPb(const v1::ChangeEvent& e);
+// An entry as the component model holds it (value bytes kept serialised). A
+// value the server lent by shared memory (shared_value) is claimed on the
+// read `call` it came on (shm_session.h): the record then holds its lease.
+// UnavailableError when it cannot be (no call, or its bytes did not arrive).
+EntryRecord entryFromPb(const v1::Entry& e, ReadCall* call = nullptr);
+
+// A change event; its entry only if the server sent one (include_entry);
+// `call` as for entryFromPb.
+EventRecord eventFromPb(const v1::ChangeEvent& e, ReadCall* call = nullptr);
 
 // A task; data type and bytes only if the task carries data.
 TaskRecord taskFromPb(const v1::Task& t);

@@ -18,6 +18,7 @@
 #include "cast/v1/inspection.grpc.pb.h"
 #include "cast/v1/task_manager.grpc.pb.h"
 #include "cast/v1/working_memory.grpc.pb.h"
+#include "shm.h"
 
 namespace cast::detail {
 
@@ -43,6 +44,9 @@ struct Server {
   std::unique_ptr<v1::TaskManager::Stub> tm;
   std::unique_ptr<v1::Directory::Stub> dir;
   std::unique_ptr<v1::Inspection::Stub> insp;  // Report: the component's outcomes
+  // Shared memory with this server when on its host (shm.h), opened when
+  // first needed; set by the transport right after the server is made.
+  std::shared_ptr<SharedLink> shared;
 };
 
 // The metadata every call carries: the component's token.

@@ -2,7 +2,9 @@
 // calls, docs/client-protocol.md call by call. The streams it keeps open live
 // beside it: write_stream.cc (Write: every write and lock), watch_stream.cc
 // (Watch), session.cc (Register and Heartbeat, and the start barrier's
-// AwaitRun); the decision stream is here, being one loop.
+// AwaitRun); the decision stream is here, being one loop. Large values go by
+// shared memory with a server on this host (shm.cc, shm_session.cc): staged
+// here for writes, claimed by conversions.cc for reads and events.
 // Mirrors the Python client's client/grpc_transport.py.
 #include "cast/grpc_transport.h"
 
@@ -30,6 +32,31 @@ namespace {
 // server's answer: the server ends the wait itself at the timeout, the margin
 // is the answer's way back (docs/client-protocol.md, "Deadlines").
 constexpr Millis kLockReplyMargin{1000};
+// How long asking a server where its shared memory is may take: it is asked
+// on the way of a write, a read or a watch.
+constexpr Millis kDescribeShared{5000};
+
+// What is left of one call's timeout: opening the shared-memory session on
+// the call's way (the first large write, or a read) spends from it, so that
+// a hung server holds the call for its timeout, not for the opening's
+// bounds and then the timeout again.
+class Budget {
+ public:
+  explicit Budget(Millis timeout) : end_(std::chrono::steady_clock::now() + timeout) {}
+  // The time left; DeadlineExceededError once there is none (nothing was sent).
+  Millis left() const {
+    const auto left = std::chrono::duration_cast<Millis>(end_ - std::chrono::steady_clock::now());
+    if (left.count() <= 0) {
+      throw DeadlineExceededError(
+          "the call's deadline passed while opening shared memory with the server: nothing was sent; the server "
+          "may be hung or overloaded, retry later");
+    }
+    return left;
+  }
+
+ private:
+  std::chrono::steady_clock::time_point end_;
+};
 
 class GrpcTransport final : public Transport {
  public:
@@ -43,8 +70,11 @@ class GrpcTransport final : public Transport {
         session_(tokens_, timeout_, log_) {
     auto directory = std::make_unique<Server>(endpoint, tls_);
     directory_ = directory.get();
+    attachShared(*directory_);
     servers_[endpoint] = std::move(directory);
-    describe();
+    // The directory's server said where its shared memory is: the session
+    // with it opens now, so that no call waits for it later.
+    directory_->shared->open(describe());
   }
 
   ~GrpcTransport() override { close(); }
@@ -55,25 +85,50 @@ class GrpcTransport final : public Transport {
   // Every write and lock goes on the Write stream of its SA's server
   // (write_stream.cc); reads, tasks and the rest are unary calls.
 
+  // A large value opens the session on the write's way if there is none
+  // yet: within the write's own time (Budget).
+
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
-    return writeResult(write(sa, addRequest(sa, id, type, data)).write());
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
+        budget.left());
+    return writeResult(write(sa, std::move(request), staged, budget).write());
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
-    return writeResult(write(sa, overwriteRequest(sa, id, type, data, expectedVersion)).write());
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged,
+        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
+        budget.left());
+    return writeResult(write(sa, std::move(request), staged, budget).write());
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
-    return writeStream(sa).writeAsync(addRequest(sa, id, type, data));
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
+        budget.left());
+    return writeAsync(sa, std::move(request), std::move(staged), budget);
   }
 
   std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
-    return writeStream(sa).writeAsync(overwriteRequest(sa, id, type, data, expectedVersion));
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stagedWrite(
+        *server(sa).shared, data, staged,
+        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
+        budget.left());
+    return writeAsync(sa, std::move(request), std::move(staged), budget);
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
@@ -83,8 +138,13 @@ class GrpcTransport final : public Transport {
 
   std::vector<WriteResult> batch(const std::vector<BatchOp>& ops) override {
     if (ops.empty()) return {};
-    // A batch is applied by one server: the one of its first operation's SA.
-    v1::WriteReply reply = write(ops.front().subarchitecture, batchRequest(ops));
+    // A batch is applied by one server: the one of its first operation's SA;
+    // its large values are staged in the session with that server.
+    const std::string& target = ops.front().subarchitecture;
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stagedBatch(*server(target).shared, ops, staged, budget.left());
+    v1::WriteReply reply = write(target, std::move(request), staged, budget);
     std::vector<WriteResult> out;
     for (const auto& r : reply.batch().results()) out.push_back(writeResult(r));
     return out;
@@ -92,11 +152,25 @@ class GrpcTransport final : public Transport {
 
   // ---------------------------------------------------------------- reads
 
+  // A read on the server's host asks to be lent its large values (shm.h):
+  // its metadata names the session and the call, and the call's end says
+  // what it received. Opening the session on its way spends its time (Budget).
+
   EntryRecord get(const std::string& sa, const std::string& id) override {
     v1::GetRequest req;
     *req.mutable_address() = addressPb(sa, id);
     Server& s = server(sa);
-    return entryFromPb(call<v1::GetResponse>([&](auto* ctx, auto* r) { return s.wm->Get(ctx, req, r); }).entry());
+    const Budget budget(timeout_);
+    std::unique_ptr<ReadCall> read = s.shared->read(budget.left());
+    auto resp = call<v1::GetResponse>(
+        [&](auto* ctx, auto* r) {
+          if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+          return s.wm->Get(ctx, req, r);
+        },
+        std::optional<Millis>(budget.left()));
+    EntryRecord record = entryFromPb(resp.entry(), read.get());
+    if (read) read->end(true);
+    return record;
   }
 
   std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type, std::uint32_t limit) override {
@@ -105,10 +179,18 @@ class GrpcTransport final : public Transport {
     req.set_type(type);
     req.set_limit(limit);
     Server& s = server(sa);
-    auto resp = call<v1::GetByTypeResponse>([&](auto* ctx, auto* r) { return s.wm->GetByType(ctx, req, r); });
+    const Budget budget(timeout_);
+    std::unique_ptr<ReadCall> read = s.shared->read(budget.left());
+    auto resp = call<v1::GetByTypeResponse>(
+        [&](auto* ctx, auto* r) {
+          if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
+          return s.wm->GetByType(ctx, req, r);
+        },
+        std::optional<Millis>(budget.left()));
     std::vector<EntryRecord> out;
     out.reserve(static_cast<std::size_t>(resp.entries_size()));
-    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e));
+    for (const auto& e : resp.entries()) out.push_back(entryFromPb(e, read.get()));
+    if (read) read->end(true);
     return out;
   }
 
@@ -337,6 +419,9 @@ class GrpcTransport final : public Transport {
     if (decisionContext) decisionContext->TryCancel();
     session_.close();
     if (decisions_.joinable()) decisions_.join();
+    // Last: values still held (views, changes) stay readable; they are given
+    // back with the session's end.
+    for (Server* s : allServers()) s->shared->close();
   }
 
  private:
@@ -351,6 +436,59 @@ class GrpcTransport final : public Transport {
   v1::WriteReply write(const std::string& sa, v1::WriteRequest request) {
     return write(sa, std::move(request), std::optional<Millis>(timeout_));
   }
+  // What is left of a write's `budget`; when nothing is, its regions are
+  // free again (it was not sent) and DeadlineExceededError is thrown.
+  static Millis timeLeft(const Budget& budget, const Staging& staged) {
+    try {
+      return budget.left();
+    } catch (const CastError&) {
+      unstage(staged, nullptr);
+      throw;
+    }
+  }
+  // A write with values staged in shared memory, waiting for what is left of
+  // its `budget`: their regions are freed when it is over (unstage).
+  v1::WriteReply write(const std::string& sa, v1::WriteRequest request, const Staging& staged, const Budget& budget) {
+    const Millis left = timeLeft(budget, staged);
+    try {
+      v1::WriteReply reply = write(sa, std::move(request), std::optional<Millis>(left));
+      unstage(staged, nullptr);
+      return reply;
+    } catch (const CastError& e) {
+      unstage(staged, &e);
+      throw;
+    } catch (...) {
+      const UnavailableError unknown("the write failed while it was sent");
+      unstage(staged, &unknown);
+      throw;
+    }
+  }
+  std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged,
+                                      const Budget& budget) {
+    const Millis left = timeLeft(budget, staged);
+    WriteStream& stream = writeStream(sa);
+    if (staged.empty()) return stream.writeAsync(std::move(request), nullptr, left);
+    return stream.writeAsync(
+        std::move(request),
+        [staged = std::move(staged)](const std::shared_ptr<CastError>& error) { unstage(staged, error.get()); }, left);
+  }
+
+
+  // Shared memory with `s` when on its host (shm.h), opened when first needed.
+  void attachShared(Server& s) {
+    Server* server = &s;
+    s.shared = std::make_shared<SharedLink>(
+        s.endpoint, tokens_,
+        [this, server](SharedLink::Within within) {
+          // The server itself says where its shared memory is: ask it, not the directory.
+          const v1::DescribeSystemRequest req;
+          const Millis bound = std::min(kDescribeShared, timeout_);
+          return call<v1::SystemDescription>(
+              [&](auto* ctx, auto* r) { return server->dir->DescribeSystem(ctx, req, r); },
+              std::optional<Millis>(within ? std::min(bound, *within) : bound));
+        },
+        log_);
+  }
 
   // A unary call bounded by `deadline` (nullopt: none).
   template <class Resp, class Fn>
@@ -363,8 +501,8 @@ class GrpcTransport final : public Transport {
     return call<Resp>(std::forward<Fn>(fn), std::optional<Millis>(timeout_));
   }
 
-  // Learns which server serves each SA (Directory.DescribeSystem).
-  void describe() {
+  // Learns which server serves each SA (Directory.DescribeSystem); the answer.
+  v1::SystemDescription describe() {
     v1::DescribeSystemRequest req;
     Server* d = directory_;
     auto desc = call<v1::SystemDescription>([&](auto* ctx, auto* r) { return d->dir->DescribeSystem(ctx, req, r); });
@@ -376,12 +514,16 @@ class GrpcTransport final : public Transport {
         routes_[sa.name()] = directory_;
       } else {
         auto& slot = servers_[sa.endpoint()];
-        if (!slot) slot = std::make_unique<Server>(sa.endpoint(), tls_);
+        if (!slot) {
+          slot = std::make_unique<Server>(sa.endpoint(), tls_);
+          attachShared(*slot);
+        }
         routes_[sa.name()] = slot.get();
       }
     }
     // A Write stream per server, opened by its first write.
     for (auto& kv : servers_) writeStreams_[kv.second.get()] = std::make_unique<WriteStream>(*kv.second, tokens_, timeout_);
+    return desc;
   }
 
   // An SA the directory does not know goes to the directory's server, which

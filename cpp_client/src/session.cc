@@ -148,6 +148,8 @@ void Session::heartbeatLoop(Link& link, Millis interval, const std::string& lang
       std::lock_guard<std::mutex> lock(mu_);
       if (closing_) return;
     }
+    // A server that died ended the shared-memory session too: unmap its memory now.
+    if (s.shared) s.shared->check();
     log_.warning("session with " + s.endpoint + " lost (" + statusCodeName(status.error_code()) + ": " +
                  status.error_message() + "): its locks and tasks are released; registering again");
     while (!closingEvent_.wait(backoff.next())) {

@@ -125,11 +125,15 @@ void WatchStream::run() {
   while (true) {
     std::shared_ptr<grpc::ClientReaderWriter<v1::WatchRequest, v1::WatchResponse>> stream;
     std::shared_ptr<grpc::ClientContext> context;
+    // Asking for a session may take a moment (its server is asked where its
+    // shared memory is): before the context exists, so close() is not held up.
+    read_ = server_.shared ? server_.shared->read() : nullptr;
     {
       std::lock_guard<std::mutex> lock(mu_);
       if (closed_) break;
       context_ = context = std::make_shared<grpc::ClientContext>();
       authorize(*context, *tokens_);
+      if (read_) context->AddMetadata(kSharedMemoryMetadata, read_->metadata());
     }
     // Opening may wait for the connection: not under mu_, so that close()
     // can cancel it.
@@ -140,23 +144,49 @@ void WatchStream::run() {
       for (auto& kv : watches_) write(createRequest(*kv.second));
     }
     v1::WatchResponse response;
+    bool upgrade = false;  // opened without a session, and one is open now: open again with it
+    std::shared_ptr<CastError> unreadable;
     while (stream->Read(&response)) {
       if (!connected_) {
         connected_ = true;
         backoff.reset();
       }
-      handle(response);
+      // Cheap while there is none to be had (the link tries again only every
+      // few seconds), so a stream opened while its server was away (or
+      // restarting) moves to shared memory as soon as there is a session.
+      upgrade = !read_ && server_.shared && server_.shared->session();
+      try {
+        handle(response);
+      } catch (const CastError& e) {
+        // An event whose shared memory could not be read: read the stream
+        // again, from the event after the last one delivered.
+        unreadable = std::make_shared<UnavailableError>("an event could not be read: " + e.message());
+      }
+      if (upgrade || unreadable) {
+        context->TryCancel();
+        while (stream->Read(&response)) {
+        }
+        break;
+      }
     }
     const grpc::Status status = stream->Finish();
     connected_ = false;
+    // The call is over: say what it received (the server takes back the
+    // rest), and see whether the session ended with it.
+    if (read_) read_->end(false);
+    read_.reset();
+    if (server_.shared) server_.shared->check();
     {
       std::lock_guard<std::mutex> lock(mu_);
       stream_.reset();
       if (closed_) break;
     }
+    if (upgrade && !unreadable) continue;
     std::shared_ptr<CastError> error =
-        status.ok() ? std::make_shared<UnavailableError>("the watch stream to " + server_.endpoint + " ended")
-                    : errorForStatus(status, errorTrailer(context->GetServerTrailingMetadata()));
+        unreadable ? unreadable
+        : status.ok()
+            ? std::make_shared<UnavailableError>("the watch stream to " + server_.endpoint + " ended")
+            : errorForStatus(status, errorTrailer(context->GetServerTrailingMetadata()));
     if (!transient(error->code())) {
       fail(error);
       return;
@@ -175,7 +205,7 @@ void WatchStream::handle(const v1::WatchResponse& response) {
   // that has not matched anything yet.
   for (const auto& event : response.events()) {
     std::vector<std::uint32_t> ids(event.watch_ids().begin(), event.watch_ids().end());
-    EventRecord record = eventFromPb(event);
+    EventRecord record = eventFromPb(event, read_.get());
     const std::string sa = record.address.subarchitecture;
     const std::uint64_t revision = record.revision;
     sink_(std::move(record), ids);

@@ -29,6 +29,11 @@ namespace cast::detail {
 // server that lost that history (restarted without persistence) refuses the
 // resume, and the component is told to resynchronise (watchFailed with
 // HistoryExpiredError).
+//
+// On the server's host the stream asks to be lent large values (shm.h): it
+// is a read call of the shared-memory session, whose end says what arrived.
+// A stream opened while no session could be had (its server was away) is
+// opened again once one is, resuming where it was.
 class WatchStream {
  public:
   // Starts the reader thread, which opens the stream (and reopens it after a
@@ -95,6 +100,7 @@ class WatchStream {
   bool dead_ = false;
   bool closed_ = false;
   std::shared_ptr<CastError> deathError_;
+  std::unique_ptr<ReadCall> read_;  // the open call's part of the shared-memory session; the reader thread's
   Closing closing_;
   std::thread thread_;
 };

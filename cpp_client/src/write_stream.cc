@@ -431,20 +431,23 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
   }
 }
 
-std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request) {
+std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request,
+                                                 std::function<void(const std::shared_ptr<CastError>&)> finished,
+                                                 std::optional<Millis> timeout) {
   auto promise = std::make_shared<std::promise<WriteResult>>();
   std::future<WriteResult> future = promise->get_future();
   send(request,
-       [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
-         if (!reply) {
-           fail(*promise, *failed);
-         } else if (auto error = replyError(*reply)) {
+       [promise, finished = std::move(finished)](const v1::WriteReply* reply,
+                                                  const std::shared_ptr<CastError>& failed) {
+         const std::shared_ptr<CastError> error = reply ? replyError(*reply) : failed;
+         if (finished) finished(error);
+         if (error) {
            fail(*promise, *error);
          } else {
            promise->set_value(writeResult(reply->write()));
          }
        },
-       false, callTimeout_);
+       false, timeout ? *timeout : callTimeout_);
   return future;
 }
 

@@ -74,8 +74,13 @@ class WriteStream {
   // changed nothing).
   v1::WriteReply call(v1::WriteRequest request, std::optional<Millis> timeout);
   // Sends an add or overwrite and returns at once: the future of its result,
-  // or of the error call() would have thrown.
-  std::future<WriteResult> writeAsync(v1::WriteRequest request);
+  // or of the error call() would have thrown. `finished`, if given, is called
+  // with that error (nullptr for a result) just before the future completes
+  // (the transport frees the write's shared-memory staging there). Past
+  // `timeout` (nullopt: the call timeout) it fails with DeadlineExceededError.
+  std::future<WriteResult> writeAsync(v1::WriteRequest request,
+                                      std::function<void(const std::shared_ptr<CastError>&)> finished = nullptr,
+                                      std::optional<Millis> timeout = std::nullopt);
   // Stops sending (later writes fail with UnavailableError), waits up to
   // `grace` for the outstanding replies, then ends the stream.
   void close(Millis grace = Millis(2000));

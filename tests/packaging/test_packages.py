@@ -288,6 +288,18 @@ def test_the_library_builds_shared_with_build_shared_libs(installed: Installed) 
 
 # -------------------------------------------------------------------------------------------- Java
 
+def shared_sessions(endpoint: str, token: str) -> int:
+    """How many shared-memory sessions the server at ``endpoint`` has open."""
+    import grpc
+
+    from cast.v1 import inspection_pb2, inspection_pb2_grpc
+
+    with grpc.insecure_channel(endpoint) as channel:
+        metrics = inspection_pb2_grpc.InspectionStub(channel).GetMetrics(
+            inspection_pb2.GetMetricsRequest(), metadata=(("authorization", f"Bearer {token}"),), timeout=10)
+    return int(metrics.shared_memory.sessions)
+
+
 def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installed: Installed) -> None:
     tool("mvn", "run `make java` (it installs a JDK and Maven)")
     java = tool("java", "run `make java` (it installs a JDK and Maven)")
@@ -307,6 +319,8 @@ def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installe
     jars = classpath.split(os.pathsep)
     assert jars[0] == str(repository / "cast-client" / VERSION / f"cast-client-{VERSION}.jar"), jars[0]
     assert not any(str(ROOT) in jar for jar in jars), "the example used a file of the tree"
+    # junixsocket (shared memory on the server's host) comes along, its native library in its jar.
+    assert {Path(jar).parent.parent.name for jar in jars} >= {"junixsocket-common", "junixsocket-native-common"}, jars
 
     gen = installed.work / "java-gen"
     gen.mkdir()
@@ -337,7 +351,11 @@ def test_the_java_example_builds_on_the_installed_artifacts_and_answers(installe
                 wm.add("g1", Greeting(text="world", **{"from": "greeter"}))
                 assert answered.wait(60), "no answer from the Java component"
                 assert wm.get("reply-g1", Greeting).text == "hello, world"
+                # Both have a shared-memory session with the server: the Java one loaded junixsocket's
+                # native library from the installed jar.
+                assert shared_sessions(endpoint, token) == 2
         finally:
             component.send_signal(signal.SIGTERM)
             output = component.communicate(timeout=60)[0]
     assert component.returncode == 0, output
+    assert "is not used" not in output, output  # no fallback to bytes: shared memory worked

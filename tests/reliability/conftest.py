@@ -32,6 +32,17 @@ def kill9(handle: ServerHandle) -> None:
     handle.process.wait(10)
 
 
+# What other programs of a test run put in /dev/shm while this one runs (make test runs two at once):
+# Fast DDS's shared-memory transport and its tracing (the ROS 2 tests), iceoryx2 and Zenoh (the bench's peers).
+_OTHERS = ("fastdds_", "fastrtps_", "fast_datasharing", "sem.fastdds_", "sem.fastrtps_", "iox2", "sem.iox2",
+           "lttng-ust-wait-")
+
+
+def dev_shm() -> set[str]:
+    """The files in /dev/shm, but those of other programs (:data:`_OTHERS`): what a shared-memory test checks."""
+    return {name for name in os.listdir("/dev/shm") if not name.startswith(_OTHERS) and not name.endswith(".zenoh")}
+
+
 def write_config(path: Path, config: dict[str, Any]) -> Path:
     """Write a configuration as YAML; return its path."""
     path.parent.mkdir(parents=True, exist_ok=True)

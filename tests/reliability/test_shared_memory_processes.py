@@ -36,22 +36,11 @@ from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.wire import shared_memory as wire
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
 from tests.netns import Lines, Namespaces, stop_all
-from tests.reliability.conftest import kill9, serve, write_config
+from tests.reliability.conftest import dev_shm, kill9, serve, write_config
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
 PEER = str(COMPONENTS / "shm_peer.py")
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
-
-
-# What other programs of a test run put in /dev/shm while this one runs (make test runs two at once):
-# Fast DDS's shared-memory transport and its tracing (the ROS 2 tests), iceoryx2 and Zenoh (the bench's peers).
-_OTHERS = ("fastdds_", "fastrtps_", "fast_datasharing", "sem.fastdds_", "sem.fastrtps_", "iox2", "sem.iox2",
-           "lttng-ust-wait-")
-
-
-def dev_shm() -> set[str]:
-    """The files in /dev/shm, but those of other programs (:data:`_OTHERS`)."""
-    return {name for name in os.listdir("/dev/shm") if not name.startswith(_OTHERS) and not name.endswith(".zenoh")}
 
 
 def memory_files(pid: int) -> list[str]:

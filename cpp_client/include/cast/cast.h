@@ -13,3 +13,4 @@
 #include "cast/schemas.h"
 #include "cast/types.h"
 #include "cast/version.h"
+#include "cast/views.h"

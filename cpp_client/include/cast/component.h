@@ -31,6 +31,7 @@
 #include "cast/log.h"
 #include "cast/transport.h"
 #include "cast/types.h"
+#include "cast/views.h"
 
 namespace cast {
 
@@ -204,6 +205,11 @@ class Component {
   Entry<T> getEntry(const std::string& id, const std::string& subarchitecture = "") {
     return detail::toEntry<T>(readEntry(id, subarchitecture));
   }
+  // An entry's value, serialised, as read-only bytes that are not a copy
+  // (cast/views.h): on the server's host a large value is the server's
+  // shared memory, lent while the view is held; elsewhere the bytes
+  // received. NotFoundError if missing.
+  ValueView getView(const std::string& id, const std::string& subarchitecture = "");
   // Every entry of type T, newest first (at most `limit` if not 0).
   template <class T>
   std::vector<Entry<T>> getAll(const std::string& subarchitecture = "", std::uint32_t limit = 0) {

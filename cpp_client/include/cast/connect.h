@@ -69,11 +69,12 @@ class Connection final : private UnmanagedComponent {
   using Component::newId;
   using Component::overwrite;
 
-  // Reads: get<T>, getEntry<T>, getAll<T>, exists.
+  // Reads: get<T>, getEntry<T>, getAll<T>, getView, exists.
   using Component::exists;
   using Component::get;
   using Component::getAll;
   using Component::getEntry;
+  using Component::getView;
 
   // Locks: lock (a LockGuard), tryLock, unlock.
   using Component::lock;

@@ -9,8 +9,10 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <climits>
 #include <ostream>
 #include <string>
+#include <string_view>
 #include <type_traits>
 #include <vector>
 
@@ -90,9 +92,30 @@ const std::string& typeName() {
   return T::descriptor()->full_name();
 }
 
+class ValueView;
+
 namespace detail {
 
-// An entry as the transport returns it: the value still serialised.
+// A value's bytes that the server lent by shared memory (on its host): they
+// are in a segment of its memory mapped read-only, and stay as they are
+// while this object lives; the value is given back when it goes (the
+// transport's Lease, shm_session.cc).
+class LentBytes {
+ public:
+  virtual ~LentBytes() = default;
+  const char* data() const { return data_; }
+  std::size_t size() const { return size_; }
+
+ protected:
+  LentBytes(const char* data, std::size_t size) : data_(data), size_(size) {}
+
+ private:
+  const char* data_;
+  std::size_t size_;
+};
+
+// An entry as the transport returns it: the value still serialised, either
+// in `data` or, lent by shared memory, in `lent` (`data` then empty).
 struct EntryRecord {
   WorkingMemoryAddress address;
   std::string type;
@@ -101,6 +124,12 @@ struct EntryRecord {
   std::string author;
   std::uint64_t revision = 0;
   std::int64_t modifiedNs = 0;
+  std::shared_ptr<const LentBytes> lent;
+
+  // The serialised value, wherever it is; valid while this record lives.
+  std::string_view bytes() const {
+    return lent ? std::string_view(lent->data(), lent->size()) : std::string_view(data);
+  }
 };
 
 // A change event as the transport returns it.
@@ -127,7 +156,7 @@ struct EventRecord {
 // InvalidArgumentError like a wrong type, never a bare protobuf failure, so
 // callers handle one kind of error.
 template <class T>
-T decode(const std::string& declaredType, const std::string& data, const std::string& what, const std::string& sa,
+T decode(const std::string& declaredType, std::string_view data, const std::string& what, const std::string& sa,
          const std::string& why) {
   const std::string& expected = typeName<T>();
   const std::string where = what + " in subarchitecture '" + sa + "'";
@@ -136,7 +165,8 @@ T decode(const std::string& declaredType, const std::string& data, const std::st
                                ": read it with the right class");
   }
   T value;
-  if (!value.ParseFromString(data)) {
+  if (data.size() > static_cast<std::size_t>(INT_MAX) ||
+      !value.ParseFromArray(data.data(), static_cast<int>(data.size()))) {
     throw InvalidArgumentError(where + " does not parse as " + expected + " (" + std::to_string(data.size()) +
                                " stored bytes): " + why);
   }
@@ -146,7 +176,7 @@ T decode(const std::string& declaredType, const std::string& data, const std::st
 // The value of an entry as T (see decode).
 template <class T>
 T decodeEntry(const EntryRecord& r) {
-  return decode<T>(r.type, r.data, "entry '" + r.address.id + "'", r.address.subarchitecture,
+  return decode<T>(r.type, r.bytes(), "entry '" + r.address.id + "'", r.address.subarchitecture,
                    "it was written corrupt or with another schema; overwrite or delete it");
 }
 
@@ -211,6 +241,11 @@ class WorkingMemoryChange {
     if (!ev_->entry) throw InvalidArgumentError("this change carries no entry: ask for it with includeEntry");
     return detail::toEntry<T>(*ev_->entry);
   }
+  // The value the event carries, serialised, not copied (cast/views.h): on
+  // the server's host a large value is the server's shared memory, held
+  // while the view (or this change) lives. InvalidArgumentError when the
+  // change carries no entry.
+  ValueView view() const;
 
  private:
   std::shared_ptr<const detail::EventRecord> ev_;

@@ -69,6 +69,14 @@ class _Budget:
                                         "nothing was sent; the server may be hung or overloaded, retry later")
         return left
 
+    def left_for(self, staged: _Staging) -> float | None:
+        """:meth:`left` for a write whose values are ``staged``: when none is, their regions are free again."""
+        try:
+            return self.left()
+        except DeadlineExceededError:
+            _unstage(staged, None)  # nothing was sent: no request can still name them
+            raise
+
 
 _Staging = tuple[tuple[ClientSession, Staged], ...]
 """The values of one write request staged in shared memory, and the sessions they are staged in."""
@@ -229,8 +237,9 @@ class GrpcTransport:
             _unstage(staged, None)
             result.set_result(WriteResult(reply.write.revision, reply.write.version))
 
+        timeout = budget.left_for(staged)
         try:
-            self._stream(sa).submit(request, budget.left()).add_done_callback(done)
+            self._stream(sa).submit(request, timeout).add_done_callback(done)
         except BaseException as exc:
             _unstage(staged, exc)
             raise
@@ -272,7 +281,7 @@ class GrpcTransport:
         """Create an entry."""
         budget = _Budget(self._timeout)
         request, staged = self._add_request(sa, entry_id, type_name, data, budget)
-        reply = self._write(sa, request, budget.left(), staged)
+        reply = self._write(sa, request, budget.left_for(staged), staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
@@ -287,7 +296,7 @@ class GrpcTransport:
         """Replace an entry's value."""
         budget = _Budget(self._timeout)
         request, staged = self._overwrite_request(sa, entry_id, type_name, data, expected_version, budget)
-        reply = self._write(sa, request, budget.left(), staged)
+        reply = self._write(sa, request, budget.left_for(staged), staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
     def overwrite_async(
@@ -334,7 +343,7 @@ class GrpcTransport:
                                      ops[0].subarchitecture)
             if not isinstance(write, wm_pb2.AddRequest) and op.expected_version is not None:
                 write.expected_version = op.expected_version
-        reply = self._write(ops[0].subarchitecture, write_request, budget.left(), staged)
+        reply = self._write(ops[0].subarchitecture, write_request, budget.left_for(staged), staged)
         return [WriteResult(r.revision, r.version) for r in reply.batch.results]
 
     # ----------------------------------------------------------------- reads

@@ -116,21 +116,30 @@ class SharedLink:
     def session(self, within: float | None = None) -> ClientSession | None:
         """The live session, opened now if none is (at most every few seconds after a failure); None: bytes.
 
-        ``within``: the longest opening it may take (a call's time left); None: its own bounds.
+        ``within``: the longest opening it may take (a call's time left), waiting for another thread's opening
+        included (past it, bytes); None: its own bounds.
         """
         session = self._session
         if session is not None and not session.dead:
             return session
         if self._closed or time.monotonic() < self._retry_at:
             return None
-        with self._lock:
+        started = time.monotonic()
+        if not self._lock.acquire(timeout=-1 if within is None else within):
+            return None
+        try:
             session = self._session
             if session is not None and not session.dead:
                 return session
             if self._closed or time.monotonic() < self._retry_at:
                 return None
-            self._session = self._open(within)
+            left = None if within is None else within - (time.monotonic() - started)
+            if left is not None and left <= 0:
+                return None
+            self._session = self._open(left)
             return self._session
+        finally:
+            self._lock.release()
 
     def _open(self, within: float | None) -> ClientSession | None:
         if turned_off():

@@ -301,7 +301,27 @@ public abstract class Component implements AutoCloseable {
   /** The value of an entry of {@code subarchitecture}. */
   public <T extends Message> T get(String id, Class<T> cls, String subarchitecture) {
     Types.defaultInstance(cls); // a bad class fails before the call
-    return Types.decodeEntry(cls, t().get(sa(subarchitecture), id));
+    Transport.StoredEntry e = t().get(sa(subarchitecture), id);
+    try {
+      return Types.decodeEntry(cls, e);
+    } finally {
+      e.release(); // a value lent by shared memory is given back once copied into the message
+    }
+  }
+
+  /**
+   * The value of an entry of the own SA, serialised, as a read-only buffer that is not a copy
+   * ({@link ValueView}): on the server's host a large value is the server's shared memory,
+   * lent while the view is open; elsewhere the bytes received. NotFoundError if missing.
+   * Close the view (try-with-resources) when done with it.
+   */
+  public ValueView getView(String id) {
+    return getView(id, null);
+  }
+
+  /** The value of an entry of {@code subarchitecture} as a {@link ValueView}. */
+  public ValueView getView(String id, String subarchitecture) {
+    return new ValueView(t().get(sa(subarchitecture), id));
   }
 
   /** An entry of the own SA with its version and author (for versioned overwrites). */
@@ -312,7 +332,12 @@ public abstract class Component implements AutoCloseable {
   /** An entry of {@code subarchitecture} with its metadata. */
   public <T extends Message> Entry<T> getEntry(String id, Class<T> cls, String subarchitecture) {
     Types.defaultInstance(cls);
-    return Entry.decode(t().get(sa(subarchitecture), id), cls);
+    Transport.StoredEntry e = t().get(sa(subarchitecture), id);
+    try {
+      return Entry.decode(e, cls);
+    } finally {
+      e.release();
+    }
   }
 
   /** Every entry of type {@code cls} in the own SA, newest first. */
@@ -331,9 +356,14 @@ public abstract class Component implements AutoCloseable {
       throw new InvalidArgumentError("limit must be 0 (no limit) or positive, got " + limit);
     }
     String type = Types.typeName(cls);
+    List<Transport.StoredEntry> stored = t().getByType(sa(subarchitecture), type, limit);
     List<Entry<T>> out = new ArrayList<>();
-    for (Transport.StoredEntry e : t().getByType(sa(subarchitecture), type, limit)) {
-      out.add(Entry.decode(e, cls));
+    try {
+      for (Transport.StoredEntry e : stored) {
+        out.add(Entry.decode(e, cls));
+      }
+    } finally {
+      stored.forEach(Transport.StoredEntry::release);
     }
     return out;
   }

@@ -10,14 +10,18 @@ import cast.v1.LockRequest;
 import cast.v1.OverwriteRequest;
 import cast.v1.ProposeRequest;
 import cast.v1.RegisterResponse;
+import cast.v1.StagedValue;
 import cast.v1.UnlockRequest;
 import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
+import com.google.protobuf.ByteString;
 import com.google.protobuf.Timestamp;
+import com.google.protobuf.UnsafeByteOperations;
 import java.time.Duration;
 import java.time.Instant;
 import java.util.List;
+import java.util.function.Function;
 
 /**
  * Wire messages ({@code cast.v1}) to and from the library's types: the only place
@@ -84,16 +88,45 @@ final class Conversions {
   }
 
   static AddRequest add(String sa, String id, Any value) {
-    return AddRequest.newBuilder().setAddress(address(sa, id)).setValue(value).build();
+    return add(sa, id, value, null);
+  }
+
+  /**
+   * An add; with {@code staged} set its value's bytes are named in the staging area of the
+   * shared-memory session, not carried (value keeps its type_url only).
+   */
+  static AddRequest add(String sa, String id, Any value, StagedValue staged) {
+    var b = AddRequest.newBuilder().setAddress(address(sa, id));
+    if (staged == null) {
+      b.setValue(value);
+    } else {
+      b.setValue(typeOnly(value)).setStagedValue(staged);
+    }
+    return b.build();
   }
 
   /** An overwrite, checking the version unless {@code expectedVersion} is null. */
   static OverwriteRequest overwrite(String sa, String id, Any value, Long expectedVersion) {
-    var b = OverwriteRequest.newBuilder().setAddress(address(sa, id)).setValue(value);
+    return overwrite(sa, id, value, expectedVersion, null);
+  }
+
+  /** An overwrite; {@code staged} as for {@link #add(String, String, Any, StagedValue)}. */
+  static OverwriteRequest overwrite(String sa, String id, Any value, Long expectedVersion, StagedValue staged) {
+    var b = OverwriteRequest.newBuilder().setAddress(address(sa, id));
+    if (staged == null) {
+      b.setValue(value);
+    } else {
+      b.setValue(typeOnly(value)).setStagedValue(staged);
+    }
     if (expectedVersion != null) {
       b.setExpectedVersion(expectedVersion);
     }
     return b.build();
+  }
+
+  /** {@code value} without its bytes: what a request whose value is staged carries. */
+  static Any typeOnly(Any value) {
+    return Any.newBuilder().setTypeUrl(value.getTypeUrl()).build();
   }
 
   /** A delete, checking the version unless {@code expectedVersion} is null. */
@@ -107,12 +140,18 @@ final class Conversions {
 
   /** The writes of a batch, in order, all in {@code sa}. */
   static BatchRequest batch(String sa, List<Transport.Write> writes) {
+    return batch(sa, writes, w -> null);
+  }
+
+  /** The writes of a batch; {@code staging} stages a write's value (null: its bytes go in the request). */
+  static BatchRequest batch(String sa, List<Transport.Write> writes, Function<Any, StagedValue> staging) {
     BatchRequest.Builder req = BatchRequest.newBuilder();
     for (Transport.Write w : writes) {
       BatchOperation.Builder op = BatchOperation.newBuilder();
       switch (w.operation()) {
-        case ADD -> op.setAdd(add(sa, w.id(), w.value()));
-        case OVERWRITE -> op.setOverwrite(overwrite(sa, w.id(), w.value(), w.expectedVersion()));
+        case ADD -> op.setAdd(add(sa, w.id(), w.value(), staging.apply(w.value())));
+        case OVERWRITE -> op.setOverwrite(
+            overwrite(sa, w.id(), w.value(), w.expectedVersion(), staging.apply(w.value())));
         case DELETE -> op.setDelete(delete(sa, w.id(), w.expectedVersion()));
       }
       req.addOperations(op);
@@ -130,11 +169,20 @@ final class Conversions {
   static final long MAX_LOCK_TIMEOUT_MS = 0xFFFF_FFFFL;
 
   static WriteRequest.Builder writeAdd(String sa, String id, Any value) {
-    return WriteRequest.newBuilder().setAdd(add(sa, id, value));
+    return writeAdd(sa, id, value, null);
+  }
+
+  static WriteRequest.Builder writeAdd(String sa, String id, Any value, StagedValue staged) {
+    return WriteRequest.newBuilder().setAdd(add(sa, id, value, staged));
   }
 
   static WriteRequest.Builder writeOverwrite(String sa, String id, Any value, Long expectedVersion) {
-    return WriteRequest.newBuilder().setOverwrite(overwrite(sa, id, value, expectedVersion));
+    return writeOverwrite(sa, id, value, expectedVersion, null);
+  }
+
+  static WriteRequest.Builder writeOverwrite(
+      String sa, String id, Any value, Long expectedVersion, StagedValue staged) {
+    return WriteRequest.newBuilder().setOverwrite(overwrite(sa, id, value, expectedVersion, staged));
   }
 
   static WriteRequest.Builder writeDelete(String sa, String id, Long expectedVersion) {
@@ -142,7 +190,12 @@ final class Conversions {
   }
 
   static WriteRequest.Builder writeBatch(String sa, List<Transport.Write> writes) {
-    return WriteRequest.newBuilder().setBatch(batch(sa, writes));
+    return writeBatch(sa, writes, w -> null);
+  }
+
+  static WriteRequest.Builder writeBatch(
+      String sa, List<Transport.Write> writes, Function<Any, StagedValue> staging) {
+    return WriteRequest.newBuilder().setBatch(batch(sa, writes, staging));
   }
 
   /**
@@ -189,14 +242,36 @@ final class Conversions {
   }
 
   static Transport.StoredEntry entry(cast.v1.Entry e) {
+    return entry(e, null);
+  }
+
+  /**
+   * An entry as read on {@code call} (null: a call that named no shared-memory session). One
+   * whose value was lent by shared memory ({@code shared_value}) holds its lease, claimed on
+   * that call, and wraps the lent bytes without copying them; UnavailableError when they cannot
+   * be read (read again).
+   */
+  static Transport.StoredEntry entry(cast.v1.Entry e, SharedSession.ReadCall call) {
+    Lease lease = null;
+    ByteString value = e.getValue().getValue();
+    if (e.hasSharedValue()) {
+      if (call == null) {
+        throw new UnavailableError(
+            "entry '" + e.getAddress().getId() + "' came by shared memory on a call that named no session: read it"
+                + " again");
+      }
+      lease = call.claim(e.getSharedValue());
+      value = UnsafeByteOperations.unsafeWrap(lease.bytes());
+    }
     return new Transport.StoredEntry(
         address(e.getAddress()),
         e.getType(),
-        e.getValue().getValue(),
+        value,
         e.getVersion(),
         e.getAuthor(),
         e.getRevision(),
-        time(e.getModified()));
+        time(e.getModified()),
+        lease);
   }
 
   /** InvalidArgumentError for UNSPECIFIED or a value this library does not know. */
@@ -211,16 +286,27 @@ final class Conversions {
 
   /** An event; InvalidArgumentError for one this library cannot represent (an unknown operation). */
   static Transport.Change change(cast.v1.ChangeEvent e) {
+    return change(e, null);
+  }
+
+  /**
+   * An event received on {@code call} (null: a stream that named no shared-memory session): its
+   * entry as {@link #entry(cast.v1.Entry, SharedSession.ReadCall)} makes it. InvalidArgumentError
+   * for one this library cannot represent (an unknown operation); UnavailableError when its lent
+   * value cannot be read.
+   */
+  static Transport.Change change(cast.v1.ChangeEvent e, SharedSession.ReadCall call) {
+    Operation operation = operation(e.getOperation()); // before the claim: a refusal leaves nothing lent
     return new Transport.Change(
         e.getRevision(),
-        operation(e.getOperation()),
+        operation,
         address(e.getAddress()),
         e.getType(),
         e.getVersion(),
         e.getSourceComponent(),
         e.getSourceSubarchitecture(),
         time(e.getTime()),
-        e.hasEntry() ? entry(e.getEntry()) : null,
+        e.hasEntry() ? entry(e.getEntry(), call) : null,
         List.copyOf(e.getWatchIdsList()),
         e.getSkipped(),
         e.getFirstSkippedRevision());

@@ -63,7 +63,13 @@ final class Dispatcher {
 
     @Override
     public void run() {
-      Dispatcher.this.run(watchId, new WorkingMemoryChange(change));
+      WorkingMemoryChange delivered = new WorkingMemoryChange(change);
+      try {
+        Dispatcher.this.run(watchId, delivered);
+      } finally {
+        delivered.callbackReturned();
+        release(change);
+      }
     }
   }
 
@@ -153,14 +159,15 @@ final class Dispatcher {
     }
   }
 
-  /** Queue {@code call} under {@code key} (holding lock); dropped once the dispatcher stopped. */
-  private void add(Priority priority, Object key, Runnable call) {
+  /** Queue {@code call} under {@code key} (holding lock); false (dropped) once the dispatcher stopped. */
+  private boolean add(Priority priority, Object key, Runnable call) {
     if (stopped) {
-      return; // stop() runs what was queued before it, nothing after
+      return false; // stop() runs what was queued before it, nothing after
     }
     levels.get(priority.ordinal()).put(key, call);
     pending++;
     lock.notifyAll();
+    return true;
   }
 
   /** The oldest call of the highest priority that has one, taken off its queue; null if none (holding lock). */
@@ -237,15 +244,21 @@ final class Dispatcher {
   /**
    * Queue {@code change} for the callback of every registered watch it matched (called
    * by a stream's reader: waits while the queue is full, so the server holds the rest).
+   *
+   * <p>A value lent by shared memory is held for each callback it is queued for, until that
+   * callback returned (or the call was dropped); the change's own hold is let go here. A view
+   * the callback takes ({@link WorkingMemoryChange#view()}) holds it longer; otherwise the
+   * change keeps a copy of the value once its callback returned
+   * ({@link WorkingMemoryChange#callbackReturned()}).
    */
   void deliver(Transport.Change change) {
-    WorkingMemoryChange c = null;
-    for (int watchId : change.watchIds()) {
-      Registration r = callbacks.get(watchId);
-      if (r == null) {
-        continue;
-      }
-      try {
+    try {
+      WorkingMemoryChange c = null;
+      for (int watchId : change.watchIds()) {
+        Registration r = callbacks.get(watchId);
+        if (r == null) {
+          continue;
+        }
         if (r.options().delivery() == Delivery.LATEST) {
           deliverLatest(r.options().priority(), watchId, change);
           continue;
@@ -254,11 +267,46 @@ final class Dispatcher {
           c = new WorkingMemoryChange(change);
         }
         WorkingMemoryChange delivered = c;
-        submitBlocking(r.options().priority(), () -> run(watchId, delivered));
-      } catch (InterruptedException e) {
-        Thread.currentThread().interrupt();
-        return;
+        retain(change);
+        Runnable call =
+            () -> {
+              try {
+                run(watchId, delivered);
+              } finally {
+                delivered.callbackReturned();
+                release(change);
+              }
+            };
+        boolean queued = false;
+        try {
+          synchronized (lock) {
+            awaitRoom();
+            queued = add(r.options().priority(), call, call);
+          }
+        } finally {
+          if (!queued) {
+            release(change);
+          }
+        }
       }
+    } catch (InterruptedException e) {
+      Thread.currentThread().interrupt();
+    } finally {
+      release(change);
+    }
+  }
+
+  /** One more hold of the change's lent value, if it has one. */
+  private static void retain(Transport.Change change) {
+    if (change.entry() != null) {
+      change.entry().retain();
+    }
+  }
+
+  /** Let go of one hold of the change's lent value, if it has one. */
+  private static void release(Transport.Change change) {
+    if (change.entry() != null) {
+      change.entry().release();
     }
   }
 
@@ -266,12 +314,19 @@ final class Dispatcher {
   private void deliverLatest(Priority priority, int watchId, Transport.Change change) throws InterruptedException {
     LatestKey key = new LatestKey(watchId, change.address());
     LinkedHashMap<Object, Runnable> level = levels.get(priority.ordinal());
-    synchronized (lock) {
-      if (!replaced(level, key, watchId, change)) {
-        awaitRoom();
-        if (!replaced(level, key, watchId, change)) {
-          add(priority, key, new LatestCall(watchId, change));
+    retain(change); // the queued call's hold: let go when it ran, was replaced or dropped
+    boolean queued = false;
+    try {
+      synchronized (lock) {
+        queued = replaced(level, key, watchId, change);
+        if (!queued) {
+          awaitRoom();
+          queued = replaced(level, key, watchId, change) || add(priority, key, new LatestCall(watchId, change));
         }
+      }
+    } finally {
+      if (!queued) {
+        release(change);
       }
     }
   }
@@ -285,7 +340,9 @@ final class Dispatcher {
     if (queued == null) {
       return false;
     }
-    level.put(key, new LatestCall(watchId, change.superseding(((LatestCall) queued).change)));
+    Transport.Change older = ((LatestCall) queued).change;
+    level.put(key, new LatestCall(watchId, change.superseding(older)));
+    release(older); // never delivered: its value goes back at once
     return true;
   }
 

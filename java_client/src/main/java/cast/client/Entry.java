@@ -32,7 +32,12 @@ public record Entry<T extends Message>(
 
   /** Decode a stored entry into {@code cls}; InvalidArgumentError if its type is another or its bytes do not parse. */
   static <T extends Message> Entry<T> decode(Transport.StoredEntry stored, Class<T> cls) {
-    T value = Types.decodeEntry(cls, stored);
+    return decode(stored, cls, false);
+  }
+
+  /** As {@link #decode(Transport.StoredEntry, Class)}; {@code alias}: the value's bytes are a copy nobody else holds. */
+  static <T extends Message> Entry<T> decode(Transport.StoredEntry stored, Class<T> cls, boolean alias) {
+    T value = Types.decodeEntry(cls, stored, alias);
     return new Entry<>(
         stored.address(), stored.type(), value, stored.version(), stored.author(), stored.revision(), stored.modified());
   }

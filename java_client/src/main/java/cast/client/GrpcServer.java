@@ -61,6 +61,7 @@ final class GrpcServer {
   final InspectionGrpc.InspectionBlockingStub insp; // Report: the component's outcomes
   volatile Session session;
   volatile WriteStream writes; // opened by GrpcTransport on the first write to this server
+  volatile SharedLink shared; // shared memory with this server on its host (SharedLink.java)
 
   /** Opens a channel to {@code endpoint} through {@code channels}; {@code credentials} authorise every call. */
   GrpcServer(String endpoint, ChannelFactory channels, Credentials credentials) {

@@ -61,6 +61,11 @@ final class GrpcTransport implements Transport {
    * the server ends the wait itself at the timeout, the margin is the answer's way back.
    */
   static final Duration LOCK_REPLY_MARGIN = Duration.ofSeconds(1);
+  /**
+   * How long asking a server where its shared memory is may take: it is asked on the way of a
+   * write or a read, within that call's time left too ({@link Budget}).
+   */
+  static final Duration DESCRIBE_TIMEOUT = Duration.ofSeconds(5);
   /** Stream errors after which the stream is opened again; any other ends it for good. */
   static final Set<Status.Code> TRANSIENT =
       Set.of(
@@ -124,7 +129,22 @@ final class GrpcTransport implements Transport {
 
   /** A server at {@code endpoint}: a channel of this transport's and its credentials on every call. */
   private GrpcServer openServer(String endpoint) {
-    return new GrpcServer(endpoint, channels, credentials);
+    GrpcServer server = new GrpcServer(endpoint, channels, credentials);
+    // Shared memory with it when on its host (SharedLink.java), opened when first needed. The
+    // server itself says where its shared memory is: it is asked, not the directory.
+    var ask = DescribeSystemRequest.getDefaultInstance();
+    server.shared =
+        new SharedLink(
+            endpoint,
+            credentials::token,
+            within -> {
+              Duration bound = DESCRIBE_TIMEOUT.compareTo(callTimeout) < 0 ? DESCRIBE_TIMEOUT : callTimeout;
+              if (within != null && within.compareTo(bound) < 0) {
+                bound = within;
+              }
+              return call(server, server.dir, bound, s -> s.describeSystem(ask));
+            });
+    return server;
   }
 
   // ------------------------------------------------------------------ calls
@@ -275,24 +295,38 @@ final class GrpcTransport implements Transport {
     return Conversions.result(writes(sa).call(request, callTimeout).getWrite());
   }
 
+  // Values of at least the shared-memory threshold are staged on the server's host
+  // (StagedWrite.java); opening the session on a write's way spends the write's time (Budget).
+
   @Override
   public WriteResult add(String sa, String id, Any value) {
-    return write(sa, Conversions.writeAdd(sa, id, value));
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    var request = Conversions.writeAdd(sa, id, value, staged.stage(value));
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> addAsync(String sa, String id, Any value) {
-    return writes(sa).submitWrite(Conversions.writeAdd(sa, id, value), results);
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    return staged.submit(writes(sa), Conversions.writeAdd(sa, id, value, staged.stage(value)), results, budget);
   }
 
   @Override
   public WriteResult overwrite(String sa, String id, Any value, Long expectedVersion) {
-    return write(sa, Conversions.writeOverwrite(sa, id, value, expectedVersion));
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
   }
 
   @Override
   public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion) {
-    return writes(sa).submitWrite(Conversions.writeOverwrite(sa, id, value, expectedVersion), results);
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
+    return staged.submit(writes(sa), request, results, budget);
   }
 
   @Override
@@ -302,7 +336,10 @@ final class GrpcTransport implements Transport {
 
   @Override
   public List<WriteResult> batch(String sa, List<Write> writes) {
-    var reply = writes(sa).call(Conversions.writeBatch(sa, writes), callTimeout);
+    Budget budget = new Budget(callTimeout);
+    // The batch's values, in the session with its server.
+    StagedWrite staged = StagedWrite.to(server(sa), budget.left());
+    var reply = staged.call(writes(sa), Conversions.writeBatch(sa, writes, staged::stage), budget);
     List<WriteResult> out = new ArrayList<>();
     for (WriteResponse r : reply.getBatch().getResultsList()) {
       out.add(Conversions.result(r));
@@ -318,20 +355,52 @@ final class GrpcTransport implements Transport {
     }
   }
 
+  /**
+   * A large value is lent by shared memory when on the server's host (docs/client-protocol.md);
+   * opening the session on the read's way spends the read's time ({@link Budget}).
+   */
   @Override
   public StoredEntry get(String sa, String id) {
     var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
-    return Conversions.entry(call(server(sa), server(sa).wm, s -> s.get(req)).getEntry());
+    GrpcServer server = server(sa);
+    Budget budget = new Budget(callTimeout);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared, budget.left());
+    boolean answered = false;
+    try {
+      var reply = call(server, SharedLink.lending(server.wm, read), budget.left(), s -> s.get(req));
+      StoredEntry entry = Conversions.entry(reply.getEntry(), read);
+      answered = true;
+      return entry;
+    } finally {
+      if (read != null) {
+        read.end(answered); // RECEIVED: what the call sent and this client did not get is taken back
+      }
+    }
   }
 
   @Override
   public List<StoredEntry> getByType(String sa, String type, int limit) {
     var req = GetByTypeRequest.newBuilder().setSubarchitecture(sa).setType(type).setLimit(limit).build();
+    GrpcServer server = server(sa);
+    Budget budget = new Budget(callTimeout);
+    SharedSession.ReadCall read = SharedLink.newCall(server.shared, budget.left());
     List<StoredEntry> out = new ArrayList<>();
-    for (cast.v1.Entry e : call(server(sa), server(sa).wm, s -> s.getByType(req)).getEntriesList()) {
-      out.add(Conversions.entry(e));
+    boolean answered = false;
+    try {
+      var reply = call(server, SharedLink.lending(server.wm, read), budget.left(), s -> s.getByType(req));
+      for (cast.v1.Entry e : reply.getEntriesList()) {
+        out.add(Conversions.entry(e, read));
+      }
+      answered = true;
+      return out;
+    } finally {
+      if (!answered) {
+        out.forEach(StoredEntry::release); // a value that could not be read fails the call: give back the rest
+      }
+      if (read != null) {
+        read.end(answered);
+      }
     }
-    return out;
   }
 
   @Override
@@ -474,6 +543,12 @@ final class GrpcTransport implements Transport {
     pump.shutdown();
     results.shutdown(); // what is queued still runs
     watches.close();
+    for (GrpcServer server : all) {
+      SharedLink shared = server.shared;
+      if (shared != null) {
+        shared.close(); // the server gives back what the session holds lent
+      }
+    }
     for (GrpcServer server : all) {
       Session session = server.session;
       if (session != null) {

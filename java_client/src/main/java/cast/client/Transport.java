@@ -32,11 +32,14 @@ interface Transport extends AutoCloseable {
    *
    * @param address where the entry lives
    * @param type full protobuf name of the value's type
-   * @param value the serialised value
+   * @param value the serialised value (when lent, a wrapper of the lease's bytes, not a copy)
    * @param version the entry's version
    * @param author id of the component that made the last write
    * @param revision the working memory's revision of the last write
    * @param modified server time of the last write
+   * @param lease the value lent by shared memory, held once for this entry, or null when its
+   *     bytes were received: whoever is handed the entry gives it back ({@link #release()}) or
+   *     passes it on
    */
   record StoredEntry(
       WorkingMemoryAddress address,
@@ -45,7 +48,31 @@ interface Transport extends AutoCloseable {
       long version,
       String author,
       long revision,
-      Instant modified) {}
+      Instant modified,
+      Lease lease) {
+
+    /** An entry whose bytes were received. */
+    StoredEntry(
+        WorkingMemoryAddress address, String type, ByteString value, long version, String author, long revision,
+        Instant modified) {
+      this(address, type, value, version, author, revision, modified, null);
+    }
+
+    /** Let go of the value if it was lent (its bytes must not be read through this entry afterwards). */
+    void release() {
+      if (lease != null) {
+        lease.release();
+      }
+    }
+
+    /**
+     * One more holder of a lent value; false when it was given back already (then its bytes
+     * must not be read). Always true for bytes received.
+     */
+    boolean retain() {
+      return lease == null || lease.retain();
+    }
+  }
 
   /**
    * One change event, once, with the ids of every watch of this component it matched.

@@ -2,6 +2,7 @@ package cast.client;
 
 import com.google.protobuf.Any;
 import com.google.protobuf.ByteString;
+import com.google.protobuf.CodedInputStream;
 import com.google.protobuf.InvalidProtocolBufferException;
 import com.google.protobuf.Message;
 import java.util.concurrent.ConcurrentHashMap;
@@ -52,6 +53,16 @@ public final class Types {
    */
   static <T extends Message> T decode(
       Class<T> cls, String typeName, ByteString data, String what, String sa, String why) {
+    return decode(cls, typeName, data, what, sa, why, false);
+  }
+
+  /**
+   * As {@link #decode(Class, String, ByteString, String, String, String)}; {@code alias}: {@code
+   * data} is a copy nobody else holds, so the message's {@code bytes} fields may share it
+   * instead of being copied out of it.
+   */
+  static <T extends Message> T decode(
+      Class<T> cls, String typeName, ByteString data, String what, String sa, String why, boolean alias) {
     T proto = defaultInstance(cls);
     String expected = proto.getDescriptorForType().getFullName();
     String where = what + " in subarchitecture '" + sa + "'";
@@ -60,6 +71,14 @@ public final class Types {
           where + " has type " + typeName + ", not " + expected + ": read it with the right class");
     }
     try {
+      if (alias) {
+        CodedInputStream in = data.newCodedInput();
+        in.enableAliasing(true);
+        @SuppressWarnings("unchecked")
+        T value = (T) proto.getParserForType().parseFrom(in);
+        in.checkLastTagWas(0); // as parseFrom(ByteString) checks
+        return value;
+      }
       @SuppressWarnings("unchecked")
       T value = (T) proto.getParserForType().parseFrom(data);
       return value;
@@ -71,13 +90,19 @@ public final class Types {
 
   /** The value of a stored entry as {@code cls} (see {@link #decode}). */
   static <T extends Message> T decodeEntry(Class<T> cls, Transport.StoredEntry e) {
+    return decodeEntry(cls, e, false);
+  }
+
+  /** The value of a stored entry as {@code cls}; {@code alias} as for {@link #decode}. */
+  static <T extends Message> T decodeEntry(Class<T> cls, Transport.StoredEntry e, boolean alias) {
     return decode(
         cls,
         e.type(),
         e.value(),
         "entry '" + e.address().id() + "'",
         e.address().subarchitecture(),
-        "it was written corrupt or with another schema; overwrite or delete it");
+        "it was written corrupt or with another schema; overwrite or delete it",
+        alias);
   }
 
   /** A value as the Any a write sends. */

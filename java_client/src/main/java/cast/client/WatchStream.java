@@ -226,6 +226,7 @@ final class WatchStream {
   private final Backoff backoff = new Backoff();
   private ClientCallStreamObserver<WatchRequest> requests; // the current call; guarded by mutex
   private int generation; // numbers the calls; guarded by mutex
+  private int upgrading; // the call ended to be opened again with shared memory; guarded by mutex
   private volatile String historyId = "";
   private volatile boolean connected;
   private volatile boolean dead; // ended for good: a new watch needs a new stream
@@ -273,13 +274,20 @@ final class WatchStream {
   }
 
   private void open() {
+    // The call's part of the shared-memory session with the server (large values lent, not
+    // sent), asked for outside the mutex: opening a session may take a round trip.
+    SharedLink shared = server.shared;
+    SharedSession.ReadCall read = shared == null || closed ? null : shared.newCall();
     synchronized (mutex) {
       if (closed || transport.isClosing()) {
+        if (read != null) {
+          read.end(false);
+        }
         return;
       }
       int gen = ++generation;
       requests = null;
-      server.wmAsync.watch(new Call(gen)); // beforeStart sets `requests`
+      SharedLink.lending(server.wmAsync, read).watch(new Call(gen, read)); // beforeStart sets `requests`
       for (Watch w : watches.values()) {
         send(createRequest(w));
       }
@@ -289,9 +297,13 @@ final class WatchStream {
   /** The observer of one Watch call. */
   private final class Call implements ClientResponseObserver<WatchRequest, WatchResponse> {
     private final int gen;
+    private final SharedSession.ReadCall read; // its part of the shared-memory session, or null
+    private volatile boolean unreadable; // an event's lent value could not be read: the call is being ended
+    private boolean first = true; // onNext is serial per call
 
-    Call(int gen) {
+    Call(int gen, SharedSession.ReadCall read) {
       this.gen = gen;
+      this.read = read;
     }
 
     @Override
@@ -306,34 +318,93 @@ final class WatchStream {
     @Override
     public void onNext(WatchResponse resp) {
       // grpc-java calls this serially per call, so events keep the server's order.
+      if (unreadable) {
+        return; // sent again after the reconnect
+      }
       if (!connected) {
         connected = true;
         backoff.reset();
       }
-      handle(resp);
+      if (first) {
+        first = false;
+        if (read == null && server.shared != null) {
+          transport.schedule(() -> upgrade(gen), 0);
+        }
+      }
+      try {
+        handle(resp, read);
+      } catch (UnavailableError e) {
+        // A value lent by shared memory that cannot be read (its segment never came): the
+        // stream is opened again and resumes from the last event delivered, so nothing is lost.
+        unreadable = true;
+        LOG.warning("an event from " + server.endpoint + " could not be read (" + e.getMessage() + "): reconnecting");
+        cancel(gen, "an event could not be read: " + e.getMessage());
+      }
     }
 
     @Override
     public void onError(Throwable t) {
+      endRead();
       ended(gen, Status.fromThrowable(t), Status.trailersFromThrowable(t));
     }
 
     @Override
     public void onCompleted() {
+      endRead();
       ended(
           gen,
           Status.UNAVAILABLE.withDescription("the server at " + server.endpoint + " ended the watch stream"),
           null);
     }
+
+    /** The call is over: the server takes back what it lent on it and this client never received. */
+    private void endRead() {
+      if (read != null) {
+        read.end(false);
+      }
+    }
   }
 
-  private void handle(WatchResponse resp) {
+  /**
+   * A stream opened without a shared-memory session (its server was away, or had none) is
+   * opened again once one is open: it resumes where it is, and large values come lent.
+   */
+  private void upgrade(int gen) {
+    SharedLink shared = server.shared;
+    if (shared == null || shared.session() == null) {
+      return;
+    }
+    synchronized (mutex) {
+      if (gen != generation || requests == null) {
+        return;
+      }
+      upgrading = gen;
+    }
+    cancel(gen, "opened again with shared memory");
+  }
+
+  /** End call {@code gen}, if it is still the current one (it is opened again). */
+  private void cancel(int gen, String why) {
+    synchronized (mutex) {
+      if (gen == generation && requests != null) {
+        try {
+          requests.cancel(why, null);
+        } catch (RuntimeException e) {
+          LOG.fine("watch call already ended: " + e.getMessage());
+        }
+      }
+    }
+  }
+
+  private void handle(WatchResponse resp, SharedSession.ReadCall read) {
     Transport.EventSink sink = streams.sink;
     for (ChangeEvent e : resp.getEventsList()) {
       if (sink != null) {
         Transport.Change change = null;
         try {
-          change = Conversions.change(e);
+          change = Conversions.change(e, read);
+        } catch (UnavailableError err) {
+          throw err; // not delivered, not seen: the resume sends it again
         } catch (CastError err) {
           // An event this library cannot represent must not break the stream for the others.
           LOG.severe("dropping change event revision " + e.getRevision() + ": " + err.getMessage());
@@ -383,14 +454,20 @@ final class WatchStream {
 
   /** Call {@code gen} ended with {@code status}; {@code trailers} (null for none) may name a precise error. */
   private void ended(int gen, Status status, Metadata trailers) {
+    boolean upgraded;
     synchronized (mutex) {
       if (gen != generation) {
         return; // an older call
       }
       requests = null;
+      upgraded = upgrading == gen;
     }
     connected = false;
     if (closed || transport.isClosing()) {
+      return;
+    }
+    if (upgraded) {
+      transport.schedule(this::open, 0); // at once: nothing broke
       return;
     }
     CastError error = Errors.fromStatus(status, trailers);

@@ -180,10 +180,15 @@ final class WriteStream {
    * {@code results} (in reply order), its failure the named error.
    */
   CompletableFuture<WriteResult> submitWrite(WriteRequest.Builder request, Executor results) {
+    return submitWrite(request, results, callTimeout);
+  }
+
+  /** {@link #submitWrite(WriteRequest.Builder, Executor)}, failing past {@code deadline} instead of the call timeout. */
+  CompletableFuture<WriteResult> submitWrite(WriteRequest.Builder request, Executor results, Duration deadline) {
     CompletableFuture<WriteResult> out = new CompletableFuture<>();
     CompletableFuture<WriteReply> sent;
     try {
-      sent = submit(request, true, callTimeout);
+      sent = submit(request, true, deadline);
     } catch (CastError e) {
       out.completeExceptionally(e);
       return out;

@@ -6,12 +6,15 @@ import cast.client.LaunchContract;
 import cast.client.Operation;
 import cast.client.Runner;
 import cast.client.UnmanagedComponent;
+import cast.client.ValueView;
 import cast.client.WatchOptions;
 import com.google.protobuf.ByteString;
 import com.google.protobuf.BytesValue;
 import java.io.BufferedReader;
 import java.io.IOException;
 import java.io.InputStreamReader;
+import java.nio.ByteBuffer;
+import java.nio.ByteOrder;
 import java.nio.charset.StandardCharsets;
 import java.util.ArrayList;
 import java.util.List;
@@ -41,11 +44,19 @@ import java.util.concurrent.TimeUnit;
  *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
  *   <li>{@code write N GAP_MS}: adds "lat", then N-1 overwrites spaced by GAP_MS,
  *       stamping System.nanoTime() just before each; prints {"REVISION": NS, ...}.
- *   <li>{@code image-watch queue|latest}: (M8, bench/images.py) onChange(addressFilter("img")
- *       with the entry, WatchOptions with that delivery); prints "ready", then at the DELETE of
- *       "img" one line {"stamps": {"REVISION": NS, ...}, "bytes": B, "events": E, "skipped": S}:
- *       every overwrite received (its value decoded), the value bytes, the events received (the
- *       add and the delete too) and what a latest watch skipped.
+ *   <li>{@code image-write SIZE N GAP_US}: (bench/shared_memory.py) adds "img", a BytesValue of SIZE
+ *       bytes, and overwrites it N times, the i-th at start + i * GAP_US (0: back to back), stamping
+ *       System.nanoTime() just before each; then deletes it (the watchers' end mark) and prints
+ *       {"REVISION": NS, ...} of the overwrites. The same as bench/image_writer.py.
+ *   <li>{@code image-watch queue|latest}: (M8, bench/images.py; bench/shared_memory.py)
+ *       onChange(addressFilter("img") with the entry, WatchOptions with that delivery); prints
+ *       "ready", then at the DELETE of "img" one line {"stamps": {"REVISION": NS, ...}, "bytes": B,
+ *       "events": E, "skipped": S, "checksum": C, "shared": N}: every overwrite received, the
+ *       value bytes, the events received (the add and the delete too), what a latest watch
+ *       skipped, the sum of the checksums of the values and how many came by shared memory. Each
+ *       value is read through its {@link ValueView} (shared memory on the server's host, not
+ *       copied): every byte of its {@code bytes} field goes into its checksum ({@link #checksum})
+ *       before the stamp is taken.
  * </ul>
  *
  * <p>On Linux System.nanoTime() reads CLOCK_MONOTONIC, shared by every process of
@@ -62,10 +73,15 @@ public final class Bench {
     if (argv.length < 2 || (argv[0].equals("write") && argv.length < 3)) {
       System.err.println(
           "usage: Bench add N | blocks WARM | watch N | write N GAP_MS | image-watch queue|latest"
+              + " | image-write SIZE N GAP_US"
               + " (with the CAST_* launch environment)");
       System.exit(2);
     }
     int n = argv[0].equals("image-watch") ? 0 : Integer.parseInt(argv[1]);
+    if (argv[0].equals("image-write") && argv.length < 4) {
+      System.err.println("usage: Bench image-write SIZE N GAP_US");
+      System.exit(2);
+    }
     UnmanagedComponent c = Runner.connect(new UnmanagedComponent() {}, LaunchContract.fromEnv());
     try {
       switch (argv[0]) {
@@ -74,6 +90,7 @@ public final class Bench {
         case "watch" -> watch(c, n);
         case "write" -> write(c, n, Long.parseLong(argv[2]), argv.length > 3 ? Integer.parseInt(argv[3]) : 0);
         case "image-watch" -> imageWatch(c, argv[1]);
+        case "image-write" -> imageWrite(c, n, Integer.parseInt(argv[2]), Long.parseLong(argv[3]));
         default -> {
           System.err.println("unknown mode " + argv[0]);
           System.exit(2);
@@ -168,25 +185,75 @@ public final class Bench {
     c.deleteEntry("lat"); // so that another run on this server can add it again
   }
 
+  private static void imageWrite(Component c, int size, int frames, long gapMicros) throws InterruptedException {
+    List<BytesValue> values = new ArrayList<>(); // made before the clock starts
+    for (int k = 0; k < 2; k++) {
+      byte[] b = new byte[size];
+      java.util.Arrays.fill(b, (byte) (k % 251));
+      values.add(BytesValue.newBuilder().setValue(ByteString.copyFrom(b)).build());
+    }
+    c.add("img", values.get(0));
+    Map<Long, Long> sent = new TreeMap<>();
+    long start = System.nanoTime();
+    for (int i = 0; i < frames; i++) {
+      if (gapMicros > 0) {
+        long delay = start + i * gapMicros * 1000 - System.nanoTime();
+        if (delay > 0) {
+          TimeUnit.NANOSECONDS.sleep(delay);
+        }
+      }
+      long t = System.nanoTime();
+      sent.put(c.overwrite("img", values.get(i % 2)).revision(), t);
+    }
+    c.deleteEntry("img");
+    System.out.println(json(sent));
+  }
+
+  /**
+   * The checksum of a value as the benchmark's watchers compute it: the sum, modulo 2**64, of its
+   * little-endian 64-bit words (a last partial word as its bytes, each a word of its own).
+   */
+  static long checksum(ByteBuffer data) {
+    ByteBuffer b = data.slice().order(ByteOrder.LITTLE_ENDIAN);
+    long sum = 0;
+    int words = b.remaining() / 8 * 8;
+    for (int i = 0; i < words; i += 8) {
+      sum += b.getLong(i);
+    }
+    for (int i = words; i < b.remaining(); i++) {
+      sum += Byte.toUnsignedLong(b.get(i));
+    }
+    return sum;
+  }
+
   private static void imageWatch(Component c, String delivery) throws InterruptedException {
     Map<Long, Long> stamps = new TreeMap<>();
-    long[] totals = new long[3]; // bytes, events, skipped
+    long[] totals = new long[5]; // bytes, events, skipped, checksums, values by shared memory
     CountDownLatch ended = new CountDownLatch(1);
     WatchOptions options = delivery.equals("latest") ? WatchOptions.latest() : WatchOptions.queue();
     c.onChange(
         Filters.addressFilter("img").withEntry(),
         change -> {
+          int size = 0;
+          long sum = 0;
+          boolean shared = false;
+          if (change.operation() != Operation.DELETE) {
+            try (ValueView view = change.view()) { // read in place: every byte, nothing copied
+              ByteBuffer pixels = view.field(1);
+              size = pixels.remaining();
+              sum = checksum(pixels);
+              shared = view.isShared();
+            }
+          }
           long t = System.nanoTime();
-          int size =
-              change.operation() == Operation.DELETE
-                  ? 0
-                  : change.entry(BytesValue.class).value().getValue().size(); // decoded, as a consumer would
           synchronized (stamps) {
             totals[1] += 1;
             totals[2] += change.skipped();
             if (change.operation() == Operation.OVERWRITE) {
               stamps.put(change.revision(), t);
               totals[0] += size;
+              totals[3] += sum;
+              totals[4] += shared ? 1 : 0;
             }
           }
           if (change.operation() == Operation.DELETE) {
@@ -200,7 +267,8 @@ public final class Bench {
     synchronized (stamps) {
       System.out.println(
           "{\"stamps\": " + json(stamps) + ", \"bytes\": " + totals[0] + ", \"events\": " + totals[1]
-              + ", \"skipped\": " + totals[2] + "}");
+              + ", \"skipped\": " + totals[2] + ", \"checksum\": " + Long.toUnsignedString(totals[3])
+              + ", \"shared\": " + totals[4] + "}");
     }
   }
 

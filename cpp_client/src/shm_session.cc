@@ -1,0 +1,421 @@
+// One session with a server's shared memory (shm_session.h). Mirrors the
+// Python client's client/shm_session.py.
+#include "shm_session.h"
+
+#include <fcntl.h>
+#include <poll.h>
+#include <sys/mman.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <iterator>
+#include <system_error>
+
+#include "cast/errors.h"
+#include "cast/log.h"
+
+namespace cast::detail {
+
+namespace {
+
+constexpr std::size_t kPage = 4096;
+// How long a claim waits for the SEGMENT frame sent before the message naming
+// it: it is in the socket already, or comes at once.
+constexpr std::chrono::milliseconds kSegmentWait{5000};
+// How long a frame may wait for room in the socket: the server reads it at
+// once unless it is stuck.
+constexpr std::chrono::milliseconds kSendWait{5000};
+// A long call reports what it received this often, so the server forgets the rest.
+constexpr std::uint64_t kReceivedEvery = 64;
+
+const Logger& log() {
+  static const Logger logger("cast.client.shm");
+  return logger;
+}
+
+// A value lent to this client: its bytes in a mapped segment (kept mapped
+// while this lives), given back when it goes.
+class Lease final : public LentBytes {
+ public:
+  Lease(std::weak_ptr<ClientSession> session, std::shared_ptr<const Mapping> segment, std::uint64_t valueId,
+        const char* data, std::size_t size)
+      : LentBytes(data, size), session_(std::move(session)), segment_(std::move(segment)), valueId_(valueId) {}
+  ~Lease() override {
+    // A session that is gone gave everything back by ending.
+    if (auto session = session_.lock()) session->giveBack(valueId_);
+  }
+
+ private:
+  std::weak_ptr<ClientSession> session_;
+  std::shared_ptr<const Mapping> segment_;
+  std::uint64_t valueId_;
+};
+
+}  // namespace
+
+// ------------------------------------------------------------------ helpers
+
+Mapping::~Mapping() {
+  if (address_ != nullptr && address_ != MAP_FAILED) ::munmap(address_, size_);
+}
+
+std::size_t roundUpToPages(std::size_t size) { return size == 0 ? kPage : (size + kPage - 1) / kPage * kPage; }
+
+Extents::Extents(std::size_t size) : size_(size) {
+  if (size > 0) free_[0] = size;
+}
+
+std::optional<std::size_t> Extents::take(std::size_t size) {
+  for (auto it = free_.begin(); it != free_.end(); ++it) {
+    if (it->second < size) continue;
+    const std::size_t offset = it->first;
+    const std::size_t rest = it->second - size;
+    free_.erase(it);
+    if (rest > 0) free_[offset + size] = rest;
+    used_ += size;
+    return offset;
+  }
+  return std::nullopt;
+}
+
+void Extents::give(std::size_t offset, std::size_t size) {
+  used_ -= size;
+  auto next = free_.lower_bound(offset);
+  if (next != free_.begin()) {
+    auto before = std::prev(next);
+    if (before->first + before->second == offset) {
+      offset = before->first;
+      size += before->second;
+      free_.erase(before);
+    }
+  }
+  if (next != free_.end() && offset + size == next->first) {
+    size += next->second;
+    free_.erase(next);
+  }
+  free_[offset] = size;
+}
+
+// ------------------------------------------------------------------ ReadCall
+
+ReadCall::ReadCall(std::shared_ptr<ClientSession> session, std::uint64_t number)
+    : session_(std::move(session)), number_(number), metadata_(shm::hex(session_->id()) + "/" + std::to_string(number)) {}
+
+ReadCall::~ReadCall() {
+  try {
+    end(false);
+  } catch (...) {  // a destructor must not throw; sending never does, this is for the allocator
+  }
+}
+
+std::shared_ptr<const LentBytes> ReadCall::claim(const v1::SharedValue& ref) {
+  ++count_;
+  if (count_ % kReceivedEvery == 0) session_->send(shm::received(number_, count_, false));
+  return session_->claim(ref);
+}
+
+void ReadCall::end(bool answered) {
+  if (ended_) return;
+  ended_ = true;
+  if (count_ > 0 || !answered) session_->send(shm::received(number_, count_, true));
+}
+
+// ------------------------------------------------------------------ ClientSession
+
+ClientSession::ClientSession(int socket, const shm::Welcome& welcome, int stagingFd, std::string endpoint)
+    : endpoint_(std::move(endpoint)),
+      socket_(socket),
+      id_(welcome.session),
+      idHex_(shm::hex(welcome.session)),
+      serverId_(shm::hex(welcome.serverId)),
+      threshold_(welcome.threshold),
+      window_(welcome.window),
+      stagingSize_(static_cast<std::size_t>(welcome.staging)),
+      regions_(static_cast<std::size_t>(welcome.staging)) {
+  void* address = stagingSize_ == 0 ? MAP_FAILED
+                                    : ::mmap(nullptr, stagingSize_, PROT_READ | PROT_WRITE, MAP_SHARED, stagingFd, 0);
+  const int error = errno;
+  ::close(stagingFd);  // the mapping keeps the memory file
+  if (address == MAP_FAILED) {
+    ::close(socket_);
+    throw std::system_error(error, std::generic_category(), "mapping the staging area");
+  }
+  staging_ = std::make_shared<Mapping>(address, stagingSize_);
+  // From here on the socket is read whenever the session is used, never waited on.
+  ::fcntl(socket_, F_SETFL, ::fcntl(socket_, F_GETFL) | O_NONBLOCK);
+}
+
+ClientSession::~ClientSession() {
+  end("closed");
+  ::close(socket_);
+}
+
+std::string ClientSession::why() const {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  return why_;
+}
+
+std::size_t ClientSession::segments() const {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  return segments_.size();
+}
+
+std::size_t ClientSession::quarantined() const {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  return quarantined_;
+}
+
+// -------------------------------------------------------------------- writes
+
+std::optional<Staged> ClientSession::stage(std::string_view data) {
+  poll();  // a session the server ended (it restarted) is noticed before a write names it
+  Staged staged;
+  staged.size = data.size();
+  staged.taken = roundUpToPages(data.size());
+  std::shared_ptr<Mapping> staging;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    if (dead_ || !staging_) return std::nullopt;
+    const auto offset = regions_.take(staged.taken);
+    if (!offset) return std::nullopt;
+    staged.offset = *offset;
+    staging = staging_;  // kept mapped while the copy runs, whatever ends the session meanwhile
+  }
+  std::memcpy(staging->data() + staged.offset, data.data(), data.size());
+  return staged;
+}
+
+void ClientSession::describe(const Staged& staged, v1::StagedValue* out) const {
+  out->set_session(id_);
+  out->set_offset(staged.offset);
+  out->set_size(staged.size);
+}
+
+void ClientSession::unstage(const Staged& staged, bool known) {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  if (!staging_) return;  // the session ended: nothing of it is used again
+  if (known) {
+    regions_.give(staged.offset, staged.taken);
+  } else {
+    quarantined_ += staged.taken;
+  }
+}
+
+// --------------------------------------------------------------------- reads
+
+std::unique_ptr<ReadCall> ClientSession::newCall() {
+  poll();  // RETIRE and the end, read now and then even by a client that only reads
+  std::uint64_t number;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    number = ++calls_;
+  }
+  return std::make_unique<ReadCall>(shared_from_this(), number);
+}
+
+std::shared_ptr<const LentBytes> ClientSession::claim(const v1::SharedValue& ref) {
+  std::shared_ptr<const Mapping> segment;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    auto it = segments_.find(ref.segment());
+    if (it != segments_.end()) segment = it->second;
+  }
+  if (!segment) {
+    // Sent before the message naming it: in the socket already, or coming at once.
+    const auto until = std::chrono::steady_clock::now() + kSegmentWait;
+    for (;;) {
+      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - std::chrono::steady_clock::now());
+      poll(std::max(std::chrono::milliseconds(1), std::min(std::chrono::milliseconds(100), left)));
+      {
+        std::lock_guard<std::mutex> lock(stateMu_);
+        auto it = segments_.find(ref.segment());
+        if (it != segments_.end()) segment = it->second;
+      }
+      if (segment) break;
+      if (dead_ || std::chrono::steady_clock::now() >= until) {
+        giveBack(ref.value_id());
+        const std::string reason = dead_ ? why() : "within 5 s";
+        throw UnavailableError("shared-memory segment " + std::to_string(ref.segment()) + " of the server at " +
+                               endpoint_ + " did not arrive (" + reason + "): read again");
+      }
+    }
+  }
+  if (ref.offset() > segment->size() || ref.size() > segment->size() - ref.offset()) {
+    giveBack(ref.value_id());
+    throw UnavailableError("the server at " + endpoint_ + " named bytes " + std::to_string(ref.offset()) + ".." +
+                           std::to_string(ref.offset() + ref.size()) + " of shared-memory segment " +
+                           std::to_string(ref.segment()) + ", which has " + std::to_string(segment->size()) +
+                           ": read again");
+  }
+  const char* data = segment->data() + ref.offset();
+  return std::make_shared<Lease>(weak_from_this(), std::move(segment), ref.value_id(), data,
+                                 static_cast<std::size_t>(ref.size()));
+}
+
+void ClientSession::giveBack(std::uint64_t valueId) {
+  {
+    std::lock_guard<std::mutex> lock(unsentMu_);
+    unsent_.push_back(valueId);
+  }
+  sendQueued();
+}
+
+// -------------------------------------------------------------------- frames
+
+void ClientSession::send(const std::string& frame) {
+  {
+    std::lock_guard<std::mutex> lock(sendMu_);
+    flushLocked();
+    writeLocked(frame);
+  }
+  sendQueued();
+}
+
+// Sends what was given back while another thread was sending, if no one else is.
+void ClientSession::sendQueued() {
+  for (;;) {
+    {
+      std::lock_guard<std::mutex> lock(unsentMu_);
+      if (unsent_.empty()) return;
+    }
+    if (!sendMu_.try_lock()) return;  // its holder sends them when it lets go
+    flushLocked();
+    sendMu_.unlock();
+  }
+}
+
+void ClientSession::flushLocked() {
+  std::vector<std::uint64_t> ids;
+  {
+    std::lock_guard<std::mutex> lock(unsentMu_);
+    ids.swap(unsent_);
+  }
+  for (std::size_t at = 0; at < ids.size(); at += shm::kMaxReleaseIds) {
+    const auto end = std::min(ids.size(), at + shm::kMaxReleaseIds);
+    writeLocked(shm::release(std::vector<std::uint64_t>(ids.begin() + static_cast<std::ptrdiff_t>(at),
+                                                        ids.begin() + static_cast<std::ptrdiff_t>(end))));
+  }
+}
+
+bool ClientSession::writeLocked(const std::string& frame) {
+  if (dead_) return false;
+  std::size_t at = 0;
+  const auto until = std::chrono::steady_clock::now() + kSendWait;
+  while (at < frame.size()) {
+    const ssize_t n = ::send(socket_, frame.data() + at, frame.size() - at, MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (n >= 0) {
+      at += static_cast<std::size_t>(n);
+      continue;
+    }
+    if (errno == EINTR) continue;
+    if (errno != EAGAIN && errno != EWOULDBLOCK) {
+      end(std::string("write failed: ") + std::strerror(errno));
+      return false;
+    }
+    if (std::chrono::steady_clock::now() >= until) {
+      end("the server has not read its socket for 5 s");
+      return false;
+    }
+    pollfd p{socket_, POLLOUT, 0};
+    ::poll(&p, 1, 100);
+  }
+  return true;
+}
+
+void ClientSession::poll(std::chrono::milliseconds wait) {
+  if (dead_) return;
+  std::unique_lock<std::timed_mutex> lock(readMu_, std::defer_lock);
+  if (wait.count() > 0 ? !lock.try_lock_for(wait) : !lock.try_lock()) return;  // another reader handles what came
+  if (wait.count() > 0) {
+    pollfd p{socket_, POLLIN, 0};
+    ::poll(&p, 1, static_cast<int>(wait.count()));
+  }
+  std::string& data = received_;
+  while (!dead_) {
+    std::optional<std::vector<int>> fds;
+    try {
+      fds = shm::receive(socket_, data);
+    } catch (const std::exception& e) {
+      end(std::string("read failed: ") + e.what());
+      break;
+    }
+    if (!fds) break;  // nothing more now
+    if (data.empty()) {
+      for (int fd : *fds) ::close(fd);
+      end("the server closed the session");
+      break;
+    }
+    std::vector<shm::Frame> frames;
+    try {
+      frames = reader_.feed(data.data(), data.size(), std::move(*fds));
+    } catch (const shm::ProtocolError& e) {
+      end(e.what());
+      break;
+    }
+    for (auto& frame : frames) handle(frame);
+  }
+}
+
+void ClientSession::handle(shm::Frame& frame) {
+  try {
+    if (frame.kind == shm::kSegment) {
+      const auto [segmentId, size] = shm::parseSegment(frame.body);
+      void* address = size == 0 ? MAP_FAILED
+                                : ::mmap(nullptr, static_cast<std::size_t>(size), PROT_READ, MAP_SHARED, frame.fd, 0);
+      const int error = errno;
+      ::close(frame.fd);  // the mapping keeps the memory file
+      frame.fd = -1;
+      if (address == MAP_FAILED) {
+        end("segment " + std::to_string(segmentId) + " could not be mapped: " + std::strerror(error));
+        return;
+      }
+      auto mapping = std::make_shared<const Mapping>(address, static_cast<std::size_t>(size));
+      std::lock_guard<std::mutex> lock(stateMu_);
+      if (!dead_) segments_[segmentId] = std::move(mapping);
+    } else if (frame.kind == shm::kRetire) {
+      const std::uint32_t segmentId = shm::parseRetire(frame.body);
+      std::shared_ptr<const Mapping> gone;  // unmapped outside the lock, once no value of it is held
+      std::lock_guard<std::mutex> lock(stateMu_);
+      auto it = segments_.find(segmentId);
+      if (it != segments_.end()) {
+        gone = std::move(it->second);
+        segments_.erase(it);
+      }
+    } else if (frame.kind == shm::kRefused) {
+      end("the server ended it: " + frame.body);
+    } else if (frame.fd >= 0) {  // a kind this client does not know
+      ::close(frame.fd);
+      frame.fd = -1;
+    }
+  } catch (const shm::ProtocolError& e) {
+    if (frame.fd >= 0) ::close(frame.fd);
+    end(e.what());
+  }
+}
+
+void ClientSession::end(const std::string& why) {
+  std::shared_ptr<Mapping> staging;
+  std::map<std::uint32_t, std::shared_ptr<const Mapping>> segments;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    if (dead_) return;
+    dead_ = true;
+    why_ = why.empty() ? "closed" : why;
+    // Mappings still held by values go when those do (their leases hold them);
+    // a copy into the staging area under way keeps it until it is done.
+    staging.swap(staging_);
+    segments.swap(segments_);
+  }
+  // Wakes a reader blocked on the socket; closed by the destructor, so that
+  // no other thread ever uses a descriptor number that was closed.
+  ::shutdown(socket_, SHUT_RDWR);
+  if (why != "closed") log().debug("shared-memory session with " + endpoint_ + " ended: " + why);
+  // Descriptors no frame claimed are closed with the reader, by the destructor.
+}
+
+void ClientSession::close() { end("closed"); }
+
+}  // namespace cast::detail

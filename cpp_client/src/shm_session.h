@@ -1,0 +1,211 @@
+// One session with a server's shared memory, after its WELCOME
+// (docs/client-protocol.md, "Large values by shared memory"). Private to the
+// gRPC transport. Mirrors the Python client's client/shm_session.py.
+//
+// A ClientSession
+// - stages a large value: copies it into a free region of the staging area
+//   (a memory file the server made for the session, mapped read-write here)
+//   and names it in the write (StagedValue); the region is reused once the
+//   write's reply came, never while its outcome is unknown;
+// - claims a value the server lent (SharedValue in an entry): the bytes in a
+//   segment mapped once, read-only, when its SEGMENT frame came, held by a
+//   Lease that gives the value back (RELEASE) when the last holder of it (an
+//   entry, a change, a ValueView) is gone;
+// - counts the references each read call received and says so when the call
+//   ends (RECEIVED), so that the server takes back what never arrived.
+//
+// No thread of its own: what the server sends (SEGMENT, RETIRE, REFUSED, the
+// end) is read whenever the session is used. How a session is opened, and
+// when there is none: shm.h.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include "cast/types.h"
+#include "cast/v1/entry.pb.h"
+#include "cast/v1/working_memory.pb.h"
+#include "shm_wire.h"
+
+namespace cast::detail {
+
+// The call metadata that names a read's session and call: "<session hex>/<call>".
+inline constexpr char kSharedMemoryMetadata[] = "cast-shared-memory";
+
+// A region of mapped memory, unmapped when the last holder lets it go (a
+// segment stays mapped while values lent in it are held, after RETIRE or the
+// session's end too).
+class Mapping {
+ public:
+  Mapping(void* address, std::size_t size) : address_(address), size_(size) {}
+  ~Mapping();
+  Mapping(const Mapping&) = delete;
+  Mapping& operator=(const Mapping&) = delete;
+  char* data() const { return static_cast<char*>(address_); }
+  std::size_t size() const { return size_; }
+
+ private:
+  void* address_;
+  std::size_t size_;
+};
+
+// First-fit allocation of whole-page extents in [0, size); not thread-safe.
+// Few values are staged at once, so the linear scan costs nothing next to
+// copying one.
+class Extents {
+ public:
+  explicit Extents(std::size_t size);
+  // The offset of a free extent of `size` bytes, or nullopt when none is left.
+  std::optional<std::size_t> take(std::size_t size);
+  // Frees an extent take() gave, merging it with its neighbours.
+  void give(std::size_t offset, std::size_t size);
+  std::size_t size() const { return size_; }
+  std::size_t used() const { return used_; }
+
+ private:
+  std::size_t size_;
+  std::size_t used_ = 0;
+  std::map<std::size_t, std::size_t> free_;  // offset -> bytes
+};
+
+// `size` rounded up to whole 4 KiB pages (at least one).
+std::size_t roundUpToPages(std::size_t size);
+
+// A value staged for one write, until the write's reply came.
+struct Staged {
+  std::size_t offset = 0;
+  std::size_t size = 0;   // the value's bytes
+  std::size_t taken = 0;  // whole pages
+};
+
+class ClientSession;
+
+// One read call (a Get, a GetByType, a Watch stream): its metadata, and how
+// many references it received. Used by one thread at a time.
+class ReadCall {
+ public:
+  ReadCall(std::shared_ptr<ClientSession> session, std::uint64_t number);
+  // Says the call ended (as end(false)) if end() was not called.
+  ~ReadCall();
+  ReadCall(const ReadCall&) = delete;
+  ReadCall& operator=(const ReadCall&) = delete;
+
+  // The metadata value that names it (under kSharedMemoryMetadata).
+  const std::string& metadata() const { return metadata_; }
+  std::uint64_t number() const { return number_; }
+  // The bytes of a value lent on this call, held until the result is let go;
+  // UnavailableError when they cannot be read (read again).
+  std::shared_ptr<const LentBytes> claim(const v1::SharedValue& ref);
+  // The call is over: the server takes back what it sent and this call never
+  // received. `answered`: the whole answer was read, so nothing sent failed
+  // to arrive; with no reference in it there is nothing to say.
+  void end(bool answered);
+
+ private:
+  std::shared_ptr<ClientSession> session_;
+  std::uint64_t number_;
+  std::string metadata_;
+  std::uint64_t count_ = 0;
+  bool ended_ = false;
+};
+
+class ClientSession : public std::enable_shared_from_this<ClientSession> {
+ public:
+  // Takes `socket` (connected, its WELCOME read) and maps the staging area
+  // `stagingFd` (closed here); std::system_error when it cannot be mapped.
+  ClientSession(int socket, const shm::Welcome& welcome, int stagingFd, std::string endpoint);
+  ~ClientSession();
+  ClientSession(const ClientSession&) = delete;
+  ClientSession& operator=(const ClientSession&) = delete;
+
+  const std::string& id() const { return id_; }           // 16 bytes
+  const std::string& serverId() const { return serverId_; }  // 32 hex digits
+  std::uint64_t threshold() const { return threshold_; }
+  std::uint64_t window() const { return window_; }
+  std::size_t stagingBytes() const { return stagingSize_; }
+
+  // ------------------------------------------------------------- writes
+  // `data` copied into a free region of the staging area; nullopt when there
+  // is no room or the session ended (send the bytes).
+  std::optional<Staged> stage(std::string_view data);
+  // What a write request says of a staged value.
+  void describe(const Staged& staged, v1::StagedValue* out) const;
+  // The write's reply came (`known`): its region is free again. Otherwise
+  // (its stream broke, its deadline passed) it may still be applied later,
+  // and the server would copy whatever the region then holds: it stays taken
+  // until the session ends.
+  void unstage(const Staged& staged, bool known);
+  // Staged bytes of writes whose outcome is unknown (kept out of use).
+  std::size_t quarantined() const;
+
+  // -------------------------------------------------------------- reads
+  // A read call on this session (its metadata names it).
+  std::unique_ptr<ReadCall> newCall();
+  // The bytes of a lent value and its lease; UnavailableError if its segment
+  // never came, or the reference does not fit in it.
+  std::shared_ptr<const LentBytes> claim(const v1::SharedValue& ref);
+  // A lease is gone: RELEASE it. Never waits for another sender (leases go
+  // on any thread): what it cannot send now, the sender in the way sends.
+  void giveBack(std::uint64_t valueId);
+
+  // ------------------------------------------------------------- frames
+  // Sends a frame (after the RELEASEs waiting); nothing once the session ended.
+  void send(const std::string& frame);
+  // Reads what the server sent (SEGMENT, RETIRE, REFUSED, the end); waits up
+  // to `wait` for something when it is not zero.
+  void poll(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
+  // Whether the session ended, and why ("" while it lives).
+  bool dead() const { return dead_.load(); }
+  std::string why() const;
+  // Segments mapped now (each once, however many values of it are held).
+  std::size_t segments() const;
+  // Ends the session (what it holds lent the server takes back).
+  void close();
+
+ private:
+  void handle(shm::Frame& frame);
+  void end(const std::string& why);
+  void flushLocked();                          // sendMu_ held
+  bool writeLocked(const std::string& frame);  // sendMu_ held
+  void sendQueued();
+
+  const std::string endpoint_;
+  const int socket_;
+  std::string id_;
+  std::string idHex_;
+  std::string serverId_;
+  std::uint64_t threshold_ = 0;
+  std::uint64_t window_ = 0;
+  std::size_t stagingSize_ = 0;
+
+  // The thread holding sendMu_ never lets a Lease go (it only writes to the
+  // socket), so giveBack's try_lock never meets its own thread's lock.
+  std::mutex sendMu_;
+  std::mutex unsentMu_;  // guards unsent_
+  std::vector<std::uint64_t> unsent_;  // value ids given back, not yet sent
+
+  std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_ and received_
+  shm::FrameReader reader_;
+  std::string received_;  // what one read gave (kept: a read per write or call must not allocate)
+
+  mutable std::mutex stateMu_;  // guards what follows
+  std::shared_ptr<Mapping> staging_;  // null once the session ended
+  Extents regions_;
+  std::size_t quarantined_ = 0;
+  std::map<std::uint32_t, std::shared_ptr<const Mapping>> segments_;
+  std::uint64_t calls_ = 0;
+  std::string why_;
+  std::atomic<bool> dead_{false};
+};
+
+}  // namespace cast::detail

@@ -1,0 +1,106 @@
+// The frames of a shared-memory session on a server's Unix socket
+// (docs/client-protocol.md, "Large values by shared memory", "Frames").
+// Mirrors python/cast/wire/shared_memory.py; no gRPC, no protobuf.
+//
+// Every frame is a little-endian u32 length (of what follows, 1 to 65,536),
+// a u8 kind and its fields. A frame that carries a memory file arrives with
+// the descriptor as SCM_RIGHTS, no later than its first byte: a reader keeps
+// the descriptors it received in order and gives the next one to each frame
+// of a kind that carries one.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <deque>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace cast::detail::shm {
+
+// The protocol's version, sent in HELLO and WELCOME.
+inline constexpr std::uint16_t kVersion = 1;
+
+// Frame kinds. Client -> server:
+inline constexpr std::uint8_t kHello = 1;     // u16 version, then the token (UTF-8) to the end
+inline constexpr std::uint8_t kRelease = 2;   // n x u64 value ids given back
+inline constexpr std::uint8_t kReceived = 3;  // u64 call, u64 count, u8 ended
+// Server -> client:
+inline constexpr std::uint8_t kWelcome = 10;  // u16 version, 16 B session, 16 B server id, u64 x 3; 1 fd
+inline constexpr std::uint8_t kRefused = 11;  // the reason (UTF-8) to the end
+inline constexpr std::uint8_t kSegment = 12;  // u32 segment, u64 size; 1 fd
+inline constexpr std::uint8_t kRetire = 13;   // u32 segment
+
+// The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits).
+inline constexpr std::size_t kMaxFrame = 1 << 16;
+// The most value ids one RELEASE frame carries.
+inline constexpr std::size_t kMaxReleaseIds = 8000;
+
+// A frame that breaks the protocol: the session ends.
+class ProtocolError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// One decoded frame: its kind, its fields (after the kind byte), and the
+// memory file it carries (-1: none). The receiver owns the descriptor.
+struct Frame {
+  std::uint8_t kind = 0;
+  std::string body;
+  int fd = -1;
+};
+
+// What WELCOME says.
+struct Welcome {
+  std::uint16_t version = 0;
+  std::string session;   // 16 bytes
+  std::string serverId;  // 16 bytes
+  std::uint64_t threshold = 0;
+  std::uint64_t window = 0;
+  std::uint64_t staging = 0;
+};
+
+// Frames to send.
+std::string hello(const std::string& token);
+std::string release(const std::vector<std::uint64_t>& valueIds);
+std::string received(std::uint64_t call, std::uint64_t count, bool ended);
+
+// Fields of received frames; ProtocolError when the size is wrong.
+Welcome parseWelcome(const std::string& body);
+// (segment id, size) of a SEGMENT.
+std::pair<std::uint32_t, std::uint64_t> parseSegment(const std::string& body);
+std::uint32_t parseRetire(const std::string& body);
+
+// 32 lowercase hex digits of 16 bytes (how WELCOME's ids are compared and named).
+std::string hex(const std::string& bytes);
+
+// Bytes and descriptors in (from recvmsg), whole frames out, each with the
+// descriptor it carries. Not thread-safe.
+class FrameReader {
+ public:
+  FrameReader() = default;
+  ~FrameReader();
+  FrameReader(const FrameReader&) = delete;
+  FrameReader& operator=(const FrameReader&) = delete;
+
+  // Adds what one read gave (it takes the descriptors); the frames now
+  // complete. ProtocolError for a length out of range or a frame of a kind
+  // that carries a descriptor without one.
+  std::vector<Frame> feed(const char* data, std::size_t size, std::vector<int> fds);
+  // Closes the descriptors no frame claimed.
+  void closeStray();
+
+ private:
+  std::string buf_;
+  std::deque<int> fds_;
+};
+
+// One recvmsg on `fd` (non-blocking or not): the bytes read into `out`
+// (empty: the peer closed) and the descriptors that came with them. nullopt
+// when nothing is there yet (EAGAIN); ProtocolError when more descriptors
+// came than the control buffer takes (they are closed); std::system_error
+// for a failed read.
+std::optional<std::vector<int>> receive(int fd, std::string& out);
+
+}  // namespace cast::detail::shm

@@ -1,0 +1,452 @@
+package cast.client;
+
+import cast.v1.SharedValue;
+import cast.v1.StagedValue;
+import com.google.protobuf.ByteString;
+import java.io.FileDescriptor;
+import java.io.FileInputStream;
+import java.io.IOException;
+import java.io.InputStream;
+import java.io.OutputStream;
+import java.io.RandomAccessFile;
+import java.nio.ByteBuffer;
+import java.nio.MappedByteBuffer;
+import java.nio.channels.FileChannel;
+import java.util.ArrayDeque;
+import java.util.ArrayList;
+import java.util.HashMap;
+import java.util.HexFormat;
+import java.util.List;
+import java.util.Map;
+import java.util.concurrent.TimeUnit;
+import java.util.logging.Logger;
+import org.newsclub.net.unix.AFUNIXSocket;
+import org.newsclub.net.unix.FileDescriptorCast;
+
+/**
+ * One session with a server's shared memory, after its WELCOME (docs/client-protocol.md, "Large
+ * values by shared memory"). It
+ *
+ * <ul>
+ *   <li><em>stages</em> a large value: copies it into a free region of the staging area, which a
+ *       write then names ({@code StagedValue}); the region is reused once the write's reply came,
+ *       never while its outcome is unknown ({@link ShmStaging});
+ *   <li><em>claims</em> a value the server lent ({@code SharedValue} in an entry): a read-only
+ *       buffer over the segment it is in (mapped once, when its SEGMENT frame came) and a {@link
+ *       Lease} that gives it back (RELEASE) when its last holder lets go;
+ *   <li>counts the references each read call received and says so (RECEIVED), so that the
+ *       server takes back what never arrived ({@link ReadCall}).
+ * </ul>
+ *
+ * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, the end: a server
+ * that died is noticed at once), one sends (RELEASE, RECEIVED), so that giving a value back
+ * never waits for the server. Segments are mapped with {@link FileChannel#map}; a segment the
+ * server retired, or every segment once the session ended, is unmapped as soon as no lease of
+ * it is held (the memory of a dead server goes at once, not at some later garbage collection).
+ * So a buffer taken from a view must not be read after the view was closed: its memory may be
+ * gone. The staging area is unmapped when the session ends. The twin of
+ * python/cast/client/shm_session.py and cpp_client/src/shm_session.cc; {@link SharedLink}
+ * opens it.
+ */
+final class SharedSession {
+  private static final Logger LOG = Logger.getLogger("cast.client");
+  static final String METADATA_KEY = "cast-shared-memory";
+  /** How long a claim waits for the SEGMENT frame that was sent before the message naming it. */
+  static final long SEGMENT_WAIT_MS = 5000;
+  /** A long read call says what it received this often, so the server forgets the rest. */
+  static final int RECEIVED_EVERY = 64;
+
+  final byte[] id;
+  final String idHex;
+  final String serverId;
+  final long threshold;
+  final long window;
+  final String endpoint;
+  private final AFUNIXSocket socket;
+  private final ShmStaging staging;
+  private final Object lock = new Object(); // segments, dead, calls, the outbox
+  private final Map<Long, Segment> segments = new HashMap<>(); // mapped, by id
+  private final ArrayDeque<byte[]> outbox = new ArrayDeque<>();
+  private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE
+  private long calls;
+  private volatile String dead; // why the session ended, null while it lives
+
+  /** The session of a socket whose WELCOME ({@code welcome}, with the staging area's {@code stagingFd}) came. */
+  SharedSession(AFUNIXSocket socket, ShmWire.Welcome welcome, FileDescriptor stagingFd, String endpoint)
+      throws IOException {
+    this.socket = socket;
+    this.id = welcome.session();
+    this.idHex = HexFormat.of().formatHex(id);
+    this.serverId = HexFormat.of().formatHex(welcome.serverId());
+    this.threshold = welcome.threshold();
+    this.window = welcome.window();
+    this.endpoint = endpoint;
+    this.staging = new ShmStaging(mapReadWrite(stagingFd, welcome.staging()));
+  }
+
+  /** Start reading and sending (once the session passed the client's checks). */
+  void start(List<ShmWire.Frame> already, ShmWire.Reader reader, InputStream in, OutputStream out) {
+    for (ShmWire.Frame f : already) {
+      handle(f);
+    }
+    Thread r = new Thread(() -> readLoop(reader, in), "cast-shm-read-" + endpoint);
+    r.setDaemon(true);
+    r.start();
+    Thread s = new Thread(() -> sendLoop(out), "cast-shm-send-" + endpoint);
+    s.setDaemon(true);
+    s.start();
+  }
+
+  /** Why the session ended, or null while it lives. */
+  String dead() {
+    return dead;
+  }
+
+  /** A segment as mapped here, and how many leases of its values are held. */
+  private static final class Segment {
+    final MappedByteBuffer map; // the mapping itself: what is unmapped
+    final ByteBuffer bytes; // read-only, what values are cut from
+    int held; // leases not given back; guarded by the session's lock
+    boolean retired; // no value of it will be lent again; guarded by the session's lock
+
+    Segment(MappedByteBuffer map) {
+      this.map = map;
+      this.bytes = map.asReadOnlyBuffer();
+    }
+  }
+
+  // ------------------------------------------------------------------ writes
+
+  /** {@code value} copied into a free region of the staging area; null when there is none (send the bytes). */
+  ShmStaging.Staged stage(ByteString value) {
+    return dead != null ? null : staging.stage(value);
+  }
+
+  /** What a write request says of a staged value. */
+  StagedValue stagedValue(ShmStaging.Staged staged) {
+    return StagedValue.newBuilder()
+        .setSession(ByteString.copyFrom(id))
+        .setOffset(staged.offset())
+        .setSize(staged.size())
+        .build();
+  }
+
+  /** The write's reply came ({@code known}): its region is free again; else it stays taken (ShmStaging.unstage). */
+  void unstage(ShmStaging.Staged staged, boolean known) {
+    staging.unstage(staged, known);
+  }
+
+  /** Bytes of staged values whose write's outcome is unknown: never written again while the session lives. */
+  long quarantined() {
+    return staging.quarantined();
+  }
+
+  // ------------------------------------------------------------------- reads
+
+  /** One read call (a Get, a Watch stream) on this session: its metadata names it. */
+  final class ReadCall {
+    final long number;
+    private long count; // guarded by this
+    private boolean ended; // guarded by this
+
+    private ReadCall(long number) {
+      this.number = number;
+    }
+
+    /** The value of the call's {@value #METADATA_KEY} metadata. */
+    String metadata() {
+      return idHex + "/" + number;
+    }
+
+    SharedSession session() {
+      return SharedSession.this;
+    }
+
+    /** The bytes of a value lent on this call, and its lease (held once); UnavailableError if they cannot be read. */
+    Lease claim(SharedValue ref) {
+      long n;
+      synchronized (this) {
+        n = ++count;
+      }
+      if (n % RECEIVED_EVERY == 0) {
+        send(ShmWire.received(number, n, false));
+      }
+      return SharedSession.this.claim(ref);
+    }
+
+    /**
+     * The call is over: the server takes back what it sent on it and this call never received.
+     * {@code answered}: the whole answer was read, so with no reference in it there is nothing
+     * to say.
+     */
+    void end(boolean answered) {
+      long n;
+      synchronized (this) {
+        if (ended) {
+          return;
+        }
+        ended = true;
+        n = count;
+      }
+      if (n > 0 || !answered) {
+        send(ShmWire.received(number, n, true));
+      }
+    }
+  }
+
+  /** A new read call on this session. */
+  ReadCall newCall() {
+    synchronized (lock) {
+      return new ReadCall(++calls);
+    }
+  }
+
+  private Lease claim(SharedValue ref) {
+    long valueId = ref.getValueId();
+    Segment segment;
+    try {
+      segment = awaitSegment(ref.getSegment()); // counts the lease held
+    } catch (UnavailableError e) {
+      giveBack(valueId, null); // the server counted it lent
+      throw e;
+    }
+    long end = ref.getOffset() + ref.getSize();
+    if (ref.getOffset() < 0 || ref.getSize() < 0 || end > segment.bytes.capacity()) {
+      giveBack(valueId, segment);
+      throw new UnavailableError(
+          "the server at " + endpoint + " named bytes " + ref.getOffset() + ".." + end + " of shared-memory segment "
+              + ref.getSegment() + ", which has " + segment.bytes.capacity() + ": read again");
+    }
+    ByteBuffer bytes = segment.bytes.duplicate().position((int) ref.getOffset()).limit((int) end).slice();
+    return new Lease(bytes, () -> giveBack(valueId, segment));
+  }
+
+  /** The segment named, once its SEGMENT frame came, with one more lease of it held. */
+  private Segment awaitSegment(long segmentId) {
+    // Sent before the message naming it: it is in the socket already, or comes at once.
+    long deadline = System.nanoTime() + TimeUnit.MILLISECONDS.toNanos(SEGMENT_WAIT_MS);
+    synchronized (lock) {
+      while (true) {
+        Segment segment = segments.get(segmentId);
+        if (segment != null) {
+          segment.held++;
+          return segment;
+        }
+        long left = deadline - System.nanoTime();
+        if (dead != null || left <= 0) {
+          throw new UnavailableError(
+              "shared-memory segment " + segmentId + " of the server at " + endpoint + " did not arrive ("
+                  + (dead != null ? dead : "within " + SEGMENT_WAIT_MS / 1000.0 + " s") + "): read again");
+        }
+        try {
+          TimeUnit.NANOSECONDS.timedWait(lock, left);
+        } catch (InterruptedException e) {
+          Thread.currentThread().interrupt();
+          throw new UnavailableError("interrupted while waiting for shared-memory segment " + segmentId);
+        }
+      }
+    }
+  }
+
+  /**
+   * A lease's last holder let go: RELEASE it (sent by the sender thread; nothing once the
+   * session ended), and unmap its segment if that was retired and this was its last lease.
+   */
+  private void giveBack(long valueId, Segment segment) {
+    boolean unmap = false;
+    synchronized (lock) {
+      if (dead == null) {
+        givenBack.add(valueId);
+        lock.notifyAll();
+      }
+      if (segment != null) {
+        segment.held--;
+        unmap = segment.retired && segment.held == 0;
+      }
+    }
+    if (unmap) {
+      ShmStaging.unmap(segment.map);
+    }
+  }
+
+  // ------------------------------------------------------------------ frames
+
+  /** Queue a frame for the sender thread (nothing once the session ended). */
+  void send(byte[] frame) {
+    synchronized (lock) {
+      if (dead == null) {
+        outbox.add(frame);
+        lock.notifyAll();
+      }
+    }
+  }
+
+  private void sendLoop(OutputStream out) {
+    try {
+      while (true) {
+        List<byte[]> frames = new ArrayList<>();
+        synchronized (lock) {
+          while (dead == null && outbox.isEmpty() && givenBack.isEmpty()) {
+            lock.wait();
+          }
+          if (dead != null) {
+            return;
+          }
+          frames.addAll(ShmWire.release(givenBack)); // gathered: many leases, one frame
+          givenBack.clear();
+          frames.addAll(outbox);
+          outbox.clear();
+        }
+        for (byte[] f : frames) {
+          out.write(f);
+        }
+        out.flush();
+      }
+    } catch (IOException e) {
+      end("write failed: " + e.getMessage());
+    } catch (InterruptedException e) {
+      end("interrupted");
+    }
+  }
+
+  private void readLoop(ShmWire.Reader reader, InputStream in) {
+    byte[] buf = new byte[ShmWire.MAX_FRAME];
+    try {
+      while (dead == null) {
+        int n = in.read(buf);
+        FileDescriptor[] fds = socket.getReceivedFileDescriptors();
+        if (n < 0) {
+          closeAll(fds);
+          end("the server closed the session");
+          return;
+        }
+        for (ShmWire.Frame frame : reader.feed(buf, n, fds)) {
+          handle(frame);
+        }
+      }
+    } catch (IOException e) {
+      end("read failed: " + e.getMessage());
+    } catch (ShmWire.ProtocolError e) {
+      end(e.getMessage());
+    } finally {
+      closeAll(reader.stray().toArray(new FileDescriptor[0]));
+    }
+  }
+
+  private void handle(ShmWire.Frame frame) {
+    try {
+      switch (frame.kind()) {
+        case ShmWire.SEGMENT -> {
+          long[] f = ShmWire.parseSegment(frame.body());
+          Segment segment = new Segment(mapReadOnly(frame.fd(), f[1]));
+          Segment old;
+          synchronized (lock) {
+            old = segments.put(f[0], segment);
+            lock.notifyAll();
+          }
+          if (old != null) {
+            retire(old); // the server never sends a live segment twice; if it did, the old one goes
+          }
+        }
+        case ShmWire.RETIRE -> {
+          Segment segment;
+          synchronized (lock) {
+            segment = segments.remove(ShmWire.parseRetire(frame.body()));
+          }
+          if (segment != null) {
+            retire(segment);
+          }
+        }
+        case ShmWire.REFUSED -> end("the server ended it: " + ShmWire.text(frame.body()));
+        default -> closeAll(frame.fd()); // a kind this client does not know: ignored
+      }
+    } catch (ShmWire.ProtocolError | IOException e) {
+      closeAll(frame.fd());
+      end(e.getMessage());
+    }
+  }
+
+  /** No value of {@code segment} will be lent again: unmap it now if none is held, else when the last goes. */
+  private void retire(Segment segment) {
+    boolean unmap;
+    synchronized (lock) {
+      segment.retired = true;
+      unmap = segment.held == 0;
+    }
+    if (unmap) {
+      ShmStaging.unmap(segment.map);
+    }
+  }
+
+  /** End the session: the server gives back everything it lent it. Idempotent. */
+  void end(String why) {
+    List<Segment> mapped;
+    synchronized (lock) {
+      if (dead != null) {
+        return;
+      }
+      dead = why == null ? "closed" : why;
+      mapped = new ArrayList<>(segments.values());
+      segments.clear();
+      givenBack.clear();
+      outbox.clear();
+      lock.notifyAll(); // claims waiting for a segment, and the sender, see the end
+    }
+    mapped.forEach(this::retire); // each unmapped once no value of it is held
+    LOG.fine("shared-memory session with " + endpoint + " ended: " + why);
+    try {
+      socket.close();
+    } catch (IOException e) {
+      LOG.fine("closing the shared-memory socket: " + e.getMessage());
+    }
+    staging.close();
+  }
+
+  // ---------------------------------------------------------------- mappings
+
+  /** A descriptor's number (for /proc/self/fd), through junixsocket. */
+  private static int number(FileDescriptor fd) throws IOException {
+    return FileDescriptorCast.using(fd).as(Integer.class);
+  }
+
+  /** The staging area mapped read-write and shared; its descriptor is closed (the mapping keeps the memory file). */
+  static MappedByteBuffer mapReadWrite(FileDescriptor fd, long size) throws IOException {
+    try {
+      if (size <= 0 || size > Integer.MAX_VALUE) {
+        throw new IOException("a staging area of " + size + " bytes (a Java mapping holds at most 2 GiB)");
+      }
+      // A channel of a descriptor alone is read-only or write-only; its /proc path opens the memory file both ways.
+      try (RandomAccessFile file = new RandomAccessFile("/proc/self/fd/" + number(fd), "rw")) {
+        return file.getChannel().map(FileChannel.MapMode.READ_WRITE, 0, size);
+      }
+    } finally {
+      closeAll(fd);
+    }
+  }
+
+  /** A segment mapped read-only and shared; its descriptor is closed. */
+  static MappedByteBuffer mapReadOnly(FileDescriptor fd, long size) throws IOException {
+    try (FileInputStream in = new FileInputStream(fd)) {
+      if (size <= 0 || size > Integer.MAX_VALUE) {
+        throw new IOException("a shared-memory segment of " + size + " bytes (a Java mapping holds at most 2 GiB)");
+      }
+      return in.getChannel().map(FileChannel.MapMode.READ_ONLY, 0, size);
+    }
+  }
+
+  /** Close descriptors (null ones are skipped). */
+  static void closeAll(FileDescriptor... fds) {
+    if (fds == null) {
+      return;
+    }
+    for (FileDescriptor fd : fds) {
+      if (fd != null && fd.valid()) {
+        try {
+          new FileInputStream(fd).close();
+        } catch (IOException e) {
+          LOG.fine("closing a descriptor: " + e.getMessage());
+        }
+      }
+    }
+  }
+}

@@ -1,0 +1,187 @@
+package cast.client;
+
+import java.io.FileDescriptor;
+import java.nio.ByteBuffer;
+import java.nio.ByteOrder;
+import java.nio.charset.StandardCharsets;
+import java.util.ArrayDeque;
+import java.util.ArrayList;
+import java.util.Collection;
+import java.util.List;
+
+/**
+ * The frames of a shared-memory session on a server's Unix socket (docs/client-protocol.md,
+ * "Large values by shared memory", "Frames"): a little-endian {@code u32} length of what
+ * follows (1 to 65,536), a {@code u8} kind and its fields. A frame that carries a memory file
+ * came with it as {@code SCM_RIGHTS}, no later than its first byte: the {@link Reader} keeps the
+ * descriptors that arrive in order and gives the next one to each frame of a kind that carries
+ * one. The twin of python/cast/wire/shared_memory.py. No sockets
+ * here: {@link SharedSession} moves the bytes.
+ */
+final class ShmWire {
+  private ShmWire() {}
+
+  /** The protocol's version, sent in HELLO and answered in WELCOME. */
+  static final int VERSION = 1;
+
+  // Client -> server.
+  static final int HELLO = 1; // u16 version, then the token (UTF-8) to the end
+  static final int RELEASE = 2; // n x u64 value ids given back
+  static final int RECEIVED = 3; // u64 call, u64 count, u8 ended
+  // Server -> client.
+  static final int WELCOME = 10; // u16 version, 16 bytes session, 16 bytes server id, u64 threshold, window, staging
+  static final int REFUSED = 11; // the reason (UTF-8) to the end; the server then closes
+  static final int SEGMENT = 12; // u32 segment id, u64 size; carries the segment's memory file
+  static final int RETIRE = 13; // u32 segment id
+
+  /** The largest frame either side sends or accepts. */
+  static final int MAX_FRAME = 1 << 16;
+  /** Value ids one RELEASE frame carries at most (8 bytes each, within {@link #MAX_FRAME}). */
+  static final int RELEASE_IDS = 8000;
+  static final int WELCOME_BYTES = 2 + 16 + 16 + 8 + 8 + 8;
+
+  /** A frame that breaks the protocol: the session ends. */
+  static final class ProtocolError extends Exception {
+    private static final long serialVersionUID = 1L;
+
+    ProtocolError(String message) {
+      super(message);
+    }
+  }
+
+  /** One frame: its kind, its fields (after the kind byte, little-endian) and the memory file it carries, or null. */
+  record Frame(int kind, ByteBuffer body, FileDescriptor fd) {}
+
+  /** WELCOME's fields. */
+  record Welcome(int version, byte[] session, byte[] serverId, long threshold, long window, long staging) {}
+
+  private static ByteBuffer frame(int kind, int bodyBytes) {
+    ByteBuffer b = ByteBuffer.allocate(5 + bodyBytes).order(ByteOrder.LITTLE_ENDIAN);
+    b.putInt(1 + bodyBytes).put((byte) kind);
+    return b;
+  }
+
+  /** HELLO: the protocol version and the caller's token. */
+  static byte[] hello(String token) {
+    byte[] text = token.getBytes(StandardCharsets.UTF_8);
+    return frame(HELLO, 2 + text.length).putShort((short) VERSION).put(text).array();
+  }
+
+  /** RELEASE frames for {@code valueIds} (one lease given back per id), {@link #RELEASE_IDS} a frame. */
+  static List<byte[]> release(Collection<Long> valueIds) {
+    List<byte[]> frames = new ArrayList<>();
+    ByteBuffer b = null;
+    int left = valueIds.size();
+    for (long id : valueIds) {
+      if (b == null) {
+        b = frame(RELEASE, 8 * Math.min(left, RELEASE_IDS));
+      }
+      b.putLong(id);
+      left--;
+      if (!b.hasRemaining()) {
+        frames.add(b.array());
+        b = null;
+      }
+    }
+    return frames;
+  }
+
+  /** RECEIVED: {@code count} references received on {@code call} so far; {@code ended}: the call is over. */
+  static byte[] received(long call, long count, boolean ended) {
+    return frame(RECEIVED, 17).putLong(call).putLong(count).put((byte) (ended ? 1 : 0)).array();
+  }
+
+  static Welcome parseWelcome(ByteBuffer body) throws ProtocolError {
+    if (body.remaining() != WELCOME_BYTES) {
+      throw new ProtocolError("WELCOME has " + body.remaining() + " bytes of fields, not " + WELCOME_BYTES);
+    }
+    int version = Short.toUnsignedInt(body.getShort());
+    byte[] session = new byte[16];
+    byte[] serverId = new byte[16];
+    body.get(session).get(serverId);
+    return new Welcome(version, session, serverId, body.getLong(), body.getLong(), body.getLong());
+  }
+
+  /** (segment id, size) of a SEGMENT. */
+  static long[] parseSegment(ByteBuffer body) throws ProtocolError {
+    if (body.remaining() != 12) {
+      throw new ProtocolError("SEGMENT has the wrong size (" + body.remaining() + " bytes of fields)");
+    }
+    return new long[] {Integer.toUnsignedLong(body.getInt()), body.getLong()};
+  }
+
+  /** The segment id of a RETIRE. */
+  static long parseRetire(ByteBuffer body) throws ProtocolError {
+    if (body.remaining() != 4) {
+      throw new ProtocolError("RETIRE has the wrong size (" + body.remaining() + " bytes of fields)");
+    }
+    return Integer.toUnsignedLong(body.getInt());
+  }
+
+  /** The text of a REFUSED. */
+  static String text(ByteBuffer body) {
+    return StandardCharsets.UTF_8.decode(body.duplicate()).toString();
+  }
+
+  static boolean carriesFd(int kind) {
+    return kind == WELCOME || kind == SEGMENT;
+  }
+
+  /** Bytes and descriptors in, as they were read; whole frames out, each with the descriptor it carries. */
+  static final class Reader {
+    private ByteBuffer buf = ByteBuffer.allocate(2 * MAX_FRAME).order(ByteOrder.LITTLE_ENDIAN);
+    private final ArrayDeque<FileDescriptor> fds = new ArrayDeque<>();
+
+    /** Add what one read gave ({@code n} bytes of {@code data} and the descriptors that came with them). */
+    List<Frame> feed(byte[] data, int n, FileDescriptor[] received) throws ProtocolError {
+      if (received != null) {
+        for (FileDescriptor fd : received) {
+          fds.add(fd);
+        }
+      }
+      if (buf.remaining() < n) {
+        ByteBuffer bigger = ByteBuffer.allocate(buf.position() + n + MAX_FRAME).order(ByteOrder.LITTLE_ENDIAN);
+        buf.flip();
+        bigger.put(buf);
+        buf = bigger;
+      }
+      buf.put(data, 0, n);
+      buf.flip();
+      List<Frame> out = new ArrayList<>();
+      try {
+        while (buf.remaining() >= 4) {
+          int length = buf.getInt(buf.position());
+          if (length < 1 || length > MAX_FRAME) {
+            throw new ProtocolError("a frame of " + Integer.toUnsignedString(length) + " bytes (1 to " + MAX_FRAME
+                + " allowed)");
+          }
+          if (buf.remaining() - 4 < length) {
+            break;
+          }
+          buf.position(buf.position() + 4);
+          int kind = Byte.toUnsignedInt(buf.get());
+          byte[] body = new byte[length - 1];
+          buf.get(body);
+          FileDescriptor fd = null;
+          if (carriesFd(kind)) {
+            fd = fds.poll();
+            if (fd == null) {
+              throw new ProtocolError("a frame of kind " + kind + " came without its memory file");
+            }
+          }
+          out.add(new Frame(kind, ByteBuffer.wrap(body).order(ByteOrder.LITTLE_ENDIAN), fd));
+        }
+      } finally {
+        buf.compact();
+      }
+      return out;
+    }
+
+    /** Descriptors no frame claimed (to close). */
+    List<FileDescriptor> stray() {
+      List<FileDescriptor> left = new ArrayList<>(fds);
+      fds.clear();
+      return left;
+    }
+  }
+}
