@@ -247,7 +247,11 @@ def test_record_replay_and_the_tools_with_values_in_shared_memory(tmp_path: Path
 
 
 def test_a_call_that_opens_the_session_on_a_hung_server_ends_by_its_deadline(tmp_path: Path) -> None:
-    """The session is opened on the way of the first large write or read: that opening spends the call's time."""
+    """The session is opened on the way of the first read or large write: that opening spends the call's time.
+
+    The first add also registers its type first (one more call on the hung server); a write of a
+    registered type that opens the session is in tests/interop/test_shared_memory_interop.py.
+    """
     from cast import UnmanagedComponent
     from cast.client.grpc_transport import GrpcTransport
     from cast.errors import DeadlineExceededError

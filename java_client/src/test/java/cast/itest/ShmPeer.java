@@ -1,5 +1,7 @@
 package cast.itest;
 
+import static cast.client.Filters.addressFilter;
+
 import cast.client.Cast;
 import cast.client.CastError;
 import cast.client.ConnectOptions;
