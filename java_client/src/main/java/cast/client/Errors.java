@@ -9,7 +9,7 @@ import java.util.function.Function;
  * Maps gRPC status codes to the named CAST errors (docs/client-protocol.md,
  * "Errors"), the same table in every client library.
  */
-public final class Errors {
+final class Errors {
   private Errors() {}
 
   /**

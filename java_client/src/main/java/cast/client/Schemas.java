@@ -13,7 +13,7 @@ import java.util.Set;
 import java.util.concurrent.ConcurrentHashMap;
 
 /** The schemas a client registers for the entry types it writes (docs/client-protocol.md). */
-public final class Schemas {
+final class Schemas {
   private Schemas() {}
 
   /** The types one connection registered: each is registered once, before its first write. */

@@ -13,6 +13,8 @@ import java.nio.file.Files;
 import java.nio.file.Path;
 import java.util.ArrayList;
 import java.util.List;
+import java.util.Set;
+import java.util.TreeSet;
 import java.util.stream.Stream;
 import org.junit.jupiter.api.Test;
 
@@ -96,6 +98,39 @@ class PublicApiTest {
     if (t.getTypeName().contains("cast.v1.")) {
       out.add(where + " " + t.getTypeName());
     }
+  }
+
+  /**
+   * The library's public types: what docs/java.md documents. The machinery (transport, streams,
+   * sessions, shared memory, conversions, the status-code table, schema registration) stays
+   * package-private, so that a user's IDE offers only these.
+   */
+  static final Set<String> API =
+      Set.of(
+          "AlreadyExistsError", "Args", "Batch", "Cast", "CastError", "ChangeCallback", "ChangeFilter",
+          "ClientTls", "Component", "ConnectOptions", "Connection", "ConsistencyError",
+          "DeadlineExceededError", "Delivery", "Entry", "Filters", "HistoryExpiredError", "Identity",
+          "InternalError", "InvalidArgumentError", "LaunchContract", "LockGuard", "LockMode",
+          "LockedError", "ManagedComponent", "NoSessionError", "NotFoundError", "Operation",
+          "PermissionDeniedError", "Priority", "ResourceExhaustedError", "Runner", "SchemaConflictError",
+          "Task", "TaskOutcome", "TaskState", "TaskStateError", "Tokens", "Types",
+          "UnauthenticatedError", "UnavailableError", "UnmanagedComponent", "ValueView", "Version",
+          "WatchHandle", "WatchOptions", "WorkingMemoryAddress", "WorkingMemoryChange", "WriteResult");
+
+  @Test
+  void onlyTheApiIsPublic() throws Exception {
+    Set<String> visible = new TreeSet<>();
+    for (Class<?> c : publicClasses()) {
+      if (c.getEnclosingClass() == null) {
+        visible.add(c.getSimpleName());
+      }
+    }
+    Set<String> extra = new TreeSet<>(visible);
+    extra.removeAll(API);
+    Set<String> missing = new TreeSet<>(API);
+    missing.removeAll(visible);
+    assertTrue(extra.isEmpty(), "public but not the API (make it package-private, or document it and add it): " + extra);
+    assertTrue(missing.isEmpty(), "the API lost: " + missing);
   }
 
   @Test
