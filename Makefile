@@ -68,9 +68,12 @@ demo: setup proto examples cpp java-demo
 # in one process. The slowest tests are listed at the end.
 # The package tests run among them (they wait on pip, cmake and Maven as much as they compute).
 TEST_WORKERS ?= 2
+# A failed test runs once more (pytest-rerunfailures); the summary names every rerun. TEST_RERUNS=0: none.
+TEST_RERUNS ?= 1
 test-python: setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
   ros-demo-types
-	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15
+	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15 \
+	  --reruns $(TEST_RERUNS) -rR
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
