@@ -20,8 +20,10 @@ differently (a ROS 1 ``Header`` has ``seq`` and a ``time``; a ROS 2 one has
 
 from __future__ import annotations
 
+import importlib
 import re
 from dataclasses import dataclass, field
+from typing import Any
 
 __all__ = [
     "BYTES_KINDS",
@@ -201,3 +203,23 @@ def ros_name_of_proto(full_name: str) -> tuple[str, int] | None:
         ros = int(parts[0][3])
         return (f"{parts[1]}/msg/{parts[3]}" if ros == 2 else f"{parts[1]}/{parts[3]}"), ros
     return None
+
+
+def load_message_class(name: str, ros: int, slots: str, install: str) -> Any:
+    """The ROS ``ros`` class of message ``name``, known by its ``slots`` attribute; RosTypeError saying what is missing.
+
+    ``install``: how to get a missing package (the end of the error's advice).
+    """
+    package, type_name = split_ros_name(name, ros)
+    try:
+        module = importlib.import_module(f"{package}.msg")
+    except ImportError as exc:
+        raise RosTypeError(f"ROS {ros} type {name}: no Python package '{package}' with messages on this interpreter "
+                           f"({exc}); source the setup.bash of the ROS installation or workspace that has it, "
+                           f"or {install}") from None
+    cls = getattr(module, type_name, None)
+    if cls is None or not hasattr(cls, slots):
+        known = sorted(n for n in dir(module) if not n.startswith("_") and hasattr(getattr(module, n), slots))
+        raise RosTypeError(f"ROS {ros} type {name}: package {package} has no message {type_name} "
+                           f"(it has: {', '.join(known) or 'none'})")
+    return cls

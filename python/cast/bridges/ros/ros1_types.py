@@ -9,7 +9,6 @@ its ``_full_text`` is the definition, whose constants genmsg parses. ROS 1's
 
 from __future__ import annotations
 
-import importlib
 import re
 from typing import Any
 
@@ -21,6 +20,7 @@ from cast.bridges.ros.model import (
     FieldType,
     MessageType,
     RosTypeError,
+    load_message_class,
     split_ros_name,
 )
 
@@ -40,19 +40,9 @@ BUILTIN_TYPES = {
 
 def message_class(name: str) -> Any:
     """The rospy class of ``pkg/Name``; RosTypeError saying what is missing."""
-    package, type_name = split_ros_name(name, 1)
-    try:
-        module = importlib.import_module(f"{package}.msg")
-    except ImportError as exc:
-        raise RosTypeError(f"ROS 1 type {name}: no Python package '{package}' with messages on this interpreter "
-                           f"({exc}); source the setup.bash of the ROS installation or workspace that has it, or "
-                           f"install its Debian package (python3-{package.replace('_', '-')})") from None
-    cls = getattr(module, type_name, None)
-    if cls is None or not hasattr(cls, "_slot_types"):
-        known = sorted(n for n in dir(module) if not n.startswith("_") and hasattr(getattr(module, n), "_slot_types"))
-        raise RosTypeError(f"ROS 1 type {name}: package {package} has no message {type_name} "
-                           f"(it has: {', '.join(known) or 'none'})")
-    return cls
+    package = name.partition("/")[0]
+    return load_message_class(name, 1, "_slot_types",
+                              f"install its Debian package (python3-{package.replace('_', '-')})")
 
 
 def _field_type(text: str, package: str, where: str) -> FieldType:

@@ -9,14 +9,22 @@ path (its ``setup.bash`` sourced), as for any rclpy node.
 
 from __future__ import annotations
 
-import importlib
 import os
 import re
 import sys
 from pathlib import Path
 from typing import Any
 
-from cast.bridges.ros.model import MESSAGE_KIND, Constant, Field, FieldType, MessageType, RosTypeError, split_ros_name
+from cast.bridges.ros.model import (
+    MESSAGE_KIND,
+    Constant,
+    Field,
+    FieldType,
+    MessageType,
+    RosTypeError,
+    load_message_class,
+    split_ros_name,
+)
 
 __all__ = ["describe", "message_class", "node_class"]
 
@@ -32,19 +40,7 @@ _BASIC = {
 
 def message_class(name: str) -> Any:
     """The rclpy class of ``pkg/msg/Name``; RosTypeError saying what is missing."""
-    package, type_name = split_ros_name(name, 2)
-    try:
-        module = importlib.import_module(f"{package}.msg")
-    except ImportError as exc:
-        raise RosTypeError(f"ROS 2 type {name}: no Python package '{package}' with messages on this interpreter "
-                           f"({exc}); source the setup.bash of the ROS installation or workspace that has it, "
-                           f"or install its wheel") from None
-    cls = getattr(module, type_name, None)
-    if cls is None or not hasattr(cls, "SLOT_TYPES"):
-        known = sorted(n for n in dir(module) if not n.startswith("_") and hasattr(getattr(module, n), "SLOT_TYPES"))
-        raise RosTypeError(f"ROS 2 type {name}: package {package} has no message {type_name} "
-                           f"(it has: {', '.join(known) or 'none'})")
-    return cls
+    return load_message_class(name, 2, "SLOT_TYPES", "install its wheel")
 
 
 def node_class(name: str) -> Any:
