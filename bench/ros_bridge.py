@@ -5,9 +5,15 @@ the peer, an rclpy publisher to an rclpy subscriber (ROS -> ROS); then the same
 publisher to the ROS bridge (cast.bridges.ros, as `cast run` starts it: store
 latest into one entry), and a CAST watcher of that entry in a process of its
 own (ROS -> WM). Latency is from the frame's header stamp (taken just before
-publish) to the subscriber's callback or the watcher's; lost is what never
-arrived. Every ROS process runs with .venv-ros2's rclpy (`make ros-deps`),
-confined to loopback (configs/ros/fastdds-localhost.xml, a domain of this run).
+publish) to the subscriber's callback or the watcher's. At the end the
+bridge's own status entry gives what the bridge saw: stamp -> write
+acknowledged (p50/p99) and the frames it replaced by a newer one before
+writing them (``store: latest``: counted and shown by the bridge, not lost);
+lost is what never arrived and was not reported so. The floor is a bare grpcio
+unary echo of the same size spaced as the frames (bench/floors.py), the
+round trip the bridge's write cannot beat. Every ROS process runs with
+.venv-ros2's rclpy (`make ros-deps`), confined to loopback
+(configs/ros/fastdds-localhost.xml, a domain of this run).
 """
 
 from __future__ import annotations
@@ -16,12 +22,16 @@ import json
 import os
 import subprocess
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cast
 from bench.cast_cases import Server
+from bench.floors import EchoFloor
 from bench.harness import ROOT, summary_us
+from cast.v1 import bridge_pb2
 
 __all__ = ["HZ", "SIZES", "run"]
 
@@ -75,10 +85,35 @@ class _Node:
             self.proc.wait()
 
 
-def _figures(sent: dict[int, int], latency: dict[int, int]) -> dict[str, Any]:
+STATUS_PERIOD_S = 0.5  # the bridge's status entry, read once the last frame is in
+
+
+def _figures(sent: dict[int, int], latency: dict[int, int], replaced: int = 0) -> dict[str, Any]:
     measured = [latency[i] / 1e3 for i in sent if i in latency]
-    return {**summary_us(measured), "sent": len(sent), "received": len(measured),
-            "lost": sum(1 for i in sent if i not in latency)}
+    missing = sum(1 for i in sent if i not in latency)
+    return {**summary_us(measured), "sent": len(sent), "received": len(measured), "replaced": replaced,
+            "lost": max(0, missing - replaced)}
+
+
+def _bridge_status(server: Server) -> bridge_pb2.BridgeMapping:
+    """The bridge's one mapping as its latest status entry tells it (after a status period more)."""
+    reader = server.component("m10-status", "robot")
+    try:
+        deadline = time.monotonic() + 10
+        while True:
+            time.sleep(STATUS_PERIOD_S * 2)
+            status: bridge_pb2.BridgeStatus | None = None
+            try:
+                status = reader.get("bridge.status", bridge_pb2.BridgeStatus)
+            except cast.NotFoundError:
+                pass
+            if status is not None and status.mappings:
+                mapping: bridge_pb2.BridgeMapping = status.mappings[0]
+                return mapping
+            if time.monotonic() > deadline:
+                raise RuntimeError("the bridge wrote no status entry")
+    finally:
+        reader._cast_close()
 
 
 def _ros_to_ros(size: int, count: int, env: dict[str, str]) -> dict[str, Any]:
@@ -98,7 +133,7 @@ def _ros_to_ros(size: int, count: int, env: dict[str, str]) -> dict[str, Any]:
 
 def _ros_to_wm(size: int, count: int, env: dict[str, str], work: Path) -> dict[str, Any]:
     server = Server(work, ["robot"])
-    settings = {"version": 2, "node": "m10_bridge", "to_wm": [
+    settings = {"version": 2, "node": "m10_bridge", "status_period": STATUS_PERIOD_S, "to_wm": [
         {"topic": "/m10/camera", "type": "sensor_msgs/msg/Image", "id": "frame", "qos": {"depth": 10}}]}
     bridge = subprocess.Popen([str(ROS2_PYTHON), "-m", "cast.run", "cast.bridges.ros.ros2:Ros2Bridge"], cwd=ROOT,
                               env={**env, **server.env("bridge", "robot"), "CAST_ROS_BRIDGE": json.dumps(settings)},
@@ -110,7 +145,12 @@ def _ros_to_wm(size: int, count: int, env: dict[str, str], work: Path) -> dict[s
             raise RuntimeError("the WM watcher did not start")
         pub = _Node(["publish", "/m10/camera", str(size), str(HZ), str(count)], env)
         sent = pub.result("sent")
-        return _figures(sent, watcher.result("latency_ns"))
+        latency = watcher.result("latency_ns")
+        mapping = _bridge_status(server)
+        return {**_figures(sent, latency, replaced=mapping.dropped),
+                "bridge_received": mapping.received, "bridge_delivered": mapping.delivered,
+                "ack_p50_us": round(mapping.latency_p50_seconds * 1e6, 1),
+                "ack_p99_us": round(mapping.latency_p99_seconds * 1e6, 1)}
     finally:
         for node in (pub, watcher):
             if node is not None:
@@ -130,13 +170,18 @@ def run(work: Path, count: int, log: Callable[[str], None]) -> dict[str, Any]:
         return {"error": f"no ROS 2 interpreter at {ROS2_PYTHON}: `make ros-deps` installs it"}
     env = ros_env(work)
     out: dict[str, Any] = {"count": count, "hz": HZ}
+    echo = EchoFloor()
     try:
         for label, size in SIZES.items():
             log(f"M10 {label} at {HZ} Hz: rclpy -> rclpy ({count} frames)")
             peer = _ros_to_ros(size, count, env)
             log(f"M10 {label} at {HZ} Hz: rclpy -> ROS bridge -> WM watcher ({count} frames)")
             bridged = _ros_to_wm(size, count, env, work / f"m10-{size}")
-            out[label] = {"ros_ros": peer, "ros_wm": bridged}
-    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+            log(f"M10 {label} floor: bare gRPC unary echo at {HZ} Hz")
+            floor = echo.big_echo(max(20, count // 2), size, gap_s=1 / HZ)
+            out[label] = {"ros_ros": peer, "ros_wm": bridged, "floor": floor}
+    except (RuntimeError, OSError, subprocess.TimeoutExpired, cast.CastError) as exc:
         out["error"] = str(exc)
+    finally:
+        echo.close()
     return out

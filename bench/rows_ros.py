@@ -26,7 +26,8 @@ def m10_misses(m10: dict[str, Any]) -> list[str]:
             misses.append(f"{label}: p50 {bridged['p50_us']:.0f} µs is {bridged['p50_us'] / peer['p50_us']:.1f} x "
                           f"ROS -> ROS's {peer['p50_us']:.0f} µs (target <= {M10_RATIO} x)")
         if bridged["lost"]:
-            misses.append(f"{label}: {bridged['lost']} of {bridged['sent']} frames never reached the WM watcher")
+            misses.append(f"{label}: {bridged['lost']} of {bridged['sent']} frames never reached the WM watcher "
+                          "and were not reported replaced")
     return misses
 
 
@@ -37,12 +38,21 @@ def m10_row(m10: dict[str, Any]) -> dict[str, Any]:
         if label not in m10:
             continue
         peer, bridged = m10[label]["ros_ros"], m10[label]["ros_wm"]
+        floor = m10[label].get("floor", {}).get("p50_us")
         figures += [
             fig(f"{label}: ROS -> WM p50 (µs)", bridged["p50_us"], peer=peer["p50_us"]),
             fig(f"{label}: ROS -> WM p99 (µs)", bridged["p99_us"], peer=peer["p99_us"]),
             fig(f"{label}: p50 ratio to ROS -> ROS", round(bridged["p50_us"] / peer["p50_us"], 2)),
             fig(f"{label}: lost (ROS -> WM)", bridged["lost"], peer=peer["lost"]),
         ]
+        if "ack_p50_us" in bridged:
+            figures += [
+                fig(f"{label}: stamp -> the bridge's write acknowledged, p50 (µs)", bridged["ack_p50_us"],
+                    peer=peer["p50_us"]),
+                fig(f"{label}: bare gRPC unary echo at {HZ} Hz, p50 (µs)", floor),
+                fig(f"{label}: replaced by a newer frame before written (latest; reported by the bridge)",
+                    bridged["replaced"]),
+            ]
     misses = m10_misses(m10)
     row: dict[str, Any] = {
         "id": "M10",
