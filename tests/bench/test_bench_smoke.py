@@ -67,5 +67,7 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     m10 = {f["name"]: f for f in doc["results"]["M10"]["figures"]}
     for size in ("1 KiB", "1 MiB"):
         assert m10[f"{size}: ROS -> WM p50 (µs)"]["peer"] > 0, doc["results"]["M10"]
+        assert m10[f"{size}: bare gRPC unary echo at 30 Hz, p50 (µs)"]["value"] > 0, doc["results"]["M10"]
+        assert m10[f"{size}: stamp -> the bridge's write acknowledged, p50 (µs)"]["value"] > 0
     for plot in ("latency_cdf.png", "fanout.png", "wm_size.png", "many_components.png"):
         assert (tmp_path / plot).read_bytes()[:4] == b"\x89PNG"
