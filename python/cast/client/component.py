@@ -114,7 +114,7 @@ class Component:
         self._callbacks: dict[int, tuple[Callable[[WorkingMemoryChange], None], WatchHandle, int, bool]] = {}
         self._latest = LatestSlots()
         self._watch_ids = itertools.count(1)
-        self._registered_types: set[str] = set()
+        self._registered_types: set[tuple[str, str]] = set()  # (type, SA) the SA's server was told of
         self._schema_lock = threading.Lock()
         self._stopping = threading.Event()
         # In process, events arrive on the writer's thread, which must never block.
@@ -174,23 +174,29 @@ class Component:
     def _sa(self, subarchitecture: str | None) -> str:
         return subarchitecture or self._identity.subarchitecture
 
-    def _serialise(self, value: Message) -> tuple[str, bytes]:
+    def _serialise(self, value: Message, sa: str) -> tuple[str, bytes]:
+        """The value's type name and bytes; its type told to the server of ``sa`` on the first write there.
+
+        Only the server that will hold the value is told: a server that hangs or is away cannot hold up
+        writes to the others.
+        """
         if not isinstance(value, Message):
             raise InvalidArgumentError(
                 f"entry values are protobuf messages, got {type(value).__name__}: define a message type for it"
             )
         name = value.DESCRIPTOR.full_name
-        if name not in self._registered_types:
+        if (name, sa) not in self._registered_types:
             with self._schema_lock:
-                if name not in self._registered_types:
-                    self._transport.register_schemas(files_of(value.DESCRIPTOR))
-                    self._registered_types.add(name)
+                if (name, sa) not in self._registered_types:
+                    self._transport.register_schemas(files_of(value.DESCRIPTOR), sa)
+                    self._registered_types.add((name, sa))
         return name, value.SerializeToString()
 
     def add(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> WriteResult:
         """Create an entry; AlreadyExistsError if the id is taken."""
-        type_name_, data = self._serialise(value)
-        return self._transport.add(self._sa(subarchitecture), entry_id, type_name_, data)
+        sa = self._sa(subarchitecture)
+        type_name_, data = self._serialise(value, sa)
+        return self._transport.add(sa, entry_id, type_name_, data)
 
     def overwrite(
         self,
@@ -201,8 +207,9 @@ class Component:
         expected_version: int | None = None,
     ) -> WriteResult:
         """Replace an entry's value; ConsistencyError if ``expected_version`` is given and differs."""
-        type_name_, data = self._serialise(value)
-        return self._transport.overwrite(self._sa(subarchitecture), entry_id, type_name_, data, expected_version)
+        sa = self._sa(subarchitecture)
+        type_name_, data = self._serialise(value, sa)
+        return self._transport.overwrite(sa, entry_id, type_name_, data, expected_version)
 
     def add_async(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> Future[WriteResult]:
         """Create an entry without waiting for the answer: a future of its result.
@@ -212,8 +219,9 @@ class Component:
         ...) arrive on the future. Over gRPC the future completes on a client
         thread: keep its callbacks short.
         """
-        type_name_, data = self._serialise(value)
-        return self._transport.add_async(self._sa(subarchitecture), entry_id, type_name_, data)
+        sa = self._sa(subarchitecture)
+        type_name_, data = self._serialise(value, sa)
+        return self._transport.add_async(sa, entry_id, type_name_, data)
 
     def overwrite_async(
         self,
@@ -224,10 +232,9 @@ class Component:
         expected_version: int | None = None,
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting for the answer: a future of its result (as :meth:`add_async`)."""
-        type_name_, data = self._serialise(value)
-        return self._transport.overwrite_async(
-            self._sa(subarchitecture), entry_id, type_name_, data, expected_version
-        )
+        sa = self._sa(subarchitecture)
+        type_name_, data = self._serialise(value, sa)
+        return self._transport.overwrite_async(sa, entry_id, type_name_, data, expected_version)
 
     def delete_entry(
         self, entry_id: str, *, subarchitecture: str | None = None, expected_version: int | None = None
@@ -258,7 +265,7 @@ class Component:
             else:
                 if value is None:
                     raise InvalidArgumentError(f"batch {kind} of '{entry_id}' needs a value")
-                type_name_, data = self._serialise(value)
+                type_name_, data = self._serialise(value, sa)
                 ops.append(BatchOp(op, sa, entry_id, type_name_, data))
         return self._transport.batch(ops)
 
@@ -449,7 +456,7 @@ class ManagedComponent(Component):
 
     def propose_task(self, name: str, data: Message | None = None, *, priority: int = 0) -> Task:
         """Propose a task to the own SA's task manager; the decision arrives in a hook."""
-        type_name_, payload = ("", b"") if data is None else self._serialise(data)
+        type_name_, payload = ("", b"") if data is None else self._serialise(data, self._identity.subarchitecture)
         return Task(self._transport.propose(name, type_name_, payload, priority))
 
     def retract_task(self, task: Task | str) -> None:

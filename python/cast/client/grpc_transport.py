@@ -398,10 +398,10 @@ class GrpcTransport:
 
     # --------------------------------------------------------------- schemas
 
-    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
-        """Register entry types with every server of the system."""
+    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto], sa: str | None = None) -> None:
+        """Register entry types with the server of ``sa`` (None: with every server of the system)."""
         req = dir_pb2.RegisterSchemasRequest(files=descriptor_pb2.FileDescriptorSet(file=files))
-        for server in list(self._servers.values()):
+        for server in [self._server(sa)] if sa is not None else list(self._servers.values()):
             self._call(server.directory.RegisterSchemas, req)
 
     # -------------------------------------------------------------- watching

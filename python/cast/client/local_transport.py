@@ -121,8 +121,8 @@ class LocalTransport:
         """Release one level of a lock."""
         return run_sync(self._system, self._access.unlock(sa, entry_id))
 
-    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
-        """Register entry types with the in-process server."""
+    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto], sa: str | None = None) -> None:
+        """Register entry types with the in-process server (the one server of every SA)."""
         run_sync(self._system, self._access.register_schemas(files))
 
     def set_event_sink(

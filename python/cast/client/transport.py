@@ -77,8 +77,8 @@ class Transport(Protocol):
     def unlock(self, sa: str, entry_id: str) -> int:
         """Release one level of a lock; return the remaining depth."""
 
-    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto]) -> None:
-        """Register entry type descriptors with every server."""
+    def register_schemas(self, files: Sequence[descriptor_pb2.FileDescriptorProto], sa: str | None = None) -> None:
+        """Register entry type descriptors with the server of ``sa`` (None: with every server)."""
 
     def watch(
         self,

@@ -21,7 +21,7 @@ public final class Batch {
 
   /** Add an entry. */
   public Batch add(String id, Message value) {
-    writes.add(new Transport.Write(Operation.ADD, id, component.serialise(value), null));
+    writes.add(new Transport.Write(Operation.ADD, id, component.serialise(value, subarchitecture), null));
     return this;
   }
 
@@ -32,7 +32,7 @@ public final class Batch {
 
   /** Overwrite an entry if its version is {@code expectedVersion} (null: any version). */
   public Batch overwrite(String id, Message value, Long expectedVersion) {
-    writes.add(new Transport.Write(Operation.OVERWRITE, id, component.serialise(value), expectedVersion));
+    writes.add(new Transport.Write(Operation.OVERWRITE, id, component.serialise(value, subarchitecture), expectedVersion));
     return this;
   }
 

@@ -172,9 +172,12 @@ public abstract class Component implements AutoCloseable {
     return subarchitecture == null || subarchitecture.isEmpty() ? subarchitecture() : subarchitecture;
   }
 
-  /** The value as it goes on the wire, after registering its type's schema once. */
-  Any serialise(Message value) {
-    return schemas.pack(value, t());
+  /**
+   * The value as a write into {@code subarchitecture} (null: the own SA) sends it, after
+   * registering its type's schema with that SA's server once.
+   */
+  Any serialise(Message value, String subarchitecture) {
+    return schemas.pack(value, sa(subarchitecture), t());
   }
 
   /** Create an entry in the own SA; AlreadyExistsError if the id is taken. */
@@ -184,7 +187,7 @@ public abstract class Component implements AutoCloseable {
 
   /** Create an entry in {@code subarchitecture} (privileged components only, for other SAs). */
   public WriteResult add(String id, Message value, String subarchitecture) {
-    Any any = serialise(value);
+    Any any = serialise(value, subarchitecture);
     return t().add(sa(subarchitecture), id, any);
   }
 
@@ -200,7 +203,7 @@ public abstract class Component implements AutoCloseable {
 
   /** Create an entry in {@code subarchitecture} without waiting: the future of its result. */
   public CompletableFuture<WriteResult> addAsync(String id, Message value, String subarchitecture) {
-    Any any = serialise(value);
+    Any any = serialise(value, subarchitecture);
     return t().addAsync(sa(subarchitecture), id, any);
   }
 
@@ -221,7 +224,7 @@ public abstract class Component implements AutoCloseable {
 
   /** Replace an entry's value in {@code subarchitecture}, checking its version unless it is null. */
   public WriteResult overwrite(String id, Message value, String subarchitecture, Long expectedVersion) {
-    Any any = serialise(value);
+    Any any = serialise(value, subarchitecture);
     return t().overwrite(sa(subarchitecture), id, any, expectedVersion);
   }
 
@@ -250,7 +253,7 @@ public abstract class Component implements AutoCloseable {
    */
   public CompletableFuture<WriteResult> overwriteAsync(
       String id, Message value, String subarchitecture, Long expectedVersion) {
-    Any any = serialise(value);
+    Any any = serialise(value, subarchitecture);
     return t().overwriteAsync(sa(subarchitecture), id, any, expectedVersion);
   }
 

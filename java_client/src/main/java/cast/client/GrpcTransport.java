@@ -348,11 +348,10 @@ final class GrpcTransport implements Transport {
   }
 
   @Override
-  public void registerSchemas(FileDescriptorSet files) {
+  public void registerSchemas(FileDescriptorSet files, String sa) {
     var req = RegisterSchemasRequest.newBuilder().setFiles(files).build();
-    for (GrpcServer server : allServers()) {
-      call(server, server.dir, s -> s.registerSchemas(req));
-    }
+    GrpcServer server = server(sa);
+    call(server, server.dir, s -> s.registerSchemas(req));
   }
 
   /**

@@ -46,7 +46,7 @@ public abstract class ManagedComponent extends Component {
     if (name == null || name.isEmpty()) {
       throw new InvalidArgumentError("a task needs a name");
     }
-    return transport().propose(name, data == null ? null : serialise(data), priority);
+    return transport().propose(name, data == null ? null : serialise(data, null), priority);
   }
 
   /** Withdraw a waiting or adopted task. */

@@ -16,23 +16,30 @@ import java.util.concurrent.ConcurrentHashMap;
 final class Schemas {
   private Schemas() {}
 
-  /** The types one connection registered: each is registered once, before its first write. */
+  /**
+   * The types one connection registered, by SA: each is registered with the server of an SA once,
+   * before its first write there. Only the server that will hold the value is told, so a server
+   * that hangs or is away cannot hold up writes to the others.
+   */
   static final class Registered {
     private final Set<String> types = ConcurrentHashMap.newKeySet();
     private final Object lock = new Object();
 
-    /** {@code value} as a write sends it, after registering its type through {@code transport} if not yet done. */
-    Any pack(Message value, Transport transport) {
+    /**
+     * {@code value} as a write into {@code sa} sends it, after registering its type with that SA's
+     * server through {@code transport} if not yet done.
+     */
+    Any pack(Message value, String sa, Transport transport) {
       if (value == null) {
         throw new InvalidArgumentError("entry values are protobuf messages, got null");
       }
-      String name = value.getDescriptorForType().getFullName();
-      if (!types.contains(name)) {
+      String key = value.getDescriptorForType().getFullName() + "\u0000" + sa;
+      if (!types.contains(key)) {
         synchronized (lock) {
-          if (!types.contains(name)) {
+          if (!types.contains(key)) {
             // Tools render the type as JSON, and the server checks the bytes, from now on.
-            transport.registerSchemas(filesOf(value.getDescriptorForType()));
-            types.add(name);
+            transport.registerSchemas(filesOf(value.getDescriptorForType()), sa);
+            types.add(key);
           }
         }
       }

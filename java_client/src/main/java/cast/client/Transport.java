@@ -194,8 +194,8 @@ interface Transport extends AutoCloseable {
   /** Apply writes to one SA in order, all or nothing; one result per write. */
   List<WriteResult> batch(String sa, List<Write> writes);
 
-  /** Register entry types (their files and every import) with every server. */
-  void registerSchemas(FileDescriptorSet files);
+  /** Register entry types (their files and every import) with the server of {@code sa}. */
+  void registerSchemas(FileDescriptorSet files, String sa);
 
   // ------------------------------------------------------------------ reads
 

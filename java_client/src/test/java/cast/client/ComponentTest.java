@@ -133,6 +133,18 @@ class ComponentTest extends WithFakeMemory {
   }
 
   @Test
+  void aTypeIsRegisteredWithTheServerOfEachSaItIsWrittenToAndNoOther() {
+    Plain c = new Plain();
+    c.bind(new FakeTransport(memory, new Identity("p", "vision", true)), who -> {});
+    c.add("a", counter("p", 1));
+    c.add("a", counter("p", 1), "motor");
+    c.overwrite("a", counter("p", 2), "motor");
+    c.batch("motor").add("b", counter("p", 3)).apply();
+    c.add("p", Pose.getDefaultInstance(), "motor");
+    assertEquals(List.of("vision", "motor", "motor"), memory.schemaSas);
+  }
+
+  @Test
   void oneComponentIsSafeToUseFromManyThreads() throws Exception {
     Plain c = connect(new Plain(), "c1", "vision");
     int threads = 8;

@@ -40,6 +40,7 @@ final class FakeTransport implements Transport {
     final Map<String, String> lockHolders = new ConcurrentHashMap<>(); // "sa/id" -> component id
     final List<String> calls = new CopyOnWriteArrayList<>(); // "Method sa/id ..." of every call
     final List<FileDescriptorSet> schemaRequests = new CopyOnWriteArrayList<>();
+    final List<String> schemaSas = new CopyOnWriteArrayList<>(); // the SA of each schema request
     final List<FakeTransport> transports = new CopyOnWriteArrayList<>();
     final AtomicInteger tasks = new AtomicInteger();
 
@@ -283,8 +284,9 @@ final class FakeTransport implements Transport {
   }
 
   @Override
-  public void registerSchemas(FileDescriptorSet files) {
+  public void registerSchemas(FileDescriptorSet files, String sa) {
     memory.schemaRequests.add(files);
+    memory.schemaSas.add(sa);
   }
 
   // ------------------------------------------------------------------ reads
