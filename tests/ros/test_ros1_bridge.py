@@ -72,7 +72,7 @@ def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_a
     with roscore(tmp_path / "ros-home") as core:
         bridge = start_bridge(ros_server, "bridge", "language", SETTINGS, core.env(), tmp_path / "bridge.log")
         cpp = subprocess.Popen([str(cpp_exe)], env=ros_server.env("cpp_watcher", "vision", args={
-            "type": "ros1.sensor_msgs.msg.Image", "sa": "vision", "count": 3}), stdout=subprocess.PIPE,
+            "watch": {"ros1.sensor_msgs.msg.Image": {"sa": "vision", "count": 3}}}), stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True)
         procs: list[subprocess.Popen[str]] = [cpp]
         watcher = ros_server.connect("watcher", "language")
@@ -87,9 +87,9 @@ def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_a
             for got in frames:
                 seqs.append(got.pop("seq"))
                 assert got.pop("stamp_ns") > 0
-                assert got == {"id": "camera", "frame_id": "camera_optical", "height": HEIGHT, "width": WIDTH,
-                               "encoding": "bgr8", "is_bigendian": 0, "step": WIDTH * 3, "size": WIDTH * HEIGHT * 3,
-                               "fnv": fnv1a(expected)}
+                assert got == {"type": "ros1.sensor_msgs.msg.Image", "id": "camera", "frame_id": "camera_optical",
+                               "height": HEIGHT, "width": WIDTH, "encoding": "bgr8", "is_bigendian": 0,
+                               "step": WIDTH * 3, "size": WIDTH * HEIGHT * 3, "fnv": fnv1a(expected)}
             assert seqs == sorted(seqs) and len(set(seqs)) == 3  # three frames in order, as the driver numbered them
             assert watcher.get("camera", Image, subarchitecture="vision").data == expected
 
