@@ -9,11 +9,13 @@ cast-client `make java` installed. A missing build or tool fails the test.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -105,3 +107,19 @@ def finish_java(proc: subprocess.Popen[str], project: Path) -> JavaBuild:
         raise AssertionError(f"mvn package did not end in 600 s:\n{out}") from None
     assert proc.returncode == 0, f"mvn package (run `make java` first: it installs cast-client):\n{out}"
     return JavaBuild(project / "target" / "classes", (project / "target" / "classpath.txt").read_text().strip())
+
+
+def wait_ready(proc: subprocess.Popen[str]) -> None:
+    """Read a component's output up to its ``{"ready": true}`` line; the runner's log lines may come first."""
+    assert proc.stdout is not None
+    seen = []
+    for line in proc.stdout:
+        if line.startswith("{") and json.loads(line) == {"ready": True}:
+            return
+        seen.append(line)
+    raise AssertionError("the component ended before it was ready:\n" + "".join(seen))
+
+
+def printed(out: str) -> list[dict[str, Any]]:
+    """The JSON lines of a component's output, without the runner's log lines."""
+    return [json.loads(line) for line in out.splitlines() if line.startswith("{")]

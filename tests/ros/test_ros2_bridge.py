@@ -23,7 +23,7 @@ import pytest
 import cast
 from tests.conftest import ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import cast_test_msgs, generate_types, start_bridge
-from tests.ros.builds import JavaBuild
+from tests.ros.builds import JavaBuild, printed, wait_ready
 from tests.ros.ros_env import helper, ros2_python
 
 BRIDGE_SETTINGS: dict[str, Any] = {
@@ -230,8 +230,7 @@ def test_cpp_and_java_components_decode_every_field_of_images_poses_and_own_mess
     procs: list[subprocess.Popen[str]] = [cpp, jvm]
     try:
         for p in (cpp, jvm):
-            assert p.stdout is not None
-            assert json.loads(p.stdout.readline()) == {"ready": True}
+            wait_ready(p)
         watcher = ros_server.connect("watcher", "motor")
         wait_for(lambda: status_of(watcher, "bridge"), 60, "the bridge's first status entry")
         publishers = {kind: helper(python, "ros2_node.py", "publish", topic, kind, "30", str(counts[kind] * n),
@@ -246,10 +245,8 @@ def test_cpp_and_java_components_decode_every_field_of_images_poses_and_own_mess
             out, _ = p.communicate(timeout=60)
             assert p.returncode == 0, out
             got: dict[str, list[dict[str, Any]]] = {}
-            for line in out.strip().splitlines():
-                if line.startswith("{"):
-                    printed = json.loads(line)
-                    got.setdefault(printed.pop("type"), []).append(printed)
+            for line in printed(out):
+                got.setdefault(line.pop("type"), []).append(line)
             assert {k: len(v) for k, v in got.items()} == {
                 "ros2.sensor_msgs.msg.Image": 1, "ros2.geometry_msgs.msg.PoseStamped": 5,
                 "ros2.cast_test_msgs.msg.Reading": 3}, out
