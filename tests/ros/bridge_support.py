@@ -20,6 +20,24 @@ ROS2_MSGS = ROOT / "build" / "ros2-msgs"
 
 BRIDGE_CLASS = {2: "cast.bridges.ros.ros2:Ros2Bridge", 1: "cast.bridges.ros.ros1:Ros1Bridge"}
 
+READING_MSG = """\
+# A reading of a team's own sensor: a message package of the test's own, built with rosidl's generators.
+uint8 LEVEL_LOW=0
+uint8 LEVEL_HIGH=2
+string UNIT="bar"
+std_msgs/Header header
+uint8 level
+float64 value
+int16[3] triple
+string<=16 label
+geometry_msgs/Point[<=4] points
+float32[<=3] gains
+uint8[] blob
+uint8[4] code
+int64 count
+builtin_interfaces/Duration window
+"""
+
 
 def start_bridge(server: ServerHandle, component_id: str, sa: str, settings: dict[str, Any], env: dict[str, str],
                  log: Path, privileged: bool = True, overlay: dict[str, str] | None = None) -> subprocess.Popen[str]:
@@ -59,6 +77,15 @@ def generate_types(out: Path, ros: int, *types: str, overlay: dict[str, str] | N
     subprocess.run([sys.executable, "-m", "grpc_tools.protoc", f"-I{protos}", f"--python_out={python_out}", *files],
                    check=True)
     return python_out
+
+
+def cast_test_msgs() -> dict[str, str]:
+    """The test's own message package (cast_test_msgs/msg/Reading): the overlay that puts it on the ROS path.
+
+    One definition for every test that uses it, so that all share one build (:func:`ros2_message_package`
+    keeps only the newest content of a package).
+    """
+    return ros2_message_package("cast_test_msgs", {"Reading": READING_MSG})
 
 
 def ros2_message_package(name: str, messages: dict[str, str]) -> dict[str, str]:

@@ -9,10 +9,13 @@ cast-client `make java` installed. A missing build or tool fails the test.
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -22,8 +25,11 @@ from tests.ros.ros_env import ros1_python, ros2_python
 
 CPP_BUILD = ROOT / "build" / "cpp"
 # What each component uses, no more: protoc's C++ output is slow to compile on two cores.
-CPP_TYPES = {2: ("sensor_msgs/msg/Image",), 1: ("sensor_msgs/Image",)}
-JAVA_TYPES = {2: ("sensor_msgs/msg/Image", "geometry_msgs/msg/Twist"), 1: ()}
+# cast_test_msgs is the test's own package (bridge_support.cast_test_msgs), on the ROS path when generated.
+CPP_TYPES = {2: ("sensor_msgs/msg/Image", "geometry_msgs/msg/PoseStamped", "cast_test_msgs/msg/Reading"),
+             1: ("sensor_msgs/Image",)}
+JAVA_TYPES = {2: ("sensor_msgs/msg/Image", "geometry_msgs/msg/PoseStamped", "cast_test_msgs/msg/Reading",
+                  "geometry_msgs/msg/Twist"), 1: ()}
 
 
 def _tool(name: str, hint: str) -> str:
@@ -33,14 +39,20 @@ def _tool(name: str, hint: str) -> str:
     return found
 
 
-def ros_protos(out: Path, types: dict[int, tuple[str, ...]]) -> Path:
-    """The .proto files of ``types`` (by ROS generation), written by `cast ros-types` into one directory."""
+def ros_protos(out: Path, types: dict[int, tuple[str, ...]], overlay: dict[str, str] | None = None) -> Path:
+    """The .proto files of ``types`` (by ROS generation), written by `cast ros-types` into one directory.
+
+    ``overlay``: what puts a team's own ROS 2 message packages on the ROS path (as sourcing its setup.bash would).
+    """
     for ros, names in types.items():
         if not names:
             continue
         python = ros2_python() if ros == 2 else ros1_python()
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+        for key, value in (overlay or {}).items() if ros == 2 else ():
+            env[key] = os.pathsep.join(p for p in (value, env.get(key, "")) if p)
         done = run_to_end([str(python), "-m", "cast.cli", "ros-types", "--ros", str(ros), "-q", *names,
-                           "-o", str(out)], "cast ros-types", 60)
+                           "-o", str(out)], "cast ros-types", 60, env=env)
         assert done.returncode == 0, done.stderr
     return out
 
@@ -95,3 +107,19 @@ def finish_java(proc: subprocess.Popen[str], project: Path) -> JavaBuild:
         raise AssertionError(f"mvn package did not end in 600 s:\n{out}") from None
     assert proc.returncode == 0, f"mvn package (run `make java` first: it installs cast-client):\n{out}"
     return JavaBuild(project / "target" / "classes", (project / "target" / "classpath.txt").read_text().strip())
+
+
+def wait_ready(proc: subprocess.Popen[str]) -> None:
+    """Read a component's output up to its ``{"ready": true}`` line; the runner's log lines may come first."""
+    assert proc.stdout is not None
+    seen = []
+    for line in proc.stdout:
+        if line.startswith("{") and json.loads(line) == {"ready": True}:
+            return
+        seen.append(line)
+    raise AssertionError("the component ended before it was ready:\n" + "".join(seen))
+
+
+def printed(out: str) -> list[dict[str, Any]]:
+    """The JSON lines of a component's output, without the runner's log lines."""
+    return [json.loads(line) for line in out.splitlines() if line.startswith("{")]

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import ServerHandle, start_server
-from tests.ros.bridge_support import generate_types
+from tests.ros.bridge_support import cast_test_msgs, generate_types
 from tests.ros.builds import CPP_TYPES, JAVA_TYPES, JavaBuild, build_cpp, finish_java, ros_protos, start_java
 from tests.ros.ros_env import ros2_env
 
@@ -51,9 +51,10 @@ def ros2(tmp_path: Path) -> dict[str, str]:
 def ros_builds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, JavaBuild]:
     """The C++ and Java components of tests/ros built on `cast ros-types` output (once per session)."""
     work = tmp_path_factory.mktemp("ros-builds")
-    java = start_java(ros_protos(work / "java-protos", JAVA_TYPES), work)  # on the other core, meanwhile
+    overlay = cast_test_msgs()  # the test's own message package, decoded by both (built once, cached)
+    java = start_java(ros_protos(work / "java-protos", JAVA_TYPES, overlay), work)  # on the other core, meanwhile
     try:
-        cpp = build_cpp(ros_protos(work / "cpp-protos", CPP_TYPES), work / "cpp")
+        cpp = build_cpp(ros_protos(work / "cpp-protos", CPP_TYPES, overlay), work / "cpp")
     finally:
         built = finish_java(*java)
     return cpp, built

@@ -8,7 +8,6 @@ component wrote.
 
 from __future__ import annotations
 
-import json
 import struct
 import subprocess
 import sys
@@ -20,7 +19,7 @@ import pytest
 
 from tests.conftest import ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import start_bridge
-from tests.ros.builds import JavaBuild
+from tests.ros.builds import JavaBuild, printed, wait_ready
 from tests.ros.ros_env import IMAGE_PUBLISHER_PREFIX, RosCore, helper, ros1_python, roscore
 from tests.ros.test_ros2_bridge import fnv1a, status_of
 
@@ -72,24 +71,24 @@ def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_a
     with roscore(tmp_path / "ros-home") as core:
         bridge = start_bridge(ros_server, "bridge", "language", SETTINGS, core.env(), tmp_path / "bridge.log")
         cpp = subprocess.Popen([str(cpp_exe)], env=ros_server.env("cpp_watcher", "vision", args={
-            "type": "ros1.sensor_msgs.msg.Image", "sa": "vision", "count": 3}), stdout=subprocess.PIPE,
+            "watch": {"ros1.sensor_msgs.msg.Image": {"sa": "vision", "count": 3}}}), stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True)
         procs: list[subprocess.Popen[str]] = [cpp]
         watcher = ros_server.connect("watcher", "language")
         try:
-            assert cpp.stdout is not None and json.loads(cpp.stdout.readline()) == {"ready": True}
+            wait_ready(cpp)
             wait_for(lambda: status_of_sa(watcher, "language"), 60, "the bridge's first status entry")
             procs.append(image_publisher(core, tmp_path / "table.png", tmp_path / "camera.log"))
             out, _ = cpp.communicate(timeout=60)
             assert cpp.returncode == 0, out
-            frames = [json.loads(line) for line in out.strip().splitlines()]
+            frames = printed(out)
             seqs = []
             for got in frames:
                 seqs.append(got.pop("seq"))
                 assert got.pop("stamp_ns") > 0
-                assert got == {"id": "camera", "frame_id": "camera_optical", "height": HEIGHT, "width": WIDTH,
-                               "encoding": "bgr8", "is_bigendian": 0, "step": WIDTH * 3, "size": WIDTH * HEIGHT * 3,
-                               "fnv": fnv1a(expected)}
+                assert got == {"type": "ros1.sensor_msgs.msg.Image", "id": "camera", "frame_id": "camera_optical",
+                               "height": HEIGHT, "width": WIDTH, "encoding": "bgr8", "is_bigendian": 0,
+                               "step": WIDTH * 3, "size": WIDTH * HEIGHT * 3, "fnv": fnv1a(expected)}
             assert seqs == sorted(seqs) and len(set(seqs)) == 3  # three frames in order, as the driver numbered them
             assert watcher.get("camera", Image, subarchitecture="vision").data == expected
 

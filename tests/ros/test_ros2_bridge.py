@@ -22,8 +22,8 @@ import pytest
 
 import cast
 from tests.conftest import ServerHandle, stop_process, wait_for
-from tests.ros.bridge_support import generate_types, ros2_message_package, start_bridge
-from tests.ros.builds import JavaBuild
+from tests.ros.bridge_support import cast_test_msgs, generate_types, start_bridge
+from tests.ros.builds import JavaBuild, printed, wait_ready
 from tests.ros.ros_env import helper, ros2_python
 
 BRIDGE_SETTINGS: dict[str, Any] = {
@@ -188,40 +188,85 @@ def fnv1a(data: bytes) -> str:
     return f"{h:x}"
 
 
+def sent_pose(i: int, stamp_ns: int) -> dict[str, Any]:
+    """Pose i as tests/ros/helpers/ros2_node.py publishes it, rosidl's field names (as the watchers print it)."""
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return {"header": {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": f"frame-{i}"},
+            "pose": {"position": {"x": float(i), "y": -2.5, "z": 1e-300},
+                     "orientation": {"x": 0.0, "y": 0.0, "z": 0.6, "w": 0.8}}}
+
+
+def sent_reading(i: int, stamp_ns: int) -> dict[str, Any]:
+    """cast_test_msgs/msg/Reading i as tests/ros/helpers/ros2_node.py publishes it (bytes as hex)."""
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    return {"header": {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": f"frame-{i}"}, "level": 2,
+            "value": -0.125, "triple": [-32768, 0, 32767], "label": f"tank {i}: ünïcødé",
+            "points": [{"x": 1.0, "y": 2.0, "z": 3.0}, {"x": -1.0, "y": float("inf"), "z": -0.0}],
+            "gains": [0.5, -1.5], "blob": (bytes([i]) + bytes(range(256))).hex(), "code": "ca5700ff",
+            "count": -(2**63), "window": {"sec": -2, "nanosec": 500}}
+
+
 # The first test to use them builds the C++ and Java components (a few minutes on a busy machine).
 @pytest.mark.timeout(600)
-def test_cpp_and_java_components_decode_bridged_images_and_a_java_command_reaches_rclpy(
+def test_cpp_and_java_components_decode_every_field_of_images_poses_and_own_messages_and_a_java_command_reaches_rclpy(
         ros_server: ServerHandle, ros2: dict[str, str], ros_builds: tuple[Path, JavaBuild], tmp_path: Path) -> None:
     cpp_exe, java = ros_builds
     python = ros2_python()
-    settings = {"version": 2, "status_period": 0.5, "to_wm": [BRIDGE_SETTINGS["to_wm"][0]],
-                "to_ros": BRIDGE_SETTINGS["to_ros"]}
-    bridge = start_bridge(ros_server, "bridge", "motor", settings, ros2, tmp_path / "bridge.log")
-    image_args = {"type": "ros2.sensor_msgs.msg.Image", "sa": "vision", "count": 1}
-    cpp = subprocess.Popen([str(cpp_exe)], env=ros_server.env("cpp_watcher", "vision", args=image_args),
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    jvm = subprocess.Popen(java.command(), env=ros_server.env("java_watcher", "vision", args={**image_args,
-                           "mode": "images"}), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    overlay = cast_test_msgs()
+    node_env = {**ros2, **{k: os.pathsep.join(p for p in (v, ros2.get(k, "")) if p) for k, v in overlay.items()}}
+    settings = {"version": 2, "status_period": 0.5, "to_wm": [
+        *BRIDGE_SETTINGS["to_wm"],
+        {"topic": "/tank/reading", "type": "cast_test_msgs/msg/Reading", "subarchitecture": "language",
+         "store": "each", "id": "tank"}], "to_ros": BRIDGE_SETTINGS["to_ros"]}
+    bridge = start_bridge(ros_server, "bridge", "motor", settings, ros2, tmp_path / "bridge.log", overlay=overlay)
+    counts = {"image": 1, "pose": 5, "reading": 3}
+    watch = {"watch": {"ros2.sensor_msgs.msg.Image": {"sa": "vision", "count": counts["image"]},
+                       "ros2.geometry_msgs.msg.PoseStamped": {"sa": "motor", "count": counts["pose"]},
+                       "ros2.cast_test_msgs.msg.Reading": {"sa": "language", "count": counts["reading"]}}}
+    cpp = subprocess.Popen([str(cpp_exe)], env=ros_server.env("cpp_watcher", "vision", args=watch),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, encoding="utf-8")
+    jvm = subprocess.Popen(java.command(), env=ros_server.env("java_watcher", "vision", args=watch),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, encoding="utf-8")
     procs: list[subprocess.Popen[str]] = [cpp, jvm]
     try:
         for p in (cpp, jvm):
-            assert p.stdout is not None
-            assert json.loads(p.stdout.readline()) == {"ready": True}
+            wait_ready(p)
         watcher = ros_server.connect("watcher", "motor")
         wait_for(lambda: status_of(watcher, "bridge"), 60, "the bridge's first status entry")
-        publisher = helper(python, "ros2_node.py", "publish", "/camera/image_raw", "image", "30", "10", env=ros2,
-                           log=tmp_path / "images.log")
-        procs.append(publisher)
-        assert publisher.wait(60) == 0, (tmp_path / "images.log").read_text()
-        sent = published(tmp_path / "images.log")
+        publishers = {kind: helper(python, "ros2_node.py", "publish", topic, kind, "30", str(counts[kind] * n),
+                                   env=node_env, log=tmp_path / f"{kind}.log")
+                      for kind, topic, n in (("image", "/camera/image_raw", 10), ("pose", "/robot/pose", 1),
+                                             ("reading", "/tank/reading", 1))}
+        procs.extend(publishers.values())
+        for kind, p in publishers.items():
+            assert p.wait(60) == 0, (tmp_path / f"{kind}.log").read_text()
+        sent = {kind: published(tmp_path / f"{kind}.log") for kind in publishers}
         for p in (cpp, jvm):
             out, _ = p.communicate(timeout=60)
             assert p.returncode == 0, out
-            got = json.loads(out.strip().splitlines()[-1])
-            i = int(got["frame_id"].removeprefix("frame-"))
-            assert got == {"id": "camera", "frame_id": f"frame-{i}", "stamp_ns": sent[i], "height": 480,
-                           "width": 640, "encoding": "rgb8", "is_bigendian": 0, "step": 1920, "size": 921600,
-                           "fnv": fnv1a(bytes((x + i) % 256 for x in range(640 * 3)) * 480)}
+            got: dict[str, list[dict[str, Any]]] = {}
+            for line in printed(out):
+                got.setdefault(line.pop("type"), []).append(line)
+            assert {k: len(v) for k, v in got.items()} == {
+                "ros2.sensor_msgs.msg.Image": 1, "ros2.geometry_msgs.msg.PoseStamped": 5,
+                "ros2.cast_test_msgs.msg.Reading": 3}, out
+
+            # The latest image (store: latest): every field, the pixels by their hash.
+            [image] = got["ros2.sensor_msgs.msg.Image"]
+            i = int(image["frame_id"].removeprefix("frame-"))
+            assert image == {"id": "camera", "frame_id": f"frame-{i}", "stamp_ns": sent["image"][i], "height": 480,
+                             "width": 640, "encoding": "rgb8", "is_bigendian": 0, "step": 1920, "size": 921600,
+                             "fnv": fnv1a(bytes((x + i) % 256 for x in range(640 * 3)) * 480)}
+
+            # Poses and readings (store: each): one entry per message, every field as rclpy sent it.
+            for type_name, kind, prefix, expected in (
+                    ("ros2.geometry_msgs.msg.PoseStamped", "pose", "pose/", sent_pose),
+                    ("ros2.cast_test_msgs.msg.Reading", "reading", "tank/", sent_reading)):
+                entries = sorted(got[type_name], key=lambda e: e["header"]["frame_id"])
+                assert all(e.pop("id").startswith(prefix) for e in entries), entries
+                assert entries == [expected(i, sent[kind][i]) for i in range(counts[kind])]
+            for r in got["ros2.cast_test_msgs.msg.Reading"]:
+                assert math.copysign(1.0, r["points"][1]["z"]) == -1.0  # -0.0 kept
 
         # A Java component writes a command; an rclpy node receives it as geometry_msgs/msg/Twist.
         echo = helper(python, "ros2_node.py", "echo", "/cmd_vel", "geometry_msgs/msg/Twist", "1", env=ros2,
@@ -233,8 +278,9 @@ def test_cpp_and_java_components_decode_bridged_images_and_a_java_command_reache
         procs.append(commander)
         assert echo.wait(60) == 0, (tmp_path / "echo.log").read_text()
         lines = (tmp_path / "echo.log").read_text().splitlines()
-        got = json.loads(lines[lines.index("subscribed") + 1])
-        assert got == {"linear": {"x": 0.75, "y": -2.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -1.5e-7}}
+        got_twist = json.loads(lines[lines.index("subscribed") + 1])
+        assert got_twist == {"linear": {"x": 0.75, "y": -2.0, "z": 0.0},
+                             "angular": {"x": 0.0, "y": 0.0, "z": -1.5e-7}}
         watcher._cast_close()
     finally:
         for p in procs:
@@ -255,30 +301,11 @@ def test_a_type_this_ros_does_not_have_stops_the_bridge_before_it_starts_naming_
             "has no message Imag (it has: BatteryState, CameraInfo,") in log, log
 
 
-READING_MSG = """\
-# A reading of a team's own sensor: a message package of the test's own, built with rosidl's generators.
-uint8 LEVEL_LOW=0
-uint8 LEVEL_HIGH=2
-string UNIT="bar"
-std_msgs/Header header
-uint8 level
-float64 value
-int16[3] triple
-string<=16 label
-geometry_msgs/Point[<=4] points
-float32[<=3] gains
-uint8[] blob
-uint8[4] code
-int64 count
-builtin_interfaces/Duration window
-"""
-
-
 # The first run builds the message package (rosidl generators and gcc, about 15 s; cached in build/ros2-msgs).
 @pytest.mark.timeout(300)
 def test_a_teams_own_ros2_message_package_is_bridged_both_ways_as_soon_as_it_is_on_the_ros_path(
         ros_server: ServerHandle, ros2: dict[str, str], tmp_path: Path) -> None:
-    overlay = ros2_message_package("cast_test_msgs", {"Reading": READING_MSG})
+    overlay = cast_test_msgs()
     settings = {"version": 2, "status_period": 0.3, "to_wm": [
         {"topic": "/tank/reading", "type": "cast_test_msgs/msg/Reading", "subarchitecture": "language",
          "store": "each", "id": "tank"}], "to_ros": [
