@@ -33,7 +33,9 @@ BRIDGE_SETTINGS: dict[str, Any] = {
     "status_period": 0.5,
     "to_wm": [
         {"topic": "/camera/image_raw", "type": "sensor_msgs/msg/Image", "subarchitecture": "vision",
-         "store": "latest", "id": "camera", "qos": {"depth": 5}},
+         # Depth for every frame the test sends: a slow bridge (a loaded machine) must not lose frames in
+         # DDS's history before it counts them, since the test checks that it accounts for each one.
+         "store": "latest", "id": "camera", "qos": {"depth": 50}},
         {"topic": "/robot/pose", "type": "geometry_msgs/msg/PoseStamped", "subarchitecture": "motor",
          "store": "each", "id": "pose", "keep": 25},
     ],
