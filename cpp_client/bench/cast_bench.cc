@@ -30,7 +30,7 @@
 //                               CLOCK_MONOTONIC just before each; deletes "img"
 //                               (the watchers' end mark) and prints
 //                               {"REVISION": NS, ...} (the overwrites). The
-//                               values alternate: SIZE bytes of 0, of 1 (as
+//                               values alternate: SIZE bytes of 1, of 2 (as
 //                               bench/image_writer.py's, so that
 //                               bench/shared_memory.py checks the watchers' sums)
 //   cast_bench image-watch DELIVERY
@@ -170,7 +170,7 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
   std::vector<google::protobuf::BytesValue> values(2);  // made before the clock starts
   for (std::size_t k = 0; k < values.size(); ++k) {
-    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k % 251)));
+    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k + 1)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
   c.add("img", values[0]);
