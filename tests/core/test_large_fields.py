@@ -84,8 +84,9 @@ def test_what_the_full_parse_refuses_is_still_refused(data: bytes) -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from([1, 2, 3]), st.sampled_from([b"ok", b"\xff", b"z" * LARGE, b"y" * (4 * LARGE)])),
-                max_size=4), st.integers(min_value=0, max_value=8))
+@given(st.lists(st.tuples(st.sampled_from([1, 2, 3]),
+                          st.sampled_from([b"ok", b"\xff", b"z" * LARGE, b"y" * (4 * LARGE)])), max_size=4),
+       st.integers(min_value=0, max_value=8))
 def test_the_verdict_is_the_full_parses(fields: list[tuple[int, bytes]], cut: int) -> None:
     data = b"".join(_field(number, payload) for number, payload in fields)
     data = data[: len(data) - cut] if cut else data  # sometimes truncated
