@@ -77,17 +77,28 @@ def _status_kib(pid: int, keys: Sequence[str]) -> int:
 
 
 def shared_bytes(pid: int) -> int:
-    """The size of every memory file (memfd) and /dev/shm file process ``pid`` holds open: its shared memory."""
-    total = 0
+    """The whole size of every memory file (memfd) or /dev/shm file process ``pid`` maps or holds open.
+
+    Its shared memory: the arena's segments and the sessions' staging areas,
+    each counted once (by inode) at its full size, touched or not.
+    """
+    sizes: dict[int, int] = {}
+    with open(f"/proc/{pid}/maps") as f:
+        for line in f:
+            parts = line.split(maxsplit=5)
+            if len(parts) == 6 and parts[5].startswith(("/memfd:", "/dev/shm/")):
+                start, end = (int(x, 16) for x in parts[0].split("-"))
+                inode = int(parts[4])
+                sizes[inode] = max(sizes.get(inode, 0), end - start)
     fds = f"/proc/{pid}/fd"
     for fd in os.listdir(fds):
         try:
-            target = os.readlink(f"{fds}/{fd}")
-            if target.startswith(("/memfd:", "/dev/shm/")):
-                total += os.stat(f"{fds}/{fd}").st_size
+            if os.readlink(f"{fds}/{fd}").startswith(("/memfd:", "/dev/shm/")):
+                st = os.stat(f"{fds}/{fd}")
+                sizes[st.st_ino] = max(sizes.get(st.st_ino, 0), st.st_size)
         except OSError:  # closed meanwhile
             continue
-    return total
+    return sum(sizes.values())
 
 
 class ServerMemory:
