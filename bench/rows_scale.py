@@ -152,12 +152,11 @@ def _cast_figures(m8: dict[str, Any]) -> list[dict[str, Any]]:
         if key == "latest_b2b":
             figures.append(fig(f"{M8_PHASES[key]}: skipped (reported), all watchers",
                                sum(w["skipped"] for w in got["watchers"].values())))
-    frames = sum(m8.get(f"cast_{k}", {}).get("frames", 0) * len(m8.get(f"cast_{k}", {}).get("watchers", {}))
-                 for k in M8_PHASES)
-    shared = sum(w.get("shared", 0) for k in M8_PHASES for w in m8.get(f"cast_{k}", {}).get("watchers", {}).values())
+    received = [w for k in M8_PHASES for w in m8.get(f"cast_{k}", {}).get("watchers", {}).values()]
+    frames = sum(w["received"] for w in received)
     if frames:
-        figures.append(fig("same host: values lent by shared memory, % of the frames written x watchers",
-                           round(100 * shared / frames, 1)))
+        figures.append(fig("same host: values lent by shared memory, % of the values received",
+                           round(100 * sum(w.get("shared", 0) for w in received) / frames, 1)))
     return figures
 
 
