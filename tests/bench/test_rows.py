@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import mmap
+import os
 from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
@@ -11,7 +13,7 @@ import pytest
 
 from bench.checksum import expected_cast, expected_frames, word_sum
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
-from bench.images import REMOTE, WATCHERS
+from bench.images import REMOTE, WATCHERS, shared_bytes
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, frame
 from bench.report import plot_panels
@@ -275,3 +277,22 @@ def test_plot_panels_writes_a_png_with_a_log_panel(tmp_path: Path) -> None:
     plot_panels(out, [10, 100, 500], {"latency (µs)": {"p50": [1, 10, 100], "p99": [2, 20, 200]},
                                       "cpu": {"cpu": [0.1, 0.5, 0.7]}}, "sessions", "M9", log_y=["latency (µs)"])
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_server_memory_counts_each_memory_file_once_at_its_full_size() -> None:
+    before = shared_bytes(os.getpid())
+    fd = os.memfd_create("m8-test")
+    try:
+        os.ftruncate(fd, 3 << 20)
+        first = mmap.mmap(fd, 3 << 20)
+        second = mmap.mmap(fd, 1 << 20)  # a second mapping of the same file: not counted twice
+        assert shared_bytes(os.getpid()) - before == 3 << 20  # mapped and open, untouched: its whole size
+        os.close(fd)
+        fd = -1
+        assert shared_bytes(os.getpid()) - before == 3 << 20  # mapped only
+        first.close()
+        second.close()
+        assert shared_bytes(os.getpid()) == before
+    finally:
+        if fd >= 0:
+            os.close(fd)
