@@ -60,6 +60,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -203,10 +204,27 @@ std::uint64_t wordSum(cast::ByteSpan bytes) {
   return sum;
 }
 
+// What the component does when its change delivery stops (set by image-watch: end now, not at its timeout).
+std::function<void()> onWatchFailed;
+
+// The benchmark's component: an unmanaged one that tells image-watch when its watch failed.
+class BenchComponent : public cast::UnmanagedComponent {
+ public:
+  void watchFailed(const cast::CastError& error) override {
+    cast::UnmanagedComponent::watchFailed(error);
+    if (onWatchFailed) onWatchFailed();
+  }
+};
+
 int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::mutex mu;
   std::condition_variable done;
   bool ended = false;
+  onWatchFailed = [&] {
+    std::lock_guard<std::mutex> lock(mu);
+    ended = true;
+    done.notify_all();
+  };
   std::map<std::uint64_t, std::int64_t> stamps;
   std::uint64_t bytes = 0, events = 0, skipped = 0, shared = 0, checksum = 0;
   cast::WatchOptions options;
@@ -264,7 +282,7 @@ int main(int argc, char** argv) {
   if ((mode == "write" && argc < 4) || (mode == "image-write" && argc < 5)) return usage();
   try {
     const auto contract = cast::LaunchContract::fromEnv();
-    cast::UnmanagedComponent component;
+    BenchComponent component;
     component.bind(contract.connect());
     int code;
     if (mode == "add") code = addMode(component, n, argc > 3 ? std::strtol(argv[3], nullptr, 10) : 200);
