@@ -40,6 +40,7 @@ class Server:
         limits: dict[str, int] | None = None,
         persistence: dict[str, str] | None = None,
         serve_args: tuple[str, ...] = (),
+        listen: str = "127.0.0.1:0",
     ) -> None:
         workdir.mkdir(parents=True, exist_ok=True)
         config: dict[str, Any] = {"system": "bench", "subarchitectures": {sa: {} for sa in sas}}
@@ -50,7 +51,7 @@ class Server:
         path = workdir / "bench.yaml"
         path.write_text(yaml.safe_dump(config, sort_keys=False))
         self.proc = start(
-            [str(Path(PYTHON).parent / "cast"), "serve", str(path), "--listen", "127.0.0.1:0", *serve_args],
+            [str(Path(PYTHON).parent / "cast"), "serve", str(path), "--listen", listen, *serve_args],
             cwd=workdir,
             env={"CAST_SECRET": SECRET},
         )

@@ -20,12 +20,16 @@ __all__ = ["parse_watcher", "totals", "watcher_figures"]
 
 def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
     """A watcher's printed JSON line, with its stamps' keys as integers."""
-    return {
+    out = {
         "stamps": {int(k): int(v) for k, v in doc["stamps"].items()},
         "bytes": int(doc["bytes"]),
         "events": int(doc.get("events", len(doc["stamps"]))),
         "skipped": int(doc.get("skipped", 0)),
     }
+    for optional in ("checksum", "shared"):  # what M8's readers of every byte add (bench.checksum)
+        if optional in doc:
+            out[optional] = int(doc[optional])
+    return out
 
 
 def watcher_figures(sent: Mapping[int, int], got: Mapping[str, Any], extra_events: int = 0) -> dict[str, Any]:

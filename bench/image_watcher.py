@@ -2,13 +2,18 @@
 
 `python -m bench.image_watcher queue|latest` with the launch contract (CAST_*) in
 its environment watches the entry "img" of its SA with the entry carried
-(``include_entry``), decodes each value as a consumer would, prints ``ready``
-once the watch is confirmed, and at the DELETE of "img" (the writer's end mark)
-prints one line ``{"stamps": {revision: ns}, "bytes": B, "events": E, "skipped": S}``:
-CLOCK_MONOTONIC (``time.perf_counter_ns``) at each overwrite's callback, the
-value bytes received, the events received (the add and the delete too) and the
-changes a latest watch was told it skipped (on any of them). The
-C++ and Java watchers (cast_bench / cast.bench.Bench ``image-watch``) print the
+(``include_entry``) and reads every byte of each image where the library put
+it: ``change.view().field(1)`` (the ``bytes`` field of the ``BytesValue``, a
+read-only memoryview of the server's shared memory on its host, of the received
+bytes elsewhere), summed with numpy (bench.checksum) as a consumer of frames
+would read them. It prints ``ready`` once the watch is confirmed, and at the
+DELETE of "img" (the writer's end mark) one line ``{"stamps": {revision: ns},
+"bytes": B, "events": E, "skipped": S, "checksum": C, "shared": H}``:
+CLOCK_MONOTONIC (``time.perf_counter_ns``) once each overwrite's bytes were all
+read, the image bytes read, the events received (the add and the delete too),
+the changes a latest watch was told it skipped, the sum of the overwrites'
+checksums modulo 2**64 and how many of them were lent by shared memory. The C++
+and Java watchers (cast_bench / cast.bench.Bench ``image-watch``) print the
 same.
 """
 
@@ -19,9 +24,8 @@ import sys
 import threading
 import time
 
-from google.protobuf.wrappers_pb2 import BytesValue
-
 import cast
+from bench.checksum import MOD, word_sum
 from cast.client.runner import LaunchContract
 
 
@@ -42,20 +46,26 @@ def main(delivery: str) -> int:
     c = _Watcher()
     c._cast_bind(LaunchContract.from_env().connect())
     stamps: dict[int, int] = {}
-    totals = {"bytes": 0, "events": 0, "skipped": 0}
+    totals = {"bytes": 0, "events": 0, "skipped": 0, "checksum": 0, "shared": 0}
     ended = c.ended
 
     def arrived(change: cast.WorkingMemoryChange) -> None:
-        t = time.perf_counter_ns()
         totals["events"] += 1
         totals["skipped"] += change.skipped
         if change.operation is cast.Operation.DELETE:
             ended.set()
             return
-        size = len(change.entry(BytesValue).value.value)
+        with change.view() as view:  # given back at the end of the block: the server may reuse its place
+            pixels = view.field(1)
+            checksum = word_sum(pixels)
+            size, shared = len(pixels), view.shared
+            del pixels
+        t = time.perf_counter_ns()
         if change.operation is cast.Operation.OVERWRITE:
             stamps[change.revision] = t
             totals["bytes"] += size
+            totals["checksum"] = (totals["checksum"] + checksum) % MOD
+            totals["shared"] += shared
 
     c.on_change(cast.address_filter("img", include_entry=True), arrived, delivery=delivery)
     print("ready", flush=True)

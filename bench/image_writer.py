@@ -24,7 +24,7 @@ def main(size: int, frames: int, gap_us: int) -> int:
     """Write, print the stamps, delete."""
     c = cast.UnmanagedComponent()
     c._cast_bind(LaunchContract.from_env().connect())
-    values = [BytesValue(value=bytes([k % 251]) * size) for k in range(2)]  # made before the clock starts
+    values = [BytesValue(value=bytes([k + 1]) * size) for k in range(2)]  # made before the clock starts; never 0
     c.add("img", values[0])
     stamps: dict[int, int] = {}
     start = time.perf_counter()

@@ -1,18 +1,25 @@
-"""M8: image-sized entries. A C++ writer overwrites a 1 MiB entry; four watchers receive it.
+"""M8: image-sized entries. A C++ writer overwrites an entry of 1 MiB or 6 MiB; four watchers read every byte.
 
 Watchers, each a process of its own: Python, C++, Java, Python
 (bench/image_watcher.py, ``cast_bench image-watch``, ``cast.bench.Bench
-image-watch``), all watching the entry with its value; the Python and Java
-watchers decode it, the C++ one reads every byte of the image through its
-``ValueView`` (a checksum; on the server's host the value is lent by shared
-memory). The writer is ``cast_bench image-write`` (sequential overwrites,
-staged in shared memory). Four phases per
-run: ``queue`` and ``latest`` delivery, each at 30 Hz and back to back, each
-with new watcher processes on one ``cast serve`` whose server RSS is sampled
-throughout. Zenoh and Redis do the same (bench/zenoh_peer.py, bench/redis_peer.py:
-a Python publisher, four Python subscribers) in the same run, and the raw gRPC
-floor (a bare unary echo of 1 MiB, bench/floors.py) is measured before each
-back-to-back phase.
+image-watch``), all watching the entry with its value and reading every byte
+of every image in place through the library's ``ValueView`` (a checksum,
+bench.checksum, checked against what the writer wrote; on the server's host
+the value is lent by shared memory, nothing copied). The writer is
+``cast_bench image-write`` (sequential overwrites, staged in shared memory).
+
+Phases on one ``cast serve`` (new watcher processes each, the server's memory
+sampled throughout, :class:`ServerMemory`): ``queue`` delivery of 1 MiB at
+30 Hz, of 6 MiB (a 1080p RGB frame) at 30 Hz, of 1 MiB back to back, and
+``latest`` delivery of 1 MiB back to back. Then a remote phase: a server
+listening on a veth pair to another network namespace (bench.other_host) and
+a Python watcher in that namespace, which gets every value as bytes.
+
+In the same run: Zenoh (bench/zenoh_peer.py) and iceoryx2
+(bench/iceoryx2_peer.py, the zero-copy limit), each a Python publisher and
+four Python subscribers that read every byte of every message, carry the same
+sizes at the same paces; the bare gRPC unary echo of 1 MiB (bench/floors.py)
+is measured once, for context.
 """
 
 from __future__ import annotations
@@ -22,28 +29,37 @@ import os
 import subprocess
 import tempfile
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
-import psutil
-
-from bench import redis_peer, zenoh_peer
+from bench import iceoryx2_peer, zenoh_peer
 from bench.cast_cases import Server
+from bench.checksum import expected_cast, expected_frames
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.floors import EchoFloor
 from bench.harness import PYTHON, ROOT
 from bench.other_clients import cpp_command, java_command
+from bench.other_host import OtherHost
 
-__all__ = ["HISTORY_BYTES", "HZ", "SIZE", "WATCHERS", "run"]
+__all__ = ["BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "ServerMemory", "run"]
 
 SIZE = 1 << 20  # a VGA RGB image is 0.9 MiB
+BIG = 6 << 20  # a 1080p RGB image is 5.9 MiB
 HZ = 30
 SA = "images"
-# M8's server keeps at most this many bytes of values in its history (limits.history_bytes): small
-# enough that a run fills it, so the RSS bound is exercised; 64 frames of slack for a queue watcher.
+# M8's server keeps at most this many bytes of values in its history (limits.history_bytes, which counts the
+# values it keeps in shared memory too): small enough that a run fills it, so the memory bound is exercised.
 HISTORY_BYTES = 64 << 20
 WATCHERS = ("Python 1", "C++", "Java", "Python 2")
+REMOTE = "Python, other host"
+# (key, delivery, value size, paced at HZ): the phases on the server's host.
+PHASES: tuple[tuple[str, str, int, bool], ...] = (
+    ("queue_hz", "queue", SIZE, True),
+    ("queue_hz_6m", "queue", BIG, True),
+    ("queue_b2b", "queue", SIZE, False),
+    ("latest_b2b", "latest", SIZE, False),
+)
 TIMEOUT_S = 300  # the writer's whole run
 AFTER_WRITER_S = 60  # how long the watchers may take to finish once the writer is done
 
@@ -55,37 +71,87 @@ def _watcher_command(label: str, delivery: str) -> list[str] | str:
     return command if isinstance(command, str) else [*command, "image-watch", delivery]
 
 
-class RssSampler:
-    """The largest RSS of a process, sampled every 20 ms on a thread until :meth:`stop`."""
+def _status_kib(pid: int, keys: Sequence[str]) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        return sum(int(line.split()[1]) for line in f if line.split(":")[0] in keys)
+
+
+def shared_bytes(pid: int) -> int:
+    """The whole size of every memory file (memfd) or /dev/shm file process ``pid`` maps or holds open.
+
+    Its shared memory: the arena's segments and the sessions' staging areas,
+    each counted once (by inode) at its full size, touched or not.
+    """
+    sizes: dict[int, int] = {}
+    with open(f"/proc/{pid}/maps") as f:
+        for line in f:
+            parts = line.split(maxsplit=5)
+            if len(parts) == 6 and parts[5].startswith(("/memfd:", "/dev/shm/")):
+                start, end = (int(x, 16) for x in parts[0].split("-"))
+                inode = int(parts[4])
+                sizes[inode] = max(sizes.get(inode, 0), end - start)
+    fds = f"/proc/{pid}/fd"
+    for fd in os.listdir(fds):
+        try:
+            if os.readlink(f"{fds}/{fd}").startswith(("/memfd:", "/dev/shm/")):
+                st = os.stat(f"{fds}/{fd}")
+                sizes[st.st_ino] = max(sizes.get(st.st_ino, 0), st.st_size)
+        except OSError:  # closed meanwhile
+            continue
+    return sum(sizes.values())
+
+
+class ServerMemory:
+    """The server's memory, sampled every 20 ms on a thread until :meth:`stop`.
+
+    The peak of its private resident memory (RssAnon + RssFile: its own
+    mapping of its shared memory, RssShmem, is left out, not to count it twice)
+    plus the whole size of the shared memory it holds (:func:`shared_bytes`),
+    and the peaks of each.
+    """
 
     def __init__(self, pid: int) -> None:
-        self._proc = psutil.Process(pid)
-        self.peak: int = self._proc.memory_info().rss
+        self._pid = pid
+        self.peak = self.private = self.shared = 0
+        self._sample_once()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
         self._thread.start()
 
+    def _sample_once(self) -> None:
+        private = _status_kib(self._pid, ("RssAnon", "RssFile")) * 1024
+        shared = shared_bytes(self._pid)
+        self.private, self.shared = max(self.private, private), max(self.shared, shared)
+        self.peak = max(self.peak, private + shared)
+
     def _sample(self) -> None:
         while not self._stop.wait(0.02):
-            self.peak = max(self.peak, self._proc.memory_info().rss)
+            try:
+                self._sample_once()
+            except OSError:  # the server ended
+                return
 
-    def stop(self) -> int:
-        """Stop sampling; the peak in bytes."""
+    def stop(self) -> dict[str, int]:
+        """Stop sampling; the peaks in bytes."""
         self._stop.set()
         self._thread.join()
-        return self.peak
+        return {"peak": self.peak, "private": self.private, "shared": self.shared}
+
+
+def idle_memory(pid: int) -> int:
+    """The server's private resident memory plus its shared memory, once."""
+    return _status_kib(pid, ("RssAnon", "RssFile")) * 1024 + shared_bytes(pid)
 
 
 class _Watchers:
-    """The four watcher processes of one phase."""
+    """The watcher processes of one phase: (label, command) each."""
 
-    def __init__(self, server: Server, delivery: str, tag: str) -> None:
+    def __init__(self, server: Server, commands: Sequence[tuple[str, list[str] | str]], tag: str) -> None:
         self.labels: list[str] = []
         self.procs: list[subprocess.Popen[str]] = []
         self.logs: list[IO[str]] = []
         self.missing: dict[str, str] = {}
-        for i, label in enumerate(WATCHERS):
-            command = _watcher_command(label, delivery)
+        for i, (label, command) in enumerate(commands):
             if isinstance(command, str):
                 self.missing[label] = command
                 continue
@@ -129,9 +195,9 @@ def _tail(log: IO[str]) -> str:
     return log.read()[-800:]
 
 
-def _write(server: Server, writer: list[str], frames: int, gap_s: float, tag: str) -> dict[int, int]:
+def _write(server: Server, writer: list[str], size: int, frames: int, gap_s: float, tag: str) -> dict[int, int]:
     env = {**os.environ, **server.env(f"m8-{tag}-writer", SA)}
-    out = subprocess.run([*writer, "image-write", str(SIZE), str(frames), str(round(gap_s * 1e6))], env=env,
+    out = subprocess.run([*writer, "image-write", str(size), str(frames), str(round(gap_s * 1e6))], env=env,
                          capture_output=True, text=True, timeout=TIMEOUT_S)
     lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
     if out.returncode != 0 or not lines:
@@ -139,74 +205,104 @@ def _write(server: Server, writer: list[str], frames: int, gap_s: float, tag: st
     return {int(k): int(v) for k, v in json.loads(lines[-1]).items()}
 
 
-def _figures(sent: dict[int, int], got: dict[str, dict[str, Any]], extra: int) -> dict[str, Any]:
-    """Each watcher's figures (the first tenth, at most 30, of its latencies dropped as warm-up) and the total."""
+def figures(sent: dict[int, int], got: dict[str, dict[str, Any]], extra: int,
+            expected: Callable[[dict[str, Any]], int]) -> dict[str, Any]:
+    """Each watcher's figures, whether it read the bytes written, and the total.
+
+    The first tenth (at most 30) of its latencies are dropped as warm-up;
+    ``checksum_ok`` is whether its checksum is ``expected(its result)``.
+    """
     warm = min(30, len(sent) // 10)
     late = dict(sorted(sent.items())[warm:])
     per = {}
     for label, g in got.items():
         whole = watcher_figures(sent, g, extra)
         steady = watcher_figures(late, g, extra)
-        per[label] = {**whole, "p50_us": steady["p50_us"], "p99_us": steady["p99_us"]}
+        per[label] = {**whole, "p50_us": steady["p50_us"], "p99_us": steady["p99_us"], "bytes": g["bytes"],
+                      "checksum_ok": g.get("checksum") == expected(g)}
+        if "shared" in g:
+            per[label]["shared"] = g["shared"]
     return {"watchers": per, "total": totals(sent, list(got.values())), "frames": len(sent)}
 
 
-def cast_phase(server: Server, writer: list[str], delivery: str, frames: int, gap_s: float) -> dict[str, Any]:
-    """One phase on CAST: new watchers, the C++ writer, the server's peak RSS meanwhile."""
-    tag = f"{delivery}-{'b2b' if gap_s == 0 else 'hz'}"
-    watchers = _Watchers(server, delivery, tag)
+def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, list[str] | str]], size: int,
+               frames: int, gap_s: float, tag: str) -> dict[str, Any]:
+    """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile."""
+    watchers = _Watchers(server, commands, tag)
     try:
-        sampler = RssSampler(server.proc.process.pid)
+        memory = ServerMemory(server.proc.process.pid)
         try:
-            sent = _write(server, writer, frames, gap_s, tag)
+            sent = _write(server, writer, size, frames, gap_s, tag)
             got = watchers.results()
         finally:
-            peak = sampler.stop()
+            peaks = memory.stop()
     finally:
         watchers.close()
-    return {**_figures(sent, got, extra=2), "server_rss_peak": peak, "missing": watchers.missing}
+    out = figures(sent, got, 2, lambda g: expected_cast(sent, g["stamps"], size))
+    return {**out, "size": size, "server_memory": peaks, "missing": watchers.missing}
 
 
-def _peer(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
-    run = fn(*args)
-    labels = [f"subscriber {i + 1}" for i in range(len(run["watchers"]))]
-    return _figures(run["sent"], dict(zip(labels, run["watchers"], strict=True)), extra=0)
+def _remote_phase(workdir: Path, writer: list[str], frames: int) -> dict[str, Any]:
+    """1 MiB at HZ to a Python watcher in another network namespace (bytes), the server listening on the pair."""
+    with OtherHost() as host:
+        server = Server(workdir, [SA], limits={"history_bytes": HISTORY_BYTES}, listen=f"{host.address}:0")
+        try:
+            command = [*host.prefix, PYTHON, "-m", "bench.image_watcher", "queue"]
+            return cast_phase(server, writer, [(REMOTE, command)], SIZE, frames, 1 / HZ, "remote")
+        finally:
+            server.stop()
+
+
+def _peer(fn: Callable[..., dict[str, Any]], frames: int, gap_s: float, size: int) -> dict[str, Any]:
+    run_ = fn(frames, gap_s, size)
+    labels = [f"subscriber {i + 1}" for i in range(len(run_["watchers"]))]
+    return {**figures(run_["sent"], dict(zip(labels, run_["watchers"], strict=True)), 0,
+                      lambda g: expected_frames(g["stamps"], size)), "size": size}
+
+
+def _guard(out: dict[str, Any], key: str, fn: Callable[..., dict[str, Any]], *args: Any) -> None:
+    """``out[key] = fn(*args)``, or the error that stopped it (the row reports it)."""
+    try:
+        out[key] = fn(*args)
+    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        out[key] = {"error": str(exc)}
 
 
 def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Every phase of M8 (``frames`` writes each) and its peers and floor; raw results for bench/rows_scale.py."""
+    """Every phase of M8 and its peers and floor; raw results for bench/rows_scale.py.
+
+    ``frames`` writes of 1 MiB per phase, half as many (at least 15) of 6 MiB,
+    a fifth (at least 15) to the other host.
+    """
     writer = cpp_command()
     if isinstance(writer, str):
         return {"error": writer}
-    gap = 1 / HZ
+    big_frames, remote_frames = max(15, frames // 2), max(15, frames // 5)
+    count = {SIZE: frames, BIG: big_frames}
+    out: dict[str, Any] = {"size": SIZE, "big": BIG, "hz": HZ, "history_bytes": HISTORY_BYTES, "floor": []}
     server = Server(workdir / "cast", [SA], limits={"history_bytes": HISTORY_BYTES})
-    echo = EchoFloor()
-    out: dict[str, Any] = {"size": SIZE, "hz": HZ, "history_bytes": HISTORY_BYTES, "floor": []}
     try:
-        out["server_rss_idle"] = server.rss_bytes()
-        for delivery in ("queue", "latest"):
-            for phase, gap_s in (("hz", gap), ("b2b", 0.0)):
-                if gap_s == 0:
-                    log("M8 floor: bare gRPC echo of 1 MiB")
-                    out["floor"].append(echo.big_echo(max(20, frames // 2), SIZE))
-                log(f"M8 CAST, {delivery} delivery, {'back to back' if gap_s == 0 else f'{HZ} Hz'}")
-                try:
-                    out[f"cast_{delivery}_{phase}"] = cast_phase(server, writer, delivery, frames, gap_s)
-                except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
-                    out[f"cast_{delivery}_{phase}"] = {"error": str(exc)}
-        out["server_rss_end"] = server.rss_bytes()
+        out["server_memory_idle"] = idle_memory(server.proc.process.pid)
+        for key, delivery, size, paced in PHASES:
+            log(f"M8 CAST {key}: {size >> 20} MiB, {delivery}, {f'{HZ} Hz' if paced else 'back to back'}")
+            commands = [(label, _watcher_command(label, delivery)) for label in WATCHERS]
+            _guard(out, f"cast_{key}", cast_phase, server, writer, commands, size, count[size],
+                   1 / HZ if paced else 0.0, key)
+        out["server_memory_end"] = idle_memory(server.proc.process.pid)
+    finally:
+        server.stop()
+    log(f"M8 CAST remote: 1 MiB at {HZ} Hz to a watcher in another network namespace")
+    _guard(out, "cast_remote", _remote_phase, workdir / "remote", writer, remote_frames)
+    log("M8 floor: bare gRPC echo of 1 MiB")
+    echo = EchoFloor()
+    try:
+        out["floor"].append(echo.big_echo(max(20, frames // 2), SIZE))
     finally:
         echo.close()
-        server.stop()
-    for name, mod in (("zenoh", zenoh_peer), ("redis", redis_peer)):
-        for phase, gap_s in (("hz", gap), ("b2b", 0.0)):
-            log(f"M8 {name}, {'back to back' if gap_s == 0 else f'{HZ} Hz'}")
-            try:
-                if mod is redis_peer:
-                    (workdir / f"redis-{phase}").mkdir(parents=True, exist_ok=True)
-                    out[f"{name}_{phase}"] = _peer(redis_peer.large, workdir / f"redis-{phase}", frames, gap_s, SIZE)
-                else:
-                    out[f"{name}_{phase}"] = _peer(zenoh_peer.large, frames, gap_s, SIZE)
-            except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
-                out[f"{name}_{phase}"] = {"error": str(exc)}
+    for name, fn in (("zenoh", zenoh_peer.large), ("iceoryx2", iceoryx2_peer.large)):
+        for key, size, paced in (("hz", SIZE, True), ("hz_6m", BIG, True), ("b2b", SIZE, False)):
+            if name == "iceoryx2" and size == BIG:
+                continue  # the limit is shown at 1 MiB
+            log(f"M8 {name}: {size >> 20} MiB, {f'{HZ} Hz' if paced else 'back to back'}")
+            _guard(out, f"{name}_{key}", _peer, fn, count[size], 1 / HZ if paced else 0.0, size)
     return out

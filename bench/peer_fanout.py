@@ -1,4 +1,4 @@
-"""One publisher, subscriber processes: the harness the peers (Zenoh, Redis) share for M3 and M8.
+"""One publisher, subscriber processes: the harness the peers (Zenoh for M3 and M8, iceoryx2 for M8) share.
 
 The publisher runs in the benchmark's process and stamps CLOCK_MONOTONIC just
 before each put; each subscriber is a process of its own (as CAST's watchers
@@ -7,7 +7,8 @@ by padding to the value's size. Before measuring, the publisher sends small
 WARM messages until every subscriber has said ``ready`` (it has the route);
 an END message makes each subscriber print one JSON line in the format of
 CAST's watchers (bench/image_watcher.py), read with
-:func:`bench.delivery_stats.parse_watcher`.
+:func:`bench.delivery_stats.parse_watcher`. Like CAST's watchers, a subscriber
+reads every byte of each message (bench.checksum) before it stamps it.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from bench.checksum import MOD, word_sum
 from bench.delivery_stats import parse_watcher
 from bench.harness import ROOT
 
@@ -38,17 +40,23 @@ def frame(seq: int, size: int) -> bytes:
 
 
 class Receiver:
-    """The subscriber's side: stamps each message, says ``ready`` at the first WARM, reports at END."""
+    """The subscriber's side: stamps each message, says ``ready`` at the first WARM, reports at END.
 
-    def __init__(self) -> None:
+    With ``read_all`` (M8's large values) it reads every byte of each message
+    first (a checksum, bench.checksum), as CAST's image watchers do; M3's small
+    messages are stamped on arrival, as CAST's latency watcher does.
+    """
+
+    def __init__(self, read_all: bool = False) -> None:
+        self.read_all = read_all
         self.stamps: dict[int, int] = {}
         self.bytes = 0
+        self.checksum = 0
         self.ready = False
         self.done = threading.Event()
 
-    def on_message(self, payload: bytes) -> None:
-        """One message as the peer's client library handed it over."""
-        t = time.perf_counter_ns()
+    def on_message(self, payload: bytes | memoryview) -> None:
+        """One message as the peer's client library handed it over (bytes, or a view of its shared memory)."""
         (seq,) = _SEQ.unpack_from(payload)
         if seq == WARM:
             if not self.ready:
@@ -57,12 +65,15 @@ class Receiver:
         elif seq == END:
             self.done.set()
         else:
-            self.stamps[seq] = t
+            checksum = word_sum(payload) if self.read_all else 0
+            self.stamps[seq] = time.perf_counter_ns()
             self.bytes += len(payload)
+            self.checksum = (self.checksum + checksum) % MOD
 
     def report(self) -> None:
         """Print what arrived (as CAST's watchers do)."""
-        print(json.dumps({"stamps": self.stamps, "bytes": self.bytes, "events": len(self.stamps)}), flush=True)
+        print(json.dumps({"stamps": self.stamps, "bytes": self.bytes, "events": len(self.stamps),
+                          "checksum": self.checksum}), flush=True)
 
 
 class Subscribers:

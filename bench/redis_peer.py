@@ -4,15 +4,13 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import redis
 
-from bench.harness import PYTHON, free_port, latencies_us, rate, summary_us
-from bench.peer_fanout import END, WARM, Receiver, Subscribers, drive, frame
+from bench.harness import free_port, latencies_us, rate, summary_us
 
 
 def redis_server_version() -> str:
@@ -79,53 +77,3 @@ def run(n: int, workdir: Path) -> dict[str, Any]:
         }
     finally:
         server.stop()
-
-
-# M8 for Redis: one script call stores the value and publishes it (one round trip, the value sent once).
-_SET_AND_PUBLISH = "redis.call('SET', KEYS[1], ARGV[1]); return redis.call('PUBLISH', KEYS[1], ARGV[1])"
-_CHANNEL = "img"
-
-
-def large(workdir: Path, frames: int, gap_s: float, size: int, subscribers: int = 4) -> dict[str, Any]:
-    """M8's run for Redis: ``frames`` values of ``size`` bytes stored and published, ``gap_s`` apart (0: back to back).
-
-    The writer runs a script that SETs the key and PUBLISHes the value on a
-    channel each subscriber process reads (a keyspace notification carries no
-    value, and a GET after it would add a round trip). Subscribers' output
-    buffers are unbounded (``client-output-buffer-limit pubsub 0 0 0``): by
-    default Redis disconnects a subscriber 32 MiB behind, while CAST's ``queue``
-    delivery keeps every change its history holds.
-    """
-    server = RedisServer(workdir, "--client-output-buffer-limit", "pubsub 0 0 0")
-    subs = Subscribers([PYTHON, "-m", "bench.redis_peer", "sub", str(server.port)], subscribers)
-    try:
-        script = server.client.register_script(_SET_AND_PUBLISH)
-        warm = frame(WARM, 16)
-        subs.handshake(lambda: server.client.publish(_CHANNEL, warm))
-        sent = drive(lambda payload: script(keys=[_CHANNEL], args=[payload]), frames, gap_s, size)
-        server.client.publish(_CHANNEL, frame(END, 16))
-        return {"sent": sent, "watchers": subs.results()}
-    finally:
-        subs.close()
-        server.stop()
-
-
-def _subscriber(port: int) -> int:
-    # RESP2: redis-py 8's RESP3 parser formats every pub/sub message into a debug log line (str() of
-    # the whole value, 9 ms for 1 MiB here) whether or not the log is enabled.
-    client = redis.Redis(port=port, protocol=2)
-    pubsub = client.pubsub()  # type: ignore[no-untyped-call]
-    pubsub.subscribe(_CHANNEL)
-    receiver = Receiver()
-    while not receiver.done.is_set():
-        msg = pubsub.get_message(timeout=1)
-        if msg is not None and msg["type"] == "message":
-            receiver.on_message(msg["data"])
-    receiver.report()
-    pubsub.close()
-    client.close()
-    return 0
-
-
-if __name__ == "__main__" and sys.argv[1] == "sub":
-    sys.exit(_subscriber(int(sys.argv[2])))

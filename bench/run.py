@@ -15,6 +15,7 @@ from bench import (
     cast_cases,
     durability,
     floors,
+    iceoryx2_peer,
     images,
     many_components,
     metrics_overhead,
@@ -185,7 +186,8 @@ def _write(out: Path, results: Results, command: str) -> None:
             f"p99 {peer['notification']['p99_us']} µs",
             "Zenoh put -> subscriber (peer mode, loopback, 2 ms spacing)": f"p50 {results.zenoh.get('p50_us')} µs, "
             f"p99 {results.zenoh.get('p99_us')} µs (eclipse-zenoh {_zenoh_version()})",
-            "grpcio unary echo of 1 MiB (M8's floor)": ", ".join(
+            "iceoryx2 (M8's zero-copy limit)": iceoryx2_peer.iceoryx2_version(),
+            "grpcio unary echo of 1 MiB (M8, for context)": ", ".join(
                 f"{f['mb_per_s']} MB/s (p50 {f['p50_us']} µs)" for f in results.m8.get("floor", [])
             )
             or "not measured",

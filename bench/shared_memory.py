@@ -2,7 +2,7 @@
 
 A Python writer (bench/image_writer.py) overwrites a 1 MiB and then a 6 MiB
 entry, at 30 Hz and back to back, and four Python watchers
-(bench/image_watcher.py) decode every value; first with the server's shared
+(bench/image_watcher.py) read every byte of every value through its view; first with the server's shared
 memory turned off (``cast serve --no-shared-memory``: every value as bytes in
 gRPC messages), then on (the writer stages each value, the watchers are lent
 it). Zenoh (bench/zenoh_peer.py: a Python publisher, four Python subscribers)
@@ -13,8 +13,10 @@ left out), the frames lost, and the MB/s delivered to the four together.
 ``python -m bench.shared_memory [FRAMES] [--language python|cpp|java]`` (default 150 per phase): with
 ``--language java`` the writer and the four watchers are the Java client's (``cast.bench.Bench
 image-write`` and ``image-watch``), with ``--language cpp`` the C++ client's (``cast_bench
-image-write`` and ``image-watch``, M8's writer): each watcher reads every byte of each value
-through its view (a checksum, checked against what the writer wrote) before it stamps it.
+image-write`` and ``image-watch``, M8's writer). Each watcher, in every language, reads every byte
+of each value through its view (a checksum, checked against what the writer wrote) before it stamps it.
+M8 in ``make bench`` (bench/images.py) is the judged comparison; this is the standalone one of the
+bytes path (``--no-shared-memory``) against the shared one.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from typing import Any
 
 from bench import zenoh_peer
 from bench.cast_cases import Server
+from bench.checksum import expected_cast
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.harness import PYTHON, ROOT
 from bench.other_clients import cpp_command, java_command
@@ -53,19 +56,10 @@ def _commands(language: str) -> tuple[list[str], list[str]]:
     return [*command, "image-write"], [*command, "image-watch"]
 
 
-def word_sum(data: bytes) -> int:
-    """A value's checksum as the Java and C++ watchers compute it: little-endian 64-bit words summed mod 2**64."""
-    whole = len(data) // 8 * 8
-    words = sum(int.from_bytes(data[i: i + 8], "little") for i in range(0, whole, 8))
-    return (words + sum(data[whole:])) % (1 << 64)
-
-
 def _check_sums(sent: dict[int, int], got: list[dict[str, Any]], docs: list[dict[str, Any]], size: int) -> None:
-    """Each watcher read every byte of what it received: its checksum is the writer's values' (bench.image_writer)."""
-    order = {revision: i for i, revision in enumerate(sorted(sent))}
-    value_sum = [word_sum(bytes([k % 251]) * size) for k in range(2)]
+    """Each watcher read every byte of what it received: its checksum is the writer's values' (bench.checksum)."""
     for g, doc in zip(got, docs, strict=True):
-        want = sum(value_sum[order[r] % 2] for r in g["stamps"] if r in order) % (1 << 64)
+        want = expected_cast(sent, g["stamps"], size)
         if int(doc["checksum"]) != want:
             raise RuntimeError(f"a watcher's checksum is {doc['checksum']}, not {want}: it read other bytes")
 
@@ -97,8 +91,7 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, langu
         for proc in watchers:
             if proc.poll() is None:
                 proc.kill()
-    if language != "python":
-        _check_sums(sent, got, docs, size)
+    _check_sums(sent, got, docs, size)
     figures = _figures(sent, got, extra=2)
     if "shared" in docs[0]:
         figures["by_shared_memory"] = [int(doc["shared"]) for doc in docs]

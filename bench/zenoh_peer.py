@@ -2,7 +2,7 @@
 
 The publisher's session runs in the benchmark's process and listens on a free
 loopback port; each subscriber is a process of its own
-(``python -m bench.zenoh_peer sub PORT INDEX``) whose session connects to it.
+(``python -m bench.zenoh_peer sub PORT read-all|stamp INDEX``) whose session connects to it.
 Multicast scouting and gossip are off and every endpoint is on 127.0.0.1, so
 no Zenoh traffic leaves the machine. The publisher uses congestion control
 BLOCK (a put waits rather than drops when a subscriber falls behind): every
@@ -52,11 +52,12 @@ def config(listen: list[str], connect: list[str]) -> zenoh.Config:
 class _Publisher:
     """The publishing session (listening on a free loopback port) and its subscriber processes."""
 
-    def __init__(self, subscribers: int) -> None:
+    def __init__(self, subscribers: int, read_all: bool = False) -> None:
         self.port = free_port()
         self.session = zenoh.open(config([f"tcp/127.0.0.1:{self.port}"], []))
         self.publisher = self.session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-        self.subs = Subscribers([PYTHON, "-m", "bench.zenoh_peer", "sub", str(self.port)], subscribers)
+        mode = "read-all" if read_all else "stamp"
+        self.subs = Subscribers([PYTHON, "-m", "bench.zenoh_peer", "sub", str(self.port), mode], subscribers)
         try:
             warm = frame(WARM, 16)
             self.subs.handshake(lambda: self.publisher.put(warm))
@@ -91,8 +92,11 @@ def latency(n: int, gap_s: float) -> dict[str, Any]:
 
 
 def large(frames: int, gap_s: float, size: int, subscribers: int = 4) -> dict[str, Any]:
-    """M8's run for Zenoh: ``frames`` values of ``size`` bytes, ``gap_s`` apart (0: back to back)."""
-    pub = _Publisher(subscribers)
+    """M8's run for Zenoh: ``frames`` values of ``size`` bytes, ``gap_s`` apart (0: back to back).
+
+    Each subscriber reads every byte of each value (a checksum) before it stamps it, as M8's watchers do.
+    """
+    pub = _Publisher(subscribers, read_all=True)
     try:
         sent, got = pub.run(frames, gap_s, size)
     finally:
@@ -100,9 +104,9 @@ def large(frames: int, gap_s: float, size: int, subscribers: int = 4) -> dict[st
     return {"sent": sent, "watchers": got}
 
 
-def _subscriber(port: int) -> int:
+def _subscriber(port: int, read_all: bool) -> int:
     session = zenoh.open(config([], [f"tcp/127.0.0.1:{port}"]))
-    receiver = Receiver()
+    receiver = Receiver(read_all)
     subscriber = session.declare_subscriber(KEY, lambda sample: receiver.on_message(sample.payload.to_bytes()))
     receiver.done.wait(300)
     receiver.report()
@@ -113,4 +117,4 @@ def _subscriber(port: int) -> int:
 
 
 if __name__ == "__main__" and sys.argv[1] == "sub":
-    _subscriber(int(sys.argv[2]))
+    _subscriber(int(sys.argv[2]), sys.argv[3] == "read-all")

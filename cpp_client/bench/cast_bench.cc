@@ -30,7 +30,7 @@
 //                               CLOCK_MONOTONIC just before each; deletes "img"
 //                               (the watchers' end mark) and prints
 //                               {"REVISION": NS, ...} (the overwrites). The
-//                               values alternate: SIZE bytes of 0, of 1 (as
+//                               values alternate: SIZE bytes of 1, of 2 (as
 //                               bench/image_writer.py's, so that
 //                               bench/shared_memory.py checks the watchers' sums)
 //   cast_bench image-watch DELIVERY
@@ -60,6 +60,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -170,7 +171,7 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
   std::vector<google::protobuf::BytesValue> values(2);  // made before the clock starts
   for (std::size_t k = 0; k < values.size(); ++k) {
-    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k % 251)));
+    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k + 1)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
   c.add("img", values[0]);
@@ -203,10 +204,27 @@ std::uint64_t wordSum(cast::ByteSpan bytes) {
   return sum;
 }
 
+// What the component does when its change delivery stops (set by image-watch: end now, not at its timeout).
+std::function<void()> onWatchFailed;
+
+// The benchmark's component: an unmanaged one that tells image-watch when its watch failed.
+class BenchComponent : public cast::UnmanagedComponent {
+ public:
+  void watchFailed(const cast::CastError& error) override {
+    cast::UnmanagedComponent::watchFailed(error);
+    if (onWatchFailed) onWatchFailed();
+  }
+};
+
 int imageWatchMode(cast::Component& c, const std::string& delivery) {
   std::mutex mu;
   std::condition_variable done;
   bool ended = false;
+  onWatchFailed = [&] {
+    std::lock_guard<std::mutex> lock(mu);
+    ended = true;
+    done.notify_all();
+  };
   std::map<std::uint64_t, std::int64_t> stamps;
   std::uint64_t bytes = 0, events = 0, skipped = 0, shared = 0, checksum = 0;
   cast::WatchOptions options;
@@ -264,7 +282,7 @@ int main(int argc, char** argv) {
   if ((mode == "write" && argc < 4) || (mode == "image-write" && argc < 5)) return usage();
   try {
     const auto contract = cast::LaunchContract::fromEnv();
-    cast::UnmanagedComponent component;
+    BenchComponent component;
     component.bind(contract.connect());
     int code;
     if (mode == "add") code = addMode(component, n, argc > 3 ? std::strtol(argv[3], nullptr, 10) : 200);

@@ -50,17 +50,21 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     # REC1 measured the recorded writer against one without (the floor), and the recorder and a replay.
     rec1 = doc["results"]["REC1"]["figures"]
     assert rec1[0]["floor"] > 0 and rec1[1]["name"] == "recorder throughput (changes/s)" and rec1[1]["value"] > 0
-    # M1 against the stream ping-pong too; M3 against Zenoh; M8 with its floor, four watchers and both
-    # peers; M9 at each count.
+    # M1 against the stream ping-pong too; M3 against Zenoh; M8 with its four watchers at both sizes, Zenoh (the
+    # peer column) and iceoryx2 (the floor column), the watcher on another host; M9 at each count.
     m1_names = {f["name"] for f in doc["results"]["M1"]["figures"]}
     assert "add_per_s (calls/s) vs stream ping-pong" in m1_names, m1_names
     assert doc["results"]["M3"]["figures"][0]["peer"] > 0, doc["results"]["M3"]
     m8 = {f["name"]: f for f in doc["results"]["M8"]["figures"]}
     for watcher in ("Python 1", "C++", "Java", "Python 2"):
-        assert f"queue, 30 Hz, {watcher}: p99 (µs)" in m8 and f"latest, 30 Hz, {watcher}: p99 (µs)" in m8, m8
-    assert m8["queue, back to back: MB/s delivered, all watchers"]["floor"] > 0
-    assert "Zenoh, back to back: MB/s delivered, all subscribers" in m8
-    assert "Redis, back to back: MB/s delivered, all subscribers" in m8
+        assert f"1 MiB, queue, 30 Hz, {watcher}: p50 (µs)" in m8, (m8, doc["results"]["M8"].get("note"))
+        assert m8[f"1 MiB, queue, 30 Hz, {watcher}: p50 (µs)"]["peer"] > 0
+        assert m8[f"1 MiB, queue, 30 Hz, {watcher}: p50 (µs)"]["floor"] > 0
+        assert f"6 MiB, queue, 30 Hz, {watcher}: p99 (µs)" in m8
+    b2b = m8["1 MiB, queue, back to back: MB/s delivered, all watchers"]
+    assert b2b["floor"] > 0 and b2b["peer"] > 0, b2b
+    assert any(name.startswith("1 MiB, 30 Hz, Python, other host: MB received as bytes") for name in m8), m8
+    assert "iceoryx2, 1 MiB, back to back: MB/s delivered, all subscribers" in m8
     m9 = {f["name"] for f in doc["results"]["M9"]["figures"]}
     assert {"10 sessions: p99 (µs)", "20 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
     # M10: the ROS bridge beside rclpy -> rclpy (the peer column), both sizes.

@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
-import copy
+import mmap
+import os
+from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from bench.checksum import expected_cast, expected_frames, word_sum
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
+from bench.images import REMOTE, WATCHERS, shared_bytes
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, frame
 from bench.report import plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
-from bench.rows_scale import m8_misses, m8_row, m8_rss_bound, m9_misses, m9_row
+from bench.rows_scale import m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
 from bench.stream_cases import window
 
 MS = 1_000_000  # ns
@@ -53,6 +57,29 @@ def test_receiver_stamps_data_and_ends_at_end(capsys: pytest.CaptureFixture[str]
     r.on_message(frame(END, 16))
     assert r.done.is_set() and list(r.stamps) == [7] and r.bytes == 1000
     assert capsys.readouterr().out == "ready\n"  # once
+
+
+def test_a_reader_of_every_byte_sums_what_was_sent(capsys: pytest.CaptureFixture[str]) -> None:
+    r = Receiver(read_all=True)
+    for seq in (3, 4):
+        r.on_message(memoryview(frame(seq, 1003)))
+    r.on_message(frame(END, 16))
+    assert r.checksum == expected_frames([3, 4], 1003) != expected_frames([3, 5], 1003)
+    r.report()
+    assert f'"checksum": {r.checksum}' in capsys.readouterr().out
+
+
+def test_the_checksum_is_the_sum_of_little_endian_words_and_the_writers_values_are_known() -> None:
+    data = bytes(range(256)) * 4 + b"\xff\x01\x02"
+    reference = sum(int.from_bytes(data[i: i + 8], "little") for i in range(0, 1024, 8)) + 0xFF + 1 + 2
+    assert word_sum(data) == reference % 2**64
+    assert word_sum(b"\xff" * 16) == (2 * (2**64 - 1)) % 2**64  # modulo 2**64, as C++ and Java wrap
+    size = (1 << 20) + 5
+    values = [bytes([1]) * size, bytes([2]) * size]
+    sent = {10: 0, 11: 0, 12: 0}  # the overwrites, by revision: values 0, 1, 0
+    assert expected_cast(sent, [11, 12], size) == (word_sum(values[1]) + word_sum(values[0])) % 2**64
+    assert expected_cast(sent, [11, 12], size) != expected_cast(sent, [10, 12], size)
+    assert expected_frames([7], size) == word_sum(frame(7, size))
 
 
 def test_split_shares_sessions_evenly_without_empty_processes() -> None:
@@ -132,36 +159,78 @@ def test_m3_against_the_spaced_floor_zenoh_and_the_p99_line() -> None:
     assert not failed["met"] and "no zenoh" in failed["note"]
 
 
-def _watchers(p99: float = 10_000.0, lost: int = 0) -> dict[str, Any]:
-    one = {"p50_us": 5000.0, "p99_us": p99, "lost": lost, "skipped": 0, "mb_per_s": 30.0, "received": 60}
-    return {label: dict(one) for label in ("Python 1", "C++", "Java", "Python 2")}
+def _watchers(p50: float = 900.0, p99: float = 4000.0, labels: tuple[str, ...] = WATCHERS) -> dict[str, Any]:
+    one = {"p50_us": p50, "p99_us": p99, "lost": 0, "skipped": 0, "mb_per_s": 30.0, "received": 60,
+           "bytes": 60 << 20, "checksum_ok": True, "shared": 60}
+    return {label: dict(one) for label in labels}
 
 
 def _m8() -> dict[str, Any]:
-    phase = {"watchers": _watchers(), "total": {"mb_per_s": 200.0, "bytes": 1}, "server_rss_peak": 150 << 20,
-             "missing": {}}
-    peer = {"watchers": {"subscriber 1": _watchers()["C++"]}, "total": {"mb_per_s": 500.0, "bytes": 1}}
-    return {"size": 1 << 20, "hz": 30, "history_bytes": 64 << 20, "server_rss_idle": 70 << 20,
+    """An M8 result that meets every target; each test breaks one thing."""
+    def phase(p99: float = 4000.0, mb: float = 2000.0) -> dict[str, Any]:
+        return {"watchers": _watchers(p99=p99), "total": {"mb_per_s": mb, "bytes": 1}, "frames": 60,
+                "size": 1 << 20, "server_memory": {"peak": 200 << 20, "private": 90 << 20, "shared": 110 << 20},
+                "missing": {}}
+
+    def peer(p50: float = 1000.0, mb: float = 1500.0) -> dict[str, Any]:
+        return {"watchers": _watchers(p50=p50, p99=3000.0, labels=("subscriber 1", "subscriber 2")),
+                "total": {"mb_per_s": mb, "bytes": 1}, "frames": 60, "size": 1 << 20}
+
+    remote = phase()
+    remote["watchers"] = _watchers(labels=(REMOTE,))
+    remote["watchers"][REMOTE]["shared"] = 0
+    return {"size": 1 << 20, "big": 6 << 20, "hz": 30, "history_bytes": 64 << 20, "server_memory_idle": 80 << 20,
             "floor": [{"mb_per_s": 300.0, "p50_us": 3000.0}],
-            **{f"cast_{d}_{p}": copy.deepcopy(phase) for d in ("queue", "latest") for p in ("hz", "b2b")},
-            **{f"{n}_{p}": copy.deepcopy(peer) for n in ("zenoh", "redis") for p in ("hz", "b2b")}}
+            "cast_queue_hz": phase(), "cast_queue_hz_6m": phase(p99=9000.0), "cast_queue_b2b": phase(),
+            "cast_latest_b2b": phase(), "cast_remote": remote,
+            "zenoh_hz": peer(), "zenoh_hz_6m": peer(p50=5000.0), "zenoh_b2b": peer(),
+            "iceoryx2_hz": peer(p50=150.0), "iceoryx2_b2b": peer(mb=6000.0)}
 
 
-def test_m8_targets() -> None:
+def test_m8_is_met_when_every_target_is() -> None:
     assert m8_misses(_m8()) == [] and m8_row(_m8())["met"]
-    slow = _m8()
-    slow["cast_latest_hz"]["watchers"]["Java"]["p99_us"] = 20_001.0
-    assert [m for m in m8_misses(slow) if "Java p99" in m]
-    lost = _m8()
-    lost["cast_queue_b2b"]["watchers"]["C++"]["lost"] = 1
-    assert m8_misses(lost) == ["queue b2b: C++ lost 1"]
-    thin = _m8()
-    thin["cast_queue_b2b"]["total"]["mb_per_s"] = 149.0  # < 0.5 x 300
-    assert len(m8_misses(thin)) == 1
-    fat = _m8()
-    fat["cast_latest_b2b"]["server_rss_peak"] = m8_rss_bound(fat) + 1
-    assert "server RSS peak" in m8_misses(fat)[0]
     assert not m8_row({"error": "C++ not built"})["met"]
+
+
+@pytest.mark.parametrize(
+    ("change", "miss"),
+    [
+        (lambda m: m["cast_queue_hz"]["watchers"]["Java"].update(p50_us=1001.0), "Java p50 1001 µs > 1.0 x Zenoh"),
+        (lambda m: m["cast_queue_hz"]["watchers"]["C++"].update(p99_us=5001.0), "C++ p99 5001 µs > 5000"),
+        (lambda m: m["cast_queue_hz_6m"]["watchers"]["Python 2"].update(p99_us=10_001.0), "p99 10001 µs > 10000"),
+        (lambda m: m["cast_queue_hz_6m"]["watchers"]["Python 1"].update(lost=1), "30 Hz: Python 1 lost 1"),
+        (lambda m: m["cast_latest_b2b"]["watchers"]["C++"].update(checksum_ok=False), "C++'s checksum"),
+        (lambda m: m["cast_queue_b2b"]["total"].update(mb_per_s=1499.0), "1499.0 MB/s to the four < 1.0 x Zenoh"),
+        (lambda m: m["cast_queue_b2b"].update(missing={"Java": "Java not built"}), "Java: Java not built"),
+        (lambda m: m.update(cast_queue_hz_6m={"error": "history overrun"}), "6 MiB, queue, 30 Hz: history overrun"),
+        (lambda m: m["cast_remote"]["watchers"][REMOTE].update(bytes=1), "received 1 bytes, not 60 x 1048576"),
+        (lambda m: m["cast_remote"]["watchers"][REMOTE].update(shared=3), "got 3 values by shared memory"),
+        (lambda m: m["cast_remote"]["watchers"][REMOTE].update(lost=2), "other host: Python, other host lost 2"),
+        (lambda m: m.update(cast_remote={"error": "`ip netns add` failed"}), "`ip netns add` failed"),
+        (lambda m: m.update(iceoryx2_hz={"error": "iceoryx2 not measured"}), "iceoryx2, 1 MiB, 30 Hz: iceoryx2 not"),
+        (lambda m: m.update(zenoh_b2b={"error": "no zenoh"}), "Zenoh, 1 MiB, back to back: no zenoh"),
+        (lambda m: m["cast_latest_b2b"]["server_memory"].update(peak=m8_memory_bound(m) + 1), "server memory peak"),
+    ],
+)
+def test_m8_misses_each_target(change: Callable[[dict[str, Any]], None], miss: str) -> None:
+    m8 = _m8()
+    change(m8)
+    misses = m8_misses(m8)
+    assert len(misses) == 1 and miss in misses[0], misses
+    row = m8_row(m8)
+    assert not row["met"] and miss in row["note"]
+
+
+def test_m8_figures_name_the_peers_and_say_what_was_not_measured() -> None:
+    figures = {f["name"]: f for f in m8_row(_m8())["figures"]}
+    p50 = figures["1 MiB, queue, 30 Hz, Java: p50 (µs)"]
+    assert (p50["value"], p50["floor"], p50["peer"]) == (900.0, 150.0, 1000.0)  # floor iceoryx2, peer Zenoh
+    b2b = figures["1 MiB, queue, back to back: MB/s delivered, all watchers"]
+    assert (b2b["floor"], b2b["peer"]) == (6000.0, 1500.0)
+    broken = _m8()
+    broken["iceoryx2_b2b"] = {"error": "iceoryx2 not measured: no module"}
+    assert any(name.startswith("iceoryx2, 1 MiB, back to back: not measured (iceoryx2 not measured: no module")
+               for name in (f["name"] for f in m8_row(broken)["figures"]))
 
 
 def _m9(p99_10: float, p99_500: float, lost: int = 0) -> dict[str, Any]:
@@ -208,3 +277,22 @@ def test_plot_panels_writes_a_png_with_a_log_panel(tmp_path: Path) -> None:
     plot_panels(out, [10, 100, 500], {"latency (µs)": {"p50": [1, 10, 100], "p99": [2, 20, 200]},
                                       "cpu": {"cpu": [0.1, 0.5, 0.7]}}, "sessions", "M9", log_y=["latency (µs)"])
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_server_memory_counts_each_memory_file_once_at_its_full_size() -> None:
+    before = shared_bytes(os.getpid())
+    fd = os.memfd_create("m8-test")
+    try:
+        os.ftruncate(fd, 3 << 20)
+        first = mmap.mmap(fd, 3 << 20)
+        second = mmap.mmap(fd, 1 << 20)  # a second mapping of the same file: not counted twice
+        assert shared_bytes(os.getpid()) - before == 3 << 20  # mapped and open, untouched: its whole size
+        os.close(fd)
+        fd = -1
+        assert shared_bytes(os.getpid()) - before == 3 << 20  # mapped only
+        first.close()
+        second.close()
+        assert shared_bytes(os.getpid()) == before
+    finally:
+        if fd >= 0:
+            os.close(fd)

@@ -49,6 +49,7 @@ from google.protobuf import (
 from google.protobuf.descriptor import Descriptor, FileDescriptor
 from google.protobuf.message import DecodeError
 
+from cast.core.large_fields import bytes_fields, without_large_bytes
 from cast.core.schema_compare import first_difference
 from cast.errors import InvalidArgumentError, NotFoundError, SchemaConflictError
 
@@ -77,6 +78,7 @@ class SchemaRegistry:
         self._files: dict[str, FileProto] = {}
         self._own: set[str] = set()  # the server's files: client copies are ignored
         self._classes: dict[str, type[message.Message]] = {}
+        self._bytes_fields: dict[str, frozenset[int]] = {}  # per type: its top-level bytes fields (validate)
         # Told (name, serialised file) of every newly added file, under the registry's mutex, so a
         # journal stores schemas in registration order (cast.core.journal.Journal.append_schemas).
         self.on_added: Callable[[list[tuple[str, bytes]]], None] | None = None
@@ -247,12 +249,21 @@ class SchemaRegistry:
         return cls
 
     def validate(self, type_name: str, data: bytes | memoryview) -> None:
-        """INVALID_ARGUMENT if ``data`` does not parse as ``type_name`` (unknown types pass)."""
+        """INVALID_ARGUMENT if ``data`` does not parse as ``type_name`` (unknown types pass).
+
+        Large ``bytes`` fields are left out of the parse (:mod:`cast.core.large_fields`): they
+        cannot fail it, and copying them is most of what it would cost.
+        """
         cls = self._message_class(type_name)
         if cls is None:
             return
+        numbers = self._bytes_fields.get(type_name)
+        if numbers is None:
+            numbers = self._bytes_fields[type_name] = bytes_fields(self._pool.FindMessageTypeByName(type_name))
+        lighter = without_large_bytes(data, numbers)
         try:
-            cls.FromString(data)  # type: ignore[arg-type]  # upb parses any buffer: a view of shared memory too
+            # upb parses any buffer: a view of shared memory too
+            cls.FromString(data if lighter is None else lighter)  # type: ignore[arg-type]
         except (DecodeError, RuntimeError) as exc:
             raise InvalidArgumentError(
                 f"value does not parse as {type_name} ({exc}): the bytes were written with another type "

@@ -1,5 +1,6 @@
 package cast.bench;
 
+import cast.client.CastError;
 import cast.client.Component;
 import cast.client.Filters;
 import cast.client.LaunchContract;
@@ -64,6 +65,9 @@ import java.util.concurrent.TimeUnit;
  * time.perf_counter_ns.
  */
 public final class Bench {
+  /** Counted down at the end of an image watch: its DELETE, or the watch failing. */
+  private static final CountDownLatch WATCH_ENDED = new CountDownLatch(1);
+
   private static final BytesValue VALUE =
       BytesValue.newBuilder().setValue(ByteString.copyFromUtf8("x".repeat(100))).build();
 
@@ -82,7 +86,16 @@ public final class Bench {
       System.err.println("usage: Bench image-write SIZE N GAP_US");
       System.exit(2);
     }
-    UnmanagedComponent c = Runner.connect(new UnmanagedComponent() {}, LaunchContract.fromEnv());
+    UnmanagedComponent c =
+        Runner.connect(
+            new UnmanagedComponent() {
+              @Override
+              public void watchFailed(CastError error) throws Exception {
+                super.watchFailed(error);
+                WATCH_ENDED.countDown(); // image-watch ends now rather than at its timeout
+              }
+            },
+            LaunchContract.fromEnv());
     try {
       switch (argv[0]) {
         case "add" -> add(c, n, argv.length > 2 ? Integer.parseInt(argv[2]) : 200);
@@ -189,7 +202,7 @@ public final class Bench {
     List<BytesValue> values = new ArrayList<>(); // made before the clock starts
     for (int k = 0; k < 2; k++) {
       byte[] b = new byte[size];
-      java.util.Arrays.fill(b, (byte) (k % 251));
+      java.util.Arrays.fill(b, (byte) (k + 1)); // never 0: a watcher that read no byte cannot match
       values.add(BytesValue.newBuilder().setValue(ByteString.copyFrom(b)).build());
     }
     c.add("img", values.get(0));
@@ -229,7 +242,16 @@ public final class Bench {
   private static void imageWatch(Component c, String delivery) throws InterruptedException {
     Map<Long, Long> stamps = new TreeMap<>();
     long[] totals = new long[5]; // bytes, events, skipped, checksums, values by shared memory
-    CountDownLatch ended = new CountDownLatch(1);
+    CountDownLatch ended = WATCH_ENDED;
+    // The checksum compiled before the first frame, on the kind of buffer a view gives (direct,
+    // read-only): interpreted, it reads 6 MiB in a good part of a second and the watcher falls
+    // behind the server's history.
+    ByteBuffer warm = ByteBuffer.allocateDirect(1 << 20).asReadOnlyBuffer();
+    long warmSum = 0;
+    for (int i = 0; i < 50; i++) {
+      warmSum += checksum(warm);
+    }
+    System.err.println("checksum warmed up (" + warmSum + ")");
     WatchOptions options = delivery.equals("latest") ? WatchOptions.latest() : WatchOptions.queue();
     c.onChange(
         Filters.addressFilter("img").withEntry(),
