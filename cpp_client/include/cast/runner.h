@@ -29,8 +29,8 @@
 #include "cast/args.h"
 #include "cast/component.h"
 #include "cast/credentials.h"
+#include "cast/basic_types.h"
 #include "cast/grpc_transport.h"
-#include "cast/transport.h"
 
 namespace cast {
 
