@@ -26,7 +26,7 @@ namespace cast {
 // src/transport.h); connectGrpc makes one.
 namespace detail {
 class Transport;
-}
+}  // namespace detail
 
 // How connectGrpc talks to the system (the runner fills it from the launch
 // contract; cast::connect from its ConnectOptions, see cast/connect.h).
@@ -40,10 +40,10 @@ struct TransportOptions {
 };
 
 // Connects to the directory at `endpoint` (host:port) and learns where each
-// SA is served; the transport is opaque: bind a component to it, or give it to
-// cast::connect or runComponent. Throws UnavailableError if the server cannot be reached,
-// UnauthenticatedError if the token is refused, InvalidArgumentError for
-// unreadable TLS files.
+// SA is served. The transport is opaque: bind a component to it, or give it
+// to cast::connect or runComponent. Throws UnavailableError if the server
+// cannot be reached, UnauthenticatedError if the token is refused,
+// InvalidArgumentError for unreadable TLS files.
 std::shared_ptr<detail::Transport> connectGrpc(const std::string& endpoint, const std::string& token,
                                                const Identity& identity, const TransportOptions& options = {});
 

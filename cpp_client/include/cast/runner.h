@@ -27,9 +27,9 @@
 #include <string>
 
 #include "cast/args.h"
+#include "cast/basic_types.h"
 #include "cast/component.h"
 #include "cast/credentials.h"
-#include "cast/basic_types.h"
 #include "cast/grpc_transport.h"
 
 namespace cast {
