@@ -2,7 +2,9 @@
 # CAST_INSTALL is on, the default for a top-level build): what an outside project needs to
 # find_package(cast 0.1 CONFIG REQUIRED) and link cast::client, or to use pkg-config.
 #
-#   PREFIX/include/cast/*.h            the library's headers
+#   PREFIX/include/cast/*.h            the library's headers (the API; docs/cpp.md, "Headers")
+#   PREFIX/include/cast/detail/*.h     what their templates need that is not the API (cpp_client/src,
+#                                      the rest of the machinery, is not installed)
 #   PREFIX/include/cast/v1/*.pb.h      the generated headers of the wire API (raw stubs)
 #   PREFIX/lib/libcast_client.a|.so    the library (BUILD_SHARED_LIBS chooses)
 #   PREFIX/lib/libcast_v1_proto.a      the wire API's code (linked into a shared library; a

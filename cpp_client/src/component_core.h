@@ -14,6 +14,7 @@
 
 #include "cast/component.h"
 #include "dispatcher.h"
+#include "transport.h"
 
 namespace cast::detail {
 

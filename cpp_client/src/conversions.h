@@ -13,7 +13,7 @@
 #include <vector>
 
 #include "cast/filters.h"
-#include "cast/transport.h"
+#include "transport.h"
 #include "cast/types.h"
 #include "cast/v1/task_manager.pb.h"
 #include "cast/v1/working_memory.pb.h"

@@ -17,6 +17,7 @@
 
 #include "cast/errors.h"
 #include "grpc_server.h"
+#include "jwt.h"
 
 namespace cast {
 

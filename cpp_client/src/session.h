@@ -16,7 +16,7 @@
 
 #include "backoff.h"
 #include "cast/log.h"
-#include "cast/transport.h"
+#include "transport.h"
 #include "grpc_server.h"
 
 namespace cast::detail {

@@ -26,7 +26,7 @@
 #include "cast/credentials.h"
 #include "cast/errors.h"
 #include "cast/log.h"
-#include "cast/transport.h"
+#include "transport.h"
 #include "cast/v1/directory.pb.h"
 #include "shm_session.h"
 

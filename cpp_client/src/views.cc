@@ -30,8 +30,10 @@ ByteSpan ByteSpan::subspan(std::size_t offset, std::size_t count) const {
   return ByteSpan(data_ + offset, count == npos ? size_ - offset : std::min(count, size_ - offset));
 }
 
-namespace detail {
+namespace {
 
+// The bytes of top-level field `number` of the serialised message `data`
+// (see ValueView::field); `what` names the value in errors.
 ByteSpan fieldOf(ByteSpan data, int number, const std::string& what) {
   ByteSpan found(data.data(), 0);
   std::size_t at = 0;
@@ -70,7 +72,7 @@ ByteSpan fieldOf(ByteSpan data, int number, const std::string& what) {
   return found;
 }
 
-}  // namespace detail
+}  // namespace
 
 const detail::EntryRecord& ValueView::held() const {
   if (!record_) throw InvalidArgumentError("this view was released: read the entry again");
@@ -84,7 +86,7 @@ ByteSpan ValueView::data() const {
 
 ByteSpan ValueView::field(int number) const {
   const detail::EntryRecord& r = held();
-  return detail::fieldOf(data(), number, "entry '" + r.address.id + "' in subarchitecture '" +
+  return fieldOf(data(), number, "entry '" + r.address.id + "' in subarchitecture '" +
                                              r.address.subarchitecture + "'");
 }
 

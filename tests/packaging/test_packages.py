@@ -223,6 +223,13 @@ def test_the_installed_library_has_headers_package_and_pkg_config(prefix: Path) 
     assert (prefix / "include" / "cast" / "testing.h").is_file()
     assert list((prefix / "lib").glob("libcast_testing.*"))
     assert (prefix / "include" / "cast" / "v1" / "directory.grpc.pb.h").is_file()
+    # The headers are the tree's include/cast (the API, and detail/ that its templates need; docs/cpp.md,
+    # "Headers"): nothing of cpp_client/src, such as the transport interface, is installed.
+    headers = {str(p.relative_to(prefix / "include")) for p in (prefix / "include" / "cast").rglob("*.h")
+               if p.parent.name != "v1"}
+    tree = ROOT / "cpp_client" / "include"
+    assert headers == {str(p.relative_to(tree)) for p in (tree / "cast").rglob("*.h")}, headers
+    assert "cast/detail/records.h" in headers and "cast/transport.h" not in headers
     package = prefix / "lib" / "cmake" / "cast"
     assert {"castConfig.cmake", "castConfigVersion.cmake", "castTargets.cmake", "CastProtobuf.cmake"} <= {
         p.name for p in package.iterdir()}

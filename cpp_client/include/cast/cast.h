@@ -2,6 +2,7 @@
 #pragma once
 
 #include "cast/args.h"
+#include "cast/basic_types.h"
 #include "cast/component.h"
 #include "cast/connect.h"
 #include "cast/credentials.h"

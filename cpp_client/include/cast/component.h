@@ -29,7 +29,6 @@
 #include "cast/errors.h"
 #include "cast/filters.h"
 #include "cast/log.h"
-#include "cast/transport.h"
 #include "cast/types.h"
 #include "cast/views.h"
 
@@ -37,9 +36,11 @@ namespace cast {
 
 class Component;
 
+// Internal: what a component is bound to, and its state.
 namespace detail {
 class ComponentCore;
-}
+class Transport;
+}  // namespace detail
 
 // A held lock: unlocks one level when it goes out of scope (RAII), unless
 // unlock() or release() was called. Move-only.

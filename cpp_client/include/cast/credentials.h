@@ -12,8 +12,7 @@
 // the claims only where it must know them before that (cast::connect), and
 // mints a token itself only when it holds the system's secret (a script).
 //
-// This is the public header of credentials.cc; cast/token.h, its name before,
-// includes it.
+// This is the public header of credentials.cc.
 #pragma once
 
 #include <chrono>
@@ -24,7 +23,7 @@
 #include <string>
 #include <utility>
 
-#include "cast/transport.h"
+#include "cast/basic_types.h"
 
 namespace cast {
 
@@ -77,14 +76,5 @@ std::optional<Identity> peekToken(const std::string& token);
 // accepts it if `secret` is the system's secret. InvalidArgumentError for a
 // secret shorter than 32 bytes, which HS256 does not allow (RFC 7518, 3.2).
 std::string mintToken(const std::string& secret, const Identity& identity, std::int64_t issuedAt);
-
-namespace detail {
-// base64url without padding (RFC 7515, section 2), as JWTs write their parts.
-std::string base64UrlEncode(const std::string& bytes);
-// The bytes of base64url text (padding optional); nullopt if it is not base64url.
-std::optional<std::string> base64UrlDecode(const std::string& text);
-// The JWT signature of `signingInput` ("header.payload"): base64url(HMAC-SHA256(secret, input)).
-std::string signHs256(const std::string& signingInput, const std::string& secret);
-}  // namespace detail
 
 }  // namespace cast

@@ -17,10 +17,16 @@
 #include <optional>
 #include <string>
 
-#include "cast/credentials.h"  // ClientTls and TokenSource, declared here before
-#include "cast/transport.h"
+#include "cast/basic_types.h"
+#include "cast/credentials.h"
 
 namespace cast {
+
+// The transport a component is bound to: internal (the library's
+// src/transport.h); connectGrpc makes one.
+namespace detail {
+class Transport;
+}  // namespace detail
 
 // How connectGrpc talks to the system (the runner fills it from the launch
 // contract; cast::connect from its ConnectOptions, see cast/connect.h).
@@ -34,9 +40,10 @@ struct TransportOptions {
 };
 
 // Connects to the directory at `endpoint` (host:port) and learns where each
-// SA is served. Throws UnavailableError if the server cannot be reached,
-// UnauthenticatedError if the token is refused, InvalidArgumentError for
-// unreadable TLS files.
+// SA is served. The transport is opaque: bind a component to it, or give it
+// to cast::connect or runComponent. Throws UnavailableError if the server
+// cannot be reached, UnauthenticatedError if the token is refused,
+// InvalidArgumentError for unreadable TLS files.
 std::shared_ptr<detail::Transport> connectGrpc(const std::string& endpoint, const std::string& token,
                                                const Identity& identity, const TransportOptions& options = {});
 

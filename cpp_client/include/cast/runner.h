@@ -27,10 +27,10 @@
 #include <string>
 
 #include "cast/args.h"
+#include "cast/basic_types.h"
 #include "cast/component.h"
 #include "cast/credentials.h"
 #include "cast/grpc_transport.h"
-#include "cast/transport.h"
 
 namespace cast {
 

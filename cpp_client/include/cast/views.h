@@ -27,6 +27,7 @@
 #include <span>
 #endif
 
+#include "cast/detail/records.h"
 #include "cast/errors.h"
 #include "cast/types.h"
 
@@ -107,9 +108,7 @@ class ValueView {
   // The value as a T message (a copy, as Component::get<T> gives).
   template <class T>
   T decode() const {
-    const detail::EntryRecord& r = held();
-    return detail::decode<T>(r.type, r.bytes(), "entry '" + r.address.id + "'", r.address.subarchitecture,
-                             "it was written corrupt or with another schema; overwrite or delete it");
+    return detail::decodeEntry<T>(held());
   }
   // Gives the value back now (the destructor does it otherwise); spans taken
   // from the view end with it. Idempotent.
@@ -121,11 +120,5 @@ class ValueView {
 };
 
 std::ostream& operator<<(std::ostream& os, const ValueView& view);
-
-namespace detail {
-// The bytes of top-level field `number` of the serialised message `data`
-// (see ValueView::field); `what` names the value in errors.
-ByteSpan fieldOf(ByteSpan data, int number, const std::string& what);
-}  // namespace detail
 
 }  // namespace cast

@@ -21,6 +21,7 @@
 #include "cast/runner.h"
 #include "cast/v1/directory.grpc.pb.h"
 #include "cast/v1/inspection.grpc.pb.h"
+#include "jwt.h"
 #include "serve_process.h"
 
 namespace cast::testing {

@@ -13,6 +13,7 @@
 
 #include "cast/connect.h"
 #include "cast/grpc_transport.h"
+#include "transport.h"
 
 namespace cast::testing {
 

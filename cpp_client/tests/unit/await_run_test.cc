@@ -13,8 +13,10 @@
 #include <mutex>
 #include <thread>
 
+#include "cast/errors.h"
 #include "cast/grpc_transport.h"
 #include "cast/v1/directory.grpc.pb.h"
+#include "transport.h"
 
 namespace {
 

@@ -10,10 +10,11 @@
 #include <future>
 
 #include "cast/connect.h"
-#include "cast/token.h"
+#include "cast/credentials.h"
 #include "cast_testing.pb.h"
 #include "connect_resolve.h"
 #include "fake_transport.h"
+#include "jwt.h"
 
 namespace {
 

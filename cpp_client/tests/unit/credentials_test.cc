@@ -12,7 +12,7 @@
 #include "cast/credentials.h"
 #include "cast/errors.h"
 #include "cast/grpc_transport.h"
-#include "cast/token.h"  // the header's name before cast/credentials.h: must still compile
+#include "jwt.h"
 
 namespace {
 

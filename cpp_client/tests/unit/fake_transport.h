@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "cast/transport.h"
+#include "transport.h"
 
 namespace cast::testing {
 

@@ -91,6 +91,17 @@ std::vector<shm::Frame> framesFrom(int socket, shm::FrameReader& reader) {
   return out;
 }
 
+// A reference to `size` bytes at `offset` of segment `segment`, lent as value `valueId`.
+cast::v1::SharedValue reference(std::uint32_t segment, std::uint64_t offset, std::uint64_t size,
+                                std::uint64_t valueId = 0) {
+  cast::v1::SharedValue ref;
+  ref.set_segment(segment);
+  ref.set_offset(offset);
+  ref.set_size(size);
+  ref.set_value_id(valueId);
+  return ref;
+}
+
 // A session over a socket pair: the test holds the server's end.
 struct Pair {
   Pair() {
@@ -114,6 +125,13 @@ struct Pair {
     session.reset();
     ::close(server);
     ::close(staging);
+  }
+  // Maps segment `id` of `size` bytes holding `fill` into the session, as the
+  // server's SEGMENT frame does.
+  void offerSegment(std::uint32_t id, const std::string& fill, std::size_t size) {
+    const int segment = sealedFile(fill, size);
+    sendWith(server, frame(shm::kSegment, le(id, 4) + le(size, 8)), segment);
+    ::close(segment);
   }
   static constexpr std::size_t kStaging = 64 * 1024;
   int server = -1;
@@ -241,17 +259,11 @@ TEST(SharedMemorySession, AValueLentIsReadInPlaceAndGivenBackWhenTheLastHolderGo
   Pair p;
   std::string pixels(3 * 4096, '\0');
   for (std::size_t i = 0; i < pixels.size(); ++i) pixels[i] = static_cast<char>(i % 251);
-  const int segment = sealedFile(pixels, 4 * 4096);
-  sendWith(p.server, frame(shm::kSegment, le(5, 4) + le(4 * 4096, 8)), segment);
-  ::close(segment);
+  p.offerSegment(5, pixels, 4 * 4096);
 
   auto call = p.session->newCall();
   EXPECT_EQ(call->metadata(), repeat("01", 16) + "/1");
-  cast::v1::SharedValue ref;
-  ref.set_segment(5);
-  ref.set_offset(4096);
-  ref.set_size(100);
-  ref.set_value_id(77);
+  const cast::v1::SharedValue ref = reference(5, 4096, 100, 77);
   std::shared_ptr<const cast::detail::LentBytes> lent = call->claim(ref);
   EXPECT_EQ(std::string(lent->data(), lent->size()), pixels.substr(4096, 100));
   EXPECT_EQ(p.session->segments(), 1u);
@@ -281,13 +293,9 @@ TEST(SharedMemorySession, AValueLentIsReadInPlaceAndGivenBackWhenTheLastHolderGo
 
 TEST(SharedMemorySession, ALongCallSaysWhatItReceivedEvery64Values) {
   Pair p;
-  const int segment = sealedFile(std::string(4096, 's'), 4096);
-  sendWith(p.server, frame(shm::kSegment, le(1, 4) + le(4096, 8)), segment);
-  ::close(segment);
+  p.offerSegment(1, std::string(4096, 's'), 4096);
   auto call = p.session->newCall();
-  cast::v1::SharedValue ref;
-  ref.set_segment(1);
-  ref.set_size(10);
+  cast::v1::SharedValue ref = reference(1, 0, 10);
   std::vector<std::shared_ptr<const cast::detail::LentBytes>> held;
   for (int i = 0; i < 64; ++i) {
     ref.set_value_id(static_cast<std::uint64_t>(i));
@@ -304,17 +312,10 @@ TEST(SharedMemorySession, ALongCallSaysWhatItReceivedEvery64Values) {
 
 TEST(SharedMemorySession, AReferenceThatDoesNotFitOrNamesNoSegmentIsRefusedAndGivenBack) {
   Pair p;
-  const int segment = sealedFile(std::string(4096, 's'), 4096);
-  sendWith(p.server, frame(shm::kSegment, le(1, 4) + le(4096, 8)), segment);
-  ::close(segment);
+  p.offerSegment(1, std::string(4096, 's'), 4096);
   auto call = p.session->newCall();
-  cast::v1::SharedValue ref;
-  ref.set_segment(1);
-  ref.set_offset(4000);
-  ref.set_size(200);  // past the segment's end
-  ref.set_value_id(9);
   try {
-    call->claim(ref);
+    call->claim(reference(1, 4000, 200, 9));  // past the segment's end
     FAIL() << "a reference past its segment was read";
   } catch (const cast::UnavailableError& e) {
     EXPECT_NE(e.message().find("which has 4096"), std::string::npos) << e.message();
@@ -325,10 +326,7 @@ TEST(SharedMemorySession, AReferenceThatDoesNotFitOrNamesNoSegmentIsRefusedAndGi
   EXPECT_EQ(frames[0].body, le(9, 8));
   // A segment never sent, from a server that is gone: refused at once.
   ::shutdown(p.server, SHUT_RDWR);
-  ref.set_segment(2);
-  ref.set_offset(0);
-  ref.set_size(1);
-  EXPECT_THROW(call->claim(ref), cast::UnavailableError);
+  EXPECT_THROW(call->claim(reference(2, 0, 1, 9)), cast::UnavailableError);
   EXPECT_TRUE(p.session->dead());
   EXPECT_EQ(p.session->why(), "the server closed the session");
   EXPECT_FALSE(p.session->stage(std::string(2000, 'z')));  // a dead session stages nothing
@@ -336,14 +334,9 @@ TEST(SharedMemorySession, AReferenceThatDoesNotFitOrNamesNoSegmentIsRefusedAndGi
 
 TEST(SharedMemorySession, ALentValueIsMappedReadOnly) {
   Pair p;
-  const int segment = sealedFile(std::string(4096, 'r'), 4096);
-  sendWith(p.server, frame(shm::kSegment, le(1, 4) + le(4096, 8)), segment);
-  ::close(segment);
+  p.offerSegment(1, std::string(4096, 'r'), 4096);
   auto call = p.session->newCall();
-  cast::v1::SharedValue ref;
-  ref.set_segment(1);
-  ref.set_size(4096);
-  auto lent = call->claim(ref);
+  auto lent = call->claim(reference(1, 0, 4096));
   void* page = const_cast<char*>(lent->data());
   EXPECT_NE(::mprotect(page, 4096, PROT_READ | PROT_WRITE), 0);  // the seal refuses it
   EXPECT_EQ(errno, EACCES);

@@ -1,7 +1,10 @@
-// How a component reaches its working memories. Components never use this
-// directly: the runner binds a component to a transport (GrpcTransport for a
-// real system); tests may bind one of their own. Values cross this interface
-// serialised, so nothing the component holds is ever shared with the WM.
+// The `transport` of the client file map (docs/design.md, "Client
+// libraries"): how a component reaches its working memories. Internal, not
+// installed: components never use it; Component::bind, cast::connect and the
+// runner take the transport connectGrpc (cast/grpc_transport.h) returns, and
+// the unit tests bind fakes of their own (tests/unit/fake_transport.h).
+// Values cross this interface serialised, so nothing the component holds is
+// ever shared with the WM.
 #pragma once
 
 #include <google/protobuf/descriptor.pb.h>
@@ -16,18 +19,12 @@
 #include <string>
 #include <vector>
 
+#include "cast/basic_types.h"
 #include "cast/errors.h"
 #include "cast/filters.h"
 #include "cast/types.h"
 
 namespace cast {
-
-// Who a component is: its id, its SA, and whether it may write every SA.
-struct Identity {
-  std::string componentId;
-  std::string subarchitecture;
-  bool privileged = false;
-};
 
 namespace detail {
 
