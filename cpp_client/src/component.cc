@@ -218,15 +218,16 @@ std::string Component::newId() {
   return core_->idPrefix + std::to_string(++core_->idCounter);
 }
 
-std::pair<std::string, std::string> Component::serialise(const google::protobuf::Message& value) {
+std::pair<std::string, std::string> Component::serialise(const google::protobuf::Message& value,
+                                                         const std::string& sa) {
   detail::Transport& t = core().transport();
   const google::protobuf::Descriptor* descriptor = value.GetDescriptor();
   const std::string& name = descriptor->full_name();
   {
     std::lock_guard<std::mutex> lock(core_->schemaMu);
-    if (core_->registeredTypes.count(name) == 0) {
-      t.registerSchemas(schemaFilesOf(descriptor));
-      core_->registeredTypes.insert(name);
+    if (core_->registeredTypes.count({name, sa}) == 0) {
+      t.registerSchemas(schemaFilesOf(descriptor), sa);
+      core_->registeredTypes.insert({name, sa});
     }
   }
   std::string data;
@@ -238,27 +239,31 @@ std::pair<std::string, std::string> Component::serialise(const google::protobuf:
 
 WriteResult Component::add(const std::string& id, const google::protobuf::Message& value,
                            const std::string& subarchitecture) {
-  auto [type, data] = serialise(value);
-  return core().transport().add(targetSa(subarchitecture), id, type, data);
+  const std::string sa = targetSa(subarchitecture);
+  auto [type, data] = serialise(value, sa);
+  return core().transport().add(sa, id, type, data);
 }
 
 WriteResult Component::overwrite(const std::string& id, const google::protobuf::Message& value,
                                  const std::string& subarchitecture, std::optional<std::uint64_t> expectedVersion) {
-  auto [type, data] = serialise(value);
-  return core().transport().overwrite(targetSa(subarchitecture), id, type, data, expectedVersion);
+  const std::string sa = targetSa(subarchitecture);
+  auto [type, data] = serialise(value, sa);
+  return core().transport().overwrite(sa, id, type, data, expectedVersion);
 }
 
 std::future<WriteResult> Component::addAsync(const std::string& id, const google::protobuf::Message& value,
                                              const std::string& subarchitecture) {
-  auto [type, data] = serialise(value);
-  return core().transport().addAsync(targetSa(subarchitecture), id, type, data);
+  const std::string sa = targetSa(subarchitecture);
+  auto [type, data] = serialise(value, sa);
+  return core().transport().addAsync(sa, id, type, data);
 }
 
 std::future<WriteResult> Component::overwriteAsync(const std::string& id, const google::protobuf::Message& value,
                                                    const std::string& subarchitecture,
                                                    std::optional<std::uint64_t> expectedVersion) {
-  auto [type, data] = serialise(value);
-  return core().transport().overwriteAsync(targetSa(subarchitecture), id, type, data, expectedVersion);
+  const std::string sa = targetSa(subarchitecture);
+  auto [type, data] = serialise(value, sa);
+  return core().transport().overwriteAsync(sa, id, type, data, expectedVersion);
 }
 
 WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,
@@ -279,7 +284,7 @@ std::vector<WriteResult> Component::batch(const std::vector<BatchWrite>& writes,
       if (w.value == nullptr) {
         throw InvalidArgumentError(std::string("batch ") + toString(w.operation) + " of '" + w.id + "' needs a value");
       }
-      std::tie(op.type, op.data) = serialise(*w.value);
+      std::tie(op.type, op.data) = serialise(*w.value, target);
     }
     ops.push_back(std::move(op));
   }
@@ -349,7 +354,7 @@ Task ManagedComponent::proposeTask(const std::string& name, std::int32_t priorit
 
 Task ManagedComponent::proposeTask(const std::string& name, const google::protobuf::Message& data,
                                    std::int32_t priority) {
-  auto [type, bytes] = serialise(data);
+  auto [type, bytes] = serialise(data, core().identity.subarchitecture);
   return Task(core().transport().propose(name, type, bytes, priority));
 }
 

@@ -73,7 +73,7 @@ class ComponentCore : public std::enable_shared_from_this<ComponentCore> {
   std::uint32_t nextWatchId = 1;
 
   std::mutex schemaMu;  // held while registering, so a type is registered once
-  std::set<std::string> registeredTypes;
+  std::set<std::pair<std::string, std::string>> registeredTypes;  // (type, SA) the SA's server was told of
 
   std::atomic<ComponentState> state{ComponentState::Starting};
   mutable std::mutex stopMu;

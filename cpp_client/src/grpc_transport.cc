@@ -220,12 +220,11 @@ class GrpcTransport final : public Transport {
 
   // ---------------------------------------------------------------- schemas
 
-  void registerSchemas(const google::protobuf::FileDescriptorSet& files) override {
+  void registerSchemas(const google::protobuf::FileDescriptorSet& files, const std::string& sa) override {
     v1::RegisterSchemasRequest req;
     *req.mutable_files() = files;
-    for (Server* s : allServers()) {
-      call<v1::RegisterSchemasResponse>([&](auto* ctx, auto* r) { return s->dir->RegisterSchemas(ctx, req, r); });
-    }
+    Server& s = server(sa);
+    call<v1::RegisterSchemasResponse>([&](auto* ctx, auto* r) { return s.dir->RegisterSchemas(ctx, req, r); });
   }
 
   // ---------------------------------------------------------------- watching

@@ -83,8 +83,8 @@ class Transport {
   virtual std::uint32_t unlock(const std::string& sa, const std::string& id) = 0;
 
   // Registers .proto files (a type's file and everything it imports) with
-  // every server of the system.
-  virtual void registerSchemas(const google::protobuf::FileDescriptorSet& files) = 0;
+  // the server of `sa`.
+  virtual void registerSchemas(const google::protobuf::FileDescriptorSet& files, const std::string& sa) = 0;
 
   // Where events and stream failures go; called before the first watch.
   virtual void setEventSink(EventSink sink, ErrorSink onError) = 0;

@@ -285,8 +285,10 @@ class Component {
   // Called at the end of bind(); ManagedComponent opens its decision stream.
   virtual void onBound() {}
   detail::ComponentCore& core() const;
-  // The serialised value, registering its type's schema first if needed.
-  std::pair<std::string, std::string> serialise(const google::protobuf::Message& value);
+  // The serialised value, registering its type's schema with the server of
+  // `sa` first if not yet done (only that server: one that hangs or is away
+  // cannot hold up writes to the others).
+  std::pair<std::string, std::string> serialise(const google::protobuf::Message& value, const std::string& sa);
 
  private:
   detail::EntryRecord readEntry(const std::string& id, const std::string& subarchitecture);

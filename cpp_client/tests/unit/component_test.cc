@@ -199,6 +199,19 @@ TEST(Component, RegistersEachTypesSchemaOnceBeforeItsFirstWrite) {
   EXPECT_EQ(b.transport->registered.size(), 2u);
 }
 
+TEST(Component, RegistersATypeWithTheServerOfEachSaItIsWrittenToAndNoOther) {
+  Bound b;
+  b.component.add("e1", counter("a", 1));
+  b.component.add("e1", counter("a", 1), "motor");
+  b.component.overwrite("e1", counter("a", 2), "motor");
+  Counter c3 = counter("a", 3);
+  b.component.batch({cast::BatchWrite{Operation::Add, "e2", &c3, std::nullopt}}, "motor");
+  EXPECT_EQ(b.transport->registeredSas, (std::vector<std::string>{"vision", "motor"}));
+  Pose pose;
+  b.component.add("p1", pose, "motor");
+  EXPECT_EQ(b.transport->registeredSas, (std::vector<std::string>{"vision", "motor", "motor"}));
+}
+
 TEST(Component, RegistersEveryFileATypeImports) {
   Bound b;
   cast::unittest::Observation obs;

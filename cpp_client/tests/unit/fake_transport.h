@@ -129,9 +129,10 @@ class FakeTransport : public detail::Transport {
     return it == locks_.end() ? 0 : it->second;
   }
 
-  void registerSchemas(const google::protobuf::FileDescriptorSet& files) override {
+  void registerSchemas(const google::protobuf::FileDescriptorSet& files, const std::string& sa) override {
     std::lock_guard<std::mutex> lock(mu_);
     registered.push_back(files);
+    registeredSas.push_back(sa);
   }
 
   void setEventSink(detail::EventSink sink, detail::ErrorSink onError) override {
@@ -286,6 +287,7 @@ class FakeTransport : public detail::Transport {
   // What the tests inspect.
   std::map<std::string, int> calls;
   std::vector<google::protobuf::FileDescriptorSet> registered;
+  std::vector<std::string> registeredSas;  // the SA of each registration
   std::vector<std::vector<detail::BatchOp>> batches;
   std::vector<std::uint32_t> cancelled;
   std::map<std::uint32_t, Delivery> deliveries;  // what each watch asked for
