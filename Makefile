@@ -231,7 +231,7 @@ $(GRPCURL):
 grpcurl: $(GRPCURL)
 
 lint: setup proto
-	$(VENV)/bin/ruff check python tests setup.py build_support
+	$(VENV)/bin/ruff check python tests setup.py build_support bench examples
 	$(VENV)/bin/mypy
 
 # The fast loop for an edit-test cycle (a few minutes on 2 cores; README, "Developing"): lint, the

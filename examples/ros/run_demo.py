@@ -31,12 +31,14 @@ IMAGE_PUBLISHER_PREFIX = ROOT / "build" / "ros1" / "image_publisher" / "usr"
 
 
 def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for the roscore of this run)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
 def echo_lines(proc: subprocess.Popen[str], prefix: str) -> None:
+    """Print each line ``proc`` writes, after ``prefix`` (rostopic's separators left out)."""
     assert proc.stdout is not None
     for line in proc.stdout:
         if line.strip() and line.strip() != "---":
@@ -44,6 +46,7 @@ def echo_lines(proc: subprocess.Popen[str], prefix: str) -> None:
 
 
 def main() -> int:
+    """Start roscore, image_publisher and rostopic echo, then `cast run` the demo; its exit status."""
     sys.path[:0] = [str(ROOT / "examples" / "python"), str(ROOT / "build" / "python-examples")]
     from cast_examples.camera import write_table_picture
 

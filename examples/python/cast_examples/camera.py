@@ -57,11 +57,11 @@ def _inside(obj: TrueObject, column: float, row: float) -> bool:
 
 def table_pixels(objects: list[TrueObject]) -> bytes:
     """The table as RGB bytes, row by row (the first object drawn last, on top)."""
-    out = bytearray(bytes(int(round(c * 255)) for c in BACKGROUND) * (WIDTH * HEIGHT))
+    out = bytearray(bytes(round(c * 255) for c in BACKGROUND) * (WIDTH * HEIGHT))
     for obj in reversed(objects):
         cx, cy = _to_pixel(obj.x, obj.y)
         r = int(obj.size / 1.6 * WIDTH) + 2
-        colour = bytes(int(round(c * 255)) for c in COLOURS[obj.colour])
+        colour = bytes(round(c * 255) for c in COLOURS[obj.colour])
         for row in range(max(0, int(cy) - r), min(HEIGHT, int(cy) + r + 1)):
             for column in range(max(0, int(cx) - r), min(WIDTH, int(cx) + r + 1)):
                 if _inside(obj, column + 0.5, row + 0.5):
