@@ -25,11 +25,22 @@ from cast.server.rpc import error_class
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["WriteStream"]
+__all__ = ["WriteStream", "watch_woken"]
 
 log = logging.getLogger("cast.server")
 
 _Answer = Callable[[wm_pb2.WriteReply, Any], None]
+
+
+class _Woken:
+    """How many times a write woke a watch stream on the event loop so far (:func:`watch_woken` counts them)."""
+
+    count = 0
+
+
+def watch_woken() -> None:
+    """A write woke a watch stream on the event loop: the replies of the write wait for its events to go first."""
+    _Woken.count += 1
 
 
 def _write_answer(reply: wm_pb2.WriteReply, result: Any) -> None:
@@ -97,16 +108,22 @@ class WriteStream:
         write). While some wait, it also watches for their late replies.
         Replies that are ready together go out in one message: with many
         requests in flight, the per-message cost of gRPC is shared by them.
+        A message whose writes woke watch streams is answered after those
+        streams had one turn of the loop: its events go out before its reply,
+        so what watchers wait for does not queue behind the writer's
+        acknowledgement (docs/performance.md, M8).
         """
         source = messages.__aiter__()
         reading: asyncio.Future[wm_pb2.WriteRequests] | None = None
         try:
             while True:
+                woken = _Woken.count
                 if reading is None and not self._waiting:
                     try:
                         message = await source.__anext__()
                     except StopAsyncIteration:
                         break
+                    woken = _Woken.count
                     self._apply(message)
                 else:
                     if reading is None:
@@ -117,11 +134,16 @@ class WriteStream:
                     self._late.clear()
                     if reading.done():
                         done, reading = reading, None
+                        woken = _Woken.count
                         try:
                             self._apply(done.result())
                         except StopAsyncIteration:
                             break
                 if self._ready:
+                    if _Woken.count != woken:
+                        # Events before acknowledgements: the watch streams these writes woke are ready to run;
+                        # one turn of the loop lets them send their events before this reply costs its own send.
+                        await asyncio.sleep(0)
                     yield self._take()
             while self._waiting:  # the client closed its side: answer what still waits, then end
                 await asyncio.wait(set(self._waiting))
