@@ -5,6 +5,9 @@ from __future__ import annotations
 import gc
 import mmap
 import os
+import sys
+import threading
+import time
 
 import pytest
 
@@ -20,6 +23,33 @@ MIB = 1 << 20
 
 def memory(window: int = 64 * MIB, max_bytes: int = 1 << 30, threshold: int = 64 * 1024) -> SharedMemory:
     return SharedMemory(SharedSettings(True, threshold, max_bytes, window), Limits(max_value_bytes=8 * MIB))
+
+
+def test_a_new_segment_is_faulted_in_while_other_threads_run() -> None:
+    """Populating lets the GIL go: the server's loop goes on while a new segment's pages are faulted in.
+
+    With a switch interval of seconds, a thread that kept the GIL through its
+    ``madvise`` calls would hold it until the segment was done: this thread,
+    which lets the GIL go every millisecond (as an event loop waiting for its
+    sockets does), would not get it back meanwhile.
+    """
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(5.0)
+    segment = Segment(9001, 32 * MIB)
+    try:
+        segment.populate()
+        populating = [t for t in threading.enumerate() if t.name == "cast-arena-9001"]
+        ran = 0
+        while any(t.is_alive() for t in populating):
+            time.sleep(0.001)
+            ran += 1
+        assert ran >= 10, f"this thread ran {ran} times while the segment was faulted in"
+    finally:
+        sys.setswitchinterval(interval)
+        for t in threading.enumerate():
+            if t.name == "cast-arena-9001":
+                t.join(30)
+        assert segment.close()
 
 
 def test_nobody_can_write_a_segment_through_its_memory_file_but_the_servers_own_mapping() -> None:

@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import bisect
 import collections
+import ctypes
 import fcntl
 import mmap
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 __all__ = ["PAGE", "Arena", "Extents", "Placed", "Segment", "memory_file"]
 
@@ -37,7 +38,26 @@ PAGE = 4096
 F_SEAL_FUTURE_WRITE = 0x0010  # Linux 5.1; Python's fcntl module does not name it
 MFD_NOEXEC_SEAL = 0x0008  # Linux 6.3: a memory file that can never be executed
 MADV_POPULATE_WRITE = 23  # Linux 5.14: fault pages in, writable, without changing what they hold
-_POPULATE_STEP = 1 << 20  # one madvise at a time: the GIL is let go between them
+_POPULATE_STEP = 1 << 20  # one madvise at a time
+
+
+def _load_madvise() -> Callable[[int, int, int], int] | None:
+    """The C library's ``madvise``, called through ctypes, which lets the GIL go during the call.
+
+    ``mmap.madvise`` holds the GIL for as long as the kernel takes: faulting in
+    1 MiB of fresh pages takes milliseconds, and the server's event loop would
+    stop that long for every MiB of a new segment.
+    """
+    try:
+        madvise = ctypes.CDLL(None, use_errno=True).madvise
+    except (OSError, AttributeError):
+        return None
+    madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+    madvise.restype = ctypes.c_int
+    return madvise
+
+
+_MADVISE = _load_madvise()
 
 
 def memory_file(name: str, size: int) -> int:
@@ -132,15 +152,26 @@ class Segment:
 
         A fresh page costs far more than a reused one (about 3 us here, docs/decisions.md): without
         this the first pass of values through a segment costs ~1 ms per MiB in the server's loop.
-        ``MADV_POPULATE_WRITE`` leaves the bytes as they are, so copies may go on meanwhile.
+        ``MADV_POPULATE_WRITE`` leaves the bytes as they are, so copies may go on meanwhile; it is
+        called with the GIL let go (:func:`_load_madvise`), so the server's loop goes on too.
         """
+        madvise = _MADVISE
+        if madvise is None:
+            return
+        try:
+            # The thread's hold on the mapping: close() cannot unmap it meanwhile (BufferError: retried later).
+            held = [ctypes.c_char.from_buffer(self.map)]
+        except (TypeError, ValueError, BufferError):  # closed already
+            return
 
         def run() -> None:
             try:
+                base = ctypes.addressof(held[0])
                 for start in range(0, self.size, _POPULATE_STEP):
-                    self.map.madvise(MADV_POPULATE_WRITE, start, min(_POPULATE_STEP, self.size - start))
-            except (OSError, ValueError):  # an older kernel, or the segment closed meanwhile: pages come on use
-                pass
+                    if madvise(base + start, min(_POPULATE_STEP, self.size - start), MADV_POPULATE_WRITE) != 0:
+                        return  # an older kernel: pages come on use
+            finally:
+                held.clear()
 
         threading.Thread(target=run, name=f"cast-arena-{self.id}", daemon=True).start()
 
