@@ -218,8 +218,7 @@ std::string Component::newId() {
   return core_->idPrefix + std::to_string(++core_->idCounter);
 }
 
-std::pair<std::string, std::string> Component::serialise(const google::protobuf::Message& value,
-                                                         const std::string& sa) {
+std::string Component::writable(const google::protobuf::Message& value, const std::string& sa) {
   detail::Transport& t = core().transport();
   const google::protobuf::Descriptor* descriptor = value.GetDescriptor();
   const std::string& name = descriptor->full_name();
@@ -230,40 +229,49 @@ std::pair<std::string, std::string> Component::serialise(const google::protobuf:
       core_->registeredTypes.insert({name, sa});
     }
   }
+  if (!value.IsInitialized()) {
+    throw InvalidArgumentError("value of type " + name + " could not be serialised (required fields missing?)");
+  }
+  return name;
+}
+
+std::pair<std::string, std::string> Component::serialise(const google::protobuf::Message& value,
+                                                         const std::string& sa) {
+  std::string name = writable(value, sa);
   std::string data;
   if (!value.SerializeToString(&data)) {
     throw InvalidArgumentError("value of type " + name + " could not be serialised (required fields missing?)");
   }
-  return {name, std::move(data)};
+  return {std::move(name), std::move(data)};
 }
 
 WriteResult Component::add(const std::string& id, const google::protobuf::Message& value,
                            const std::string& subarchitecture) {
   const std::string sa = targetSa(subarchitecture);
-  auto [type, data] = serialise(value, sa);
-  return core().transport().add(sa, id, type, data);
+  const std::string type = writable(value, sa);
+  return core().transport().addMessage(sa, id, type, value);
 }
 
 WriteResult Component::overwrite(const std::string& id, const google::protobuf::Message& value,
                                  const std::string& subarchitecture, std::optional<std::uint64_t> expectedVersion) {
   const std::string sa = targetSa(subarchitecture);
-  auto [type, data] = serialise(value, sa);
-  return core().transport().overwrite(sa, id, type, data, expectedVersion);
+  const std::string type = writable(value, sa);
+  return core().transport().overwriteMessage(sa, id, type, value, expectedVersion);
 }
 
 std::future<WriteResult> Component::addAsync(const std::string& id, const google::protobuf::Message& value,
                                              const std::string& subarchitecture) {
   const std::string sa = targetSa(subarchitecture);
-  auto [type, data] = serialise(value, sa);
-  return core().transport().addAsync(sa, id, type, data);
+  const std::string type = writable(value, sa);
+  return core().transport().addMessageAsync(sa, id, type, value);
 }
 
 std::future<WriteResult> Component::overwriteAsync(const std::string& id, const google::protobuf::Message& value,
                                                    const std::string& subarchitecture,
                                                    std::optional<std::uint64_t> expectedVersion) {
   const std::string sa = targetSa(subarchitecture);
-  auto [type, data] = serialise(value, sa);
-  return core().transport().overwriteAsync(sa, id, type, data, expectedVersion);
+  const std::string type = writable(value, sa);
+  return core().transport().overwriteMessageAsync(sa, id, type, value, expectedVersion);
 }
 
 WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,

@@ -355,6 +355,25 @@ v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging&
   return request;
 }
 
+v1::WriteRequest stagedMessage(SharedLink& link, const google::protobuf::Message& value, Staging& staged,
+                               const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                               SharedLink::Within within) {
+  static const std::string kNone;
+  std::shared_ptr<ClientSession> session = link.session(within);
+  const std::size_t size = value.ByteSizeLong();  // caches the sizes SerializeWithCachedSizesToArray uses
+  if (session && size >= session->threshold()) {
+    std::optional<Staged> region =
+        session->stage(size, [&](std::uint8_t* out) { value.SerializeWithCachedSizesToArray(out); });
+    if (region) {
+      staged.emplace_back(std::move(session), *region);
+      v1::WriteRequest request = build(kNone);
+      staged.back().first->describe(staged.back().second, valueOf(&request).second);
+      return request;
+    }
+  }
+  return build(value.SerializeAsString());
+}
+
 v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,
                              SharedLink::Within within) {
   v1::WriteRequest request = batchRequest(ops);

@@ -129,6 +129,12 @@ using Staging = std::vector<std::pair<std::shared_ptr<ClientSession>, Staged>>;
 v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
                              const std::function<v1::WriteRequest(const std::string& bytes)>& build,
                              SharedLink::Within within);
+// The same for a value given as its message: when it is staged, it is
+// serialised straight into the staging area (no bytes of it in between).
+v1::WriteRequest stagedMessage(SharedLink& link, const google::protobuf::Message& value, Staging& staged,
+                               const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                               SharedLink::Within within);
+
 // A batch of `ops`, its large values staged in the session of `link` (the
 // server the batch goes to).
 v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,

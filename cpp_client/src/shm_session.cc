@@ -171,10 +171,14 @@ std::size_t ClientSession::quarantined() const {
 // -------------------------------------------------------------------- writes
 
 std::optional<Staged> ClientSession::stage(std::string_view data) {
+  return stage(data.size(), [&](std::uint8_t* out) { std::memcpy(out, data.data(), data.size()); });
+}
+
+std::optional<Staged> ClientSession::stage(std::size_t size, const std::function<void(std::uint8_t*)>& fill) {
   poll();  // a session the server ended (it restarted) is noticed before a write names it
   Staged staged;
-  staged.size = data.size();
-  staged.taken = roundUpToPages(data.size());
+  staged.size = size;
+  staged.taken = roundUpToPages(size);
   std::shared_ptr<Mapping> staging;
   {
     std::lock_guard<std::mutex> lock(stateMu_);
@@ -184,7 +188,7 @@ std::optional<Staged> ClientSession::stage(std::string_view data) {
     staged.offset = *offset;
     staging = staging_;  // kept mapped while the copy runs, whatever ends the session meanwhile
   }
-  std::memcpy(staging->data() + staged.offset, data.data(), data.size());
+  fill(reinterpret_cast<std::uint8_t*>(staging->data()) + staged.offset);
   return staged;
 }
 

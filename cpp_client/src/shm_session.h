@@ -23,6 +23,7 @@
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -138,6 +139,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // `data` copied into a free region of the staging area; nullopt when there
   // is no room or the session ended (send the bytes).
   std::optional<Staged> stage(std::string_view data);
+  // The same for a value of `size` bytes that `fill` writes at the address it
+  // is given (a message serialised straight into the staging area).
+  std::optional<Staged> stage(std::size_t size, const std::function<void(std::uint8_t*)>& fill);
   // What a write request says of a staged value.
   void describe(const Staged& staged, v1::StagedValue* out) const;
   // The write's reply came (`known`): its region is free again. Otherwise

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <google/protobuf/descriptor.pb.h>
+#include <google/protobuf/message.h>
 
 #include <chrono>
 #include <cstdint>
@@ -70,6 +71,30 @@ class Transport {
                                                   const std::string& type, const std::string& data,
                                                   std::optional<std::uint64_t> expectedVersion) {
     return settled([&] { return overwrite(sa, id, type, data, expectedVersion); });
+  }
+
+  // The same four writes of a value given as its message (its type already
+  // registered, its required fields set). A transport that can place a large
+  // value where it is sent from (a shared-memory staging area) serialises it
+  // there, with no copy between; these defaults serialise it to bytes.
+  virtual WriteResult addMessage(const std::string& sa, const std::string& id, const std::string& type,
+                                 const google::protobuf::Message& value) {
+    return add(sa, id, type, value.SerializeAsString());
+  }
+  virtual WriteResult overwriteMessage(const std::string& sa, const std::string& id, const std::string& type,
+                                       const google::protobuf::Message& value,
+                                       std::optional<std::uint64_t> expectedVersion) {
+    return overwrite(sa, id, type, value.SerializeAsString(), expectedVersion);
+  }
+  virtual std::future<WriteResult> addMessageAsync(const std::string& sa, const std::string& id,
+                                                   const std::string& type, const google::protobuf::Message& value) {
+    return addAsync(sa, id, type, value.SerializeAsString());
+  }
+  virtual std::future<WriteResult> overwriteMessageAsync(const std::string& sa, const std::string& id,
+                                                         const std::string& type,
+                                                         const google::protobuf::Message& value,
+                                                         std::optional<std::uint64_t> expectedVersion) {
+    return overwriteAsync(sa, id, type, value.SerializeAsString(), expectedVersion);
   }
 
   virtual EntryRecord get(const std::string& sa, const std::string& id) = 0;

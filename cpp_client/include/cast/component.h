@@ -289,6 +289,10 @@ class Component {
   // `sa` first if not yet done (only that server: one that hangs or is away
   // cannot hold up writes to the others).
   std::pair<std::string, std::string> serialise(const google::protobuf::Message& value, const std::string& sa);
+  // The value's type name, its schema registered as serialise() does; an
+  // InvalidArgumentError if the value could not be serialised (required
+  // fields missing). The transport serialises it where it is sent from.
+  std::string writable(const google::protobuf::Message& value, const std::string& sa);
 
  private:
   detail::EntryRecord readEntry(const std::string& id, const std::string& subarchitecture);
