@@ -157,3 +157,13 @@ def test_every_test_the_docs_name_exists() -> None:
                 missing.append(f"{doc.relative_to(ROOT)}: {path}::{name}")
     assert named >= 50, named  # the pattern still finds the tables
     assert not missing, "tests named in the docs that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_test_file_the_docs_and_the_code_name_exists() -> None:
+    """A path under tests/ named in a page or in the product's own text is a file of the repository."""
+    pattern = re.compile(r"\btests/[A-Za-z0-9_/]+\.(?:py|cc|java)\b")
+    missing = sorted({f"{name}: {path}" for name, text in texts().items()
+                      if not name.startswith("tests/") and name != "CHANGELOG.md"
+                      for path in pattern.findall(text)
+                      if not any((ROOT / base / path).is_file() for base in ("", "cpp_client", "java_client"))})
+    assert not missing, "files under tests/ that are named but do not exist:\n" + "\n".join(missing)
