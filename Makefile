@@ -94,7 +94,7 @@ test: $(TEST_BUILDS)
 
 # $(call logged,NAME,COMMAND): COMMAND's output to build/test-NAME.log, printed whole when it ends.
 logged = mkdir -p build; ( $(2) ) > build/test-$(1).log 2>&1; status=$$?; \
-  echo "---- the $(1) tests (build/test-$(1).log), exit status $$status"; cat build/test-$(1).log; exit $$status
+  printf "\n---- the $(1) tests (build/test-$(1).log), exit status %s\n" $$status; cat build/test-$(1).log; exit $$status
 .PHONY: suite-cpp suite-java suite-python
 suite-cpp:
 	@$(call logged,cpp,$(CTEST))
