@@ -70,10 +70,14 @@ demo: setup proto examples cpp java-demo
 TEST_WORKERS ?= 2
 # A failed test runs once more (pytest-rerunfailures); the summary names every rerun. TEST_RERUNS=0: none.
 TEST_RERUNS ?= 1
-test-python: setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
+PYTEST_ALL = CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15 \
+  --reruns $(TEST_RERUNS) -rR
+# Everything the three suites need; installed and built one after the other (apt-get takes no
+# second caller) before any suite runs.
+TEST_BUILDS := setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
   ros-demo-types
-	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15 \
-	  --reruns $(TEST_RERUNS) -rR
+test-python: $(TEST_BUILDS)
+	$(PYTEST_ALL)
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
@@ -81,7 +85,23 @@ test-python: setup proto examples cpp java java-demo bench-deps export-deps node
 package-test: setup proto cpp java
 	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
-test: test-cpp test-java test-python
+# The three suites side by side: the C++ and Java unit tests (about a minute each, mostly waiting
+# on the servers they start) run beside pytest; each prints its log whole when it ends
+# (build/test-cpp.log, build/test-java.log) so that pytest's lines stay readable. A failed suite
+# fails `make test` once the others have ended.
+test: $(TEST_BUILDS)
+	$(MAKE) --no-print-directory -j3 suite-cpp suite-java suite-python
+
+# $(call logged,NAME,COMMAND): COMMAND's output to build/test-NAME.log, printed whole when it ends.
+logged = mkdir -p build; ( $(2) ) > build/test-$(1).log 2>&1; status=$$?; \
+  printf "\n---- the $(1) tests (build/test-$(1).log), exit status %s\n" $$status; cat build/test-$(1).log; exit $$status
+.PHONY: suite-cpp suite-java suite-python
+suite-cpp:
+	@$(call logged,cpp,$(CTEST))
+suite-java:
+	@$(call logged,java,$(JAVA_TESTS))
+suite-python:
+	$(PYTEST_ALL)
 
 # The shipped design-space experiment (docs/experiments.md): the demo's components as one, two
 # and three SAs, the vision task manager fifo or priority, each run EXPERIMENT_SECONDS, twice.
@@ -147,8 +167,11 @@ cpp: cpp-deps
 
 # setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server,
 # the testing kit's and the hello example's tests, which find `cast` on PATH as a user's would).
+# Three at once: most of them wait on the servers they start (49 s one at a time, 28-33 s three at once).
+CTEST_JOBS ?= 3
+CTEST = PATH="$(CURDIR)/$(VENV)/bin:$$PATH" ctest --test-dir $(CPP_BUILD) --output-on-failure -j $(CTEST_JOBS)
 test-cpp: cpp setup proto
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" ctest --test-dir $(CPP_BUILD) --output-on-failure
+	$(CTEST)
 
 # The Java client library (java_client/): target/cast-client-all.jar for component processes
 # (`java -cp cast-client-all.jar:... cast.client.Runner Class`), the test classes the interop
@@ -193,9 +216,9 @@ java-demo: java $(JAVA_DEMO_JAR)
 
 # JUnit tests on the classes `make java` compiled, with Surefire's summary. Some run a real
 # server (`cast serve` from .venv, java_client/src/test/java/cast/client/RealServer.java).
+JAVA_TESTS = cd java_client && $(MVN) surefire:test && $(MVN) -f testing/pom.xml test-compile surefire:test
 test-java: setup proto java
-	cd java_client && $(MVN) surefire:test
-	cd java_client && $(MVN) -f testing/pom.xml test-compile surefire:test
+	$(JAVA_TESTS)
 
 # The Node.js example component (examples/node): Debian's nodejs and npm when node or npm is
 # missing (apt-get update only then), its packages with `npm ci` (again when package-lock.json

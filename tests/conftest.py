@@ -69,6 +69,19 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker("namespaces")
 
 
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    """Each rerun test's first failure, shortened: `-rR` names the test only, and a rerun is a defect to fix."""
+    reruns = terminalreporter.stats.get("rerun", [])
+    if not reruns:
+        return
+    terminalreporter.section("first failures of the rerun tests")
+    for report in reruns:
+        text = str(getattr(report, "longreprtext", "") or report.longrepr or "").strip().splitlines()
+        terminalreporter.write_line(f"{report.nodeid} ({report.when}):")
+        for line in text[-25:]:  # the end of a traceback says what failed
+            terminalreporter.write_line(f"    {line}")
+
 @dataclass
 class ServerHandle:
     """A `cast serve` process on a free port."""

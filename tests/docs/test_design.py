@@ -137,3 +137,33 @@ def test_the_configuration_shown_is_the_demos() -> None:
         n: (sa.policy, sa.policy_options) for n, sa in demo.subarchitectures.items()
     }
     assert config.python_path == demo.python_path
+
+
+TEST_REFERENCE = re.compile(r"`((?:tests/)?[a-z0-9_]+(?:/[a-z0-9_]+)*\.py)::([A-Za-z0-9_]+)")
+
+
+def test_every_test_the_docs_name_exists() -> None:
+    """A guarantee's table row names the test that checks it (`dir/file.py::test_name`, under tests/):
+    that file must define that test, so renaming or moving a test cannot leave a claim without one."""
+    missing, named = [], 0
+    for doc in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for path, name in TEST_REFERENCE.findall(doc.read_text()):
+            named += 1
+            # A bare file name (a page about one suite, e.g. reliability.md) is the one file of that name.
+            relative = path.removeprefix("tests/")
+            files = [ROOT / "tests" / relative] if "/" in relative else sorted((ROOT / "tests").rglob(relative))
+            if not any(file.is_file() and re.search(rf"^\s*(?:async )?def {name}\(|^class {name}\b",
+                                                    file.read_text(), re.M) for file in files):
+                missing.append(f"{doc.relative_to(ROOT)}: {path}::{name}")
+    assert named >= 50, named  # the pattern still finds the tables
+    assert not missing, "tests named in the docs that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_test_file_the_docs_and_the_code_name_exists() -> None:
+    """A path under tests/ named in a page or in the product's own text is a file of the repository."""
+    pattern = re.compile(r"\btests/[A-Za-z0-9_/]+\.(?:py|cc|java)\b")
+    missing = sorted({f"{name}: {path}" for name, text in texts().items()
+                      if not name.startswith("tests/") and name != "CHANGELOG.md"
+                      for path in pattern.findall(text)
+                      if not any((ROOT / base / path).is_file() for base in ("", "cpp_client", "java_client"))})
+    assert not missing, "files under tests/ that are named but do not exist:\n" + "\n".join(missing)

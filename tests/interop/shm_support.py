@@ -47,9 +47,6 @@ PEERS: dict[str, Callable[[], list[str]]] = {
 """Each language's peer command (the build it needs is checked when it is asked for)."""
 
 LANGUAGES = list(PEERS)
-CLIENTS = [lang for lang in LANGUAGES if lang != "python"]
-"""The languages whose process tests (kill -9, another network namespace) are here; Python's are
-tests/reliability/test_shared_memory_processes.py."""
 SIZE = 1 << 20
 
 

@@ -4,10 +4,9 @@ The peers (tests/interop/shm_support.py) write and read 1 MiB frames whose every
 it is; a reader reads each value through its view (every byte: a checksum) and decodes it too, and says
 whether it came by shared memory. Every language is a parameter: a language added to
 ``shm_support.PEERS`` is written to and read by all the others, tries to write what it was lent, and
-has its calls that open a session on a hung server end by their deadline; its own process tests
-(``CLIENTS``: kill -9, another network namespace) run here, Python's in
-tests/reliability/test_shared_memory_processes.py. The rules the server enforces (forged and stale
-references, another OS user) are tested in tests/client/test_shared_memory.py and
+has its calls that open a session on a hung server end by their deadline, is killed with -9 as
+writer, reader and beside a killed server, and reads from another network namespace. The rules the
+server enforces (forged and stale references, another OS user) are tested in tests/client/test_shared_memory.py and
 tests/reliability/test_shared_memory_processes.py, and each library's own side of them in its unit
 tests (C++ cpp_client/tests/server/shared_memory_test.cc, Java SharedMemoryTest).
 
@@ -31,7 +30,6 @@ from cast.auth import TokenSigner
 from cast.core.records import Identity
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, wait_for
 from tests.interop.shm_support import (
-    CLIENTS,
     LANGUAGES,
     Peers,
     checksum,
@@ -179,12 +177,13 @@ def test_processes_told_not_to_use_shared_memory_write_and_read_identical_values
         server.stop()
 
 
-@pytest.mark.parametrize("language", CLIENTS)
+@pytest.mark.parametrize("language", LANGUAGES)
 def test_kill_9_of_a_writer_a_reader_or_the_server_leaves_nothing_behind(
     tmp_path: Path, peers: Peers, language: str
 ) -> None:
     before = dev_shm()
-    server = serve(write_config(tmp_path / "system.yaml", CONFIG), cwd=tmp_path)
+    config = write_config(tmp_path / "system.yaml", CONFIG)
+    server = serve(config, cwd=tmp_path)
     try:
         holder = peers.start(language, server, "holder", "read", "hold")
         holder.wait("WATCHING")
@@ -210,6 +209,14 @@ def test_kill_9_of_a_writer_a_reader_or_the_server_leaves_nothing_behind(
         # Their sessions ended with it: they unmap what they mapped of it (the reader holds no value).
         wait_for(lambda: not memory_files(reader.proc.pid) and not memory_files(writer.proc.pid),
                  what="the dead server's memory unmapped by the live processes")
+        assert dev_shm() == before
+
+        # A server started again in the same place: nothing of the dead one to clean, values by shared memory again.
+        server = serve(config, cwd=tmp_path)
+        again = peers.start(language, server, "again", "read")
+        again.wait("WATCHING")
+        peers.start(language, server, "writer3", "write", "2").wait("DONE")
+        wait_for(lambda: by_reference(again, 2), what="values by shared memory from the new server")
     finally:
         kill9(server)
     assert dev_shm() == before
@@ -238,12 +245,12 @@ def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(tmp_pat
                             CAST_TOKEN=signer.issue(Identity(cid, "vision")), CAST_ARGS=json.dumps({}))
             return peers.start(lang, None, cid, *args, prefix=Namespaces.exec(ns), base_env=contract)
 
-        far = {lang: start(lang, far_ns, f"far-{lang}", "read") for lang in CLIENTS}
-        near = {lang: start(lang, srv_ns, f"near-{lang}", "read") for lang in CLIENTS}
+        far = {lang: start(lang, far_ns, f"far-{lang}", "read") for lang in LANGUAGES}
+        near = {lang: start(lang, srv_ns, f"near-{lang}", "read") for lang in LANGUAGES}
         for reader in (*far.values(), *near.values()):
             reader.wait("WATCHING")
-        start(CLIENTS[-1], srv_ns, "writer", "write", "2").wait("DONE")
-        for lang in CLIENTS:
+        start(LANGUAGES[-1], srv_ns, "writer", "write", "2").wait("DONE")
+        for lang in LANGUAGES:
             wait_for(lambda: bytes_only(far[lang], 2) and by_reference(near[lang], 2),  # noqa: B023
                      what=f"every value to {lang}: as bytes across the namespaces, by shared memory beside the server")
             said = [line for line in far[lang].lines if "is not used" in line]

@@ -1,16 +1,14 @@
-"""Shared memory between processes: kill -9 of a writer, a reader, the server; another OS user; another host.
+"""Shared memory between Python processes: another OS user, the tools, a hung server.
 
-`cast serve` (shared memory on, as configured by default) and writer and
-reader processes (components/shm_peer.py). Nothing of shared memory is ever
-a file (``/dev/shm`` is checked unchanged); what a process that died held is
-given back, and what a live one mapped of a dead server is unmapped once it
-notices. A client of another OS user, or in another network namespace, gets
-the same values as bytes.
+`cast serve` (shared memory on, as configured by default) and writer and reader processes
+(components/shm_peer.py). A client of another OS user gets the same values as bytes and cannot open
+the server's memory; `cast record`, `cast replay`, `cast stats` and `cast ls` work with values in
+shared memory. kill -9 of writers, readers and the server, and a reader in another network
+namespace, are tested in every language in tests/interop/test_shared_memory_interop.py.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -22,10 +20,8 @@ from typing import Any
 
 import grpc
 import pytest
-import yaml
 from google.protobuf.wrappers_pb2 import BytesValue
 
-from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
@@ -34,20 +30,13 @@ from cast.v1 import inspection_pb2_grpc as insp_grpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.wire import shared_memory as wire
-from tests.conftest import PYTHONPATH, SECRET, VENV_BIN, ServerHandle, wait_for
-from tests.netns import Lines, Namespaces, stop_all
-from tests.reliability.conftest import dev_shm, kill9, serve, write_config
+from tests.conftest import PYTHONPATH, ServerHandle, wait_for
+from tests.netns import Lines
+from tests.reliability.conftest import kill9, serve, write_config
 
 COMPONENTS = Path(__file__).resolve().parent / "components"
 PEER = str(COMPONENTS / "shm_peer.py")
 CONFIG = {"system": "shm", "subarchitectures": {"vision": {}}}
-
-
-def memory_files(pid: int) -> list[str]:
-    """The shared-memory files a process maps (``memfd:cast-...`` in its maps)."""
-    with open(f"/proc/{pid}/maps") as maps:
-        return [line.split()[-2] if line.rstrip().endswith("(deleted)") else line.split()[-1]
-                for line in maps if "memfd:cast-" in line]
 
 
 def shared(handle: ServerHandle) -> dict[str, Any]:
@@ -91,48 +80,6 @@ def got(reader: Lines) -> list[tuple[int, int]]:
     return [(int(x.split()[2]), int(x.split()[3])) for x in reader.lines if x.startswith("GOT")]
 
 
-def test_kill_9_of_a_writer_a_reader_or_the_server_leaves_nothing_behind(tmp_path: Path, peers: Peers) -> None:
-    before = dev_shm()
-    config = write_config(tmp_path / "system.yaml", CONFIG)
-    server = serve(config, cwd=tmp_path)
-    try:
-        holder = peers.start(server, "holder", "read", "hold")
-        holder.wait("WATCHING")
-        writer = peers.start(server, "writer", "write", "4")
-        writer.wait("DONE")
-        wait_for(lambda: got(holder) == [(k, 1) for k in range(4)], what="four values by shared memory")
-        assert shared(server)["sessions"] == 2 and shared(server)["lent_bytes"] > 0  # the holder's views
-        os.kill(holder.proc.pid, signal.SIGKILL)
-        wait_for(lambda: shared(server)["lent_bytes"] == 0 and shared(server)["sessions"] == 1,
-                 what="the killed reader's values given back")
-        os.kill(writer.proc.pid, signal.SIGKILL)
-        wait_for(lambda: shared(server)["sessions"] == 0, what="the killed writer's session ended")
-        assert dev_shm() == before
-
-        reader = peers.start(server, "reader", "read")
-        reader.wait("WATCHING")
-        writer = peers.start(server, "writer2", "write", "3")
-        writer.wait("DONE")
-        wait_for(lambda: got(reader) == [(k, 1) for k in range(3)], what="three values by shared memory")
-        assert memory_files(reader.proc.pid) and memory_files(writer.proc.pid)
-        kill9(server)
-        # The live processes notice (their streams to it broke) and unmap what they mapped of it.
-        wait_for(lambda: not memory_files(reader.proc.pid) and not memory_files(writer.proc.pid),
-                 what="the dead server's memory unmapped by the live processes")
-        assert dev_shm() == before
-
-        # A server started again in the same place: nothing of the dead one to clean, values by shared memory again.
-        server = serve(config, cwd=tmp_path)
-        again = peers.start(server, "again", "read")
-        again.wait("WATCHING")
-        writer = peers.start(server, "writer3", "write", "2")
-        writer.wait("DONE")
-        wait_for(lambda: got(again) == [(0, 1), (1, 1)], what="values by shared memory from the new server")
-        assert dev_shm() == before
-    finally:
-        server.stop()
-
-
 def test_a_client_of_another_os_user_gets_bytes_and_cannot_open_the_servers_memory(
     tmp_path: Path, peers: Peers
 ) -> None:
@@ -170,43 +117,6 @@ def test_a_client_of_another_os_user_gets_bytes_and_cannot_open_the_servers_memo
         assert probe.returncode != 0 and "PermissionError" in probe.stderr, probe.stderr
     finally:
         server.stop()
-
-
-def test_a_reader_in_another_network_namespace_gets_every_value_as_bytes(tmp_path: Path) -> None:
-    spaces = Namespaces(second_octet=215)
-    procs: list[subprocess.Popen[str]] = []
-    try:
-        srv_ns, far_ns = spaces.add("shm"), spaces.add("far")
-        srv_ip, _ = spaces.link(srv_ns, far_ns)
-        config = tmp_path / "system.yaml"
-        config.write_text(yaml.safe_dump(CONFIG))
-        env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
-        server = subprocess.Popen([*Namespaces.exec(srv_ns), str(VENV_BIN / "cast"), "serve", str(config),
-                                   "--listen", f"{srv_ip}:0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                  text=True, env=env, cwd=tmp_path)
-        procs.append(server)
-        assert server.stdout is not None
-        endpoint = server.stdout.readline().strip().removeprefix("listening on ")
-        signer = TokenSigner(SECRET.encode())
-
-        def peer(ns: str, cid: str, *args: str) -> Lines:
-            cenv = dict(env, CAST_ENDPOINT=endpoint, CAST_COMPONENT_ID=cid, CAST_SUBARCHITECTURE="vision",
-                        CAST_TOKEN=signer.issue(Identity(cid, "vision")), CAST_ARGS=json.dumps({}))
-            proc = subprocess.Popen([*Namespaces.exec(ns), sys.executable, PEER, *args], stdin=subprocess.PIPE,
-                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=cenv)
-            procs.append(proc)
-            return Lines(proc)
-
-        far, near = peer(far_ns, "far", "read"), peer(srv_ns, "near", "read")
-        far.wait("WATCHING")
-        near.wait("WATCHING")
-        peer(srv_ns, "writer", "write", "3").wait("DONE")
-        wait_for(lambda: got(far) == [(k, 0) for k in range(3)] and got(near) == [(k, 1) for k in range(3)],
-                 what="every value: as bytes across the namespaces, by shared memory beside the server")
-        assert any("not reachable from here" in line for line in far.lines), far.lines
-    finally:
-        stop_all(procs)
-        spaces.close()
 
 
 def test_record_replay_and_the_tools_with_values_in_shared_memory(tmp_path: Path, peers: Peers) -> None:

@@ -2,7 +2,7 @@
 
 The servicers look their call up here before anything else (``cast.server.rpc``), and the agent's
 interceptor does the same for its service, so whether a call may go without a token is decided in
-one place; ``tests/core/test_calls.py`` fails when a call of a ``cast.v1`` service has no entry.
+one place; ``tests/integration/test_calls.py`` fails when a call of a ``cast.v1`` service has no entry.
 Calls are named as gRPC names them on the wire: ``cast.v1.<Service>/<Method>``.
 """
 
