@@ -90,23 +90,14 @@ class GrpcTransport final : public Transport {
 
   WriteResult add(const std::string& sa, const std::string& id, const std::string& type,
                   const std::string& data) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedWrite(
-        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
-        budget.left());
-    return writeResult(write(sa, std::move(request), staged, budget).write());
+    return writeOne(sa, data, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
   }
 
   WriteResult overwrite(const std::string& sa, const std::string& id, const std::string& type,
                         const std::string& data, std::optional<std::uint64_t> expectedVersion) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedWrite(
-        *server(sa).shared, data, staged,
-        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
-        budget.left());
-    return writeResult(write(sa, std::move(request), staged, budget).write());
+    return writeOne(sa, data, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
   }
 
   // A message large enough for shared memory is serialised straight into the
@@ -114,68 +105,41 @@ class GrpcTransport final : public Transport {
 
   WriteResult addMessage(const std::string& sa, const std::string& id, const std::string& type,
                          const google::protobuf::Message& value) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedMessage(
-        *server(sa).shared, value, staged,
-        [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); }, budget.left());
-    return writeResult(write(sa, std::move(request), staged, budget).write());
+    return writeOne(sa, value, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
   }
 
   WriteResult overwriteMessage(const std::string& sa, const std::string& id, const std::string& type,
                                const google::protobuf::Message& value,
                                std::optional<std::uint64_t> expectedVersion) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedMessage(
-        *server(sa).shared, value, staged,
-        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
-        budget.left());
-    return writeResult(write(sa, std::move(request), staged, budget).write());
+    return writeOne(sa, value, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
   }
 
   std::future<WriteResult> addMessageAsync(const std::string& sa, const std::string& id, const std::string& type,
                                            const google::protobuf::Message& value) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedMessage(
-        *server(sa).shared, value, staged,
-        [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); }, budget.left());
-    return writeAsync(sa, std::move(request), std::move(staged), budget);
+    return writeOneAsync(sa, value, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
   }
 
   std::future<WriteResult> overwriteMessageAsync(const std::string& sa, const std::string& id,
                                                  const std::string& type, const google::protobuf::Message& value,
                                                  std::optional<std::uint64_t> expectedVersion) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedMessage(
-        *server(sa).shared, value, staged,
-        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
-        budget.left());
-    return writeAsync(sa, std::move(request), std::move(staged), budget);
+    return writeOneAsync(sa, value, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
   }
 
   std::future<WriteResult> addAsync(const std::string& sa, const std::string& id, const std::string& type,
                                     const std::string& data) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedWrite(
-        *server(sa).shared, data, staged, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); },
-        budget.left());
-    return writeAsync(sa, std::move(request), std::move(staged), budget);
+    return writeOneAsync(sa, data, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
   }
 
   std::future<WriteResult> overwriteAsync(const std::string& sa, const std::string& id, const std::string& type,
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
-    const Budget budget(timeout_);
-    Staging staged;
-    v1::WriteRequest request = stagedWrite(
-        *server(sa).shared, data, staged,
-        [&](const std::string& bytes) { return overwriteRequest(sa, id, type, bytes, expectedVersion); },
-        budget.left());
-    return writeAsync(sa, std::move(request), std::move(staged), budget);
+    return writeOneAsync(sa, data, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
   }
 
   WriteResult deleteEntry(const std::string& sa, const std::string& id,
@@ -509,6 +473,35 @@ class GrpcTransport final : public Transport {
       throw;
     }
   }
+  using BuildRequest = std::function<v1::WriteRequest(const std::string& bytes)>;
+
+  // A value given as bytes or as its message, staged in the session with its
+  // SA's server when it is large (shm.h), in the request `build` makes.
+  static v1::WriteRequest stage(SharedLink& link, const std::string& data, Staging& staged,
+                                const BuildRequest& build, SharedLink::Within within) {
+    return stagedWrite(link, data, staged, build, within);
+  }
+  static v1::WriteRequest stage(SharedLink& link, const google::protobuf::Message& value, Staging& staged,
+                                const BuildRequest& build, SharedLink::Within within) {
+    return stagedMessage(link, value, staged, build, within);
+  }
+
+  // One add or overwrite (as `build` makes its request), waited for or not.
+  template <typename Value>
+  WriteResult writeOne(const std::string& sa, const Value& value, const BuildRequest& build) {
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stage(*server(sa).shared, value, staged, build, budget.left());
+    return writeResult(write(sa, std::move(request), staged, budget).write());
+  }
+  template <typename Value>
+  std::future<WriteResult> writeOneAsync(const std::string& sa, const Value& value, const BuildRequest& build) {
+    const Budget budget(timeout_);
+    Staging staged;
+    v1::WriteRequest request = stage(*server(sa).shared, value, staged, build, budget.left());
+    return writeAsync(sa, std::move(request), std::move(staged), budget);
+  }
+
   std::future<WriteResult> writeAsync(const std::string& sa, v1::WriteRequest request, Staging staged,
                                       const Budget& budget) {
     const Millis left = timeLeft(budget, staged);
