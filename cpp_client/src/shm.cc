@@ -325,15 +325,23 @@ void SharedLink::close() {
 
 namespace {
 
-// Stages `data` in the session of `link` when it is large enough and fits
-// (recorded in `staged`); false: the bytes go in the request.
-bool stage(SharedLink& link, const std::string& data, Staging& staged, SharedLink::Within within) {
+// Stages `size` bytes, written by `fill`, in the session of `link` when the
+// value is large enough and fits (recorded in `staged`); false: the bytes go
+// in the request.
+bool stage(SharedLink& link, std::size_t size, const std::function<void(std::uint8_t*)>& fill, Staging& staged,
+           SharedLink::Within within) {
   std::shared_ptr<ClientSession> session = link.session(within);
-  if (!session || data.size() < session->threshold()) return false;
-  std::optional<Staged> region = session->stage(data);
+  if (!session || size < session->threshold()) return false;
+  std::optional<Staged> region = session->stage(size, fill);
   if (!region) return false;
   staged.emplace_back(std::move(session), *region);
   return true;
+}
+
+// The same for a value given as its bytes.
+bool stage(SharedLink& link, const std::string& data, Staging& staged, SharedLink::Within within) {
+  return stage(
+      link, data.size(), [&](std::uint8_t* out) { std::memcpy(out, data.data(), data.size()); }, staged, within);
 }
 
 // The value fields of an add or overwrite (of a request or a batch item).
@@ -343,35 +351,31 @@ std::pair<google::protobuf::Any*, v1::StagedValue*> valueOf(Item* item) {
   return {item->mutable_overwrite()->mutable_value(), item->mutable_overwrite()->mutable_staged_value()};
 }
 
-}  // namespace
-
-v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
-                             const std::function<v1::WriteRequest(const std::string& bytes)>& build,
-                             SharedLink::Within within) {
+// The request `build` makes for the value staged last: its bytes left out, the region named instead.
+v1::WriteRequest stagedRequest(Staging& staged, const std::function<v1::WriteRequest(const std::string&)>& build) {
   static const std::string kNone;
-  if (!stage(link, data, staged, within)) return build(data);
   v1::WriteRequest request = build(kNone);
   staged.back().first->describe(staged.back().second, valueOf(&request).second);
   return request;
 }
 
+}  // namespace
+
+v1::WriteRequest stagedWrite(SharedLink& link, const std::string& data, Staging& staged,
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                             SharedLink::Within within) {
+  if (!stage(link, data, staged, within)) return build(data);
+  return stagedRequest(staged, build);
+}
+
 v1::WriteRequest stagedMessage(SharedLink& link, const google::protobuf::Message& value, Staging& staged,
                                const std::function<v1::WriteRequest(const std::string& bytes)>& build,
                                SharedLink::Within within) {
-  static const std::string kNone;
-  std::shared_ptr<ClientSession> session = link.session(within);
   const std::size_t size = value.ByteSizeLong();  // caches the sizes SerializeWithCachedSizesToArray uses
-  if (session && size >= session->threshold()) {
-    std::optional<Staged> region =
-        session->stage(size, [&](std::uint8_t* out) { value.SerializeWithCachedSizesToArray(out); });
-    if (region) {
-      staged.emplace_back(std::move(session), *region);
-      v1::WriteRequest request = build(kNone);
-      staged.back().first->describe(staged.back().second, valueOf(&request).second);
-      return request;
-    }
+  if (!stage(link, size, [&](std::uint8_t* out) { value.SerializeWithCachedSizesToArray(out); }, staged, within)) {
+    return build(value.SerializeAsString());
   }
-  return build(value.SerializeAsString());
+  return stagedRequest(staged, build);
 }
 
 v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,
