@@ -120,12 +120,17 @@ class AgentHandle:
         stop_process(self.process, 15)
 
 
-def start_agent(root: Path, *extra: str, secret: bool = True) -> AgentHandle:
-    """`cast agent --listen 127.0.0.1:0 --root ROOT [--secret-file ROOT/secret] EXTRA...`, once it listens."""
+def start_agent(root: Path, *extra: str, secret: bool = True, tmpdir: Path | None = None) -> AgentHandle:
+    """`cast agent --listen 127.0.0.1:0 --root ROOT [--secret-file ROOT/secret] EXTRA...`, once it listens.
+
+    ``tmpdir``: the agent's TMPDIR (where it keeps the token files it writes).
+    """
     args = [str(VENV_BIN / "cast"), "agent", "--listen", "127.0.0.1:0", "--root", str(root), *extra]
     if secret:
         args += ["--secret-file", str(root / "secret")]
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
+    if tmpdir is not None:
+        env["TMPDIR"] = str(tmpdir)
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=root)
     assert proc.stdout is not None
     first = proc.stdout.readline().strip()

@@ -12,7 +12,7 @@ import pytest
 from cast.auth import TokenSigner
 from cast.core.records import Identity
 from cast.v1 import agent_pb2, agent_pb2_grpc
-from tests.agent.harness import AgentHandle, Attachment, launch_request, metadata
+from tests.agent.harness import AgentHandle, Attachment, launch_request, metadata, start_agent
 from tests.conftest import SECRET, ServerHandle
 
 
@@ -69,3 +69,23 @@ def test_renew_refuses_what_it_cannot_renew(agent: AgentHandle, wm_server: Serve
         stub.Stop(agent_pb2.StopRequest(system="agenttest", component_id="sleeper", timeout_ms=10_000),
                   metadata=metadata(), timeout=30)
         attach.close()
+
+
+def test_the_agent_leaves_no_token_directory_behind(root: Path, wm_server: ServerHandle, tmp_path: Path) -> None:
+    idle = start_agent(root, tmpdir=tmp_path)
+    idle.process.kill()  # SIGKILL: it cleans nothing up
+    idle.process.wait(10)
+    assert list(tmp_path.iterdir()) == []  # an agent that wrote no token made no directory for them
+    agent = start_agent(root, tmpdir=tmp_path)
+    try:
+        stub = agent_pb2_grpc.AgentStub(agent.channel())
+        attach = Attachment(agent.channel())
+        request = launch_request("sleeper", wm_server.endpoint, SECRET)
+        request.token_file = True
+        reply = stub.Launch(request, metadata=metadata(), timeout=30)
+        path = Path(psutil.Process(reply.pid).environ()["CAST_TOKEN_FILE"])
+        assert path.is_relative_to(tmp_path) and path.exists()
+        attach.close()
+    finally:
+        agent.stop()
+    assert list(tmp_path.iterdir()) == []  # the stopped agent removed its token directory

@@ -70,12 +70,23 @@ class ProcessTable:
     def __init__(self, root: Path, log_dir: Path) -> None:
         self.root = root
         self.log_dir = log_dir
-        # Tokens are credentials: a private directory of this agent's, not the logs' (removed at the end).
-        self.token_dir = Path(tempfile.mkdtemp(prefix="cast-agent-tokens-"))
+        self._token_dir: Path | None = None
         self.sessions: dict[str, SystemSession] = {}
         self.processes: dict[tuple[str, str], AgentProcess] = {}
         self._meter = ResourceMeter()
         self._tasks: set[asyncio.Task[None]] = set()
+
+    @property
+    def token_dir(self) -> Path:
+        """The private directory of the token files this agent writes, made when the first one is.
+
+        Tokens are credentials: a directory of this agent's own, not the logs'
+        (removed when the agent stops). Made only when needed, so that an agent
+        that never writes a token, or is killed, leaves no empty directory behind.
+        """
+        if self._token_dir is None:
+            self._token_dir = Path(tempfile.mkdtemp(prefix="cast-agent-tokens-"))
+        return self._token_dir
 
     # --------------------------------------------------------------- sessions
 
@@ -240,7 +251,8 @@ class ProcessTable:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        shutil.rmtree(self.token_dir, ignore_errors=True)
+        if self._token_dir is not None:
+            shutil.rmtree(self._token_dir, ignore_errors=True)
 
     def kill_everything(self) -> None:
         """SIGKILL every process group now (last resort on the way out)."""
