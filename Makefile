@@ -65,12 +65,14 @@ demo: setup proto examples cpp java-demo
 # CAST_TEST_MVN: the Maven command of the tests that build Java projects (MVN, with its local repository).
 # Two pytest workers, a test file each at a time (pytest-xdist; docs/decisions.md): most tests wait on
 # the processes they start, so two at once nearly halve the suite on 2 cores. TEST_WORKERS=0 runs it
-# in one process. The slowest tests are listed at the end.
+# in one process. The slowest tests are listed at the end. Files go out longest first, in the order
+# tests/durations.py gives them (xdist's own reorder, by number of tests, is turned off).
 # The package tests run among them (they wait on pip, cmake and Maven as much as they compute).
 TEST_WORKERS ?= 2
 # A failed test runs once more (pytest-rerunfailures); the summary names every rerun. TEST_RERUNS=0: none.
 TEST_RERUNS ?= 1
-PYTEST_ALL = CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile --durations=15 \
+PYTEST_ALL = CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile \
+  --no-loadscope-reorder --durations=15 \
   --reruns $(TEST_RERUNS) -rR
 # Everything the three suites need; installed and built one after the other (apt-get takes no
 # second caller) before any suite runs.

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -28,6 +30,7 @@ SECRET = "test-secret-0123456789abcdef-0123456789"
 # Generate the test entry types once per session, into a directory that is on
 # sys.path here and on PYTHONPATH for component processes.
 _GEN_DIR = Path(tempfile.mkdtemp(prefix="cast-test-gen-"))
+atexit.register(shutil.rmtree, _GEN_DIR, ignore_errors=True)
 subprocess.run(
     [
         sys.executable,
@@ -48,6 +51,7 @@ from cast.client.component import Component  # noqa: E402
 from cast.client.grpc_transport import GrpcTransport  # noqa: E402
 from cast.core.records import Identity  # noqa: E402
 from cast.testing import wait_for as kit_wait_for  # noqa: E402
+from tests.durations import Recorder, longest_files_first  # noqa: E402
 
 GEN_DIR = _GEN_DIR
 PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"), str(ROOT / "python")])
@@ -59,7 +63,8 @@ _FOLDER_MARKERS = {"interop": "interop", "web": "browser", "bench": "bench", "pa
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark each test with what it needs beyond the Python environment."""
+    """Mark each test with what it needs beyond the Python environment; the longest files first."""
+    longest_files_first(items)
     for item in items:
         parts = item.path.relative_to(ROOT / "tests").parts
         if len(parts) > 1 and parts[0] in _FOLDER_MARKERS:
@@ -68,6 +73,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         if module is not None and any(getattr(v, "__module__", None) == "tests.netns" for v in vars(module).values()):
             item.add_marker("namespaces")
 
+_RECORDER = Recorder()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Each phase's seconds, for the order of the next run (tests/durations.py)."""
+    _RECORDER.add(report)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Write the seconds per file of a whole run (tests/durations.py); only the xdist controller has them all."""
+    if not hasattr(session.config, "workerinput"):
+        _RECORDER.write(session)
 
 
 def pytest_terminal_summary(terminalreporter: Any) -> None:
