@@ -15,8 +15,10 @@ history, a journal batch, an in-process reader: :class:`Placed` is freed with
 the last of them) and no lease (a reader in another process that was sent it
 and has not given it back). Pages of a segment are reused, not returned: a
 fresh page costs far more than a reused one (docs/decisions.md, "Large values
-by shared memory"); a segment left empty is retired, and its memory goes back
-to the system once every reader has unmapped it.
+by shared memory"); of the segments left empty, one is kept while values keep
+coming (a *spare*, its pages faulted in already, so the next segment needed
+costs nothing to make), the others are retired, and a retired segment's memory
+goes back to the system once every reader has unmapped it.
 """
 
 from __future__ import annotations
@@ -256,6 +258,8 @@ class Arena:
         # Extents whose Placed was freed (appended from __del__, on any thread; deque appends are atomic).
         self._dropped: collections.deque[_Extent] = collections.deque()
         self.retired: list[Segment] = []  # retired, still mapped by the server until nothing holds a view
+        self._puts = 0  # values placed so far
+        self._puts_seen = 0  # ... at the last retire_empty: none since means the arena is idle
 
     # ------------------------------------------------------------- values
 
@@ -269,6 +273,7 @@ class Arena:
             if found is None:
                 return None
             segment, offset = found
+            self._puts += 1
             extent = _Extent(self._next_value, segment, offset, size, length)
             self._next_value += 1
             self._values[extent.value_id] = extent
@@ -335,16 +340,25 @@ class Arena:
         return self._segments.get(segment_id)
 
     def retire_empty(self) -> list[int]:
-        """Retire the segments left empty but the first (kept for the next value); their ids.
+        """Retire the segments left empty but one; their ids.
 
-        A retired segment takes no more values; the server closes it once it
-        holds no view of it, and its memory goes back to the system when every
-        reader has unmapped it too (they are told by the caller).
+        One empty segment stays: the only one when every segment is empty
+        (kept for the next value), and otherwise a *spare* while values came
+        since the last call, so that the next segment the values need is one
+        whose pages are faulted in already (making one costs ~60 ms of CPU per
+        64 MiB, docs/performance.md, M8). At most one spare is kept, it counts
+        in ``segments`` like any other, and once no value came between two
+        calls (the writers stopped) it is retired too. A retired segment takes
+        no more values; the server closes it once it holds no view of it, and
+        its memory goes back to the system when every reader has unmapped it
+        too (they are told by the caller).
         """
         with self._lock:
             self._collect()
             empty = [s for s in self._segments.values() if s.extents.empty]
-            if len(empty) == len(self._segments):
+            busy = self._puts != self._puts_seen
+            self._puts_seen = self._puts
+            if len(empty) == len(self._segments) or busy:
                 empty = empty[1:]
             for segment in empty:
                 del self._segments[segment.id]
