@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from cast.core.arena import PAGE, Arena, Segment
+from cast.core.arena import PAGE, SPARE_IDLE_S, Arena, Segment
 from cast.core.records import BatchOp, Identity, Limits, Operation
 from cast.core.shared import SharedMemory, SharedSettings
 from cast.errors import InvalidArgumentError, PermissionDeniedError
@@ -182,8 +182,9 @@ def test_one_emptied_segment_is_kept_as_a_spare_while_values_come_and_retired_on
     assert third[-1] is not None and third[-1].segment == 2  # not a new memory file with fresh pages
     del third[-1]
     gc.collect()
-    assert arena.retire_empty() == []  # values came since the last call: 2 stays as the spare
-    assert arena.retire_empty() == [2]  # none came since: the writers stopped, the spare goes
+    now = time.monotonic()
+    assert arena.retire_empty(now) == []  # values came just now: 2 stays as the spare
+    assert arena.retire_empty(now + SPARE_IDLE_S) == [2]  # none came for a while: the writers stopped, it goes
     assert arena.stats()["segments"] == 1 and arena.stats()["segment_bytes"] == 8 * MIB
     arena.close()
 
