@@ -79,11 +79,20 @@ class TokenSigner:
 
     def verify(self, token: str) -> Identity:
         """The identity a token states; UNAUTHENTICATED if it is malformed, forged or expired."""
+        return self.verify_until(token)[0]
+
+    def verify_until(self, token: str) -> tuple[Identity, float]:
+        """The identity a token states and when it expires (seconds since the epoch; 0: never), as :meth:`verify`.
+
+        A token's answer is the same until it expires (the secret is fixed for
+        the signer's life), so a caller that holds the token, as a stream's
+        metadata does, may keep the identity until then and verify again after.
+        """
         cached = self._cache.get(token)
         if cached is not None:
             identity, expiry = cached
             if not expiry or expiry > time.time():
-                return identity
+                return cached
         if token.count(".") == 1:
             raise UnauthenticatedError(
                 "token in the format before JWTs ('<payload>.<signature>'): tokens are JSON Web Tokens now; "
@@ -114,7 +123,7 @@ class TokenSigner:
         self._cache[token] = (identity, expiry)
         if len(self._cache) > 4096:
             self._cache.popitem(last=False)
-        return identity
+        return identity, expiry
 
 
 def _text(value: object) -> str:

@@ -192,6 +192,46 @@ def test_the_server_checks_the_token_of_every_request_and_of_the_stream() -> Non
         server.stop()
 
 
+def test_the_write_stream_verifies_its_token_once_until_it_expires() -> None:
+    """Same token, same answer until it expires: one stream's requests do not each pay for verifying it.
+
+    That an expired token is still refused for each request after its expiry:
+    test_the_server_checks_the_token_of_every_request_and_of_the_stream.
+    """
+    system = wire_system("t", ["vision"])
+    server = ThreadServer(system)
+    try:
+        assert server.running is not None
+        signer: TokenSigner = server.signer
+        verified: list[str] = []
+        real = signer.verify_until
+
+        def counting(token: str) -> tuple[Identity, float]:
+            verified.append(token)
+            return real(token)
+
+        signer.verify_until = counting  # type: ignore[method-assign]
+        messages = []
+        for m in range(5):
+            message = wm_pb2.WriteRequests()
+            for i in range(10):
+                add = message.requests.add(id=m * 10 + i).add
+                add.address.id, add.address.subarchitecture = f"e{m}-{i}", "vision"
+                add.value.Pack(Pose(x=i))
+            messages.append(message)
+        token = signer.issue(Identity("w", "vision"), ttl_seconds=3600)
+        channel = grpc.insecure_channel(server.running.endpoint)
+        stub = wm_grpc.WorkingMemoryStub(channel)
+        replies = [r for out in stub.Write(iter(messages), metadata=(("authorization", f"Bearer {token}"),))
+                   for r in out.replies]
+        assert sorted(r.id for r in replies) == list(range(50))
+        assert all(r.WhichOneof("result") == "write" for r in replies)
+        assert 1 <= len(verified) <= 2  # the call's check and the first request's, not one per request
+        channel.close()
+    finally:
+        server.stop()
+
+
 def test_a_broken_stream_fails_outstanding_calls_and_the_next_write_reconnects(remote: Any) -> None:
     holder = remote("holder")
     waiter = remote("waiter")

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from cast.core.arena import PAGE, Arena, Segment
+from cast.core.arena import PAGE, SPARE_IDLE_S, Arena, Segment
 from cast.core.records import BatchOp, Identity, Limits, Operation
 from cast.core.shared import SharedMemory, SharedSettings
 from cast.errors import InvalidArgumentError, PermissionDeniedError
@@ -163,6 +163,30 @@ def test_the_window_bounds_what_one_session_holds_lent_and_a_call_gives_back_wha
     assert session.lent_bytes == MIB  # the first, received, is held until its RELEASE
     shared.give_back(session, [lent[0].value_id, lent[0].value_id])  # type: ignore[union-attr]  # once is all
     assert session.lent_bytes == 0 and shared.snapshot()["lent_bytes"] == 0
+
+
+def test_one_emptied_segment_is_kept_as_a_spare_while_values_come_and_retired_once_they_stop() -> None:
+    """The next segment the values need is the spare, whose pages are faulted in: no new memory file is made."""
+    arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
+    first = [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 1, full
+    second = [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 2, full
+    third = [arena.put(os.urandom(2 * MIB))]  # segment 3
+    assert third[0] is not None and third[0].segment == 3 and arena.stats()["segments"] == 3
+    del first, second, third[0]  # segments 1 and 2 emptied (the history moved on); 3 is empty too
+    gc.collect()
+    third = [arena.put(os.urandom(2 * MIB))]  # values still come: into segment 1, the first with room
+    assert third[0] is not None and third[0].segment == 1
+    assert arena.retire_empty() == [3]  # 2 stays as the spare, 3 goes: at most one spare
+    assert arena.stats()["segments"] == 2
+    third += [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 1 full: the fourth goes to the spare
+    assert third[-1] is not None and third[-1].segment == 2  # not a new memory file with fresh pages
+    del third[-1]
+    gc.collect()
+    now = time.monotonic()
+    assert arena.retire_empty(now) == []  # values came just now: 2 stays as the spare
+    assert arena.retire_empty(now + SPARE_IDLE_S) == [2]  # none came for a while: the writers stopped, it goes
+    assert arena.stats()["segments"] == 1 and arena.stats()["segment_bytes"] == 8 * MIB
+    arena.close()
 
 
 def test_an_ended_session_gives_back_everything_and_empty_segments_are_retired() -> None:

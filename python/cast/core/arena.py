@@ -15,8 +15,10 @@ history, a journal batch, an in-process reader: :class:`Placed` is freed with
 the last of them) and no lease (a reader in another process that was sent it
 and has not given it back). Pages of a segment are reused, not returned: a
 fresh page costs far more than a reused one (docs/decisions.md, "Large values
-by shared memory"); a segment left empty is retired, and its memory goes back
-to the system once every reader has unmapped it.
+by shared memory"); of the segments left empty, one is kept while values keep
+coming (a *spare*, its pages faulted in already, so the next segment needed
+costs nothing to make; :meth:`Arena.retire_empty`), the others are retired, and a retired segment's memory
+goes back to the system once every reader has unmapped it.
 """
 
 from __future__ import annotations
@@ -28,9 +30,10 @@ import fcntl
 import mmap
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator
 
-__all__ = ["PAGE", "Arena", "Extents", "Placed", "Segment", "memory_file"]
+__all__ = ["PAGE", "SPARE_IDLE_S", "Arena", "Extents", "Placed", "Segment", "memory_file"]
 
 PAGE = 4096
 """Extents start on a page: a reader may map one alone, and arrays over it are aligned."""
@@ -39,6 +42,8 @@ F_SEAL_FUTURE_WRITE = 0x0010  # Linux 5.1; Python's fcntl module does not name i
 MFD_NOEXEC_SEAL = 0x0008  # Linux 6.3: a memory file that can never be executed
 MADV_POPULATE_WRITE = 23  # Linux 5.14: fault pages in, writable, without changing what they hold
 _POPULATE_STEP = 1 << 20  # one madvise at a time
+SPARE_IDLE_S = 10.0
+"""An emptied segment stays as a spare until no value was placed for this long (the writers stopped)."""
 
 
 def _load_madvise() -> Callable[[int, int, int], int] | None:
@@ -256,6 +261,7 @@ class Arena:
         # Extents whose Placed was freed (appended from __del__, on any thread; deque appends are atomic).
         self._dropped: collections.deque[_Extent] = collections.deque()
         self.retired: list[Segment] = []  # retired, still mapped by the server until nothing holds a view
+        self._last_put = -SPARE_IDLE_S  # time.monotonic() of the last value placed
 
     # ------------------------------------------------------------- values
 
@@ -269,6 +275,7 @@ class Arena:
             if found is None:
                 return None
             segment, offset = found
+            self._last_put = time.monotonic()
             extent = _Extent(self._next_value, segment, offset, size, length)
             self._next_value += 1
             self._values[extent.value_id] = extent
@@ -334,17 +341,26 @@ class Arena:
         """A live segment by id."""
         return self._segments.get(segment_id)
 
-    def retire_empty(self) -> list[int]:
-        """Retire the segments left empty but the first (kept for the next value); their ids.
+    def retire_empty(self, now: float | None = None) -> list[int]:
+        """Retire the segments left empty but one; their ids.
 
-        A retired segment takes no more values; the server closes it once it
-        holds no view of it, and its memory goes back to the system when every
-        reader has unmapped it too (they are told by the caller).
+        One empty segment stays: the only one when every segment is empty
+        (kept for the next value), and otherwise a *spare* while values keep
+        coming (one was placed in the last :data:`SPARE_IDLE_S` before ``now``,
+        ``time.monotonic()`` by default), so that the next segment the values
+        need is one whose pages are faulted in already (making one costs ~60
+        ms of CPU per 64 MiB, docs/performance.md, M8). At most one spare is
+        kept, it counts in ``segments`` like any other, and once the values
+        stop it is retired too. A retired segment takes no more values; the
+        server closes it once it holds no view of it, and its memory goes back
+        to the system when every reader has unmapped it too (they are told by
+        the caller).
         """
         with self._lock:
             self._collect()
             empty = [s for s in self._segments.values() if s.extents.empty]
-            if len(empty) == len(self._segments):
+            now = time.monotonic() if now is None else now
+            if len(empty) == len(self._segments) or now - self._last_put < SPARE_IDLE_S:
                 empty = empty[1:]
             for segment in empty:
                 del self._segments[segment.id]

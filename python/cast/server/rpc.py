@@ -47,18 +47,25 @@ class Authenticator:
         Reads are open when the configuration says ``auth.reads_require_token:
         false``; a bad token is refused all the same.
         """
+        return self._read_until(context)[0]
+
+    def _read_until(self, context: Context) -> tuple[Identity, float]:
         if not self.reads_require_token:
             metadata = context.invocation_metadata() or ()
             if not any(key == "authorization" for key, _ in metadata):
-                return ANONYMOUS
-        return self.identify(context)
+                return ANONYMOUS, 0.0
+        return self.identify_until(context)
 
     def caller(self, context: Context, needs: Credential) -> Identity:
         """The caller of a call that needs ``needs`` (:mod:`cast.core.calls`)."""
+        return self.caller_until(context, needs)[0]
+
+    def caller_until(self, context: Context, needs: Credential) -> tuple[Identity, float]:
+        """As :meth:`caller`, and when the answer must be established again (its token's expiry; 0: never)."""
         if needs is Credential.READ:
-            return self.identify_read(context)
+            return self._read_until(context)
         if needs is Credential.TOKEN:
-            return self.identify(context)
+            return self.identify_until(context)
         raise UnauthenticatedError(f"a server answers no call that needs {needs.value}")
 
     def verify(self, token: str) -> Identity:
@@ -67,13 +74,17 @@ class Authenticator:
 
     def identify(self, context: Context) -> Identity:
         """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""
+        return self.identify_until(context)[0]
+
+    def identify_until(self, context: Context) -> tuple[Identity, float]:
+        """As :meth:`identify`, and when the call's token expires (0: never): :meth:`TokenSigner.verify_until`."""
         for key, value in context.invocation_metadata() or ():
             if key == "authorization":
                 text = value.decode() if isinstance(value, bytes) else value
                 scheme, _, token = text.partition(" ")
                 if scheme.lower() != "bearer" or not token:
                     raise UnauthenticatedError("authorization metadata must be 'Bearer <token>'")
-                return self._signer.verify(token.strip())
+                return self._signer.verify_until(token.strip())
         raise UnauthenticatedError(
             "no token: send 'authorization: Bearer <token>' metadata (components get CAST_TOKEN from the "
             "orchestrator or `cast token`)"
@@ -116,6 +127,10 @@ class Servicer:
     def who(self, call: str, context: Context) -> Identity:
         """The caller of ``call`` (a method of :attr:`SERVICE`), by the table of calls."""
         return self.auth.caller(context, credential(f"{self.SERVICE}/{call}"))
+
+    def who_until(self, call: str, context: Context) -> tuple[Identity, float]:
+        """As :meth:`who`, and until when that answer holds (:meth:`Authenticator.caller_until`)."""
+        return self.auth.caller_until(context, credential(f"{self.SERVICE}/{call}"))
 
 
 Handler = Callable[[Any, Req, Context, Identity], Awaitable[Resp]]

@@ -126,9 +126,10 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         """Apply a component's writes and locks as they arrive on the stream, answering each by id.
 
         A missing or bad token ends the call at once, as every RPC does; it is
-        checked again for each request, since the stream outlives tokens.
+        checked again for each request, since the stream outlives tokens
+        (:class:`WriteStream` says how).
         """
-        stream = WriteStream(self._system, lambda: self.who("Write", context))
+        stream = WriteStream(self._system, lambda: self.who_until("Write", context))
         async for reply in stream.run(request_iterator):
             yield reply
 

@@ -5,15 +5,21 @@ same name would (the same :class:`cast.core.access.Access` rules, so the same
 permissions, versions and errors). A call that must wait - a lock held by
 another component, or a journal that writers wait for - waits in a task of
 its own, so the requests behind it are applied and answered meanwhile; its
-reply then comes out of order, matched by id. The token is checked on every
+reply then comes out of order, matched by id. The token is checked for every
 request, so one that expires while the stream is open refuses the writes
-after it, as the unary calls would.
+after it, as the unary calls would. A stream's token cannot change (it is the
+call's metadata) and its answer is the same until it expires, so the identity
+is established at the first request and again only once the token's expiry
+has come: for each request the answer verifying it would give, without the
+cost (docs/decisions.md, "The Write stream verifies its token once until it
+expires").
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -92,9 +98,11 @@ def _internal(exc: Exception) -> CastError:
 class WriteStream:
     """One Write call of one component."""
 
-    def __init__(self, system: System, caller: Callable[[], Identity]) -> None:
+    def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]]) -> None:
         self._system = system
-        self._caller = caller  # the caller's identity, established again for each request (tokens expire)
+        self._caller = caller  # the caller's identity and its token's expiry (0: never), verified afresh
+        self._who: Identity | None = None  # the caller, while its token has not expired
+        self._until = 0.0
         self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
         self._late = asyncio.Event()  # a waiting request was answered
         self._waiting: set[asyncio.Task[None]] = set()
@@ -177,7 +185,7 @@ class WriteStream:
                 raise InvalidArgumentError(
                     f"write request {request_id} is empty: set add, overwrite, delete, batch, lock or unlock"
                 )
-            access = Access(self._system, self._caller())  # who, before what
+            access = Access(self._system, self._identity())  # who, before what
             steps, answer = _call(access, kind, getattr(request, kind))
             try:
                 step = next(steps)
@@ -201,6 +209,15 @@ class WriteStream:
         task = asyncio.ensure_future(self._finish(reply, steps, pending, answer, timeout))
         self._waiting.add(task)
         task.add_done_callback(self._waiting.discard)
+
+    def _identity(self) -> Identity:
+        """The caller now: verified at the first request and again each time its token's expiry has come."""
+        who = self._who
+        if who is None or (self._until and time.time() >= self._until):
+            self._who = None  # an expired token is refused for every request after it too
+            who, self._until = self._caller()
+            self._who = who
+        return who
 
     def _put(self, reply: wm_pb2.WriteReply) -> None:
         self._ready.append(reply)
