@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,11 +43,32 @@ def test_commands_reach_the_sa_on_the_other_server(two_servers: CastRun) -> None
     assert {e["id"] for e in motor} == {"item-0", "item-1"}
     assert {e["subarchitecture"] for e in run.cli_json("ls")} == {"vision", "motor"}
     assert run.cli_json("get", "motor", "item-1")["value"] == "item 1 from motor"
-    out = run.cli("watch", "--sa", "motor", "--sa", "vision", "--from", "1", "--type",
-                  "google.protobuf.StringValue", "--count", "2")
-    assert [json.loads(line)["subarchitecture"] for line in out.stdout.splitlines()] == ["motor", "motor"]
+    out = _watch_or_dump(run, "--sa", "motor", "--sa", "vision", "--from", "1", "--type",
+                         "google.protobuf.StringValue", "--count", "2")
+    assert [json.loads(line)["subarchitecture"] for line in out.splitlines()] == ["motor", "motor"]
     counters = {c["subarchitecture"]: c["policy"] for c in run.cli_json("tasks")["subarchitectures"]}
     assert counters == {"vision": "fifo(max_concurrent=1)", "motor": "exclusive"}
+
+
+def _watch_or_dump(run: CastRun, *args: str) -> str:
+    """`cast watch ARGS`'s output; if it has not ended in 60 s, fail with its threads' stacks and the system's state.
+
+    A watch that stopped short of its count once, under the load of the whole suite, and never alone:
+    what it waited on, and what the servers held, is what a rerun cannot tell.
+    """
+    env = {**run.cli_environment(), "PYTHONFAULTHANDLER": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "cast.cli", "watch", *args], env=env, cwd=run.cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)  # faulthandler prints every thread's stack
+        out, err = proc.communicate(timeout=30)
+        state = {sa: run.cli_json("ls", sa) for sa in ("motor", "vision")}
+        raise AssertionError(f"cast watch {' '.join(args)} did not end in 60 s\nprinted:\n{out}\nstacks:\n{err}\n"
+                             f"entries: {state}\nsystem:\n{run.output()[-4000:]}") from None
+    assert proc.returncode == 0, out + err
+    return out
 
 
 def test_endpoint_and_secret_given_explicitly(two_servers: CastRun, tmp_path: Path) -> None:
