@@ -42,12 +42,13 @@ def longest_files_first(items: list[pytest.Item]) -> None:
     """
     seconds = known_seconds()
     typical = sorted(seconds.values())[len(seconds) // 2] if seconds else 0.0
-    rank = {}
-    for item in items:
-        name = item.nodeid.split("::", 1)[0]
-        rank.setdefault(name, -seconds.get(name, typical))
-    position = {id(item): i for i, item in enumerate(items)}
-    items.sort(key=lambda item: (rank[item.nodeid.split("::", 1)[0]], position[id(item)]))
+    # list.sort is stable: a file's tests, and files that tie, keep the collection's order.
+    items.sort(key=lambda item: -seconds.get(_file(item.nodeid), typical))
+
+
+def _file(nodeid: str) -> str:
+    """The test file of a test id (``path::name[param]``), as the records name it."""
+    return nodeid.split("::", 1)[0]
 
 
 class Recorder:
@@ -58,7 +59,7 @@ class Recorder:
 
     def add(self, report: Any) -> None:
         """One phase's report (setup, call or teardown), on the process that reports (the xdist controller)."""
-        self.seconds[report.nodeid.split("::", 1)[0]] += float(getattr(report, "duration", 0.0))
+        self.seconds[_file(report.nodeid)] += float(getattr(report, "duration", 0.0))
 
     def write(self, session: pytest.Session) -> None:
         """build/test-durations.json, when the run was the whole suite and every test ran."""
