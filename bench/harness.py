@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import socket
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +24,22 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def scratch(prefix: str) -> Iterator[Path]:
+    """A working directory for one benchmark run: removed when the run ends, kept (and named) if it failed.
+
+    The servers' configurations and logs go there; a failed run's are what
+    one reads to see why, so only a run that ended normally removes them.
+    """
+    work = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        yield work
+    except BaseException:
+        print(f"the run's files are kept in {work}", file=sys.stderr, flush=True)
+        raise
+    shutil.rmtree(work, ignore_errors=True)
 
 
 def percentile(samples: Sequence[float], q: float) -> float:

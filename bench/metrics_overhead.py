@@ -21,7 +21,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,7 +30,7 @@ import grpc
 from google.protobuf import any_pb2
 
 from bench.cast_cases import VALUE, Server, m4_fanout
-from bench.harness import PYTHON, ROOT
+from bench.harness import PYTHON, ROOT, scratch
 from bench.rows import fig
 from cast.core.access import Access, run_sync
 from cast.core.records import BatchOp, Identity, Operation
@@ -245,8 +244,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="smaller counts")
     args = parser.parse_args(argv)
     q = args.quick
-    row = run(Path(tempfile.mkdtemp(prefix="cast-bench-o1-")), 600 if q else 6000, 120 if q else 1200,
-              1000 if q else 10_000, 1 if q else 3, lambda msg: print(msg, file=sys.stderr, flush=True))
+    with scratch("cast-bench-o1-") as work:
+        row = run(work, 600 if q else 6000, 120 if q else 1200, 1000 if q else 10_000, 1 if q else 3,
+                  lambda msg: print(msg, file=sys.stderr, flush=True))
     print(json.dumps(row, indent=2, ensure_ascii=False))
     return 0
 

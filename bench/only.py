@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from bench import (
     zenoh_peer,
 )
 from bench.cast_cases import Server, m3_latency
-from bench.harness import ROOT
+from bench.harness import ROOT, scratch
 from bench.rows import Results
 
 __all__ = ["CHOICES", "main"]
@@ -102,12 +101,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix="cast-bench-only-"))
     t0 = time.time()
-    if args.row == "M9":
-        table = _m9(args.quick, work, out)
-    else:
-        table = {"M1": _m1, "M3": _m3, "M8": _m8, "M10": _m10}[args.row](args.quick, work)
+    with scratch("cast-bench-only-") as work:
+        if args.row == "M9":
+            table = _m9(args.quick, work, out)
+        else:
+            table = {"M1": _m1, "M3": _m3, "M8": _m8, "M10": _m10}[args.row](args.quick, work)
     machine = report.machine_info({"seconds": round(time.time() - t0, 1)}, redis_peer.redis_server_version())
     command = f"python -m bench.only {args.row}{' --quick' if args.quick else ''}"
     report.write_markdown(out / f"only-{args.row}.md", table, machine, command)

@@ -21,7 +21,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -32,7 +31,7 @@ from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
 from bench.cast_cases import SECRET, Server
-from bench.harness import PYTHON, percentile
+from bench.harness import PYTHON, percentile, scratch
 from bench.metrics_overhead import SA, WriterSide, alternating
 from bench.rows import fig
 from cast.client.credentials import TokenSource
@@ -181,8 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bench.recording")
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
-    row = run(Path(tempfile.mkdtemp(prefix="cast-bench-rec-")), 1000 if args.quick else 5000,
-              5000 if args.quick else 50_000)
+    with scratch("cast-bench-rec-") as work:
+        row = run(work, 1000 if args.quick else 5000, 5000 if args.quick else 50_000)
     print(json.dumps(row, indent=2))
     return 0
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +27,7 @@ from bench import (
     stream_cases,
     zenoh_peer,
 )
-from bench.harness import ROOT
+from bench.harness import ROOT, scratch
 from bench.rows import Results, rows
 
 RESULTS = ROOT / "bench" / "results"
@@ -50,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{time.time() - t_start:6.1f}s] {msg}", flush=True)
 
     scale = SMOKE if args.smoke else QUICK if args.quick else FULL
-    results, scaling, m7_samples = _measure(scale, Path(tempfile.mkdtemp(prefix="cast-bench-")), log)
+    with scratch("cast-bench-") as work:
+        results, scaling, m7_samples = _measure(scale, work, log)
     command = "python -m bench.run --smoke" if args.smoke else "make bench-quick" if args.quick else "make bench"
     _write(out, results, command)
     _plot(out, results, scaling, m7_samples)

@@ -4,6 +4,7 @@ the numbers, which `make bench` judges)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,11 +18,14 @@ IDS = sorted(["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9",
 
 @pytest.mark.timeout(900)  # every row, smoke counts: about a minute on an idle 2-core machine, more on a busy one
 def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
+    scratch = tmp_path / "tmp"  # the run's TMPDIR: what it leaves there is seen
+    scratch.mkdir()
     out = subprocess.run(
         [sys.executable, "-m", "bench.run", "--smoke", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=900,
+        cwd=ROOT, capture_output=True, text=True, timeout=900, env={**os.environ, "TMPDIR": str(scratch)},
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert not list(scratch.glob("cast-bench-*")), "a run that ended normally removes its working directory"
     table = (tmp_path / "latest.md").read_text()
     for row_id in IDS:
         assert f"| {row_id} |" in table

@@ -335,8 +335,12 @@ os.kill(os.getpid(), signal.SIGKILL)
 
 
 def test_a_killed_test_process_leaves_no_server_behind(tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, "-c", CRASH, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    # A process killed with SIGKILL cannot remove its systems' directories: they go under tmp_path, not /tmp.
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", CRASH, str(tmp_path)], capture_output=True, text=True, timeout=120,
+                          env=env)
     assert done.returncode == -signal.SIGKILL, done.stderr
     pids = [int(pid) for pid in done.stdout.split()]
     assert len(pids) == 2, done.stdout + done.stderr
     wait_for(lambda: not any(alive(pid) for pid in pids), 30, "cast serve and cast run to end with the test process")
+    assert len(list(tmp_path.glob("cast-testing-*"))) == 2, "the killed process's two systems had their directories here"
