@@ -208,6 +208,41 @@ void ClientSession::unstage(const Staged& staged, bool known) {
   }
 }
 
+std::optional<v1::WriteReply> ClientSession::callWrites(v1::WriteRequest& request, std::chrono::milliseconds timeout) {
+  std::uint64_t id;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    id = ++writeIds_;
+  }
+  request.set_id(id);
+  v1::WriteRequests message;
+  *message.add_requests() = request;
+  std::string body = message.SerializeAsString();
+  if (body.size() + 1 > shm::kMaxFrame) return std::nullopt;
+  send(shm::writes(body));
+  const auto until = std::chrono::steady_clock::now() + timeout;
+  for (;;) {
+    {
+      std::lock_guard<std::mutex> lock(stateMu_);
+      auto it = replies_.find(id);
+      if (it != replies_.end()) {
+        v1::WriteReply reply = std::move(it->second);
+        replies_.erase(it);
+        return reply;
+      }
+    }
+    if (dead_) {
+      throw UnavailableError("the shared-memory session with " + endpoint_ + " ended (" + why() +
+                             "): this write may or may not have been applied");
+    }
+    const auto now = std::chrono::steady_clock::now();
+    if (now >= until) throw DeadlineExceededError("no reply on the shared-memory socket of " + endpoint_);
+    poll(std::max(std::chrono::milliseconds(1),
+                  std::min(std::chrono::milliseconds(50),
+                           std::chrono::duration_cast<std::chrono::milliseconds>(until - now))));
+  }
+}
+
 // --------------------------------------------------------------------- reads
 
 std::unique_ptr<ReadCall> ClientSession::newCall() {
@@ -388,6 +423,11 @@ void ClientSession::handle(shm::Frame& frame) {
         gone = std::move(it->second);
         segments_.erase(it);
       }
+    } else if (frame.kind == shm::kReplies) {
+      v1::WriteReplies replies;
+      if (!replies.ParseFromString(frame.body)) throw shm::ProtocolError("REPLIES does not parse");
+      std::lock_guard<std::mutex> lock(stateMu_);
+      for (auto& reply : *replies.mutable_replies()) replies_[reply.id()] = std::move(reply);
     } else if (frame.kind == shm::kRefused) {
       end("the server ended it: " + frame.body);
     } else if (frame.fd >= 0) {  // a kind this client does not know

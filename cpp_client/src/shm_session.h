@@ -152,6 +152,10 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // Staged bytes of writes whose outcome is unknown (kept out of use).
   std::size_t quarantined() const;
 
+  // PROTOTYPE: one write on the session's socket (WRITES), waiting up to
+  // `timeout` for its REPLIES; nullopt (nothing sent) when it does not fit a frame.
+  std::optional<v1::WriteReply> callWrites(v1::WriteRequest& request, std::chrono::milliseconds timeout);
+
   // -------------------------------------------------------------- reads
   // A read call on this session (its metadata names it).
   std::unique_ptr<ReadCall> newCall();
@@ -210,6 +214,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t calls_ = 0;
   std::string why_;
   std::atomic<bool> dead_{false};
+  std::uint64_t writeIds_ = 0;                         // stateMu_
+  std::map<std::uint64_t, v1::WriteReply> replies_;  // stateMu_: replies not yet taken
 };
 
 }  // namespace cast::detail

@@ -66,6 +66,8 @@ std::string received(std::uint64_t call, std::uint64_t count, bool ended) {
   return frame(kReceived, body);
 }
 
+std::string writes(const std::string& requests) { return frame(kWrites, requests); }
+
 Welcome parseWelcome(const std::string& body) {
   if (body.size() != 2 + 16 + 16 + 3 * 8) throw ProtocolError("WELCOME has the wrong size");
   Welcome w;

@@ -26,11 +26,13 @@ inline constexpr std::uint16_t kVersion = 1;
 inline constexpr std::uint8_t kHello = 1;     // u16 version, then the token (UTF-8) to the end
 inline constexpr std::uint8_t kRelease = 2;   // n x u64 value ids given back
 inline constexpr std::uint8_t kReceived = 3;  // u64 call, u64 count, u8 ended
+inline constexpr std::uint8_t kWrites = 4;    // a serialized cast.v1.WriteRequests
 // Server -> client:
 inline constexpr std::uint8_t kWelcome = 10;  // u16 version, 16 B session, 16 B server id, u64 x 3; 1 fd
 inline constexpr std::uint8_t kRefused = 11;  // the reason (UTF-8) to the end
 inline constexpr std::uint8_t kSegment = 12;  // u32 segment, u64 size; 1 fd
 inline constexpr std::uint8_t kRetire = 13;   // u32 segment
+inline constexpr std::uint8_t kReplies = 14;  // a serialized cast.v1.WriteReplies
 
 // The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits).
 inline constexpr std::size_t kMaxFrame = 1 << 16;
@@ -65,6 +67,7 @@ struct Welcome {
 std::string hello(const std::string& token);
 std::string release(const std::vector<std::uint64_t>& valueIds);
 std::string received(std::uint64_t call, std::uint64_t count, bool ended);
+std::string writes(const std::string& requests);
 
 // Fields of received frames; ProtocolError when the size is wrong.
 Welcome parseWelcome(const std::string& body);

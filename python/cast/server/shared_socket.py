@@ -29,6 +29,8 @@ from cast.core.shared import Lent, SharedSession
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.rpc import Authenticator, Context
+from cast.server.write_stream import WriteStream, _Woken
+from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import directory_pb2
 from cast.wire import shared_memory as wire
 
@@ -83,6 +85,8 @@ class _Connection:
         self._pending: deque[tuple[bytes, int | None]] = deque()  # frames waiting for room in the socket
         self.session: SharedSession | None = None
         self.closed = False
+        self._token = ""
+        self._writes: WriteStream | None = None  # PROTOTYPE: WRITES frames applied as the Write stream's
         self._loop.add_reader(sock.fileno(), self._readable)
         self._hello_timer = self._loop.call_later(_HELLO_S, self._too_slow)
 
@@ -128,6 +132,8 @@ class _Connection:
         elif frame.kind == wire.RECEIVED:
             call, count, ended = wire.parse_received(frame.body)
             shared.received(self.session, call, count, ended)
+        elif frame.kind == wire.WRITES:
+            self._apply_writes(frame.body)
         else:
             raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
 
@@ -143,6 +149,7 @@ class _Connection:
                 "offered to the server's own OS user only; values travel as bytes"
             )
         who = self._owner.auth.verify(token)  # UNAUTHENTICATED, as a CastError: refused with its message
+        self._token = token
         shared = self._owner.system.shared
         assert shared is not None
         session = shared.open_session(who)
@@ -152,6 +159,28 @@ class _Connection:
                              shared.settings.window_bytes, session.staging_bytes)
         if self.send(frame, session.staging_fd) and not self._pending:
             session.forget_staging_fd()  # the client has it; the server's mapping is all the server needs
+
+    def _apply_writes(self, body: bytes) -> None:
+        writes = self._writes
+        if writes is None:
+            token = self._token
+            auth = self._owner.auth
+            writes = self._writes = WriteStream(self._owner.system, lambda: auth.verify_until(token))
+            writes.on_late = self._send_replies
+        message = wm_pb2.WriteRequests.FromString(body)
+        woken = _Woken.count
+        writes._apply(message)
+        if writes._ready:
+            if _Woken.count != woken:
+                self._loop.call_soon(self._send_replies)  # events before acknowledgements
+            else:
+                self._send_replies()
+
+    def _send_replies(self) -> None:
+        writes = self._writes
+        if writes is None or not writes._ready:
+            return
+        self.send(wire.encode(wire.REPLIES, writes._take().SerializeToString()))
 
     def _too_slow(self) -> None:
         if self.session is None:
@@ -222,6 +251,9 @@ class _Connection:
             self._loop.remove_writer(self._sock.fileno())
         self._sock.close()
         self._pending.clear()
+        if self._writes is not None:
+            for task in list(self._writes._waiting):
+                task.cancel()
         shared = self._owner.system.shared
         if self.session is not None and shared is not None:
             shared.close_session(self.session)

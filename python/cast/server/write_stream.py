@@ -106,6 +106,7 @@ class WriteStream:
         self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
         self._late = asyncio.Event()  # a waiting request was answered
         self._waiting: set[asyncio.Task[None]] = set()
+        self.on_late: Callable[[], None] | None = None  # PROTOTYPE: the socket's transport sends late replies
 
     async def run(self, messages: AsyncIterator[wm_pb2.WriteRequests]) -> AsyncIterator[wm_pb2.WriteReplies]:
         """Yield the replies until the client has closed its side and every request is answered.
@@ -241,3 +242,5 @@ class WriteStream:
             answer(reply, result)
             self._put(reply)
         self._late.set()
+        if self.on_late is not None:
+            self.on_late()

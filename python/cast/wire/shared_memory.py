@@ -35,11 +35,13 @@ VERSION = 1
 HELLO = 1  # u16 version, then the token (UTF-8) to the end
 RELEASE = 2  # n x u64 value ids given back
 RECEIVED = 3  # u64 call, u64 count, u8 ended
+WRITES = 4  # a serialized cast.v1.WriteRequests
 # Server -> client
 WELCOME = 10  # u16 version, 16 bytes session, 16 bytes server id, u64 threshold, u64 window, u64 staging size; 1 fd
 REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
 SEGMENT = 12  # u32 segment id, u64 size; 1 fd
 RETIRE = 13  # u32 segment id
+REPLIES = 14  # a serialized cast.v1.WriteReplies
 
 MAX_FRAME = 1 << 16
 """The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits)."""
