@@ -9,7 +9,6 @@
 #include "cast/grpc_transport.h"
 
 #include <algorithm>
-#include <cstdlib>
 #include <map>
 #include <mutex>
 #include <thread>
@@ -441,19 +440,6 @@ class GrpcTransport final : public Transport {
 
   // One write or lock on the Write stream, waiting up to `wait` for its reply.
   v1::WriteReply write(const std::string& sa, v1::WriteRequest request, std::optional<Millis> wait) {
-    static const bool onSocket = [] {
-      const char* v = std::getenv("CAST_WRITE_SOCKET");
-      return v != nullptr && std::string(v) == "1";
-    }();
-    if (onSocket) {  // PROTOTYPE: the write on the shared-memory session's socket
-      if (auto session = server(sa).shared->session(wait)) {
-        std::optional<v1::WriteReply> reply = session->callWrites(request, wait.value_or(timeout_));
-        if (reply) {
-          if (auto error = replyError(*reply)) error->raise();
-          return std::move(*reply);
-        }
-      }
-    }
     return writeStream(sa).call(std::move(request), wait);
   }
   // One write, waiting up to the call timeout, as a unary call would.

@@ -311,6 +311,17 @@ std::string SharedLink::reason() const {
   return reason_;
 }
 
+void SharedLink::renew(std::chrono::milliseconds drain) {
+  std::shared_ptr<ClientSession> s;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    s.swap(session_);
+  }
+  if (!s) return;
+  s->writes().drain(drain);
+  s->close();
+}
+
 void SharedLink::close() {
   std::shared_ptr<ClientSession> s;
   {

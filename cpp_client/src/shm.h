@@ -91,6 +91,10 @@ class SharedLink {
   void check();
   // Why values travel as bytes, while they do ("" with a session).
   std::string reason() const;
+  // The token was renewed: the session (whose writes carry the token of its
+  // HELLO) ends once its outstanding writes were answered (up to `drain`),
+  // and the next use opens one with the new token.
+  void renew(std::chrono::milliseconds drain);
   // Ends the session; no other is opened.
   void close();
 

@@ -144,12 +144,14 @@ ClientSession::ClientSession(int socket, const shm::Welcome& welcome, int stagin
     throw std::system_error(error, std::generic_category(), "mapping the staging area");
   }
   staging_ = std::make_shared<Mapping>(address, stagingSize_);
+  writes_ = std::make_unique<SessionWrites>(*this, endpoint_);
   // From here on the socket is read whenever the session is used, never waited on.
   ::fcntl(socket_, F_SETFL, ::fcntl(socket_, F_GETFL) | O_NONBLOCK);
 }
 
 ClientSession::~ClientSession() {
   end("closed");
+  writes_.reset();  // its thread reads the socket: gone before the descriptor is closed
   ::close(socket_);
 }
 
@@ -205,41 +207,6 @@ void ClientSession::unstage(const Staged& staged, bool known) {
     regions_.give(staged.offset, staged.taken);
   } else {
     quarantined_ += staged.taken;
-  }
-}
-
-std::optional<v1::WriteReply> ClientSession::callWrites(v1::WriteRequest& request, std::chrono::milliseconds timeout) {
-  std::uint64_t id;
-  {
-    std::lock_guard<std::mutex> lock(stateMu_);
-    id = ++writeIds_;
-  }
-  request.set_id(id);
-  v1::WriteRequests message;
-  *message.add_requests() = request;
-  std::string body = message.SerializeAsString();
-  if (body.size() + 1 > shm::kMaxFrame) return std::nullopt;
-  send(shm::writes(body));
-  const auto until = std::chrono::steady_clock::now() + timeout;
-  for (;;) {
-    {
-      std::lock_guard<std::mutex> lock(stateMu_);
-      auto it = replies_.find(id);
-      if (it != replies_.end()) {
-        v1::WriteReply reply = std::move(it->second);
-        replies_.erase(it);
-        return reply;
-      }
-    }
-    if (dead_) {
-      throw UnavailableError("the shared-memory session with " + endpoint_ + " ended (" + why() +
-                             "): this write may or may not have been applied");
-    }
-    const auto now = std::chrono::steady_clock::now();
-    if (now >= until) throw DeadlineExceededError("no reply on the shared-memory socket of " + endpoint_);
-    poll(std::max(std::chrono::milliseconds(1),
-                  std::min(std::chrono::milliseconds(50),
-                           std::chrono::duration_cast<std::chrono::milliseconds>(until - now))));
   }
 }
 
@@ -424,10 +391,7 @@ void ClientSession::handle(shm::Frame& frame) {
         segments_.erase(it);
       }
     } else if (frame.kind == shm::kReplies) {
-      v1::WriteReplies replies;
-      if (!replies.ParseFromString(frame.body)) throw shm::ProtocolError("REPLIES does not parse");
-      std::lock_guard<std::mutex> lock(stateMu_);
-      for (auto& reply : *replies.mutable_replies()) replies_[reply.id()] = std::move(reply);
+      writes_->replies(frame.body);
     } else if (frame.kind == shm::kRefused) {
       end("the server ended it: " + frame.body);
     } else if (frame.fd >= 0) {  // a kind this client does not know
@@ -457,9 +421,12 @@ void ClientSession::end(const std::string& why) {
   // no other thread ever uses a descriptor number that was closed.
   ::shutdown(socket_, SHUT_RDWR);
   if (why != "closed") log().debug("shared-memory session with " + endpoint_ + " ended: " + why);
+  if (writes_) writes_->ended(why.empty() ? "closed" : why);
   // Descriptors no frame claimed are closed with the reader, by the destructor.
 }
 
 void ClientSession::close() { end("closed"); }
+
+void ClientSession::abandon(const std::string& why) { end(why); }
 
 }  // namespace cast::detail

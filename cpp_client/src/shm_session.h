@@ -37,6 +37,7 @@
 #include "cast/v1/entry.pb.h"
 #include "cast/v1/working_memory.pb.h"
 #include "shm_wire.h"
+#include "socket_writes.h"
 
 namespace cast::detail {
 
@@ -152,9 +153,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // Staged bytes of writes whose outcome is unknown (kept out of use).
   std::size_t quarantined() const;
 
-  // PROTOTYPE: one write on the session's socket (WRITES), waiting up to
-  // `timeout` for its REPLIES; nullopt (nothing sent) when it does not fit a frame.
-  std::optional<v1::WriteReply> callWrites(v1::WriteRequest& request, std::chrono::milliseconds timeout);
+  // The Write-stream requests sent on this session's socket (socket_writes.h).
+  SessionWrites& writes() { return *writes_; }
 
   // -------------------------------------------------------------- reads
   // A read call on this session (its metadata names it).
@@ -179,6 +179,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::size_t segments() const;
   // Ends the session (what it holds lent the server takes back).
   void close();
+  // Ends it for `why` (a write got no reply in time), said at DEBUG.
+  void abandon(const std::string& why);
 
  private:
   void handle(shm::Frame& frame);
@@ -214,8 +216,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t calls_ = 0;
   std::string why_;
   std::atomic<bool> dead_{false};
-  std::uint64_t writeIds_ = 0;                         // stateMu_
-  std::map<std::uint64_t, v1::WriteReply> replies_;  // stateMu_: replies not yet taken
+  std::unique_ptr<SessionWrites> writes_;  // made with the session, gone before its socket is closed
 };
 
 }  // namespace cast::detail

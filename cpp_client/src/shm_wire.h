@@ -34,8 +34,12 @@ inline constexpr std::uint8_t kSegment = 12;  // u32 segment, u64 size; 1 fd
 inline constexpr std::uint8_t kRetire = 13;   // u32 segment
 inline constexpr std::uint8_t kReplies = 14;  // a serialized cast.v1.WriteReplies
 
-// The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits).
+// The largest frame either side sends or accepts (a RELEASE of 8,000 ids
+// fits), but WRITES and REPLIES.
 inline constexpr std::size_t kMaxFrame = 1 << 16;
+// The largest WRITES or REPLIES frame: a gRPC message's limit, so that any
+// request the Write stream takes fits one.
+inline constexpr std::size_t kMaxWritesFrame = std::size_t{64} << 20;
 // The most value ids one RELEASE frame carries.
 inline constexpr std::size_t kMaxReleaseIds = 8000;
 
@@ -67,6 +71,7 @@ struct Welcome {
 std::string hello(const std::string& token);
 std::string release(const std::vector<std::uint64_t>& valueIds);
 std::string received(std::uint64_t call, std::uint64_t count, bool ended);
+// WRITES: a serialized WriteRequests (socket_writes.h).
 std::string writes(const std::string& requests);
 
 // Fields of received frames; ProtocolError when the size is wrong.

@@ -265,6 +265,11 @@ struct WriteStream::Call {
     return !broken && !halfClosed;
   }
 
+  bool idle() {
+    std::lock_guard<std::mutex> lock(mu);
+    return pending.empty() && queued.empty();
+  }
+
   // Waits up to `timeout` until no request is outstanding.
   void drain(Millis timeout) {
     std::unique_lock<std::mutex> lock(mu);
@@ -333,6 +338,7 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
     if (closed_) return nullptr;
     call = call_;
   }
+  // Back from the session's socket (it ended): what it had outstanding failed with it.
   if (call && call->usable() && call->token == token) return call;
   if (call) {
     // A renewed token: the new stream must not overtake the old one's
@@ -375,6 +381,26 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
                          "limits.max_value_bytes (8 MiB by default): keep large data elsewhere and write a "
                          "reference to it"));
     return;
+  }
+  // The session's socket while there is a session (opened on the way if
+  // needed, within the request's time): after what the gRPC call has
+  // outstanding, so that no request overtakes an earlier one.
+  if (server_.shared) {
+    if (std::shared_ptr<ClientSession> session = server_.shared->session(timeout.value_or(callTimeout_))) {
+      std::shared_ptr<Call> grpcCall;
+      {
+        std::lock_guard<std::mutex> lock(stateMu_);
+        if (closed_) {
+          onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
+                                                              " is closed: no more writes"));
+          return;
+        }
+        grpcCall = call_;
+      }
+      if (grpcCall && !grpcCall->idle()) grpcCall->drain(kTokenDrain);
+      if (session->writes().send(request, onReply, timeout)) return;
+      // The session ended just now: the gRPC stream takes it.
+    }
   }
   const std::string token = tokens_->token();
   // Twice at most: a call that broke (or was replaced) just now gives way to a new one.
@@ -426,7 +452,11 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
     if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and
     // send once more (on a stream opened with the new token).
-    if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
+    if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) {
+      // A session's writes carry the token of its HELLO: a new session says the new one.
+      if (server_.shared) server_.shared->renew(kTokenDrain);
+      continue;
+    }
     outcome.error->raise();
   }
 }

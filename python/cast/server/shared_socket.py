@@ -29,8 +29,7 @@ from cast.core.shared import Lent, SharedSession
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.rpc import Authenticator, Context
-from cast.server.write_stream import WriteStream, _Woken
-from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.server.socket_writes import MAX_UNSENT, SocketWrites
 from cast.v1 import directory_pb2
 from cast.wire import shared_memory as wire
 
@@ -85,8 +84,10 @@ class _Connection:
         self._pending: deque[tuple[bytes, int | None]] = deque()  # frames waiting for room in the socket
         self.session: SharedSession | None = None
         self.closed = False
-        self._token = ""
-        self._writes: WriteStream | None = None  # PROTOTYPE: WRITES frames applied as the Write stream's
+        self._unsent = 0  # bytes of the frames in _pending
+        self._reading = True  # the loop reads the socket (not paused)
+        self._busy = False  # paused by the writes: frames read wait to be applied
+        self._writes: SocketWrites | None = None  # the session's WRITES, once HELLO passed
         self._loop.add_reader(sock.fileno(), self._readable)
         self._hello_timer = self._loop.call_later(_HELLO_S, self._too_slow)
 
@@ -133,7 +134,8 @@ class _Connection:
             call, count, ended = wire.parse_received(frame.body)
             shared.received(self.session, call, count, ended)
         elif frame.kind == wire.WRITES:
-            self._apply_writes(frame.body)
+            assert self._writes is not None
+            self._writes.received(frame.body)
         else:
             raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
 
@@ -149,7 +151,8 @@ class _Connection:
                 "offered to the server's own OS user only; values travel as bytes"
             )
         who = self._owner.auth.verify(token)  # UNAUTHENTICATED, as a CastError: refused with its message
-        self._token = token
+        auth = self._owner.auth
+        self._writes = SocketWrites(self._owner.system, lambda: auth.verify_until(token), self.send, self._pause_writes)
         shared = self._owner.system.shared
         assert shared is not None
         session = shared.open_session(who)
@@ -160,27 +163,21 @@ class _Connection:
         if self.send(frame, session.staging_fd) and not self._pending:
             session.forget_staging_fd()  # the client has it; the server's mapping is all the server needs
 
-    def _apply_writes(self, body: bytes) -> None:
-        writes = self._writes
-        if writes is None:
-            token = self._token
-            auth = self._owner.auth
-            writes = self._writes = WriteStream(self._owner.system, lambda: auth.verify_until(token))
-            writes.on_late = self._send_replies
-        message = wm_pb2.WriteRequests.FromString(body)
-        woken = _Woken.count
-        writes._apply(message)
-        if writes._ready:
-            if _Woken.count != woken:
-                self._loop.call_soon(self._send_replies)  # events before acknowledgements
-            else:
-                self._send_replies()
+    def _pause_writes(self, paused: bool) -> None:
+        self._busy = paused
+        self._read_or_not()
 
-    def _send_replies(self) -> None:
-        writes = self._writes
-        if writes is None or not writes._ready:
+    def _read_or_not(self) -> None:
+        """Read the socket unless its writes wait to be applied or the client leaves too much unread."""
+        if self.closed:
             return
-        self.send(wire.encode(wire.REPLIES, writes._take().SerializeToString()))
+        want = not self._busy and self._unsent <= MAX_UNSENT
+        if want != self._reading:
+            self._reading = want
+            if want:
+                self._loop.add_reader(self._sock.fileno(), self._readable)
+            else:
+                self._loop.remove_reader(self._sock.fileno())
 
     def _too_slow(self) -> None:
         if self.session is None:
@@ -212,6 +209,9 @@ class _Connection:
             self._loop.add_writer(self._sock.fileno(), self._writable)
         # A descriptor waiting here belongs to a live segment or the session's staging area: it stays open.
         self._pending.append((frame, fd))
+        self._unsent += len(frame)
+        if self._unsent > MAX_UNSENT:
+            self._read_or_not()
         return True
 
     def _writable(self) -> None:
@@ -227,11 +227,14 @@ class _Connection:
             except OSError as exc:
                 self.close(f"write failed: {exc}")
                 return
+            self._unsent -= sent
             if sent < len(frame):
                 self._pending[0] = (frame[sent:], None)
+                self._read_or_not()
                 return
             self._pending.popleft()
         self._loop.remove_writer(self._sock.fileno())
+        self._read_or_not()
 
     def refuse(self, reason: str) -> None:
         """Tell the client why (REFUSED), then close."""
@@ -251,9 +254,9 @@ class _Connection:
             self._loop.remove_writer(self._sock.fileno())
         self._sock.close()
         self._pending.clear()
+        self._unsent = 0
         if self._writes is not None:
-            for task in list(self._writes._waiting):
-                task.cancel()
+            self._writes.close()
         shared = self._owner.system.shared
         if self.session is not None and shared is not None:
             shared.close_session(self.session)
