@@ -266,7 +266,9 @@ std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* des
     }
   }
   try {
-    auto session = connectShared(info, tokens_->token(), endpoint_, handshake);
+    const std::string token = tokens_->token();
+    auto session = connectShared(info, token, endpoint_, handshake);
+    session->setToken(token);
     log_.debug("values of at least " + std::to_string(session->threshold()) +
                " bytes travel by shared memory with " + endpoint_);
     return session;

@@ -135,6 +135,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t threshold() const { return threshold_; }
   std::uint64_t window() const { return window_; }
   std::size_t stagingBytes() const { return stagingSize_; }
+  // The token its HELLO carried: the identity of the writes on its socket.
+  const std::string& token() const { return token_; }
+  void setToken(std::string token) { token_ = std::move(token); }
 
   // ------------------------------------------------------------- writes
   // `data` copied into a free region of the staging area; nullopt when there
@@ -197,6 +200,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t threshold_ = 0;
   std::uint64_t window_ = 0;
   std::size_t stagingSize_ = 0;
+  std::string token_;
 
   // The thread holding sendMu_ never lets a Lease go (it only writes to the
   // socket), so giveBack's try_lock never meets its own thread's lock.

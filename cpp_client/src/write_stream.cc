@@ -385,8 +385,15 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
   // The session's socket while there is a session (opened on the way if
   // needed, within the request's time): after what the gRPC call has
   // outstanding, so that no request overtakes an earlier one.
+  const std::string token = tokens_->token();
   if (server_.shared) {
-    if (std::shared_ptr<ClientSession> session = server_.shared->session(timeout.value_or(callTimeout_))) {
+    std::shared_ptr<ClientSession> session = server_.shared->session(timeout.value_or(callTimeout_));
+    if (session && session->token() != token) {
+      // A renewed token: a session says it in its HELLO, so a new one opens (after the old one's replies).
+      server_.shared->renew(kTokenDrain);
+      session = server_.shared->session(timeout.value_or(callTimeout_));
+    }
+    if (session) {
       std::shared_ptr<Call> grpcCall;
       {
         std::lock_guard<std::mutex> lock(stateMu_);
@@ -402,7 +409,6 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
       // The session ended just now: the gRPC stream takes it.
     }
   }
-  const std::string token = tokens_->token();
   // Twice at most: a call that broke (or was replaced) just now gives way to a new one.
   for (int attempt = 0; attempt < 2; ++attempt) {
     std::shared_ptr<Call> call;
@@ -452,11 +458,8 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
     if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and
     // send once more (on a stream opened with the new token).
-    if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) {
-      // A session's writes carry the token of its HELLO: a new session says the new one.
-      if (server_.shared) server_.shared->renew(kTokenDrain);
-      continue;
-    }
+    // (A session's writes carry its HELLO's token: send() opens a new session with the new one.)
+    if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
     outcome.error->raise();
   }
 }
