@@ -14,8 +14,11 @@
 // - counts the references each read call received and says so when the call
 //   ends (RECEIVED), so that the server takes back what never arrived.
 //
-// No thread of its own: what the server sends (SEGMENT, RETIRE, REFUSED, the
-// end) is read whenever the session is used. How a session is opened, and
+// - carries the component's writes once it has a session (socket_writes.h).
+//
+// No thread of its own until the first write on its socket (whose thread then
+// reads it): what the server sends (SEGMENT, RETIRE, REFUSED, the end) is read
+// whenever the session is used. How a session is opened, and
 // when there is none: shm.h.
 #pragma once
 

@@ -9,8 +9,10 @@ machine cannot connect, and gets bytes). A connection becomes a session once
 its HELLO passes: the peer runs as the server's own OS user (``SO_PEERCRED``)
 and its token is valid. The session's identity is the token's; its staging
 area, and each arena segment before the first value lent from it, reach the
-client as memory files (``SCM_RIGHTS``). The rules are the core's
-(:mod:`cast.core.shared`); this module only moves frames.
+client as memory files (``SCM_RIGHTS``). A session's WRITES frames are its
+Write-stream requests, applied on the loop as they are read
+(:mod:`cast.server.socket_writes`). The rules are the core's
+(:mod:`cast.core.shared`, :mod:`cast.core.access`); this module only moves frames.
 """
 
 from __future__ import annotations
