@@ -226,3 +226,32 @@ def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_a
     assert all(r.WhichOneof("result") == "write" for r in replies)
     # Applied in turns of the loop: the other session's write went between them, not after the last.
     assert replies[0].write.revision < between.write.revision < replies[-1].write.revision
+
+
+def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cast.server import socket_writes, working_memory
+
+    h, session = raw()
+    order: list[str] = []  # what the server's loop sent, in order (the server runs in this process)
+    events, flush = working_memory._WatchStream._events, socket_writes.SocketWrites._flush
+
+    def sent_events(self: Any, matches: Any) -> Any:
+        order.append("event")
+        return events(self, matches)
+
+    def sent_replies(self: Any) -> None:
+        if self._writes.ready:
+            order.append("reply")
+        flush(self)
+
+    monkeypatch.setattr(working_memory._WatchStream, "_events", sent_events)
+    monkeypatch.setattr(socket_writes.SocketWrites, "_flush", sent_replies)
+    watcher = h.component("watcher")
+    seen: list[int] = []
+    watcher.on_change(cast.address_filter("e"), lambda ch: seen.append(ch.revision))
+    for i in range(5):
+        order.clear()
+        session.write(add(i + 1, "e", b"v", overwrite=i > 0))
+        session.replies(1)
+        wait_for(lambda: len(seen) == i + 1, what="the watcher's event")  # its stream waits for the next
+        assert order == ["event", "reply"], (i, order)
