@@ -253,5 +253,5 @@ def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeyp
         order.clear()
         session.write(add(i + 1, "e", b"v", overwrite=i > 0))
         session.replies(1)
-        wait_for(lambda: len(seen) == i + 1, what="the watcher's event")  # its stream waits for the next
+        wait_for(lambda n=i + 1: len(seen) == n, what="the watcher's event")  # its stream waits for the next
         assert order == ["event", "reply"], (i, order)
