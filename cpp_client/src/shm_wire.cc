@@ -108,11 +108,16 @@ std::vector<Frame> FrameReader::feed(const char* data, std::size_t size, std::ve
   fds_.insert(fds_.end(), fds.begin(), fds.end());
   std::vector<Frame> out;
   std::size_t at = 0;
-  while (buf_.size() - at >= 5) {
+  while (buf_.size() - at >= 4) {
     const std::uint64_t length = getLe(buf_, at, 4);
+    if (length < 1 || length > kMaxWritesFrame) {
+      throw ProtocolError("frame of " + std::to_string(length) + " bytes (1 to " + std::to_string(kMaxWritesFrame) +
+                          " allowed)");
+    }
+    if (buf_.size() - at < 5) break;  // the kind decides the bound
     const auto kind = static_cast<std::uint8_t>(buf_[at + 4]);
     const std::size_t limit = kind == kWrites || kind == kReplies ? kMaxWritesFrame : kMaxFrame;
-    if (length < 1 || length > limit) {
+    if (length > limit) {
       throw ProtocolError("frame of kind " + std::to_string(kind) + " has " + std::to_string(length) +
                           " bytes (1 to " + std::to_string(limit) + " allowed)");
     }

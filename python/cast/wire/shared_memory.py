@@ -206,11 +206,15 @@ class FrameReader:
         out = []
         buf = self._buf
         at = 0
-        while len(buf) - at >= 5:
+        while len(buf) - at >= 4:
             (length,) = _LEN.unpack_from(buf, at)
+            if not 1 <= length <= MAX_WRITES_FRAME:
+                raise ProtocolError(f"frame of {length} bytes (1 to {MAX_WRITES_FRAME} allowed)")
+            if len(buf) - at < 5:
+                break  # the kind decides the bound
             kind = buf[at + 4]
             limit = MAX_WRITES_FRAME if kind in LARGE else MAX_FRAME
-            if not 1 <= length <= limit:
+            if length > limit:
                 raise ProtocolError(
                     f"frame of kind {kind} has {length} bytes (1 to {limit} allowed"
                     + (": a write request over 64 MiB does not fit the Write stream either; stage large values)"
