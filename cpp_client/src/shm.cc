@@ -313,6 +313,11 @@ std::string SharedLink::reason() const {
   return reason_;
 }
 
+std::shared_ptr<ClientSession> SharedLink::current() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return session_ && !session_->dead() ? session_ : nullptr;
+}
+
 void SharedLink::renew(std::chrono::milliseconds drain) {
   std::shared_ptr<ClientSession> s;
   {

@@ -83,6 +83,8 @@ class SharedLink {
   // the opening may take, waiting for another thread's opening included (a
   // call's time left: opening on a call's way spends the call's time).
   std::shared_ptr<ClientSession> session(Within within = std::nullopt);
+  // The live session, never opening one (nullptr: none).
+  std::shared_ptr<ClientSession> current() const;
   // A read call's part of the session (nullptr without one): its metadata,
   // and its end when the call is over. `within` as for session().
   std::unique_ptr<ReadCall> read(Within within = std::nullopt);

@@ -492,6 +492,10 @@ void WriteStream::close(Millis grace) {
     closed_ = true;
     call = call_;
   }
+  // The session's outstanding writes are answered before the transport ends the session.
+  if (server_.shared) {
+    if (std::shared_ptr<ClientSession> session = server_.shared->current()) session->writes().drain(grace);
+  }
   if (!call) return;
   call->drain(grace);
   call->end(grace);

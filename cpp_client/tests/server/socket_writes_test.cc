@@ -2,7 +2,8 @@
 // the repository's Python server: a C++ component on the server's host sends
 // every write there (docs/client-protocol.md, "Writes on the session's
 // socket"). A mix of staged and small values, waited for and pipelined, is
-// applied once each in call order; a socket that ends under outstanding
+// applied once each in call order; pipelined writes outstanding when the
+// component closes are answered first; a socket that ends under outstanding
 // writes fails them with UnavailableError naming the session, and the next
 // writes succeed. (The Write stream's own tests, write_stream_test.cc, run on
 // the socket too, since their components have sessions.)
@@ -98,6 +99,16 @@ TEST(SocketWrites, AMixOfStagedAndSmallValuesWaitedForAndPipelinedIsAppliedOnceI
     EXPECT_TRUE(seen[i].second == values[i].value()) << "write " << i;
   }
   EXPECT_TRUE(writer->get<BytesValue>("sw-x").value() == values.back().value());
+}
+
+TEST(SocketWrites, PipelinedWritesOutstandingWhenTheComponentClosesAreAnsweredFirst) {
+  auto writer = sharedServer().connect("sw-closer", "vision");
+  std::vector<std::future<cast::WriteResult>> adds;
+  for (int i = 0; i < 100; ++i) adds.push_back(writer->addAsync("sw-c" + std::to_string(i), value(i % 2 ? kMiB : 8, i)));
+  writer.reset();  // closes: the session ends after its outstanding writes were answered
+  for (auto& f : adds) EXPECT_NO_THROW(f.get());
+  auto reader = sharedServer().connect("sw-close-reader", "vision");
+  EXPECT_TRUE(reader->exists("sw-c99"));
 }
 
 TEST(SocketWrites, ASocketThatEndsFailsTheOutstandingWritesAsUnavailableAndLaterWritesSucceed) {
