@@ -174,6 +174,8 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
     values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k + 1)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
+  const char* warmEnv = std::getenv("CAST_BENCH_WARM");
+  const long warm = warmEnv != nullptr ? std::atol(warmEnv) : 0;
   c.add("img", values[0]);
   const auto start = Clock::now();
   for (long i = 0; i < n; ++i) {
@@ -181,6 +183,7 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
     if (gapUs > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gapUs * i));
     const std::int64_t t0 = nowNs();
     sent[c.overwrite("img", values[static_cast<std::size_t>(i) % 2]).revision] = t0;
+    if (warm > 0 && i + 1 == warm) std::cout << "warm" << std::endl;  // PROTOTYPE: the A/B script's mark
   }
   c.deleteEntry("img");  // the watchers' end mark; a later run adds it again
   std::cout << stampsJson(sent) << std::endl;

@@ -266,7 +266,9 @@ std::shared_ptr<ClientSession> SharedLink::open(const v1::SystemDescription* des
     }
   }
   try {
-    auto session = connectShared(info, tokens_->token(), endpoint_, handshake);
+    const std::string token = tokens_->token();
+    auto session = connectShared(info, token, endpoint_, handshake);
+    session->setToken(token);
     log_.debug("values of at least " + std::to_string(session->threshold()) +
                " bytes travel by shared memory with " + endpoint_);
     return session;
@@ -309,6 +311,22 @@ void SharedLink::check() {
 std::string SharedLink::reason() const {
   std::lock_guard<std::mutex> lock(mu_);
   return reason_;
+}
+
+std::shared_ptr<ClientSession> SharedLink::current() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return session_ && !session_->dead() ? session_ : nullptr;
+}
+
+void SharedLink::renew(std::chrono::milliseconds drain) {
+  std::shared_ptr<ClientSession> s;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    s.swap(session_);
+  }
+  if (!s) return;
+  s->writes().drain(drain);
+  s->close();
 }
 
 void SharedLink::close() {

@@ -83,6 +83,8 @@ class SharedLink {
   // the opening may take, waiting for another thread's opening included (a
   // call's time left: opening on a call's way spends the call's time).
   std::shared_ptr<ClientSession> session(Within within = std::nullopt);
+  // The live session, never opening one (nullptr: none).
+  std::shared_ptr<ClientSession> current() const;
   // A read call's part of the session (nullptr without one): its metadata,
   // and its end when the call is over. `within` as for session().
   std::unique_ptr<ReadCall> read(Within within = std::nullopt);
@@ -91,6 +93,10 @@ class SharedLink {
   void check();
   // Why values travel as bytes, while they do ("" with a session).
   std::string reason() const;
+  // The token was renewed: the session (whose writes carry the token of its
+  // HELLO) ends once its outstanding writes were answered (up to `drain`),
+  // and the next use opens one with the new token.
+  void renew(std::chrono::milliseconds drain);
   // Ends the session; no other is opened.
   void close();
 

@@ -144,12 +144,14 @@ ClientSession::ClientSession(int socket, const shm::Welcome& welcome, int stagin
     throw std::system_error(error, std::generic_category(), "mapping the staging area");
   }
   staging_ = std::make_shared<Mapping>(address, stagingSize_);
+  writes_ = std::make_unique<SessionWrites>(*this, endpoint_);
   // From here on the socket is read whenever the session is used, never waited on.
   ::fcntl(socket_, F_SETFL, ::fcntl(socket_, F_GETFL) | O_NONBLOCK);
 }
 
 ClientSession::~ClientSession() {
   end("closed");
+  writes_.reset();  // its thread reads the socket: gone before the descriptor is closed
   ::close(socket_);
 }
 
@@ -388,6 +390,8 @@ void ClientSession::handle(shm::Frame& frame) {
         gone = std::move(it->second);
         segments_.erase(it);
       }
+    } else if (frame.kind == shm::kReplies) {
+      writes_->replies(frame.body);
     } else if (frame.kind == shm::kRefused) {
       end("the server ended it: " + frame.body);
     } else if (frame.fd >= 0) {  // a kind this client does not know
@@ -417,9 +421,12 @@ void ClientSession::end(const std::string& why) {
   // no other thread ever uses a descriptor number that was closed.
   ::shutdown(socket_, SHUT_RDWR);
   if (why != "closed") log().debug("shared-memory session with " + endpoint_ + " ended: " + why);
+  if (writes_) writes_->ended(why.empty() ? "closed" : why);
   // Descriptors no frame claimed are closed with the reader, by the destructor.
 }
 
 void ClientSession::close() { end("closed"); }
+
+void ClientSession::abandon(const std::string& why) { end(why); }
 
 }  // namespace cast::detail

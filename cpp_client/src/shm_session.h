@@ -14,8 +14,11 @@
 // - counts the references each read call received and says so when the call
 //   ends (RECEIVED), so that the server takes back what never arrived.
 //
-// No thread of its own: what the server sends (SEGMENT, RETIRE, REFUSED, the
-// end) is read whenever the session is used. How a session is opened, and
+// - carries the component's writes once it has a session (socket_writes.h).
+//
+// No thread of its own until the first write on its socket (whose thread then
+// reads it): what the server sends (SEGMENT, RETIRE, REFUSED, the end) is read
+// whenever the session is used. How a session is opened, and
 // when there is none: shm.h.
 #pragma once
 
@@ -37,6 +40,7 @@
 #include "cast/v1/entry.pb.h"
 #include "cast/v1/working_memory.pb.h"
 #include "shm_wire.h"
+#include "socket_writes.h"
 
 namespace cast::detail {
 
@@ -134,6 +138,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t threshold() const { return threshold_; }
   std::uint64_t window() const { return window_; }
   std::size_t stagingBytes() const { return stagingSize_; }
+  // The token its HELLO carried: the identity of the writes on its socket.
+  const std::string& token() const { return token_; }
+  void setToken(std::string token) { token_ = std::move(token); }
 
   // ------------------------------------------------------------- writes
   // `data` copied into a free region of the staging area; nullopt when there
@@ -151,6 +158,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   void unstage(const Staged& staged, bool known);
   // Staged bytes of writes whose outcome is unknown (kept out of use).
   std::size_t quarantined() const;
+
+  // The Write-stream requests sent on this session's socket (socket_writes.h).
+  SessionWrites& writes() { return *writes_; }
 
   // -------------------------------------------------------------- reads
   // A read call on this session (its metadata names it).
@@ -175,6 +185,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::size_t segments() const;
   // Ends the session (what it holds lent the server takes back).
   void close();
+  // Ends it for `why` (a write got no reply in time), said at DEBUG.
+  void abandon(const std::string& why);
 
  private:
   void handle(shm::Frame& frame);
@@ -191,6 +203,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t threshold_ = 0;
   std::uint64_t window_ = 0;
   std::size_t stagingSize_ = 0;
+  std::string token_;
 
   // The thread holding sendMu_ never lets a Lease go (it only writes to the
   // socket), so giveBack's try_lock never meets its own thread's lock.
@@ -210,6 +223,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t calls_ = 0;
   std::string why_;
   std::atomic<bool> dead_{false};
+  std::unique_ptr<SessionWrites> writes_;  // made with the session, gone before its socket is closed
 };
 
 }  // namespace cast::detail

@@ -66,6 +66,8 @@ std::string received(std::uint64_t call, std::uint64_t count, bool ended) {
   return frame(kReceived, body);
 }
 
+std::string writes(const std::string& requests) { return frame(kWrites, requests); }
+
 Welcome parseWelcome(const std::string& body) {
   if (body.size() != 2 + 16 + 16 + 3 * 8) throw ProtocolError("WELCOME has the wrong size");
   Welcome w;
@@ -108,9 +110,16 @@ std::vector<Frame> FrameReader::feed(const char* data, std::size_t size, std::ve
   std::size_t at = 0;
   while (buf_.size() - at >= 4) {
     const std::uint64_t length = getLe(buf_, at, 4);
-    if (length < 1 || length > kMaxFrame) {
-      throw ProtocolError("frame of " + std::to_string(length) + " bytes (1 to " + std::to_string(kMaxFrame) +
+    if (length < 1 || length > kMaxWritesFrame) {
+      throw ProtocolError("frame of " + std::to_string(length) + " bytes (1 to " + std::to_string(kMaxWritesFrame) +
                           " allowed)");
+    }
+    if (buf_.size() - at < 5) break;  // the kind decides the bound
+    const auto kind = static_cast<std::uint8_t>(buf_[at + 4]);
+    const std::size_t limit = kind == kWrites || kind == kReplies ? kMaxWritesFrame : kMaxFrame;
+    if (length > limit) {
+      throw ProtocolError("frame of kind " + std::to_string(kind) + " has " + std::to_string(length) +
+                          " bytes (1 to " + std::to_string(limit) + " allowed)");
     }
     if (buf_.size() - at - 4 < length) break;
     Frame f;

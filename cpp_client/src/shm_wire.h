@@ -26,14 +26,20 @@ inline constexpr std::uint16_t kVersion = 1;
 inline constexpr std::uint8_t kHello = 1;     // u16 version, then the token (UTF-8) to the end
 inline constexpr std::uint8_t kRelease = 2;   // n x u64 value ids given back
 inline constexpr std::uint8_t kReceived = 3;  // u64 call, u64 count, u8 ended
+inline constexpr std::uint8_t kWrites = 4;    // a serialized cast.v1.WriteRequests
 // Server -> client:
 inline constexpr std::uint8_t kWelcome = 10;  // u16 version, 16 B session, 16 B server id, u64 x 3; 1 fd
 inline constexpr std::uint8_t kRefused = 11;  // the reason (UTF-8) to the end
 inline constexpr std::uint8_t kSegment = 12;  // u32 segment, u64 size; 1 fd
 inline constexpr std::uint8_t kRetire = 13;   // u32 segment
+inline constexpr std::uint8_t kReplies = 14;  // a serialized cast.v1.WriteReplies
 
-// The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits).
+// The largest frame either side sends or accepts (a RELEASE of 8,000 ids
+// fits), but WRITES and REPLIES.
 inline constexpr std::size_t kMaxFrame = 1 << 16;
+// The largest WRITES or REPLIES frame: a gRPC message's limit, so that any
+// request the Write stream takes fits one.
+inline constexpr std::size_t kMaxWritesFrame = std::size_t{64} << 20;
 // The most value ids one RELEASE frame carries.
 inline constexpr std::size_t kMaxReleaseIds = 8000;
 
@@ -65,6 +71,8 @@ struct Welcome {
 std::string hello(const std::string& token);
 std::string release(const std::vector<std::uint64_t>& valueIds);
 std::string received(std::uint64_t call, std::uint64_t count, bool ended);
+// WRITES: a serialized WriteRequests (socket_writes.h).
+std::string writes(const std::string& requests);
 
 // Fields of received frames; ProtocolError when the size is wrong.
 Welcome parseWelcome(const std::string& body);

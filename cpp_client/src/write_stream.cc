@@ -265,6 +265,11 @@ struct WriteStream::Call {
     return !broken && !halfClosed;
   }
 
+  bool idle() {
+    std::lock_guard<std::mutex> lock(mu);
+    return pending.empty() && queued.empty();
+  }
+
   // Waits up to `timeout` until no request is outstanding.
   void drain(Millis timeout) {
     std::unique_lock<std::mutex> lock(mu);
@@ -333,6 +338,7 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
     if (closed_) return nullptr;
     call = call_;
   }
+  // Back from the session's socket (it ended): what it had outstanding failed with it.
   if (call && call->usable() && call->token == token) return call;
   if (call) {
     // A renewed token: the new stream must not overtake the old one's
@@ -376,7 +382,33 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
                          "reference to it"));
     return;
   }
+  // The session's socket while there is a session (opened on the way if
+  // needed, within the request's time): after what the gRPC call has
+  // outstanding, so that no request overtakes an earlier one.
   const std::string token = tokens_->token();
+  if (server_.shared) {
+    std::shared_ptr<ClientSession> session = server_.shared->session(timeout.value_or(callTimeout_));
+    if (session && session->token() != token) {
+      // A renewed token: a session says it in its HELLO, so a new one opens (after the old one's replies).
+      server_.shared->renew(kTokenDrain);
+      session = server_.shared->session(timeout.value_or(callTimeout_));
+    }
+    if (session) {
+      std::shared_ptr<Call> grpcCall;
+      {
+        std::lock_guard<std::mutex> lock(stateMu_);
+        if (closed_) {
+          onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
+                                                              " is closed: no more writes"));
+          return;
+        }
+        grpcCall = call_;
+      }
+      if (grpcCall && !grpcCall->idle()) grpcCall->drain(kTokenDrain);
+      if (session->writes().send(request, onReply, timeout)) return;
+      // The session ended just now: the gRPC stream takes it.
+    }
+  }
   // Twice at most: a call that broke (or was replaced) just now gives way to a new one.
   for (int attempt = 0; attempt < 2; ++attempt) {
     std::shared_ptr<Call> call;
@@ -426,6 +458,7 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
     if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and
     // send once more (on a stream opened with the new token).
+    // (A session's writes carry its HELLO's token: send() opens a new session with the new one.)
     if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
     outcome.error->raise();
   }
@@ -458,6 +491,10 @@ void WriteStream::close(Millis grace) {
     if (closed_) return;
     closed_ = true;
     call = call_;
+  }
+  // The session's outstanding writes are answered before the transport ends the session.
+  if (server_.shared) {
+    if (std::shared_ptr<ClientSession> session = server_.shared->current()) session->writes().drain(grace);
   }
   if (!call) return;
   call->drain(grace);

@@ -11,6 +11,15 @@
 // order on one stream, which the server applies in arrival order, so a
 // component's writes keep their order.
 //
+// While the component has a shared-memory session with the server (shm.h),
+// every request goes on the session's socket instead (socket_writes.h: the
+// same messages in WRITES and REPLIES frames, without gRPC's threads on
+// either side): all of them, so that their order stays the component's; a
+// switch from one path to the other waits until the requests outstanding on
+// the first are answered. When the session ends its outstanding requests
+// fail with UnavailableError and the next write opens a new session, or goes
+// on the gRPC stream when none can be opened.
+//
 // The stream is opened on the first write. The token is checked before each
 // send (TokenSource stats its file at most once a second): when it was
 // renewed, the stream is replaced by one opened with the new token, after the
@@ -39,13 +48,9 @@
 
 #include "backoff.h"
 #include "grpc_server.h"
+#include "socket_writes.h"
 
 namespace cast::detail {
-
-// What a request's sender gets back: the reply (which may carry the error the
-// unary call would have ended with), or, when no reply will come, the error
-// why (the stream broke, the connection is closed).
-using ReplyHandler = std::function<void(const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed)>;
 
 // The error a reply carries, as the unary call would have thrown it (the
 // precise class the server named); nullptr for a reply with a result.

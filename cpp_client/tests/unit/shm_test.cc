@@ -182,8 +182,15 @@ TEST(SharedMemoryFrames, AReaderSplitsFramesAndGivesEachItsDescriptorInOrder) {
   const std::string empty = le(0, 4);
   EXPECT_THROW(bad.feed(empty.data(), empty.size(), {}), shm::ProtocolError);
   shm::FrameReader huge;
-  const std::string big = le(shm::kMaxFrame + 1, 4);
+  const std::string big = le(shm::kMaxFrame + 1, 4) + std::string(1, static_cast<char>(shm::kSegment));
   EXPECT_THROW(huge.feed(big.data(), big.size(), {}), shm::ProtocolError);
+  // REPLIES (and WRITES) may be longer, up to kMaxWritesFrame.
+  shm::FrameReader long_;
+  const std::string longer = le(shm::kMaxFrame + 1, 4) + std::string(1, static_cast<char>(shm::kReplies));
+  EXPECT_TRUE(long_.feed(longer.data(), longer.size(), {}).empty());
+  shm::FrameReader tooLong;
+  const std::string over = le(shm::kMaxWritesFrame + 1, 4) + std::string(1, static_cast<char>(shm::kReplies));
+  EXPECT_THROW(tooLong.feed(over.data(), over.size(), {}), shm::ProtocolError);
   shm::FrameReader noFd;
   const std::string segment = frame(shm::kSegment, le(1, 4) + le(4096, 8));
   EXPECT_THROW(noFd.feed(segment.data(), segment.size(), {}), shm::ProtocolError);

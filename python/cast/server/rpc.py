@@ -72,6 +72,10 @@ class Authenticator:
         """The identity a token states (a shared-memory session's HELLO carries one); UNAUTHENTICATED if bad."""
         return self._signer.verify(token)
 
+    def verify_until(self, token: str) -> tuple[Identity, float]:
+        """As :meth:`verify`, and when the token expires (0: never)."""
+        return self._signer.verify_until(token)
+
     def identify(self, context: Context) -> Identity:
         """The verified identity of the caller; UNAUTHENTICATED if the token is missing or bad."""
         return self.identify_until(context)[0]

@@ -9,8 +9,10 @@ machine cannot connect, and gets bytes). A connection becomes a session once
 its HELLO passes: the peer runs as the server's own OS user (``SO_PEERCRED``)
 and its token is valid. The session's identity is the token's; its staging
 area, and each arena segment before the first value lent from it, reach the
-client as memory files (``SCM_RIGHTS``). The rules are the core's
-(:mod:`cast.core.shared`); this module only moves frames.
+client as memory files (``SCM_RIGHTS``). A session's WRITES frames are its
+Write-stream requests, applied on the loop as they are read
+(:mod:`cast.server.socket_writes`). The rules are the core's
+(:mod:`cast.core.shared`, :mod:`cast.core.access`); this module only moves frames.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from cast.core.shared import Lent, SharedSession
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
 from cast.server.rpc import Authenticator, Context
+from cast.server.socket_writes import MAX_UNSENT, SocketWrites
 from cast.v1 import directory_pb2
 from cast.wire import shared_memory as wire
 
@@ -83,6 +86,10 @@ class _Connection:
         self._pending: deque[tuple[bytes, int | None]] = deque()  # frames waiting for room in the socket
         self.session: SharedSession | None = None
         self.closed = False
+        self._unsent = 0  # bytes of the frames in _pending
+        self._reading = True  # the loop reads the socket (not paused)
+        self._busy = False  # paused by the writes: frames read wait to be applied
+        self._writes: SocketWrites | None = None  # the session's WRITES, once HELLO passed
         self._loop.add_reader(sock.fileno(), self._readable)
         self._hello_timer = self._loop.call_later(_HELLO_S, self._too_slow)
 
@@ -128,6 +135,9 @@ class _Connection:
         elif frame.kind == wire.RECEIVED:
             call, count, ended = wire.parse_received(frame.body)
             shared.received(self.session, call, count, ended)
+        elif frame.kind == wire.WRITES:
+            assert self._writes is not None
+            self._writes.received(frame.body)
         else:
             raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
 
@@ -143,6 +153,8 @@ class _Connection:
                 "offered to the server's own OS user only; values travel as bytes"
             )
         who = self._owner.auth.verify(token)  # UNAUTHENTICATED, as a CastError: refused with its message
+        auth = self._owner.auth
+        self._writes = SocketWrites(self._owner.system, lambda: auth.verify_until(token), self.send, self._pause_writes)
         shared = self._owner.system.shared
         assert shared is not None
         session = shared.open_session(who)
@@ -152,6 +164,22 @@ class _Connection:
                              shared.settings.window_bytes, session.staging_bytes)
         if self.send(frame, session.staging_fd) and not self._pending:
             session.forget_staging_fd()  # the client has it; the server's mapping is all the server needs
+
+    def _pause_writes(self, paused: bool) -> None:
+        self._busy = paused
+        self._read_or_not()
+
+    def _read_or_not(self) -> None:
+        """Read the socket unless its writes wait to be applied or the client leaves too much unread."""
+        if self.closed:
+            return
+        want = not self._busy and self._unsent <= MAX_UNSENT
+        if want != self._reading:
+            self._reading = want
+            if want:
+                self._loop.add_reader(self._sock.fileno(), self._readable)
+            else:
+                self._loop.remove_reader(self._sock.fileno())
 
     def _too_slow(self) -> None:
         if self.session is None:
@@ -183,6 +211,9 @@ class _Connection:
             self._loop.add_writer(self._sock.fileno(), self._writable)
         # A descriptor waiting here belongs to a live segment or the session's staging area: it stays open.
         self._pending.append((frame, fd))
+        self._unsent += len(frame)
+        if self._unsent > MAX_UNSENT:
+            self._read_or_not()
         return True
 
     def _writable(self) -> None:
@@ -198,11 +229,14 @@ class _Connection:
             except OSError as exc:
                 self.close(f"write failed: {exc}")
                 return
+            self._unsent -= sent
             if sent < len(frame):
                 self._pending[0] = (frame[sent:], None)
+                self._read_or_not()
                 return
             self._pending.popleft()
         self._loop.remove_writer(self._sock.fileno())
+        self._read_or_not()
 
     def refuse(self, reason: str) -> None:
         """Tell the client why (REFUSED), then close."""
@@ -222,6 +256,9 @@ class _Connection:
             self._loop.remove_writer(self._sock.fileno())
         self._sock.close()
         self._pending.clear()
+        self._unsent = 0
+        if self._writes is not None:
+            self._writes.close()
         shared = self._owner.system.shared
         if self.session is not None and shared is not None:
             shared.close_session(self.session)

@@ -18,7 +18,8 @@ from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, wa
 from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
 from cast.server.write_requests import batch_ops, lock_mode, write_op
-from cast.server.write_stream import WriteStream, watch_woken
+from cast.server.write_stream import WriteStream
+from cast.server.writes import watch_woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 

@@ -24,8 +24,9 @@ from collections import deque
 from typing import NamedTuple
 
 __all__ = [
-    "HELLO", "RECEIVED", "REFUSED", "RELEASE", "RETIRE", "SEGMENT", "VERSION", "WELCOME", "Frame", "FrameReader",
-    "ProtocolError", "encode", "hello", "received", "refused", "release", "retire", "segment", "send", "welcome",
+    "HELLO", "MAX_FRAME", "MAX_WRITES_FRAME", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT",
+    "VERSION", "WELCOME", "WRITES", "Frame", "FrameReader", "ProtocolError", "encode", "hello", "received",
+    "refused", "release", "replies", "retire", "segment", "send", "welcome", "writes",
 ]
 
 VERSION = 1
@@ -35,14 +36,21 @@ VERSION = 1
 HELLO = 1  # u16 version, then the token (UTF-8) to the end
 RELEASE = 2  # n x u64 value ids given back
 RECEIVED = 3  # u64 call, u64 count, u8 ended
+WRITES = 4  # a serialized cast.v1.WriteRequests (up to MAX_WRITES_FRAME)
 # Server -> client
 WELCOME = 10  # u16 version, 16 bytes session, 16 bytes server id, u64 threshold, u64 window, u64 staging size; 1 fd
 REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
 SEGMENT = 12  # u32 segment id, u64 size; 1 fd
 RETIRE = 13  # u32 segment id
+REPLIES = 14  # a serialized cast.v1.WriteReplies (up to MAX_WRITES_FRAME)
 
 MAX_FRAME = 1 << 16
-"""The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits)."""
+"""The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits), but WRITES and REPLIES."""
+
+MAX_WRITES_FRAME = 64 << 20
+"""The largest WRITES or REPLIES frame: a gRPC message's limit, so any request the Write stream takes fits one."""
+
+LARGE = frozenset({4, 14})  # WRITES, REPLIES: the kinds allowed up to MAX_WRITES_FRAME
 
 WITH_FD = frozenset({WELCOME, SEGMENT})
 
@@ -84,6 +92,16 @@ def release(value_ids: list[int]) -> bytes:
 def received(call: int, count: int, ended: bool) -> bytes:
     """RECEIVED: ``count`` references received on ``call`` so far; ``ended``: the call is over."""
     return encode(RECEIVED, _RECEIVED.pack(call, count, ended))
+
+
+def writes(requests: bytes) -> bytes:
+    """WRITES: a serialized ``cast.v1.WriteRequests``, applied as the Write stream applies it."""
+    return encode(WRITES, requests)
+
+
+def replies(body: bytes) -> bytes:
+    """REPLIES: a serialized ``cast.v1.WriteReplies``, the answers to WRITES by request id."""
+    return encode(REPLIES, body)
 
 
 def welcome(session: bytes, server_id: bytes, threshold: int, window: int, staging: int) -> bytes:
@@ -190,11 +208,20 @@ class FrameReader:
         at = 0
         while len(buf) - at >= 4:
             (length,) = _LEN.unpack_from(buf, at)
-            if not 1 <= length <= MAX_FRAME:
-                raise ProtocolError(f"frame of {length} bytes (1 to {MAX_FRAME} allowed)")
+            if not 1 <= length <= MAX_WRITES_FRAME:
+                raise ProtocolError(f"frame of {length} bytes (1 to {MAX_WRITES_FRAME} allowed)")
+            if len(buf) - at < 5:
+                break  # the kind decides the bound
+            kind = buf[at + 4]
+            limit = MAX_WRITES_FRAME if kind in LARGE else MAX_FRAME
+            if length > limit:
+                raise ProtocolError(
+                    f"frame of kind {kind} has {length} bytes (1 to {limit} allowed"
+                    + (": a write request over 64 MiB does not fit the Write stream either; stage large values)"
+                       if kind in LARGE else ")")
+                )
             if len(buf) - at - 4 < length:
                 break
-            kind = buf[at + 4]
             body = bytes(buf[at + 5: at + 4 + length])
             at += 4 + length
             fd = None

@@ -1,0 +1,149 @@
+// Write-stream requests on the shared-memory session's socket
+// (socket_writes.h).
+#include "socket_writes.h"
+
+#include <algorithm>
+#include <utility>
+#include <vector>
+
+#include "shm_session.h"
+#include "shm_wire.h"
+
+namespace cast::detail {
+
+namespace {
+
+// How often the thread looks at the deadlines while requests are outstanding
+// and none is due sooner; it also reads the socket then.
+constexpr std::chrono::milliseconds kLookEvery{100};
+
+std::string seconds(std::chrono::milliseconds ms) {
+  std::string out = std::to_string(static_cast<double>(ms.count()) / 1000.0);
+  out.erase(out.find_last_not_of('0') + 1);
+  if (!out.empty() && out.back() == '.') out.pop_back();
+  return out + " s";
+}
+
+}  // namespace
+
+SessionWrites::SessionWrites(ClientSession& session, std::string endpoint)
+    : session_(session), endpoint_(std::move(endpoint)) {}
+
+SessionWrites::~SessionWrites() {
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    stop_ = true;
+  }
+  if (thread_.joinable()) {
+    // The last holder of the session may be a reply handler on the thread itself.
+    if (thread_.get_id() == std::this_thread::get_id()) {
+      thread_.detach();
+    } else {
+      thread_.join();
+    }
+  }
+}
+
+bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
+                         std::optional<std::chrono::milliseconds> timeout) {
+  v1::WriteRequests message;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (ended_ || stop_) return false;
+    request.set_id(nextId_++);
+    Pending p;
+    p.onReply = std::move(onReply);
+    if (timeout) {
+      p.deadline = Clock::now() + *timeout;
+      p.timeout = *timeout;
+    }
+    pending_.emplace(request.id(), std::move(p));
+    if (!thread_.joinable()) thread_ = std::thread([this] { run(); });
+  }
+  message.add_requests()->Swap(&request);
+  // A frame that cannot be sent ends the session, which fails this request with the others.
+  session_.send(shm::writes(message.SerializeAsString()));
+  return true;
+}
+
+void SessionWrites::drain(std::chrono::milliseconds timeout) {
+  std::unique_lock<std::mutex> lock(mu_);
+  changed_.wait_for(lock, timeout, [this] { return pending_.empty(); });
+}
+
+std::size_t SessionWrites::outstanding() {
+  std::lock_guard<std::mutex> lock(mu_);
+  return pending_.size();
+}
+
+void SessionWrites::replies(const std::string& body) {
+  v1::WriteReplies message;
+  if (!message.ParseFromString(body)) throw shm::ProtocolError("a REPLIES frame is not a cast.v1.WriteReplies");
+  std::vector<std::pair<ReplyHandler, const v1::WriteReply*>> answered;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const auto& reply : message.replies()) {
+      auto it = pending_.find(reply.id());
+      if (it == pending_.end()) continue;  // its deadline passed: its sender has the error
+      answered.emplace_back(std::move(it->second.onReply), &reply);
+      pending_.erase(it);
+    }
+    if (pending_.empty()) changed_.notify_all();
+  }
+  for (auto& [handler, reply] : answered) handler(reply, nullptr);
+}
+
+void SessionWrites::ended(const std::string& why) {
+  std::map<std::uint64_t, Pending> left;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    ended_ = true;
+    left.swap(pending_);
+    changed_.notify_all();
+  }
+  if (left.empty()) return;
+  const auto error = std::make_shared<UnavailableError>(
+      "the shared-memory session with " + endpoint_ + " ended (" + why +
+      "): this write may or may not have been applied; the client reconnects by itself, retry the call later");
+  for (auto& kv : left) kv.second.onReply(nullptr, error);
+}
+
+void SessionWrites::run() {
+  for (;;) {
+    std::chrono::milliseconds wait = kLookEvery;
+    {
+      std::unique_lock<std::mutex> lock(mu_);
+      if (stop_ || ended_) return;
+      const auto now = Clock::now();
+      std::vector<std::pair<ReplyHandler, std::shared_ptr<CastError>>> expired;
+      for (auto it = pending_.begin(); it != pending_.end();) {
+        const Pending& p = it->second;
+        if (!p.deadline || *p.deadline > now) {
+          if (p.deadline) {
+            wait = std::min(wait, std::chrono::duration_cast<std::chrono::milliseconds>(*p.deadline - now) +
+                                      std::chrono::milliseconds(1));
+          }
+          ++it;
+          continue;
+        }
+        expired.emplace_back(std::move(it->second.onReply),
+                             std::make_shared<DeadlineExceededError>(
+                                 "no reply from " + endpoint_ + " on the shared-memory session within " +
+                                 seconds(p.timeout) + ": the write may or may not have been applied; the session "
+                                 "was ended and the next write opens a new one"));
+        it = pending_.erase(it);
+      }
+      if (!expired.empty()) {
+        if (pending_.empty()) changed_.notify_all();
+        lock.unlock();
+        for (auto& [handler, error] : expired) handler(nullptr, error);
+        // A server that answers nothing in that time is hung: end the session, failing the others.
+        session_.abandon(endpoint_ + " answered no write on the shared-memory session within its deadline");
+        return;
+      }
+    }
+    session_.poll(std::max(std::chrono::milliseconds(1), wait));
+  }
+}
+
+}  // namespace cast::detail

@@ -1,0 +1,84 @@
+// A component's Write-stream requests on its shared-memory session's Unix
+// socket (docs/client-protocol.md, "Writes on the session's socket"): WRITES
+// frames out, REPLIES frames in. Private to the gRPC transport: the Write
+// stream (write_stream.h) sends here instead of on its gRPC call while the
+// session with that server lives. Mirrors the server's
+// server/socket_writes.py.
+//
+// The same messages as the Write stream (a WriteRequests, a WriteReplies),
+// the same rules: replies matched by id, out of order when a lock waits.
+// A thread of its own, started by the first request, reads the socket (the
+// replies, and SEGMENT, RETIRE, REFUSED for the session) and watches the
+// requests' deadlines: a request past its deadline gets DeadlineExceededError
+// and the session is ended, as the Write stream ends its call, so that its
+// other requests fail with UnavailableError ("may or may not have been
+// applied") and the next write opens a new session or goes by gRPC.
+#pragma once
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+
+#include "cast/errors.h"
+#include "cast/v1/working_memory.pb.h"
+
+namespace cast::detail {
+
+// What a request's sender gets back: the reply (which may carry the error the
+// unary call would have ended with), or, when no reply will come, the error
+// why (the stream or the session broke, the connection is closed).
+using ReplyHandler = std::function<void(const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed)>;
+
+class ClientSession;
+
+class SessionWrites {
+ public:
+  SessionWrites(ClientSession& session, std::string endpoint);
+  // Stops the thread (the session has ended by then).
+  ~SessionWrites();
+  SessionWrites(const SessionWrites&) = delete;
+  SessionWrites& operator=(const SessionWrites&) = delete;
+
+  // Sends `request` (its id is set here) in a WRITES frame and calls
+  // `onReply` once, from the session's thread, or here when the frame could
+  // not be sent; past `timeout` (nullopt: none) DeadlineExceededError, and
+  // the session ends. False, with nothing taken, once the session ended.
+  bool send(v1::WriteRequest& request, ReplyHandler& onReply, std::optional<std::chrono::milliseconds> timeout);
+  // Waits up to `timeout` until no request is outstanding.
+  void drain(std::chrono::milliseconds timeout);
+  // Requests sent and not yet answered.
+  std::size_t outstanding();
+
+  // From the session: a REPLIES frame's body (ProtocolError if it does not
+  // parse), and the session's end (what is outstanding fails).
+  void replies(const std::string& body);
+  void ended(const std::string& why);
+
+ private:
+  using Clock = std::chrono::steady_clock;
+  struct Pending {
+    ReplyHandler onReply;
+    std::optional<Clock::time_point> deadline;
+    std::chrono::milliseconds timeout{0};
+  };
+  void run();
+
+  ClientSession& session_;
+  const std::string endpoint_;
+  std::mutex mu_;
+  std::condition_variable changed_;  // a reply came, or the session ended
+  std::map<std::uint64_t, Pending> pending_;
+  std::uint64_t nextId_ = 1;
+  bool ended_ = false;
+  bool stop_ = false;
+  std::thread thread_;
+};
+
+}  // namespace cast::detail

@@ -1,0 +1,154 @@
+// Writes on the shared-memory session's socket (src/socket_writes.cc) against
+// the repository's Python server: a C++ component on the server's host sends
+// every write there (docs/client-protocol.md, "Writes on the session's
+// socket"). A mix of staged and small values, waited for and pipelined, is
+// applied once each in call order; pipelined writes outstanding when the
+// component closes are answered first; a socket that ends under outstanding
+// writes fails them with UnavailableError naming the session, and the next
+// writes succeed. (The Write stream's own tests, write_stream_test.cc, run on
+// the socket too, since their components have sessions.)
+#include <google/protobuf/wrappers.pb.h>
+#include <gtest/gtest.h>
+#include <dirent.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <future>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "cast/cast.h"
+#include "cast_server.h"
+
+namespace {
+
+using namespace std::chrono_literals;
+using cast::testing::CastServer;
+using cast::testing::sharedServer;
+using cast::testing::waitFor;
+using google::protobuf::BytesValue;
+
+constexpr std::size_t kMiB = 1 << 20;
+
+bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+BytesValue value(std::size_t size, int seed) {
+  BytesValue v;
+  v.set_value(std::string(size, static_cast<char>('a' + seed % 26)));
+  return v;
+}
+
+// Ends every connection of this process to a server's shared-memory socket
+// (its peer is bound to the abstract name "cast-..."): those sessions end as
+// if the server had closed them.
+int endSessionSockets() {
+  int ended = 0;
+  DIR* dir = ::opendir("/proc/self/fd");
+  while (dirent* e = ::readdir(dir)) {
+    if (e->d_name[0] == '.') continue;
+    const int fd = std::stoi(e->d_name);
+    sockaddr_un peer{};
+    socklen_t size = sizeof peer;
+    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&peer), &size) != 0 || peer.sun_family != AF_UNIX) continue;
+    if (size <= sizeof(sa_family_t) + 1 || peer.sun_path[0] != '\0') continue;
+    if (std::string(peer.sun_path + 1, 5) != "cast-") continue;
+    ::shutdown(fd, SHUT_RDWR);
+    ++ended;
+  }
+  ::closedir(dir);
+  return ended;
+}
+
+TEST(SocketWrites, AMixOfStagedAndSmallValuesWaitedForAndPipelinedIsAppliedOnceInCallOrder) {
+  auto writer = sharedServer().connect("sw-writer", "vision");
+  auto watcher = sharedServer().connect("sw-watcher", "vision");
+  std::mutex mu;
+  std::vector<std::pair<std::uint64_t, std::string>> seen;  // (version, value)
+  watcher->onChange(cast::addressFilter("sw-x").withEntry(), [&](const cast::WorkingMemoryChange& change) {
+    if (change.operation() == cast::Operation::Delete) return;
+    std::lock_guard<std::mutex> lock(mu);
+    seen.emplace_back(change.version(), change.entry<BytesValue>().value.value());
+  });
+  std::vector<BytesValue> values;
+  for (int i = 0; i < 24; ++i) values.push_back(value(i % 3 == 0 ? kMiB : 16 + i, i));  // staged and small
+  std::vector<std::uint64_t> versions;
+  versions.push_back(writer->add("sw-x", values[0]).version);
+  std::vector<std::future<cast::WriteResult>> pipelined;
+  for (std::size_t i = 1; i < values.size(); ++i) {
+    if (i % 4 == 0) {
+      for (auto& f : pipelined) versions.push_back(f.get().version);
+      pipelined.clear();
+      versions.push_back(writer->overwrite("sw-x", values[i]).version);
+    } else {
+      pipelined.push_back(writer->overwriteAsync("sw-x", values[i]));
+    }
+  }
+  for (auto& f : pipelined) versions.push_back(f.get().version);
+  ASSERT_TRUE(waitFor([&] {
+    std::lock_guard<std::mutex> lock(mu);
+    return seen.size() >= values.size();
+  }));
+  std::this_thread::sleep_for(200ms);  // nothing more comes: each was applied once
+  std::lock_guard<std::mutex> lock(mu);
+  ASSERT_EQ(seen.size(), values.size());
+  for (std::size_t i = 0; i < values.size(); ++i) {
+    EXPECT_EQ(seen[i].first, versions[i]) << "write " << i;
+    EXPECT_TRUE(seen[i].second == values[i].value()) << "write " << i;
+  }
+  EXPECT_TRUE(writer->get<BytesValue>("sw-x").value() == values.back().value());
+}
+
+TEST(SocketWrites, PipelinedWritesOutstandingWhenTheComponentClosesAreAnsweredFirst) {
+  auto writer = sharedServer().connect("sw-closer", "vision");
+  std::vector<std::future<cast::WriteResult>> adds;
+  for (int i = 0; i < 100; ++i) adds.push_back(writer->addAsync("sw-c" + std::to_string(i), value(i % 2 ? kMiB : 8, i)));
+  writer.reset();  // closes: the session ends after its outstanding writes were answered
+  for (auto& f : adds) EXPECT_NO_THROW(f.get());
+  auto reader = sharedServer().connect("sw-close-reader", "vision");
+  EXPECT_TRUE(reader->exists("sw-c99"));
+}
+
+TEST(SocketWrites, ASocketThatEndsFailsTheOutstandingWritesAsUnavailableAndLaterWritesSucceed) {
+  CastServer server;  // its own: its sessions are ended here
+  auto holder = server.connect("sw-holder", "vision");
+  auto waiter = server.connect("sw-waiter", "vision");
+  holder->add("sw-l", value(8, 1));
+  cast::LockGuard held = holder->lock("sw-l");
+  std::promise<std::string> outcome;
+  std::thread waiting([&] {
+    try {
+      waiter->lock("sw-l", cast::LockMode::OD, "", std::nullopt).release();
+      outcome.set_value("granted");
+    } catch (const cast::UnavailableError& e) {
+      outcome.set_value(e.message());
+    } catch (const cast::CastError& e) {
+      outcome.set_value(std::string(e.name()) + ": " + e.message());
+    }
+  });
+  std::this_thread::sleep_for(300ms);  // the lock request reaches the server and waits there
+  ASSERT_GT(endSessionSockets(), 0);
+  std::future<std::string> failed = outcome.get_future();
+  ASSERT_EQ(failed.wait_for(20s), std::future_status::ready);
+  waiting.join();
+  const std::string message = failed.get();
+  EXPECT_TRUE(contains(message, "the shared-memory session with " + server.endpoint() + " ended")) << message;
+  EXPECT_TRUE(contains(message, "may or may not have been applied")) << message;
+  // Later writes succeed (on a new session, or the gRPC stream meanwhile), in order, large ones too.
+  const BytesValue big = value(kMiB, 2);
+  EXPECT_TRUE(waitFor([&] {
+    try {
+      waiter->add("sw-after", value(8, 3));
+      return true;
+    } catch (const cast::UnavailableError&) {
+      return false;
+    }
+  }));
+  waiter->overwrite("sw-after", big);
+  EXPECT_TRUE(holder->get<BytesValue>("sw-after").value() == big.value());
+  held.release();
+}
+
+}  // namespace

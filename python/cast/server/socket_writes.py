@@ -1,0 +1,119 @@
+"""A component's writes on its shared-memory session: WRITES frames in, REPLIES frames out.
+
+docs/client-protocol.md, "Writes on the session's socket". A client with a
+session sends its Write-stream requests (a serialized ``cast.v1.WriteRequests``)
+as WRITES frames on the session's Unix socket instead of the gRPC Write
+stream, and gets the replies as REPLIES frames (a serialized
+``cast.v1.WriteReplies``): the same messages, the same rules
+(:mod:`cast.server.writes`), applied on the server's event loop as the frame
+is read, without gRPC's threads and hand-offs (docs/performance.md, M8). The
+caller is the session's: the token its HELLO carried, verified then and again
+once it expires, so a session whose token expired has its writes refused
+with UNAUTHENTICATED as the Write stream's are.
+
+Fairness: a connection applies at most :data:`REQUESTS_PER_TURN` requests per
+turn of the loop and reads no more while it has frames left to apply or more
+than :data:`MAX_UNSENT` bytes of frames the client has not read, so a client
+that floods writes neither starves the loop nor the other sessions, nor grows
+the server's memory.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Callable
+
+from google.protobuf.message import DecodeError
+
+from cast.core.records import Identity
+from cast.core.system import System
+from cast.server.writes import Writes, woken
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire import shared_memory as wire
+
+__all__ = ["MAX_UNSENT", "REQUESTS_PER_TURN", "SocketWrites"]
+
+REQUESTS_PER_TURN = 64
+"""The most requests one connection applies before the loop turns (other sessions, gRPC calls, watch streams)."""
+
+MAX_UNSENT = 4 << 20
+"""A connection with more bytes than this waiting to be sent to its client is not read until they went."""
+
+
+class SocketWrites:
+    """The WRITES of one session: applied in order, answered by REPLIES.
+
+    ``send`` sends a frame on the connection (in order, queued while the
+    socket is full); ``pause(True)`` stops reading the connection,
+    ``pause(False)`` resumes.
+    """
+
+    def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]],
+                 send: Callable[[bytes], bool], pause: Callable[[bool], None]) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._writes = Writes(system, caller, self._flush)
+        self._send = send
+        self._pause = pause
+        self._queue: deque[wm_pb2.WriteRequest] = deque()  # requests read, not yet applied
+        self._draining = False  # a turn of the loop is scheduled to apply what is queued
+        self._flushing = False  # a turn of the loop is scheduled to send the replies
+
+    @property
+    def busy(self) -> bool:
+        """Whether requests read are still waiting to be applied (the connection is not read meanwhile)."""
+        return bool(self._queue)
+
+    def received(self, body: bytes) -> None:
+        """A WRITES frame: its requests are applied now, or in later turns of the loop behind what is queued.
+
+        A body that does not parse raises :class:`wire.ProtocolError`, before
+        any of it is applied.
+        """
+        try:
+            message = wm_pb2.WriteRequests.FromString(body)
+        except DecodeError as exc:
+            raise wire.ProtocolError(
+                f"WRITES frame of {len(body)} bytes is not a cast.v1.WriteRequests ({exc}): nothing of it was applied"
+            ) from None
+        self._queue.extend(message.requests)
+        if not self._draining:
+            self._drain()
+
+    def _drain(self) -> None:
+        """Apply up to REQUESTS_PER_TURN queued requests; the rest in the next turn, the connection paused."""
+        self._draining = False
+        before = woken()
+        batch = wm_pb2.WriteRequests()
+        for _ in range(min(REQUESTS_PER_TURN, len(self._queue))):
+            batch.requests.append(self._queue.popleft())
+        self._writes.apply(batch)
+        if self._queue:
+            self._draining = True
+            self._pause(True)
+            self._loop.call_soon(self._drain)
+        else:
+            self._pause(False)
+        if self._writes.ready:
+            if woken() != before:
+                # Events before acknowledgements, as the Write stream: the watch streams these writes woke run
+                # in this turn of the loop, the replies in the next.
+                self._later()
+            else:
+                self._flush()
+
+    def _later(self) -> None:
+        if not self._flushing:
+            self._flushing = True
+            self._loop.call_soon(self._flush)
+
+    def _flush(self) -> None:
+        """Send the replies ready now, in one REPLIES frame."""
+        self._flushing = False
+        if self._writes.ready:
+            self._send(wire.replies(self._writes.take().SerializeToString()))
+
+    def close(self) -> None:
+        """The session ended: nothing more is applied, and requests still waiting give up."""
+        self._queue.clear()
+        self._writes.cancel()

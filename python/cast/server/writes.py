@@ -1,0 +1,216 @@
+"""A component's write requests, applied in arrival order and answered by id: what both write transports share.
+
+The Write stream (:mod:`cast.server.write_stream`, a gRPC call) and the
+shared-memory session's WRITES frames (:mod:`cast.server.socket_writes`, the
+session's Unix socket) carry the same ``cast.v1.WriteRequests`` and answer
+with the same ``cast.v1.WriteReplies``; this module is what they share.
+Requests are applied as the unary call of the same name would (the same
+:class:`cast.core.access.Access` rules, so the same permissions, versions
+and errors). A call that must wait - a lock held by another component, or a
+journal that writers wait for - waits in a task of its own, so the requests
+behind it are applied and answered meanwhile; its reply then comes out of
+order, matched by id, and the transport is told (``on_late``).
+
+The caller's identity is checked for every request: a token that expires
+while the transport is open refuses the requests after it, as the unary
+calls would. A transport's token cannot change (the stream's metadata, the
+session's HELLO) and its answer is the same until it expires, so the
+identity is established at the first request and again only once the
+token's expiry has come: for each request the answer verifying it would
+give, without the cost (docs/decisions.md, "The Write stream verifies its
+token once until it expires").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from cast.core.access import Access, Steps, resume_async, settle_at_once
+from cast.core.records import Identity
+from cast.core.system import System
+from cast.errors import CastError, InvalidArgumentError
+from cast.server.rpc import error_class
+from cast.server.write_requests import batch_ops, lock_mode, write_op
+from cast.v1 import working_memory_pb2 as wm_pb2
+
+__all__ = ["Writes", "watch_woken", "woken"]
+
+log = logging.getLogger("cast.server")
+
+_Answer = Callable[[wm_pb2.WriteReply, Any], None]
+
+
+class _Woken:
+    """How many times a write woke a watch stream on the event loop so far (:func:`watch_woken` counts them)."""
+
+    count = 0
+
+
+def watch_woken() -> None:
+    """A write woke a watch stream on the event loop: the replies of the write wait for its events to go first."""
+    _Woken.count += 1
+
+
+def woken() -> int:
+    """How many times writes woke watch streams so far: a transport compares it before and after applying.
+
+    When it moved, the transport lets the loop turn once before it sends the
+    replies, so that the events those streams send go out before the writer's
+    acknowledgement (docs/performance.md, M8).
+    """
+    return _Woken.count
+
+
+def _write_answer(reply: wm_pb2.WriteReply, result: Any) -> None:
+    reply.write.revision = result.revision
+    reply.write.version = result.version
+
+
+def _batch_answer(reply: wm_pb2.WriteReply, results: Any) -> None:
+    add = reply.batch.results.add
+    for r in results:
+        add(revision=r.revision, version=r.version)
+
+
+def _lock_answer(reply: wm_pb2.WriteReply, depth: Any) -> None:
+    reply.lock.depth = depth
+
+
+def _unlock_answer(reply: wm_pb2.WriteReply, depth: Any) -> None:
+    reply.unlock.depth = depth
+
+
+def _call(access: Access, kind: str, body: Any) -> tuple[Steps[Any], _Answer]:
+    """The steps of one request and how its result goes into the reply."""
+    if kind == "add" or kind == "overwrite" or kind == "delete":
+        return access.write(write_op(body, access)), _write_answer
+    if kind == "batch":
+        return access.batch(batch_ops(body, access)), _batch_answer
+    address = body.address
+    if kind == "lock":
+        mode = lock_mode(body.mode)
+        return access.lock(address.subarchitecture, address.id, mode, body.no_wait), _lock_answer
+    return access.unlock(address.subarchitecture, address.id), _unlock_answer
+
+
+def _error_reply(request_id: int, exc: CastError) -> wm_pb2.WriteReply:
+    reply = wm_pb2.WriteReply(id=request_id)
+    reply.error.code = exc.code
+    reply.error.message = exc.message
+    reply.error.error_class = error_class(exc)
+    return reply
+
+
+def _internal(exc: Exception) -> CastError:
+    error = CastError(f"internal server error: {type(exc).__name__}: {exc}")
+    error.code = "INTERNAL"
+    return error
+
+
+class Writes:
+    """One component's requests on one transport: applied in order, replies collected until the transport takes them.
+
+    ``caller`` gives the caller's identity and its token's expiry (0: never),
+    verified afresh; ``on_late`` is called on the loop when a request that
+    waited has been answered (its reply is ready).
+    """
+
+    def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]],
+                 on_late: Callable[[], None]) -> None:
+        self._system = system
+        self._caller = caller
+        self._on_late = on_late
+        self._who: Identity | None = None  # the caller, while its token has not expired
+        self._until = 0.0
+        self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
+        self.waiting: set[asyncio.Task[None]] = set()  # requests that wait (locks, a journal)
+
+    @property
+    def ready(self) -> bool:
+        """Whether replies wait to be sent."""
+        return bool(self._ready)
+
+    def apply(self, message: wm_pb2.WriteRequests) -> None:
+        """Apply every request of a message, in order: each is answered now or, if it must wait, later."""
+        for request in message.requests:
+            self._handle(request)
+
+    def take(self) -> wm_pb2.WriteReplies:
+        """The replies ready now, in one message (several replies share the cost of a message)."""
+        out = wm_pb2.WriteReplies()
+        out.replies.extend(self._ready)
+        self._ready.clear()
+        return out
+
+    def cancel(self) -> None:
+        """The transport ended: requests still waiting give up (a lock nobody will be told of)."""
+        for task in list(self.waiting):
+            task.cancel()
+
+    def _handle(self, request: wm_pb2.WriteRequest) -> None:
+        """Apply one request now; answer it now, or from a task if it must wait."""
+        request_id = request.id
+        reply = wm_pb2.WriteReply(id=request_id)
+        try:
+            kind = request.WhichOneof("operation")
+            if kind is None:
+                raise InvalidArgumentError(
+                    f"write request {request_id} is empty: set add, overwrite, delete, batch, lock or unlock"
+                )
+            access = Access(self._system, self._identity())  # who, before what
+            steps, answer = _call(access, kind, getattr(request, kind))
+            try:
+                step = next(steps)
+            except StopIteration as done:
+                answer(reply, done.value)
+                self._ready.append(reply)
+                return
+            pending, result = settle_at_once(self._system, steps, step)
+            if pending is None:
+                answer(reply, result)
+                self._ready.append(reply)
+                return
+        except CastError as exc:
+            self._ready.append(_error_reply(request_id, exc))
+            return
+        except Exception as exc:  # a bug answers this request, never ends the others
+            log.exception("internal error in write request %d", request_id)
+            self._ready.append(_error_reply(request_id, _internal(exc)))
+            return
+        timeout = request.timeout_ms / 1000 if request.timeout_ms else None
+        task = asyncio.ensure_future(self._finish(reply, steps, pending, answer, timeout))
+        self.waiting.add(task)
+        task.add_done_callback(self.waiting.discard)
+
+    def _identity(self) -> Identity:
+        """The caller now: verified at the first request and again each time its token's expiry has come."""
+        who = self._who
+        if who is None or (self._until and time.time() >= self._until):
+            self._who = None  # an expired token is refused for every request after it too
+            who, self._until = self._caller()
+            self._who = who
+        return who
+
+    async def _finish(
+        self,
+        reply: wm_pb2.WriteReply,
+        steps: Steps[Any],
+        step: Any,
+        answer: _Answer,
+        timeout: float | None,
+    ) -> None:
+        try:
+            result = await resume_async(self._system, steps, step, timeout)
+        except CastError as exc:
+            self._ready.append(_error_reply(reply.id, exc))
+        except Exception as exc:  # as in _handle: answer, never leave the request open
+            log.exception("internal error in write request %d", reply.id)
+            self._ready.append(_error_reply(reply.id, _internal(exc)))
+        else:
+            answer(reply, result)
+            self._ready.append(reply)
+        self._on_late()

@@ -1,0 +1,257 @@
+"""Writes on the shared-memory session's socket: WRITES and REPLIES frames (docs/client-protocol.md).
+
+A real server on port 0 (in a thread of this process, on its host) with
+shared memory on; a raw session opened by hand plays the client, so that
+each frame is what the test says; components over gRPC watch, lock and
+write beside it. The C++ client's use of these frames is tested in
+cpp_client/tests/server/socket_writes_test.cc.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import socket
+import struct
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from google.protobuf.wrappers_pb2 import BytesValue
+
+import cast
+from cast.core.records import Identity
+from cast.server.socket_writes import REQUESTS_PER_TURN
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.v1 import entry_pb2
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire import shared_memory as wire
+from tests.client.test_shared_memory import BYTES_VALUE, MIB, Host, image
+from tests.conftest import wait_for
+
+TYPE_URL = "type.googleapis.com/" + BYTES_VALUE
+
+
+class RawSession:
+    """A session opened by hand: HELLO, WELCOME, then WRITES out and frames in, as a client library does."""
+
+    def __init__(self, h: Host, token: str) -> None:
+        info = dir_grpc.DirectoryStub(h.channel).DescribeSystem(
+            dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),)).shared_memory
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.settimeout(10)
+        self.sock.connect("\0" + info.socket)
+        self.reader = wire.FrameReader()
+        self.frames: list[wire.Frame] = []
+        self.extra: list[wm_pb2.WriteReply] = []  # replies read past those asked for
+        wire.send(self.sock, wire.hello(token))
+        welcome = self.next_frame()
+        assert welcome.kind == wire.WELCOME, welcome
+        _, self.id, _, _, _, size = wire.parse_welcome(welcome.body)
+        assert welcome.fd is not None
+        self.staging = mmap.mmap(welcome.fd, size)
+        os.close(welcome.fd)
+        self.staged_at = 0
+
+    def next_frame(self) -> wire.Frame:
+        while not self.frames:
+            data, fds = wire.receive(self.sock)
+            if not data:
+                raise EOFError("the server closed the session")
+            self.frames.extend(self.reader.feed(data, fds))
+        return self.frames.pop(0)
+
+    def replies(self, count: int) -> list[wm_pb2.WriteReply]:
+        """The next ``count`` replies, in the order they came (SEGMENT frames skipped)."""
+        out = self.extra
+        while len(out) < count:
+            frame = self.next_frame()
+            if frame.fd is not None:
+                os.close(frame.fd)
+            if frame.kind == wire.REPLIES:
+                out.extend(wm_pb2.WriteReplies.FromString(frame.body).replies)
+            else:
+                assert frame.kind in (wire.SEGMENT, wire.RETIRE), frame
+        out, self.extra = out[:count], out[count:]
+        return out
+
+    def write(self, *requests: wm_pb2.WriteRequest) -> None:
+        wire.send(self.sock, wire.writes(wm_pb2.WriteRequests(requests=requests).SerializeToString()))
+
+    def stage(self, value: BytesValue) -> wm_pb2.StagedValue:
+        data = value.SerializeToString()
+        offset = self.staged_at
+        self.staging[offset:offset + len(data)] = data
+        self.staged_at += (len(data) + 4095) // 4096 * 4096
+        return wm_pb2.StagedValue(session=self.id, offset=offset, size=len(data))
+
+    def close(self) -> None:
+        self.staging.close()
+        self.sock.close()
+
+
+@pytest.fixture
+def host(tmp_path: Path) -> Iterator[Callable[..., Host]]:
+    made: list[Host] = []
+
+    def make() -> Host:
+        made.append(Host(tmp_path))
+        return made[-1]
+
+    yield make
+    for h in made:
+        h.close()
+
+
+@pytest.fixture
+def raw(host: Callable[..., Host]) -> Iterator[Callable[..., tuple[Host, RawSession]]]:
+    made: list[RawSession] = []
+
+    def make(h: Host | None = None, cid: str = "writer", ttl: float = 0) -> tuple[Host, RawSession]:
+        h = h or host()
+        made.append(RawSession(h, h.signer.issue(Identity(cid, "vision"), ttl)))
+        return h, made[-1]
+
+    yield make
+    for s in made:
+        s.close()
+
+
+def add(request_id: int, entry_id: str, data: bytes | None = None, staged: wm_pb2.StagedValue | None = None,
+        overwrite: bool = False) -> wm_pb2.WriteRequest:
+    request = wm_pb2.WriteRequest(id=request_id)
+    body = request.overwrite if overwrite else request.add
+    body.address.subarchitecture, body.address.id = "vision", entry_id
+    body.value.type_url = TYPE_URL
+    if staged is not None:
+        body.staged_value.CopyFrom(staged)
+    else:
+        body.value.value = BytesValue(value=data or b"").SerializeToString()
+    return request
+
+
+def lock(request_id: int, entry_id: str, timeout_ms: int) -> wm_pb2.WriteRequest:
+    request = wm_pb2.WriteRequest(id=request_id, timeout_ms=timeout_ms)
+    request.lock.address.subarchitecture, request.lock.address.id = "vision", entry_id
+    request.lock.mode = entry_pb2.LOCK_MODE_O
+    return request
+
+
+def test_writes_on_the_socket_are_applied_once_in_order_staged_and_small_alike(raw: Any) -> None:
+    h, session = raw()
+    watcher = h.component("watcher")
+    seen: list[tuple[int, bytes]] = []
+    watcher.on_change(cast.address_filter("x", include_entry=True),
+                      lambda ch: seen.append((ch.version, ch.entry(BytesValue).value.value)))
+    values = [BytesValue(value=b"small 1"), image(MIB, 1), BytesValue(value=b"small 2"), image(MIB, 2)]
+    session.write(add(1, "x", values[0].value), add(2, "x", staged=session.stage(values[1]), overwrite=True))
+    session.write(add(3, "x", values[2].value, overwrite=True),
+                  add(4, "x", staged=session.stage(values[3]), overwrite=True))
+    replies = session.replies(4)
+    assert [(r.id, r.WhichOneof("result")) for r in replies] == [(i, "write") for i in range(1, 5)], replies
+    revisions = [r.write.revision for r in replies]
+    assert revisions == sorted(revisions) and len(set(revisions)) == 4
+    wait_for(lambda: len(seen) == 4, what="the four writes' events")
+    assert [data for _, data in seen] == [v.value for v in values]
+    assert [version for version, _ in seen] == [r.write.version for r in replies]
+    assert watcher.get("x", BytesValue) == values[3]
+
+
+def test_a_token_expired_on_the_socket_refuses_the_writes_after_it_and_changes_nothing(raw: Any) -> None:
+    h, session = raw(ttl=1)
+    session.write(add(1, "before", b"a"))
+    assert session.replies(1)[0].WhichOneof("result") == "write"
+    time.sleep(2.1)  # past the token's expiry (whole seconds, rounded up)
+    session.write(add(2, "after", b"b"))
+    (reply,) = session.replies(1)
+    assert reply.id == 2 and reply.error.code == "UNAUTHENTICATED", reply
+    assert "expired" in reply.error.message
+    assert not h.component("reader").exists("after")
+
+
+def test_a_lock_that_waits_on_the_socket_is_answered_later_while_the_writes_behind_it_are_answered(
+    raw: Any, host: Any
+) -> None:
+    h = host()
+    h.component("locker")  # its live session: locks end with it
+    _, session = raw(h, "locker")
+    holder = h.component("holder")
+    holder.add("x", BytesValue(value=b"held"))
+    holder.lock("x", cast.LockMode.O)
+    session.write(lock(1, "x", 10_000), add(2, "y", b"behind the lock"))
+    first = session.replies(1)
+    assert [(r.id, r.WhichOneof("result")) for r in first] == [(2, "write")], first
+    holder.unlock("x")
+    (granted,) = session.replies(1)
+    assert granted.id == 1 and granted.WhichOneof("result") == "lock" and granted.lock.depth == 1, granted
+
+
+def test_a_malformed_writes_frame_is_refused_with_its_reason_and_nothing_of_it_applied(raw: Any) -> None:
+    h, session = raw()
+    good = wm_pb2.WriteRequests(requests=[add(1, "never", b"a")]).SerializeToString()
+    wire.send(session.sock, wire.writes(good + b"\xff\xff\xff"))  # a valid request, then bytes that do not parse
+    refused = session.next_frame()
+    assert refused.kind == wire.REFUSED, refused
+    assert b"is not a cast.v1.WriteRequests" in refused.body and b"nothing of it was applied" in refused.body
+    with pytest.raises((EOFError, ConnectionResetError)):
+        session.next_frame()
+    assert not h.component("reader").exists("never")
+
+
+def test_a_writes_frame_over_its_bound_is_refused_naming_the_bound_before_any_of_it_is_read(raw: Any) -> None:
+    h, session = raw()
+    session.sock.sendall(struct.pack("<IB", wire.MAX_WRITES_FRAME + 1, wire.WRITES))
+    refused = session.next_frame()
+    assert refused.kind == wire.REFUSED, refused
+    assert f"{wire.MAX_WRITES_FRAME + 1} bytes (1 to {wire.MAX_WRITES_FRAME} allowed".encode() in refused.body
+    # The other frames keep the 64 KiB bound.
+    _, other = raw(h, "other")
+    other.sock.sendall(struct.pack("<IB", wire.MAX_FRAME + 1, wire.RELEASE))
+    assert b"(1 to 65536 allowed)" in other.next_frame().body
+
+
+def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_applies_every_one(raw: Any) -> None:
+    h, session = raw()
+    _, other = raw(h, "other")
+    count = 40 * REQUESTS_PER_TURN
+    session.write(*(add(i + 1, f"flood{i}", b"f") for i in range(count)))  # one frame
+    first = session.replies(1)  # the server is applying the flood
+    other.write(add(1, "between", b"b"))
+    (between,) = other.replies(1)
+    replies = first + session.replies(count - 1)
+    assert [r.id for r in replies] == list(range(1, count + 1))
+    assert all(r.WhichOneof("result") == "write" for r in replies)
+    # Applied in turns of the loop: the other session's write went between them, not after the last.
+    assert replies[0].write.revision < between.write.revision < replies[-1].write.revision
+
+
+def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cast.server import socket_writes, working_memory
+
+    h, session = raw()
+    order: list[str] = []  # what the server's loop sent, in order (the server runs in this process)
+    events, flush = working_memory._WatchStream._events, socket_writes.SocketWrites._flush
+
+    def sent_events(self: Any, matches: Any) -> Any:
+        order.append("event")
+        return events(self, matches)
+
+    def sent_replies(self: Any) -> None:
+        if self._writes.ready:
+            order.append("reply")
+        flush(self)
+
+    monkeypatch.setattr(working_memory._WatchStream, "_events", sent_events)
+    monkeypatch.setattr(socket_writes.SocketWrites, "_flush", sent_replies)
+    watcher = h.component("watcher")
+    seen: list[int] = []
+    watcher.on_change(cast.address_filter("e"), lambda ch: seen.append(ch.revision))
+    for i in range(5):
+        order.clear()
+        session.write(add(i + 1, "e", b"v", overwrite=i > 0))
+        session.replies(1)
+        wait_for(lambda n=i + 1: len(seen) == n, what="the watcher's event")  # its stream waits for the next
+        assert order == ["event", "reply"], (i, order)
