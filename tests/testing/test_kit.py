@@ -343,4 +343,4 @@ def test_a_killed_test_process_leaves_no_server_behind(tmp_path: Path) -> None:
     pids = [int(pid) for pid in done.stdout.split()]
     assert len(pids) == 2, done.stdout + done.stderr
     wait_for(lambda: not any(alive(pid) for pid in pids), 30, "cast serve and cast run to end with the test process")
-    assert len(list(tmp_path.glob("cast-testing-*"))) == 2, "the killed process's two systems had their directories here"
+    assert len(list(tmp_path.glob("cast-testing-*"))) == 2, "the killed process's two systems left their directories"
