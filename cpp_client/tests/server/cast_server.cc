@@ -48,4 +48,19 @@ bool waitFor(const std::function<bool()>& condition, std::chrono::milliseconds t
   }
 }
 
+std::future<std::string> lockOnAThread(Connection& component, const std::string& id, std::thread& thread) {
+  auto outcome = std::make_shared<std::promise<std::string>>();
+  thread = std::thread([&component, id, outcome] {
+    try {
+      component.lock(id, LockMode::OD, "", std::nullopt).release();
+      outcome->set_value("granted");
+    } catch (const UnavailableError& e) {
+      outcome->set_value(e.message());
+    } catch (const CastError& e) {
+      outcome->set_value(std::string(e.name()) + ": " + e.message());
+    }
+  });
+  return outcome->get_future();
+}
+
 }  // namespace cast::testing

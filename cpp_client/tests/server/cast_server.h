@@ -7,8 +7,10 @@
 
 #include <chrono>
 #include <functional>
+#include <future>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "cast/connect.h"
@@ -55,5 +57,10 @@ CastServer& sharedServer();
 // Polls `condition` (cast::testing::waitFor) until it holds or `timeout`
 // passes; whether it held.
 bool waitFor(const std::function<bool()>& condition, std::chrono::milliseconds timeout = std::chrono::seconds(20));
+
+// Asks for `id`'s lock (OD, no timeout) on `thread`, which the caller joins:
+// the future holds "granted", an UnavailableError's message, or another
+// error's name and message (tests of what ends a waiting lock).
+std::future<std::string> lockOnAThread(Connection& component, const std::string& id, std::thread& thread);
 
 }  // namespace cast::testing

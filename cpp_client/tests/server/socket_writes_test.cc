@@ -117,20 +117,10 @@ TEST(SocketWrites, ASocketThatEndsFailsTheOutstandingWritesAsUnavailableAndLater
   auto waiter = server.connect("sw-waiter", "vision");
   holder->add("sw-l", value(8, 1));
   cast::LockGuard held = holder->lock("sw-l");
-  std::promise<std::string> outcome;
-  std::thread waiting([&] {
-    try {
-      waiter->lock("sw-l", cast::LockMode::OD, "", std::nullopt).release();
-      outcome.set_value("granted");
-    } catch (const cast::UnavailableError& e) {
-      outcome.set_value(e.message());
-    } catch (const cast::CastError& e) {
-      outcome.set_value(std::string(e.name()) + ": " + e.message());
-    }
-  });
+  std::thread waiting;
+  std::future<std::string> failed = cast::testing::lockOnAThread(*waiter, "sw-l", waiting);
   std::this_thread::sleep_for(300ms);  // the lock request reaches the server and waits there
   ASSERT_GT(endSessionSockets(), 0);
-  std::future<std::string> failed = outcome.get_future();
   ASSERT_EQ(failed.wait_for(20s), std::future_status::ready);
   waiting.join();
   const std::string message = failed.get();

@@ -255,20 +255,10 @@ TEST(WriteStream, ABrokenStreamFailsWhatIsOutstandingAndTheNextWriteReconnects) 
   holder->add("ws-l", number(1));
   waiter->add("ws-w", number(1));  // registers the type's schema (a unary call) while the server is there
   cast::LockGuard held = holder->lock("ws-l");
-  std::promise<std::string> outcome;
-  std::thread waiting([&] {
-    try {
-      waiter->lock("ws-l", LockMode::OD, "", std::nullopt).release();
-      outcome.set_value("granted");
-    } catch (const cast::UnavailableError& e) {
-      outcome.set_value(e.message());
-    } catch (const cast::CastError& e) {
-      outcome.set_value(std::string(e.name()) + ": " + e.message());
-    }
-  });
+  std::thread waiting;
+  std::future<std::string> failed = cast::testing::lockOnAThread(*waiter, "ws-l", waiting);
   std::this_thread::sleep_for(300ms);  // the lock request reaches the server and waits there
   server.kill();
-  std::future<std::string> failed = outcome.get_future();
   ASSERT_EQ(failed.wait_for(20s), std::future_status::ready);
   waiting.join();
   const std::string message = failed.get();
