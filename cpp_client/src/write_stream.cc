@@ -265,11 +265,6 @@ struct WriteStream::Call {
     return !broken && !halfClosed;
   }
 
-  bool idle() {
-    std::lock_guard<std::mutex> lock(mu);
-    return pending.empty() && queued.empty();
-  }
-
   // Waits up to `timeout` until no request is outstanding.
   void drain(Millis timeout) {
     std::unique_lock<std::mutex> lock(mu);
@@ -338,7 +333,6 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
     if (closed_) return nullptr;
     call = call_;
   }
-  // Back from the session's socket (it ended): what it had outstanding failed with it.
   if (call && call->usable() && call->token == token) return call;
   if (call) {
     // A renewed token: the new stream must not overtake the old one's
@@ -404,7 +398,7 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
         }
         grpcCall = call_;
       }
-      if (grpcCall && !grpcCall->idle()) grpcCall->drain(kTokenDrain);
+      if (grpcCall) grpcCall->drain(kTokenDrain);  // at once when nothing is outstanding (queued ones are too)
       if (session->writes().send(request, onReply, timeout)) return;
       // The session ended just now: the gRPC stream takes it.
     }

@@ -84,10 +84,7 @@ class SocketWrites:
         """Apply up to REQUESTS_PER_TURN queued requests; the rest in the next turn, the connection paused."""
         self._draining = False
         before = woken()
-        batch = wm_pb2.WriteRequests()
-        for _ in range(min(REQUESTS_PER_TURN, len(self._queue))):
-            batch.requests.append(self._queue.popleft())
-        self._writes.apply(batch)
+        self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
         if self._queue:
             self._draining = True
             self._pause(True)

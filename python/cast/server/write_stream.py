@@ -52,7 +52,7 @@ class WriteStream:
                     except StopAsyncIteration:
                         break
                     before = woken()
-                    writes.apply(message)
+                    writes.apply(message.requests)
                 else:
                     if reading is None:
                         reading = asyncio.ensure_future(source.__anext__())
@@ -64,7 +64,7 @@ class WriteStream:
                         done, reading = reading, None
                         before = woken()
                         try:
-                            writes.apply(done.result())
+                            writes.apply(done.result().requests)
                         except StopAsyncIteration:
                             break
                 if writes.ready:

@@ -26,7 +26,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from cast.core.access import Access, Steps, resume_async, settle_at_once
@@ -134,9 +134,9 @@ class Writes:
         """Whether replies wait to be sent."""
         return bool(self._ready)
 
-    def apply(self, message: wm_pb2.WriteRequests) -> None:
-        """Apply every request of a message, in order: each is answered now or, if it must wait, later."""
-        for request in message.requests:
+    def apply(self, requests: Iterable[wm_pb2.WriteRequest]) -> None:
+        """Apply requests in order: each is answered now or, if it must wait, later."""
+        for request in requests:
             self._handle(request)
 
     def take(self) -> wm_pb2.WriteReplies:
