@@ -121,7 +121,7 @@ class Component:
         self._block_on_full = not transport.delivers_on_writer_thread
         self._id_prefix = f"{self._identity.component_id}:{secrets.token_hex(3)}:"
         self._id_counter = itertools.count(1)
-        transport.set_event_sink(self._on_event, self._on_watch_error, self._dispatcher.room)
+        transport.set_event_sink(self._on_event, self._on_watch_error, self._dispatcher.room, self._dispatcher)
 
     def _set_state(self, state: ComponentState) -> None:
         """Change the life stage the directory shows, and report it at once."""

@@ -1,19 +1,43 @@
-"""One thread per component that runs its callbacks, one at a time: highest priority first, then in arrival order."""
+"""One thread per component that runs its callbacks, one at a time: highest priority first, then in arrival order.
+
+The thread also reads the sockets attached to it (:meth:`Dispatcher.attach`:
+a shared-memory session that carries a watch's events, docs/client-protocol.md
+"A watch's events on the session's socket"): an event read there is converted
+and its callback run on this thread, with no hand-off between threads on the
+way. While it has nothing to run, it waits in ``poll`` on those sockets and on
+an eventfd of its own, which other threads write when they queue a call.
+"""
 
 from __future__ import annotations
 
 import logging
-import queue
+import os
+import select
 import threading
 from collections import deque
 from collections.abc import Callable
+from typing import Protocol
 
-__all__ = ["HIGH", "LOW", "MEDIUM", "Dispatcher"]
+__all__ = ["HIGH", "LOW", "MEDIUM", "Dispatcher", "Source"]
 
 HIGH, MEDIUM, LOW = 0, 1, 2
 """Priorities of queued calls: the dispatcher takes the highest pending one first (FIFO within one)."""
 
 log = logging.getLogger("cast.component")
+
+_READABLE = select.POLLIN | select.POLLPRI | select.POLLERR | select.POLLHUP
+
+
+class Source(Protocol):
+    """A socket the dispatcher reads: a shared-memory session (:class:`cast.client.shm_session.ClientSession`)."""
+
+    def fileno(self) -> int:
+        """Its descriptor; -1 once it ended (the dispatcher then forgets it)."""
+        ...
+
+    def poll(self, wait: float = 0.0) -> None:
+        """Read what is there without waiting, handling each frame (on this thread)."""
+        ...
 
 
 class Dispatcher:
@@ -23,13 +47,14 @@ class Dispatcher:
     are slow lags behind on the server (which keeps a bounded history and says
     so when the lag exceeds it) instead of growing without bound in memory.
     A blocking :meth:`submit` waits for room; ``on_space`` is called (on the
-    dispatcher thread) when room appears after the queue was full.
+    dispatcher thread) when room appears after the queue was full. The
+    attached sockets are read only while the queue has room: past it, what
+    the server sends waits in the socket and then on the server, which lets
+    the watch lag by the same rule.
     """
 
     def __init__(self, name: str, capacity: int = 10_000) -> None:
-        # One token per queued call wakes the thread; it then takes the oldest call of the highest priority
-        # (deque append and popleft are atomic, so the queues need no lock of their own).
-        self._queue: queue.SimpleQueue[bool | None] = queue.SimpleQueue()
+        # deque append and popleft are atomic, so the queues need no lock of their own.
         self._calls: tuple[deque[tuple[Callable[..., object], tuple[object, ...]]], ...] = (deque(), deque(), deque())
         self._thread = threading.Thread(target=self._run, name=f"cast-dispatch-{name}", daemon=True)
         # A plain lock, taken directly on the common paths: the writer submits and
@@ -42,6 +67,15 @@ class Dispatcher:
         self.capacity = capacity
         self.on_space: Callable[[], None] | None = None
         self._was_full = False
+        self._stopping = False
+        # Written by other threads when they queue a call while the thread waits (or may be about to).
+        self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        self._sleeping = False
+        self._closed = False  # the eventfd closed (after the thread ended)
+        self._sources: dict[int, Source] = {}  # fd -> source; changed on this thread only
+        self._attach: deque[Source] = deque()  # sources to add, from any thread
+        self._poller = select.poll()
+        self._poller.register(self._wake_fd, select.POLLIN)
         self._thread.start()
 
     def room(self) -> int:
@@ -62,13 +96,24 @@ class Dispatcher:
 
     def submit(self, fn: Callable[..., object], *args: object, block: bool = True, priority: int = MEDIUM) -> None:
         """Queue ``fn(*args)`` at ``priority`` (HIGH, MEDIUM, LOW); with ``block``, wait while the queue is full."""
+        mine = threading.current_thread() is self._thread
         with self._lock:
-            if block and self._pending >= self.capacity and threading.current_thread() is not self._thread:
+            if block and self._pending >= self.capacity and not mine:
                 self._was_full = True
                 self._wait_for(lambda: self._pending < self.capacity)
             self._pending += 1
         self._calls[priority].append((fn, args))
-        self._queue.put(True)
+        if not mine and self._sleeping:
+            self._wake()
+
+    def attach(self, source: Source) -> None:
+        """Read ``source`` on the dispatcher thread from now on, until its ``fileno()`` is -1."""
+        self._attach.append(source)
+        self._wake()
+
+    def _wake(self) -> None:
+        if not self._closed:
+            os.eventfd_write(self._wake_fd, 1)
 
     def _wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
         # Called with _lock held.
@@ -79,27 +124,74 @@ class Dispatcher:
             self._waiters -= 1
 
     def _run(self) -> None:
+        calls = self._calls
         while True:
-            if self._queue.get() is None:
+            if calls[HIGH] or calls[MEDIUM] or calls[LOW]:
+                if self._sources or self._attach:
+                    self._read_sources(0)  # what came first, so that a higher priority's event goes first
+                fn, args = (calls[HIGH] or calls[MEDIUM] or calls[LOW]).popleft()
+                self._call(fn, args)
+                fn = args = None  # type: ignore[assignment]  # not kept: it may hold a lent value
+                continue
+            if self._stopping:
                 return
+            self._read_sources(None)
+
+    def _drain_wake(self) -> None:
+        try:
+            os.eventfd_read(self._wake_fd)
+        except BlockingIOError:
+            pass
+
+    def _read_sources(self, timeout: float | None) -> None:
+        """Read the sources that have something; ``timeout`` None: wait for them or a wake-up."""
+        sources = self._sources
+        while self._attach:
+            source = self._attach.popleft()
+            fd = source.fileno()
+            if fd >= 0 and fd not in sources:
+                sources[fd] = source
+                self._poller.register(fd, _READABLE)
+        for fd, source in list(sources.items()):
+            if source.fileno() != fd:  # ended (its socket closed): forget it before its number is reused
+                del sources[fd]
+                self._poller.unregister(fd)
+        if timeout is None:
+            self._sleeping = True
             calls = self._calls
-            fn, args = (calls[HIGH] or calls[MEDIUM] or calls[LOW]).popleft()
-            try:
-                fn(*args)
-            except Exception:
-                log.exception("callback %s failed", getattr(fn, "__qualname__", fn))
-            finally:
-                # Not kept until the next call: a change may hold a value lent by shared memory (cast.client.shm).
-                fn = args = None  # type: ignore[assignment]
-                with self._lock:
-                    self._pending -= 1
-                    if self._waiters:
-                        self._idle.notify_all()
-                    resume = self._was_full and self._pending <= self.capacity // 2
-                    if resume:
-                        self._was_full = False
-                if resume and self.on_space is not None:
-                    self.on_space()
+            if calls[HIGH] or calls[MEDIUM] or calls[LOW] or self._attach or self._stopping:
+                timeout = 0
+        elif self._pending >= self.capacity:
+            return  # full: what the sources have waits for room (and the server for the socket)
+        try:
+            ready = self._poller.poll(None if timeout is None else timeout * 1000)
+        finally:
+            self._sleeping = False
+        for fd, _ in ready:
+            if fd == self._wake_fd:
+                self._drain_wake()
+                continue
+            ready_source = sources.get(fd)
+            if ready_source is not None:
+                ready_source.poll()
+
+    def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
+        try:
+            fn(*args)
+        except Exception:
+            log.exception("callback %s failed", getattr(fn, "__qualname__", fn))
+        finally:
+            # Not kept until the next call: a change may hold a value lent by shared memory (cast.client.shm).
+            fn = args = None  # type: ignore[assignment]
+            with self._lock:
+                self._pending -= 1
+                if self._waiters:
+                    self._idle.notify_all()
+                resume = self._was_full and self._pending <= self.capacity // 2
+                if resume:
+                    self._was_full = False
+            if resume and self.on_space is not None:
+                self.on_space()
 
     def drain(self, timeout: float | None = None) -> bool:
         """Wait until every queued call has run; False on timeout."""
@@ -108,6 +200,10 @@ class Dispatcher:
 
     def stop(self, timeout: float | None = 5.0) -> None:
         """Run what is queued, then end the thread."""
-        self._queue.put(None)
+        self._stopping = True
+        self._wake()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
+            if not self._thread.is_alive():
+                self._closed = True
+                os.close(self._wake_fd)

@@ -23,6 +23,7 @@ from google.protobuf import descriptor_pb2
 from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, ServerLink, map_rpc_error
 from cast.client.conversions import address, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
+from cast.client.dispatcher import Dispatcher
 from cast.client.session import Session
 from cast.client.shm import SharedLink
 from cast.client.shm_session import ClientSession, Staged
@@ -126,6 +127,7 @@ class GrpcTransport:
         self._attach_shared(self._directory)
         self._watch_servers: dict[int, list[ServerLink]] = {}
         self._sink: EventSink | None = None
+        self._dispatcher: Dispatcher | None = None
         self._on_error: Callable[[CastError], None] = lambda err: log.error("watch failed: %s", err)
         self._closing = threading.Event()
         self._routes: dict[str, ServerLink] = {}
@@ -407,7 +409,8 @@ class GrpcTransport:
     # -------------------------------------------------------------- watching
 
     def set_event_sink(
-        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None,
+        dispatcher: Dispatcher | None = None,
     ) -> None:
         """Where events go (from the watch threads, in order per server).
 
@@ -416,6 +419,7 @@ class GrpcTransport:
         """
         self._sink = sink
         self._on_error = on_error
+        self._dispatcher = dispatcher
 
     def pump(self) -> None:
         """Nothing to do: the watch threads deliver as soon as the sink takes events."""
@@ -440,7 +444,9 @@ class GrpcTransport:
         for server in targets:
             with self._lock:
                 if server.watch_stream is None or server.watch_stream.dead:
-                    server.watch_stream = WatchStream(server, self._tokens, self._sink, self._on_error, self._closing)
+                    server.watch_stream = WatchStream(
+                        server, self._tokens, self._sink, self._on_error, self._closing, self._dispatcher
+                    )
                 stream = server.watch_stream
             mine = {sa: r for sa, r in (start_revisions or {}).items() if self._server(sa) is server}
             revisions.update(stream.create(watch_id, filters, mine, self._timeout, latest))

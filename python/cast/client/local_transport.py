@@ -18,6 +18,7 @@ from concurrent.futures import Future
 
 from google.protobuf import descriptor_pb2
 
+from cast.client.dispatcher import Dispatcher
 from cast.client.transport import EventSink
 from cast.core.access import Access, event_for, run_sync
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
@@ -126,7 +127,8 @@ class LocalTransport:
         run_sync(self._system, self._access.register_schemas(files))
 
     def set_event_sink(
-        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None,
+        dispatcher: Dispatcher | None = None,
     ) -> None:
         """Where events go; they are delivered from the writer's thread, in order, never blocking it."""
         self._sink = sink

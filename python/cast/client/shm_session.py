@@ -28,6 +28,7 @@ import socket
 import threading
 import time
 import weakref
+from collections.abc import Callable
 
 from cast.core.arena import Extents, round_up
 from cast.errors import UnavailableError
@@ -144,6 +145,9 @@ class ClientSession:
         self._send_lock = threading.Lock()
         self._unsent: collections.deque[int] = collections.deque()  # value ids given back, not yet sent
         self._calls = 0
+        # call number -> what takes that watch call's EVENTS frames (run by whichever thread reads the socket)
+        self.event_handlers: dict[int, Callable[[bytes], None]] = {}
+        self.on_end: list[Callable[[str], None]] = []  # told why, once the session ended
         self.dead = ""  # why the session ended ("" while it lives)
 
     # ---------------------------------------------------------------- writes
@@ -278,6 +282,10 @@ class ClientSession:
                 return
             view = view[sent:]
 
+    def fileno(self) -> int:
+        """The session socket's descriptor (-1 once ended), for a thread that waits for frames."""
+        return -1 if self.dead else self._sock.fileno()
+
     def poll(self, wait: float = 0.0) -> None:
         """Read what the server sent (SEGMENT, RETIRE, REFUSED, the end); wait up to ``wait`` s for something."""
         if self.dead:
@@ -320,6 +328,11 @@ class ClientSession:
                 gone = self._segments.pop(wire.parse_retire(frame.body), None)
                 if gone is not None:
                     self._retired.append(gone)
+        elif frame.kind == wire.EVENTS:
+            call = int.from_bytes(frame.body[:8], "little")
+            handler = self.event_handlers.get(call)
+            if handler is not None:
+                handler(frame.body[8:])
         elif frame.kind == wire.REFUSED:
             self._end(f"the server ended it: {frame.body.decode(errors='replace')}")
         elif frame.fd is not None:
@@ -334,6 +347,9 @@ class ClientSession:
             return
         self.dead = why or "closed"
         log.debug("shared-memory session with %s ended: %s", self.endpoint, self.dead)
+        for tell in self.on_end:
+            tell(self.dead)
+        self.on_end.clear()
         try:
             self._sock.close()
         except OSError:

@@ -15,6 +15,7 @@ from typing import Protocol
 
 from google.protobuf import descriptor_pb2
 
+from cast.client.dispatcher import Dispatcher
 from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -97,13 +98,16 @@ class Transport(Protocol):
         """Remove a watch."""
 
     def set_event_sink(
-        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None
+        self, sink: EventSink, on_error: Callable[[CastError], None], room: Callable[[], int] | None = None,
+        dispatcher: Dispatcher | None = None,
     ) -> None:
         """Where events (and a fatal watch error, e.g. history expired) go.
 
         ``room()`` says how many events the sink can take without blocking;
         a transport that delivers on a writer's thread uses it so that it never
         blocks the writer, and leaves the rest pending until :meth:`pump`.
+        ``dispatcher``: the component's, which a transport may have read the
+        events itself (the sink is then called on it).
         """
 
     def pump(self) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+import functools
 import logging
 import queue
 import threading
@@ -13,13 +15,17 @@ import grpc
 from cast.client.channel import TRANSIENT, Backoff, ServerLink, map_rpc_error
 from cast.client.conversions import event_from_pb, filter_to_pb
 from cast.client.credentials import TokenSource
+from cast.client.dispatcher import HIGH, Dispatcher
 from cast.client.shm_session import ReadCall
 from cast.client.transport import EventSink
 from cast.core.watch import EventFilter
 from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["WatchStream"]
+__all__ = ["EVENTS_METADATA", "WatchStream"]
+
+EVENTS_METADATA = ("cast-watch-events", "socket")
+"""Call metadata asking the server for the call's event batches as EVENTS frames on the session's socket."""
 
 log = logging.getLogger("cast.client")
 
@@ -58,8 +64,18 @@ class WatchStream:
         sink: EventSink,
         on_error: Callable[[CastError], None],
         closing: threading.Event,
+        dispatcher: Dispatcher | None = None,
     ) -> None:
         self._server = server
+        # Reads the call's EVENTS frames on its own thread (docs/client-protocol.md, "A watch's events on the
+        # session's socket"); None: the events come on the gRPC call.
+        self._dispatcher = dispatcher
+        # The EVENTS frames of the current call not yet turned into events, in the order read; _frames_lock
+        # orders turning them (on the dispatcher) against the call's end (on this stream's thread).
+        self._frames: collections.deque[bytes] = collections.deque()
+        self._frames_lock = threading.RLock()
+        self._turning = False  # the dispatcher is turning frames (a claim that reads the socket only queues more)
+        self._socket_broke = ""  # why the session carrying the current call's events ended
         self._tokens = tokens
         self._sink = sink
         self._on_error = on_error
@@ -112,6 +128,12 @@ class WatchStream:
             session = shared.session() if shared is not None else None
             self._read = read = session.new_call() if session is not None else None
             metadata = self._tokens.metadata() + (read.metadata if read is not None else ())
+            self._socket_broke = ""
+            if read is not None and session is not None and self._dispatcher is not None:
+                metadata += (EVENTS_METADATA,)
+                session.event_handlers[read.number] = functools.partial(self._frame, read)
+                session.on_end.append(functools.partial(self._session_ended, read))
+                self._dispatcher.attach(session)
             self._call = self._server.open_stream(self._server.wm.Watch, iter(requests.get, None), metadata=metadata)
             return self._call
 
@@ -141,6 +163,8 @@ class WatchStream:
             except CastError as exc:  # an event that could not be read (its shared memory): read the stream again
                 call.cancel()
                 error = UnavailableError(f"an event could not be read: {exc.message}")
+            if self._socket_broke:  # the call was cancelled for it: resumed like a broken stream
+                error = UnavailableError(f"the socket carrying the watch's events ended: {self._socket_broke}")
             self.connected = False
             self._end_shared()
             if self._closed or self._closing.is_set():
@@ -165,21 +189,82 @@ class WatchStream:
         return shared is not None and shared.session() is not None
 
     def _end_shared(self) -> None:
-        """The call is over: say what it received (the server takes back the rest) and see if the session ended."""
-        read, self._read = self._read, None
+        """The call is over: say what it received (the server takes back the rest) and see if the session ended.
+
+        EVENTS frames of the call not yet turned into events are dropped: the
+        watches resume after the last event turned, so the next call sends
+        them again (no gap, no duplicate), and their values were never
+        claimed, so RECEIVED gives them back.
+        """
+        with self._frames_lock:
+            read, self._read = self._read, None
+            self._frames.clear()
+            if read is not None:
+                read.session.event_handlers.pop(read.number, None)
         if read is not None:
             read.end()
         if self._server.shared is not None:
             self._server.shared.check()
 
+    def _frame(self, read: ReadCall, body: bytes) -> None:
+        """An EVENTS frame of ``read``'s call, on the thread that read the session's socket (in the order read).
+
+        On the dispatcher its events go to their callbacks at once; a frame
+        another thread read (waiting for a segment, say) is queued for the
+        dispatcher, behind those before it.
+        """
+        dispatcher = self._dispatcher
+        assert dispatcher is not None
+        with self._frames_lock:
+            if read is not self._read:
+                return  # the call ended: its watches resume after what was turned
+            self._frames.append(body)
+            if self._turning:
+                return  # read by a claim of the frame being turned: turned next, in order
+        if threading.current_thread() is dispatcher.thread:
+            self._turn_frames()
+        else:
+            dispatcher.submit(self._turn_frames, block=False, priority=HIGH)
+
+    def _turn_frames(self) -> None:
+        """Turn the queued EVENTS frames into events, in order (on the dispatcher thread)."""
+        with self._frames_lock:
+            if self._turning:
+                return
+            self._turning = True
+            try:
+                read = self._read
+                while self._frames:
+                    resp = wm_pb2.WatchResponse.FromString(self._frames.popleft())
+                    self._events(resp, read)
+            except CastError as exc:  # a value that could not be claimed: the call is read again from here
+                self._socket_broke = exc.message
+                call = self._call
+                if call is not None:
+                    call.cancel()
+            finally:
+                self._turning = False
+
+    def _session_ended(self, read: ReadCall, why: str) -> None:
+        """The session carrying ``read``'s events ended: the call ends too, and the watches resume on a new one."""
+        with self._frames_lock:
+            if read is not self._read:
+                return
+            self._socket_broke = why
+            call = self._call
+        if call is not None:
+            call.cancel()
+
+    def _events(self, resp: wm_pb2.WatchResponse, read: ReadCall | None) -> None:
+        for pb in resp.events:
+            event = event_from_pb(pb, read)
+            self._sink(event, pb.watch_ids)
+            if event.revision > self._seen.get(event.subarchitecture, 0):
+                self._seen[event.subarchitecture] = event.revision
+
     def _handle(self, resp: wm_pb2.WatchResponse) -> None:
         if resp.events:
-            read = self._read
-            for pb in resp.events:
-                event = event_from_pb(pb, read)
-                self._sink(event, pb.watch_ids)
-                if event.revision > self._seen.get(event.subarchitecture, 0):
-                    self._seen[event.subarchitecture] = event.revision
+            self._events(resp, self._read)
         if resp.HasField("created"):
             created = resp.created
             self.history_id = created.history_id or self.history_id

@@ -30,7 +30,7 @@ import secrets
 import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from cast.core.arena import Arena, Placed, Segment, memory_file, round_up
 from cast.core.records import BatchOp, Identity, Limits, Operation
@@ -77,6 +77,28 @@ class _Call:
         self.confirmed = 0  # how many the client said it received so far (popped from ``sent``)
 
 
+class FrameLink(Protocol):
+    """The transport's connection of one session (:mod:`cast.server.shared_socket`): frames to its client."""
+
+    @property
+    def closed(self) -> bool:
+        """Whether the connection ended (nothing more is sent)."""
+        ...
+
+    @property
+    def unsent(self) -> int:
+        """Bytes of frames waiting for room in the socket (the client has not read them)."""
+        ...
+
+    def send(self, frame: bytes, fd: int | None = None) -> bool:
+        """Send a frame now or as soon as there is room, in order; False once closed."""
+        ...
+
+    def listen(self, fn: Callable[[], None]) -> Callable[[], None]:
+        """Call ``fn`` when the connection closes or its unsent bytes went out; returns what stops it."""
+        ...
+
+
 class SharedSession:
     """One client's session: who it is, its staging area, and what it holds lent."""
 
@@ -97,6 +119,8 @@ class SharedSession:
         self.segments: set[int] = set()  # segments whose memory file this client was sent
         # The transport's: send a segment's SEGMENT frame to this client; False if it could not.
         self.send_segment: Callable[[Segment], bool] | None = None
+        # The transport's connection to this client, for frames other than segments (a watch's events).
+        self.link: FrameLink | None = None
         self.closed = False
 
     def forget_staging_fd(self) -> None:

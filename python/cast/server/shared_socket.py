@@ -24,6 +24,7 @@ import os
 import socket
 import struct
 from collections import deque
+from collections.abc import Callable
 
 from cast.core.access import Access
 from cast.core.arena import Segment
@@ -90,6 +91,7 @@ class _Connection:
         self._reading = True  # the loop reads the socket (not paused)
         self._busy = False  # paused by the writes: frames read wait to be applied
         self._writes: SocketWrites | None = None  # the session's WRITES, once HELLO passed
+        self._listeners: list[Callable[[], None]] = []  # told when it closes or its unsent frames went out
         self._loop.add_reader(sock.fileno(), self._readable)
         self._hello_timer = self._loop.call_later(_HELLO_S, self._too_slow)
 
@@ -159,6 +161,7 @@ class _Connection:
         assert shared is not None
         session = shared.open_session(who)
         session.send_segment = self._send_segment
+        session.link = self
         self.session = session
         frame = wire.welcome(session.id, bytes.fromhex(shared.server_id), shared.settings.threshold_bytes,
                              shared.settings.window_bytes, session.staging_bytes)
@@ -186,6 +189,20 @@ class _Connection:
             self.refuse(f"no HELLO within {_HELLO_S:g} s")
 
     # --------------------------------------------------------------- writing
+
+    @property
+    def unsent(self) -> int:
+        """Bytes of frames waiting for room in the socket."""
+        return self._unsent
+
+    def listen(self, fn: Callable[[], None]) -> Callable[[], None]:
+        """Call ``fn`` (on the loop) when the connection closes or its unsent frames went out."""
+        self._listeners.append(fn)
+        return lambda: self._listeners.remove(fn) if fn in self._listeners else None
+
+    def _tell(self) -> None:
+        for fn in list(self._listeners):
+            fn()
 
     def _send_segment(self, segment: Segment) -> bool:
         return self.send(wire.segment(segment.id, segment.size), segment.fd)
@@ -237,6 +254,7 @@ class _Connection:
             self._pending.popleft()
         self._loop.remove_writer(self._sock.fileno())
         self._read_or_not()
+        self._tell()
 
     def refuse(self, reason: str) -> None:
         """Tell the client why (REFUSED), then close."""
@@ -263,6 +281,8 @@ class _Connection:
         if self.session is not None and shared is not None:
             shared.close_session(self.session)
         self._owner.connections.discard(self)
+        self._tell()
+        self._listeners.clear()
         if reason:
             log.info("shared-memory connection closed: %s", reason)
 

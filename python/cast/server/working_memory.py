@@ -13,7 +13,7 @@ from cast.core.records import BatchOp, Identity
 from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
-from cast.errors import CastError, InvalidArgumentError
+from cast.errors import CastError, InvalidArgumentError, UnavailableError
 from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
@@ -22,8 +22,15 @@ from cast.server.write_stream import WriteStream
 from cast.server.writes import watch_woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
+from cast.wire import shared_memory as wire
 
 __all__ = ["WorkingMemoryServicer", "add_to_server"]
+
+EVENTS_METADATA_KEY = "cast-watch-events"
+"""Call metadata: ``socket`` asks for the call's event batches as EVENTS frames on the session's socket."""
+
+EVENTS_UNSENT = 1 << 20
+"""A watch whose session's connection has more bytes than this unsent takes no more events until they went."""
 
 # One watch batch stops growing past this many events or entry bytes, so a
 # stream catching up never sends a message the client refuses for its size.
@@ -144,7 +151,9 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         registers a serializer that passes them through.
         """
         access = Access(self._system, who)
-        stream = _WatchStream(access, read_session(access, context))
+        read = read_session(access, context)
+        on_socket = read is not None and (EVENTS_METADATA_KEY, "socket") in (context.invocation_metadata() or ())
+        stream = _WatchStream(access, read, on_socket)
         try:
             async for response in stream.run(request_iterator):
                 yield response
@@ -155,13 +164,17 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
 class _WatchStream:
     """One Watch call: reads create/cancel requests, writes control messages and event batches."""
 
-    def __init__(self, access: Access, read: tuple[SharedSession, int] | None = None) -> None:
+    def __init__(self, access: Access, read: tuple[SharedSession, int] | None = None, on_socket: bool = False) -> None:
         self._access = access
+        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
+        # cancelled and the call's end stay on the call): docs/client-protocol.md.
         self._lending = read  # the caller's shared-memory session and call: values lent by reference
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
         self._sub = Subscription(access.system.host, self._notify)
+        self._link = read[0].link if read is not None and on_socket else None
+        self._unlisten = self._link.listen(self._wake.set) if self._link is not None else None
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
@@ -216,12 +229,25 @@ class _WatchStream:
                     yield self._control.pop(0)
                 if self._error is not None:
                     raise self._error
+                link = self._link
+                if link is not None:
+                    if link.closed:
+                        raise UnavailableError(
+                            "the shared-memory session carrying this watch's events ended: open the watch again "
+                            "(it resumes after the last event received)"
+                        )
+                    if link.unsent > EVENTS_UNSENT:
+                        continue  # the client is not reading: its events wait here (and lag) until those went
                 # The history holds only visible writes, so these are durable (cast.core.host).
                 matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
-                    yield self._events(matches)
+                    if link is not None:
+                        assert self._lending is not None
+                        link.send(wire.events(self._lending[1], self._events(matches)))
+                    else:
+                        yield self._events(matches)
                 elif self._done and not self._sub.watch_ids:
                     return
         finally:
@@ -249,6 +275,8 @@ class _WatchStream:
 
     def close(self) -> None:
         self._sub.close()
+        if self._unlisten is not None:
+            self._unlisten()
 
 
 def _serialize_watch(response: wm_pb2.WatchResponse | bytes) -> bytes:

@@ -43,6 +43,7 @@ REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
 SEGMENT = 12  # u32 segment id, u64 size; 1 fd
 RETIRE = 13  # u32 segment id
 REPLIES = 14  # a serialized cast.v1.WriteReplies (up to MAX_WRITES_FRAME)
+EVENTS = 15  # u64 call, then a serialized cast.v1.WatchResponse (up to MAX_WRITES_FRAME)
 
 MAX_FRAME = 1 << 16
 """The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits), but WRITES and REPLIES."""
@@ -50,7 +51,7 @@ MAX_FRAME = 1 << 16
 MAX_WRITES_FRAME = 64 << 20
 """The largest WRITES or REPLIES frame: a gRPC message's limit, so any request the Write stream takes fits one."""
 
-LARGE = frozenset({4, 14})  # WRITES, REPLIES: the kinds allowed up to MAX_WRITES_FRAME
+LARGE = frozenset({4, 14, 15})  # WRITES, REPLIES: the kinds allowed up to MAX_WRITES_FRAME
 
 WITH_FD = frozenset({WELCOME, SEGMENT})
 
@@ -60,6 +61,7 @@ _SEGMENT = struct.Struct("<IQ")
 _RECEIVED = struct.Struct("<QQB")
 _U32 = struct.Struct("<I")
 _U16 = struct.Struct("<H")
+_U64 = struct.Struct("<Q")
 
 
 class ProtocolError(Exception):
@@ -102,6 +104,11 @@ def writes(requests: bytes) -> bytes:
 def replies(body: bytes) -> bytes:
     """REPLIES: a serialized ``cast.v1.WriteReplies``, the answers to WRITES by request id."""
     return encode(REPLIES, body)
+
+
+def events(call: int, response: bytes) -> bytes:
+    """EVENTS: a watch call's event batch (an encoded ``cast.v1.WatchResponse``) on the session's socket."""
+    return _LEN.pack(len(response) + 9) + bytes((EVENTS,)) + _U64.pack(call) + response
 
 
 def welcome(session: bytes, server_id: bytes, threshold: int, window: int, staging: int) -> bytes:
