@@ -6,6 +6,10 @@ a shared-memory session that carries a watch's events, docs/client-protocol.md
 and its callback run on this thread, with no hand-off between threads on the
 way. While it has nothing to run, it waits in ``poll`` on those sockets and on
 an eventfd of its own, which other threads write when they queue a call.
+While one callback runs longer than :data:`STANDBY_S`, a standby thread reads
+the sockets in its place (while the queue has room), so that a slow callback
+lets events pile up in the component's queue as the gRPC stream's reader does,
+rather than on the server.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import logging
 import os
 import select
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
@@ -24,6 +29,9 @@ HIGH, MEDIUM, LOW = 0, 1, 2
 """Priorities of queued calls: the dispatcher takes the highest pending one first (FIFO within one)."""
 
 log = logging.getLogger("cast.component")
+
+STANDBY_S = 0.01
+"""How long one callback may run before the standby thread reads the attached sockets meanwhile."""
 
 _READABLE = select.POLLIN | select.POLLPRI | select.POLLERR | select.POLLHUP
 
@@ -76,6 +84,8 @@ class Dispatcher:
         self._attach: deque[Source] = deque()  # sources to add, from any thread
         self._poller = select.poll()
         self._poller.register(self._wake_fd, select.POLLIN)
+        self._call_started = 0.0  # time.monotonic() at the start of the call running now; 0.0 between calls
+        self._standby: threading.Thread | None = None  # started with the first source
         self._thread.start()
 
     def room(self) -> int:
@@ -109,7 +119,36 @@ class Dispatcher:
     def attach(self, source: Source) -> None:
         """Read ``source`` on the dispatcher thread from now on, until its ``fileno()`` is -1."""
         self._attach.append(source)
+        if self._standby is None:
+            with self._lock:
+                if self._standby is None:
+                    self._standby = threading.Thread(
+                        target=self._stand_by, name=f"{self._thread.name}-standby", daemon=True
+                    )
+                    self._standby.start()
         self._wake()
+
+    def _stand_by(self) -> None:
+        """Read the sources while a callback runs long (they are the dispatcher's the rest of the time).
+
+        A frame read here is the source's to queue for the dispatcher (it
+        knows it is not on the dispatcher thread); nothing here waits for room.
+        """
+        while not self._stopping:
+            started = self._call_started
+            if not started or time.monotonic() - started < STANDBY_S or self.room() <= 0:
+                time.sleep(STANDBY_S)
+                continue
+            sources = {source.fileno(): source for source in list(self._sources.values())}
+            sources.pop(-1, None)
+            if not sources:
+                time.sleep(STANDBY_S)
+                continue
+            poller = select.poll()
+            for fd in sources:
+                poller.register(fd, _READABLE)
+            for fd, _ in poller.poll(STANDBY_S * 1000):
+                sources[fd].poll()
 
     def _wake(self) -> None:
         if not self._closed:
@@ -176,6 +215,7 @@ class Dispatcher:
                 ready_source.poll()
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
+        self._call_started = time.monotonic()
         try:
             fn(*args)
         except Exception:
@@ -183,6 +223,7 @@ class Dispatcher:
         finally:
             # Not kept until the next call: a change may hold a value lent by shared memory (cast.client.shm).
             fn = args = None  # type: ignore[assignment]
+            self._call_started = 0.0
             with self._lock:
                 self._pending -= 1
                 if self._waiters:

@@ -1,0 +1,166 @@
+"""A watch's events on the session's socket (docs/client-protocol.md, "A watch's events on the session's socket").
+
+A real server on port 0 with shared memory on (tests/client/test_shared_memory.py's
+``Host``); a Python component's watch asks for its event batches as EVENTS
+frames on its session's socket, which its dispatcher thread reads itself. The
+raw protocol plays the client that asks and then does not read.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from google.protobuf.wrappers_pb2 import BytesValue
+
+import cast
+from cast.client import shm_session
+from cast.client.watch_stream import EVENTS_METADATA
+from cast.core.shared import SharedSettings
+from cast.server.working_memory import EVENTS_UNSENT
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire import shared_memory as wire
+from tests.client.test_shared_memory import MIB, Host, image
+from tests.client.test_shared_memory import host as host  # noqa: PLC0414 - the fixture, used by name
+from tests.conftest import wait_for
+
+
+def _seeds(got: list[int]) -> Callable[[cast.WorkingMemoryChange], None]:
+    def take(change: cast.WorkingMemoryChange) -> None:
+        if change.operation is not cast.Operation.DELETE:
+            with change.view() as view:
+                got.append(view.field(1)[0])
+    return take
+
+
+def _raw_watch(h: Host, cid: str, session: shm_session.ClientSession, on_socket: bool,
+               stop: threading.Event) -> tuple[Any, shm_session.ReadCall]:
+    """A Watch call of a raw client on ``session`` for "img", its events asked on the socket or not."""
+    call = session.new_call()
+
+    def requests() -> Any:
+        yield wm_pb2.WatchRequest(create=wm_pb2.WatchCreate(watch_id=1, filters=[
+            {"id": "img", "subarchitecture": "vision", "include_entry": True}]))
+        stop.wait(30)
+
+    metadata = h.metadata(cid) + call.metadata + ((EVENTS_METADATA,) if on_socket else ())
+    stream = h.stub().Watch(requests(), metadata=metadata)
+    assert next(stream).HasField("created")
+    return stream, call
+
+
+def test_a_components_events_come_as_frames_read_by_its_dispatcher_thread(
+    host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    handled: list[tuple[int, str]] = []
+    original = shm_session.ClientSession._handle
+
+    def spy(self: shm_session.ClientSession, frame: wire.Frame) -> None:
+        handled.append((frame.kind, threading.current_thread().name))
+        original(self, frame)
+
+    monkeypatch.setattr(shm_session.ClientSession, "_handle", spy)
+    h = host()
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, 20):
+        writer.overwrite("img", image(MIB, seed))
+    wait_for(lambda: len(got) == 20, what="every value")
+    assert got == list(range(20))
+    events = [name for kind, name in handled if kind == wire.EVENTS]
+    assert len(events) >= 1 and set(events) == {"cast-dispatch-watcher"}, events
+
+
+def test_the_server_sends_a_calls_events_on_the_socket_only_when_the_call_asks(host: Callable[..., Host]) -> None:
+    h = host()
+    stop = threading.Event()
+    asked, plain = h.session("asked"), h.session("plain")
+    frames: list[bytes] = []
+    stream, call = _raw_watch(h, "asked", asked, True, stop)
+    asked.event_handlers[call.number] = frames.append
+    other, _ = _raw_watch(h, "plain", plain, False, stop)
+    writer = h.component("writer")
+    writer.add("img", image(MIB, 7))
+    wait_for(lambda: (asked.poll(0.05), frames)[1], what="an EVENTS frame")
+    (event,) = wm_pb2.WatchResponse.FromString(frames[0]).events
+    assert event.entry.address.id == "img" and event.entry.HasField("shared_value")  # lent, by reference
+    response = next(other)  # the call that did not ask gets its events on the call
+    assert [e.entry.address.id for e in response.events] == ["img"]
+    stop.set()
+    stream.cancel()
+    other.cancel()
+    asked.close()
+    plain.close()
+
+
+def test_a_watch_whose_socket_ends_resumes_on_a_new_one_without_gap_or_duplicate(host: Callable[..., Host]) -> None:
+    h = host()
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, 10):
+        writer.overwrite("img", image(MIB, seed))
+    wait_for(lambda: len(got) == 10, what="the first values")
+    shared = h.system.shared
+    assert shared is not None
+    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "watcher"]
+    assert link is not None
+    h.server.loop.call_soon_threadsafe(link.close, "ended by the test")  # type: ignore[attr-defined]
+    for seed in range(10, 40):
+        writer.overwrite("img", image(MIB, seed))
+    wait_for(lambda: len(got) == 40, what="every value after the socket ended")
+    assert got == [seed % 251 for seed in range(40)]  # in order, each once
+    stream = watcher._transport._directory.watch_stream
+    assert stream.reconnects >= 1  # the call ended with its socket and was opened again
+    wait_for(lambda: [s for s in shared.sessions.values() if s.who.component_id == "watcher"],
+             what="the watcher's new session")
+
+
+def test_a_client_that_does_not_read_its_socket_holds_up_nothing_and_its_frames_stay_bounded(
+    host: Callable[..., Host]
+) -> None:
+    h = host(settings=SharedSettings(window_bytes=4 * MIB))
+    stop = threading.Event()
+    stalled = h.session("stalled")
+    stream, _ = _raw_watch(h, "stalled", stalled, True, stop)  # its socket is never read
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, 40):
+        writer.overwrite("img", image(MIB, seed))  # past its window of lent values: bytes in the frames
+    wait_for(lambda: len(got) == 40, what="every value to the watcher that reads")
+    assert got == [seed % 251 for seed in range(40)]
+    shared = h.system.shared
+    assert shared is not None
+    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "stalled"]
+    assert link is not None
+    # What waits for the client: the bound, then at most one batch (here one value of 1 MiB and its event).
+    assert link.unsent <= EVENTS_UNSENT + 2 * MIB, link.unsent
+    stop.set()
+    stream.cancel()
+    stalled.close()
+
+
+def test_values_under_the_threshold_come_in_the_frames_as_bytes(host: Callable[..., Host]) -> None:
+    h = host()
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[bytes] = []
+    done = threading.Event()
+
+    def take(change: cast.WorkingMemoryChange) -> None:
+        got.append(change.entry(BytesValue).value.value)
+        if len(got) == 3:
+            done.set()
+
+    watcher.on_change(cast.address_filter("small", include_entry=True), take)
+    writer.add("small", BytesValue(value=b"a"))
+    writer.overwrite("small", BytesValue(value=b"b"))
+    writer.overwrite("small", BytesValue(value=b"c"))
+    assert done.wait(10)
+    assert got == [b"a", b"b", b"c"]
