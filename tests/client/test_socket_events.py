@@ -23,7 +23,7 @@ from cast.server.working_memory import EVENTS_UNSENT
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
 from tests.client.test_shared_memory import MIB, Host, image
-from tests.client.test_shared_memory import host as host  # noqa: PLC0414 - the fixture, used by name
+from tests.client.test_shared_memory import host as host  # the fixture, used by name
 from tests.conftest import wait_for
 
 
