@@ -185,16 +185,16 @@ class Dispatcher:
     def _read_sources(self, timeout: float | None) -> None:
         """Read the sources that have something; ``timeout`` None: wait for them or a wake-up."""
         sources = self._sources
+        for fd, source in list(sources.items()):
+            if source.fileno() != fd:  # ended (its socket closed): forgotten before a new one may take its number
+                del sources[fd]
+                self._poller.unregister(fd)
         while self._attach:
             source = self._attach.popleft()
             fd = source.fileno()
-            if fd >= 0 and fd not in sources:
+            if fd >= 0 and sources.get(fd) is not source:
                 sources[fd] = source
                 self._poller.register(fd, _READABLE)
-        for fd, source in list(sources.items()):
-            if source.fileno() != fd:  # ended (its socket closed): forget it before its number is reused
-                del sources[fd]
-                self._poller.unregister(fd)
         if timeout is None:
             self._sleeping = True
             calls = self._calls
@@ -245,6 +245,11 @@ class Dispatcher:
         self._wake()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
-            if not self._thread.is_alive():
+            standby = self._standby
+            if standby is not None:
+                standby.join(timeout)  # it sees _stopping within STANDBY_S
+            with self._lock:  # stop may come twice (a component closed twice)
+                if self._thread.is_alive() or self._closed:
+                    return
                 self._closed = True
-                os.close(self._wake_fd)
+            os.close(self._wake_fd)
