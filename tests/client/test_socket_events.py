@@ -9,6 +9,7 @@ raw protocol plays the client that asks and then does not read.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -164,3 +165,48 @@ def test_values_under_the_threshold_come_in_the_frames_as_bytes(host: Callable[.
     writer.overwrite("small", BytesValue(value=b"c"))
     assert done.wait(10)
     assert got == [b"a", b"b", b"c"]
+
+
+def test_frames_another_thread_reads_reach_the_callbacks_in_order_once(
+    host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A read waiting for its segment reads the session's socket on its own thread, EVENTS frames included:
+    # those are queued for the dispatcher behind the frames before them, never delivered out of order.
+    readers: list[str] = []
+    original = shm_session.ClientSession._handle
+
+    def spy(self: shm_session.ClientSession, frame: wire.Frame) -> None:
+        if frame.kind == wire.EVENTS:
+            readers.append(threading.current_thread().name)
+        original(self, frame)
+
+    monkeypatch.setattr(shm_session.ClientSession, "_handle", spy)
+    h = host()
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    seeds = _seeds(got)
+
+    def slow(change: cast.WorkingMemoryChange) -> None:
+        time.sleep(0.002)  # the socket waits meanwhile, for the other thread to read
+        seeds(change)
+
+    watcher.on_change(cast.address_filter("img", include_entry=True), slow)
+    session = watcher._transport._directory.shared.session()
+    done = threading.Event()
+
+    def other_reader() -> None:
+        while not done.is_set():
+            session.poll(0.001)
+
+    thread = threading.Thread(target=other_reader, name="other-reader")
+    thread.start()
+    try:
+        writer.add("img", image(MIB, 0))
+        for seed in range(1, 60):
+            writer.overwrite("img", image(MIB, seed))
+        wait_for(lambda: len(got) == 60, what="every value")
+    finally:
+        done.set()
+        thread.join()
+    assert got == [seed % 251 for seed in range(60)]  # in order, each once
+    assert "other-reader" in readers  # the path this test is for was taken

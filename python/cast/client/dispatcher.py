@@ -33,6 +33,8 @@ log = logging.getLogger("cast.component")
 STANDBY_S = 0.01
 """How long one callback may run before the standby thread reads the attached sockets meanwhile."""
 
+_BUSY_MS = 1  # how long the thread waits (for a call) while another thread reads a source
+
 _READABLE = select.POLLIN | select.POLLPRI | select.POLLERR | select.POLLHUP
 
 
@@ -43,8 +45,8 @@ class Source(Protocol):
         """Its descriptor; -1 once it ended (the dispatcher then forgets it)."""
         ...
 
-    def poll(self, wait: float = 0.0) -> None:
-        """Read what is there without waiting, handling each frame (on this thread)."""
+    def poll(self, wait: float = 0.0) -> bool:
+        """Read what is there without waiting, handling each frame (on this thread); False if another thread is."""
         ...
 
 
@@ -84,6 +86,8 @@ class Dispatcher:
         self._attach: deque[Source] = deque()  # sources to add, from any thread
         self._poller = select.poll()
         self._poller.register(self._wake_fd, select.POLLIN)
+        self._wake_poller = select.poll()  # the eventfd alone
+        self._wake_poller.register(self._wake_fd, select.POLLIN)
         self._call_started = 0.0  # time.monotonic() at the start of the call running now; 0.0 between calls
         self._standby: threading.Thread | None = None  # started with the first source
         self._thread.start()
@@ -211,8 +215,15 @@ class Dispatcher:
                 self._drain_wake()
                 continue
             ready_source = sources.get(fd)
-            if ready_source is not None:
-                ready_source.poll()
+            if ready_source is not None and not ready_source.poll():
+                # Another thread is reading it (and queues what it reads here): the socket stays readable until
+                # it has, so wait for a call or a moment rather than spin on it.
+                self._sleeping = True
+                try:
+                    if not (self._calls[HIGH] or self._calls[MEDIUM] or self._calls[LOW] or self._stopping):
+                        self._wake_poller.poll(_BUSY_MS)
+                finally:
+                    self._sleeping = False
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
         self._call_started = time.monotonic()

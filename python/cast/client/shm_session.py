@@ -286,12 +286,15 @@ class ClientSession:
         """The session socket's descriptor (-1 once ended), for a thread that waits for frames."""
         return -1 if self.dead else self._sock.fileno()
 
-    def poll(self, wait: float = 0.0) -> None:
-        """Read what the server sent (SEGMENT, RETIRE, REFUSED, the end); wait up to ``wait`` s for something."""
+    def poll(self, wait: float = 0.0) -> bool:
+        """Read what the server sent (SEGMENT, RETIRE, REFUSED, EVENTS, the end); wait up to ``wait`` s for something.
+
+        False when another thread was reading (it handles what came).
+        """
         if self.dead:
-            return
+            return True
         if not (self._read_lock.acquire(timeout=wait) if wait else self._read_lock.acquire(blocking=False)):
-            return  # another thread is reading: it handles what came
+            return False
         try:
             if wait:
                 select.select([self._sock], [], [], wait)
@@ -316,6 +319,7 @@ class ClientSession:
         finally:
             self._read_lock.release()
         self._close_retired()
+        return True
 
     def _handle(self, frame: wire.Frame) -> None:
         if frame.kind == wire.SEGMENT:
