@@ -20,6 +20,7 @@ import cast
 from cast.client import shm_session
 from cast.client.watch_stream import EVENTS_METADATA
 from cast.core.shared import SharedSettings
+from cast.errors import UnavailableError
 from cast.server.working_memory import EVENTS_UNSENT
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -210,3 +211,28 @@ def test_frames_another_thread_reads_reach_the_callbacks_in_order_once(
         thread.join()
     assert got == [seed % 251 for seed in range(60)]  # in order, each once
     assert "other-reader" in readers  # the path this test is for was taken
+
+
+def test_a_value_that_cannot_be_claimed_reopens_the_call_without_gap_or_duplicate(
+    host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    original = shm_session.ClientSession.claim
+    claims = [0]
+
+    def fails_once(self: shm_session.ClientSession, ref: Any) -> Any:
+        claims[0] += 1
+        if claims[0] == 5:
+            raise UnavailableError("shared-memory segment 99 did not arrive (a test): read again")
+        return original(self, ref)
+
+    monkeypatch.setattr(shm_session.ClientSession, "claim", fails_once)
+    h = host()
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, 20):
+        writer.overwrite("img", image(MIB, seed))
+    wait_for(lambda: len(got) == 20, what="every value")
+    assert got == list(range(20))  # the frame that failed and those behind it came again, each once
+    assert claims[0] > 20 and watcher._transport._directory.watch_stream.reconnects >= 1

@@ -216,8 +216,8 @@ class WatchStream:
         dispatcher = self._dispatcher
         assert dispatcher is not None
         with self._frames_lock:
-            if read is not self._read:
-                return  # the call ended: its watches resume after what was turned
+            if read is not self._read or self._socket_broke:
+                return  # the call ended or is ending: its watches resume after what was turned
             self._frames.append(body)
             if self._turning:
                 return  # read by a claim of the frame being turned: turned next, in order
@@ -234,7 +234,7 @@ class WatchStream:
             self._turning = True
             try:
                 read = self._read
-                while self._frames:
+                while self._frames and not self._socket_broke:  # once broken, the rest comes again on a new call
                     resp = wm_pb2.WatchResponse.FromString(self._frames.popleft())
                     self._events(resp, read)
             except CastError as exc:  # a value that could not be claimed: the call is read again from here
