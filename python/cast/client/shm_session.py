@@ -45,6 +45,7 @@ METADATA_KEY = "cast-shared-memory"
 
 _SEGMENT_WAIT_S = 5.0  # how long a claim waits for the SEGMENT frame sent before the message naming it
 _SEND_S = 5.0  # how long a frame may wait for room in the socket: the server reads it at once unless stuck
+_READ_BYTES = 256 << 10  # one read takes what the socket holds (EVENTS frames carry small values' bytes)
 _RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
 
 
@@ -300,7 +301,7 @@ class ClientSession:
                 select.select([self._sock], [], [], wait)
             while not self.dead:
                 try:
-                    data, fds = wire.receive(self._sock)
+                    data, fds = wire.receive(self._sock, _READ_BYTES)
                 except (BlockingIOError, InterruptedError):
                     break
                 except (OSError, wire.ProtocolError) as exc:

@@ -17,6 +17,7 @@ from cast.errors import CastError, InvalidArgumentError, UnavailableError
 from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
+from cast.server.socket_writes import MAX_UNSENT
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.server.write_stream import WriteStream
 from cast.server.writes import watch_woken
@@ -29,8 +30,12 @@ __all__ = ["WorkingMemoryServicer", "add_to_server"]
 EVENTS_METADATA_KEY = "cast-watch-events"
 """Call metadata: ``socket`` asks for the call's event batches as EVENTS frames on the session's socket."""
 
-EVENTS_UNSENT = 1 << 20
-"""A watch whose session's connection has more bytes than this unsent takes no more events until they went."""
+EVENTS_UNSENT = MAX_UNSENT
+"""A watch whose session's connection has more bytes than this unsent takes no more events until they went.
+
+The connection's own bound for what its client leaves unread: a client whose
+standby reader is held up (the GIL, two busy cores) keeps a few large values'
+worth of slack before its watch lags on the server."""
 
 # One watch batch stops growing past this many events or entry bytes, so a
 # stream catching up never sends a message the client refuses for its size.
