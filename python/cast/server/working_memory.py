@@ -171,13 +171,13 @@ class _WatchStream:
 
     def __init__(self, access: Access, read: tuple[SharedSession, int] | None = None, on_socket: bool = False) -> None:
         self._access = access
-        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
-        # cancelled and the call's end stay on the call): docs/client-protocol.md.
         self._lending = read  # the caller's shared-memory session and call: values lent by reference
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
         self._sub = Subscription(access.system.host, self._notify)
+        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
+        # cancelled and the call's end stay on the call): docs/client-protocol.md.
         self._link = read[0].link if read is not None and on_socket else None
         self._unlisten = self._link.listen(self._wake.set) if self._link is not None else None
         self._control: list[wm_pb2.WatchResponse] = []
