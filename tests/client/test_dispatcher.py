@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import socket
 import threading
+import time
 
-from cast.client.dispatcher import Dispatcher
+from cast.client.dispatcher import STANDBY_S, Dispatcher
+from tests.conftest import wait_for
 
 
 def test_calls_run_in_order_on_the_dispatcher_thread_and_drain_waits_for_them() -> None:
@@ -46,3 +49,71 @@ def test_a_full_queue_blocks_submitters_until_room_and_signals_space_at_half() -
     assert spaces == [1]
     assert d.room() == 4
     d.stop()
+
+
+class _Socket:
+    """A source as a shared-memory session is one: a socket pair's end, read by whichever thread polls it."""
+
+    def __init__(self) -> None:
+        self.mine, self.peer = socket.socketpair()
+        self.mine.setblocking(False)
+        self.readers: list[str] = []
+        self.lock = threading.Lock()
+
+    def fileno(self) -> int:
+        return self.mine.fileno()
+
+    def poll(self, wait: float = 0.0) -> bool:
+        if not self.lock.acquire(blocking=False):
+            return False
+        try:
+            while True:
+                try:
+                    data = self.mine.recv(4096)
+                except BlockingIOError:
+                    return True
+                self.readers.extend([threading.current_thread().name] * len(data))
+        finally:
+            self.lock.release()
+
+    def close(self) -> None:
+        self.mine.close()
+        self.peer.close()
+
+
+def test_an_attached_socket_is_read_on_the_dispatcher_thread_and_while_a_callback_runs_long_by_the_standby() -> None:
+    d = Dispatcher("t")
+    source = _Socket()
+    d.attach(source)
+    source.peer.send(b"a")
+    wait_for(lambda: source.readers == ["cast-dispatch-t"], what="the byte read by the dispatcher")
+    gate = threading.Event()
+    d.submit(gate.wait, 10)  # a callback that runs long: the standby reads meanwhile
+    time.sleep(3 * STANDBY_S)
+    source.peer.send(b"b")
+    wait_for(lambda: source.readers[1:] == ["cast-dispatch-t-standby"], what="the byte read by the standby")
+    gate.set()
+    assert d.drain(10)
+    time.sleep(3 * STANDBY_S)  # the standby's last wait on the socket is over
+    source.peer.send(b"c")
+    wait_for(lambda: source.readers[2:] == ["cast-dispatch-t"], what="the dispatcher's again")
+    d.stop()
+    source.close()
+    assert not d.thread.is_alive()
+
+
+def test_a_full_queue_leaves_the_attached_socket_unread() -> None:
+    d = Dispatcher("t", capacity=2)
+    source = _Socket()
+    d.attach(source)
+    gate = threading.Event()
+    d.submit(gate.wait, 10)
+    d.submit(lambda: None)  # full: what the socket has waits there (and then on the server)
+    time.sleep(3 * STANDBY_S)
+    source.peer.send(b"x")
+    time.sleep(5 * STANDBY_S)
+    assert source.readers == []
+    gate.set()
+    wait_for(lambda: source.readers == ["cast-dispatch-t"], what="the byte read once there is room")
+    d.stop()
+    source.close()
