@@ -195,50 +195,73 @@ def _tail(log: IO[str]) -> str:
     return log.read()[-800:]
 
 
-def _write(server: Server, writer: list[str], size: int, frames: int, gap_s: float, tag: str) -> dict[int, int]:
+def _write(server: Server, command: list[str], tag: str) -> dict[int, int]:
     env = {**os.environ, **server.env(f"m8-{tag}-writer", SA)}
-    out = subprocess.run([*writer, "image-write", str(size), str(frames), str(round(gap_s * 1e6))], env=env,
-                         capture_output=True, text=True, timeout=TIMEOUT_S)
+    out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
     lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
     if out.returncode != 0 or not lines:
         raise RuntimeError(f"the C++ writer exited {out.returncode}: {out.stderr[-800:]}")
     return {int(k): int(v) for k, v in json.loads(lines[-1]).items()}
 
 
+def _measured(got: dict[str, Any], keys: dict[int, int], size: int) -> dict[str, Any]:
+    """A watcher's result cut to the writes ``keys``: their stamps, and their bytes (``size`` each)."""
+    stamps = {k: t for k, t in got["stamps"].items() if k in keys}
+    return {**got, "stamps": stamps, "bytes": size * len(stamps)}
+
+
 def figures(sent: dict[int, int], got: dict[str, dict[str, Any]], extra: int,
-            expected: Callable[[dict[str, Any]], int]) -> dict[str, Any]:
+            expected: Callable[[dict[str, Any]], int], size: int, warm: int = 0, cold: int = 0) -> dict[str, Any]:
     """Each watcher's figures, whether it read the bytes written, and the total.
 
-    The first tenth (at most 30) of its latencies are dropped as warm-up;
-    ``checksum_ok`` is whether its checksum is ``expected(its result)``.
+    ``sent`` is every write (key -> stamp), in key order ``cold`` writes in the
+    readers' first seconds, then ``warm`` warm-up writes, then the measured
+    ones (:func:`bench.peer_fanout.drive`, ``cast_bench image-write``). The
+    latencies and MB/s are of the measured writes, their first tenth (at most
+    30) dropped as warm-up too; ``cold_p50_us``/``cold_p99_us`` (with ``cold``)
+    of the first ``cold`` ones. Lost, received, the bytes and the checksum are of
+    every write: ``checksum_ok`` is whether it is ``expected(the result)``.
     """
-    warm = min(30, len(sent) // 10)
-    late = dict(sorted(sent.items())[warm:])
+    order = sorted(sent)
+    measured = {k: sent[k] for k in order[cold + warm:]}
+    early = {k: sent[k] for k in order[:cold]}
+    late = dict(sorted(measured.items())[min(30, len(measured) // 10):])
     per = {}
+    mine = {label: _measured(g, measured, size) for label, g in got.items()}
     for label, g in got.items():
         whole = watcher_figures(sent, g, extra)
-        steady = watcher_figures(late, g, extra)
-        per[label] = {**whole, "p50_us": steady["p50_us"], "p99_us": steady["p99_us"], "bytes": g["bytes"],
+        steady = watcher_figures(late, mine[label])
+        per[label] = {**whole, "p50_us": steady["p50_us"], "p99_us": steady["p99_us"], "mean_us": steady["mean_us"],
+                      "mb_per_s": watcher_figures(measured, mine[label])["mb_per_s"], "bytes": g["bytes"],
                       "checksum_ok": g.get("checksum") == expected(g)}
+        if early:
+            first = watcher_figures(early, _measured(g, early, size))
+            per[label] |= {"cold_p50_us": first["p50_us"], "cold_p99_us": first["p99_us"]}
         if "shared" in g:
             per[label]["shared"] = g["shared"]
-    return {"watchers": per, "total": totals(sent, list(got.values())), "frames": len(sent)}
+    return {"watchers": per, "total": totals(measured, list(mine.values())), "frames": len(measured),
+            "warm": warm, "cold": cold}
 
 
 def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, list[str] | str]], size: int,
-               frames: int, gap_s: float, tag: str) -> dict[str, Any]:
-    """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile."""
+               frames: int, gap_s: float, tag: str, warm: int = 0, cold: int = 0) -> dict[str, Any]:
+    """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile.
+
+    The writer sends ``cold`` paced values, ``warm`` back to back, then the
+    ``frames`` measured (:func:`figures`).
+    """
     watchers = _Watchers(server, commands, tag)
     try:
         memory = ServerMemory(server.proc.process.pid)
         try:
-            sent = _write(server, writer, size, frames, gap_s, tag)
+            sent = _write(server, [*writer, "image-write", str(size), str(frames), str(round(gap_s * 1e6)),
+                                   str(warm), str(cold)], tag)
             got = watchers.results()
         finally:
             peaks = memory.stop()
     finally:
         watchers.close()
-    out = figures(sent, got, 2, lambda g: expected_cast(sent, g["stamps"], size))
+    out = figures(sent, got, 2, lambda g: expected_cast(sent, g["stamps"], size), size, warm, cold)
     return {**out, "size": size, "server_memory": peaks, "missing": watchers.missing}
 
 
@@ -253,11 +276,12 @@ def _remote_phase(workdir: Path, writer: list[str], frames: int) -> dict[str, An
             server.stop()
 
 
-def _peer(fn: Callable[..., dict[str, Any]], frames: int, gap_s: float, size: int) -> dict[str, Any]:
-    run_ = fn(frames, gap_s, size)
+def _peer(fn: Callable[..., dict[str, Any]], frames: int, gap_s: float, size: int, warm: int = 0,
+          cold: int = 0) -> dict[str, Any]:
+    run_ = fn(frames, gap_s, size, warm=warm, cold=cold)
     labels = [f"subscriber {i + 1}" for i in range(len(run_["watchers"]))]
     return {**figures(run_["sent"], dict(zip(labels, run_["watchers"], strict=True)), 0,
-                      lambda g: expected_frames(g["stamps"], size)), "size": size}
+                      lambda g: expected_frames(g["stamps"], size), size, warm, cold), "size": size}
 
 
 def _guard(out: dict[str, Any], key: str, fn: Callable[..., dict[str, Any]], *args: Any) -> None:
