@@ -137,22 +137,23 @@ class Subscribers:
             log.close()
 
 
-SETTLE_S = 0.5  # the pause after a back-to-back warm-up, as M8's C++ writer makes (cast_bench image-write)
+SETTLE_S = 0.3  # the pause after a back-to-back warm-up, as M8's C++ writer makes (cast_bench image-write)
 
 
 def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, warm: int = 0,
-          cold: int = 0) -> dict[int, int]:
+          warm_size: int = 0, cold: int = 0) -> dict[int, int]:
     """Puts, each stamped (ns) just before it; their stamps by sequence number, in the order put.
 
     As M8's C++ writer (``cast_bench image-write``): ``cold`` puts paced as
-    below (the subscribers' first seconds), ``warm`` back to back and a pause of
-    SETTLE_S (the warm-up), then ``frames``, the i-th started at start + i *
-    ``gap_s`` (0: back to back). The reader tells the parts apart by number.
+    below (the subscribers' first seconds), ``warm`` of ``warm_size`` bytes back
+    to back and a pause of SETTLE_S (the warm-up), then ``frames``, the i-th
+    started at start + i * ``gap_s`` (0: back to back). The reader tells the
+    parts apart by number.
     """
-    pad = b"p" * max(0, size - _SEQ.size)
     sent: dict[int, int] = {}
 
-    def paced(count: int, gap: float) -> None:
+    def paced(count: int, gap: float, size: int) -> None:
+        pad = b"p" * max(0, size - _SEQ.size)
         start = time.perf_counter()
         for i in range(count):
             if gap:
@@ -164,9 +165,9 @@ def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, 
             sent[seq] = time.perf_counter_ns()
             put(payload)
 
-    paced(cold, gap_s)
+    paced(cold, gap_s, size)
     if warm:
-        paced(warm, 0.0)
+        paced(warm, 0.0, warm_size)
         time.sleep(SETTLE_S)
-    paced(frames, gap_s)
+    paced(frames, gap_s, size)
     return sent
