@@ -160,32 +160,3 @@ def test_any_matching_filter_that_asks_for_the_entry_gets_it() -> None:
     got = [(m.event.id, m.include_entry) for m in sub.poll()]
     assert got == [("x", True), ("y", False)]
 
-
-def test_the_host_wakes_its_watchers_in_turn_each_write_starting_at_the_next() -> None:
-    host = MemoryHost(["vision"])
-    woken: list[int] = []
-    subs = [Subscription(host, lambda i=i: woken.append(i)) for i in range(3)]
-    for k in range(6):
-        host.add(V, "vision", f"e{k}", "t.T", b"")
-    rounds = [woken[i:i + 3] for i in range(0, len(woken), 3)]
-    assert len(rounds) == 6 and all(sorted(r) == [0, 1, 2] for r in rounds)  # every watcher once per write
-    assert [r[0] for r in rounds] == [0, 1, 2, 0, 1, 2]  # none always first, none always last
-    subs[1].close()
-    host.add(V, "vision", "after", "t.T", b"")
-    assert sorted(woken[-2:]) == [0, 2]
-
-
-def test_watchers_woken_in_turn_each_get_every_event_once_in_order() -> None:
-    host = MemoryHost(["vision"])
-    got: dict[int, list[int]] = {i: [] for i in range(4)}
-    subs: list[Subscription] = []
-
-    def woken(i: int) -> None:  # as an in-process watcher: it takes what is pending when woken
-        got[i] += [m.event.revision for m in subs[i].poll()]
-
-    for i in range(4):
-        subs.append(Subscription(host, lambda i=i: woken(i)))
-        subs[i].add_watch(1, [EventFilter()])
-    for k in range(25):
-        host.add(V, "vision", f"e{k}", "t.T", b"")
-    assert all(revisions == list(range(1, 26)) for revisions in got.values()), got

@@ -48,9 +48,6 @@ from cast.errors import CastError, InvalidArgumentError, LockedError, NotFoundEr
 __all__ = ["BatchOp", "MemoryHost", "ValueValidator"]
 
 log = logging.getLogger("cast.host")
-import os  # noqa: E402  PROTOTYPE (A/B)
-
-_ROTATE = os.environ.get("CAST_NOTIFY_ROTATE") == "1"
 
 
 class MemoryHost(Locking):
@@ -80,7 +77,6 @@ class MemoryHost(Locking):
         self._seq_floor = 0  # highest event sequence number restored from a journal
         self._listeners: list[Callable[[], None]] = []
         self._watchers = 0  # listeners that are watchers (limits.max_watchers)
-        self._turn = itertools.count()
         self._init_locks()
         # Called under the mutex with the events of each commit (cast.core.journal.Journal.append):
         # it only queues them, so durability never holds the mutex for I/O. None: memory only.
@@ -349,11 +345,7 @@ class MemoryHost(Locking):
             self._wake_lock_waiters(key)
 
     def _notify(self) -> None:
-        listeners = list(self._listeners)
-        if _ROTATE and listeners:  # PROTOTYPE (A/B): start at the next listener each time
-            first = next(self._turn) % len(listeners)
-            listeners = listeners[first:] + listeners[:first]
-        for listener in listeners:
+        for listener in list(self._listeners):
             try:
                 listener()
             except Exception:  # one broken watcher must not stop the writer or the journal
