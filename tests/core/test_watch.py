@@ -159,4 +159,3 @@ def test_any_matching_filter_that_asks_for_the_entry_gets_it() -> None:
     host.add(V, "vision", "y", "t.B", b"b")
     got = [(m.event.id, m.include_entry) for m in sub.poll()]
     assert got == [("x", True), ("y", False)]
-
