@@ -289,7 +289,8 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
 }
 
 int usage() {
-  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]] | "
+  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | "
+               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]] | "
                "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
 }
