@@ -32,11 +32,16 @@ help:
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
 
+# The Python environments are filled by uv (pinned in requirements-dev.txt, put in .venv by the venv's
+# own pip): it downloads in parallel and keeps what it downloaded in ~/.cache/uv, where pip here
+# downloads every wheel again for every new environment (docs/decisions.md, "uv").
+UV_PIN := $(shell grep -m1 '^uv==' requirements-dev.txt)
+UV := $(VENV)/bin/uv
 $(VENV)/.installed: requirements-dev.txt pyproject.toml setup.py VERSION
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -r requirements-dev.txt
-	$(PY) -m pip install --quiet --no-deps -e .
+	$(PY) -m pip install --quiet $(UV_PIN)
+	$(UV) pip install --quiet --python $(PY) -r requirements-dev.txt
+	$(UV) pip install --quiet --python $(PY) --no-deps -e .
 	touch $@
 
 setup: $(VENV)/.installed
@@ -162,9 +167,13 @@ cpp-deps:
 # Optimised as RelWithDebInfo but without debug information, which costs a third more compile time
 # here (docs/decisions.md); `make cpp CPP_BUILD_TYPE=RelWithDebInfo` for a debugger.
 CPP_BUILD_TYPE ?= Release
+# A unity build (CMake's: a few source files compiled as one unit, so gRPC's and GoogleTest's headers
+# are parsed once per unit, not once per file) takes about 60% of the CPU of a file-by-file build
+# from scratch; an edit then recompiles its unit. `make cpp CPP_UNITY=OFF` compiles file by file.
+CPP_UNITY ?= ON
 cpp: cpp-deps
 	cmake -S cpp_client -B $(CPP_BUILD) -DCMAKE_BUILD_TYPE=$(CPP_BUILD_TYPE) -DCMAKE_CXX_FLAGS_RELEASE="-O2 -DNDEBUG" \
-	  -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
+	  -DCMAKE_UNITY_BUILD=$(CPP_UNITY) -DCAST_BUILD_TESTS=ON -DCAST_BUILD_EXAMPLES=ON
 	cmake --build $(CPP_BUILD) -j2
 
 # setup proto: some C++ tests run against the repository's Python server (cpp_client/tests/server,
@@ -288,11 +297,11 @@ ROS1_DEBS := ros-core python3-rospy python3-rostopic python3-genmsg python3-genp
 IMAGE_PUBLISHER_STAMP := build/ros1/image_publisher/.unpacked
 .PHONY: ros-deps ros1-deps ros1-debs ros2-deps
 
-$(ROS2_VENV)/.installed: requirements-ros2.txt requirements-dev.txt pyproject.toml setup.py VERSION
+$(ROS2_VENV)/.installed: requirements-ros2.txt requirements-dev.txt pyproject.toml setup.py VERSION $(VENV)/.installed
 	test -x $(ROS2_VENV)/bin/python || $(PYTHON) -m venv $(ROS2_VENV)
-	$(ROS2_VENV)/bin/python -m pip install --quiet --upgrade pip
-	$(ROS2_VENV)/bin/python -m pip install --quiet --only-binary=:all: --no-binary=empy -c requirements-dev.txt -r requirements-ros2.txt
-	$(ROS2_VENV)/bin/python -m pip install --quiet -c requirements-dev.txt -e .
+	$(UV) pip install --quiet --python $(ROS2_VENV)/bin/python --only-binary :all: --no-binary empy \
+	  -c requirements-dev.txt -r requirements-ros2.txt
+	$(UV) pip install --quiet --python $(ROS2_VENV)/bin/python -c requirements-dev.txt -e .
 	touch $@
 
 ros2-deps: $(ROS2_VENV)/.installed

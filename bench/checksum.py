@@ -8,7 +8,7 @@ it with what the writer wrote shows that the bytes read were the frame's.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import numpy
 
@@ -27,24 +27,34 @@ def word_sum(data: bytes | memoryview) -> int:
     return (total + sum(view[whole:])) % MOD
 
 
-def expected_cast(sent_order: Iterable[int], received: Iterable[int], size: int) -> int:
+def _ones(size: int) -> int:
+    """The checksum of ``size`` bytes of 1."""
+    return 0x0101010101010101 * (size // 8) + size % 8
+
+
+def expected_cast(sent_order: Iterable[int], received: Iterable[int], size: int,
+                  sizes: Mapping[int, int] | None = None) -> int:
     """What a CAST watcher's checksum must be, having received the overwrites ``received`` of ``sent_order``.
 
     The writers (bench/image_writer.py, ``image-write``) alternate values of
-    ``size`` bytes of 1 and of 2: the i-th overwrite (by revision) the ``i % 2``-th.
+    ``size`` bytes (``sizes[revision]`` where given: M8's warm-up) of 1 and of
+    2: the i-th overwrite (by revision) the ``i % 2``-th.
     """
     order = {revision: i for i, revision in enumerate(sorted(sent_order))}
-    per_value = [(k + 1) * 0x0101010101010101 * (size // 8) + (k + 1) * (size % 8) for k in range(2)]
-    return sum(per_value[order[r] % 2] for r in received if r in order) % MOD
+    sizes = sizes or {}
+    return sum((order[r] % 2 + 1) * _ones(sizes.get(r, size)) for r in received if r in order) % MOD
 
 
-def expected_frames(received: Iterable[int], size: int) -> int:
+def expected_frames(received: Iterable[int], size: int, sizes: Mapping[int, int] | None = None) -> int:
     """What a peer subscriber's checksum must be, having received the frames numbered ``received``.
 
     A frame (bench.peer_fanout.frame) is its sequence number as the first
-    word, then ``size - 8`` bytes of ``p``.
+    word, then ``size - 8`` bytes of ``p`` (``sizes[seq] - 8`` where given: M8's warm-up).
     """
-    seqs = list(received)
-    pad = size - 8
-    per_frame = (pad // 8) * int.from_bytes(b"p" * 8, "little") + (pad % 8) * ord("p")
-    return (sum(seqs) + len(seqs) * per_frame) % MOD
+    sizes = sizes or {}
+    word = int.from_bytes(b"p" * 8, "little")
+
+    def padding(pad: int) -> int:
+        return (pad // 8) * word + (pad % 8) * ord("p")
+
+    return sum(seq + padding(sizes.get(seq, size) - 8) for seq in received) % MOD

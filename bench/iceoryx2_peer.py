@@ -93,11 +93,16 @@ class _Publisher:
         self.subs.close()
 
 
-def large(frames: int, gap_s: float, size: int, subscribers: int = 4) -> dict[str, Any]:
-    """M8's run for iceoryx2: ``frames`` samples of ``size`` bytes, ``gap_s`` apart (0: back to back)."""
+def large(frames: int, gap_s: float, size: int, subscribers: int = 4, warm: int = 0,
+          warm_size: int = 0, cold: int = 0) -> dict[str, Any]:
+    """M8's run for iceoryx2: ``frames`` samples of ``size`` bytes, ``gap_s`` apart (0: back to back).
+
+    Before them ``cold`` paced samples and ``warm`` of ``warm_size`` bytes back to back, as M8's writer
+    sends (:func:`bench.peer_fanout.drive`).
+    """
     pub = _Publisher(size, subscribers)
     try:
-        sent = drive(pub.put, frames, gap_s, size)
+        sent = drive(pub.put, frames, gap_s, size, warm, warm_size, cold)
         pub.put(frame(END, 16))
         got = pub.subs.results()
     finally:

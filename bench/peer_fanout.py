@@ -27,7 +27,7 @@ from bench.checksum import MOD, word_sum
 from bench.delivery_stats import parse_watcher
 from bench.harness import ROOT
 
-__all__ = ["END", "WARM", "Receiver", "Subscribers", "drive", "frame"]
+__all__ = ["END", "SETTLE_S", "WARM", "Receiver", "Subscribers", "drive", "frame"]
 
 WARM = 2**64 - 1
 END = 2**64 - 2
@@ -137,17 +137,37 @@ class Subscribers:
             log.close()
 
 
-def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int) -> dict[int, int]:
-    """``frames`` puts, the i-th started at start + i * ``gap_s`` (0: back to back); their stamps (ns)."""
-    pad = b"p" * max(0, size - _SEQ.size)
+SETTLE_S = 0.3  # the pause after a back-to-back warm-up, as M8's C++ writer makes (cast_bench image-write)
+
+
+def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, warm: int = 0,
+          warm_size: int = 0, cold: int = 0) -> dict[int, int]:
+    """Puts, each stamped (ns) just before it; their stamps by sequence number, in the order put.
+
+    As M8's C++ writer (``cast_bench image-write``): ``cold`` puts paced as
+    below (the subscribers' first seconds), ``warm`` of ``warm_size`` bytes back
+    to back and a pause of SETTLE_S (the warm-up), then ``frames``, the i-th
+    started at start + i * ``gap_s`` (0: back to back). The reader tells the
+    parts apart by number.
+    """
     sent: dict[int, int] = {}
-    start = time.perf_counter()
-    for i in range(frames):
-        if gap_s:
-            delay = start + i * gap_s - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-        payload = _SEQ.pack(i) + pad  # made before the stamp
-        sent[i] = time.perf_counter_ns()
-        put(payload)
+
+    def paced(count: int, gap: float, size: int) -> None:
+        pad = b"p" * max(0, size - _SEQ.size)
+        start = time.perf_counter()
+        for i in range(count):
+            if gap:
+                delay = start + i * gap - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            seq = len(sent)
+            payload = _SEQ.pack(seq) + pad  # made before the stamp
+            sent[seq] = time.perf_counter_ns()
+            put(payload)
+
+    paced(cold, gap_s, size)
+    if warm:
+        paced(warm, 0.0, warm_size)
+        time.sleep(SETTLE_S)
+    paced(frames, gap_s, size)
     return sent

@@ -49,8 +49,8 @@ def _median(watchers: dict[str, Any], key: str) -> float:
 
 
 def _peer_median(m8: dict[str, Any], key: str, figure: str) -> float | None:
-    got = m8.get(key, {})
-    return _median(got["watchers"], figure) if "watchers" in got else None
+    watchers = m8.get(key, {}).get("watchers")
+    return _median(watchers, figure) if watchers and all(figure in w for w in watchers.values()) else None
 
 
 def _peer_total(m8: dict[str, Any], key: str) -> float | None:
@@ -129,6 +129,22 @@ def m8_misses(m8: dict[str, Any]) -> list[str]:
     return misses
 
 
+def _cold_figures(m8: dict[str, Any], key: str, zen: str) -> list[dict[str, Any]]:
+    """The phase's first seconds, before the warm-up (every reader cold): shown, not judged."""
+    got = m8.get(f"cast_{key}", {})
+    iox_key = "iceoryx2_hz" if key == "queue_hz" else ""
+    figures = []
+    for label, w in got.get("watchers", {}).items():
+        if "cold_p50_us" not in w:
+            continue
+        for q in ("p50", "p99"):
+            peers = {"floor": _peer_median(m8, iox_key, f"cold_{q}_us") if iox_key else None,
+                     "peer": _peer_median(m8, zen, f"cold_{q}_us")}
+            figures.append(fig(f"{M8_PHASES[key]}, first {m8.get('cold_s', 0):g} s (cold, not judged), {label}: "
+                               f"{q} (µs)", w[f"cold_{q}_us"], **peers))
+    return figures
+
+
 def _cast_figures(m8: dict[str, Any]) -> list[dict[str, Any]]:
     figures = []
     iox = {q: _peer_median(m8, "iceoryx2_hz", f"{q}_us") for q in ("p50", "p99")}
@@ -142,6 +158,7 @@ def _cast_figures(m8: dict[str, Any]) -> list[dict[str, Any]]:
         if "watchers" in got:
             lost = sum(w["lost"] for w in got["watchers"].values())
             figures.append(fig(f"{M8_PHASES[key]}: lost, all watchers", lost))
+        figures += _cold_figures(m8, key, zen)
     for key in ("queue_b2b", "latest_b2b"):
         got = m8.get(f"cast_{key}", {})
         if "total" not in got:
@@ -202,8 +219,10 @@ def m8_row(m8: dict[str, Any]) -> dict[str, Any]:
         "id": "M8",
         "what": "1 MiB and 6 MiB entries overwritten by a C++ writer, four watchers (Python, C++, Java, Python) "
         "reading every byte of every value (a checksum), queue delivery at 30 Hz and back to back, latest back to "
-        "back; a Python watcher in another network namespace (bytes); peer Zenoh and floor iceoryx2 (zero-copy), "
-        "a Python publisher and four Python subscribers reading every byte, same run",
+        "back, each phase measured after a warm-up burst of its frames to every reader (the first seconds of "
+        "1 MiB at 30 Hz, cold, shown beside); a Python watcher in another network namespace (bytes); peer Zenoh "
+        "and floor iceoryx2 (zero-copy), a Python publisher and four Python subscribers reading every byte, same "
+        "run",
         "target": f"1 MiB at 30 Hz: every watcher's p50 <= {M8_ZENOH_P50} x Zenoh's, p99 <= {M8_P99_US} µs; 6 MiB "
         f"at 30 Hz: p99 <= {M8_BIG_P99_US} µs; 1 MiB back to back: MB/s to the four >= {M8_ZENOH_MB} x Zenoh's; "
         "0 lost, every checksum right, the other host gets every frame as bytes; server memory (private + "

@@ -65,9 +65,10 @@ class _Publisher:
             self.close()
             raise
 
-    def run(self, frames: int, gap_s: float, size: int) -> tuple[dict[int, int], list[dict[str, Any]]]:
-        """Publish, end, and collect every subscriber's report."""
-        sent = drive(self.publisher.put, frames, gap_s, size)
+    def run(self, frames: int, gap_s: float, size: int, warm: int = 0, warm_size: int = 0,
+            cold: int = 0) -> tuple[dict[int, int], list[dict[str, Any]]]:
+        """Publish (as :func:`bench.peer_fanout.drive`), end, and collect every subscriber's report."""
+        sent = drive(self.publisher.put, frames, gap_s, size, warm, warm_size, cold)
         self.publisher.put(frame(END, 16))
         return sent, self.subs.results()
 
@@ -91,14 +92,17 @@ def latency(n: int, gap_s: float) -> dict[str, Any]:
     return {key: figures[key] for key in ("p50_us", "p99_us", "mean_us", "lost")}
 
 
-def large(frames: int, gap_s: float, size: int, subscribers: int = 4) -> dict[str, Any]:
+def large(frames: int, gap_s: float, size: int, subscribers: int = 4, warm: int = 0,
+          warm_size: int = 0, cold: int = 0) -> dict[str, Any]:
     """M8's run for Zenoh: ``frames`` values of ``size`` bytes, ``gap_s`` apart (0: back to back).
 
-    Each subscriber reads every byte of each value (a checksum) before it stamps it, as M8's watchers do.
+    Before them ``cold`` paced values and ``warm`` of ``warm_size`` bytes back to back, as M8's writer
+    sends (:func:`bench.peer_fanout.drive`). Each subscriber reads every byte of
+    each value (a checksum) before it stamps it, as M8's watchers do.
     """
     pub = _Publisher(subscribers, read_all=True)
     try:
-        sent, got = pub.run(frames, gap_s, size)
+        sent, got = pub.run(frames, gap_s, size, warm, warm_size, cold)
     finally:
         pub.close()
     return {"sent": sent, "watchers": got}

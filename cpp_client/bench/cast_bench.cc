@@ -23,14 +23,19 @@
 //
 // Image-sized entries (M8, bench/images.py):
 //
-//   cast_bench image-write SIZE N GAP_US
-//                               adds "img" (a BytesValue of SIZE bytes), then N
-//                               sequential overwrites, the i-th started at
-//                               start + i * GAP_US (0: back to back), stamping
-//                               CLOCK_MONOTONIC just before each; deletes "img"
-//                               (the watchers' end mark) and prints
-//                               {"REVISION": NS, ...} (the overwrites). The
-//                               values alternate: SIZE bytes of 1, of 2 (as
+//   cast_bench image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]]
+//                               adds "img" (a BytesValue of SIZE bytes), then
+//                               COLD overwrites (default 0) paced as the N below
+//                               (the readers' first seconds), WARM (default 0) of
+//                               WARM_SIZE bytes back to back and a pause of 0.3 s
+//                               (a warm-up on the watchers' real path), then N
+//                               overwrites, the i-th started at start + i * GAP_US
+//                               (0: back to back), stamping CLOCK_MONOTONIC just
+//                               before each; deletes "img" (the watchers' end
+//                               mark) and prints {"REVISION": NS, ...} (every
+//                               overwrite, in that order: the reader of the stamps
+//                               tells the three parts apart by revision). The
+//                               values alternate: bytes of 1, of 2 (as
 //                               bench/image_writer.py's, so that
 //                               bench/shared_memory.py checks the watchers' sums)
 //   cast_bench image-watch DELIVERY
@@ -54,6 +59,7 @@
 // compare with the other process's and with Python's time.perf_counter_ns.
 #include <google/protobuf/wrappers.pb.h>
 
+#include <algorithm>
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
@@ -168,23 +174,37 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
   return 0;
 }
 
-int imageWriteMode(cast::Component& c, long size, long n, long gapUs) {
-  std::vector<google::protobuf::BytesValue> values(2);  // made before the clock starts
+// How long image-write waits after its back-to-back warm-up: the watchers take what is still queued for
+// them (and a JVM's compilers finish what the burst gave them) before the first measured overwrite
+// (bench.peer_fanout.SETTLE_S for the peers).
+constexpr auto kSettle = std::chrono::milliseconds(300);
+
+int imageWriteMode(cast::Component& c, long size, long n, long gapUs, long warm, long warmSize, long cold) {
+  // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
+  std::vector<google::protobuf::BytesValue> values(4);
   for (std::size_t k = 0; k < values.size(); ++k) {
-    values[k].set_value(std::string(static_cast<std::size_t>(size), static_cast<char>(k + 1)));
+    const long bytes = k < 2 ? size : warmSize;
+    values[k].set_value(std::string(static_cast<std::size_t>(std::max(0L, bytes)), static_cast<char>(k % 2 + 1)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
-  const char* warmEnv = std::getenv("CAST_BENCH_WARM");
-  const long warm = warmEnv != nullptr ? std::atol(warmEnv) : 0;
+  long written = 0;  // the values alternate 1s, 2s over every overwrite, the warm-up's too
+  // `count` overwrites with values[base], values[base + 1], the i-th started at start + i * gap (an absolute
+  // schedule, so the rate holds whatever each overwrite took; 0: back to back), each stamped just before it.
+  auto overwrite = [&](long count, long gap, std::size_t base) {
+    const auto start = Clock::now();
+    for (long i = 0; i < count; ++i, ++written) {
+      if (gap > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gap * i));
+      const std::int64_t t0 = nowNs();
+      sent[c.overwrite("img", values[base + static_cast<std::size_t>(written) % 2]).revision] = t0;
+    }
+  };
   c.add("img", values[0]);
-  const auto start = Clock::now();
-  for (long i = 0; i < n; ++i) {
-    // An absolute schedule, so the rate holds whatever each overwrite took.
-    if (gapUs > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gapUs * i));
-    const std::int64_t t0 = nowNs();
-    sent[c.overwrite("img", values[static_cast<std::size_t>(i) % 2]).revision] = t0;
-    if (warm > 0 && i + 1 == warm) std::cout << "warm" << std::endl;  // PROTOTYPE: the A/B script's mark
+  overwrite(cold, gapUs, 0);  // the first seconds, every reader cold
+  if (warm > 0) {
+    overwrite(warm, 0, 2);
+    std::this_thread::sleep_for(kSettle);
   }
+  overwrite(n, gapUs, 0);
   c.deleteEntry("img");  // the watchers' end mark; a later run adds it again
   std::cout << stampsJson(sent) << std::endl;
   return 0;
@@ -269,7 +289,8 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
 }
 
 int usage() {
-  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | image-write SIZE N GAP_US | "
+  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | "
+               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]] | "
                "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
 }
@@ -294,7 +315,10 @@ int main(int argc, char** argv) {
     else if (mode == "write")
       code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);
     else if (mode == "image-write")
-      code = imageWriteMode(component, n, std::strtol(argv[3], nullptr, 10), std::strtol(argv[4], nullptr, 10));
+      code = imageWriteMode(component, n, std::strtol(argv[3], nullptr, 10), std::strtol(argv[4], nullptr, 10),
+                            argc > 5 ? std::strtol(argv[5], nullptr, 10) : 0,
+                            argc > 6 ? std::strtol(argv[6], nullptr, 10) : n,
+                            argc > 7 ? std::strtol(argv[7], nullptr, 10) : 0);
     else if (mode == "image-watch") code = imageWatchMode(component, argv[2]);
     else return usage();
     component.close();

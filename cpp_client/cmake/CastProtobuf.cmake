@@ -87,6 +87,8 @@ function(cast_add_entry_types target)
     target_link_libraries(${target} PUBLIC gRPC::grpc++)
   endif()
   # Generated code is not ours to warn about, and must link into shared
-  # objects too.
-  set_target_properties(${target} PROPERTIES POSITION_INDEPENDENT_CODE ON)
+  # objects too. protoc gives every .pb.cc file-local arrays of the same
+  # names, so the files cannot share a unity (jumbo) translation unit: a
+  # project built with CMAKE_UNITY_BUILD compiles them one by one.
+  set_target_properties(${target} PROPERTIES POSITION_INDEPENDENT_CODE ON UNITY_BUILD OFF)
 endfunction()

@@ -6,6 +6,7 @@
 #include <utility>
 #include <vector>
 
+#include "durations.h"
 #include "shm_session.h"
 #include "shm_wire.h"
 
@@ -16,13 +17,6 @@ namespace {
 // How often the thread looks at the deadlines while requests are outstanding
 // and none is due sooner; it also reads the socket then.
 constexpr std::chrono::milliseconds kLookEvery{100};
-
-std::string seconds(std::chrono::milliseconds ms) {
-  std::string out = std::to_string(static_cast<double>(ms.count()) / 1000.0);
-  out.erase(out.find_last_not_of('0') + 1);
-  if (!out.empty() && out.back() == '.') out.pop_back();
-  return out + " s";
-}
 
 }  // namespace
 
@@ -129,7 +123,7 @@ void SessionWrites::run() {
         expired.emplace_back(std::move(it->second.onReply),
                              std::make_shared<DeadlineExceededError>(
                                  "no reply from " + endpoint_ + " on the shared-memory session within " +
-                                 seconds(p.timeout) + ": the write may or may not have been applied; the session "
+                                 secondsText(p.timeout) + ": the write may or may not have been applied; the session "
                                  "was ended and the next write opens a new one"));
         it = pending_.erase(it);
       }

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "conversions.h"
+#include "durations.h"
 
 namespace cast::detail {
 
@@ -55,13 +56,6 @@ std::string describe(const v1::WriteRequest& request) {
     case v1::WriteRequest::kUnlock: return "unlock of '" + request.unlock().address().id() + "'";
     default: return "request";
   }
-}
-
-std::string seconds(Millis ms) {
-  std::string out = std::to_string(static_cast<double>(ms.count()) / 1000.0);
-  out.erase(out.find_last_not_of('0') + 1);  // 3.000000 -> 3.
-  if (!out.empty() && out.back() == '.') out.pop_back();
-  return out + " s";
 }
 
 }  // namespace
@@ -240,14 +234,14 @@ struct WriteStream::Call {
       }
       const Deadline& d = it->second;
       if (stalled.empty()) {
-        stalled = endpoint + " answered no request within its deadline (" + d.what + " waited " + seconds(d.timeout) +
+        stalled = endpoint + " answered no request within its deadline (" + d.what + " waited " + secondsText(d.timeout) +
                   "): the server looks hung, so the stream was ended";
       }
       auto p = pending.find(it->first);
       if (p != pending.end()) {
         expired.emplace_back(std::move(p->second),
                              std::make_shared<DeadlineExceededError>(
-                                 "no reply from " + endpoint + " to the " + d.what + " within " + seconds(d.timeout) +
+                                 "no reply from " + endpoint + " to the " + d.what + " within " + secondsText(d.timeout) +
                                  ": it may or may not have been applied; the write stream was ended and the next "
                                  "write opens a new one"));
         pending.erase(p);
@@ -414,7 +408,7 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
     if (unreachable) {
       onReply(nullptr, std::make_shared<UnavailableError>(
                            "the write stream to " + server_.endpoint + " could not be opened: the server "
-                           "completed no connection within " + seconds(timeout.value_or(callTimeout_)) +
+                           "completed no connection within " + secondsText(timeout.value_or(callTimeout_)) +
                            ", so this write was not sent; the client reconnects by itself, retry the call later"));
       return;
     }

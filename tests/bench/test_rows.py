@@ -11,11 +11,12 @@ from typing import Any
 
 import pytest
 
+from bench import peer_fanout
 from bench.checksum import expected_cast, expected_frames, word_sum
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
-from bench.images import REMOTE, WATCHERS, shared_bytes
+from bench.images import REMOTE, WATCHERS, figures, shared_bytes
 from bench.many_components import split
-from bench.peer_fanout import END, WARM, Receiver, frame
+from bench.peer_fanout import END, WARM, Receiver, drive, frame
 from bench.report import plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
@@ -46,6 +47,41 @@ def test_totals_add_every_watcher_over_the_whole_span() -> None:
     sent = {0: 0, 1: 10 * MS}
     watchers = [{"stamps": {0: 5 * MS, 1: 20 * MS}, "bytes": 2_000_000}, {"stamps": {0: 6 * MS}, "bytes": 1_000_000}]
     assert totals(sent, watchers) == {"mb_per_s": 150.0, "bytes": 3_000_000}
+
+
+def test_m8_judges_the_frames_after_the_warm_up_and_shows_the_first_seconds_apart() -> None:
+    # Revisions 1-2 cold (9 ms each), 3-5 the warm-up burst (50 ms: queued), 6-15 measured (1 ms; the first
+    # tenth, revision 6, dropped as before). The watcher missed warm-up revision 4: lost, though not measured.
+    sent = {r: r * 100 * MS for r in range(1, 16)}
+    delay = {1: 9, 2: 9, 3: 50, 5: 50, 6: 7, **{r: 1 for r in range(7, 16)}}
+    got = {"Java": parse_watcher({"stamps": {str(r): sent[r] + d * MS for r, d in delay.items()},
+                                  "bytes": 14 * 1000, "events": 14 + 2, "checksum": 5})}
+    out = figures(sent, got, 2, lambda g: 5, 1000, warm=3, cold=2)
+    java = out["watchers"]["Java"]
+    assert java["p50_us"] == java["p99_us"] == 1000.0  # neither the burst nor the cold frames
+    assert java["cold_p50_us"] == 9000.0 and java["lost"] == 1 and java["received"] == 14 and java["checksum_ok"]
+    assert out["frames"] == 10 and out["total"]["bytes"] == 10 * 1000  # MB/s of the measured frames only
+    whole = figures(sent, got, 2, lambda g: 5, 1000)  # without the parts: the burst is in the latencies
+    assert whole["watchers"]["Java"]["p99_us"] == 50_000.0 and "cold_p50_us" not in whole["watchers"]["Java"]
+
+
+def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(peer_fanout, "SETTLE_S", 0.05)
+    seqs: list[int] = []
+    sizes: list[int] = []
+
+    def put(payload: bytes) -> None:
+        seqs.append(int.from_bytes(payload[:8], "little"))
+        sizes.append(len(payload))
+
+    sent = drive(put, 4, 0.1, 64, warm=5, warm_size=16, cold=2)
+    assert list(sent) == seqs == list(range(11))  # numbered on: the reader tells the parts apart by number
+    assert sizes == [64] * 2 + [16] * 5 + [64] * 4
+    assert expected_frames(seqs, 64, dict.fromkeys(range(2, 7), 16)) == sum(word_sum(frame(q, z)) for q, z in
+                                                                             zip(seqs, sizes, strict=True)) % 2**64
+    assert sent[1] - sent[0] >= 99 * MS and sent[10] - sent[7] >= 3 * 99 * MS  # cold and measured frames paced
+    assert sent[6] - sent[2] < 100 * MS  # the burst back to back: its four gaps paced would take 400 ms
+    assert sent[7] - sent[6] >= 50 * MS  # the pause after the burst
 
 
 def test_receiver_stamps_data_and_ends_at_end(capsys: pytest.CaptureFixture[str]) -> None:
@@ -80,6 +116,8 @@ def test_the_checksum_is_the_sum_of_little_endian_words_and_the_writers_values_a
     assert expected_cast(sent, [11, 12], size) == (word_sum(values[1]) + word_sum(values[0])) % 2**64
     assert expected_cast(sent, [11, 12], size) != expected_cast(sent, [10, 12], size)
     assert expected_frames([7], size) == word_sum(frame(7, size))
+    # M8's warm-up values are smaller: the sum counts each revision at its own size, the 1s and 2s alternating on.
+    assert expected_cast(sent, [11, 12], size, {11: 13}) == (word_sum(bytes([2]) * 13) + word_sum(values[0])) % 2**64
 
 
 def test_split_shares_sessions_evenly_without_empty_processes() -> None:
@@ -231,6 +269,21 @@ def test_m8_figures_name_the_peers_and_say_what_was_not_measured() -> None:
     broken["iceoryx2_b2b"] = {"error": "iceoryx2 not measured: no module"}
     assert any(name.startswith("iceoryx2, 1 MiB, back to back: not measured (iceoryx2 not measured: no module")
                for name in (f["name"] for f in m8_row(broken)["figures"]))
+
+
+def test_m8_shows_the_first_seconds_beside_the_peers_without_judging_them() -> None:
+    m8 = _m8()
+    m8["cold_s"] = 2.0
+    for w in m8["cast_queue_hz"]["watchers"].values():
+        w.update(cold_p50_us=50_000.0, cold_p99_us=90_000.0)  # far past every target: still not a miss
+    for key, p50 in (("zenoh_hz", 1200.0), ("iceoryx2_hz", 200.0)):
+        for w in m8[key]["watchers"].values():
+            w.update(cold_p50_us=p50, cold_p99_us=4 * p50)
+    assert m8_misses(m8) == []
+    figures_ = {f["name"]: f for f in m8_row(m8)["figures"]}
+    cold = figures_["1 MiB, queue, 30 Hz, first 2 s (cold, not judged), Java: p50 (µs)"]
+    assert (cold["value"], cold["floor"], cold["peer"]) == (50_000.0, 200.0, 1200.0)
+    assert not any("first" in name for name in (f["name"] for f in m8_row(_m8())["figures"]))  # none measured
 
 
 def _m9(p99_10: float, p99_500: float, lost: int = 0) -> dict[str, Any]:

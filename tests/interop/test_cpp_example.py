@@ -78,7 +78,8 @@ def test_the_example_builds_with_the_library_as_a_subdirectory(tmp_path: Path, s
         f"add_subdirectory({(ROOT / 'cpp_client').as_posix()} cast)\nadd_subdirectory(hello)\n")
     build = tmp_path / "build"
     # No build type: no optimisation, which halves the compile; what is tested is that the tree builds
-    # and links as a subdirectory (the optimised library is make cpp's, run by the other tests).
+    # and links as a subdirectory, file by file as a project's default build compiles it (make cpp builds
+    # the optimised library that the other tests run as a unity build, so both ways are built).
     configure = subprocess.run([cmake, "-S", str(tmp_path / "project"), "-B", str(build), "-DCMAKE_BUILD_TYPE="],
                                capture_output=True, text=True, timeout=300)
     assert configure.returncode == 0, configure.stdout + configure.stderr

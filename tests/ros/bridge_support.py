@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -101,23 +102,27 @@ def ros2_message_package(name: str, messages: dict[str, str]) -> dict[str, str]:
                                      (ROOT / "requirements-ros2.txt").read_text()]).encode()).hexdigest()[:12]
     prefix = ROS2_MSGS / f"{name}-{key}"
     overlay = prefix / "overlay.json"
-    if not overlay.is_file():
-        work = ROS2_MSGS / f".{name}-{key}-{os.getpid()}"
-        shutil.rmtree(work, ignore_errors=True)
-        source = work / "src" / name
-        (source / "msg").mkdir(parents=True)
-        for type_name, text in messages.items():
-            (source / "msg" / f"{type_name}.msg").write_text(text)
-        started = time.monotonic()
-        # The prefix is final before it is built: its paths are what the overlay names. Builds of other
-        # contents of the package are of no use any more.
-        for old in ROS2_MSGS.glob(f"{name}-*"):
-            shutil.rmtree(old, ignore_errors=True)
-        env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-        done = run_to_end([str(python), str(script), str(source), str(prefix)], "build_ros2_msgs.py", 300, env=env)
-        shutil.rmtree(work, ignore_errors=True)
-        assert done.returncode == 0, f"building the ROS 2 message package {name}:\n{done.stdout}\n{done.stderr}"
-        paths = json.loads(done.stdout.strip().splitlines()[-1])
-        print(f"built the ROS 2 message package {name} in {time.monotonic() - started:.1f} s ({prefix})")
-        overlay.write_text(json.dumps(paths))
-    return dict(json.loads(overlay.read_text()))
+    ROS2_MSGS.mkdir(parents=True, exist_ok=True)
+    # Two pytest workers may need the package at once: the second waits for the first's build.
+    with (ROS2_MSGS / f".{name}.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not overlay.is_file():
+            work = ROS2_MSGS / f".{name}-{key}-{os.getpid()}"
+            shutil.rmtree(work, ignore_errors=True)
+            source = work / "src" / name
+            (source / "msg").mkdir(parents=True)
+            for type_name, text in messages.items():
+                (source / "msg" / f"{type_name}.msg").write_text(text)
+            started = time.monotonic()
+            # The prefix is final before it is built: its paths are what the overlay names. Builds of other
+            # contents of the package are of no use any more.
+            for old in ROS2_MSGS.glob(f"{name}-*"):
+                shutil.rmtree(old, ignore_errors=True)
+            env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+            done = run_to_end([str(python), str(script), str(source), str(prefix)], "build_ros2_msgs.py", 300, env=env)
+            shutil.rmtree(work, ignore_errors=True)
+            assert done.returncode == 0, f"building the ROS 2 message package {name}:\n{done.stdout}\n{done.stderr}"
+            paths = json.loads(done.stdout.strip().splitlines()[-1])
+            print(f"built the ROS 2 message package {name} in {time.monotonic() - started:.1f} s ({prefix})")
+            overlay.write_text(json.dumps(paths))
+        return dict(json.loads(overlay.read_text()))

@@ -9,10 +9,12 @@ cast-client `make java` installed. A missing build or tool fails the test.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -107,6 +109,30 @@ def finish_java(proc: subprocess.Popen[str], project: Path) -> JavaBuild:
         raise AssertionError(f"mvn package did not end in 600 s:\n{out}") from None
     assert proc.returncode == 0, f"mvn package (run `make java` first: it installs cast-client):\n{out}"
     return JavaBuild(project / "target" / "classes", (project / "target" / "classpath.txt").read_text().strip())
+
+
+def once_per_run(factory: pytest.TempPathFactory, name: str, make: Callable[[Path], dict[str, str]]) -> dict[str, str]:
+    """What ``make(work)`` answers, made by the first pytest process of the run that asks, shared with the rest.
+
+    The pytest-xdist workers of one run have their base temporary directories in one parent, which no
+    other run uses: the build goes there, under a lock, so the second worker to need it waits for the
+    first's build (or finds it done) rather than compiling it again on the same two cores. A build that
+    failed records nothing: the next process to ask builds it again (and reports its own failure).
+    """
+    base = factory.getbasetemp()
+    shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / f"once-{name}"
+    shared.mkdir(exist_ok=True)
+    record = shared / "made.json"
+    with (shared / ".lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if record.is_file():
+            return dict(json.loads(record.read_text()))
+        work = shared / "work"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir()
+        made = make(work)
+        record.write_text(json.dumps(made))
+        return made
 
 
 def wait_ready(proc: subprocess.Popen[str]) -> None:

@@ -10,7 +10,16 @@ import pytest
 
 from tests.conftest import ServerHandle, start_server
 from tests.ros.bridge_support import cast_test_msgs, generate_types
-from tests.ros.builds import CPP_TYPES, JAVA_TYPES, JavaBuild, build_cpp, finish_java, ros_protos, start_java
+from tests.ros.builds import (
+    CPP_TYPES,
+    JAVA_TYPES,
+    JavaBuild,
+    build_cpp,
+    finish_java,
+    once_per_run,
+    ros_protos,
+    start_java,
+)
 from tests.ros.ros_env import ros2_env
 
 ROS_CONFIG = {"system": "ros-test", "subarchitectures": {"vision": {}, "motor": {}, "language": {}}}
@@ -48,13 +57,24 @@ def ros2(tmp_path: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="session")
-def ros_builds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, JavaBuild]:
-    """The C++ and Java components of tests/ros built on `cast ros-types` output (once per session)."""
-    work = tmp_path_factory.mktemp("ros-builds")
-    overlay = cast_test_msgs()  # the test's own message package, decoded by both (built once, cached)
-    java = start_java(ros_protos(work / "java-protos", JAVA_TYPES, overlay), work)  # on the other core, meanwhile
-    try:
-        cpp = build_cpp(ros_protos(work / "cpp-protos", CPP_TYPES, overlay), work / "cpp")
-    finally:
-        built = finish_java(*java)
-    return cpp, built
+def ros_cpp_build(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The C++ component of tests/ros built on `cast ros-types` output: its executable (once per run)."""
+
+    def make(work: Path) -> dict[str, str]:
+        # cast_test_msgs: the test's own message package, decoded by both components (built once, cached).
+        protos = ros_protos(work / "protos", CPP_TYPES, cast_test_msgs())
+        return {"executable": str(build_cpp(protos, work / "cpp"))}
+
+    return Path(once_per_run(tmp_path_factory, "ros-cpp", make)["executable"])
+
+
+@pytest.fixture(scope="session")
+def ros_java_build(tmp_path_factory: pytest.TempPathFactory) -> JavaBuild:
+    """The Java component of tests/ros built on `cast ros-types` output (once per run)."""
+
+    def make(work: Path) -> dict[str, str]:
+        built = finish_java(*start_java(ros_protos(work / "protos", JAVA_TYPES, cast_test_msgs()), work))
+        return {"classes": str(built.classes), "classpath": built.classpath}
+
+    made = once_per_run(tmp_path_factory, "ros-java", make)
+    return JavaBuild(Path(made["classes"]), made["classpath"])

@@ -19,7 +19,7 @@ import pytest
 
 from tests.conftest import ServerHandle, stop_process, wait_for
 from tests.ros.bridge_support import start_bridge
-from tests.ros.builds import JavaBuild, printed, wait_ready
+from tests.ros.builds import printed, wait_ready
 from tests.ros.ros_env import IMAGE_PUBLISHER_PREFIX, RosCore, helper, ros1_python, roscore
 from tests.ros.test_ros2_bridge import fnv1a, status_of
 
@@ -59,14 +59,14 @@ SETTINGS = {
 }
 
 
-# The first test to use them builds the C++ and Java components (a few minutes on a busy machine).
+# The first test of the run to use it builds the C++ component (a few minutes on a busy machine).
 @pytest.mark.timeout(600)
 def test_image_publisher_frames_reach_a_cpp_component_and_rostopic_echo_prints_an_entry(
-        ros_server: ServerHandle, ros_builds: tuple[Path, JavaBuild], ros1_types: Path, tmp_path: Path) -> None:
+        ros_server: ServerHandle, ros_cpp_build: Path, ros1_types: Path, tmp_path: Path) -> None:
     from ros1.sensor_msgs.msg.image_pb2 import Image
     from ros1.std_msgs.msg.string_pb2 import String
 
-    cpp_exe, _ = ros_builds
+    cpp_exe = ros_cpp_build
     expected = picture(tmp_path / "table.png")
     with roscore(tmp_path / "ros-home") as core:
         bridge = start_bridge(ros_server, "bridge", "language", SETTINGS, core.env(), tmp_path / "bridge.log")

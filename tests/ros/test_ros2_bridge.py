@@ -208,11 +208,13 @@ def sent_reading(i: int, stamp_ns: int) -> dict[str, Any]:
             "count": -(2**63), "window": {"sec": -2, "nanosec": 500}}
 
 
-# The first test to use them builds the C++ and Java components (a few minutes on a busy machine).
+# The first test of the run to use them builds the C++ and Java components (a few minutes on a busy machine).
 @pytest.mark.timeout(600)
 def test_cpp_and_java_components_decode_every_field_of_images_poses_and_own_messages_and_a_java_command_reaches_rclpy(
-        ros_server: ServerHandle, ros2: dict[str, str], ros_builds: tuple[Path, JavaBuild], tmp_path: Path) -> None:
-    cpp_exe, java = ros_builds
+        ros_server: ServerHandle, ros2: dict[str, str], ros_java_build: JavaBuild, ros_cpp_build: Path,
+        tmp_path: Path) -> None:
+    # Java first: the ROS 1 bridge's tests, on the other pytest worker, build the C++ component meanwhile.
+    cpp_exe, java = ros_cpp_build, ros_java_build
     python = ros2_python()
     overlay = cast_test_msgs()
     node_env = {**ros2, **{k: os.pathsep.join(p for p in (v, ros2.get(k, "")) if p) for k, v in overlay.items()}}

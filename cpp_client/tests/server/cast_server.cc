@@ -39,7 +39,7 @@ CastServer& sharedServer() {
   return server;
 }
 
-bool waitFor(const std::function<bool()>& condition, std::chrono::milliseconds timeout) {
+bool eventually(const std::function<bool()>& condition, std::chrono::milliseconds timeout) {
   try {
     waitFor(condition, timeout, "the condition");
     return true;

@@ -6,12 +6,16 @@
 #pragma once
 
 #include <chrono>
+#include <cstddef>
+#include <cstdint>
 #include <functional>
 #include <future>
 #include <memory>
 #include <string>
 #include <thread>
 #include <vector>
+
+#include <google/protobuf/wrappers.pb.h>
 
 #include "cast/connect.h"
 #include "cast/grpc_transport.h"
@@ -56,7 +60,19 @@ CastServer& sharedServer();
 
 // Polls `condition` (cast::testing::waitFor) until it holds or `timeout`
 // passes; whether it held.
-bool waitFor(const std::function<bool()>& condition, std::chrono::milliseconds timeout = std::chrono::seconds(20));
+bool eventually(const std::function<bool()>& condition, std::chrono::milliseconds timeout = std::chrono::seconds(20));
+
+inline constexpr std::size_t kMiB = std::size_t{1} << 20;
+
+// An Int64Value holding `n`, the entry type of most of these tests.
+inline google::protobuf::Int64Value number(std::int64_t n) {
+  google::protobuf::Int64Value v;
+  v.set_value(n);
+  return v;
+}
+
+// Whether `text` (an error's message, a log) holds `part`.
+inline bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
 // Asks for `id`'s lock (OD, no timeout) on `thread`, which the caller joins:
 // the future holds "granted", an UnavailableError's message, or another

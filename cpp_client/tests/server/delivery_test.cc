@@ -22,15 +22,10 @@ using namespace std::chrono_literals;
 using cast::Delivery;
 using cast::Priority;
 using cast::WatchOptions;
+using cast::testing::eventually;
+using cast::testing::number;
 using cast::testing::sharedServer;
-using cast::testing::waitFor;
 using google::protobuf::Int64Value;
-
-Int64Value number(std::int64_t n) {
-  Int64Value v;
-  v.set_value(n);
-  return v;
-}
 
 struct Call {
   std::int64_t value;
@@ -74,7 +69,7 @@ TEST(DeliveryOnAServer, LatestSkipsWhatASlowCallbackMissedAndQueueDeliversEveryC
 
   for (int i = 1; i <= 50; ++i) writer->overwrite("frame", number(i));
   writerStopped = true;
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     std::lock_guard<std::mutex> lock(mu);
     return !latest.empty() && latest.back().value == 50 && queued.size() == 50;
   })) << "latest saw " << latest.size() << ", queue " << queued.size();
@@ -131,7 +126,7 @@ TEST(DeliveryOnAServer, APendingHighPriorityCallbackRunsBeforePendingLowOnes) {
   writer->add("dp-high", number(0));
   // The watcher's stream carries the same events as the observer's: once the
   // observer has the last one, the watcher's are queued behind the gate too.
-  ASSERT_TRUE(waitFor([&] { return lastWritten.load(); }));
+  ASSERT_TRUE(eventually([&] { return lastWritten.load(); }));
   std::this_thread::sleep_for(300ms);
   released.set_value();
   ASSERT_TRUE(watcher->drain(5000ms));

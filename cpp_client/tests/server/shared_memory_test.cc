@@ -36,11 +36,11 @@ namespace {
 
 using namespace std::chrono_literals;
 using cast::testing::CastServer;
+using cast::testing::contains;
+using cast::testing::eventually;
+using cast::testing::kMiB;
 using cast::testing::sharedServer;
-using cast::testing::waitFor;
 using google::protobuf::BytesValue;
-
-constexpr std::size_t kMiB = 1 << 20;
 
 BytesValue image(std::size_t size, int seed) {
   std::string bytes(size, '\0');
@@ -49,8 +49,6 @@ BytesValue image(std::size_t size, int seed) {
   v.set_value(std::move(bytes));
   return v;
 }
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
 // What the test process has mapped of any server's shared memory.
 int memoryFilesMapped() {
@@ -160,7 +158,7 @@ TEST(SharedMemory, LargeValuesGoByReferenceAndReadBackIdenticalThroughEveryRead)
   BytesValue tiny;
   tiny.set_value("tiny");
   writer->add("shm-small", tiny);
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     std::lock_guard<std::mutex> lock(mu);
     return seen.size() == 3;
   }));
@@ -199,7 +197,7 @@ TEST(SharedMemory, LargeValuesGoByReferenceAndReadBackIdenticalThroughEveryRead)
   }
   reader->drain();
   // Every value lent is given back once nothing holds it.
-  EXPECT_TRUE(waitFor([&] { return raw.metrics().lent_bytes() == 0; })) << raw.metrics().lent_bytes();
+  EXPECT_TRUE(eventually([&] { return raw.metrics().lent_bytes() == 0; })) << raw.metrics().lent_bytes();
 }
 
 TEST(SharedMemory, TheStagingAreaIsReusedAfterAsyncAndBatchedWrites) {
@@ -315,7 +313,7 @@ TEST(SharedMemory, ForgedAndStaleReferencesAreRefusedAndChangeNothing) {
             grpc::StatusCode::PERMISSION_DENIED);
   // Stale: the session ended.
   session->close();
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     const grpc::Status status = raw.overwrite("shm-owner", good);
     return status.error_code() == grpc::StatusCode::INVALID_ARGUMENT &&
            contains(status.error_message(), "which this server does not have");
@@ -342,7 +340,7 @@ TEST(SharedMemory, TurnedOffAClientGetsIdenticalValuesAsBytesAndSaysSoOnce) {
   const auto before = raw.metrics();
   remote->add("shm-from-remote", image(kMiB, 9));
   writer->add("shm-far", image(kMiB, 1));
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     std::lock_guard<std::mutex> lock(mu);
     return !got.empty();
   }));
@@ -376,11 +374,11 @@ TEST(SharedMemory, ADeadServersMemoryIsUnmappedAndARestartedOneLendsAgain) {
     });
     writer->add("img", image(kMiB, 1));
     writer->overwrite("img", image(kMiB, 2));
-    ASSERT_TRUE(waitFor([&] { return lent == 2; }));
+    ASSERT_TRUE(eventually([&] { return lent == 2; }));
     EXPECT_GE(memoryFilesMapped(), 2);  // the staging areas and the segment
     server.kill();
     // Their streams to it broke: both unmap what they mapped of it.
-    EXPECT_TRUE(waitFor([] { return memoryFilesMapped() == 0; }, 20s)) << memoryFilesMapped();
+    EXPECT_TRUE(eventually([] { return memoryFilesMapped() == 0; }, 20s)) << memoryFilesMapped();
     server.restart();
   }
   auto writer = server.connect("shm-w", "vision");

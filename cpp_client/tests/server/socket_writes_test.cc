@@ -27,13 +27,11 @@ namespace {
 
 using namespace std::chrono_literals;
 using cast::testing::CastServer;
+using cast::testing::contains;
+using cast::testing::eventually;
+using cast::testing::kMiB;
 using cast::testing::sharedServer;
-using cast::testing::waitFor;
 using google::protobuf::BytesValue;
-
-constexpr std::size_t kMiB = 1 << 20;
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
 BytesValue value(std::size_t size, int seed) {
   BytesValue v;
@@ -87,7 +85,7 @@ TEST(SocketWrites, AMixOfStagedAndSmallValuesWaitedForAndPipelinedIsAppliedOnceI
     }
   }
   for (auto& f : pipelined) versions.push_back(f.get().version);
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     std::lock_guard<std::mutex> lock(mu);
     return seen.size() >= values.size();
   }));
@@ -128,7 +126,7 @@ TEST(SocketWrites, ASocketThatEndsFailsTheOutstandingWritesAsUnavailableAndLater
   EXPECT_TRUE(contains(message, "may or may not have been applied")) << message;
   // Later writes succeed (on a new session, or the gRPC stream meanwhile), in order, large ones too.
   const BytesValue big = value(kMiB, 2);
-  EXPECT_TRUE(waitFor([&] {
+  EXPECT_TRUE(eventually([&] {
     try {
       waiter->add("sw-after", value(8, 3));
       return true;

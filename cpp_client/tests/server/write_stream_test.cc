@@ -28,18 +28,12 @@ using namespace std::chrono_literals;
 using cast::BatchWrite;
 using cast::LockMode;
 using cast::testing::CastServer;
+using cast::testing::contains;
+using cast::testing::eventually;
+using cast::testing::number;
 using cast::testing::sharedServer;
-using cast::testing::waitFor;
 using google::protobuf::BytesValue;
 using google::protobuf::Int64Value;
-
-Int64Value number(std::int64_t n) {
-  Int64Value v;
-  v.set_value(n);
-  return v;
-}
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
 TEST(WriteStream, WritesAndLocksAnswerAsTheUnaryCallsDid) {
   auto a = sharedServer().connect("ws-writer", "vision");
@@ -174,7 +168,7 @@ TEST(WriteStream, AValueOfOneAndAHalfMebibytesIsWrittenReadAndWatched) {
   bytes[12345] = static_cast<char>(bytes[12345] ^ 0x5a);
   big.set_value(bytes);
   writer->overwriteAsync("ws-big", big).get();
-  ASSERT_TRUE(waitFor([&] {
+  ASSERT_TRUE(eventually([&] {
     std::lock_guard<std::mutex> lock(mu);
     return seen.size() == 2;
   }));
@@ -291,7 +285,7 @@ TEST(WriteStream, ABrokenStreamFailsWhatIsOutstandingAndTheNextWriteReconnects) 
   }
 
   server.restart();
-  EXPECT_TRUE(waitFor([&] {
+  EXPECT_TRUE(eventually([&] {
     try {
       waiter->add("ws-after", number(1));
       return true;

@@ -15,18 +15,15 @@
 #include "connect_resolve.h"
 #include "fake_transport.h"
 #include "jwt.h"
+#include "test_tokens.h"
 
 namespace {
 
 using namespace std::chrono_literals;
 using Env = std::map<std::string, std::string>;
 
-const std::string kSecret = "test-secret-0123456789abcdef-0123456789";
-// PyJWT: {"c": "planner", "s": "coordination", "p": true, "iat": 1700000000, "exp": 1700003600}.
-const std::string kPlannerToken =
-    "eyJhbGciOiJIUzI1NiIsInR5cCI6IkpXVCJ9."
-    "eyJjIjoicGxhbm5lciIsInMiOiJjb29yZGluYXRpb24iLCJwIjp0cnVlLCJpYXQiOjE3MDAwMDAwMDAsImV4cCI6MTcwMDAwMzYwMH0."
-    "mON1cpsY000YjhzfewPiFgGFw69BHVWWsbe6zfS8uGs";
+using cast::unit::kPlannerToken;
+using cast::unit::kSecret;
 
 // A runtime directory of the test's own, removed at the end.
 class RuntimeDir {

@@ -13,19 +13,14 @@
 #include "cast/errors.h"
 #include "cast/grpc_transport.h"
 #include "jwt.h"
+#include "test_tokens.h"
 
 namespace {
 
 using namespace std::chrono_literals;
 
-const std::string kSecret = "test-secret-0123456789abcdef-0123456789";  // tests/conftest.py SECRET
-
-// Made with PyJWT: jwt.encode({"c": "planner", "s": "coordination", "p": True,
-// "iat": 1700000000, "exp": 1700003600}, kSecret, algorithm="HS256").
-const std::string kPlannerToken =
-    "eyJhbGciOiJIUzI1NiIsInR5cCI6IkpXVCJ9."
-    "eyJjIjoicGxhbm5lciIsInMiOiJjb29yZGluYXRpb24iLCJwIjp0cnVlLCJpYXQiOjE3MDAwMDAwMDAsImV4cCI6MTcwMDAwMzYwMH0."
-    "mON1cpsY000YjhzfewPiFgGFw69BHVWWsbe6zfS8uGs";
+using cast::unit::kPlannerToken;
+using cast::unit::kSecret;
 
 TEST(Tokens, PeekReadsTheClaimsOfTheSecondPart) {
   auto id = cast::peekToken(kPlannerToken);

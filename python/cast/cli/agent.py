@@ -7,7 +7,7 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _agent(args: argparse.Namespace) -> int:
@@ -20,7 +20,7 @@ def _agent(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast agent``."""
     agent = sub.add_parser("agent", help="run components on this host for an orchestrator on another one")
     agent.add_argument("--listen", required=True, help="HOST:PORT to listen on (that address only; port 0 picks "

@@ -23,7 +23,7 @@ from cast.export.secrets import SECRETS_FILE, find_system_secret
 from cast.export.systemd import SECRET_PATH, SystemdOptions, instance_name, systemd_files
 from cast.export.validate import validate_objects
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 _DNS_LABEL = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?\Z")
 _QUANTITY = re.compile(r"[1-9][0-9]*(\.[0-9]+)?(Ki|Mi|Gi|Ti|Pi|Ei|k|M|G|T|P|E)?\Z")
@@ -134,7 +134,7 @@ def _systemd(config: SystemConfig, args: argparse.Namespace, here: Path,
     return files, lines
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast export``."""
     export = sub.add_parser("export", help="write a system as Kubernetes manifests or systemd units "
                                            "(docs/deploy.md)")

@@ -20,7 +20,7 @@ from cast.errors import CastError
 from cast.foxglove.sink import DEFAULT_LISTEN, FoxgloveSink, listening_line, parse_foxglove_listen
 from cast.foxglove.view import VIEW_ID, LiveView, ViewOptions
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _say(text: str) -> None:
@@ -75,7 +75,7 @@ def _foxglove(args: argparse.Namespace) -> int:
     return 0 if why else 1
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast foxglove``."""
     fox = sub.add_parser("foxglove", help="serve the working memories live to the Foxglove app (WebSocket)")
     fox.add_argument("--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
+from collections.abc import Sequence
 
-from cast.cli import agent, export, foxglove, inspection, record, replay, ros_types, run, serve, sweep, token, web
 from cast.errors import CastError
 from cast.signals import dump_stacks_on_sigquit
 from cast.version import version_line
@@ -14,30 +15,43 @@ from cast.version import version_line
 __all__ = ["build_parser", "main"]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``cast``."""
+# Each command's module (cast.cli.<module>) and the commands it adds, in the order `cast --help` lists
+# them. Only the module of the command being run is imported: `cast serve`, which the orchestrator and
+# every test start, then loads no recorder, Foxglove view, exporter or terminal tables (a sixth of its
+# start-up CPU). `cast --help` and a command this table does not know import them all.
+COMMANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("run", ("check", "run")),
+    ("serve", ("serve",)),
+    ("token", ("token",)),
+    ("inspection", ("ls", "get", "watch", "components", "tasks", "stats")),
+    ("agent", ("agent",)),
+    ("record", ("record",)),
+    ("replay", ("replay", "info")),
+    ("foxglove", ("foxglove",)),
+    ("sweep", ("sweep",)),
+    ("export", ("export",)),
+    ("web", ("web",)),
+    ("ros_types", ("ros-types",)),
+)
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The argument parser of ``cast``: every command, or only the one ``argv`` (the arguments) names."""
     parser = argparse.ArgumentParser(prog="cast", description="CAST on gRPC: working memories for robot components")
     parser.add_argument("--version", action="version", version=version_line(),
                         help="print the library's release and the wire API it speaks, and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    run.add_commands(sub)
-    serve.add_command(sub)
-    token.add_command(sub)
-    inspection.add_commands(sub)
-    agent.add_command(sub)
-    record.add_command(sub)
-    replay.add_commands(sub)
-    foxglove.add_command(sub)
-    sweep.add_command(sub)
-    export.add_command(sub)
-    web.add_command(sub)
-    ros_types.add_command(sub)
+    named = argv[0] if argv else None
+    modules = [m for m, commands in COMMANDS if named in commands] or [m for m, _ in COMMANDS]
+    for module_name in modules:
+        importlib.import_module(f"cast.cli.{module_name}").add_commands(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``cast`` command; the exit status."""
-    args = build_parser().parse_args(argv)
+    arguments = sys.argv[1:] if argv is None else argv
+    args = build_parser(arguments).parse_args(arguments)
     dump_stacks_on_sigquit()  # a hung `cast` command says where it is with kill -QUIT
     level = getattr(args, "log_level", "WARNING")
     logging.basicConfig(level=level, format="%(asctime)s %(name)s: %(message)s")

@@ -39,7 +39,7 @@ from cast.recording.mcap_file import RecordingWriter
 from cast.recording.recorder import RECORD_ID, Recorder, RecordOptions, RecordStats
 from cast.runtime_dir import RuntimeDir, default_runtime_dir
 
-__all__ = ["Reach", "add_command", "add_connection_options", "reach", "stop_on_signals", "unreachable"]
+__all__ = ["Reach", "add_commands", "add_connection_options", "reach", "stop_on_signals", "unreachable"]
 
 
 
@@ -206,7 +206,7 @@ def _summary(console: Console, recorder: Recorder, out: Path, writer: RecordingW
     return 0
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast record``."""
     rec = sub.add_parser("record", help="record every change of the working memories to an MCAP file")
     rec.add_argument("-o", "--output", help="the file to write (default: cast-YYYYmmdd-HHMMSS.mcap here); "

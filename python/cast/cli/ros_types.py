@@ -15,7 +15,7 @@ from cast.bridges.ros.generate import generate
 from cast.bridges.ros.model import RosTypeError
 from cast.errors import InvalidArgumentError
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _ros_types(args: argparse.Namespace) -> int:
@@ -32,7 +32,7 @@ def _ros_types(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast ros-types``."""
     p = sub.add_parser("ros-types", help="write ROS message types as .proto files (the entry types the ROS "
                                          "bridge writes: docs/ros.md)")

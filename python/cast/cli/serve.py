@@ -15,7 +15,7 @@ from cast.config import load_config
 from cast.config.model import ServerConfig, SystemConfig
 from cast.errors import InvalidArgumentError, NotFoundError
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -121,7 +121,7 @@ def _chosen_server(config: SystemConfig, name: str | None) -> ServerConfig | Non
     return config.servers[0] if len(config.servers) == 1 else None
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast serve``."""
     serve = sub.add_parser("serve", help="serve the working memories of a configuration (components not launched)")
     serve.add_argument("config", help="system configuration (YAML)")

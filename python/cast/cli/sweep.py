@@ -15,7 +15,7 @@ from typing import Any
 from cast.cli.options import parse_sets
 from cast.errors import InvalidArgumentError
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _sweep(args: argparse.Namespace) -> int:
@@ -104,7 +104,7 @@ def _check_first(config: Path, planned: list[Any], fixed: dict[str, str], read_c
                                                "vary a variable the file uses in its task_manager: instead")
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast sweep``."""
     sweep = sub.add_parser("sweep", help="run a configuration under every combination of variables and policies, "
                                          "and compare the runs (docs/experiments.md)")

@@ -31,7 +31,7 @@ from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, NotFoundError
 from cast.runtime_dir import RuntimeDir, default_runtime_dir
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _token(args: argparse.Namespace) -> int:
@@ -104,7 +104,7 @@ def _write(signer: TokenSigner, identity: Identity, args: argparse.Namespace) ->
     return 0
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast token``."""
     token = sub.add_parser("token", help="print the launch environment of a component started by hand")
     token.add_argument("component", help="component id")

@@ -20,7 +20,7 @@ from cast.cli.record import add_connection_options, reach, stop_on_signals, unre
 from cast.errors import CastError
 from cast.web.address import DEFAULT_LISTEN, listening_line, parse_web_listen
 
-__all__ = ["add_command"]
+__all__ = ["add_commands"]
 
 
 def _say(text: str) -> None:
@@ -68,7 +68,7 @@ def _web(args: argparse.Namespace) -> int:
     return 0 if why else 1
 
 
-def add_command(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
     """Add ``cast web``."""
     web = sub.add_parser("web", help="show the running system in a browser: architecture, working memories, task "
                                      "managers, rates (read-only; docs/web.md)")
