@@ -117,3 +117,35 @@ def test_a_full_queue_leaves_the_attached_socket_unread() -> None:
     wait_for(lambda: source.readers == ["cast-dispatch-t"], what="the byte read once there is room")
     d.stop()
     source.close()
+
+
+def _wake_ups(thread: threading.Thread) -> int:
+    """How many times ``thread`` went to sleep and woke (its voluntary context switches)."""
+    status = open(f"/proc/self/task/{thread.native_id}/status").read()
+    return int(status.split("voluntary_ctxt_switches:")[1].split()[0])
+
+
+def test_an_idle_dispatchers_threads_stay_asleep() -> None:
+    """Between callbacks the standby thread waits for one to begin: it does not wake every STANDBY_S."""
+    d = Dispatcher("t")
+    source = _Socket()
+    d.attach(source)
+    d.submit(lambda: None)
+    assert d.drain(10)
+    standby = d._standby
+    assert standby is not None
+    time.sleep(5 * STANDBY_S)
+    before = (_wake_ups(standby), _wake_ups(d.thread))
+    time.sleep(50 * STANDBY_S)  # idle: a thread polling every STANDBY_S would wake ~50 times
+    after = (_wake_ups(standby), _wake_ups(d.thread))
+    assert after[0] - before[0] <= 3 and after[1] - before[1] <= 3, (before, after)
+    # ... and it still watches a callback that runs long.
+    gate = threading.Event()
+    d.submit(gate.wait, 10)
+    time.sleep(3 * STANDBY_S)
+    source.peer.send(b"b")
+    wait_for(lambda: source.readers == ["cast-dispatch-t-standby"], what="the byte read by the standby")
+    gate.set()
+    d.stop()
+    source.close()
+    assert not d.thread.is_alive() and not standby.is_alive()

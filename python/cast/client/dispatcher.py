@@ -90,6 +90,9 @@ class Dispatcher:
         self._wake_poller.register(self._wake_fd, select.POLLIN)
         self._call_started = 0.0  # time.monotonic() at the start of the call running now; 0.0 between calls
         self._standby: threading.Thread | None = None  # started with the first source
+        # The standby thread sleeps on this between callbacks, so an idle component's threads stay asleep.
+        self._call_begun = threading.Event()
+        self._standby_waiting = False
         self._thread.start()
 
     def room(self) -> int:
@@ -140,8 +143,18 @@ class Dispatcher:
         """
         while not self._stopping:
             started = self._call_started
-            if not started or time.monotonic() - started < STANDBY_S or self.room() <= 0:
-                time.sleep(STANDBY_S)
+            if not started:
+                self._standby_waiting = True
+                try:
+                    if not self._call_started and not self._stopping:  # again: a call may have begun meanwhile
+                        self._call_begun.wait()
+                finally:
+                    self._standby_waiting = False
+                self._call_begun.clear()
+                continue
+            left = started + STANDBY_S - time.monotonic()
+            if left > 0 or self.room() <= 0:
+                time.sleep(max(left, 0.0) or STANDBY_S)
                 continue
             sources = {source.fileno(): source for source in list(self._sources.values())}
             sources.pop(-1, None)
@@ -227,6 +240,8 @@ class Dispatcher:
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
         self._call_started = time.monotonic()
+        if self._standby_waiting:
+            self._call_begun.set()
         try:
             fn(*args)
         except Exception:
@@ -253,12 +268,13 @@ class Dispatcher:
     def stop(self, timeout: float | None = 5.0) -> None:
         """Run what is queued, then end the thread."""
         self._stopping = True
+        self._call_begun.set()  # the standby thread, asleep between callbacks
         self._wake()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
             standby = self._standby
             if standby is not None:
-                standby.join(timeout)  # it sees _stopping within STANDBY_S
+                standby.join(timeout)  # woken above; sees _stopping within STANDBY_S when it watches a call
             with self._lock:  # stop may come twice (a component closed twice)
                 if self._thread.is_alive() or self._closed:
                     return
