@@ -37,6 +37,22 @@ def _seeds(got: list[int]) -> Callable[[cast.WorkingMemoryChange], None]:
     return take
 
 
+def _every_value_watched(h: Host, count: int) -> Any:
+    """A writer adds "img" and overwrites it to ``count`` values of a MiB; a watcher gets each once, in order.
+
+    The watcher component, for what a test checks after.
+    """
+    writer, watcher = h.component("writer"), h.component("watcher")
+    got: list[int] = []
+    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, count):
+        writer.overwrite("img", image(MIB, seed))
+    wait_for(lambda: len(got) == count, what="every value")
+    assert got == [seed % 251 for seed in range(count)]  # in order, each once
+    return watcher
+
+
 def _raw_watch(h: Host, cid: str, session: shm_session.ClientSession, on_socket: bool,
                stop: threading.Event) -> tuple[Any, shm_session.ReadCall]:
     """A Watch call of a raw client on ``session`` for "img", its events asked on the socket or not."""
@@ -65,14 +81,7 @@ def test_a_components_events_come_as_frames_read_by_its_dispatcher_thread(
 
     monkeypatch.setattr(shm_session.ClientSession, "_handle", spy)
     h = host()
-    writer, watcher = h.component("writer"), h.component("watcher")
-    got: list[int] = []
-    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
-    writer.add("img", image(MIB, 0))
-    for seed in range(1, 20):
-        writer.overwrite("img", image(MIB, seed))
-    wait_for(lambda: len(got) == 20, what="every value")
-    assert got == list(range(20))
+    _every_value_watched(h, 20)
     events = [name for kind, name in handled if kind == wire.EVENTS]
     assert len(events) >= 1 and set(events) == {"cast-dispatch-watcher"}, events
 
@@ -130,14 +139,7 @@ def test_a_client_that_does_not_read_its_socket_holds_up_nothing_and_its_frames_
     stop = threading.Event()
     stalled = h.session("stalled")
     stream, _ = _raw_watch(h, "stalled", stalled, True, stop)  # its socket is never read
-    writer, watcher = h.component("writer"), h.component("watcher")
-    got: list[int] = []
-    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
-    writer.add("img", image(MIB, 0))
-    for seed in range(1, 40):
-        writer.overwrite("img", image(MIB, seed))  # past its window of lent values: bytes in the frames
-    wait_for(lambda: len(got) == 40, what="every value to the watcher that reads")
-    assert got == [seed % 251 for seed in range(40)]
+    _every_value_watched(h, 40)  # past the stalled one's window of lent values: bytes in its frames
     shared = h.system.shared
     assert shared is not None
     (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "stalled"]
@@ -227,12 +229,5 @@ def test_a_value_that_cannot_be_claimed_reopens_the_call_without_gap_or_duplicat
 
     monkeypatch.setattr(shm_session.ClientSession, "claim", fails_once)
     h = host()
-    writer, watcher = h.component("writer"), h.component("watcher")
-    got: list[int] = []
-    watcher.on_change(cast.address_filter("img", include_entry=True), _seeds(got))
-    writer.add("img", image(MIB, 0))
-    for seed in range(1, 20):
-        writer.overwrite("img", image(MIB, seed))
-    wait_for(lambda: len(got) == 20, what="every value")
-    assert got == list(range(20))  # the frame that failed and those behind it came again, each once
+    watcher = _every_value_watched(h, 20)  # the frame that failed and those behind it came again, each once
     assert claims[0] > 20 and watcher._transport._directory.watch_stream.reconnects >= 1
