@@ -181,6 +181,14 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
       [weak](std::shared_ptr<CastError> error) {
         if (auto core = weak.lock()) core->deliveryFailed(error);
       });
+  c.transport_->setSocketEvents(
+      [weak](detail::EventRecord event, const std::vector<std::uint32_t>& watchIds) {
+        if (auto core = weak.lock()) core->deliver(std::move(event), watchIds, false);
+      },
+      [weak](std::chrono::milliseconds timeout) {
+        auto core = weak.lock();
+        return core && core->dispatcher && core->dispatcher->awaitRoom(timeout);
+      });
   std::weak_ptr<ComponentCore> weakState = core_;
   c.transport_->startSession(language, kind(), [weakState] {
     auto core = weakState.lock();

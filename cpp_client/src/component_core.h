@@ -39,8 +39,11 @@ class ComponentCore : public std::enable_shared_from_this<ComponentCore> {
   bool watchActive(std::uint32_t watchId);
   std::shared_ptr<CastError> watchError(std::uint32_t watchId);
   // The transport's event sink (component_watch.cc): queues the callbacks of
-  // `watchIds` for `event` on the dispatcher, by each watch's options.
-  void deliver(EventRecord event, const std::vector<std::uint32_t>& watchIds);
+  // `watchIds` for `event` on the dispatcher, by each watch's options; with
+  // `mayWait`, first waiting while the queue is full (which stops reading the
+  // stream), else at once (a reader that looked for room first, and must not
+  // stop: a shared-memory session's, which also carries the writes' replies).
+  void deliver(EventRecord event, const std::vector<std::uint32_t>& watchIds, bool mayWait = true);
   // The transport's error sink: change delivery stopped for every watch.
   void deliveryFailed(const std::shared_ptr<CastError>& error);
 

@@ -39,7 +39,7 @@ std::shared_ptr<CastError> ComponentCore::watchError(std::uint32_t watchId) {
   return it == errors.end() ? nullptr : it->second;
 }
 
-void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>& watchIds) {
+void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>& watchIds, bool mayWait) {
   if (!dispatcher) return;
   auto record = std::make_shared<const EventRecord>(std::move(event));
   std::shared_ptr<const WorkingMemoryChange> change;  // shared by the Queue watches
@@ -105,7 +105,7 @@ void ComponentCore::deliver(EventRecord event, const std::vector<std::uint32_t>&
     // Not under mu: submit waits while the queue is full, which stops
     // reading the stream. A Latest watch's callback is queued at once: it
     // has one per entry at most, so these never pile up.
-    dispatcher->submit(std::move(job), priority, !latestJob);
+    dispatcher->submit(std::move(job), priority, mayWait && !latestJob);
   }
 }
 

@@ -63,6 +63,12 @@ void Dispatcher::loop(const std::shared_ptr<State>& s) {
   s->idle.notify_all();
 }
 
+bool Dispatcher::awaitRoom(std::chrono::milliseconds timeout) {
+  std::unique_lock<std::mutex> lock(state_->mu);
+  state_->idle.wait_for(lock, timeout, [this] { return state_->pending < state_->capacity || state_->stopping; });
+  return state_->pending < state_->capacity && !state_->stopping;
+}
+
 bool Dispatcher::drain(std::chrono::milliseconds timeout) {
   if (onThread()) return false;
   std::unique_lock<std::mutex> lock(state_->mu);

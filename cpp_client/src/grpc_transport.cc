@@ -246,6 +246,11 @@ class GrpcTransport final : public Transport {
     onError_ = std::move(onError);
   }
 
+  void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    socketEvents_ = SocketEvents{std::move(now), std::move(room)};
+  }
+
   std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,
                                              const std::map<std::string, std::uint64_t>& startRevisions,
                                              Delivery delivery) override {
@@ -275,7 +280,7 @@ class GrpcTransport final : public Transport {
             // join its reader thread, possibly from the dispatcher thread
             // that reader is waiting on.
             if (slot) retired_.push_back(slot);
-            slot = std::make_shared<WatchStream>(*s, tokens_, sink_, onError_);
+            slot = std::make_shared<WatchStream>(*s, tokens_, sink_, onError_, socketEvents_);
           }
           stream = slot;
         }
@@ -597,6 +602,7 @@ class GrpcTransport final : public Transport {
   std::vector<std::shared_ptr<WatchStream>> retired_;  // dead streams, closed by close()
   EventSink sink_;
   ErrorSink onError_;
+  SocketEvents socketEvents_;  // unset: every watch's events come on its call
   std::shared_ptr<grpc::ClientContext> decisionContext_;
   std::thread decisions_;
   Session session_;  // last: destroyed (and closed) first, while what it uses still exists

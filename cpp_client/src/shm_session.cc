@@ -30,6 +30,13 @@ constexpr std::chrono::milliseconds kSegmentWait{5000};
 constexpr std::chrono::milliseconds kSendWait{5000};
 // A long call reports what it received this often, so the server forgets the rest.
 constexpr std::uint64_t kReceivedEvery = 64;
+// How long the reader thread waits on the socket at most, so that it looks at
+// the writes' deadlines; and, while the queue its events go to is full, how
+// often it looks for room.
+constexpr std::chrono::milliseconds kReaderTurn{100};
+constexpr std::chrono::milliseconds kRoomTurn{10};
+
+std::atomic<std::uint64_t> eventFrames{0};
 
 const Logger& log() {
   static const Logger logger("cast.client.shm");
@@ -151,7 +158,19 @@ ClientSession::ClientSession(int socket, const shm::Welcome& welcome, int stagin
 
 ClientSession::~ClientSession() {
   end("closed");
-  writes_.reset();  // its thread reads the socket: gone before the descriptor is closed
+  {
+    std::lock_guard<std::mutex> lock(threadMu_);
+    stopped_ = true;
+  }
+  if (thread_.joinable()) {
+    // The reader thread let the last holder go: it ends at its next turn, touching nothing of this.
+    if (thread_.get_id() == std::this_thread::get_id()) {
+      thread_.detach();
+    } else {
+      thread_.join();  // it holds no reference between turns, so it is past its last one
+    }
+  }
+  writes_.reset();
   ::close(socket_);
 }
 
@@ -229,6 +248,12 @@ std::shared_ptr<const LentBytes> ClientSession::claim(const v1::SharedValue& ref
     auto it = segments_.find(ref.segment());
     if (it != segments_.end()) segment = it->second;
   }
+  if (!segment && polling_.load() == std::this_thread::get_id()) {
+    // An event read from the socket on this thread: its segment came before it, or never will.
+    giveBack(ref.value_id());
+    throw UnavailableError("shared-memory segment " + std::to_string(ref.segment()) + " of the server at " +
+                           endpoint_ + " did not arrive before the event naming it: read again");
+  }
   if (!segment) {
     // Sent before the message naming it: in the socket already, or coming at once.
     const auto until = std::chrono::steady_clock::now() + kSegmentWait;
@@ -267,6 +292,78 @@ void ClientSession::giveBack(std::uint64_t valueId) {
     unsent_.push_back(valueId);
   }
   sendQueued();
+}
+
+// -------------------------------------------------------------------- events
+
+void ClientSession::receiveEvents(std::uint64_t call, EventsReceiver receiver) {
+  {
+    std::lock_guard<std::mutex> lock(endMu_);
+    enders_[call] = receiver.ended;
+  }
+  {
+    std::lock_guard<std::mutex> lock(eventsMu_);
+    receivers_[call] = std::move(receiver);
+  }
+  startReader();
+}
+
+void ClientSession::stopEvents(std::uint64_t call) {
+  {
+    std::lock_guard<std::mutex> lock(eventsMu_);
+    receivers_.erase(call);
+  }
+  std::lock_guard<std::mutex> lock(endMu_);
+  enders_.erase(call);
+}
+
+std::uint64_t ClientSession::eventFramesHandled() { return eventFrames.load(std::memory_order_relaxed); }
+
+void ClientSession::events(const std::string& body) {
+  const std::uint64_t call = shm::parseEventsCall(body);
+  std::lock_guard<std::mutex> lock(eventsMu_);
+  auto it = receivers_.find(call);
+  if (it == receivers_.end()) return;  // its call ended: its watches resume after what was delivered
+  eventFrames.fetch_add(1, std::memory_order_relaxed);
+  it->second.batch(body.data() + 8, body.size() - 8);
+}
+
+// ------------------------------------------------------------- reader thread
+
+void ClientSession::startReader() {
+  std::lock_guard<std::mutex> lock(threadMu_);
+  if (thread_.joinable() || stopped_ || dead_) return;
+  thread_ = std::thread([weak = weak_from_this()] { readLoop(weak); });
+}
+
+void ClientSession::readLoop(const std::weak_ptr<ClientSession>& weak) {
+  for (;;) {
+    // Held for one turn only, so that the session goes when its last user lets it go.
+    std::shared_ptr<ClientSession> self = weak.lock();
+    if (!self || self->dead_) return;
+    {
+      std::lock_guard<std::mutex> lock(self->threadMu_);
+      if (self->stopped_) return;
+    }
+    self->readOnce();
+  }
+}
+
+void ClientSession::readOnce() {
+  const std::chrono::milliseconds wait = std::min(kReaderTurn, writes_->expire());
+  if (dead_) return;
+  if (writes_->outstanding() == 0) {
+    std::function<bool(std::chrono::milliseconds)> room;
+    {
+      std::lock_guard<std::mutex> lock(eventsMu_);
+      for (const auto& kv : receivers_) {
+        if (kv.second.room) room = kv.second.room;  // one component's queue: any receiver's says
+      }
+    }
+    // Full: the socket is not read (no write waits for its reply), so the server holds what comes.
+    if (room && !room(std::min(wait, kRoomTurn))) return;
+  }
+  poll(std::max(std::chrono::milliseconds(1), wait));
 }
 
 // -------------------------------------------------------------------- frames
@@ -339,6 +436,11 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
     pollfd p{socket_, POLLIN, 0};
     ::poll(&p, 1, static_cast<int>(wait.count()));
   }
+  polling_.store(std::this_thread::get_id());
+  struct Done {
+    std::atomic<std::thread::id>& polling;
+    ~Done() { polling.store(std::thread::id()); }
+  } done{polling_};
   std::string& data = received_;
   while (!dead_) {
     std::optional<std::vector<int>> fds;
@@ -392,6 +494,8 @@ void ClientSession::handle(shm::Frame& frame) {
       }
     } else if (frame.kind == shm::kReplies) {
       writes_->replies(frame.body);
+    } else if (frame.kind == shm::kEvents) {
+      events(frame.body);
     } else if (frame.kind == shm::kRefused) {
       end("the server ended it: " + frame.body);
     } else if (frame.fd >= 0) {  // a kind this client does not know
@@ -422,6 +526,14 @@ void ClientSession::end(const std::string& why) {
   ::shutdown(socket_, SHUT_RDWR);
   if (why != "closed") log().debug("shared-memory session with " + endpoint_ + " ended: " + why);
   if (writes_) writes_->ended(why.empty() ? "closed" : why);
+  {
+    // The watches whose events came here end their calls, and resume on new ones.
+    std::lock_guard<std::mutex> lock(endMu_);
+    for (auto& kv : enders_) {
+      if (kv.second) kv.second(why.empty() ? "closed" : why);
+    }
+    enders_.clear();
+  }
   // Descriptors no frame claimed are closed with the reader, by the destructor.
 }
 

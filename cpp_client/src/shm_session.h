@@ -14,12 +14,18 @@
 // - counts the references each read call received and says so when the call
 //   ends (RECEIVED), so that the server takes back what never arrived.
 //
-// - carries the component's writes once it has a session (socket_writes.h).
+// - carries the component's writes once it has a session (socket_writes.h);
+// - hands the EVENTS frames of a Watch call that asked for them to that call's
+//   receiver (docs/client-protocol.md, "A watch's events on the session's
+//   socket").
 //
-// No thread of its own until the first write on its socket (whose thread then
-// reads it): what the server sends (SEGMENT, RETIRE, REFUSED, the end) is read
-// whenever the session is used. How a session is opened, and
-// when there is none: shm.h.
+// No thread of its own until the first write on its socket or the first
+// Watch call taking its events here: from then on its reader thread waits on
+// the socket and handles what comes, on that thread (a watch's events go from
+// it straight to the component's queue). Until then what the server sends
+// (SEGMENT, RETIRE, REFUSED, the end) is read whenever the session is used;
+// any thread that uses it may read it. How a session is opened, and when
+// there is none: shm.h.
 #pragma once
 
 #include <atomic>
@@ -33,6 +39,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -46,6 +53,24 @@ namespace cast::detail {
 
 // The call metadata that names a read's session and call: "<session hex>/<call>".
 inline constexpr char kSharedMemoryMetadata[] = "cast-shared-memory";
+// The metadata with which a Watch call naming a session asks for its event
+// batches as EVENTS frames on that session's socket.
+inline constexpr char kWatchEventsMetadata[] = "cast-watch-events";
+inline constexpr char kWatchEventsOnSocket[] = "socket";
+
+// What takes the EVENTS frames of one Watch call.
+struct EventsReceiver {
+  // A frame's batch (a serialized WatchResponse), on the thread that read it,
+  // in the order the frames came; never two at once.
+  std::function<void(const char* data, std::size_t size)> batch;
+  // The session ended (why): no more frames come.
+  std::function<void(const std::string& why)> ended;
+  // Waits up to the time given for room in the queue the batches go to; true
+  // when there is. The reader thread reads the socket only while there is
+  // room (or a write waits for its reply): what the server sends meanwhile
+  // waits in the socket, then on the server.
+  std::function<bool(std::chrono::milliseconds)> room;
+};
 
 // A region of mapped memory, unmapped when the last holder lets it go (a
 // segment stays mapped while values lent in it are held, after RETIRE or the
@@ -108,6 +133,7 @@ class ReadCall {
   // The metadata value that names it (under kSharedMemoryMetadata).
   const std::string& metadata() const { return metadata_; }
   std::uint64_t number() const { return number_; }
+  const std::shared_ptr<ClientSession>& session() const { return session_; }
   // The bytes of a value lent on this call, held until the result is let go;
   // UnavailableError when they cannot be read (read again).
   std::shared_ptr<const LentBytes> claim(const v1::SharedValue& ref);
@@ -172,7 +198,22 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // on any thread): what it cannot send now, the sender in the way sends.
   void giveBack(std::uint64_t valueId);
 
+  // ------------------------------------------------------------- events
+  // The EVENTS frames of call `call` go to `receiver` from now on, read by
+  // the reader thread (started now if it is not running).
+  void receiveEvents(std::uint64_t call, EventsReceiver receiver);
+  // No more frames of `call` go to its receiver: returns once none is being
+  // handed to it, and its `ended` is not called after.
+  void stopEvents(std::uint64_t call);
+  // EVENTS frames handed to a receiver in this process, for tests and
+  // diagnostics (every session's).
+  static std::uint64_t eventFramesHandled();
+
   // ------------------------------------------------------------- frames
+  // Starts the thread that waits on the socket and handles what comes (the
+  // writes' replies, a watch's events), unless it runs; it ends with the
+  // session.
+  void startReader();
   // Sends a frame (after the RELEASEs waiting); nothing once the session ended.
   void send(const std::string& frame);
   // Reads what the server sent (SEGMENT, RETIRE, REFUSED, the end); waits up
@@ -190,7 +231,11 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
 
  private:
   void handle(shm::Frame& frame);
+  void events(const std::string& body);
   void end(const std::string& why);
+  // One turn of the reader thread: the writes' deadlines, then what came.
+  void readOnce();
+  static void readLoop(const std::weak_ptr<ClientSession>& weak);
   void flushLocked();                          // sendMu_ held
   bool writeLocked(const std::string& frame);  // sendMu_ held
   void sendQueued();
@@ -212,7 +257,19 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::vector<std::uint64_t> unsent_;  // value ids given back, not yet sent
 
   std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_ and received_
+  std::atomic<std::thread::id> polling_{};  // the thread holding readMu_ to read (a claim there must not read again)
   shm::FrameReader reader_;
+
+  // A batch is handed to its receiver under eventsMu_, its end under endMu_
+  // (told from wherever the session ends, which may hold sendMu_).
+  std::mutex eventsMu_;
+  std::map<std::uint64_t, EventsReceiver> receivers_;
+  std::mutex endMu_;
+  std::map<std::uint64_t, std::function<void(const std::string&)>> enders_;
+
+  std::mutex threadMu_;  // guards thread_ and stopped_
+  std::thread thread_;   // the reader thread, once started
+  bool stopped_ = false;
   std::string received_;  // what one read gave (kept: a read per write or call must not allocate)
 
   mutable std::mutex stateMu_;  // guards what follows

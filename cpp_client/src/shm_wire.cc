@@ -90,6 +90,15 @@ std::uint32_t parseRetire(const std::string& body) {
   return static_cast<std::uint32_t>(getLe(body, 0, 4));
 }
 
+std::uint64_t parseEventsCall(const std::string& body) {
+  if (body.size() < 8) throw ProtocolError("EVENTS is shorter than its call number");
+  return getLe(body, 0, 8);
+}
+
+std::size_t maxFrame(std::uint8_t kind) {
+  return kind == kWrites || kind == kReplies || kind == kEvents ? kMaxWritesFrame : kMaxFrame;
+}
+
 std::string hex(const std::string& bytes) {
   static const char digits[] = "0123456789abcdef";
   std::string out;
@@ -116,7 +125,7 @@ std::vector<Frame> FrameReader::feed(const char* data, std::size_t size, std::ve
     }
     if (buf_.size() - at < 5) break;  // the kind decides the bound
     const auto kind = static_cast<std::uint8_t>(buf_[at + 4]);
-    const std::size_t limit = kind == kWrites || kind == kReplies ? kMaxWritesFrame : kMaxFrame;
+    const std::size_t limit = maxFrame(kind);
     if (length > limit) {
       throw ProtocolError("frame of kind " + std::to_string(kind) + " has " + std::to_string(length) +
                           " bytes (1 to " + std::to_string(limit) + " allowed)");

@@ -33,12 +33,14 @@ inline constexpr std::uint8_t kRefused = 11;  // the reason (UTF-8) to the end
 inline constexpr std::uint8_t kSegment = 12;  // u32 segment, u64 size; 1 fd
 inline constexpr std::uint8_t kRetire = 13;   // u32 segment
 inline constexpr std::uint8_t kReplies = 14;  // a serialized cast.v1.WriteReplies
+inline constexpr std::uint8_t kEvents = 15;   // u64 call, then a serialized cast.v1.WatchResponse
 
 // The largest frame either side sends or accepts (a RELEASE of 8,000 ids
-// fits), but WRITES and REPLIES.
+// fits), but WRITES, REPLIES and EVENTS.
 inline constexpr std::size_t kMaxFrame = 1 << 16;
-// The largest WRITES or REPLIES frame: a gRPC message's limit, so that any
-// request the Write stream takes fits one.
+// The largest WRITES, REPLIES or EVENTS frame: a gRPC message's limit, so
+// that any request the Write stream takes, and any batch a Watch call would
+// carry, fits one.
 inline constexpr std::size_t kMaxWritesFrame = std::size_t{64} << 20;
 // The most value ids one RELEASE frame carries.
 inline constexpr std::size_t kMaxReleaseIds = 8000;
@@ -79,6 +81,11 @@ Welcome parseWelcome(const std::string& body);
 // (segment id, size) of a SEGMENT.
 std::pair<std::uint32_t, std::uint64_t> parseSegment(const std::string& body);
 std::uint32_t parseRetire(const std::string& body);
+// The call number of an EVENTS frame; its batch (a serialized WatchResponse)
+// is the body after those 8 bytes.
+std::uint64_t parseEventsCall(const std::string& body);
+// The largest frame of `kind` a receiver accepts.
+std::size_t maxFrame(std::uint8_t kind);
 
 // 32 lowercase hex digits of 16 bytes (how WELCOME's ids are compared and named).
 std::string hex(const std::string& bytes);

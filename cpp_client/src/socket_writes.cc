@@ -12,38 +12,15 @@
 
 namespace cast::detail {
 
-namespace {
-
-// How often the thread looks at the deadlines while requests are outstanding
-// and none is due sooner; it also reads the socket then.
-constexpr std::chrono::milliseconds kLookEvery{100};
-
-}  // namespace
-
 SessionWrites::SessionWrites(ClientSession& session, std::string endpoint)
     : session_(session), endpoint_(std::move(endpoint)) {}
-
-SessionWrites::~SessionWrites() {
-  {
-    std::lock_guard<std::mutex> lock(mu_);
-    stop_ = true;
-  }
-  if (thread_.joinable()) {
-    // The last holder of the session may be a reply handler on the thread itself.
-    if (thread_.get_id() == std::this_thread::get_id()) {
-      thread_.detach();
-    } else {
-      thread_.join();
-    }
-  }
-}
 
 bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
                          std::optional<std::chrono::milliseconds> timeout) {
   v1::WriteRequests message;
   {
     std::lock_guard<std::mutex> lock(mu_);
-    if (ended_ || stop_) return false;
+    if (ended_) return false;
     request.set_id(nextId_++);
     Pending p;
     p.onReply = std::move(onReply);
@@ -52,8 +29,8 @@ bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
       p.timeout = *timeout;
     }
     pending_.emplace(request.id(), std::move(p));
-    if (!thread_.joinable()) thread_ = std::thread([this] { run(); });
   }
+  session_.startReader();
   message.add_requests()->Swap(&request);
   // A frame that cannot be sent ends the session, which fails this request with the others.
   session_.send(shm::writes(message.SerializeAsString()));
@@ -102,42 +79,38 @@ void SessionWrites::ended(const std::string& why) {
   for (auto& kv : left) kv.second.onReply(nullptr, error);
 }
 
-void SessionWrites::run() {
-  for (;;) {
-    std::chrono::milliseconds wait = kLookEvery;
-    {
-      std::unique_lock<std::mutex> lock(mu_);
-      if (stop_ || ended_) return;
-      const auto now = Clock::now();
-      std::vector<std::pair<ReplyHandler, std::shared_ptr<CastError>>> expired;
-      for (auto it = pending_.begin(); it != pending_.end();) {
-        const Pending& p = it->second;
-        if (!p.deadline || *p.deadline > now) {
-          if (p.deadline) {
-            wait = std::min(wait, std::chrono::duration_cast<std::chrono::milliseconds>(*p.deadline - now) +
-                                      std::chrono::milliseconds(1));
-          }
-          ++it;
-          continue;
+std::chrono::milliseconds SessionWrites::expire() {
+  // With nothing due, the reader thread still looks this often.
+  std::chrono::milliseconds wait{100};
+  std::vector<std::pair<ReplyHandler, std::shared_ptr<CastError>>> expired;
+  {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (ended_) return wait;
+    const auto now = Clock::now();
+    for (auto it = pending_.begin(); it != pending_.end();) {
+      const Pending& p = it->second;
+      if (!p.deadline || *p.deadline > now) {
+        if (p.deadline) {
+          wait = std::min(wait, std::chrono::duration_cast<std::chrono::milliseconds>(*p.deadline - now) +
+                                    std::chrono::milliseconds(1));
         }
-        expired.emplace_back(std::move(it->second.onReply),
-                             std::make_shared<DeadlineExceededError>(
-                                 "no reply from " + endpoint_ + " on the shared-memory session within " +
-                                 secondsText(p.timeout) + ": the write may or may not have been applied; the session "
-                                 "was ended and the next write opens a new one"));
-        it = pending_.erase(it);
+        ++it;
+        continue;
       }
-      if (!expired.empty()) {
-        if (pending_.empty()) changed_.notify_all();
-        lock.unlock();
-        for (auto& [handler, error] : expired) handler(nullptr, error);
-        // A server that answers nothing in that time is hung: end the session, failing the others.
-        session_.abandon(endpoint_ + " answered no write on the shared-memory session within its deadline");
-        return;
-      }
+      expired.emplace_back(std::move(it->second.onReply),
+                           std::make_shared<DeadlineExceededError>(
+                               "no reply from " + endpoint_ + " on the shared-memory session within " +
+                               secondsText(p.timeout) + ": the write may or may not have been applied; the session "
+                               "was ended and the next write opens a new one"));
+      it = pending_.erase(it);
     }
-    session_.poll(std::max(std::chrono::milliseconds(1), wait));
+    if (!expired.empty() && pending_.empty()) changed_.notify_all();
   }
+  if (expired.empty()) return wait;
+  for (auto& [handler, error] : expired) handler(nullptr, error);
+  // A server that answers nothing in that time is hung: end the session, failing the others.
+  session_.abandon(endpoint_ + " answered no write on the shared-memory session within its deadline");
+  return wait;
 }
 
 }  // namespace cast::detail

@@ -7,12 +7,12 @@
 //
 // The same messages as the Write stream (a WriteRequests, a WriteReplies),
 // the same rules: replies matched by id, out of order when a lock waits.
-// A thread of its own, started by the first request, reads the socket (the
-// replies, and SEGMENT, RETIRE, REFUSED for the session) and watches the
-// requests' deadlines: a request past its deadline gets DeadlineExceededError
-// and the session is ended, as the Write stream ends its call, so that its
-// other requests fail with UnavailableError ("may or may not have been
-// applied") and the next write opens a new session or goes by gRPC.
+// The session's reader thread, started by the first request, reads the
+// replies and watches the requests' deadlines (expire()): a request past its
+// deadline gets DeadlineExceededError and the session is ended, as the Write
+// stream ends its call, so that its other requests fail with
+// UnavailableError ("may or may not have been applied") and the next write
+// opens a new session or goes by gRPC.
 #pragma once
 
 #include <chrono>
@@ -24,7 +24,6 @@
 #include <mutex>
 #include <optional>
 #include <string>
-#include <thread>
 
 #include "cast/errors.h"
 #include "cast/v1/working_memory.pb.h"
@@ -41,8 +40,7 @@ class ClientSession;
 class SessionWrites {
  public:
   SessionWrites(ClientSession& session, std::string endpoint);
-  // Stops the thread (the session has ended by then).
-  ~SessionWrites();
+  ~SessionWrites() = default;
   SessionWrites(const SessionWrites&) = delete;
   SessionWrites& operator=(const SessionWrites&) = delete;
 
@@ -56,6 +54,9 @@ class SessionWrites {
   // Requests sent and not yet answered.
   std::size_t outstanding();
 
+  // From the session's reader thread: fails the requests past their
+  // deadline (and then ends the session); how long until the next deadline.
+  std::chrono::milliseconds expire();
   // From the session: a REPLIES frame's body (ProtocolError if it does not
   // parse), and the session's end (what is outstanding fails).
   void replies(const std::string& body);
@@ -68,7 +69,6 @@ class SessionWrites {
     std::optional<Clock::time_point> deadline;
     std::chrono::milliseconds timeout{0};
   };
-  void run();
 
   ClientSession& session_;
   const std::string endpoint_;
@@ -77,8 +77,6 @@ class SessionWrites {
   std::map<std::uint64_t, Pending> pending_;
   std::uint64_t nextId_ = 1;
   bool ended_ = false;
-  bool stop_ = false;
-  std::thread thread_;
 };
 
 }  // namespace cast::detail

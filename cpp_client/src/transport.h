@@ -113,6 +113,17 @@ class Transport {
 
   // Where events and stream failures go; called before the first watch.
   virtual void setEventSink(EventSink sink, ErrorSink onError) = 0;
+  // How a reader that must not wait for room hands events on (a watch's
+  // events on a shared-memory session's socket, docs/client-protocol.md "A
+  // watch's events on the session's socket"): `now` queues without waiting,
+  // `room` waits up to the time given for room in the queue (true when there
+  // is). Called before the first watch, by a component with a queue; a
+  // transport that never has such a reader ignores it, and one not told
+  // keeps every event on its Watch call.
+  virtual void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room) {
+    (void)now;
+    (void)room;
+  }
   // Creates watch `watchId` (filters already resolved) with `delivery`;
   // returns when every server involved confirmed it, with the revisions it
   // starts after.

@@ -3,14 +3,17 @@
 #include "watch_stream.h"
 
 #include <algorithm>
+#include <cstdint>
+#include <string>
 
 #include "conversions.h"
 
 namespace cast::detail {
 
-WatchStream::WatchStream(Server& server, std::shared_ptr<TokenSource> tokens, EventSink sink, ErrorSink onError)
+WatchStream::WatchStream(Server& server, std::shared_ptr<TokenSource> tokens, EventSink sink, ErrorSink onError,
+                         SocketEvents socket)
     : server_(server), tokens_(std::move(tokens)), sink_(std::move(sink)), onError_(std::move(onError)),
-      log_("cast.client.watch") {
+      log_("cast.client.watch"), socket_(std::move(socket)) {
   thread_ = std::thread([this] { run(); });
 }
 
@@ -127,13 +130,36 @@ void WatchStream::run() {
     std::shared_ptr<grpc::ClientContext> context;
     // Asking for a session may take a moment (its server is asked where its
     // shared memory is): before the context exists, so close() is not held up.
-    read_ = server_.shared ? server_.shared->read() : nullptr;
+    {
+      std::unique_ptr<ReadCall> read = server_.shared ? server_.shared->read() : nullptr;
+      std::lock_guard<std::mutex> lock(framesMu_);
+      read_ = std::move(read);
+    }
+    // The events on the session's socket, when there is one and a queue to hand them to.
+    const std::shared_ptr<ClientSession> socketSession = read_ && socket_.now ? read_->session() : nullptr;
     {
       std::lock_guard<std::mutex> lock(mu_);
       if (closed_) break;
       context_ = context = std::make_shared<grpc::ClientContext>();
       authorize(*context, *tokens_);
       if (read_) context->AddMetadata(kSharedMemoryMetadata, read_->metadata());
+      if (socketSession) context->AddMetadata(kWatchEventsMetadata, kWatchEventsOnSocket);
+    }
+    if (socketSession) {
+      const ReadCall* call = read_.get();
+      {
+        std::lock_guard<std::mutex> lock(brokenMu_);
+        broken_.clear();
+      }
+      onSocket_ = call;
+      // Before the call opens: a frame may come before the call's first message.
+      socketSession->receiveEvents(
+          call->number(),
+          EventsReceiver{[this, call](const char* data, std::size_t size) { socketBatch(call, data, size); },
+                         [this, call](const std::string& why) {
+                           breakCall(call, "the socket carrying the watch's events ended: " + why);
+                         },
+                         socket_.room});
     }
     // Opening may wait for the connection: not under mu_, so that close()
     // can cancel it.
@@ -171,11 +197,25 @@ void WatchStream::run() {
     }
     const grpc::Status status = stream->Finish();
     connected_ = false;
-    // The call is over: say what it received (the server takes back the
-    // rest), and see whether the session ended with it.
-    if (read_) read_->end(false);
-    read_.reset();
+    // The call is over: no frame of it is taken from here on (its watches
+    // resume after the last event queued), then say what it received (the
+    // server takes back the rest), and see whether the session ended with it.
+    std::unique_ptr<ReadCall> ended;
+    {
+      std::lock_guard<std::mutex> lock(framesMu_);  // a batch being queued is finished first
+      onSocket_ = nullptr;
+      ended = std::move(read_);
+    }
+    if (socketSession) socketSession->stopEvents(ended->number());
+    if (ended) ended->end(false);
+    ended.reset();
     if (server_.shared) server_.shared->check();
+    std::string broken;
+    if (socketSession) {
+      std::lock_guard<std::mutex> lock(brokenMu_);
+      broken.swap(broken_);
+    }
+    if (!broken.empty() && !unreadable) unreadable = std::make_shared<UnavailableError>(broken);
     {
       std::lock_guard<std::mutex> lock(mu_);
       stream_.reset();
@@ -256,6 +296,47 @@ void WatchStream::handle(const v1::WatchResponse& response) {
     }
   }
   if (resumeRefused) onError_(resumeRefused);
+}
+
+void WatchStream::socketBatch(const ReadCall* call, const char* data, std::size_t size) {
+  std::lock_guard<std::mutex> frames(framesMu_);
+  if (call != read_.get()) return;  // the call ended: its watches resume after what was queued
+  {
+    std::lock_guard<std::mutex> lock(brokenMu_);
+    if (!broken_.empty()) return;  // ending: the rest comes again on the next call
+  }
+  v1::WatchResponse response;
+  if (size > static_cast<std::size_t>(INT32_MAX) || !response.ParseFromArray(data, static_cast<int>(size))) {
+    breakCall(call, "an EVENTS frame of " + std::to_string(size) + " bytes is not a cast.v1.WatchResponse");
+    return;
+  }
+  try {
+    for (const auto& event : response.events()) {
+      std::vector<std::uint32_t> ids(event.watch_ids().begin(), event.watch_ids().end());
+      EventRecord record = eventFromPb(event, read_.get());
+      const std::string sa = record.address.subarchitecture;
+      const std::uint64_t revision = record.revision;
+      socket_.now(std::move(record), ids);
+      std::lock_guard<std::mutex> lock(mu_);
+      if (revision > seen_[sa]) seen_[sa] = revision;
+    }
+  } catch (const CastError& e) {
+    // A value that could not be claimed: the call is read again from the event after the last one queued.
+    breakCall(call, "an event could not be read: " + e.message());
+  }
+}
+
+// Takes no lock the session's reader holds while it queues a batch: the
+// session may end on that thread, or on one that holds its sending lock.
+void WatchStream::breakCall(const ReadCall* call, const std::string& why) {
+  if (onSocket_.load() != call) return;
+  {
+    std::lock_guard<std::mutex> lock(brokenMu_);
+    if (!broken_.empty()) return;
+    broken_ = why;
+  }
+  std::lock_guard<std::mutex> lock(mu_);
+  if (context_) context_->TryCancel();
 }
 
 void WatchStream::fail(const std::shared_ptr<CastError>& error) {

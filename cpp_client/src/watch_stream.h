@@ -34,11 +34,29 @@ namespace cast::detail {
 // is a read call of the shared-memory session, whose end says what arrived.
 // A stream opened while no session could be had (its server was away) is
 // opened again once one is, resuming where it was.
+//
+// With a session, and a component that said how (SocketEvents), the call
+// asks for its event batches as EVENTS frames on the session's socket
+// (docs/client-protocol.md, "A watch's events on the session's socket"): the
+// session's reader thread turns each frame into events and queues their
+// callbacks on the component's dispatcher, with no other thread between; the
+// call carries the rest (created, failed, its end). When the socket ends, or
+// a frame's value cannot be claimed, the call is ended and opened again from
+// the revision after the last event queued: what was read was queued, what
+// was not comes again on the new call.
+struct SocketEvents {
+  EventSink now;  // queues without waiting (the reader looked for room first)
+  std::function<bool(std::chrono::milliseconds)> room;
+};
+
 class WatchStream {
  public:
   // Starts the reader thread, which opens the stream (and reopens it after a
-  // break). `sink` gets every event, `onError` a failure that ends watches.
-  WatchStream(Server& server, std::shared_ptr<TokenSource> tokens, EventSink sink, ErrorSink onError);
+  // break). `sink` gets every event, `onError` a failure that ends watches;
+  // `socket`, if set, the events of a call that takes them on the session's
+  // socket.
+  WatchStream(Server& server, std::shared_ptr<TokenSource> tokens, EventSink sink, ErrorSink onError,
+              SocketEvents socket = {});
   ~WatchStream();
   WatchStream(const WatchStream&) = delete;
   WatchStream& operator=(const WatchStream&) = delete;
@@ -82,6 +100,11 @@ class WatchStream {
   void run();
   void handle(const v1::WatchResponse& response);
   void fail(const std::shared_ptr<CastError>& error);
+  // An EVENTS frame's batch of `call`, on the session's reader thread.
+  void socketBatch(const ReadCall* call, const char* data, std::size_t size);
+  // The session carrying `call`'s events ended, or one of them could not be
+  // read: the call ends, and is opened again.
+  void breakCall(const ReadCall* call, const std::string& why);
 
   Server& server_;
   std::shared_ptr<TokenSource> tokens_;
@@ -100,7 +123,14 @@ class WatchStream {
   bool dead_ = false;
   bool closed_ = false;
   std::shared_ptr<CastError> deathError_;
-  std::unique_ptr<ReadCall> read_;  // the open call's part of the shared-memory session; the reader thread's
+  SocketEvents socket_;
+  // The open call's part of the shared-memory session: set by the stream's
+  // thread, under framesMu_, which a batch from the socket holds too.
+  std::unique_ptr<ReadCall> read_;
+  std::mutex framesMu_;
+  std::atomic<const ReadCall*> onSocket_{nullptr};  // the call whose events come on the socket now
+  std::mutex brokenMu_;  // guards broken_ (told from wherever the session ends)
+  std::string broken_;   // why the call taking its events on the socket must end
   Closing closing_;
   std::thread thread_;
 };

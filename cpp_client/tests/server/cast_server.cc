@@ -1,7 +1,12 @@
 // A real `cast serve` for tests (cast_server.h), on the testing kit.
 #include "cast_server.h"
 
+#include <dirent.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+
 #include <ctime>
+#include <string>
 
 #include "cast/credentials.h"
 #include "cast/testing.h"
@@ -61,6 +66,24 @@ std::future<std::string> lockOnAThread(Connection& component, const std::string&
     }
   });
   return outcome->get_future();
+}
+
+int endSessionSockets() {
+  int ended = 0;
+  DIR* dir = ::opendir("/proc/self/fd");
+  while (dirent* e = ::readdir(dir)) {
+    if (e->d_name[0] == '.') continue;
+    const int fd = std::stoi(e->d_name);
+    sockaddr_un peer{};
+    socklen_t size = sizeof peer;
+    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&peer), &size) != 0 || peer.sun_family != AF_UNIX) continue;
+    if (size <= sizeof(sa_family_t) + 1 || peer.sun_path[0] != '\0') continue;
+    if (std::string(peer.sun_path + 1, 5) != "cast-") continue;
+    ::shutdown(fd, SHUT_RDWR);
+    ++ended;
+  }
+  ::closedir(dir);
+  return ended;
 }
 
 }  // namespace cast::testing

@@ -62,6 +62,11 @@ CastServer& sharedServer();
 // passes; whether it held.
 bool eventually(const std::function<bool()>& condition, std::chrono::milliseconds timeout = std::chrono::seconds(20));
 
+// Ends every connection of this process to a server's shared-memory socket
+// (its peer is bound to the abstract name "cast-..."): those sessions end as
+// if the server had closed them. How many it ended.
+int endSessionSockets();
+
 inline constexpr std::size_t kMiB = std::size_t{1} << 20;
 
 // An Int64Value holding `n`, the entry type of most of these tests.

@@ -9,10 +9,6 @@
 // the socket too, since their components have sessions.)
 #include <google/protobuf/wrappers.pb.h>
 #include <gtest/gtest.h>
-#include <dirent.h>
-#include <sys/socket.h>
-#include <sys/un.h>
-#include <unistd.h>
 
 #include <future>
 #include <mutex>
@@ -28,6 +24,7 @@ namespace {
 using namespace std::chrono_literals;
 using cast::testing::CastServer;
 using cast::testing::contains;
+using cast::testing::endSessionSockets;
 using cast::testing::eventually;
 using cast::testing::kMiB;
 using cast::testing::sharedServer;
@@ -37,27 +34,6 @@ BytesValue value(std::size_t size, int seed) {
   BytesValue v;
   v.set_value(std::string(size, static_cast<char>('a' + seed % 26)));
   return v;
-}
-
-// Ends every connection of this process to a server's shared-memory socket
-// (its peer is bound to the abstract name "cast-..."): those sessions end as
-// if the server had closed them.
-int endSessionSockets() {
-  int ended = 0;
-  DIR* dir = ::opendir("/proc/self/fd");
-  while (dirent* e = ::readdir(dir)) {
-    if (e->d_name[0] == '.') continue;
-    const int fd = std::stoi(e->d_name);
-    sockaddr_un peer{};
-    socklen_t size = sizeof peer;
-    if (::getpeername(fd, reinterpret_cast<sockaddr*>(&peer), &size) != 0 || peer.sun_family != AF_UNIX) continue;
-    if (size <= sizeof(sa_family_t) + 1 || peer.sun_path[0] != '\0') continue;
-    if (std::string(peer.sun_path + 1, 5) != "cast-") continue;
-    ::shutdown(fd, SHUT_RDWR);
-    ++ended;
-  }
-  ::closedir(dir);
-  return ended;
 }
 
 TEST(SocketWrites, AMixOfStagedAndSmallValuesWaitedForAndPipelinedIsAppliedOnceInCallOrder) {

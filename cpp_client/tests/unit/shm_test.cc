@@ -191,6 +191,20 @@ TEST(SharedMemoryFrames, AReaderSplitsFramesAndGivesEachItsDescriptorInOrder) {
   shm::FrameReader tooLong;
   const std::string over = le(shm::kMaxWritesFrame + 1, 4) + std::string(1, static_cast<char>(shm::kReplies));
   EXPECT_THROW(tooLong.feed(over.data(), over.size(), {}), shm::ProtocolError);
+  // EVENTS too (a watch's batch), with its call number first.
+  shm::FrameReader events;
+  const std::string longEvents = le(shm::kMaxFrame + 1, 4) + std::string(1, static_cast<char>(shm::kEvents));
+  EXPECT_TRUE(events.feed(longEvents.data(), longEvents.size(), {}).empty());
+  shm::FrameReader eventsOver;
+  const std::string overEvents = le(shm::kMaxWritesFrame + 1, 4) + std::string(1, static_cast<char>(shm::kEvents));
+  EXPECT_THROW(eventsOver.feed(overEvents.data(), overEvents.size(), {}), shm::ProtocolError);
+  shm::FrameReader batch;
+  const std::string eventsFrame = frame(shm::kEvents, le(77, 8) + "batch");
+  auto got = batch.feed(eventsFrame.data(), eventsFrame.size(), {});
+  ASSERT_EQ(got.size(), 1u);
+  EXPECT_EQ(shm::parseEventsCall(got[0].body), 77u);
+  EXPECT_EQ(got[0].body.substr(8), "batch");
+  EXPECT_THROW(shm::parseEventsCall("short"), shm::ProtocolError);
   shm::FrameReader noFd;
   const std::string segment = frame(shm::kSegment, le(1, 4) + le(4096, 8));
   EXPECT_THROW(noFd.feed(segment.data(), segment.size(), {}), shm::ProtocolError);
