@@ -187,7 +187,8 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
       },
       [weak](std::chrono::milliseconds timeout) {
         auto core = weak.lock();
-        return core && core->dispatcher && core->dispatcher->awaitRoom(timeout);
+        // A component gone has nothing to hold back: its events are dropped.
+        return !core || !core->dispatcher || core->dispatcher->awaitRoom(timeout);
       });
   std::weak_ptr<ComponentCore> weakState = core_;
   c.transport_->startSession(language, kind(), [weakState] {

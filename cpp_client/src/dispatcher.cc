@@ -66,7 +66,7 @@ void Dispatcher::loop(const std::shared_ptr<State>& s) {
 bool Dispatcher::awaitRoom(std::chrono::milliseconds timeout) {
   std::unique_lock<std::mutex> lock(state_->mu);
   state_->idle.wait_for(lock, timeout, [this] { return state_->pending < state_->capacity || state_->stopping; });
-  return state_->pending < state_->capacity && !state_->stopping;
+  return state_->pending < state_->capacity || state_->stopping;
 }
 
 bool Dispatcher::drain(std::chrono::milliseconds timeout) {

@@ -35,8 +35,9 @@ class Dispatcher {
   // queue is full if `wait` (never on the dispatcher thread itself, which
   // would wait for itself); ignored once stop() was called.
   void submit(std::function<void()> fn, Priority priority = Priority::Medium, bool wait = true);
-  // Waits up to `timeout` for room in the queue; whether there is (false
-  // once stopping). A reader that queues without waiting calls it first.
+  // Waits up to `timeout` for room in the queue; whether there is. A reader
+  // that queues without waiting calls it first. True once stopping (what is
+  // submitted then is dropped), so that such a reader never spins on it.
   bool awaitRoom(std::chrono::milliseconds timeout);
   // Waits until everything queued so far has run; false on timeout. Called
   // on the dispatcher thread itself it cannot wait for itself: returns false.

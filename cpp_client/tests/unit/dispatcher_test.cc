@@ -151,6 +151,25 @@ TEST(Dispatcher, StopReleasesAWaitingSubmitter) {
 
 // Callbacks pending behind a busy one run highest priority first, in the
 // order they were queued within a priority.
+TEST(Dispatcher, AwaitRoomSaysWhetherTheQueueHasRoomAndNeverHoldsBackOnceStopping) {
+  // What a reader that queues without waiting (a shared-memory session's) looks at first.
+  cast::detail::Dispatcher d("test", 1);
+  EXPECT_TRUE(d.awaitRoom(0ms));
+  std::promise<void> release;
+  std::shared_future<void> released = release.get_future().share();
+  d.submit([released] { released.wait(); });
+  EXPECT_FALSE(d.awaitRoom(20ms));  // full: the one callback runs
+  std::thread later([&] {
+    std::this_thread::sleep_for(20ms);
+    release.set_value();
+  });
+  EXPECT_TRUE(d.awaitRoom(5000ms));  // room as soon as it returned
+  later.join();
+  d.submit([released] { released.wait(); });
+  d.stop();
+  EXPECT_TRUE(d.awaitRoom(0ms));  // stopping: nothing is queued, nothing waits
+}
+
 TEST(Dispatcher, TheHighestPriorityPendingCallbackRunsFirst) {
   using cast::Priority;
   cast::detail::Dispatcher d("test");
