@@ -77,7 +77,7 @@ TEST_WORKERS ?= 2
 # A failed test runs once more (pytest-rerunfailures); the summary names every rerun. TEST_RERUNS=0: none.
 TEST_RERUNS ?= 1
 PYTEST_ALL = CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile \
-  --no-loadscope-reorder --durations=15 \
+  --no-loadscope-reorder --durations=30 \
   --reruns $(TEST_RERUNS) -rR
 # Everything the three suites need; installed and built one after the other (apt-get takes no
 # second caller) before any suite runs.
