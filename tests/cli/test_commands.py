@@ -41,7 +41,7 @@ def test_cast_serve_does_not_load_the_other_commands_modules() -> None:
 
 
 def test_cast_run_loads_no_live_view_until_one_is_asked_for() -> None:
-    """Most runs (every `cast run` of the suite) show no Foxglove view: foxglove-sdk and the recorder's channels wait."""
+    """Most runs (every `cast run` of the suite) show no Foxglove view: foxglove-sdk and its channels wait."""
     code = ("import json, sys\nfrom cast.cli.main import build_parser\nbuild_parser(['run', 'system.yaml'])\n"
             "print(json.dumps(sorted(sys.modules)))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
