@@ -247,3 +247,66 @@ def test_a_cancelled_watchs_held_changes_are_dropped() -> None:
     sub.hold_latest()
     assert sub.cancel(1)
     assert [(m.event.id, m.watch_ids) for m in sub.poll()] == [("b", [2])]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_held_and_polled_changes_together_keep_every_rule_of_a_stream(seed: int) -> None:
+    """Random writes, holds and batch bounds: every queue watch gets each of its changes once in order, every latest
+    watch each entry's newest with every other counted as skipped, and the stream stays in the host's order."""
+    import random
+
+    rnd = random.Random(seed)
+    host, sub, _ = make(Limits(history_events=100_000))
+    entries = ["a", "b", "c", "d"]
+    watches = {1: (EventFilter(subarchitecture="vision", id="a"), False),
+               2: (EventFilter(subarchitecture="vision"), True),
+               3: (EventFilter(subarchitecture="vision", id="b"), True),
+               4: (EventFilter(type="t.Q"), False)}
+    for wid, (f, latest) in watches.items():
+        sub.add_watch(wid, [f], latest=latest)
+    for e in entries:
+        host.add(V, "vision", e, "t.Q" if e == "d" else "t.T", b"")
+    host.add(L, "language", "q", "t.Q", b"")
+    got: dict[int, list[tuple[str, int, int]]] = {wid: [] for wid in watches}  # entry, revision, skipped
+    order: list[tuple[str, int]] = []
+    for step in range(400):
+        r = rnd.random()
+        if r < 0.6:
+            e = rnd.choice(entries)
+            host.overwrite(V, "vision", e, "t.Q" if e == "d" else "t.T", str(step).encode())
+            if rnd.random() < 0.1:
+                host.overwrite(L, "language", "q", "t.Q", b"")
+        elif r < 0.8:
+            sub.hold_latest()
+        else:
+            for m in sub.poll(max_events=rnd.choice([0, 1, 2, 5])):
+                order.append((m.event.subarchitecture, m.event.revision))
+                for wid in m.watch_ids:
+                    got[wid].append((m.event.id, m.event.revision, m.skipped))
+    while True:
+        batch = sub.poll()
+        for m in batch:
+            order.append((m.event.subarchitecture, m.event.revision))
+            for wid in m.watch_ids:
+                got[wid].append((m.event.id, m.event.revision, m.skipped))
+        if not batch:
+            break
+    for sa in ("vision", "language"):
+        revisions = [r for s, r in order if s == sa]
+        assert revisions == sorted(set(revisions)), f"{sa}: out of order or twice"
+    changes = {sa: host.events_since(sa, 1) for sa in ("vision", "language")}
+    everything = [ev for sa in changes for ev in changes[sa]]
+    for wid, (f, latest) in watches.items():
+        mine = [ev for ev in everything if f.matches(ev)]  # the watches began before the adds
+        if not latest:  # every change once, in order per WM (the host's order across WMs within a batch)
+            assert sorted((e, r) for e, r, _ in got[wid]) == sorted((ev.id, ev.revision) for ev in mine), wid
+            for sa in ("vision", "language"):
+                ids = {ev.id for ev in mine if ev.subarchitecture == sa}
+                revisions = [r for e, r, _ in got[wid] if e in ids]
+                assert revisions == sorted(revisions), (wid, sa)
+            assert all(s == 0 for _, _, s in got[wid])
+        else:
+            for entry in {ev.id for ev in mine}:
+                of_entry = [g for g in got[wid] if g[0] == entry]
+                assert sum(1 + s for _, _, s in of_entry) == sum(1 for ev in mine if ev.id == entry), (wid, entry)
+                assert of_entry[-1][1] == max(ev.revision for ev in mine if ev.id == entry), (wid, entry)

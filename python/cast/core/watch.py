@@ -67,6 +67,23 @@ class _Watch:
     latest: bool = False  # delivery "latest": pending changes of one entry conflate to the newest
 
 
+def _seq(m: Match) -> int:
+    return m.event.seq
+
+
+def _within(batch: list[Match], max_events: int, max_bytes: int) -> bool:
+    """Whether ``batch`` keeps a poll's bounds: as :meth:`Subscription.poll`, only its last match may pass them."""
+    events, size = max_events, max_bytes
+    for i, m in enumerate(batch):
+        if i and ((max_events and events <= 0) or (max_bytes and size <= 0)):
+            return False
+        if max_events:
+            events -= 1
+        if max_bytes and m.include_entry and m.event.entry is not None:
+            size -= len(m.event.entry.data)
+    return True
+
+
 class Subscription:
     """One consumer's watches over a host; not thread-safe (one consumer at a time)."""
 
@@ -228,63 +245,50 @@ class Subscription:
         return self._poll(max_events, max_bytes)
 
     def _poll_held(self, max_events: int, max_bytes: int) -> list[Match]:
-        """:meth:`poll` with changes held for latest watches (:meth:`hold_latest`), merged in the host's order."""
+        """:meth:`poll` with changes held for latest watches (:meth:`hold_latest`), merged in the host's order.
+
+        A batch is everything merged when it keeps the bounds; else the held
+        changes that come before every fresh one, as many as the bounds allow
+        (at least one), or, when a fresh change comes first, that one alone:
+        the fresh poll is then undone, so the stream never skips past a change.
+        """
         self.hold_latest()  # newer changes of the latest watches replace what is held for their entries
-        before = {w.watch_id: dict(w.next) for w in self._watches.values() if not w.latest}
-        fresh = self._poll(max_events, max_bytes)  # the queue watches' (the latest ones are past all of it)
-        behind = self.behind
         live = self._watches
         held: list[Match] = []
         for key, m in list(self._held.items()):
             m.watch_ids = [i for i in m.watch_ids if i in live]  # a watch cancelled since: not delivered
-            if not m.watch_ids:
-                del self._held[key]
-            else:
+            if m.watch_ids:
                 held.append(m)
-        held.sort(key=lambda m: m.event.seq)
-        if behind and fresh:
-            # This batch ends at its last fresh change; held ones after it wait, or the order would break.
-            cut = fresh[-1].event.seq
-            held = [m for m in held if m.event.seq <= cut]
-        out: list[Match] = []
-        events, size = max_events, max_bytes
-        merged = heapq.merge(fresh, held, key=lambda m: m.event.seq)
-        for m in merged:
-            out.append(m)
-            if max_events:
-                events -= 1
-            if max_bytes and m.include_entry and m.event.entry is not None:
-                size -= len(m.event.entry.data)
-            if (max_events and events <= 0) or (max_bytes and size <= 0):
-                break
-        delivered = {id(m) for m in out}
-        for key, m in list(self._held.items()):
-            if id(m) in delivered:
+            else:
                 del self._held[key]
-        if len(out) < len(fresh) + len(held):
-            self._rewind(fresh, delivered, before)
+        held.sort(key=_seq)
+        before = {w.watch_id: dict(w.next) for w in live.values()}
+        fresh = self._poll(max_events, max_bytes)
+        # A fresh poll cut short by its bounds leaves no room: then the branch below, never a held change
+        # after the batch's last fresh one.
+        out = list(heapq.merge(fresh, held, key=_seq))
+        if not _within(out, max_events, max_bytes):
+            for w in live.values():
+                w.next = before[w.watch_id]
+            first = fresh[0].event.seq if fresh else None
+            out = []
+            for m in held:
+                if (first is not None and m.event.seq > first) or (out and not _within([*out, m], max_events,
+                                                                                          max_bytes)):
+                    break
+                out.append(m)
+            if not out:
+                out = self._poll(1, 0)  # the first fresh change, which comes before every held one
             self.behind = True
+        taken = {id(m) for m in out}
+        for key, m in list(self._held.items()):
+            if id(m) in taken:
+                del self._held[key]
         counts: dict[str, int] = {}
         for m in out:
             counts[m.event.subarchitecture] = counts.get(m.event.subarchitecture, 0) + 1
         self.polled = list(counts.items())
         return out
-
-    def _rewind(self, fresh: list[Match], delivered: set[int], before: dict[int, dict[str, int]]) -> None:
-        """Give the queue watches back the fresh changes a batch could not hold: the next poll takes them again.
-
-        ``before``: each queue watch's next revisions before the poll; none goes back past its own.
-        """
-        first: dict[str, int] = {}
-        for m in fresh:
-            if id(m) not in delivered:
-                first.setdefault(m.event.subarchitecture, m.event.revision)
-        for w in self._watches.values():
-            if w.latest:
-                continue
-            for sa, revision in first.items():
-                if sa in w.next:
-                    w.next[sa] = min(w.next[sa], max(revision, before[w.watch_id].get(sa, revision)))
 
     def _poll(self, max_events: int, max_bytes: int) -> list[Match]:
         self.behind = False
