@@ -5,11 +5,11 @@ import cast.v1.WatchCancel;
 import cast.v1.WatchCreate;
 import cast.v1.WatchRequest;
 import cast.v1.WatchResponse;
+import com.google.protobuf.InvalidProtocolBufferException;
 import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.stub.ClientCallStreamObserver;
 import io.grpc.stub.ClientResponseObserver;
-import com.google.protobuf.InvalidProtocolBufferException;
 import java.nio.ByteBuffer;
 import java.util.ArrayList;
 import java.util.HashMap;
@@ -40,8 +40,8 @@ import java.util.logging.Logger;
  * session's socket (docs/client-protocol.md, "A watch's events on the session's socket"): the
  * session's reader thread turns them into changes and queues them on the dispatcher itself, so an
  * event crosses no gRPC thread; {@code created}, {@code failed} and the call's end stay on the
- * call. When the socket ends the call is opened again at once, from the revision after the last
- * event delivered. The twin of python/cast/client/watch_stream.py and
+ * call. When the socket ends the call is ended and opened again as after any break, from the
+ * revision after the last event delivered. The twin of python/cast/client/watch_stream.py and
  * cpp_client/src/watch_stream.cc.
  */
 final class WatchStream {
