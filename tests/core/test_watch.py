@@ -159,3 +159,91 @@ def test_any_matching_filter_that_asks_for_the_entry_gets_it() -> None:
     host.add(V, "vision", "y", "t.B", b"b")
     got = [(m.event.id, m.include_entry) for m in sub.poll()]
     assert got == [("x", True), ("y", False)]
+
+
+# A latest watch whose consumer cannot be sent to: the server holds the newest change per entry for it
+# (Subscription.hold_latest, called while the stream or socket is full), so it never falls behind the history.
+
+
+def _images(host: MemoryHost, ids: list[str], rounds: int, sub: Subscription | None = None) -> int:
+    """Overwrite each entry of ``ids`` ``rounds`` times, the subscription held after every write; the writes."""
+    writes = 0
+    for r in range(rounds):
+        for entry in ids:
+            host.overwrite(V, "vision", entry, "t.T", f"{entry}-{r}".encode())
+            writes += 1
+            if sub is not None:
+                sub.hold_latest()
+    return writes
+
+
+def test_a_held_latest_watch_never_falls_behind_the_history_and_counts_every_change_it_skipped() -> None:
+    host, sub, _ = make(Limits(history_events=10))
+    stalled = Subscription(host, lambda: None)  # the same watch never held: it falls behind, as a queue one
+    for s in (sub, stalled):
+        s.add_watch(1, [EventFilter(subarchitecture="vision", include_entry=True)], latest=True)
+    ids = ["a", "b", "c"]
+    for entry in ids:
+        host.add(V, "vision", entry, "t.T", b"")
+    sub.hold_latest()
+    writes = 3 + _images(host, ids, 200, sub)
+    matches = sub.poll(4096, 4 << 20)
+    assert [m.event.id for m in matches] == ids  # one per entry, in the host's order of their newest change
+    assert [m.event.entry.data for m in matches if m.event.entry] == [f"{e}-199".encode() for e in ids]
+    assert sum(1 + m.skipped for m in matches) == writes
+    assert [m.first_skipped for m in matches] == [1, 2, 3]  # the adds
+    assert sub.poll() == [] and not sub.behind
+    with pytest.raises(HistoryExpiredError):
+        stalled.poll()
+
+
+def test_held_changes_keep_the_host_order_with_a_queue_watch_of_the_same_stream() -> None:
+    host, sub, _ = make(Limits(history_events=10))
+    sub.add_watch(1, [EventFilter(id="img")], latest=True)
+    sub.add_watch(2, [EventFilter(id="cmd")])  # a queue watch: every change, in order
+    host.add(V, "vision", "img", "t.T", b"")
+    host.add(V, "vision", "cmd", "t.T", b"")
+    sub.hold_latest()  # stops at the add of cmd, which the queue watch has not had
+    _images(host, ["img"], 3, sub)
+    host.overwrite(V, "vision", "cmd", "t.T", b"go")
+    _images(host, ["img"], 2, sub)
+    got = [(m.event.id, m.event.revision, m.watch_ids, m.skipped) for m in sub.poll()]
+    # img's first change was held before cmd's add; the rest came after it and conflate in the poll.
+    assert got == [("img", 1, [1], 0), ("cmd", 2, [2], 0), ("cmd", 6, [2], 0), ("img", 8, [1], 4)]
+    # While the queue watch's change is pending, the latest watch holds nothing past it: the queue watch
+    # falls behind the history, and the stream with it, as before.
+    host.overwrite(V, "vision", "cmd", "t.T", b"stop")
+    _images(host, ["img"], 10, sub)
+    with pytest.raises(HistoryExpiredError):
+        sub.poll()
+
+
+def test_held_changes_are_delivered_within_the_batch_bounds_in_order_and_once() -> None:
+    host, sub, _ = make(Limits(history_events=5))
+    sub.add_watch(1, [EventFilter(id="q")])
+    sub.add_watch(2, [EventFilter(type="t.I")], latest=True)
+    names = [f"i{i}" for i in range(8)]
+    for entry in names:
+        host.add(V, "vision", entry, "t.I", b"")
+        sub.hold_latest()
+    host.add(V, "vision", "q", "t.Q", b"")
+    got: list[tuple[str, int]] = []
+    for _ in range(10):
+        batch = sub.poll(max_events=3)
+        assert len(batch) <= 3
+        got += [(m.event.id, m.event.revision) for m in batch]
+        if not sub.behind:
+            break
+    assert got == [(name, i + 1) for i, name in enumerate(names)] + [("q", 9)]
+    assert sub.poll() == []
+
+
+def test_a_cancelled_watchs_held_changes_are_dropped() -> None:
+    host, sub, _ = make(Limits(history_events=4))
+    sub.add_watch(1, [EventFilter(id="a")], latest=True)
+    sub.add_watch(2, [EventFilter(id="b")], latest=True)
+    host.add(V, "vision", "a", "t.T", b"")
+    host.add(V, "vision", "b", "t.T", b"")
+    sub.hold_latest()
+    assert sub.cancel(1)
+    assert [(m.event.id, m.watch_ids) for m in sub.poll()] == [("b", [2])]

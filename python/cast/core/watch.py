@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from cast.core.host import MemoryHost
 from cast.core.records import ChangeEvent, Operation
-from cast.errors import InvalidArgumentError, ResourceExhaustedError
+from cast.errors import HistoryExpiredError, InvalidArgumentError, ResourceExhaustedError
 
 __all__ = ["EventFilter", "Match", "Subscription"]
 
@@ -89,6 +89,9 @@ class Subscription:
         # (cast.core.metrics).
         self.polled: list[tuple[str, int]] = []
         self.with_values = False
+        # Changes taken for latest watches while the consumer could not be sent to (hold_latest): one per
+        # entry and set of watches, newest wins; delivered by the next polls, in the host's order.
+        self._held: dict[tuple[str, str, tuple[int, ...]], Match] = {}
         host.add_listener(wake)
 
     @property
@@ -152,6 +155,67 @@ class Subscription:
         self._by_sa = None
         return self._watches.pop(watch_id, None) is not None
 
+    @property
+    def has_latest(self) -> bool:
+        """Whether a watch of this subscription delivers ``latest`` (:meth:`hold_latest` has work to do)."""
+        return any(w.latest for w in self._watches.values())
+
+    def hold_latest(self) -> None:
+        """Take the changes pending for this subscription's ``latest`` watches now, and hold them.
+
+        For a consumer that cannot be sent to for a while (its stream or socket
+        is full): a latest watch keeps, here, the newest change of each entry it
+        was not sent (counting the ones it replaced in :attr:`Match.skipped`)
+        instead of keeping its place in the history, so it never falls behind
+        the history however long its consumer does not read; what is held is at
+        most one change per entry. It stops, in a WM, at the first change a
+        queue watch of the subscription still has to get, so that the stream
+        keeps the host's order: a queue watch falls behind the history as
+        before. The next polls deliver what is held, merged in the host's order.
+        """
+        by_sa = self._by_sa
+        if by_sa is None:
+            by_sa = self._by_sa = self._index()
+        held = self._held
+        for sa, watches in by_sa.items():
+            latest = [w for w in watches if w.latest]
+            if not latest:
+                continue
+            queue = [w for w in watches if not w.latest]
+            start = min(w.next[sa] for w in watches)
+            try:
+                events = self._host.events_since(sa, start)
+            except HistoryExpiredError:
+                continue  # fell behind already: the next poll ends the stream with it
+            last = start
+            for ev in events:
+                if any(ev.revision >= w.next[sa] and any(f.matches(ev) for f in w.filters) for w in queue):
+                    break  # a queue watch's change: the stream delivers it first, in order
+                last = ev.revision + 1
+                ids: list[int] = []
+                include = False
+                for w in latest:
+                    if ev.revision < w.next[sa]:
+                        continue
+                    for i, f in enumerate(w.filters):
+                        if f.matches(ev):
+                            ids.append(w.watch_id)
+                            include = include or f.include_entry or any(
+                                g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
+                            )
+                            break
+                if not ids:
+                    continue
+                match = Match(ev, ids, include)
+                key = (sa, ev.id, tuple(ids))
+                older = held.pop(key, None)
+                if older is not None:
+                    match.skipped = older.skipped + 1
+                    match.first_skipped = older.first_skipped or older.event.revision
+                held[key] = match
+            for w in watches:  # the queue watches too: none of them wanted a change before ``last``
+                w.next[sa] = max(w.next[sa], last)
+
     def poll(self, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
         """Pending events matching any watch, each once, in the host's order (per WM: by revision).
 
@@ -159,6 +223,70 @@ class Subscription:
         their entry; 0: no cap) bound one batch; :attr:`behind` then tells that
         more is pending. HistoryExpiredError if a watch fell behind the history.
         """
+        if self._held:
+            return self._poll_held(max_events, max_bytes)
+        return self._poll(max_events, max_bytes)
+
+    def _poll_held(self, max_events: int, max_bytes: int) -> list[Match]:
+        """:meth:`poll` with changes held for latest watches (:meth:`hold_latest`), merged in the host's order."""
+        self.hold_latest()  # newer changes of the latest watches replace what is held for their entries
+        before = {w.watch_id: dict(w.next) for w in self._watches.values() if not w.latest}
+        fresh = self._poll(max_events, max_bytes)  # the queue watches' (the latest ones are past all of it)
+        behind = self.behind
+        live = self._watches
+        held: list[Match] = []
+        for key, m in list(self._held.items()):
+            m.watch_ids = [i for i in m.watch_ids if i in live]  # a watch cancelled since: not delivered
+            if not m.watch_ids:
+                del self._held[key]
+            else:
+                held.append(m)
+        held.sort(key=lambda m: m.event.seq)
+        if behind and fresh:
+            # This batch ends at its last fresh change; held ones after it wait, or the order would break.
+            cut = fresh[-1].event.seq
+            held = [m for m in held if m.event.seq <= cut]
+        out: list[Match] = []
+        events, size = max_events, max_bytes
+        merged = heapq.merge(fresh, held, key=lambda m: m.event.seq)
+        for m in merged:
+            out.append(m)
+            if max_events:
+                events -= 1
+            if max_bytes and m.include_entry and m.event.entry is not None:
+                size -= len(m.event.entry.data)
+            if (max_events and events <= 0) or (max_bytes and size <= 0):
+                break
+        delivered = {id(m) for m in out}
+        for key, m in list(self._held.items()):
+            if id(m) in delivered:
+                del self._held[key]
+        if len(out) < len(fresh) + len(held):
+            self._rewind(fresh, delivered, before)
+            self.behind = True
+        counts: dict[str, int] = {}
+        for m in out:
+            counts[m.event.subarchitecture] = counts.get(m.event.subarchitecture, 0) + 1
+        self.polled = list(counts.items())
+        return out
+
+    def _rewind(self, fresh: list[Match], delivered: set[int], before: dict[int, dict[str, int]]) -> None:
+        """Give the queue watches back the fresh changes a batch could not hold: the next poll takes them again.
+
+        ``before``: each queue watch's next revisions before the poll; none goes back past its own.
+        """
+        first: dict[str, int] = {}
+        for m in fresh:
+            if id(m) not in delivered:
+                first.setdefault(m.event.subarchitecture, m.event.revision)
+        for w in self._watches.values():
+            if w.latest:
+                continue
+            for sa, revision in first.items():
+                if sa in w.next:
+                    w.next[sa] = min(w.next[sa], max(revision, before[w.watch_id].get(sa, revision)))
+
+    def _poll(self, max_events: int, max_bytes: int) -> list[Match]:
         self.behind = False
         by_sa = self._by_sa
         if by_sa is None:
