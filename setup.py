@@ -4,7 +4,8 @@ Everything else about the package is in pyproject.toml. The generated ``cast.v1`
 never committed (``make proto`` makes them in a checkout), so the build makes them itself with
 grpcio-tools' protoc (a build requirement) from ``proto/cast/v1``:
 
-- ``build_py`` (wheels): into the build directory, after the package's own files are copied;
+- ``build_py`` (wheels): into the build directory, after the package's own files are copied,
+  with the repository's ``VERSION`` as ``cast/VERSION`` (what ``cast.version`` reads at run time);
 - ``sdist``: into the sdist's tree, beside the ``proto/`` files that MANIFEST.in adds, so an
   sdist holds the code and can rebuild it.
 
@@ -34,6 +35,7 @@ class BuildPyWithProtos(build_py):
         super().run()
         if not self.editable_mode:
             generate(HERE / "proto", Path(self.build_lib), "the cast-grpc build (setup.py)")
+            (Path(self.build_lib) / "cast" / "VERSION").write_text((HERE / "VERSION").read_text())
 
 
 class SdistWithProtos(sdist):

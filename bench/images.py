@@ -188,6 +188,9 @@ class _Watchers:
             if proc.returncode != 0 or not lines:
                 raise RuntimeError(f"{label} watcher exited {proc.returncode}: {_tail(log)}")
             out[label] = parse_watcher(json.loads(lines[-1]))
+            ended = _watch_ended(log)
+            if ended:
+                out[label]["watch_ended"] = ended
         return out
 
     def close(self) -> None:
@@ -197,6 +200,15 @@ class _Watchers:
                 proc.wait()
         for log in self.logs:
             log.close()
+
+
+def _watch_ended(log: IO[str]) -> str:
+    """The line where a watcher's library said its watch ended early (fell behind the history, say), or ""."""
+    log.seek(0)
+    for line in log.read().splitlines():
+        if "HistoryExpiredError" in line or "change delivery stopped" in line or "watch failed" in line:
+            return line.strip()[-300:]
+    return ""
 
 
 def _tail(log: IO[str]) -> str:
@@ -248,6 +260,8 @@ def figures(sent: dict[int, int], got: dict[str, dict[str, Any]], extra: int,
             per[label] |= {"cold_p50_us": first["p50_us"], "cold_p99_us": first["p99_us"]}
         if "shared" in g:
             per[label]["shared"] = g["shared"]
+        if "watch_ended" in g:
+            per[label]["watch_ended"] = g["watch_ended"]
     return {"watchers": per, "total": totals(measured, list(mine.values())), "frames": len(measured),
             "warm": warm, "cold": cold}
 

@@ -61,7 +61,8 @@ def _peer_total(m8: dict[str, Any], key: str) -> float | None:
 def _read_misses(what: str, label: str, w: dict[str, Any]) -> list[str]:
     misses = []
     if w["lost"]:
-        misses.append(f"{what}: {label} lost {w['lost']}")
+        misses.append(f"{what}: {label} lost {w['lost']}"
+                      + (f" (its watch ended: {w['watch_ended']})" if w.get("watch_ended") else ""))
     if not w.get("checksum_ok"):
         misses.append(f"{what}: {label}'s checksum is not that of the bytes written (it did not read them all)")
     return misses

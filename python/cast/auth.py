@@ -25,8 +25,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
-
-import jwt
+from types import ModuleType
 
 from cast.core.records import Identity
 from cast.errors import InvalidArgumentError, UnauthenticatedError
@@ -42,6 +41,14 @@ __all__ = [
 
 DEFAULT_SECRET_PATH = Path(".cast") / "secret"
 _ALGORITHM = "HS256"
+
+
+def _jwt() -> ModuleType:
+    # Imported when a token is made or checked, not with this module: PyJWT loads the cryptography
+    # package (~0.2 s of CPU), and a component that only carries the token it was given never needs it.
+    import jwt
+
+    return jwt
 _MIN_SECRET = 32
 
 
@@ -75,7 +82,8 @@ class TokenSigner:
         if ttl_seconds:
             # Rounded up, so that a token lives at least ttl_seconds (renewal schedules rely on it).
             claims["exp"] = math.ceil(now + ttl_seconds)
-        return jwt.encode(claims, self._secret, algorithm=_ALGORITHM)
+        token: str = _jwt().encode(claims, self._secret, algorithm=_ALGORITHM)
+        return token
 
     def verify(self, token: str) -> Identity:
         """The identity a token states; UNAUTHENTICATED if it is malformed, forged or expired."""
@@ -98,6 +106,7 @@ class TokenSigner:
                 "token in the format before JWTs ('<payload>.<signature>'): tokens are JSON Web Tokens now; "
                 "re-issue it with `cast token` (or restart the component under `cast run`)"
             )
+        jwt = _jwt()
         try:
             claims = jwt.decode(
                 token, self._secret, algorithms=[_ALGORITHM], options={"require": ["c", "s", "p", "iat"]}

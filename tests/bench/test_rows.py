@@ -238,6 +238,8 @@ def test_m8_is_met_when_every_target_is() -> None:
         (lambda m: m["cast_queue_hz_6m"]["watchers"]["Python 2"].update(p99_us=10_001.0), "p99 10001 µs > 10000"),
         (lambda m: m["cast_queue_hz_6m"]["watchers"]["Python 1"].update(lost=1), "30 Hz: Python 1 lost 1"),
         (lambda m: m["cast_latest_b2b"]["watchers"]["C++"].update(checksum_ok=False), "C++'s checksum"),
+        (lambda m: m["cast_latest_b2b"]["watchers"]["Java"].update(lost=3, watch_ended="HistoryExpiredError: x"),
+         "Java lost 3 (its watch ended: HistoryExpiredError: x)"),
         (lambda m: m["cast_queue_b2b"]["total"].update(mb_per_s=1499.0), "1499.0 MB/s to the four < 1.0 x Zenoh"),
         (lambda m: m["cast_queue_b2b"].update(missing={"Java": "Java not built"}), "Java: Java not built"),
         (lambda m: m.update(cast_queue_hz_6m={"error": "history overrun"}), "6 MiB, queue, 30 Hz: history overrun"),
@@ -349,3 +351,17 @@ def test_the_server_memory_counts_each_memory_file_once_at_its_full_size() -> No
     finally:
         if fd >= 0:
             os.close(fd)
+
+
+def test_m8_finds_the_line_where_a_watchers_library_said_its_watch_ended() -> None:
+    import tempfile
+
+    from bench.images import _watch_ended
+
+    java = ("checksum warmed up (0)\nNov 29, 2026 1:58:37 PM cast.client.Component watchFailed\nSEVERE: m8-w2: change "
+            "delivery stopped: HistoryExpiredError: subarchitecture 'images': revision 20767 is gone\n")
+    for text, found in ((java, "change delivery stopped: HistoryExpiredError"),
+                        ("image_watcher: the watch failed: OUT_OF_RANGE\n", "the watch failed"), ("ready\n", "")):
+        with tempfile.TemporaryFile("w+") as log:
+            log.write(text)
+            assert (found in _watch_ended(log)) if found else _watch_ended(log) == ""

@@ -38,3 +38,13 @@ def test_cast_serve_does_not_load_the_other_commands_modules() -> None:
     assert "cast.cli.serve" in loaded
     assert not others & loaded, sorted(others & loaded)
     assert not {"cast.foxglove.view", "cast.recording.recorder", "rich.console", "mcap.writer"} & loaded
+
+
+def test_cast_run_loads_no_live_view_until_one_is_asked_for() -> None:
+    """Most runs (every `cast run` of the suite) show no Foxglove view: foxglove-sdk and its channels wait."""
+    code = ("import json, sys\nfrom cast.cli.main import build_parser\nbuild_parser(['run', 'system.yaml'])\n"
+            "print(json.dumps(sorted(sys.modules)))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    loaded = set(json.loads(done.stdout))
+    assert "cast.cli.run" in loaded
+    assert not {"foxglove", "cast.foxglove.sink", "cast.recording.channels", "mcap"} & loaded

@@ -19,6 +19,7 @@ from google.protobuf.wrappers_pb2 import BytesValue
 import cast
 from cast.client import shm_session
 from cast.client.watch_stream import EVENTS_METADATA
+from cast.core.records import Limits
 from cast.core.shared import SharedSettings
 from cast.errors import UnavailableError
 from cast.server.working_memory import EVENTS_UNSENT
@@ -54,13 +55,14 @@ def _every_value_watched(h: Host, count: int) -> Any:
 
 
 def _raw_watch(h: Host, cid: str, session: shm_session.ClientSession, on_socket: bool,
-               stop: threading.Event) -> tuple[Any, shm_session.ReadCall]:
+               stop: threading.Event, latest: bool = False) -> tuple[Any, shm_session.ReadCall]:
     """A Watch call of a raw client on ``session`` for "img", its events asked on the socket or not."""
     call = session.new_call()
 
     def requests() -> Any:
         yield wm_pb2.WatchRequest(create=wm_pb2.WatchCreate(watch_id=1, filters=[
-            {"id": "img", "subarchitecture": "vision", "include_entry": True}]))
+            {"id": "img", "subarchitecture": "vision", "include_entry": True}],
+            delivery=wm_pb2.DELIVERY_LATEST if latest else wm_pb2.DELIVERY_QUEUE))
         stop.wait(30)
 
     metadata = h.metadata(cid) + call.metadata + ((EVENTS_METADATA,) if on_socket else ())
@@ -146,6 +148,32 @@ def test_a_client_that_does_not_read_its_socket_holds_up_nothing_and_its_frames_
     assert link is not None
     # What waits for the client: the bound, then at most one batch (here one value of 1 MiB and its event).
     assert link.unsent <= EVENTS_UNSENT + 2 * MIB, link.unsent
+    stop.set()
+    stream.cancel()
+    stalled.close()
+
+
+def test_a_latest_watch_whose_client_does_not_read_its_socket_keeps_the_newest_value_not_its_place(
+    host: Callable[..., Host]
+) -> None:
+    """The server holds the newest change for it while its frames wait, so it never falls behind the history."""
+    h = host(limits=Limits(history_events=16), settings=SharedSettings(window_bytes=4 * MIB))  # then bytes
+    stop = threading.Event()
+    stalled = h.session("stalled")
+    frames: list[bytes] = []
+    stream, call = _raw_watch(h, "stalled", stalled, True, stop, latest=True)
+    writer = h.component("writer")
+    writer.add("img", image(MIB, 0))
+    for seed in range(1, 60):  # the first few fill what may wait unsent; the rest pass the history by far
+        writer.overwrite("img", image(MIB, seed))
+    stalled.event_handlers[call.number] = frames.append
+    got: list[tuple[int, int]] = []  # revision, skipped
+    deadline = time.monotonic() + 30
+    while (not got or got[-1][0] < 60) and time.monotonic() < deadline:
+        stalled.poll(0.05)
+        got = [(e.revision, e.skipped) for f in frames for e in wm_pb2.WatchResponse.FromString(f).events]
+    assert got and got[-1][0] == 60, got  # the newest value came, and the call did not end
+    assert sum(1 + skipped for _, skipped in got) == 60 and len(got) < 60, got
     stop.set()
     stream.cancel()
     stalled.close()

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from cast.errors import InvalidArgumentError
-from cast.foxglove.sink import parse_foxglove_listen as parse_listen
+from cast.foxglove.address import parse_foxglove_listen as parse_listen
 from cast.listen import ListenAddress
 from tests.conftest import ServerHandle
 from tests.recording.conftest import cast

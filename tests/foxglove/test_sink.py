@@ -9,7 +9,8 @@ from collections.abc import Callable
 from cast_testing_pb2 import Pose
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from cast.foxglove.sink import FoxgloveSink, parse_foxglove_listen
+from cast.foxglove.address import parse_foxglove_listen
+from cast.foxglove.sink import FoxgloveSink
 from cast.recording.channels import ChannelMessage, value_channel
 from tests.conftest import wait_for
 from tests.foxglove.conftest import FoxgloveClient, port_is_free

@@ -156,7 +156,7 @@ def test_the_wheel_and_sdist_hold_the_generated_code_and_current_metadata(instal
     for stem in PROTOS:
         for suffix in ("_pb2.py", "_pb2.pyi", "_pb2_grpc.py", "_pb2_grpc.pyi"):
             assert f"cast/v1/{stem}{suffix}" in names, f"the wheel lacks cast/v1/{stem}{suffix}"
-    assert {"cast/py.typed", "cast/v1/__init__.py", "cast/config/system.schema.json"} <= names
+    assert {"cast/py.typed", "cast/v1/__init__.py", "cast/config/system.schema.json", "cast/VERSION"} <= names
     assert {"cast/testing/__init__.py", "cast/testing/pytest_plugin.py"} <= names
     entry_points = zipfile.ZipFile(installed.wheel).read(f"cast_grpc-{VERSION}.dist-info/entry_points.txt").decode()
     assert "[pytest11]\ncast = cast.testing.pytest_plugin" in entry_points, entry_points

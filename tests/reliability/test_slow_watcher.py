@@ -102,3 +102,69 @@ def test_a_stalled_watcher_keeps_server_memory_bounded_and_gets_every_event_or_t
     })
     # Bounded: the history ring (20,000 small events) is all the server keeps; far less than the events written.
     assert growth_mb < 200, f"server memory grew by {growth_mb:.0f} MB"
+
+
+def test_a_stalled_latest_watcher_gets_the_newest_change_of_each_entry_with_what_it_skipped(
+    server_factory: Any,
+) -> None:
+    """`latest` is for slow consumers of fast data: however long its client does not read, its watch does not
+    fall behind the history (which holds 20 changes here); when it reads again it gets each entry's newest change,
+    its skipped count covering every other change, in revision order."""
+    entries, rounds = 4, 300
+    handle = server_factory({"system": "slow", "subarchitectures": {"vision": {}},
+                             "limits": {"history_events": 20}})
+    ch = grpc.insecure_channel(handle.endpoint)
+    stub = working_memory_pb2_grpc.WorkingMemoryStub(ch)
+    md = (("authorization", f"Bearer {handle.token('writer', 'vision')}"),)
+    pixels = b"\x07" * (256 << 10)  # the client's flow-control window fills after a few of these
+    for i in range(entries):
+        stub.Add(working_memory_pb2.AddRequest(
+            address=entry_pb2.EntryAddress(id=f"img{i}", subarchitecture="vision"),
+            value=any_pb2.Any(type_url="type.googleapis.com/google.protobuf.BytesValue")), metadata=md)
+    release = threading.Event()
+
+    def requests() -> Any:
+        yield working_memory_pb2.WatchRequest(create=working_memory_pb2.WatchCreate(
+            watch_id=1, delivery=working_memory_pb2.DELIVERY_LATEST,
+            filters=[entry_pb2.ChangeFilter(subarchitecture="vision", include_entry=True)]))
+        release.wait()
+
+    stream = stub.Watch(requests(), metadata=(("authorization", f"Bearer {handle.token('slow', 'vision')}"),))
+    first = next(stream)  # created; the watcher stops reading now
+    start = first.created.revisions["vision"] + 1
+    for r in range(rounds):
+        ops = [working_memory_pb2.BatchOperation(overwrite=working_memory_pb2.OverwriteRequest(
+            address=entry_pb2.EntryAddress(id=f"img{i}", subarchitecture="vision"),
+            value=any_pb2.Any(type_url="type.googleapis.com/google.protobuf.BytesValue",
+                              value=b"\x0a" + _varint(len(pixels) + 8) + r.to_bytes(8, "little") + pixels)))
+            for i in range(entries)]
+        stub.Batch(working_memory_pb2.BatchRequest(operations=ops), metadata=md, timeout=60)
+    last = start + entries * rounds - 1
+    got: list[tuple[int, str, int]] = []  # revision, entry, skipped
+    status = grpc.StatusCode.OK
+    try:
+        for resp in stream:
+            got.extend((ev.revision, ev.entry.address.id, ev.skipped) for ev in resp.events)
+            if got and got[-1][0] >= last:
+                break
+    except grpc.RpcError as exc:
+        status = exc.code()
+    release.set()
+    stream.cancel()
+    ch.close()
+    assert status == grpc.StatusCode.OK, f"the latest watch ended with {status.name} after {len(got)} events"
+    revisions = [g[0] for g in got]
+    assert revisions == sorted(set(revisions)), "out of order or twice"
+    assert sum(1 + skipped for _, _, skipped in got) == entries * rounds, "a change neither received nor skipped"
+    newest = {entry: revision for revision, entry, _ in got}
+    assert newest == {f"img{i}": last - entries + 1 + i for i in range(entries)}
+    assert len(got) < entries * rounds // 2, "it should have skipped most while it did not read"
+
+
+def _varint(n: int) -> bytes:
+    out = b""
+    while True:
+        low, n = n & 0x7F, n >> 7
+        if not n:
+            return out + bytes([low])
+        out += bytes([low | 0x80])

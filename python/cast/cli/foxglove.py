@@ -17,7 +17,8 @@ from typing import Any
 
 from cast.cli.record import Reach, add_connection_options, reach, stop_on_signals, unreachable
 from cast.errors import CastError
-from cast.foxglove.sink import DEFAULT_LISTEN, FoxgloveSink, listening_line, parse_foxglove_listen
+from cast.foxglove.address import DEFAULT_LISTEN, listening_line, parse_foxglove_listen
+from cast.foxglove.sink import FoxgloveSink
 from cast.foxglove.view import VIEW_ID, LiveView, ViewOptions
 
 __all__ = ["add_commands"]

@@ -16,7 +16,7 @@ from cast.cli.options import parse_sets
 from cast.config import SystemConfig, read_config
 from cast.config.engines import ENGINES, read_for_engine
 from cast.config.problems import Problems
-from cast.foxglove.sink import DEFAULT_LISTEN
+from cast.foxglove.address import DEFAULT_LISTEN
 from cast.orchestrator.preflight import preflight
 from cast.web.address import DEFAULT_LISTEN as WEB_LISTEN
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 from cast.core.host import MemoryHost
 from cast.core.records import ChangeEvent, Operation
-from cast.errors import InvalidArgumentError, ResourceExhaustedError
+from cast.errors import HistoryExpiredError, InvalidArgumentError, ResourceExhaustedError
 
 __all__ = ["EventFilter", "Match", "Subscription"]
 
@@ -67,6 +67,23 @@ class _Watch:
     latest: bool = False  # delivery "latest": pending changes of one entry conflate to the newest
 
 
+def _seq(m: Match) -> int:
+    return m.event.seq
+
+
+def _within(batch: list[Match], max_events: int, max_bytes: int) -> bool:
+    """Whether ``batch`` keeps a poll's bounds: as :meth:`Subscription.poll`, only its last match may pass them."""
+    events, size = max_events, max_bytes
+    for i, m in enumerate(batch):
+        if i and ((max_events and events <= 0) or (max_bytes and size <= 0)):
+            return False
+        if max_events:
+            events -= 1
+        if max_bytes and m.include_entry and m.event.entry is not None:
+            size -= len(m.event.entry.data)
+    return True
+
+
 class Subscription:
     """One consumer's watches over a host; not thread-safe (one consumer at a time)."""
 
@@ -89,6 +106,9 @@ class Subscription:
         # (cast.core.metrics).
         self.polled: list[tuple[str, int]] = []
         self.with_values = False
+        # Changes taken for latest watches while the consumer could not be sent to (hold_latest): one per
+        # entry and set of watches, newest wins; delivered by the next polls, in the host's order.
+        self._held: dict[tuple[str, str, tuple[int, ...]], Match] = {}
         host.add_listener(wake)
 
     @property
@@ -152,6 +172,67 @@ class Subscription:
         self._by_sa = None
         return self._watches.pop(watch_id, None) is not None
 
+    @property
+    def has_latest(self) -> bool:
+        """Whether a watch of this subscription delivers ``latest`` (:meth:`hold_latest` has work to do)."""
+        return any(w.latest for w in self._watches.values())
+
+    def hold_latest(self) -> None:
+        """Take the changes pending for this subscription's ``latest`` watches now, and hold them.
+
+        For a consumer that cannot be sent to for a while (its stream or socket
+        is full): a latest watch keeps, here, the newest change of each entry it
+        was not sent (counting the ones it replaced in :attr:`Match.skipped`)
+        instead of keeping its place in the history, so it never falls behind
+        the history however long its consumer does not read; what is held is at
+        most one change per entry. It stops, in a WM, at the first change a
+        queue watch of the subscription still has to get, so that the stream
+        keeps the host's order: a queue watch falls behind the history as
+        before. The next polls deliver what is held, merged in the host's order.
+        """
+        by_sa = self._by_sa
+        if by_sa is None:
+            by_sa = self._by_sa = self._index()
+        held = self._held
+        for sa, watches in by_sa.items():
+            latest = [w for w in watches if w.latest]
+            if not latest:
+                continue
+            queue = [w for w in watches if not w.latest]
+            start = min(w.next[sa] for w in watches)
+            try:
+                events = self._host.events_since(sa, start)
+            except HistoryExpiredError:
+                continue  # fell behind already: the next poll ends the stream with it
+            last = start
+            for ev in events:
+                if any(ev.revision >= w.next[sa] and any(f.matches(ev) for f in w.filters) for w in queue):
+                    break  # a queue watch's change: the stream delivers it first, in order
+                last = ev.revision + 1
+                ids: list[int] = []
+                include = False
+                for w in latest:
+                    if ev.revision < w.next[sa]:
+                        continue
+                    for i, f in enumerate(w.filters):
+                        if f.matches(ev):
+                            ids.append(w.watch_id)
+                            include = include or f.include_entry or any(
+                                g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
+                            )
+                            break
+                if not ids:
+                    continue
+                match = Match(ev, ids, include)
+                key = (sa, ev.id, tuple(ids))
+                older = held.pop(key, None)
+                if older is not None:
+                    match.skipped = older.skipped + 1
+                    match.first_skipped = older.first_skipped or older.event.revision
+                held[key] = match
+            for w in watches:  # the queue watches too: none of them wanted a change before ``last``
+                w.next[sa] = max(w.next[sa], last)
+
     def poll(self, max_events: int = 0, max_bytes: int = 0) -> list[Match]:
         """Pending events matching any watch, each once, in the host's order (per WM: by revision).
 
@@ -159,6 +240,57 @@ class Subscription:
         their entry; 0: no cap) bound one batch; :attr:`behind` then tells that
         more is pending. HistoryExpiredError if a watch fell behind the history.
         """
+        if self._held:
+            return self._poll_held(max_events, max_bytes)
+        return self._poll(max_events, max_bytes)
+
+    def _poll_held(self, max_events: int, max_bytes: int) -> list[Match]:
+        """:meth:`poll` with changes held for latest watches (:meth:`hold_latest`), merged in the host's order.
+
+        A batch is everything merged when it keeps the bounds; else the held
+        changes that come before every fresh one, as many as the bounds allow
+        (at least one), or, when a fresh change comes first, that one alone:
+        the fresh poll is then undone, so the stream never skips past a change.
+        """
+        self.hold_latest()  # newer changes of the latest watches replace what is held for their entries
+        live = self._watches
+        held: list[Match] = []
+        for key, m in list(self._held.items()):
+            m.watch_ids = [i for i in m.watch_ids if i in live]  # a watch cancelled since: not delivered
+            if m.watch_ids:
+                held.append(m)
+            else:
+                del self._held[key]
+        held.sort(key=_seq)
+        before = {w.watch_id: dict(w.next) for w in live.values()}
+        fresh = self._poll(max_events, max_bytes)
+        # A fresh poll cut short by its bounds leaves no room: then the branch below, never a held change
+        # after the batch's last fresh one.
+        out = list(heapq.merge(fresh, held, key=_seq))
+        if not _within(out, max_events, max_bytes):
+            for w in live.values():
+                w.next = before[w.watch_id]
+            first = fresh[0].event.seq if fresh else None
+            out = []
+            for m in held:
+                if (first is not None and m.event.seq > first) or (out and not _within([*out, m], max_events,
+                                                                                          max_bytes)):
+                    break
+                out.append(m)
+            if not out:
+                out = self._poll(1, 0)  # the first fresh change, which comes before every held one
+            self.behind = True
+        taken = {id(m) for m in out}
+        for key, m in list(self._held.items()):
+            if id(m) in taken:
+                del self._held[key]
+        counts: dict[str, int] = {}
+        for m in out:
+            counts[m.event.subarchitecture] = counts.get(m.event.subarchitecture, 0) + 1
+        self.polled = list(counts.items())
+        return out
+
+    def _poll(self, max_events: int, max_bytes: int) -> list[Match]:
         self.behind = False
         by_sa = self._by_sa
         if by_sa is None:

@@ -12,7 +12,8 @@ from collections.abc import Callable
 
 from cast.attach import AttachedTool
 from cast.client.credentials import ClientTls, TokenSource
-from cast.foxglove.sink import FoxgloveSink, listening_line, parse_foxglove_listen
+from cast.foxglove.address import listening_line, parse_foxglove_listen
+from cast.foxglove.sink import FoxgloveSink
 from cast.foxglove.view import VIEW_ID, BackgroundView
 
 __all__ = ["RunView"]

@@ -18,27 +18,11 @@ import foxglove
 from foxglove.websocket import WebSocketServer
 
 from cast.errors import CastError, InvalidArgumentError
-from cast.listen import ListenAddress, ListenError, parse_listen
+from cast.foxglove.address import DEFAULT_LISTEN
+from cast.listen import ListenAddress, ListenError
 from cast.recording.channels import ChannelMessage, ChannelSpec, changes_channel, gaps_channel
 
-__all__ = ["DEFAULT_LISTEN", "FoxgloveSink", "listening_line", "parse_foxglove_listen"]
-
-DEFAULT_LISTEN = "127.0.0.1:8765"
-"""Foxglove's own default port, on loopback: the app's "Foxglove WebSocket" connection offers this address."""
-
-def parse_foxglove_listen(text: str, option: str = "--listen") -> ListenAddress:
-    """Where the live view listens (:func:`cast.listen.parse_listen`, with Foxglove's default as the example)."""
-    return parse_listen(text, option, DEFAULT_LISTEN)
-
-
-def listening_line(address: ListenAddress, url: str) -> str:
-    """Where the view listens, and who can connect: the first line ``cast foxglove`` and ``cast run`` print."""
-    if address.loopback:
-        return (f"listening on {url} (loopback only: on this machine, Foxglove's Open connection -> Foxglove "
-                f"WebSocket -> {url})")
-    return (f"listening on {url} (NOT loopback-only: anyone who reaches this address sees every working memory "
-            "shown, with no authentication)")
-
+__all__ = ["FoxgloveSink"]
 
 NoteSink = Callable[[str], None]
 """Where the sink says something a person should know (a channel it cannot announce)."""

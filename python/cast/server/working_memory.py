@@ -183,14 +183,23 @@ class _WatchStream:
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
+        self._sending = False  # an event batch is being sent on the call (the client may not be reading)
 
     def _notify(self) -> None:
         # Writes made by in-process components arrive on their own threads.
         if threading.get_ident() == self._loop_thread:
-            self._wake.set()
+            self._woken()
             watch_woken()
         else:
-            self._loop.call_soon_threadsafe(self._wake.set)
+            self._loop.call_soon_threadsafe(self._woken)
+
+    def _woken(self) -> None:
+        self._wake.set()
+        if self._sending and self._sub.has_latest:
+            # The call is busy sending (its client reads slowly or not at all): latest watches keep the
+            # newest change per entry meanwhile rather than their place in the history, which they would
+            # lose (cast.core.watch.Subscription.hold_latest).
+            self._sub.hold_latest()
 
     async def _read(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> None:
         try:
@@ -242,7 +251,10 @@ class _WatchStream:
                             "(it resumes after the last event received)"
                         )
                     if link.unsent > EVENTS_UNSENT:
-                        continue  # the client is not reading: its events wait here (and lag) until those went
+                        # The client is not reading: its events wait here (and lag) until those went, but
+                        # for its latest watches the newest change per entry is held (as in _woken).
+                        self._sub.hold_latest()
+                        continue
                 # The history holds only visible writes, so these are durable (cast.core.host).
                 matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
                 if matches:
@@ -252,7 +264,11 @@ class _WatchStream:
                         assert self._lending is not None
                         link.send(wire.events(self._lending[1], self._events(matches)))
                     else:
-                        yield self._events(matches)
+                        self._sending = True
+                        try:
+                            yield self._events(matches)
+                        finally:
+                            self._sending = False
                 elif self._done and not self._sub.watch_ids:
                     return
         finally:

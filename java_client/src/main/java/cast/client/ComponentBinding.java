@@ -53,7 +53,17 @@ final class ComponentBinding {
     this.idPrefix = who.componentId() + ":" + HexFormat.of().formatHex(salt) + ":";
     // Change delivery stopped: for one watch (watchId >= 0, which is dropped) or for all.
     transport.setEventSink(
-        dispatcher::deliver,
+        new Transport.EventSink() {
+          @Override
+          public void event(Transport.Change change) {
+            dispatcher.deliver(change);
+          }
+
+          @Override
+          public void event(Transport.Change change, java.util.function.BooleanSupplier overflow) {
+            dispatcher.deliver(change, overflow);
+          }
+        },
         (error, watchId) -> {
           dispatcher.stopped(error, watchId);
           dispatcher.submitHook(() -> owner.watchFailed(error));

@@ -9,6 +9,7 @@ import java.util.Map;
 import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicInteger;
+import java.util.function.BooleanSupplier;
 import java.util.logging.Level;
 import java.util.logging.Logger;
 
@@ -154,8 +155,26 @@ final class Dispatcher {
 
   /** Wait while the queue is full (holding lock); never on the dispatcher thread. */
   private void awaitRoom() throws InterruptedException {
+    awaitRoom(NEVER);
+  }
+
+  private static final BooleanSupplier NEVER = () -> false;
+  /** How often a wait for room looks at its {@code overflow} condition again. */
+  private static final long OVERFLOW_CHECK_MS = 5;
+
+  /**
+   * Wait while the queue is full (holding lock); never on the dispatcher thread, nor while
+   * {@code overflow} holds (then the call goes over the capacity rather than wait).
+   */
+  private void awaitRoom(BooleanSupplier overflow) throws InterruptedException {
     while (pending >= capacity && !stopped && Thread.currentThread() != thread) {
-      lock.wait();
+      if (overflow == NEVER) {
+        lock.wait();
+      } else if (overflow.getAsBoolean()) {
+        return;
+      } else {
+        lock.wait(OVERFLOW_CHECK_MS);
+      }
     }
   }
 
@@ -252,6 +271,15 @@ final class Dispatcher {
    * ({@link WorkingMemoryChange#callbackReturned()}).
    */
   void deliver(Transport.Change change) {
+    deliver(change, NEVER);
+  }
+
+  /**
+   * As {@link #deliver(Transport.Change)}, but while {@code overflow} holds the change is queued
+   * over the capacity instead of waiting for room (a shared-memory session's reader, which must
+   * go on reading while a thread waits for a segment that may be behind this change's frame).
+   */
+  void deliver(Transport.Change change, BooleanSupplier overflow) {
     try {
       WorkingMemoryChange c = null;
       for (int watchId : change.watchIds()) {
@@ -260,7 +288,7 @@ final class Dispatcher {
           continue;
         }
         if (r.options().delivery() == Delivery.LATEST) {
-          deliverLatest(r.options().priority(), watchId, change);
+          deliverLatest(r.options().priority(), watchId, change, overflow);
           continue;
         }
         if (c == null) {
@@ -280,7 +308,7 @@ final class Dispatcher {
         boolean queued = false;
         try {
           synchronized (lock) {
-            awaitRoom();
+            awaitRoom(overflow);
             queued = add(r.options().priority(), call, call);
           }
         } finally {
@@ -311,7 +339,8 @@ final class Dispatcher {
   }
 
   /** Queue a LATEST watch's change, in place of an undelivered one of the same entry if there is one. */
-  private void deliverLatest(Priority priority, int watchId, Transport.Change change) throws InterruptedException {
+  private void deliverLatest(Priority priority, int watchId, Transport.Change change, BooleanSupplier overflow)
+      throws InterruptedException {
     LatestKey key = new LatestKey(watchId, change.address());
     LinkedHashMap<Object, Runnable> level = levels.get(priority.ordinal());
     retain(change); // the queued call's hold: let go when it ran, was replaced or dropped
@@ -320,7 +349,7 @@ final class Dispatcher {
       synchronized (lock) {
         queued = replaced(level, key, watchId, change);
         if (!queued) {
-          awaitRoom();
+          awaitRoom(overflow);
           queued = replaced(level, key, watchId, change) || add(priority, key, new LatestCall(watchId, change));
         }
       }

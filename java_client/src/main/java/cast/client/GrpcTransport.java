@@ -221,6 +221,11 @@ final class GrpcTransport implements Transport {
     sessions.incrementAndGet();
   }
 
+  /** How many times its Watch streams were opened again after a break. */
+  int watchReconnects() {
+    return watches.reconnects();
+  }
+
   /** How many sessions this transport registered (more than one per server after reconnects). */
   int sessions() {
     return sessions.get();

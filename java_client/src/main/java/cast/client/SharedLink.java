@@ -174,6 +174,24 @@ final class SharedLink {
     return stub.withInterceptors(MetadataUtils.newAttachHeadersInterceptor(md));
   }
 
+  /** Call metadata asking for a Watch call's event batches as EVENTS frames on the session's socket. */
+  static final Metadata.Key<String> EVENTS_KEY = Metadata.Key.of("cast-watch-events", Metadata.ASCII_STRING_MARSHALLER);
+
+  /**
+   * {@code stub} for a Watch call on the read call {@code read} (null: as it is): its values lent,
+   * and its event batches asked for as EVENTS frames on the session's socket
+   * (docs/client-protocol.md, "A watch's events on the session's socket").
+   */
+  static <S extends AbstractStub<S>> S watching(S stub, SharedSession.ReadCall read) {
+    if (read == null) {
+      return stub;
+    }
+    Metadata md = new Metadata();
+    md.put(METADATA_KEY, read.metadata());
+    md.put(EVENTS_KEY, "socket");
+    return stub.withInterceptors(MetadataUtils.newAttachHeadersInterceptor(md));
+  }
+
   /** Why values travel as bytes, while they do ("" with a session). */
   String reason() {
     return reason;

@@ -18,7 +18,9 @@ import java.util.HashMap;
 import java.util.HexFormat;
 import java.util.List;
 import java.util.Map;
+import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicLong;
 import java.util.logging.Logger;
 import org.newsclub.net.unix.AFUNIXSocket;
 import org.newsclub.net.unix.FileDescriptorCast;
@@ -35,12 +37,15 @@ import org.newsclub.net.unix.FileDescriptorCast;
  *       buffer over the segment it is in (mapped once, when its SEGMENT frame came) and a {@link
  *       Lease} that gives it back (RELEASE) when its last holder lets go;
  *   <li>counts the references each read call received and says so (RECEIVED), so that the
- *       server takes back what never arrived ({@link ReadCall}).
+ *       server takes back what never arrived ({@link ReadCall});
+ *   <li>hands a watch call's EVENTS frames to the {@link EventsHandler} of that call (docs/client-protocol.md,
+ *       "A watch's events on the session's socket").
  * </ul>
  *
- * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, the end: a server
+ * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, EVENTS, the end: a server
  * that died is noticed at once), one sends (RELEASE, RECEIVED), so that giving a value back
- * never waits for the server. Segments are mapped with {@link FileChannel#map}; a segment the
+ * never waits for the server. The reader runs an EVENTS frame's handler itself, which queues the
+ * changes on the component's dispatcher: from the kernel to the dispatcher's queue on one thread. Segments are mapped with {@link FileChannel#map}; a segment the
  * server retired, or every segment once the session ended, is unmapped as soon as no lease of
  * it is held (the memory of a dead server goes at once, not at some later garbage collection).
  * So a buffer taken from a view must not be read after the view was closed: its memory may be
@@ -70,6 +75,25 @@ final class SharedSession {
   private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE
   private long calls;
   private volatile String dead; // why the session ended, null while it lives
+  // call number -> what takes that watch call's EVENTS frames (run on the reader thread)
+  private final Map<Long, EventsHandler> eventHandlers = new ConcurrentHashMap<>();
+  private int segmentWaiters; // threads waiting in awaitSegment; guarded by lock
+  /** EVENTS frames read on this session (for tests and diagnostics). */
+  final AtomicLong eventFrames = new AtomicLong();
+
+  /**
+   * What takes one watch call's EVENTS frames: {@link #frame} runs on the session's reader
+   * thread, one frame at a time in the order read (it may wait for room in the dispatcher's
+   * queue: the socket, then the server, hold the rest meanwhile); {@link #sessionEnded} once,
+   * when the session ends while the handler is registered.
+   */
+  interface EventsHandler {
+    /** One EVENTS frame of the call: its serialized WatchResponse. */
+    void frame(ByteBuffer response);
+
+    /** The session ended ({@code why}): the server ends the call; no more frames come. */
+    void sessionEnded(String why);
+  }
 
   /** The session of a socket whose WELCOME ({@code welcome}, with the staging area's {@code stagingFd}) came. */
   SharedSession(AFUNIXSocket socket, ShmWire.Welcome welcome, FileDescriptor stagingFd, String endpoint)
@@ -162,10 +186,18 @@ final class SharedSession {
       return SharedSession.this;
     }
 
-    /** The bytes of a value lent on this call, and its lease (held once); UnavailableError if they cannot be read. */
+    /**
+     * The bytes of a value lent on this call, and its lease (held once); UnavailableError if they
+     * cannot be read, or if the call already ended (its RECEIVED was sent without it, so the server
+     * takes it back itself).
+     */
     Lease claim(SharedValue ref) {
       long n;
       synchronized (this) {
+        if (ended) {
+          throw new UnavailableError("read call " + number + " of the shared-memory session with " + endpoint
+              + " has ended: its values are given back by the server; read again");
+        }
         n = ++count;
       }
       if (n % RECEIVED_EVERY == 0) {
@@ -191,6 +223,34 @@ final class SharedSession {
       if (n > 0 || !answered) {
         send(ShmWire.received(number, n, true));
       }
+    }
+  }
+
+  /**
+   * {@code handler} takes the EVENTS frames of read call {@code call} from now on; if the session
+   * has ended already it is told at once.
+   */
+  void onEvents(long call, EventsHandler handler) {
+    eventHandlers.put(call, handler);
+    String why = dead;
+    if (why != null && eventHandlers.remove(call, handler)) {
+      handler.sessionEnded(why);
+    }
+  }
+
+  /** No more EVENTS frames for read call {@code call}: those that still come are dropped. */
+  void offEvents(long call) {
+    eventHandlers.remove(call);
+  }
+
+  /**
+   * Whether a thread waits for a SEGMENT frame: the reader must not then wait for room in a
+   * dispatcher's queue (the segment may be behind the EVENTS frame it holds, and the waiter may be
+   * the dispatcher's own callback).
+   */
+  boolean segmentAwaited() {
+    synchronized (lock) {
+      return segmentWaiters > 0;
     }
   }
 
@@ -238,11 +298,14 @@ final class SharedSession {
               "shared-memory segment " + segmentId + " of the server at " + endpoint + " did not arrive ("
                   + (dead != null ? dead : "within " + SEGMENT_WAIT_MS / 1000.0 + " s") + "): read again");
         }
+        segmentWaiters++;
         try {
           TimeUnit.NANOSECONDS.timedWait(lock, left);
         } catch (InterruptedException e) {
           Thread.currentThread().interrupt();
           throw new UnavailableError("interrupted while waiting for shared-memory segment " + segmentId);
+        } finally {
+          segmentWaiters--;
         }
       }
     }
@@ -357,6 +420,18 @@ final class SharedSession {
             retire(segment);
           }
         }
+        case ShmWire.EVENTS -> {
+          long call = ShmWire.parseEventsCall(frame.body());
+          eventFrames.incrementAndGet();
+          EventsHandler handler = eventHandlers.get(call);
+          if (handler != null) { // else the call ended: its values, never claimed, the server takes back
+            try {
+              handler.frame(frame.body());
+            } catch (RuntimeException e) { // one watch call's trouble must not end the session of the others
+              LOG.severe("the events of watch call " + call + " from " + endpoint + " failed: " + e);
+            }
+          }
+        }
         case ShmWire.REFUSED -> end("the server ended it: " + ShmWire.text(frame.body()));
         default -> closeAll(frame.fd()); // a kind this client does not know: ignored
       }
@@ -394,6 +469,12 @@ final class SharedSession {
     }
     mapped.forEach(this::retire); // each unmapped once no value of it is held
     LOG.fine("shared-memory session with " + endpoint + " ended: " + why);
+    for (Long call : List.copyOf(eventHandlers.keySet())) {
+      EventsHandler handler = eventHandlers.remove(call);
+      if (handler != null) {
+        handler.sessionEnded(dead);
+      }
+    }
     try {
       socket.close();
     } catch (IOException e) {

@@ -12,7 +12,7 @@ import java.util.List;
 /**
  * The frames of a shared-memory session on a server's Unix socket (docs/client-protocol.md,
  * "Large values by shared memory", "Frames"): a little-endian {@code u32} length of what
- * follows (1 to 65,536), a {@code u8} kind and its fields. A frame that carries a memory file
+ * follows (1 to 65,536; up to 64 MiB for EVENTS), a {@code u8} kind and its fields. A frame that carries a memory file
  * came with it as {@code SCM_RIGHTS}, no later than its first byte: the {@link Reader} keeps the
  * descriptors that arrive in order and gives the next one to each frame of a kind that carries
  * one. The twin of python/cast/wire/shared_memory.py. No sockets
@@ -33,9 +33,12 @@ final class ShmWire {
   static final int REFUSED = 11; // the reason (UTF-8) to the end; the server then closes
   static final int SEGMENT = 12; // u32 segment id, u64 size; carries the segment's memory file
   static final int RETIRE = 13; // u32 segment id
+  static final int EVENTS = 15; // u64 call, then a serialized cast.v1.WatchResponse to the end
 
-  /** The largest frame either side sends or accepts. */
+  /** The largest frame either side sends or accepts, but for the kinds that carry messages. */
   static final int MAX_FRAME = 1 << 16;
+  /** The largest frame of a kind that carries a gRPC message (WRITES, REPLIES, EVENTS): 64 MiB, a message's limit. */
+  static final int MAX_MESSAGE_FRAME = 64 << 20;
   /** Value ids one RELEASE frame carries at most (8 bytes each, within {@link #MAX_FRAME}). */
   static final int RELEASE_IDS = 8000;
   static final int WELCOME_BYTES = 2 + 16 + 16 + 8 + 8 + 8;
@@ -127,6 +130,19 @@ final class ShmWire {
     return kind == WELCOME || kind == SEGMENT;
   }
 
+  /** The largest length (kind byte and fields) a frame of {@code kind} may have. */
+  static int bound(int kind) {
+    return kind == 4 || kind == 14 || kind == EVENTS ? MAX_MESSAGE_FRAME : MAX_FRAME;
+  }
+
+  /** The call an EVENTS frame's body names; the body is then at its serialized WatchResponse. */
+  static long parseEventsCall(ByteBuffer body) throws ProtocolError {
+    if (body.remaining() < 8) {
+      throw new ProtocolError("EVENTS has " + body.remaining() + " bytes of fields, fewer than its call's 8");
+    }
+    return body.getLong();
+  }
+
   /** Bytes and descriptors in, as they were read; whole frames out, each with the descriptor it carries. */
   static final class Reader {
     private ByteBuffer buf = ByteBuffer.allocate(2 * MAX_FRAME).order(ByteOrder.LITTLE_ENDIAN);
@@ -149,11 +165,13 @@ final class ShmWire {
       buf.flip();
       List<Frame> out = new ArrayList<>();
       try {
-        while (buf.remaining() >= 4) {
+        while (buf.remaining() >= 5) {
+          // The length is checked against its kind's bound as soon as the first five bytes are in.
           int length = buf.getInt(buf.position());
-          if (length < 1 || length > MAX_FRAME) {
-            throw new ProtocolError("a frame of " + Integer.toUnsignedString(length) + " bytes (1 to " + MAX_FRAME
-                + " allowed)");
+          int bound = bound(Byte.toUnsignedInt(buf.get(buf.position() + 4)));
+          if (length < 1 || length > bound) {
+            throw new ProtocolError("a frame of " + Integer.toUnsignedString(length) + " bytes of kind "
+                + Byte.toUnsignedInt(buf.get(buf.position() + 4)) + " (1 to " + bound + " allowed)");
           }
           if (buf.remaining() - 4 < length) {
             break;

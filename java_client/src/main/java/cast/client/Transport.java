@@ -145,6 +145,14 @@ interface Transport extends AutoCloseable {
   interface EventSink {
     /** One event; may block while the component's queue is full (the stream then waits). */
     void event(Change change);
+
+    /**
+     * One event, as {@link #event(Change)}, but queued over the component's capacity rather than
+     * waiting while {@code overflow} holds (a shared-memory session's reader: SharedSession).
+     */
+    default void event(Change change, java.util.function.BooleanSupplier overflow) {
+      event(change);
+    }
   }
 
   // ---------------------------------------------------------------- session

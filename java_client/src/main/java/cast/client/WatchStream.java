@@ -5,10 +5,12 @@ import cast.v1.WatchCancel;
 import cast.v1.WatchCreate;
 import cast.v1.WatchRequest;
 import cast.v1.WatchResponse;
+import com.google.protobuf.InvalidProtocolBufferException;
 import io.grpc.Metadata;
 import io.grpc.Status;
 import io.grpc.stub.ClientCallStreamObserver;
 import io.grpc.stub.ClientResponseObserver;
+import java.nio.ByteBuffer;
 import java.util.ArrayList;
 import java.util.HashMap;
 import java.util.LinkedHashMap;
@@ -21,6 +23,7 @@ import java.util.concurrent.TimeUnit;
 import java.util.concurrent.TimeoutException;
 import java.util.concurrent.atomic.AtomicInteger;
 import java.util.function.BiConsumer;
+import java.util.function.BooleanSupplier;
 import java.util.logging.Logger;
 
 /**
@@ -31,8 +34,15 @@ import java.util.logging.Logger;
  * history id: a server that lost that history refuses the resume, and the component
  * is told to resynchronise (HistoryExpiredError). Any other end is for good: every
  * watch on the stream fails, and the next {@code onChange} opens a new stream
- * ({@link Streams}: the component's streams, one per server). The twin of
- * python/cast/client/watch_stream.py and cpp_client/src/watch_stream.cc.
+ * ({@link Streams}: the component's streams, one per server).
+ *
+ * <p>With a shared-memory session the call asks for its event batches as EVENTS frames on the
+ * session's socket (docs/client-protocol.md, "A watch's events on the session's socket"): the
+ * session's reader thread turns them into changes and queues them on the dispatcher itself, so an
+ * event crosses no gRPC thread; {@code created}, {@code failed} and the call's end stay on the
+ * call. When the socket ends the call is ended and opened again as after any break, from the
+ * revision after the last event delivered. The twin of python/cast/client/watch_stream.py and
+ * cpp_client/src/watch_stream.cc.
  */
 final class WatchStream {
   private static final Logger LOG = Logger.getLogger("cast.client");
@@ -201,6 +211,13 @@ final class WatchStream {
       }
     }
 
+    /** How many times the streams were opened again after a break (for tests and diagnostics). */
+    int reconnects() {
+      synchronized (lock) {
+        return streams.values().stream().mapToInt(s -> s.reconnects.get()).sum();
+      }
+    }
+
     /** End every stream (the component is closing); no new one opens. */
     void close() {
       List<WatchStream> all;
@@ -287,23 +304,91 @@ final class WatchStream {
       }
       int gen = ++generation;
       requests = null;
-      SharedLink.lending(server.wmAsync, read).watch(new Call(gen, read)); // beforeStart sets `requests`
+      Call call = new Call(gen, read);
+      if (read != null) {
+        read.session().onEvents(read.number, call); // before the call starts: a frame may precede `created`
+      }
+      SharedLink.watching(server.wmAsync, read).watch(call); // beforeStart sets `requests`
       for (Watch w : watches.values()) {
         send(createRequest(w));
       }
     }
   }
 
-  /** The observer of one Watch call. */
-  private final class Call implements ClientResponseObserver<WatchRequest, WatchResponse> {
+  /**
+   * The observer of one Watch call, and of its EVENTS frames on the session's socket. Its events
+   * (from either) are delivered under {@code delivering}, which the call's end takes before the
+   * call is opened again: no event of an ended call is delivered after the resume was computed.
+   */
+  private final class Call
+      implements ClientResponseObserver<WatchRequest, WatchResponse>, SharedSession.EventsHandler {
     private final int gen;
     private final SharedSession.ReadCall read; // its part of the shared-memory session, or null
+    private final BooleanSupplier overflow; // the session's reader must not wait for room meanwhile
+    private final Object delivering = new Object();
+    private boolean over; // the call ended: its frames still coming are dropped; guarded by delivering
     private volatile boolean unreadable; // an event's lent value could not be read: the call is being ended
     private boolean first = true; // onNext is serial per call
 
     Call(int gen, SharedSession.ReadCall read) {
       this.gen = gen;
       this.read = read;
+      SharedSession session = read == null ? null : read.session();
+      this.overflow = session == null ? () -> false : session::segmentAwaited;
+    }
+
+    @Override
+    public void frame(ByteBuffer body) {
+      WatchResponse resp;
+      try {
+        resp = WatchResponse.parseFrom(body);
+      } catch (InvalidProtocolBufferException e) {
+        // Nothing of it can be delivered: the call resumes after the last event that was.
+        LOG.warning("an EVENTS frame from " + server.endpoint + " is not a WatchResponse (" + e.getMessage()
+            + "): reconnecting");
+        unreadable = true;
+        cancel(gen, "an EVENTS frame could not be read");
+        return;
+      }
+      deliver(resp);
+    }
+
+    @Override
+    public void sessionEnded(String why) {
+      // The server ends the call too (UNAVAILABLE); ending it here does not wait for that. It is
+      // opened again as after any break (with backoff, so a session that keeps ending cannot spin).
+      cancel(gen, "its shared-memory session ended (" + why + ")");
+    }
+
+    /** The events of {@code resp}, unless the call is over; an unreadable lent value ends the call. */
+    private void deliver(WatchResponse resp) {
+      if (resp.getEventsCount() == 0) {
+        return;
+      }
+      synchronized (delivering) {
+        if (over || unreadable) {
+          return; // sent again after the reconnect
+        }
+        try {
+          events(resp, read, overflow);
+        } catch (UnavailableError e) {
+          // A value lent by shared memory that cannot be read (its segment never came): the
+          // stream is opened again and resumes from the last event delivered, so nothing is lost.
+          unreadable = true;
+          LOG.warning("an event from " + server.endpoint + " could not be read (" + e.getMessage() + "): reconnecting");
+          cancel(gen, "an event could not be read: " + e.getMessage());
+        }
+      }
+    }
+
+    /** No event of the call is delivered from now on (its end, before the resume is computed). */
+    private void over() {
+      synchronized (delivering) {
+        over = true;
+      }
+      if (read != null) {
+        read.session().offEvents(read.number);
+      }
     }
 
     @Override
@@ -327,29 +412,27 @@ final class WatchStream {
       }
       if (first) {
         first = false;
-        if (read == null && server.shared != null) {
+        // Without a session (or with one that ended before the call began) it opens again once one is open.
+        if ((read == null || read.session().dead() != null) && server.shared != null) {
           transport.schedule(() -> upgrade(gen), 0);
         }
       }
-      try {
-        handle(resp, read);
-      } catch (UnavailableError e) {
-        // A value lent by shared memory that cannot be read (its segment never came): the
-        // stream is opened again and resumes from the last event delivered, so nothing is lost.
-        unreadable = true;
-        LOG.warning("an event from " + server.endpoint + " could not be read (" + e.getMessage() + "): reconnecting");
-        cancel(gen, "an event could not be read: " + e.getMessage());
+      deliver(resp); // events come on the call without a session (or from a server that has none)
+      if (!unreadable) {
+        handle(resp);
       }
     }
 
     @Override
     public void onError(Throwable t) {
+      over();
       endRead();
       ended(gen, Status.fromThrowable(t), Status.trailersFromThrowable(t));
     }
 
     @Override
     public void onCompleted() {
+      over();
       endRead();
       ended(
           gen,
@@ -374,13 +457,18 @@ final class WatchStream {
     if (shared == null || shared.session() == null) {
       return;
     }
+    reopen(gen, "opened again with shared memory");
+  }
+
+  /** End call {@code gen}, if it is still the current one, and open it again at once (nothing broke on gRPC). */
+  private void reopen(int gen, String why) {
     synchronized (mutex) {
       if (gen != generation || requests == null) {
         return;
       }
       upgrading = gen;
     }
-    cancel(gen, "opened again with shared memory");
+    cancel(gen, why);
   }
 
   /** End call {@code gen}, if it is still the current one (it is opened again). */
@@ -396,7 +484,8 @@ final class WatchStream {
     }
   }
 
-  private void handle(WatchResponse resp, SharedSession.ReadCall read) {
+  /** Deliver the events of {@code resp} (under its call's {@code delivering}), in order. */
+  private void events(WatchResponse resp, SharedSession.ReadCall read, BooleanSupplier overflow) {
     Transport.EventSink sink = streams.sink;
     for (ChangeEvent e : resp.getEventsList()) {
       if (sink != null) {
@@ -410,11 +499,15 @@ final class WatchStream {
           LOG.severe("dropping change event revision " + e.getRevision() + ": " + err.getMessage());
         }
         if (change != null) {
-          sink.event(change);
+          sink.event(change, overflow);
         }
       }
       seen.merge(e.getAddress().getSubarchitecture(), e.getRevision(), Math::max);
     }
+  }
+
+  /** What the call itself carries besides events: the creation or failure of a watch. */
+  private void handle(WatchResponse resp) {
     if (resp.hasCreated()) {
       var created = resp.getCreated();
       if (!created.getHistoryId().isEmpty()) {
