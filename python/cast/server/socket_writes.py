@@ -28,6 +28,7 @@ from google.protobuf.message import DecodeError
 
 from cast.core.records import Identity
 from cast.core.system import System
+from cast.server import socket_events
 from cast.server.writes import Writes, woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -85,6 +86,7 @@ class SocketWrites:
         self._draining = False
         before = woken()
         self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
+        socket_events.serve()  # the socket watchers' events of these writes, now, before their replies
         if self._queue:
             self._draining = True
             self._pause(True)
@@ -93,8 +95,8 @@ class SocketWrites:
             self._pause(False)
         if self._writes.ready:
             if woken() != before:
-                # Events before acknowledgements, as the Write stream: the watch streams these writes woke run
-                # in this turn of the loop, the replies in the next.
+                # Events before acknowledgements, as the Write stream: the gRPC watch streams these writes woke
+                # run in this turn of the loop, the replies in the next.
                 self._later()
             else:
                 self._flush()
@@ -105,9 +107,10 @@ class SocketWrites:
             self._loop.call_soon(self._flush)
 
     def _flush(self) -> None:
-        """Send the replies ready now, in one REPLIES frame."""
+        """Send the replies ready now, in one REPLIES frame (after the socket watchers' events of their writes)."""
         self._flushing = False
         if self._writes.ready:
+            socket_events.serve()  # a request that waited (a lock, the journal) was applied in a task of its own
             self._send(wire.replies(self._writes.take().SerializeToString()))
 
     def close(self) -> None:

@@ -14,6 +14,7 @@ from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError, UnavailableError
+from cast.server import socket_events
 from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
@@ -54,6 +55,7 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
 
     async def _write(self, access: Access, op: BatchOp) -> wm_pb2.WriteResponse:
         result = await run_async(self._system, access.write(op))
+        socket_events.serve()  # the socket watchers' events of this write go before its reply
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
@@ -126,6 +128,7 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         access = Access(self._system, who)
         ops = batch_ops(request, access)
         results = await run_async(self._system, access.batch(ops))
+        socket_events.serve()
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
@@ -175,22 +178,67 @@ class _WatchStream:
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
-        self._sub = Subscription(access.system.host, self._notify)
-        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
-        # cancelled and the call's end stay on the call): docs/client-protocol.md.
-        self._link = read[0].link if read is not None and on_socket else None
-        self._unlisten = self._link.listen(self._wake.set) if self._link is not None else None
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
+        self._closed = False
+        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
+        # cancelled and the call's end stay on the call): docs/client-protocol.md. Such a stream's events are
+        # sent by its loop's list of streams due (cast.server.socket_events), not by its task. Set before the
+        # subscription, whose wake-ups may come at once from another thread.
+        self._link = read[0].link if read is not None and on_socket else None
+        self._due = socket_events.due_on(self._loop) if self._link is not None else None
+        self._sub = Subscription(access.system.host, self._notify)
+        self._unlisten = self._link.listen(self._link_changed) if self._link is not None else None
 
     def _notify(self) -> None:
         # Writes made by in-process components arrive on their own threads.
         if threading.get_ident() == self._loop_thread:
-            self._wake.set()
-            watch_woken()
+            if self._due is not None:
+                self._due.add(self)  # sent before the write's reply, by the write path (socket_events)
+            else:
+                self._wake.set()
+                watch_woken()
+        elif self._due is not None:
+            self._loop.call_soon_threadsafe(self._due.add, self)
         else:
             self._loop.call_soon_threadsafe(self._wake.set)
+
+    def _link_changed(self) -> None:
+        """The session's connection closed (the task ends the call) or sent what waited (events may go again)."""
+        assert self._link is not None and self._due is not None
+        if self._link.closed:
+            self._wake.set()
+        else:
+            self._due.add(self)
+
+    def send_events(self) -> bool:
+        """A socket watch: send the pending events as one EVENTS frame; True if more are pending.
+
+        Runs on the loop, called by :class:`cast.server.socket_events.Due`.
+        What ends the call (the connection closed, the watch fell behind the
+        history, a bug) wakes the task, which ends it.
+        """
+        link = self._link
+        assert link is not None and self._lending is not None
+        if self._closed or self._error is not None:
+            return False
+        if link.closed:
+            self._wake.set()
+            return False
+        if link.unsent > EVENTS_UNSENT:
+            return False  # the client is not reading: its events wait here (and lag) until those went (_link_changed)
+        try:
+            # The history holds only visible writes, so these are durable (cast.core.host).
+            matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
+            if not matches:
+                return False
+            link.send(wire.events(self._lending[1], self._events(matches)))
+        except Exception as exc:  # noqa: BLE001 - OUT_OF_RANGE for a watch behind the history, or a bug: ends the call
+            self._error = exc
+            self._wake.set()
+            return False
+        return len(matches) >= _BATCH_EVENTS or self._sub.behind
 
     async def _read(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> None:
         try:
@@ -226,6 +274,7 @@ class _WatchStream:
 
     async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
         reader = asyncio.ensure_future(self._read(requests))
+        link = self._link
         try:
             while True:
                 await self._wake.wait()
@@ -234,25 +283,22 @@ class _WatchStream:
                     yield self._control.pop(0)
                 if self._error is not None:
                     raise self._error
-                link = self._link
                 if link is not None:
+                    # Its events go by send_events; this task carries the call's control messages and its end.
                     if link.closed:
                         raise UnavailableError(
                             "the shared-memory session carrying this watch's events ended: open the watch again "
                             "(it resumes after the last event received)"
                         )
-                    if link.unsent > EVENTS_UNSENT:
-                        continue  # the client is not reading: its events wait here (and lag) until those went
+                    if self._done and not self._sub.watch_ids:
+                        return
+                    continue
                 # The history holds only visible writes, so these are durable (cast.core.host).
                 matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
-                    if link is not None:
-                        assert self._lending is not None
-                        link.send(wire.events(self._lending[1], self._events(matches)))
-                    else:
-                        yield self._events(matches)
+                    yield self._events(matches)
                 elif self._done and not self._sub.watch_ids:
                     return
         finally:
@@ -279,6 +325,7 @@ class _WatchStream:
         return watch_events_wire(events)
 
     def close(self) -> None:
+        self._closed = True
         self._sub.close()
         if self._unlisten is not None:
             self._unlisten()

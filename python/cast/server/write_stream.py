@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator, Callable
 
 from cast.core.records import Identity
 from cast.core.system import System
+from cast.server import socket_events
 from cast.server.writes import Writes, watch_woken, woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 
@@ -68,16 +69,19 @@ class WriteStream:
                         except StopAsyncIteration:
                             break
                 if writes.ready:
+                    socket_events.serve()  # the socket watchers' events of these writes go now, before the reply
                     if woken() != before:
-                        # Events before acknowledgements: the watch streams these writes woke are ready to run;
-                        # one turn of the loop lets them send their events before this reply costs its own send.
+                        # Events before acknowledgements: the gRPC watch streams these writes woke are ready to
+                        # run; one turn of the loop lets them send their events before this reply costs its send.
                         await asyncio.sleep(0)
                     yield writes.take()
             while writes.waiting:  # the client closed its side: answer what still waits, then end
                 await asyncio.wait(set(writes.waiting))
                 if writes.ready:
+                    socket_events.serve()
                     yield writes.take()
             if writes.ready:
+                socket_events.serve()
                 yield writes.take()
         finally:
             if reading is not None:
