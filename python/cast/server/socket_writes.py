@@ -86,20 +86,21 @@ class SocketWrites:
         self._draining = False
         before = woken()
         self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
-        socket_events.serve()  # the socket watchers' events of these writes, now, before their replies
         if self._queue:
             self._draining = True
             self._pause(True)
             self._loop.call_soon(self._drain)
         else:
             self._pause(False)
-        if self._writes.ready:
-            if woken() != before:
-                # Events before acknowledgements, as the Write stream: the gRPC watch streams these writes woke
-                # run in this turn of the loop, the replies in the next.
+        if woken() != before:
+            # Events before acknowledgements, as the Write stream: the watch streams these writes woke (gRPC
+            # ones' tasks, socket ones' callbacks, in the order woken) run in this turn of the loop, the replies
+            # in the next.
+            if self._writes.ready:
                 self._later()
-            else:
-                self._flush()
+        else:
+            socket_events.serve()  # the socket watchers' events of these writes, now, before their replies
+            self._flush()
 
     def _later(self) -> None:
         if not self._flushing:

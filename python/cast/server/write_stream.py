@@ -36,10 +36,11 @@ class WriteStream:
         write). While some wait, it also watches for their late replies.
         Replies that are ready together go out in one message: with many
         requests in flight, the per-message cost of gRPC is shared by them.
-        A message whose writes woke watch streams is answered after those
-        streams had one turn of the loop: its events go out before its reply,
-        so what watchers wait for does not queue behind the writer's
-        acknowledgement (docs/performance.md, M8).
+        A message's events go out before its reply, so what watchers wait for
+        does not queue behind the writer's acknowledgement (docs/performance.md,
+        M8): the socket watchers' are sent before the reply is yielded
+        (:mod:`cast.server.socket_events`), and when the writes woke gRPC watch
+        streams, the reply waits one turn of the loop, theirs.
         """
         writes = self._writes
         source = messages.__aiter__()
@@ -69,11 +70,12 @@ class WriteStream:
                         except StopAsyncIteration:
                             break
                 if writes.ready:
-                    socket_events.serve()  # the socket watchers' events of these writes go now, before the reply
                     if woken() != before:
                         # Events before acknowledgements: the gRPC watch streams these writes woke are ready to
-                        # run; one turn of the loop lets them send their events before this reply costs its send.
+                        # run (socket ones' callbacks among them, in the order woken); one turn of the loop lets
+                        # them send their events before this reply costs its send.
                         await asyncio.sleep(0)
+                    socket_events.serve()  # the socket watchers' events of these writes go now, before the reply
                     yield writes.take()
             while writes.waiting:  # the client closed its side: answer what still waits, then end
                 await asyncio.wait(set(writes.waiting))
