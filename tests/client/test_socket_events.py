@@ -243,11 +243,12 @@ def test_writes_made_on_other_threads_reach_every_socket_watcher_once_in_order(
     # An in-process component writes on its own thread; with a journal that defers, writes become visible on
     # the journal's committer thread: either way the wake-up comes from a thread other than the server's loop.
     h = host(journal=journal)
-    seen: list[list[int]] = []
+    seen: list[list[bytes]] = []
     for n in range(3):
-        got: list[int] = []
+        got: list[bytes] = []
         seen.append(got)
-        h.component(f"watcher{n}").on_change(cast.address_filter("e"), lambda ch, got=got: got.append(ch.version))
+        h.component(f"watcher{n}").on_change(cast.address_filter("e", include_entry=True),
+                                             lambda ch, got=got: got.append(ch.entry(BytesValue).value.value))
     identity = Identity("in-process", "vision")
     local = cast.UnmanagedComponent()
     local._cast_bind(LocalTransport(h.system, identity))
@@ -256,7 +257,7 @@ def test_writes_made_on_other_threads_reach_every_socket_watcher_once_in_order(
         for n in range(1, 20):
             local.overwrite("e", BytesValue(value=str(n).encode()))
         wait_for(lambda: all(len(got) == 20 for got in seen), what="every watcher's events")
-        assert seen == [list(range(20))] * 3  # each version once, in order, to every watcher
+        assert seen == [[str(n).encode() for n in range(20)]] * 3  # each value once, in order, to every watcher
     finally:
         local._cast_close()
 
