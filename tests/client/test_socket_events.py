@@ -13,13 +13,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import grpc
 import pytest
 from google.protobuf.wrappers_pb2 import BytesValue
 
 import cast
 from cast.client import shm_session
+from cast.client.local_transport import LocalTransport
 from cast.client.watch_stream import EVENTS_METADATA
-from cast.core.records import Limits
+from cast.core.records import Identity, Limits
 from cast.core.shared import SharedSettings
 from cast.errors import UnavailableError
 from cast.server.working_memory import EVENTS_UNSENT
@@ -259,3 +261,52 @@ def test_a_value_that_cannot_be_claimed_reopens_the_call_without_gap_or_duplicat
     h = host()
     watcher = _every_value_watched(h, 20)  # the frame that failed and those behind it came again, each once
     assert claims[0] > 20 and watcher._transport._directory.watch_stream.reconnects >= 1
+
+
+@pytest.mark.parametrize("journal", [False, True], ids=["memory", "journal"])
+def test_writes_made_on_other_threads_reach_every_socket_watcher_once_in_order(
+    host: Callable[..., Host], journal: bool
+) -> None:
+    # An in-process component writes on its own thread; with a journal that defers, writes become visible on
+    # the journal's committer thread: either way the wake-up comes from a thread other than the server's loop.
+    h = host(journal=journal)
+    seen: list[list[bytes]] = []
+    for n in range(3):
+        got: list[bytes] = []
+        seen.append(got)
+        h.component(f"watcher{n}").on_change(cast.address_filter("e", include_entry=True),
+                                             lambda ch, got=got: got.append(ch.entry(BytesValue).value.value))
+    identity = Identity("in-process", "vision")
+    local = cast.UnmanagedComponent()
+    local._cast_bind(LocalTransport(h.system, identity))
+    try:
+        local.add("e", BytesValue(value=b"0"))
+        for n in range(1, 20):
+            local.overwrite("e", BytesValue(value=str(n).encode()))
+        wait_for(lambda: all(len(got) == 20 for got in seen), what="every watcher's events")
+        assert seen == [[str(n).encode() for n in range(20)]] * 3  # each value once, in order, to every watcher
+    finally:
+        local._cast_close()
+
+
+def test_a_socket_watch_that_fell_behind_the_history_ends_with_out_of_range_once_its_client_reads(
+    host: Callable[..., Host]
+) -> None:
+    h = host(settings=SharedSettings(window_bytes=4 * MIB), limits=Limits(history_events=8))
+    stop = threading.Event()
+    stalled = h.session("stalled")
+    stream, call = _raw_watch(h, "stalled", stalled, True, stop)  # its socket is not read for now
+    stalled.event_handlers[call.number] = lambda body: None
+    try:
+        writer = h.component("writer")
+        writer.add("img", image(MIB, 0))
+        for seed in range(1, 40):  # past the 4 MiB the server sends it unread, then past the history (8 events)
+            writer.overwrite("img", image(MIB, seed))
+        assert not stream.done()  # a client that does not read lags on the server: its call stays open
+        wait_for(lambda: (stalled.poll(0.05), stream.done())[1], what="the watch's end once its client read")
+        assert stream.code() == grpc.StatusCode.OUT_OF_RANGE, stream.details()
+        assert "history" in (stream.details() or "")
+    finally:
+        stop.set()
+        stream.cancel()
+        stalled.close()

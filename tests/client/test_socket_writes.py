@@ -13,6 +13,7 @@ import mmap
 import os
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -228,12 +229,14 @@ def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_a
     assert replies[0].write.revision < between.write.revision < replies[-1].write.revision
 
 
-def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+def _sent_in_order(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """What the server's loop sends, in order: "event" (a watch's batch encoded), "reply" (a REPLIES frame), and
+    "applied" when the callback that applied a WRITES frame's requests returns (the server runs in this process)."""
     from cast.server import socket_writes, working_memory
 
-    h, session = raw()
-    order: list[str] = []  # what the server's loop sent, in order (the server runs in this process)
-    events, flush = working_memory._WatchStream._events, socket_writes.SocketWrites._flush
+    order: list[str] = []
+    events, flush, drain = (working_memory._WatchStream._events, socket_writes.SocketWrites._flush,
+                            socket_writes.SocketWrites._drain)
 
     def sent_events(self: Any, matches: Any) -> Any:
         order.append("event")
@@ -244,14 +247,123 @@ def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeyp
             order.append("reply")
         flush(self)
 
+    def applied(self: Any) -> None:
+        drain(self)
+        order.append("applied")
+
     monkeypatch.setattr(working_memory._WatchStream, "_events", sent_events)
     monkeypatch.setattr(socket_writes.SocketWrites, "_flush", sent_replies)
+    monkeypatch.setattr(socket_writes.SocketWrites, "_drain", applied)
+    return order
+
+
+def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    h, session = raw()
+    order = _sent_in_order(monkeypatch)
     watcher = h.component("watcher")
     seen: list[int] = []
     watcher.on_change(cast.address_filter("e"), lambda ch: seen.append(ch.revision))
-    for i in range(5):
+    for i in range(5):  # the first write right after the watch was created too
         order.clear()
         session.write(add(i + 1, "e", b"v", overwrite=i > 0))
         session.replies(1)
-        wait_for(lambda n=i + 1: len(seen) == n, what="the watcher's event")  # its stream waits for the next
-        assert order == ["event", "reply"], (i, order)
+        wait_for(lambda n=i + 1: len(seen) == n, what="the watcher's event")
+        assert [o for o in order if o != "applied"] == ["event", "reply"], (i, order)
+
+
+def test_one_writes_events_reach_every_socket_watcher_in_the_callback_that_applied_it_before_its_reply(
+    raw: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Socket watchers are served in one pass on the loop, right after the write is applied: no watch stream's
+    # task is woken, no turn of the loop comes between the write, its events and its reply.
+    from cast.server.writes import woken
+
+    h, session = raw()
+    order = _sent_in_order(monkeypatch)
+    seen: list[list[int]] = []
+    for n in range(4):
+        got: list[int] = []
+        seen.append(got)
+        h.component(f"watcher{n}").on_change(cast.address_filter("e"), lambda ch, got=got: got.append(ch.revision))
+    tasks_woken = woken()
+    for i in range(5):
+        order.clear()
+        session.write(add(i + 1, "e", b"v", overwrite=i > 0))
+        (reply,) = session.replies(1)
+        wait_for(lambda n=i + 1: all(len(got) == n for got in seen), what="every watcher's event")
+        wait_for(lambda: "applied" in order, what="the end of the callback that applied the write")
+        assert order == ["event"] * 4 + ["reply", "applied"], (i, order)
+        assert all(got[-1] == reply.write.revision for got in seen)
+    assert woken() == tasks_woken  # no watch stream's task was woken by these writes
+
+
+def test_a_write_on_the_stream_sends_its_socket_watchers_events_before_its_reply_without_a_turn_of_the_loop(
+    host: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cast.server import working_memory, writes
+
+    h = host()
+    order: list[str] = []
+    events, take = working_memory._WatchStream._events, writes.Writes.take
+
+    def sent_events(self: Any, matches: Any) -> Any:
+        order.append("event")
+        return events(self, matches)
+
+    def replied(self: Any) -> Any:
+        order.append("reply")
+        return take(self)
+
+    monkeypatch.setattr(working_memory._WatchStream, "_events", sent_events)
+    monkeypatch.setattr(writes.Writes, "take", replied)
+    seen: list[list[int]] = []
+    for n in range(3):
+        got: list[int] = []
+        seen.append(got)
+        h.component(f"watcher{n}").on_change(cast.address_filter("e"), lambda ch, got=got: got.append(ch.revision))
+    writer = h.component("writer")  # a Python component: its writes on the gRPC Write stream
+    tasks_woken = writes.woken()
+    for i in range(5):
+        order.clear()
+        if i == 0:
+            writer.add("e", BytesValue(value=b"v"))
+        else:
+            writer.overwrite("e", BytesValue(value=b"v"))
+        wait_for(lambda n=i + 1: all(len(got) == n for got in seen), what="every watcher's event")
+        assert order == ["event"] * 3 + ["reply"], (i, order)
+    assert writes.woken() == tasks_woken  # the reply did not wait a turn of the loop for watch streams' tasks
+
+
+def test_a_flood_of_writes_reaches_a_socket_watcher_once_in_order_in_bounded_batches(raw: Any) -> None:
+    from cast.client import shm_session
+    from cast.client.watch_stream import EVENTS_METADATA
+    from cast.server.working_memory import _BATCH_EVENTS
+
+    h, session = raw()
+    count = _BATCH_EVENTS + 3 * REQUESTS_PER_TURN
+    session.write(*(add(i + 1, f"flood{i}", b"f") for i in range(count)))
+    assert [r.WhichOneof("result") for r in session.replies(count)] == ["write"] * count
+    # A watch that replays the whole flood from its first revision: more than one batch is pending at once.
+    reader: shm_session.ClientSession = h.session("replayer")
+    call = reader.new_call()
+    batches: list[list[int]] = []
+    reader.event_handlers[call.number] = lambda body: batches.append(
+        [e.revision for e in wm_pb2.WatchResponse.FromString(body).events])
+    create = wm_pb2.WatchRequest(create=wm_pb2.WatchCreate(watch_id=1, start_revisions={"vision": 1}, filters=[
+        {"subarchitecture": "vision"}]))
+    stop = threading.Event()
+
+    def requests() -> Any:
+        yield create
+        stop.wait(30)
+
+    stream = h.stub().Watch(requests(), metadata=h.metadata("replayer") + call.metadata + (EVENTS_METADATA,))
+    try:
+        assert next(stream).HasField("created")
+        wait_for(lambda: (reader.poll(0.05), sum(map(len, batches)) >= count)[1], what="the flood's events")
+        assert [len(b) for b in batches] == [_BATCH_EVENTS, count - _BATCH_EVENTS]  # the bound, then the rest
+        assert [r for b in batches for r in b] == list(range(1, count + 1))  # once, in order
+    finally:
+        stop.set()
+        stream.cancel()
+        reader.close()

@@ -28,6 +28,7 @@ from google.protobuf.message import DecodeError
 
 from cast.core.records import Identity
 from cast.core.system import System
+from cast.server import socket_events
 from cast.server.writes import Writes, woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -91,13 +92,15 @@ class SocketWrites:
             self._loop.call_soon(self._drain)
         else:
             self._pause(False)
-        if self._writes.ready:
-            if woken() != before:
-                # Events before acknowledgements, as the Write stream: the watch streams these writes woke run
-                # in this turn of the loop, the replies in the next.
+        if woken() != before:
+            # Events before acknowledgements, as the Write stream: the watch streams these writes woke (gRPC
+            # ones' tasks, socket ones' callbacks, in the order woken) run in this turn of the loop, the replies
+            # in the next.
+            if self._writes.ready:
                 self._later()
-            else:
-                self._flush()
+        else:
+            socket_events.serve()  # the socket watchers' events of these writes, now, before their replies
+            self._flush()
 
     def _later(self) -> None:
         if not self._flushing:
@@ -105,9 +108,10 @@ class SocketWrites:
             self._loop.call_soon(self._flush)
 
     def _flush(self) -> None:
-        """Send the replies ready now, in one REPLIES frame."""
+        """Send the replies ready now, in one REPLIES frame (after the socket watchers' events of their writes)."""
         self._flushing = False
         if self._writes.ready:
+            socket_events.serve()  # a request that waited (a lock, the journal) was applied in a task of its own
             self._send(wire.replies(self._writes.take().SerializeToString()))
 
     def close(self) -> None:

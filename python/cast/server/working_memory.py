@@ -14,13 +14,14 @@ from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.core.watch import Match, Subscription
 from cast.errors import CastError, InvalidArgumentError, UnavailableError
+from cast.server import socket_events
 from cast.server.conversions import BY_REFERENCE, fill_entry, filter_from_pb, watch_events_wire
 from cast.server.rpc import Authenticator, Context, Servicer, rpc, stream_rpc
 from cast.server.shared_socket import lend, read_session
 from cast.server.socket_writes import MAX_UNSENT
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.server.write_stream import WriteStream
-from cast.server.writes import watch_woken
+from cast.server.writes import watch_woken, woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.wire import shared_memory as wire
@@ -53,7 +54,9 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         self.auth = auth
 
     async def _write(self, access: Access, op: BatchOp) -> wm_pb2.WriteResponse:
+        before = woken()
         result = await run_async(self._system, access.write(op))
+        await _events_first(before)
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
@@ -125,7 +128,9 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         """Apply many writes in order, all or nothing."""
         access = Access(self._system, who)
         ops = batch_ops(request, access)
+        before = woken()
         results = await run_async(self._system, access.batch(ops))
+        await _events_first(before)
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
@@ -166,6 +171,13 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
             stream.close()
 
 
+async def _events_first(before: int) -> None:
+    """A write's events go before its reply (socket_events): a turn of the loop if it woke gRPC watch streams."""
+    if woken() != before:
+        await asyncio.sleep(0)
+    socket_events.serve()
+
+
 class _WatchStream:
     """One Watch call: reads create/cancel requests, writes control messages and event batches."""
 
@@ -175,21 +187,30 @@ class _WatchStream:
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         self._wake = asyncio.Event()
-        self._sub = Subscription(access.system.host, self._notify)
-        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
-        # cancelled and the call's end stay on the call): docs/client-protocol.md.
-        self._link = read[0].link if read is not None and on_socket else None
-        self._unlisten = self._link.listen(self._wake.set) if self._link is not None else None
         self._control: list[wm_pb2.WatchResponse] = []
         self._error: BaseException | None = None
         self._done = False
         self._sending = False  # an event batch is being sent on the call (the client may not be reading)
+        self._closed = False
+        # With on_socket, event batches go as EVENTS frames on the session's connection (created, failed,
+        # cancelled and the call's end stay on the call): docs/client-protocol.md. Such a stream's events are
+        # sent by its loop's list of streams due (cast.server.socket_events), not by its task. Set before the
+        # subscription, whose wake-ups may come at once from another thread.
+        self._link = read[0].link if read is not None and on_socket else None
+        self._due = socket_events.due_on(self._loop) if self._link is not None else None
+        self._sub = Subscription(access.system.host, self._notify)
+        self._unlisten = self._link.listen(self._link_changed) if self._link is not None else None
 
     def _notify(self) -> None:
         # Writes made by in-process components arrive on their own threads.
         if threading.get_ident() == self._loop_thread:
-            self._woken()
-            watch_woken()
+            if self._due is not None:
+                self._due.add(self)  # sent before the write's reply, by the write path (socket_events)
+            else:
+                self._woken()
+                watch_woken()
+        elif self._due is not None:
+            self._loop.call_soon_threadsafe(self._due.add, self)
         else:
             self._loop.call_soon_threadsafe(self._woken)
 
@@ -200,6 +221,45 @@ class _WatchStream:
             # newest change per entry meanwhile rather than their place in the history, which they would
             # lose (cast.core.watch.Subscription.hold_latest).
             self._sub.hold_latest()
+
+    def _link_changed(self) -> None:
+        """The session's connection closed (the task ends the call) or sent what waited (events may go again)."""
+        assert self._link is not None and self._due is not None
+        if self._link.closed:
+            self._wake.set()
+        else:
+            self._due.add(self)
+
+    def send_events(self) -> bool:
+        """A socket watch: send the pending events as one EVENTS frame; True if more are pending.
+
+        Runs on the loop, called by :class:`cast.server.socket_events.Due`.
+        What ends the call (the connection closed, the watch fell behind the
+        history, a bug) wakes the task, which ends it.
+        """
+        link = self._link
+        assert link is not None and self._lending is not None
+        if self._closed or self._error is not None:
+            return False
+        if link.closed:
+            self._wake.set()
+            return False
+        if link.unsent > EVENTS_UNSENT:
+            # The client is not reading: its events wait here (and lag) until those went (_link_changed), but
+            # for its latest watches the newest change per entry is held (as in _woken).
+            self._sub.hold_latest()
+            return False
+        try:
+            # The history holds only visible writes, so these are durable (cast.core.host).
+            matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
+            if not matches:
+                return False
+            link.send(wire.events(self._lending[1], self._events(matches)))
+        except Exception as exc:  # noqa: BLE001 - OUT_OF_RANGE for a watch behind the history, or a bug: ends the call
+            self._error = exc
+            self._wake.set()
+            return False
+        return len(matches) >= _BATCH_EVENTS or self._sub.behind
 
     async def _read(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> None:
         try:
@@ -235,6 +295,7 @@ class _WatchStream:
 
     async def run(self, requests: AsyncIterator[wm_pb2.WatchRequest]) -> AsyncIterator[wm_pb2.WatchResponse | bytes]:
         reader = asyncio.ensure_future(self._read(requests))
+        link = self._link
         try:
             while True:
                 await self._wake.wait()
@@ -243,32 +304,26 @@ class _WatchStream:
                     yield self._control.pop(0)
                 if self._error is not None:
                     raise self._error
-                link = self._link
                 if link is not None:
+                    # Its events go by send_events; this task carries the call's control messages and its end.
                     if link.closed:
                         raise UnavailableError(
                             "the shared-memory session carrying this watch's events ended: open the watch again "
                             "(it resumes after the last event received)"
                         )
-                    if link.unsent > EVENTS_UNSENT:
-                        # The client is not reading: its events wait here (and lag) until those went, but
-                        # for its latest watches the newest change per entry is held (as in _woken).
-                        self._sub.hold_latest()
-                        continue
+                    if self._done and not self._sub.watch_ids:
+                        return
+                    continue
                 # The history holds only visible writes, so these are durable (cast.core.host).
                 matches = self._access.take(self._sub, _BATCH_EVENTS, _BATCH_BYTES)
                 if matches:
                     if len(matches) >= _BATCH_EVENTS or self._sub.behind:
                         self._wake.set()  # more is pending: go round again after this batch
-                    if link is not None:
-                        assert self._lending is not None
-                        link.send(wire.events(self._lending[1], self._events(matches)))
-                    else:
-                        self._sending = True
-                        try:
-                            yield self._events(matches)
-                        finally:
-                            self._sending = False
+                    self._sending = True
+                    try:
+                        yield self._events(matches)
+                    finally:
+                        self._sending = False
                 elif self._done and not self._sub.watch_ids:
                     return
         finally:
@@ -295,6 +350,7 @@ class _WatchStream:
         return watch_events_wire(events)
 
     def close(self) -> None:
+        self._closed = True
         self._sub.close()
         if self._unlisten is not None:
             self._unlisten()

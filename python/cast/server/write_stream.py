@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator, Callable
 
 from cast.core.records import Identity
 from cast.core.system import System
+from cast.server import socket_events
 from cast.server.writes import Writes, watch_woken, woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 
@@ -35,10 +36,11 @@ class WriteStream:
         write). While some wait, it also watches for their late replies.
         Replies that are ready together go out in one message: with many
         requests in flight, the per-message cost of gRPC is shared by them.
-        A message whose writes woke watch streams is answered after those
-        streams had one turn of the loop: its events go out before its reply,
-        so what watchers wait for does not queue behind the writer's
-        acknowledgement (docs/performance.md, M8).
+        A message's events go out before its reply, so what watchers wait for
+        does not queue behind the writer's acknowledgement (docs/performance.md,
+        M8): the socket watchers' are sent before the reply is yielded
+        (:mod:`cast.server.socket_events`), and when the writes woke gRPC watch
+        streams, the reply waits one turn of the loop, theirs.
         """
         writes = self._writes
         source = messages.__aiter__()
@@ -69,15 +71,19 @@ class WriteStream:
                             break
                 if writes.ready:
                     if woken() != before:
-                        # Events before acknowledgements: the watch streams these writes woke are ready to run;
-                        # one turn of the loop lets them send their events before this reply costs its own send.
+                        # Events before acknowledgements: the gRPC watch streams these writes woke are ready to
+                        # run (socket ones' callbacks among them, in the order woken); one turn of the loop lets
+                        # them send their events before this reply costs its send.
                         await asyncio.sleep(0)
+                    socket_events.serve()  # the socket watchers' events of these writes go now, before the reply
                     yield writes.take()
             while writes.waiting:  # the client closed its side: answer what still waits, then end
                 await asyncio.wait(set(writes.waiting))
                 if writes.ready:
+                    socket_events.serve()
                     yield writes.take()
             if writes.ready:
+                socket_events.serve()
                 yield writes.take()
         finally:
             if reading is not None:

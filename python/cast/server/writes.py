@@ -45,18 +45,23 @@ _Answer = Callable[[wm_pb2.WriteReply, Any], None]
 
 
 class _Woken:
-    """How many times a write woke a watch stream on the event loop so far (:func:`watch_woken` counts them)."""
+    """How many times a write woke a gRPC watch stream's task on the event loop so far (:func:`watch_woken`)."""
 
     count = 0
 
 
 def watch_woken() -> None:
-    """A write woke a watch stream on the event loop: the replies of the write wait for its events to go first."""
+    """A write woke a gRPC watch stream's task on the event loop: the write's replies wait for its events to go first.
+
+    Watch streams whose events go on the session's socket are not counted:
+    the write path sends their events itself before the replies
+    (:func:`cast.server.socket_events.serve`).
+    """
     _Woken.count += 1
 
 
 def woken() -> int:
-    """How many times writes woke watch streams so far: a transport compares it before and after applying.
+    """How many times writes woke gRPC watch streams so far: a transport compares it before and after applying.
 
     When it moved, the transport lets the loop turn once before it sends the
     replies, so that the events those streams send go out before the writer's
