@@ -217,7 +217,7 @@ def test_a_writes_frame_over_its_bound_is_refused_naming_the_bound_before_any_of
 def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_applies_every_one(raw: Any) -> None:
     h, session = raw()
     _, other = raw(h, "other")
-    count = 40 * REQUESTS_PER_TURN
+    count = 400 * REQUESTS_PER_TURN  # hundreds of turns: the other write lands among them, not after the last
     session.write(*(add(i + 1, f"flood{i}", b"f") for i in range(count)))  # one frame
     first = session.replies(1)  # the server is applying the flood
     other.write(add(1, "between", b"b"))
