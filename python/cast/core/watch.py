@@ -57,6 +57,11 @@ class Match:
         self.skipped = 0
         self.first_skipped = 0
 
+    def replaces(self, older: Match) -> None:
+        """This newer change of the entry takes ``older``'s place: it counts ``older`` and what it replaced."""
+        self.skipped = older.skipped + 1
+        self.first_skipped = older.first_skipped or older.event.revision
+
 
 @dataclass
 class _Watch:
@@ -65,6 +70,24 @@ class _Watch:
     sas: frozenset[str]  # the WMs its filters can match
     next: dict[str, int] = field(default_factory=dict)
     latest: bool = False  # delivery "latest": pending changes of one entry conflate to the newest
+
+
+def _matched(ev: ChangeEvent, sa: str, watches: Sequence[_Watch]) -> tuple[list[int], bool]:
+    """The ids of the watches ``ev`` is pending for and matches, and whether any of them asks for its entry."""
+    ids: list[int] = []
+    include = False
+    for w in watches:
+        if ev.revision < w.next[sa]:
+            continue
+        for i, f in enumerate(w.filters):
+            if f.matches(ev):
+                ids.append(w.watch_id)
+                # Any matching filter that asks for the entry gets it, not only the first.
+                include = include or f.include_entry or any(
+                    g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
+                )
+                break
+    return ids, include
 
 
 def _seq(m: Match) -> int:
@@ -209,26 +232,14 @@ class Subscription:
                 if any(ev.revision >= w.next[sa] and any(f.matches(ev) for f in w.filters) for w in queue):
                     break  # a queue watch's change: the stream delivers it first, in order
                 last = ev.revision + 1
-                ids: list[int] = []
-                include = False
-                for w in latest:
-                    if ev.revision < w.next[sa]:
-                        continue
-                    for i, f in enumerate(w.filters):
-                        if f.matches(ev):
-                            ids.append(w.watch_id)
-                            include = include or f.include_entry or any(
-                                g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
-                            )
-                            break
+                ids, include = _matched(ev, sa, latest)
                 if not ids:
                     continue
                 match = Match(ev, ids, include)
                 key = (sa, ev.id, tuple(ids))
                 older = held.pop(key, None)
                 if older is not None:
-                    match.skipped = older.skipped + 1
-                    match.first_skipped = older.first_skipped or older.event.revision
+                    match.replaces(older)
                 held[key] = match
             for w in watches:  # the queue watches too: none of them wanted a change before ``last``
                 w.next[sa] = max(w.next[sa], last)
@@ -315,19 +326,7 @@ class Subscription:
             last = start
             for ev in events:
                 last = ev.revision + 1
-                ids = []
-                include = False
-                for w in watches:
-                    if ev.revision < w.next[sa]:
-                        continue
-                    for i, f in enumerate(w.filters):
-                        if f.matches(ev):
-                            ids.append(w.watch_id)
-                            # Any matching filter that asks for the entry gets it, not only the first.
-                            include = include or f.include_entry or any(
-                                g.include_entry and g.matches(ev) for g in w.filters[i + 1:]
-                            )
-                            break
+                ids, include = _matched(ev, sa, watches)
                 if ids:
                     match = Match(ev, ids, include)
                     if latest and latest.issuperset(ids):
@@ -335,8 +334,7 @@ class Subscription:
                         older = matches[at] if at is not None else None
                         if older is not None and older.watch_ids == ids:
                             # The newer change replaces the older one, which gives back its budget.
-                            match.skipped = older.skipped + 1
-                            match.first_skipped = older.first_skipped or older.event.revision
+                            match.replaces(older)
                             matches[at] = None  # type: ignore[index]
                             conflated = True
                             if max_events:
