@@ -76,7 +76,13 @@ demo: setup proto examples cpp java-demo
 TEST_WORKERS ?= 2
 # A failed test runs once more (pytest-rerunfailures); the summary names every rerun. TEST_RERUNS=0: none.
 TEST_RERUNS ?= 1
-PYTEST_ALL = CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile \
+# The tests' own JVMs (JUnit's, and every Java component, example or program a test starts) run the
+# quick JIT only, as Maven's do: each lives seconds, too short for the optimising compiler to pay back
+# (docs/decisions.md). Through JDK_JAVA_OPTIONS, which every `java` launcher reads (and notes on its
+# stderr); `make bench` and `make demo` keep the JVM's default. TEST_JAVA_OPTIONS= turns it off.
+TEST_JAVA_OPTIONS ?= -XX:TieredStopAtLevel=1 -XX:+UseSerialGC
+TEST_JVM = JDK_JAVA_OPTIONS="$(TEST_JAVA_OPTIONS)"
+PYTEST_ALL = $(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile \
   --no-loadscope-reorder --durations=30 \
   --reruns $(TEST_RERUNS) -rR
 # Everything the three suites need; installed and built one after the other (apt-get takes no
@@ -90,7 +96,7 @@ test-python: $(TEST_BUILDS)
 # installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
 # with find_package, the Java example built on the installed cast-bom and cast-client.
 package-test: setup proto cpp java
-	CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
+	$(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
 # The three suites side by side: the C++ and Java unit tests (about a minute each, mostly waiting
 # on the servers they start) run beside pytest; each prints its log whole when it ends
@@ -231,7 +237,7 @@ java-demo: java $(JAVA_DEMO_JAR)
 
 # JUnit tests on the classes `make java` compiled, with Surefire's summary. Some run a real
 # server (`cast serve` from .venv, java_client/src/test/java/cast/client/RealServer.java).
-JAVA_TESTS = cd java_client && $(MVN) surefire:test && $(MVN) -f testing/pom.xml test-compile surefire:test
+JAVA_TESTS = cd java_client && export $(TEST_JVM) && $(MVN) surefire:test && $(MVN) -f testing/pom.xml test-compile surefire:test
 test-java: setup proto java
 	$(JAVA_TESTS)
 
@@ -280,7 +286,7 @@ lint: setup proto
 # working-memory core, the Python client both ways (over gRPC and in process), the C++ and Java
 # unit tests. No browser, Redis, Go, ROS or network namespaces.
 check: lint test-cpp test-java
-	$(PY) -m pytest -q tests/core tests/client
+	$(TEST_JVM) $(PY) -m pytest -q tests/core tests/client
 
 clean:
 	rm -rf python/cast/v1 build .pytest_cache .mypy_cache .ruff_cache $(NODE_DIR)/generated
