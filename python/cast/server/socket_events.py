@@ -10,12 +10,14 @@ themselves right after a write is applied and before they send its reply
 with no turn of the loop between them, and are on their sockets before the
 writer's acknowledgement, every time.
 
-When the write also woke watch streams whose events go on their gRPC call
-(each a task that must run for its send), the write path does not serve the
-list at once (:func:`serve` with ``unless_tasks_woke``): each stream due is
-then served by a callback of its own that its wake-up scheduled, so the
+When a write on the Write stream or in a WRITES frame also woke watch
+streams whose events go on their gRPC call (each a task that must run for
+its send), the write path does not serve the list at once: each stream due
+is then served by a callback of its own that its wake-up scheduled, so the
 streams are served in the order they were woken, socket and gRPC ones
-alike, before the reply, which waits that turn of the loop. Serving the
+alike, before the reply, which waits that turn of the loop. A unary write
+or Batch serves the list and replies at once, its gRPC watch streams' tasks
+running in the next turn. Serving the
 socket ones first there put the gRPC watchers behind them all
 (docs/performance.md, M8, "Socket watchers served in one pass"). These
 callbacks also serve what no write path does: writes of in-process

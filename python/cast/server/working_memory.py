@@ -21,7 +21,7 @@ from cast.server.shared_socket import lend, read_session
 from cast.server.socket_writes import MAX_UNSENT
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.server.write_stream import WriteStream
-from cast.server.writes import watch_woken, woken
+from cast.server.writes import watch_woken
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from cast.wire import shared_memory as wire
@@ -54,9 +54,8 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         self.auth = auth
 
     async def _write(self, access: Access, op: BatchOp) -> wm_pb2.WriteResponse:
-        before = woken()
         result = await run_async(self._system, access.write(op))
-        await _events_first(before)
+        socket_events.serve()  # the socket watchers' events of this write go before its reply
         return wm_pb2.WriteResponse(revision=result.revision, version=result.version)
 
     @rpc
@@ -128,9 +127,8 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
         """Apply many writes in order, all or nothing."""
         access = Access(self._system, who)
         ops = batch_ops(request, access)
-        before = woken()
         results = await run_async(self._system, access.batch(ops))
-        await _events_first(before)
+        socket_events.serve()
         response = wm_pb2.BatchResponse()
         add_result = response.results.add
         for r in results:
@@ -169,13 +167,6 @@ class WorkingMemoryServicer(Servicer, wm_grpc.WorkingMemoryServicer):
                 yield response
         finally:
             stream.close()
-
-
-async def _events_first(before: int) -> None:
-    """A write's events go before its reply (socket_events): a turn of the loop if it woke gRPC watch streams."""
-    if woken() != before:
-        await asyncio.sleep(0)
-    socket_events.serve()
 
 
 class _WatchStream:

@@ -63,9 +63,10 @@ def watch_woken() -> None:
 def woken() -> int:
     """How many times writes woke gRPC watch streams so far: a transport compares it before and after applying.
 
-    When it moved, the transport lets the loop turn once before it sends the
-    replies, so that the events those streams send go out before the writer's
-    acknowledgement (docs/performance.md, M8).
+    When it moved, the Write stream and the session's WRITES let the loop turn
+    once before they send the replies, so that the events those streams send
+    go out before the writer's acknowledgement (docs/performance.md, M8). A
+    unary write or Batch does not wait for them (docs/client-protocol.md).
     """
     return _Woken.count
 
