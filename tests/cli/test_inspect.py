@@ -29,7 +29,9 @@ def test_components_table_and_json(demo: CastRun) -> None:
     version = (ROOT / "VERSION").read_text().strip()
     assert {r["id"]: r["library_version"] for r in rows} == {r["id"]: version for r in rows}
     table = demo.cli("components").stdout
-    assert "system 'scene-description': 5 components" in table
+    # The five configured and any that joined by hand (the session's demo is shared by tests/cli's files).
+    counted = re.search(r"system 'scene-description': (\d+) components", table)
+    assert counted and int(counted.group(1)) >= 5, table
     assert re.search(r"coordinator\s*│\s*coordination\s*│\s*python\s*│\s*" + re.escape(version)
                      + r"\s*│\s*unmanaged\s*│\s*yes\s*│\s*running", table)
 
