@@ -92,10 +92,11 @@ def due_on(loop: asyncio.AbstractEventLoop) -> Due:
 def serve() -> None:
     """Send the events of the socket watch streams due on the running loop: what a write path calls before its reply.
 
-    A write path whose writes also woke gRPC watch streams' tasks
-    (:func:`cast.server.writes.woken` moved) does not call it: the streams
-    are then served in the order they were woken, by their callbacks, in
-    the turn of the loop its reply waits for.
+    The Write stream and the session's WRITES, when their writes also woke
+    gRPC watch streams' tasks (:func:`cast.server.writes.woken` moved), do not
+    call it at once: the streams are then served in the order they were woken,
+    by their callbacks, in the turn of the loop their reply waits for. A unary
+    write or Batch calls it and replies.
     """
     due = _by_loop.get(asyncio.get_running_loop())
     if due is not None:
