@@ -149,3 +149,33 @@ def test_an_idle_dispatchers_threads_stay_asleep() -> None:
     d.stop()
     source.close()
     assert not d.thread.is_alive() and not standby.is_alive()
+
+
+def test_a_callbacks_start_does_not_wake_the_standby_thread() -> None:
+    """The standby looks again STANDBY_S after a callback begins by an alarm, not by being woken at its start.
+
+    Woken at every start, it took a core and the GIL at the moment each event's callback ran (a camera
+    frame's read: docs/performance.md, M8).
+    """
+    d = Dispatcher("t")
+    source = _Socket()
+    d.attach(source)
+    d.submit(lambda: None)
+    assert d.drain(10)
+    standby = d._standby
+    assert standby is not None
+    woken: list[int] = []
+    before = [0]
+
+    def short() -> None:
+        time.sleep(STANDBY_S / 2)
+        woken.append(_wake_ups(standby) - before[0])
+
+    for _ in range(10):
+        time.sleep(5 * STANDBY_S)  # the last callback's alarm has gone off, and the standby is asleep again
+        before[0] = _wake_ups(standby)
+        d.submit(short)
+        assert d.drain(10)
+    assert woken.count(0) >= 8, woken  # a loaded machine may delay one alarm's wake-up into the next callback
+    d.stop()
+    source.close()

@@ -10,8 +10,10 @@ import threading
 import time
 
 import pytest
+from google.protobuf.wrappers_pb2 import BytesValue
 
-from cast.core.arena import PAGE, SPARE_IDLE_S, Arena, Segment
+from cast.core.arena import ALIGN, PAGE, SPARE_IDLE_S, Arena, Segment
+from cast.core.large_fields import largest_payload
 from cast.core.records import BatchOp, Identity, Limits, Operation
 from cast.core.shared import SharedMemory, SharedSettings
 from cast.errors import InvalidArgumentError, PermissionDeniedError
@@ -19,6 +21,11 @@ from cast.errors import InvalidArgumentError, PermissionDeniedError
 WRITER = Identity("writer", "vision")
 OTHER = Identity("other", "vision")
 MIB = 1 << 20
+
+
+def _whole(size: int) -> bytes:
+    """A value of ``size`` bytes that takes exactly its pages: no field of it to align, so no page more."""
+    return bytes(size)
 
 
 def memory(window: int = 64 * MIB, max_bytes: int = 1 << 30, threshold: int = 64 * 1024) -> SharedMemory:
@@ -95,6 +102,19 @@ def test_values_are_copied_in_page_aligned_and_their_extents_reused_once_nothing
     assert arena.stats()["values"] == 2
 
 
+def test_a_values_largest_bytes_field_is_placed_on_a_cache_line() -> None:
+    arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
+    image = BytesValue(value=b"p" * 100_000).SerializeToString()  # the pixels 4 bytes in
+    header = b"\x08\x2a\x12\x04rgb8"  # a varint field and a short string before them: not aligned on those
+    for value in (image, header + b"\x1a\xa0\x8d\x06" + b"p" * 100_000, b"\x0a\x03abc" * 100):
+        placed = arena.put(value)
+        assert placed is not None and bytes(placed.view) == value
+        assert (placed.offset + largest_payload(value)) % ALIGN == 0, (placed.offset, largest_payload(value))
+    assert largest_payload(image) == 4 and largest_payload(header + b"\x1a\xa0\x8d\x06" + b"p" * 100_000) == 12
+    small = arena.put(b"\x0a\x03abc" * 100)  # no field of LARGE bytes: at its extent's start, a page
+    assert small is not None and small.offset % PAGE == 0
+
+
 def test_a_lent_value_is_not_reused_until_given_back() -> None:
     arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
     placed = arena.put(b"x" * 10_000)
@@ -112,7 +132,7 @@ def test_a_lent_value_is_not_reused_until_given_back() -> None:
 
 def test_a_full_arena_leaves_values_as_bytes() -> None:
     shared = memory(max_bytes=64 * MIB)
-    ops = [shared.place(BatchOp(Operation.ADD, "vision", f"e{i}", "t", os.urandom(8 * MIB))) for i in range(9)]
+    ops = [shared.place(BatchOp(Operation.ADD, "vision", f"e{i}", "t", _whole(8 * MIB))) for i in range(9)]
     placed = [op for op in ops if op.placed is not None]
     assert len(placed) == 8  # the one 64 MiB segment max_bytes allows is full
     assert isinstance(ops[-1].data, bytes) and ops[-1].placed is None
@@ -151,7 +171,7 @@ def test_the_window_bounds_what_one_session_holds_lent_and_a_call_gives_back_wha
     session = shared.open_session(WRITER)
     sent: list[int] = []
     session.send_segment = lambda segment: sent.append(segment.id) is None
-    values = [shared.arena.put(os.urandom(MIB)) for _ in range(4)]
+    values = [shared.arena.put(_whole(MIB)) for _ in range(4)]
     lent = [shared.lend(session, 7, v) for v in values if v is not None]
     assert [x is not None for x in lent] == [True, True, True, False]  # the fourth is over the window: bytes
     assert sent == [1]  # the segment's memory file went once, before the first value in it
@@ -168,17 +188,17 @@ def test_the_window_bounds_what_one_session_holds_lent_and_a_call_gives_back_wha
 def test_one_emptied_segment_is_kept_as_a_spare_while_values_come_and_retired_once_they_stop() -> None:
     """The next segment the values need is the spare, whose pages are faulted in: no new memory file is made."""
     arena = Arena(max_bytes=64 * MIB, segment_bytes=8 * MIB)
-    first = [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 1, full
-    second = [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 2, full
-    third = [arena.put(os.urandom(2 * MIB))]  # segment 3
+    first = [arena.put(_whole(2 * MIB)) for _ in range(4)]  # segment 1, full
+    second = [arena.put(_whole(2 * MIB)) for _ in range(4)]  # segment 2, full
+    third = [arena.put(_whole(2 * MIB))]  # segment 3
     assert third[0] is not None and third[0].segment == 3 and arena.stats()["segments"] == 3
     del first, second, third[0]  # segments 1 and 2 emptied (the history moved on); 3 is empty too
     gc.collect()
-    third = [arena.put(os.urandom(2 * MIB))]  # values still come: into segment 1, the first with room
+    third = [arena.put(_whole(2 * MIB))]  # values still come: into segment 1, the first with room
     assert third[0] is not None and third[0].segment == 1
     assert arena.retire_empty() == [3]  # 2 stays as the spare, 3 goes: at most one spare
     assert arena.stats()["segments"] == 2
-    third += [arena.put(os.urandom(2 * MIB)) for _ in range(4)]  # segment 1 full: the fourth goes to the spare
+    third += [arena.put(_whole(2 * MIB)) for _ in range(4)]  # segment 1 full: the fourth goes to the spare
     assert third[-1] is not None and third[-1].segment == 2  # not a new memory file with fresh pages
     del third[-1]
     gc.collect()
@@ -193,7 +213,7 @@ def test_an_ended_session_gives_back_everything_and_empty_segments_are_retired()
     shared = SharedMemory(SharedSettings(True, 1, 256 * MIB, 256 * MIB), Limits(max_value_bytes=8 * MIB))
     session = shared.open_session(WRITER)
     session.send_segment = lambda segment: True
-    values = [shared.arena.put(os.urandom(8 * MIB)) for _ in range(9)]  # two segments of 64 MiB
+    values = [shared.arena.put(_whole(8 * MIB)) for _ in range(9)]  # two segments of 64 MiB
     assert shared.snapshot()["segments"] == 2
     for v in values:
         assert v is not None and shared.lend(session, 1, v) is not None

@@ -23,6 +23,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
+from cast.client.alarm import Alarm
+
 __all__ = ["HIGH", "LOW", "MEDIUM", "Dispatcher", "Source"]
 
 HIGH, MEDIUM, LOW = 0, 1, 2
@@ -90,9 +92,10 @@ class Dispatcher:
         self._wake_poller.register(self._wake_fd, select.POLLIN)
         self._call_started = 0.0  # time.monotonic() at the start of the call running now; 0.0 between calls
         self._standby: threading.Thread | None = None  # started with the first source
-        # The standby thread sleeps on this between callbacks, so an idle component's threads stay asleep.
-        self._call_begun = threading.Event()
-        self._standby_waiting = False
+        # The standby thread sleeps on this between callbacks, so an idle component's threads stay asleep; the
+        # dispatcher sets it when a callback begins and it is not set already (cast.client.alarm says why).
+        self._alarm: Alarm | None = None  # made with the standby thread
+        self._alarm_set = False
         self._thread.start()
 
     def room(self) -> int:
@@ -129,6 +132,7 @@ class Dispatcher:
         if self._standby is None:
             with self._lock:
                 if self._standby is None:
+                    self._alarm = Alarm()
                     self._standby = threading.Thread(
                         target=self._stand_by, name=f"{self._thread.name}-standby", daemon=True
                     )
@@ -138,23 +142,36 @@ class Dispatcher:
     def _stand_by(self) -> None:
         """Read the sources while a callback runs long (they are the dispatcher's the rest of the time).
 
-        A frame read here is the source's to queue for the dispatcher (it
-        knows it is not on the dispatcher thread); nothing here waits for room.
+        Asleep on the alarm the dispatcher sets when a callback begins (and
+        it is not set already): it wakes STANDBY_S later, not at the
+        callback's start, and finds most callbacks over. A frame read here is
+        the source's to queue for the dispatcher (it knows it is not on the
+        dispatcher thread); nothing here waits for room.
         """
+        alarm = self._alarm
+        assert alarm is not None  # made before this thread
+        while True:
+            self._watch_long_call()
+            if self._stopping:
+                return
+            alarm.wait()
+            # Cleared before _call_started is read again: a callback beginning meanwhile either sees it cleared and
+            # sets the alarm, or began before that read, which then sees it.
+            self._alarm_set = False
+
+    def _watch_long_call(self) -> None:
+        """Read the sources for as long as the callback running now runs long; set the alarm for a young one."""
         while not self._stopping:
             started = self._call_started
             if not started:
-                self._standby_waiting = True
-                try:
-                    if not self._call_started and not self._stopping:  # again: a call may have begun meanwhile
-                        self._call_begun.wait()
-                finally:
-                    self._standby_waiting = False
-                self._call_begun.clear()
-                continue
+                return  # between callbacks: asleep until the next one sets the alarm
             left = started + STANDBY_S - time.monotonic()
-            if left > 0 or self.room() <= 0:
-                time.sleep(max(left, 0.0) or STANDBY_S)
+            if left > 0:
+                self._alarm_set = True
+                self._alarm.set(left)  # type: ignore[union-attr]  # the standby's: made with it
+                return
+            if self.room() <= 0:
+                time.sleep(STANDBY_S)
                 continue
             sources = {source.fileno(): source for source in list(self._sources.values())}
             sources.pop(-1, None)
@@ -240,8 +257,10 @@ class Dispatcher:
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
         self._call_started = time.monotonic()
-        if self._standby_waiting:
-            self._call_begun.set()
+        alarm = self._alarm
+        if alarm is not None and not self._alarm_set:
+            self._alarm_set = True
+            alarm.set(STANDBY_S)
         try:
             fn(*args)
         except Exception:
@@ -268,7 +287,9 @@ class Dispatcher:
     def stop(self, timeout: float | None = 5.0) -> None:
         """Run what is queued, then end the thread."""
         self._stopping = True
-        self._call_begun.set()  # the standby thread, asleep between callbacks
+        alarm = self._alarm
+        if alarm is not None:
+            alarm.set(0)  # the standby thread, asleep between callbacks
         self._wake()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
@@ -280,3 +301,5 @@ class Dispatcher:
                     return
                 self._closed = True
             os.close(self._wake_fd)
+            if alarm is not None and standby is not None and not standby.is_alive():
+                alarm.close()

@@ -9,7 +9,10 @@ own mapping, made before the seal, stays writable), ``F_SEAL_GROW`` and
 and ``F_SEAL_SEAL``. Readers get its descriptor and map it read-only.
 
 A value is copied into a free extent of a segment (page-aligned) before its
-write is applied, so what a writer does afterwards cannot change it. The
+write is applied, so what a writer does afterwards cannot change it. Within
+its extent it starts where the bytes of its largest top-level ``bytes`` field
+(an image's pixels) fall on a multiple of :data:`ALIGN`, so that a reader's
+array over them is aligned (numpy's ``aligned`` flag; SIMD loads). The
 extent is reused only once nothing holds the value: no record (an entry, the
 history, a journal batch, an in-process reader: :class:`Placed` is freed with
 the last of them) and no lease (a reader in another process that was sent it
@@ -33,10 +36,14 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
-__all__ = ["PAGE", "SPARE_IDLE_S", "Arena", "Extents", "Placed", "Segment", "memory_file"]
+from cast.core.large_fields import largest_payload
+
+__all__ = ["ALIGN", "PAGE", "SPARE_IDLE_S", "Arena", "Extents", "Placed", "Segment", "memory_file"]
 
 PAGE = 4096
-"""Extents start on a page: a reader may map one alone, and arrays over it are aligned."""
+"""Extents start on a page: a reader may map one alone."""
+ALIGN = 64
+"""A value's largest ``bytes`` field starts on a multiple of this (a cache line; what AVX-512 loads want)."""
 
 F_SEAL_FUTURE_WRITE = 0x0010  # Linux 5.1; Python's fcntl module does not name it
 MFD_NOEXEC_SEAL = 0x0008  # Linux 6.3: a memory file that can never be executed
@@ -195,12 +202,13 @@ class Segment:
 class _Extent:
     """Where one value is, and what still holds it: records (through :class:`Placed`) and leases."""
 
-    __slots__ = ("held", "leases", "length", "offset", "segment", "size", "value_id")
+    __slots__ = ("held", "leases", "length", "offset", "segment", "size", "start", "value_id")
 
-    def __init__(self, value_id: int, segment: Segment, offset: int, size: int, length: int) -> None:
+    def __init__(self, value_id: int, segment: Segment, offset: int, size: int, length: int, skew: int) -> None:
         self.value_id = value_id
         self.segment = segment
-        self.offset = offset
+        self.offset = offset  # the extent's
+        self.start = offset + skew  # the value's first byte
         self.size = size  # whole pages taken
         self.length = length  # the value's bytes
         self.held = True  # a Placed still refers to it
@@ -220,7 +228,7 @@ class Placed:
         self._arena = arena
         self._extent = extent
         segment = extent.segment
-        self.view = segment.view[extent.offset: extent.offset + extent.length].toreadonly()
+        self.view = segment.view[extent.start: extent.start + extent.length].toreadonly()
 
     @property
     def value_id(self) -> int:
@@ -235,7 +243,7 @@ class Placed:
     @property
     def offset(self) -> int:
         """Its first byte's offset in the segment."""
-        return self._extent.offset
+        return self._extent.start
 
     @property
     def length(self) -> int:
@@ -266,9 +274,14 @@ class Arena:
     # ------------------------------------------------------------- values
 
     def put(self, data: memoryview | bytes) -> Placed | None:
-        """A copy of ``data`` in the arena, or None when it is full (``max_bytes`` in use or held)."""
+        """A copy of ``data`` in the arena, or None when it is full (``max_bytes`` in use or held).
+
+        Placed :data:`ALIGN`-aligned at its largest ``bytes`` field's first byte
+        (:func:`cast.core.large_fields.largest_payload`; the value itself when it has none).
+        """
         length = len(data)
-        size = round_up(length)
+        skew = -largest_payload(data) % ALIGN
+        size = round_up(length + skew)
         with self._lock:
             self._collect()
             found = self._find(size)
@@ -276,11 +289,11 @@ class Arena:
                 return None
             segment, offset = found
             self._last_put = time.monotonic()
-            extent = _Extent(self._next_value, segment, offset, size, length)
+            extent = _Extent(self._next_value, segment, offset, size, length, skew)
             self._next_value += 1
             self._values[extent.value_id] = extent
         # The copy runs outside the lock: the extent is this call's alone until it returns.
-        segment.view[offset: offset + length] = data
+        segment.view[extent.start: extent.start + length] = data
         return Placed(self, extent)
 
     def _find(self, size: int) -> tuple[Segment, int] | None:

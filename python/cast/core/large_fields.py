@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from google.protobuf.descriptor import Descriptor, FieldDescriptor
 
-__all__ = ["LARGE", "bytes_fields", "without_large_bytes"]
+__all__ = ["LARGE", "bytes_fields", "largest_payload", "without_large_bytes"]
 
 LARGE = 16 * 1024
 """A ``bytes`` field at least this long is emptied; below it, copying costs less than walking."""
@@ -85,3 +85,38 @@ def without_large_bytes(data: bytes | memoryview, numbers: frozenset[int]) -> by
         return None
     pieces.append(view[kept:])
     return b"".join(pieces)
+
+
+def largest_payload(data: bytes | memoryview) -> int:
+    """Where the bytes of the largest top-level length-delimited field of at least :data:`LARGE` bytes begin.
+
+    0 when there is none, or the walk gives up (as :func:`without_large_bytes`
+    does). The arena aligns a value so that these bytes (an image's pixels)
+    start on a cache line (:data:`cast.core.arena.ALIGN`).
+    """
+    if len(data) < LARGE:
+        return 0
+    view = memoryview(data).cast("B")
+    size, at, best, best_length = len(view), 0, 0, LARGE - 1
+    try:
+        for _ in range(_MAX_FIELDS):
+            if at >= size:
+                break
+            key, value_at = _varint(view, at)
+            kind = key & 7
+            if kind == 0:
+                _, at = _varint(view, value_at)
+            elif kind == 1:
+                at = value_at + 8
+            elif kind == 5:
+                at = value_at + 4
+            elif kind == 2:
+                length, payload = _varint(view, value_at)
+                if length > best_length and payload + length <= size:
+                    best, best_length = payload, length
+                at = payload + length
+            else:
+                break
+    except (IndexError, ValueError):
+        pass
+    return best

@@ -1,0 +1,103 @@
+"""A one-shot alarm one thread sets and another sleeps on, without waking the sleeper to set it.
+
+The dispatcher's standby thread (cast.client.dispatcher) must look again
+STANDBY_S after a callback begins, and callbacks begin at every event. Waking
+the standby at each one (an ``Event``) to start its wait cost a context switch
+and a turn of the GIL at the very moment the callback reads its event: about
+a quarter of a Python watcher's CPU per camera frame in M8 (docs/performance.md).
+A Linux timerfd is armed by the dispatcher with one system call and wakes the
+standby only when it expires.
+
+:class:`Alarm` uses ``os.timerfd_*`` (Python 3.13+) or, before that, libc's
+``timerfd_create``/``timerfd_settime`` through ctypes; where neither exists it
+falls back to an ``Event`` that wakes the sleeper at once, which then sleeps
+until the time set (the older behaviour, correct, costlier).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import threading
+import time
+from collections.abc import Callable
+
+__all__ = ["Alarm"]
+
+_CLOCK_MONOTONIC = 1
+_TFD_CLOEXEC = 0o2000000
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
+
+
+def _libc_timerfd() -> tuple[int, Callable[..., int]] | None:
+    """A timerfd and libc's timerfd_settime, or None where libc has none."""
+    try:
+        # PyDLL: the calls keep the GIL (timerfd_settime never blocks), so arming does not invite a thread switch.
+        libc = ctypes.PyDLL(None, use_errno=True)
+        create, settime = libc.timerfd_create, libc.timerfd_settime
+    except (OSError, AttributeError):
+        return None
+    create.argtypes, create.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    settime.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Itimerspec), ctypes.c_void_p]
+    settime.restype = ctypes.c_int
+    fd = create(_CLOCK_MONOTONIC, _TFD_CLOEXEC)
+    return None if fd < 0 else (fd, settime)
+
+
+class Alarm:
+    """Armed by any thread (:meth:`set`), slept on by one (:meth:`wait`); closed once (:meth:`close`)."""
+
+    def __init__(self) -> None:
+        self._fd = -1
+        self._settime: Callable[..., int] | None = None
+        self._event: threading.Event | None = None
+        self._due = 0.0  # the fallback's deadline (time.monotonic())
+        if hasattr(os, "timerfd_create"):  # Python 3.13+
+            self._fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_CLOEXEC)  # type: ignore[attr-defined]
+            return
+        made = _libc_timerfd()
+        if made is None:
+            self._event = threading.Event()
+        else:
+            self._fd, self._settime = made
+
+    def set(self, seconds: float) -> None:
+        """Wake the sleeper ``seconds`` from now (at once for 0 or less), replacing any earlier time."""
+        seconds = max(seconds, 1e-9)  # 0 would disarm a timerfd
+        if self._event is not None:
+            self._due = time.monotonic() + seconds
+            self._event.set()
+        elif self._settime is not None:
+            sec = int(seconds)
+            spec = _Itimerspec(it_value=_Timespec(sec, int((seconds - sec) * 1e9) or 1))  # one per call: any thread
+            if self._settime(self._fd, 0, ctypes.byref(spec), None) != 0:
+                raise OSError(ctypes.get_errno(), "timerfd_settime failed")
+        else:
+            os.timerfd_settime(self._fd, initial=seconds)  # type: ignore[attr-defined]
+
+    def wait(self) -> None:
+        """Sleep until the time set comes (returns at once if it came since the last wait)."""
+        if self._event is None:
+            try:
+                os.read(self._fd, 8)
+            except OSError:  # closed meanwhile: the owner is stopping
+                pass
+            return
+        self._event.wait()
+        self._event.clear()
+        left = self._due - time.monotonic()
+        if left > 0:
+            time.sleep(left)
+
+    def close(self) -> None:
+        """Release the timer (the sleeper must have ended)."""
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1

@@ -1,0 +1,35 @@
+"""The dispatcher's alarm: set by one thread, slept on by another, on a timerfd or (where none) an Event."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from cast.client import alarm
+from cast.client.alarm import Alarm
+
+
+@pytest.mark.parametrize("timerfd", [True, False], ids=["timerfd", "event"])
+def test_the_sleeper_wakes_when_the_time_set_comes(
+    timerfd: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if not timerfd:
+        monkeypatch.setattr(alarm, "_libc_timerfd", lambda: None)
+    a = Alarm()
+    assert (a._event is None) == timerfd
+    woke: list[float] = []
+    sleeper = threading.Thread(target=lambda: (a.wait(), woke.append(time.monotonic())))
+    sleeper.start()
+    start = time.monotonic()
+    if timerfd:
+        a.set(10)  # replaced at once by a nearer time (the Event wakes the sleeper at each set: not tried there)
+    a.set(0.05)
+    sleeper.join(5)
+    assert woke and woke[0] - start >= 0.045, woke
+    a.set(0)  # at once
+    begun = time.monotonic()
+    a.wait()
+    assert time.monotonic() - begun < 1
+    a.close()
