@@ -5,8 +5,9 @@ STANDBY_S after a callback begins, and callbacks begin at every event. Waking
 the standby at each one (an ``Event``) to start its wait cost a context switch
 and a turn of the GIL at the very moment the callback reads its event: about
 a quarter of a Python watcher's CPU per camera frame in M8 (docs/performance.md).
-A Linux timerfd is armed by the dispatcher with one system call and wakes the
-standby only when it expires.
+A Linux timerfd is armed by the dispatcher with one system call when a callback
+begins and disarmed with another when it returns, so the standby wakes only
+for a callback that runs past the time set.
 
 :class:`Alarm` uses ``os.timerfd_*`` (Python 3.13+) or, before that, libc's
 ``timerfd_create``/``timerfd_settime`` through ctypes; where neither exists it
@@ -71,6 +72,8 @@ class Alarm:
     def set(self, seconds: float) -> None:
         """Wake the sleeper ``seconds`` from now (at once for 0 or less), replacing any earlier time."""
         seconds = max(seconds, 1e-9)  # 0 would disarm a timerfd
+        if self._fd < 0 and self._event is None:
+            return  # closed: its owner stopped
         if self._event is not None:
             self._due = time.monotonic() + seconds
             self._event.set()
@@ -81,6 +84,17 @@ class Alarm:
                 raise OSError(ctypes.get_errno(), "timerfd_settime failed")
         else:
             os.timerfd_settime(self._fd, initial=seconds)  # type: ignore[attr-defined]
+
+    def cancel(self) -> None:
+        """Unset it: the sleeper sleeps on until the next :meth:`set` (the fallback's ``Event`` cannot be recalled)."""
+        if self._event is not None or self._fd < 0:
+            return
+        if self._settime is not None:
+            spec = _Itimerspec()  # all zero: disarmed
+            if self._settime(self._fd, 0, ctypes.byref(spec), None) != 0:
+                raise OSError(ctypes.get_errno(), "timerfd_settime failed")
+        else:
+            os.timerfd_settime(self._fd, initial=0)  # type: ignore[attr-defined]
 
     def wait(self) -> None:
         """Sleep until the time set comes (returns at once if it came since the last wait)."""

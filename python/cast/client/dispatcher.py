@@ -143,8 +143,8 @@ class Dispatcher:
         """Read the sources while a callback runs long (they are the dispatcher's the rest of the time).
 
         Asleep on the alarm the dispatcher sets when a callback begins (and
-        it is not set already): it wakes STANDBY_S later, not at the
-        callback's start, and finds most callbacks over. A frame read here is
+        it is not set already) and cancels when the callback returns: it
+        wakes only for a callback that runs STANDBY_S, never at a start. A frame read here is
         the source's to queue for the dispatcher (it knows it is not on the
         dispatcher thread); nothing here waits for room.
         """
@@ -269,6 +269,10 @@ class Dispatcher:
             # Not kept until the next call: a change may hold a value lent by shared memory (cast.client.shm).
             fn = args = None  # type: ignore[assignment]
             self._call_started = 0.0
+            if self._alarm_set:
+                # Over before the standby looked: it sleeps on (cheaper than waking it to find nothing running).
+                self._alarm_set = False
+                self._alarm.cancel()  # type: ignore[union-attr]  # set only when there is one
             with self._lock:
                 self._pending -= 1
                 if self._waiters:
