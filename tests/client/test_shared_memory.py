@@ -394,6 +394,10 @@ def test_memory_stays_bounded_with_a_slow_queue_watcher_and_with_latest(host: An
     for seed in range(1, 60):
         writer.overwrite("img", image(MIB, seed))
         peak = max(peak, h.shared()["value_bytes"])
+        # The queue watcher's client has taken it (its standby thread reads while the first callback blocks):
+        # without this wait a loaded machine could let the writer outrun that thread, and the watch fall behind
+        # the short history on the server, as designed for a reader that does not keep up.
+        wait_for(lambda n=seed + 1: slow_queue._dispatcher._pending == n, what=f"value {seed} queued in the client")
     # History, the entry, and what each of the three readers may hold lent: never more, however far behind.
     bound = history + MIB + 3 * (window + MIB)
     assert peak <= bound, f"{peak} bytes held, over {bound}"
