@@ -23,6 +23,7 @@ from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
 from cast.client.channel import ServerLink
+from cast.client.grpc_transport import GrpcTransport
 from cast.v1 import working_memory_pb2 as wm_pb2
 from tests.conftest import DEFAULT_CONFIG, PYTHONPATH, ServerHandle, serve, start_server
 
@@ -150,3 +151,35 @@ def test_a_link_finds_its_channels_poller_and_closing_ends_it(server: ServerHand
     ended.set()
     link.close()
     assert not any(poller.is_alive() for poller in pollers)
+
+
+def test_a_decision_stream_opened_as_the_client_closes_ends_quietly(server: ServerHandle) -> None:
+    """gRPC refuses a call on a closed channel with ValueError, not RpcError: the stream's thread ends, no traceback."""
+    component = server.connect("racer", "vision")
+    transport = component._transport
+    assert isinstance(transport, GrpcTransport)
+    link = transport._server("vision")
+    failures: list[threading.ExceptHookArgs] = []
+    hook = threading.excepthook
+    threading.excepthook = failures.append
+
+    class _Closing:
+        """The client closes between the thread's check and its call, as the channel's close() then makes it."""
+
+        def Decisions(self, *args: object, **kwargs: object) -> None:  # the stub's method
+            transport._closing.set()
+            raise ValueError("Cannot invoke RPC: Channel closed!")
+
+    real = link.tm
+    link.tm = _Closing()
+    try:
+        transport.set_decision_sink(lambda task: None)
+        decisions = [t for t in link._threads if t.name == "cast-decisions"]
+        assert len(decisions) == 1
+        decisions[0].join(10)
+        assert not decisions[0].is_alive()
+        assert not failures, [f"{f.thread}: {f.exc_value!r}" for f in failures]
+    finally:
+        threading.excepthook = hook
+        link.tm = real
+        component._cast_close()

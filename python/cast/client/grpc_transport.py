@@ -488,7 +488,12 @@ class GrpcTransport:
         def read() -> None:
             backoff = Backoff()
             while not self._closing.is_set():
-                call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
+                try:
+                    call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
+                except ValueError:  # "Channel closed!": the transport closed since the check above
+                    if self._closing.is_set():
+                        return
+                    raise
                 self._decision_call = call
                 try:
                     for task in call:

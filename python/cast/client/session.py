@@ -104,6 +104,10 @@ class Session:
                 if self._closing.is_set():
                     return
                 reason = map_rpc_error(exc).message
+            except ValueError:  # "Channel closed!": the client closed before the stream could open
+                if self._closing.is_set():
+                    return
+                raise
             server.registered.clear()
             if server.shared is not None:
                 server.shared.check()  # a server that died ended the shared-memory session too: unmap its memory now

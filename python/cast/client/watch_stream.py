@@ -143,7 +143,13 @@ class WatchStream:
         backoff = Backoff()
         first = True
         while not self._closed:
-            call = self._open()
+            try:
+                call = self._open()
+            except ValueError:  # "Channel closed!": the transport closed since the check above
+                self._opened.set()
+                if self._closed or self._closing.is_set():
+                    return
+                raise
             if first:
                 self._opened.set()
                 first = False
