@@ -17,6 +17,8 @@ fields before any large one.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from google.protobuf.descriptor import Descriptor, FieldDescriptor
 
 __all__ = ["LARGE", "bytes_fields", "largest_payload", "without_large_bytes"]
@@ -43,6 +45,35 @@ def _varint(data: memoryview, at: int) -> tuple[int, int]:
     raise ValueError("varint too long")
 
 
+def _fields(view: memoryview) -> Iterator[tuple[int, int, int, int]]:
+    """The top-level fields of ``view``, each as ``(number, value_at, payload, end)``.
+
+    ``value_at`` is where the field's value begins (after its key), ``payload``
+    where a length-delimited field's bytes begin (-1 for other kinds), ``end``
+    where the next field begins. ValueError (or IndexError) for a group, a key
+    with no wire type, or a field that runs past the end: a walk gives up there.
+    """
+    size, at = len(view), 0
+    while at < size:
+        key, value_at = _varint(view, at)
+        number, kind, payload = key >> 3, key & 7, -1
+        if kind == 0:
+            _, end = _varint(view, value_at)
+        elif kind == 1:
+            end = value_at + 8
+        elif kind == 5:
+            end = value_at + 4
+        elif kind == 2:
+            length, payload = _varint(view, value_at)
+            end = payload + length
+        else:  # a group (or no wire type at all): the runtime judges it
+            raise ValueError(f"wire type {kind}")
+        if end > size:
+            raise ValueError("a field past the end")
+        yield number, value_at, payload, end
+        at = end
+
+
 def without_large_bytes(data: bytes | memoryview, numbers: frozenset[int]) -> bytes | None:
     """``data`` with each top-level ``bytes`` field among ``numbers`` of at least :data:`LARGE` bytes emptied.
 
@@ -53,32 +84,14 @@ def without_large_bytes(data: bytes | memoryview, numbers: frozenset[int]) -> by
         return None
     view = memoryview(data).cast("B")
     pieces: list[memoryview | bytes] = []
-    kept = at = 0  # the start of what is still to be copied
-    size, fields, emptied = len(view), 0, False
+    kept, emptied = 0, False  # the start of what is still to be copied
     try:
-        while at < size:
-            fields += 1
+        for fields, (number, value_at, payload, end) in enumerate(_fields(view), 1):
             if fields > _MAX_FIELDS and not emptied:
                 return None
-            key, value_at = _varint(view, at)
-            number, kind = key >> 3, key & 7
-            if kind == 0:
-                _, end = _varint(view, value_at)
-            elif kind == 1:
-                end = value_at + 8
-            elif kind == 5:
-                end = value_at + 4
-            elif kind == 2:
-                length, payload = _varint(view, value_at)
-                end = payload + length
-                if end <= size and length >= LARGE and number in numbers:
-                    pieces += [view[kept:value_at], b"\x00"]  # the key, then a length of 0
-                    kept, emptied = end, True
-            else:  # a group (or no wire type at all): the runtime judges it
-                return None
-            if end > size:
-                return None
-            at = end
+            if payload >= 0 and end - payload >= LARGE and number in numbers:
+                pieces += [view[kept:value_at], b"\x00"]  # the key, then a length of 0
+                kept, emptied = end, True
     except (IndexError, ValueError):
         return None
     if not emptied:
@@ -91,32 +104,16 @@ def largest_payload(data: bytes | memoryview) -> int:
     """Where the bytes of the largest top-level length-delimited field of at least :data:`LARGE` bytes begin.
 
     0 when there is none, or the walk gives up (as :func:`without_large_bytes`
-    does). The arena aligns a value so that these bytes (an image's pixels)
-    start on a cache line (:data:`cast.core.arena.ALIGN`).
+    does) before it finds one. The arena aligns a value so that these bytes (an
+    image's pixels) start on a cache line (:data:`cast.core.arena.ALIGN`).
     """
     if len(data) < LARGE:
         return 0
-    view = memoryview(data).cast("B")
-    size, at, best, best_length = len(view), 0, 0, LARGE - 1
+    best, best_length = 0, LARGE - 1
     try:
-        for _ in range(_MAX_FIELDS):
-            if at >= size:
-                break
-            key, value_at = _varint(view, at)
-            kind = key & 7
-            if kind == 0:
-                _, at = _varint(view, value_at)
-            elif kind == 1:
-                at = value_at + 8
-            elif kind == 5:
-                at = value_at + 4
-            elif kind == 2:
-                length, payload = _varint(view, value_at)
-                if length > best_length and payload + length <= size:
-                    best, best_length = payload, length
-                at = payload + length
-            else:
-                break
+        for _, (_, _, payload, end) in zip(range(_MAX_FIELDS), _fields(memoryview(data).cast("B")), strict=False):
+            if payload >= 0 and end - payload > best_length:
+                best, best_length = payload, end - payload
     except (IndexError, ValueError):
         pass
     return best
