@@ -125,15 +125,20 @@ def _wake_ups(thread: threading.Thread) -> int:
     return int(status.split("voluntary_ctxt_switches:")[1].split()[0])
 
 
-def test_an_idle_dispatchers_threads_stay_asleep() -> None:
-    """Between callbacks the standby thread waits for one to begin: it does not wake every STANDBY_S."""
+def _with_standby() -> tuple[Dispatcher, _Socket, threading.Thread]:
+    """A dispatcher reading a socket, after one callback: its standby thread started and asleep."""
     d = Dispatcher("t")
     source = _Socket()
     d.attach(source)
     d.submit(lambda: None)
     assert d.drain(10)
-    standby = d._standby
-    assert standby is not None
+    assert d._standby is not None
+    return d, source, d._standby
+
+
+def test_an_idle_dispatchers_threads_stay_asleep() -> None:
+    """Between callbacks the standby thread waits for one to begin: it does not wake every STANDBY_S."""
+    d, source, standby = _with_standby()
     time.sleep(5 * STANDBY_S)
     before = (_wake_ups(standby), _wake_ups(d.thread))
     time.sleep(50 * STANDBY_S)  # idle: a thread polling every STANDBY_S would wake ~50 times
@@ -157,13 +162,7 @@ def test_a_callbacks_start_does_not_wake_the_standby_thread() -> None:
     Woken at every start, it took a core and the GIL at the moment each event's callback ran (a camera
     frame's read: docs/performance.md, M8).
     """
-    d = Dispatcher("t")
-    source = _Socket()
-    d.attach(source)
-    d.submit(lambda: None)
-    assert d.drain(10)
-    standby = d._standby
-    assert standby is not None
+    d, source, standby = _with_standby()
     woken: list[int] = []
     before = [0]
 
@@ -188,11 +187,7 @@ def test_a_callbacks_start_does_not_wake_the_standby_thread() -> None:
 
 def test_a_dispatcher_with_a_standby_may_be_stopped_twice() -> None:
     """A component closed twice stops its dispatcher twice: the second finds the alarm closed and does nothing."""
-    d = Dispatcher("t")
-    source = _Socket()
-    d.attach(source)
-    d.submit(lambda: None)
-    assert d.drain(10)
+    d, source, _ = _with_standby()
     d.stop()
     d.stop()
     source.close()
