@@ -151,7 +151,7 @@ class Dispatcher:
         alarm = self._alarm
         assert alarm is not None  # made before this thread
         while True:
-            self._watch_long_call()
+            self._watch_long_call(alarm)
             if self._stopping:
                 return
             alarm.wait()
@@ -159,7 +159,7 @@ class Dispatcher:
             # sets the alarm, or began before that read, which then sees it.
             self._alarm_set = False
 
-    def _watch_long_call(self) -> None:
+    def _watch_long_call(self, alarm: Alarm) -> None:
         """Read the sources for as long as the callback running now runs long; set the alarm for a young one."""
         while not self._stopping:
             started = self._call_started
@@ -168,7 +168,7 @@ class Dispatcher:
             left = started + STANDBY_S - time.monotonic()
             if left > 0:
                 self._alarm_set = True
-                self._alarm.set(left)  # type: ignore[union-attr]  # the standby's: made with it
+                alarm.set(left)
                 return
             if self.room() <= 0:
                 time.sleep(STANDBY_S)
