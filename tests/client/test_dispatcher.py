@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from typing import Any
 
 from cast.client.dispatcher import STANDBY_S, Dispatcher
 from tests.conftest import wait_for
@@ -100,6 +101,52 @@ def test_an_attached_socket_is_read_on_the_dispatcher_thread_and_while_a_callbac
     d.stop()
     source.close()
     assert not d.thread.is_alive()
+
+
+class _CountingPoller:
+    """The dispatcher's poller, noting each wait (its timeout in ms, None: until something comes) in ``seen``."""
+
+    def __init__(self, poller: Any, seen: list[object]) -> None:
+        self._poller = poller
+        self._seen = seen
+
+    def poll(self, timeout: float | None = None) -> Any:
+        self._seen.append(("poll", timeout))
+        return self._poller.poll(timeout)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._poller, name)
+
+
+class _Events(_Socket):
+    """A source whose bytes are events: each one read queues its callback, as a session's EVENTS frames do."""
+
+    def __init__(self, dispatcher: Dispatcher, seen: list[object]) -> None:
+        super().__init__()
+        self.dispatcher = dispatcher
+        self.seen = seen
+
+    def poll(self, wait: float = 0.0) -> bool:
+        before = len(self.readers)
+        done = super().poll(wait)
+        for _ in range(len(self.readers) - before):
+            self.dispatcher.submit(lambda: self.seen.append(("call",)), block=False)
+        return done
+
+
+def test_an_event_read_on_the_dispatcher_goes_to_its_callback_without_a_second_poll() -> None:
+    """Every source that was ready has just been read: polling them again before the call costs a system call."""
+    d = Dispatcher("t")
+    seen: list[object] = []
+    d._poller = _CountingPoller(d._poller, seen)  # type: ignore[assignment]
+    source = _Events(d, seen)
+    d.attach(source)
+    wait_for(lambda: d._sources, what="the source attached")
+    source.peer.send(b"a")
+    wait_for(lambda: ("call",) in seen, what="the callback")
+    assert seen[seen.index(("call",)) - 1] == ("poll", None), seen
+    d.stop()
+    source.close()
 
 
 def test_a_full_queue_leaves_the_attached_socket_unread() -> None:

@@ -11,6 +11,7 @@ import gc
 import logging
 import mmap
 import os
+import socket
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -37,6 +38,7 @@ from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import inspection_pb2_grpc as insp_grpc
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
+from cast.wire import shared_memory as wire
 from tests.client.conftest import ThreadServer
 from tests.conftest import wait_for
 
@@ -153,6 +155,64 @@ def test_large_values_go_by_reference_to_readers_on_the_host_and_read_back_ident
     stats = h.shared()
     assert stats["staged_writes"] == 3 and stats["lent"] >= 5 and stats["sessions"] == 2
     wait_for(lambda: h.shared()["lent_bytes"] == 0, what="every lent value given back")
+
+
+class _CountingSocket:
+    """A session's socket that counts the reads made of it."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self.reads = 0
+
+    def recvmsg(self, *args: Any) -> Any:
+        self.reads += 1
+        return self._sock.recvmsg(*args)
+
+    def recvmsg_into(self, *args: Any) -> Any:
+        self.reads += 1
+        return self._sock.recvmsg_into(*args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+
+def test_the_socket_reads_go_into_one_buffer_kept_from_read_to_read() -> None:
+    """A fresh 256 KiB bytes object per read was an mmap and a munmap each time."""
+    inbox = wire.Inbox(1024)
+    ours, theirs = socket.socketpair()
+    with ours, theirs:
+        seen = []
+        for n in range(3):
+            fd = os.memfd_create("t")
+            try:
+                wire.send(theirs, wire.segment(n, 4096), fd)
+                data, fds = inbox.receive(ours)
+            finally:
+                os.close(fd)
+            [frame] = wire.FrameReader().feed(data, fds)
+            assert (frame.kind, wire.parse_segment(frame.body)) == (wire.SEGMENT, (n, 4096))
+            assert frame.fd is not None and os.fstat(frame.fd).st_size == 0
+            os.close(frame.fd)
+            assert len(data) < inbox.size  # a short read: the socket held no more
+            seen.append(data.obj)
+        assert seen[0] is seen[1] is seen[2]
+
+
+def test_a_watcher_reads_each_events_frame_with_one_read_of_its_socket(host: Any) -> None:
+    """A read that brings less than the buffer holds emptied the socket: no second read just to learn it."""
+    h = host()
+    writer, reader = h.component("writer"), h.component("reader")
+    seen: list[int] = []
+    reader.on_change(cast.address_filter("img", include_entry=True), lambda ch: seen.append(ch.revision))
+    writer.add("img", image(MIB, 0))  # its segment comes before the first reference
+    wait_for(lambda: len(seen) == 1, what="the first event")
+    session = reader._transport._directory.shared.session()
+    counting = _CountingSocket(session._sock)
+    session._sock = counting
+    for n in range(1, 6):
+        writer.overwrite("img", image(MIB, n))
+        wait_for(lambda n=n: len(seen) == n + 1, what=f"event {n + 1}")  # type: ignore[misc]
+    assert counting.reads == 5, counting.reads
 
 
 def test_a_lent_image_starts_on_a_cache_line_so_arrays_over_it_are_aligned(host: Any) -> None:

@@ -198,10 +198,12 @@ class Dispatcher:
 
     def _run(self) -> None:
         calls = self._calls
+        read_now = False  # every source ready was read just now: no second poll before the call
         while True:
             if calls[HIGH] or calls[MEDIUM] or calls[LOW]:
-                if self._sources or self._attach:
+                if (self._sources or self._attach) and not read_now:
                     self._read_sources(0)  # what came first, so that a higher priority's event goes first
+                read_now = False
                 fn, args = (calls[HIGH] or calls[MEDIUM] or calls[LOW]).popleft()
                 self._call(fn, args)
                 fn = args = None  # type: ignore[assignment]  # not kept: it may hold a lent value
@@ -209,6 +211,7 @@ class Dispatcher:
             if self._stopping:
                 return
             self._read_sources(None)
+            read_now = True
 
     def _drain_wake(self) -> None:
         try:

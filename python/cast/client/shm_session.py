@@ -139,6 +139,7 @@ class ClientSession:
         self._regions = Extents(staging_size)
         self._quarantined = 0  # staged bytes of writes whose outcome is unknown: never reused
         self._reader = wire.FrameReader()
+        self._inbox = wire.Inbox(_READ_BYTES)  # read under _read_lock
         self._segments: dict[int, _Segment] = {}
         self._retired: list[_Segment] = []
         self._read_lock = threading.Lock()
@@ -299,9 +300,10 @@ class ClientSession:
         try:
             if wait:
                 select.select([self._sock], [], [], wait)
+            inbox = self._inbox
             while not self.dead:
                 try:
-                    data, fds = wire.receive(self._sock, _READ_BYTES)
+                    data, fds = inbox.receive(self._sock)
                 except (BlockingIOError, InterruptedError):
                     break
                 except (OSError, wire.ProtocolError) as exc:
@@ -310,6 +312,7 @@ class ClientSession:
                 if not data:
                     self._end("the server closed the session")
                     break
+                drained = len(data) < inbox.size  # the socket held no more: no second read to learn it
                 try:
                     frames = self._reader.feed(data, fds)
                 except wire.ProtocolError as exc:
@@ -317,6 +320,8 @@ class ClientSession:
                     break
                 for frame in frames:
                     self._handle(frame)
+                if drained:
+                    break
         finally:
             self._read_lock.release()
         self._close_retired()

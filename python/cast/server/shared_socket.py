@@ -99,7 +99,7 @@ class _Connection:
 
     def _readable(self) -> None:
         try:
-            data, fds = wire.receive(self._sock)
+            data, fds = self._owner.inbox.receive(self._sock)
         except (BlockingIOError, InterruptedError):
             return
         except (OSError, wire.ProtocolError) as exc:
@@ -296,6 +296,7 @@ class SharedSocket:
         self.auth = auth
         self.name = f"cast-{system.shared.server_id}"
         self.connections: set[_Connection] = set()
+        self.inbox = wire.Inbox()  # every connection's reads: all on the loop, each fed to its reader at once
         self.loop = asyncio.get_running_loop()
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_NONBLOCK | socket.SOCK_CLOEXEC)
         self._sock.bind("\0" + self.name)

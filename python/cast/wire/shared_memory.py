@@ -25,7 +25,8 @@ from typing import NamedTuple
 
 __all__ = [
     "HELLO", "MAX_FRAME", "MAX_WRITES_FRAME", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT",
-    "VERSION", "WELCOME", "WRITES", "Frame", "FrameReader", "ProtocolError", "encode", "hello", "received",
+    "VERSION", "WELCOME", "WRITES", "Frame", "FrameReader", "Inbox", "ProtocolError", "encode", "hello", "receive",
+    "received",
     "refused", "release", "replies", "retire", "segment", "send", "welcome", "writes",
 ]
 
@@ -184,9 +185,11 @@ def send(sock: socket.socket, frame: bytes, fd: int | None = None) -> None:
         sock.sendall(frame[sent:])
 
 
-def receive(sock: socket.socket, size: int = MAX_FRAME) -> tuple[bytes, list[int]]:
-    """One ``recvmsg``: the bytes read (empty at the end) and the descriptors that came with them."""
-    data, ancillary, flags, _ = sock.recvmsg(size, socket.CMSG_SPACE(16 * 4))
+_ANCILLARY = socket.CMSG_SPACE(16 * 4)  # room for the descriptors one read may bring
+
+
+def _descriptors(ancillary: list[tuple[int, int, bytes]], flags: int) -> list[int]:
+    """The memory files that came with one read; ProtocolError (each closed) if more came than it had room for."""
     fds: list[int] = []
     for level, kind, payload in ancillary:
         if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
@@ -196,7 +199,37 @@ def receive(sock: socket.socket, size: int = MAX_FRAME) -> tuple[bytes, list[int
         for fd in fds:
             os.close(fd)
         raise ProtocolError("more memory files arrived than one read takes")
-    return data, fds
+    return fds
+
+
+def receive(sock: socket.socket, size: int = MAX_FRAME) -> tuple[bytes, list[int]]:
+    """One ``recvmsg``: the bytes read (empty at the end) and the descriptors that came with them."""
+    data, ancillary, flags, _ = sock.recvmsg(size, _ANCILLARY)
+    return data, _descriptors(ancillary, flags)
+
+
+class Inbox:
+    """A buffer that one socket's reads go into, kept from read to read (one reader at a time).
+
+    :func:`receive` makes a fresh bytes object of ``size`` for every read;
+    past glibc's threshold (128 KiB) that is an ``mmap`` and a ``munmap`` each
+    time, about 12 us on a warm machine, twice per frame for a reader that
+    reads until the socket is empty (docs/performance.md, M8).
+    """
+
+    __slots__ = ("_view", "size")
+
+    def __init__(self, size: int = MAX_FRAME) -> None:
+        self.size = size
+        self._view = memoryview(bytearray(size))
+
+    def receive(self, sock: socket.socket) -> tuple[memoryview, list[int]]:
+        """One ``recvmsg``, as :func:`receive`; the bytes are valid until the next read (feed them first).
+
+        Fewer than :attr:`size` bytes: the socket held no more when read.
+        """
+        count, ancillary, flags, _ = sock.recvmsg_into([self._view], _ANCILLARY)
+        return self._view[:count], _descriptors(ancillary, flags)
 
 
 class FrameReader:
@@ -206,7 +239,7 @@ class FrameReader:
         self._buf = bytearray()
         self._fds: deque[int] = deque()
 
-    def feed(self, data: bytes, fds: list[int]) -> list[Frame]:
+    def feed(self, data: bytes | memoryview, fds: list[int]) -> list[Frame]:
         """Add what one read gave; the frames now complete."""
         self._buf += data
         self._fds.extend(fds)
