@@ -16,6 +16,7 @@
 
 #include <atomic>
 #include <cerrno>
+#include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
@@ -183,6 +184,9 @@ TEST(SharedMemory, LargeValuesGoByReferenceAndReadBackIdenticalThroughEveryRead)
     EXPECT_EQ(view.version(), entry.version);
     EXPECT_EQ(view.author(), "shm-writer");
     EXPECT_TRUE(view.field(1).chars() == frames[2].value());
+    // The pixels start on a cache line (the server's arena aligns a value's largest bytes field), so an
+    // array over them (Eigen, OpenCV, SIMD loads) is aligned.
+    EXPECT_EQ(reinterpret_cast<std::uintptr_t>(view.field(1).data()) % 64, 0u);
     EXPECT_TRUE(view.decode<BytesValue>().value() == frames[2].value());
     cast::ValueView small = reader->getView("shm-small");
     EXPECT_FALSE(small.shared());

@@ -127,6 +127,8 @@ class SharedMemoryTest {
         assertEquals(writer.getEntry("img", BytesValue.class).version(), view.version());
         assertEquals("writer", view.author());
         assertEquals(ByteBuffer.wrap(frames.get(2).getValue().toByteArray()), view.field(1)); // the pixels, not copied
+        // ... starting on a cache line: the server's arena aligns a value's largest bytes field.
+        assertEquals(0, view.field(1).alignmentOffset(0, 64));
         assertEquals(frames.get(2), view.decode(BytesValue.class));
         assertEquals(frames.get(2).getSerializedSize(), view.size());
       }
