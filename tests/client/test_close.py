@@ -19,11 +19,13 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
 from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
-from cast.client.channel import ServerLink
+from cast.client.channel import LinkClosedError, ServerLink
 from cast.client.grpc_transport import GrpcTransport
+from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 from tests.conftest import DEFAULT_CONFIG, PYTHONPATH, ServerHandle, serve, start_server
 
@@ -162,16 +164,18 @@ def test_a_decision_stream_opened_as_the_client_closes_ends_quietly(server: Serv
     failures: list[threading.ExceptHookArgs] = []
     hook = threading.excepthook
     threading.excepthook = failures.append
+    real = link.tm
 
     class _Closing:
-        """The client closes between the thread's check and its call, as the channel's close() then makes it."""
+        """The client closes between the thread's check and its call: the call then meets the closed channel."""
 
-        def Decisions(self, *args: object, **kwargs: object) -> None:  # the stub's method
+        def Decisions(self, *args: object, **kwargs: object) -> object:  # the stub's method
             transport._closing.set()
-            raise ValueError("Cannot invoke RPC: Channel closed!")
+            link.closed = True  # as ServerLink.close() begins
+            link.channel.close()
+            return real.Decisions(*args, **kwargs)  # gRPC's own ValueError
 
-    real = link.tm
-    link.tm = _Closing()
+    link.tm = _Closing()  # type: ignore[assignment]
     try:
         transport.set_decision_sink(lambda task: None)
         decisions = [t for t in link._threads if t.name == "cast-decisions"]
@@ -183,3 +187,24 @@ def test_a_decision_stream_opened_as_the_client_closes_ends_quietly(server: Serv
         threading.excepthook = hook
         link.tm = real
         component._cast_close()
+
+
+def test_a_call_on_a_closed_link_is_a_cast_error_and_other_value_errors_pass(server: ServerHandle) -> None:
+    """The one place that turns gRPC's closed-channel ValueError into LinkClosedError (an UnavailableError)."""
+    link = ServerLink(server.endpoint)
+    with pytest.raises(ValueError, match="not a request"):  # a ValueError of the caller's own is not hidden
+        link.invoke(lambda request: (_ for _ in ()).throw(ValueError("not a request")), None)
+    link.close()
+    with pytest.raises(LinkClosedError, match=f"connection to {server.endpoint} is closed"):
+        link.invoke(link.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+    with pytest.raises(LinkClosedError):
+        link.open_stream(link.wm.Watch, iter(()))
+    assert issubclass(LinkClosedError, cast.UnavailableError)
+
+
+def test_a_read_after_close_is_a_cast_error_not_grpcs_value_error(server: ServerHandle) -> None:
+    component = server.connect("late-reader", "vision")
+    component.add("x", Int64Value(value=1))
+    component._cast_close()
+    with pytest.raises(cast.UnavailableError, match="closed: no more calls"):
+        component.get("x", Int64Value)

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from cast.client.watch_stream import WatchStream
     from cast.client.write_stream import WriteStream
 
-__all__ = ["CHANNEL_OPTIONS", "JOIN_S", "TRANSIENT", "Backoff", "ServerLink", "map_rpc_error"]
+__all__ = ["CHANNEL_OPTIONS", "JOIN_S", "TRANSIENT", "Backoff", "LinkClosedError", "ServerLink", "map_rpc_error"]
 
 JOIN_S = 2.0
 """How long closing a link waits for the threads of its streams to end (they end at once when all is well)."""
@@ -74,11 +74,23 @@ def map_rpc_error(exc: grpc.RpcError) -> CastError:
 
 
 
+class LinkClosedError(UnavailableError):
+    """A call made on a link after it was closed (the client closed), in place of gRPC's ``ValueError``.
+
+    gRPC raises ``ValueError("Cannot invoke RPC on closed channel!")`` for a
+    call on a closed channel: a stream thread that checked the client was open
+    and then opened its call as the client closed meets it, and so does a
+    read made after ``close()``. The stream threads end quietly on this
+    error; a caller gets it as the CastError it is.
+    """
+
+
 class ServerLink:
     """One server endpoint: its channel and stubs."""
 
     def __init__(self, endpoint: str, tls: ClientTls | None = None) -> None:
         self.endpoint = endpoint
+        self.closed = False  # close() began: no call may start on the channel any more
         if tls is None:
             self.channel = grpc.insecure_channel(endpoint, options=CHANNEL_OPTIONS)
         else:
@@ -135,7 +147,16 @@ class ServerLink:
         """
         if hasattr(request, "__next__"):
             request = self._read_by_tracked_thread(request)
-        return method(request, **kwargs)
+        return self.invoke(method, request, **kwargs)
+
+    def invoke(self, method: Callable[..., Any], request: Any, **kwargs: Any) -> Any:
+        """``method(request, **kwargs)`` (a stub's method of this link); LinkClosedError once the link closed."""
+        try:
+            return method(request, **kwargs)
+        except ValueError:
+            if not self.closed:
+                raise
+        raise LinkClosedError(f"the client's connection to {self.endpoint} is closed: no more calls on it")
 
     def _read_by_tracked_thread(self, requests: Iterator[Any]) -> Iterator[Any]:
         self.track(threading.current_thread())
@@ -167,6 +188,7 @@ class ServerLink:
 
         ``deadline`` is a ``time.monotonic()`` instant; the default is :data:`JOIN_S` from now.
         """
+        self.closed = True
         self.channel.close()
         end = time.monotonic() + JOIN_S if deadline is None else deadline
         me = threading.current_thread()

@@ -20,7 +20,7 @@ from typing import Any
 import grpc
 from google.protobuf import descriptor_pb2
 
-from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, ServerLink, map_rpc_error
+from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, LinkClosedError, ServerLink, map_rpc_error
 from cast.client.conversions import address, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.dispatcher import Dispatcher
@@ -146,6 +146,10 @@ class GrpcTransport:
             return fn(request, metadata=self._tokens.metadata() + metadata, timeout=deadline)
         except grpc.RpcError as exc:
             error = map_rpc_error(exc)
+        except ValueError:  # gRPC's "closed channel": after close(), a clear error rather than that
+            if not self._closing.is_set():
+                raise
+            raise LinkClosedError("the component's client is closed: no more calls") from None
         # A refused token may just have been renewed in its file: read it and try once more.
         if error.code == "UNAUTHENTICATED" and self._tokens.refresh():
             try:
@@ -489,11 +493,10 @@ class GrpcTransport:
             backoff = Backoff()
             while not self._closing.is_set():
                 try:
-                    call = server.tm.Decisions(tm_pb2.DecisionsRequest(), metadata=self._tokens.metadata())
-                except ValueError:  # "Channel closed!": the transport closed since the check above
-                    if self._closing.is_set():
-                        return
-                    raise
+                    call = server.open_stream(server.tm.Decisions, tm_pb2.DecisionsRequest(),
+                                              metadata=self._tokens.metadata())
+                except LinkClosedError:  # the transport closed since the check above
+                    return
                 self._decision_call = call
                 try:
                     for task in call:

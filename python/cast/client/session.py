@@ -18,7 +18,7 @@ from typing import Any
 
 import grpc
 
-from cast.client.channel import Backoff, ServerLink, map_rpc_error
+from cast.client.channel import Backoff, LinkClosedError, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
 from cast.core.records import Identity
 from cast.core.sessions import ComponentState
@@ -104,10 +104,8 @@ class Session:
                 if self._closing.is_set():
                     return
                 reason = map_rpc_error(exc).message
-            except ValueError:  # "Channel closed!": the client closed before the stream could open
-                if self._closing.is_set():
-                    return
-                raise
+            except LinkClosedError:  # the client closed before the stream could open
+                return
             server.registered.clear()
             if server.shared is not None:
                 server.shared.check()  # a server that died ended the shared-memory session too: unmap its memory now

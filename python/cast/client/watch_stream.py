@@ -12,7 +12,7 @@ from typing import Any
 
 import grpc
 
-from cast.client.channel import TRANSIENT, Backoff, ServerLink, map_rpc_error
+from cast.client.channel import TRANSIENT, Backoff, LinkClosedError, ServerLink, map_rpc_error
 from cast.client.conversions import event_from_pb, filter_to_pb
 from cast.client.credentials import TokenSource
 from cast.client.dispatcher import HIGH, Dispatcher
@@ -145,11 +145,9 @@ class WatchStream:
         while not self._closed:
             try:
                 call = self._open()
-            except ValueError:  # "Channel closed!": the transport closed since the check above
+            except LinkClosedError:  # the transport closed since the check above
                 self._opened.set()
-                if self._closed or self._closing.is_set():
-                    return
-                raise
+                return
             if first:
                 self._opened.set()
                 first = False
