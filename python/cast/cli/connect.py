@@ -14,6 +14,7 @@ none of these means plaintext.
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,8 +36,8 @@ from cast.v1 import task_manager_pb2_grpc as tm_grpc
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 
 __all__ = [
-    "TOOL_ID", "NoSystemError", "ServerStubs", "SystemClient", "find_endpoint", "find_secret", "find_tls", "tool_token",
-    "add_tls_options",
+    "FIRST_CONTACT_S", "TOOL_ID", "NoSystemError", "ServerStubs", "SystemClient", "find_endpoint", "find_secret",
+    "find_tls", "tool_token", "add_tls_options",
 ]
 
 TOOL_ID = "cast-cli"
@@ -65,6 +66,10 @@ class ServerStubs:
     inspection: insp_grpc.InspectionStub
 
 
+FIRST_CONTACT_S = 1.0
+"""How long a tool tries to reach the system before it says none answers (gRPC reconnects every 0.1 s)."""
+
+
 class SystemClient:
     """A tool's connection to a running system: the directory and every server it names."""
 
@@ -76,7 +81,32 @@ class SystemClient:
         self._options = [*CHANNEL_OPTIONS, *(tls.channel_options() if tls is not None else [])]
         self._servers: dict[str, ServerStubs] = {}
         self.directory = self._stubs(endpoint)
-        self.system = self.call(self.directory.directory.DescribeSystem, dir_pb2.DescribeSystemRequest())
+        self.system = self._first_contact()
+
+    def _first_contact(self) -> dir_pb2.SystemDescription:
+        """DescribeSystem, tried again while UNAVAILABLE for up to :data:`FIRST_CONTACT_S`.
+
+        A connection that fails once (a handshake a busy server dropped, a
+        server still starting) does not make the tool say "no system answers";
+        a system that is not there, or speaks TLS to a plaintext tool, still
+        gets that error, the first attempt's, after FIRST_CONTACT_S.
+        """
+        end = time.monotonic() + FIRST_CONTACT_S
+        delay = 0.1
+        first: CastError | None = None
+        while True:
+            try:
+                described: dir_pb2.SystemDescription = self.call(self.directory.directory.DescribeSystem,
+                                                                 dir_pb2.DescribeSystemRequest())
+                return described
+            except CastError as exc:
+                if exc.code != "UNAVAILABLE":
+                    raise
+                first = first or exc
+                if time.monotonic() + delay > end:
+                    raise first from None
+            time.sleep(delay)
+            delay *= 2
 
     def _stubs(self, endpoint: str) -> ServerStubs:
         stubs = self._servers.get(endpoint)
