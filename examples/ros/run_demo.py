@@ -42,7 +42,10 @@ def echo_lines(proc: subprocess.Popen[str], prefix: str) -> None:
     assert proc.stdout is not None
     for line in proc.stdout:
         if line.strip() and line.strip() != "---":
-            print(f"{prefix} {line.rstrip()}", flush=True)
+            # One write per line, its newline included: print() writes the text and the newline apart when
+            # stdout is unbuffered, and `cast run`'s lines, on the same pipe, could then land in between.
+            sys.stdout.write(f"{prefix} {line.rstrip()}\n")
+            sys.stdout.flush()
 
 
 def main() -> int:
