@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -238,4 +239,40 @@ def test_a_dispatcher_with_a_standby_may_be_stopped_twice() -> None:
     d.stop()
     d.stop()
     source.close()
+    assert not d.thread.is_alive()
+
+
+def test_a_submit_racing_stop_never_writes_to_a_closed_wake_descriptor(monkeypatch: Any) -> None:
+    """A thread that submits as the component stops, preempted just before its wake-up write, as a decision
+    arriving at close() was (EBADF in its thread; worse, the number may be another file's by then)."""
+    d = Dispatcher("t")
+    wait_for(lambda: d._sleeping, what="the dispatcher asleep")
+    write = os.eventfd_write
+    in_write, go = threading.Event(), threading.Event()
+
+    def preempted_write(fd: int, value: int) -> None:
+        if threading.current_thread().name == "submitter":
+            in_write.set()
+            go.wait(10)  # stop() runs meanwhile: it must not close the descriptor under this write
+        write(fd, value)
+
+    monkeypatch.setattr(os, "eventfd_write", preempted_write)
+    errors: list[BaseException] = []
+
+    def submit() -> None:
+        try:
+            d.submit(lambda: None)
+        except OSError as exc:
+            errors.append(exc)
+
+    submitter = threading.Thread(target=submit, name="submitter")
+    submitter.start()
+    assert in_write.wait(10)
+    stopper = threading.Thread(target=d.stop)
+    stopper.start()
+    time.sleep(0.2)  # long enough for stop() to end the thread and close the descriptor, were it allowed to
+    go.set()
+    submitter.join(10)
+    stopper.join(10)
+    assert not errors, errors
     assert not d.thread.is_alive()

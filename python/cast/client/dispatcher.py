@@ -185,8 +185,11 @@ class Dispatcher:
                 sources[fd].poll()
 
     def _wake(self) -> None:
-        if not self._closed:
-            os.eventfd_write(self._wake_fd, 1)
+        # Under the lock stop() closes the descriptor with: a submitter preempted between the check and the
+        # write would otherwise write to a closed descriptor, or to whatever file reused its number.
+        with self._lock:
+            if not self._closed:
+                os.eventfd_write(self._wake_fd, 1)
 
     def _wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
         # Called with _lock held.
@@ -307,6 +310,6 @@ class Dispatcher:
                 if self._thread.is_alive() or self._closed:
                     return
                 self._closed = True
-            os.close(self._wake_fd)
+                os.close(self._wake_fd)
             if alarm is not None and standby is not None and not standby.is_alive():
                 alarm.close()
