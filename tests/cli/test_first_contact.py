@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import socket
-import threading
 import time
 from collections.abc import Iterator
 
@@ -12,66 +11,23 @@ import pytest
 from cast.cli.connect import FIRST_CONTACT_S, SystemClient
 from cast.errors import UnavailableError
 from tests.conftest import ServerHandle
-
-
-class _DropsFirstConnection:
-    """A TCP relay to ``target`` that at once closes the first connection it accepts (a dropped handshake)."""
-
-    def __init__(self, target: str) -> None:
-        host, port = target.rsplit(":", 1)
-        self._target = (host, int(port))
-        self._listener = socket.create_server(("127.0.0.1", 0))
-        self.endpoint = f"127.0.0.1:{self._listener.getsockname()[1]}"
-        self.accepted = 0
-        self._sockets: list[socket.socket] = [self._listener]
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self._listener.accept()
-            except OSError:
-                return  # closed
-            self.accepted += 1
-            if self.accepted == 1:
-                client.close()
-                continue
-            upstream = socket.create_connection(self._target)
-            self._sockets += [client, upstream]
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
-
-    @staticmethod
-    def _pump(src: socket.socket, dst: socket.socket) -> None:
-        try:
-            while data := src.recv(65536):
-                dst.sendall(data)
-        except OSError:
-            pass
-        finally:
-            for s in (src, dst):
-                try:
-                    s.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-
-    def close(self) -> None:
-        for s in self._sockets:
-            s.close()
+from tests.reliability.proxy import Proxy
 
 
 @pytest.fixture
-def relay(server: ServerHandle) -> Iterator[_DropsFirstConnection]:
-    r = _DropsFirstConnection(server.endpoint)
+def relay(server: ServerHandle) -> Iterator[Proxy]:
+    """A relay to the server that closes the first connection it accepts at once (a dropped handshake)."""
+    r = Proxy(server.endpoint)
+    r.drop_next = 1
     yield r
     r.close()
 
 
-def test_a_connection_dropped_once_is_tried_again(server: ServerHandle, relay: _DropsFirstConnection) -> None:
+def test_a_connection_dropped_once_is_tried_again(server: ServerHandle, relay: Proxy) -> None:
     client = SystemClient(relay.endpoint, server.token("cast-cli", "vision", privileged=True))
     try:
         assert client.subarchitectures == ["vision", "language", "motor"]
-        assert relay.accepted >= 2
+        assert relay.drop_next == 0  # the first connection was dropped: the answer came on another
     finally:
         client.close()
 

@@ -18,6 +18,7 @@ class Proxy:
         self._conns: list[socket.socket] = []
         self._lock = threading.Lock()
         self.refusing = False
+        self.drop_next = 0  # how many connections to come are closed at once, then forwarding resumes
         self._closed = False
         threading.Thread(target=self._accept, daemon=True).start()
 
@@ -27,7 +28,9 @@ class Proxy:
                 client, _ = self._listener.accept()
             except OSError:
                 return
-            if self.refusing:
+            if self.refusing or self.drop_next > 0:
+                if not self.refusing:
+                    self.drop_next -= 1
                 client.close()
                 continue
             try:
