@@ -26,8 +26,7 @@ from typing import NamedTuple
 __all__ = [
     "HELLO", "MAX_FRAME", "MAX_WRITES_FRAME", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT",
     "VERSION", "WELCOME", "WRITES", "Frame", "FrameReader", "Inbox", "ProtocolError", "encode", "hello", "receive",
-    "received",
-    "refused", "release", "replies", "retire", "segment", "send", "welcome", "writes",
+    "received", "refused", "release", "replies", "retire", "segment", "send", "welcome", "writes",
 ]
 
 VERSION = 1
