@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NoReturn
 
 import pytest
 from google.protobuf.wrappers_pb2 import Int64Value
@@ -64,8 +65,9 @@ def test_close_after_a_reconnect_leaves_no_thread_behind(tmp_path: Path) -> None
                 time.sleep(0.2)
         component._cast_close()
         # Less the thread that reads the second server's output (tests/conftest.py's drain).
-        _assert_no_thread_left(before | {t for t in threading.enumerate() if t.name.endswith("(drain)")},
-                               "after a reconnect")
+        _assert_no_thread_left(
+            before | {t for t in threading.enumerate() if t.name.endswith("(drain)")}, "after a reconnect"
+        )
     finally:
         second.stop()
 
@@ -111,8 +113,9 @@ def test_a_script_that_never_closes_its_client_still_exits_without_stream_thread
 ) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
     env.update(server.env("unclosed", "vision"), PYTHONPATH=PYTHONPATH)
-    done = subprocess.run([sys.executable, "-c", UNCLOSED_SCRIPT], env=env, cwd=tmp_path, capture_output=True,
-                          text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-c", UNCLOSED_SCRIPT], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "LEFT []", done.stdout + done.stderr
 
@@ -134,10 +137,19 @@ def test_one_beat_request_wakes_every_heartbeat_generator_however_late_it_waits(
         link.close()
 
 
-def test_a_link_finds_its_channels_poller_and_closing_ends_it(server: ServerHandle) -> None:
+def _refused() -> NoReturn:
+    raise AssertionError("another thread's frames were read")
+
+
+def test_a_link_finds_its_channels_poller_and_closing_ends_it(
+    server: ServerHandle, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # gRPC runs a poller thread per channel while it has streams; after the channel's close() it may
     # still be inside the last call's end handler, holding that call's lock (about 1 exit in 150 hung
-    # on it). The link finds it by its frame: this fails first if a gRPC release renames what it looks for.
+    # on it). The link finds it through the references of the thread's target, never through another
+    # thread's running frame (reading its f_locals crashed CPython 3.11): frames are refused here.
+    # This fails first if a gRPC release renames what the link looks for.
+    monkeypatch.setattr(sys, "_current_frames", _refused)
     link = ServerLink(server.endpoint)
     ended = threading.Event()
 

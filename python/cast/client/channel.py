@@ -7,8 +7,8 @@ mapping.
 
 from __future__ import annotations
 
+import gc
 import random
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -71,7 +71,6 @@ def map_rpc_error(exc: grpc.RpcError) -> CastError:
         if key == ERROR_TRAILER:
             trailer = value if isinstance(value, str) else value.decode()
     return error_for_code(name, details or name, trailer)
-
 
 
 class LinkClosedError(UnavailableError):
@@ -163,25 +162,19 @@ class ServerLink:
         yield from requests
 
     def _pollers(self) -> list[threading.Thread]:
-        """The channel's poller: the thread gRPC runs while the channel has streams, found by its frame.
+        """The channel's poller: the thread gRPC runs while the channel has streams.
 
         Closing the channel returns once every call has ended, but the poller may still be running the
-        last call's end handler, inside that call's lock. Python's gRPC names it nowhere else (a private
-        attribute and a function name: if they change, nothing is found and nothing breaks).
+        last call's end handler, inside that call's lock. Python's gRPC names it nowhere: the thread is
+        found through what it references (its target holds the ``channel_spin`` function whose closure
+        holds the channel's call state), never through its running frame, whose ``f_locals`` another
+        thread must not read (CPython 3.11 crashed there). If gRPC changes these private names,
+        nothing is found and nothing breaks.
         """
         state = getattr(self.channel, "_call_state", None)
         if state is None:
             return []
-        frames = sys._current_frames()
-        found = []
-        for thread in threading.enumerate():
-            frame = frames.get(thread.ident or 0)
-            while frame is not None:
-                if frame.f_code.co_name == "channel_spin" and frame.f_locals.get("state") is state:
-                    found.append(thread)
-                    break
-                frame = frame.f_back
-        return found
+        return [thread for thread in threading.enumerate() if _spins_for(thread, state)]
 
     def close(self, deadline: float | None = None) -> None:
         """Close the channel (every stream on it ends), then wait for the tracked threads to end.
@@ -198,6 +191,31 @@ class ServerLink:
             thread.join(max(0.0, end - time.monotonic()))
 
 
+def _spins_for(thread: threading.Thread, state: object) -> bool:
+    """Whether ``thread`` runs gRPC's ``channel_spin`` over ``state`` (one channel's call state).
+
+    gRPC starts that function through a Cython wrapper whose closure scope is no Python closure:
+    the function is one or two references away from the thread's target (``gc.get_referents`` reads
+    them without running anything).
+    """
+    target = getattr(thread, "_target", None)  # threading deletes it once the thread's run ends
+    if target is None:
+        return False
+    near = [target, *gc.get_referents(target)]
+    for holder in [*near, *(ref for obj in near if not isinstance(obj, dict) for ref in gc.get_referents(obj))]:
+        if getattr(holder, "__name__", None) == "channel_spin" and _closes_over(holder, state):
+            return True
+    return False
+
+
+def _closes_over(function: object, value: object) -> bool:
+    for cell in getattr(function, "__closure__", None) or ():
+        try:
+            if cell.cell_contents is value:
+                return True
+        except ValueError:  # an empty cell
+            continue
+    return False
 
 
 class Backoff:
