@@ -125,7 +125,7 @@ std::shared_ptr<ClientSession> connectShared(const v1::SharedMemoryInfo& info, c
   sendAll(sock.get(), shm::hello(token));
   shm::FrameReader reader;
   std::vector<shm::Frame> frames;
-  std::string data;
+  shm::Inbox inbox;
   while (frames.empty()) {
     const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - Clock::now());
     if (left.count() <= 0) {
@@ -135,14 +135,14 @@ std::shared_ptr<ClientSession> connectShared(const v1::SharedMemoryInfo& info, c
     if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) continue;
     std::optional<std::vector<int>> fds;
     try {
-      fds = shm::receive(sock.get(), data);
+      fds = inbox.receive(sock.get());
     } catch (const std::exception& e) {
       throw NoSession(std::string("reading its answer failed: ") + e.what(), false);
     }
     if (!fds) continue;
-    if (data.empty()) throw NoSession("the server closed the connection after HELLO", false);
+    if (inbox.size() == 0) throw NoSession("the server closed the connection after HELLO", false);
     try {
-      frames = reader.feed(data.data(), data.size(), std::move(*fds));
+      frames = reader.feed(inbox.data(), inbox.size(), std::move(*fds));
     } catch (const shm::ProtocolError& e) {
       throw NoSession(std::string("its answer broke the protocol: ") + e.what(), false);
     }

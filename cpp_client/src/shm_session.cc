@@ -441,29 +441,32 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
     std::atomic<std::thread::id>& polling;
     ~Done() { polling.store(std::thread::id()); }
   } done{polling_};
-  std::string& data = received_;
+  shm::Inbox& inbox = inbox_;
   while (!dead_) {
     std::optional<std::vector<int>> fds;
     try {
-      fds = shm::receive(socket_, data);
+      socketReads_.fetch_add(1, std::memory_order_relaxed);
+      fds = inbox.receive(socket_);
     } catch (const std::exception& e) {
       end(std::string("read failed: ") + e.what());
       break;
     }
     if (!fds) break;  // nothing more now
-    if (data.empty()) {
+    if (inbox.size() == 0) {
       for (int fd : *fds) ::close(fd);
       end("the server closed the session");
       break;
     }
+    const bool drained = !inbox.full();  // the socket held no more: no second read to learn it
     std::vector<shm::Frame> frames;
     try {
-      frames = reader_.feed(data.data(), data.size(), std::move(*fds));
+      frames = reader_.feed(inbox.data(), inbox.size(), std::move(*fds));
     } catch (const shm::ProtocolError& e) {
       end(e.what());
       break;
     }
     for (auto& frame : frames) handle(frame);
+    if (drained) break;
   }
 }
 

@@ -208,6 +208,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // EVENTS frames handed to a receiver in this process, for tests and
   // diagnostics (every session's).
   static std::uint64_t eventFramesHandled();
+  // Reads of this session's socket so far (empty ones included), for tests
+  // and diagnostics.
+  std::uint64_t socketReads() const { return socketReads_.load(std::memory_order_relaxed); }
 
   // ------------------------------------------------------------- frames
   // Starts the thread that waits on the socket and handles what comes (the
@@ -256,7 +259,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::mutex unsentMu_;  // guards unsent_
   std::vector<std::uint64_t> unsent_;  // value ids given back, not yet sent
 
-  std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_ and received_
+  std::timed_mutex readMu_;  // one reader of the socket at a time; guards reader_ and inbox_
   std::atomic<std::thread::id> polling_{};  // the thread holding readMu_ to read (a claim there must not read again)
   shm::FrameReader reader_;
 
@@ -270,7 +273,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::mutex threadMu_;  // guards thread_ and stopped_
   std::thread thread_;   // the reader thread, once started
   bool stopped_ = false;
-  std::string received_;  // what one read gave (kept: a read per write or call must not allocate)
+  shm::Inbox inbox_;
+  std::atomic<std::uint64_t> socketReads_{0};  // what one read gave (kept: a read neither allocates nor clears memory)
 
   mutable std::mutex stateMu_;  // guards what follows
   std::shared_ptr<Mapping> staging_;  // null once the session ended

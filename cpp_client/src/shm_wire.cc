@@ -156,10 +156,12 @@ void FrameReader::closeStray() {
   fds_.clear();
 }
 
-std::optional<std::vector<int>> receive(int fd, std::string& out) {
-  out.resize(kMaxFrame);
+Inbox::Inbox(std::size_t capacity) : buf_(new char[capacity]), capacity_(capacity) {}
+
+std::optional<std::vector<int>> Inbox::receive(int fd) {
+  size_ = 0;
   alignas(cmsghdr) char control[CMSG_SPACE(kFdsPerRead * sizeof(int))];
-  iovec iov{out.data(), out.size()};
+  iovec iov{buf_.get(), capacity_};
   msghdr msg{};
   msg.msg_iov = &iov;
   msg.msg_iovlen = 1;
@@ -173,7 +175,7 @@ std::optional<std::vector<int>> receive(int fd, std::string& out) {
     if (errno == EAGAIN || errno == EWOULDBLOCK) return std::nullopt;
     throw std::system_error(errno, std::generic_category(), "recvmsg");
   }
-  out.resize(static_cast<std::size_t>(n));
+  size_ = static_cast<std::size_t>(n);
   std::vector<int> fds;
   for (cmsghdr* c = CMSG_FIRSTHDR(&msg); c != nullptr; c = CMSG_NXTHDR(&msg, c)) {
     if (c->cmsg_level != SOL_SOCKET || c->cmsg_type != SCM_RIGHTS) continue;

@@ -12,6 +12,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <deque>
+#include <memory>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -111,11 +112,33 @@ class FrameReader {
   std::deque<int> fds_;
 };
 
-// One recvmsg on `fd` (non-blocking or not): the bytes read into `out`
-// (empty: the peer closed) and the descriptors that came with them. nullopt
-// when nothing is there yet (EAGAIN); ProtocolError when more descriptors
-// came than the control buffer takes (they are closed); std::system_error
-// for a failed read.
-std::optional<std::vector<int>> receive(int fd, std::string& out);
+// A buffer one socket's reads go into, kept from read to read (one reader
+// at a time): a read neither allocates nor clears memory. Mirrors the Python
+// client's wire.shared_memory.Inbox.
+class Inbox {
+ public:
+  explicit Inbox(std::size_t capacity = kMaxFrame);
+
+  // One recvmsg on `fd` (non-blocking or not): the bytes read (data(),
+  // size(); none: the peer closed), valid until the next read, and the
+  // descriptors that came with them. nullopt when nothing is there yet
+  // (EAGAIN); ProtocolError when more descriptors came than the control
+  // buffer takes (they are closed); std::system_error for a failed read.
+  std::optional<std::vector<int>> receive(int fd);
+
+  const char* data() const { return buf_.get(); }
+  // What the last read gave.
+  std::size_t size() const { return size_; }
+  // Whether the last read filled the buffer; if not, the socket held no more
+  // when it was read (or what follows came with descriptors: a read stops
+  // after those), so a reader may wait for it to be readable again rather
+  // than read once more to learn it is empty.
+  bool full() const { return size_ == capacity_; }
+
+ private:
+  std::unique_ptr<char[]> buf_;
+  std::size_t capacity_;
+  std::size_t size_ = 0;
+};
 
 }  // namespace cast::detail::shm
