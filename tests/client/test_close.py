@@ -65,9 +65,8 @@ def test_close_after_a_reconnect_leaves_no_thread_behind(tmp_path: Path) -> None
                 time.sleep(0.2)
         component._cast_close()
         # Less the thread that reads the second server's output (tests/conftest.py's drain).
-        _assert_no_thread_left(
-            before | {t for t in threading.enumerate() if t.name.endswith("(drain)")}, "after a reconnect"
-        )
+        _assert_no_thread_left(before | {t for t in threading.enumerate() if t.name.endswith("(drain)")},
+                               "after a reconnect")
     finally:
         second.stop()
 
@@ -113,9 +112,8 @@ def test_a_script_that_never_closes_its_client_still_exits_without_stream_thread
 ) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAST_")}
     env.update(server.env("unclosed", "vision"), PYTHONPATH=PYTHONPATH)
-    done = subprocess.run(
-        [sys.executable, "-c", UNCLOSED_SCRIPT], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60
-    )
+    done = subprocess.run([sys.executable, "-c", UNCLOSED_SCRIPT], env=env, cwd=tmp_path, capture_output=True,
+                          text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "LEFT []", done.stdout + done.stderr
 

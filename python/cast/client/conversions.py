@@ -23,6 +23,10 @@ if TYPE_CHECKING:
 
 __all__ = ["address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb"]
 
+# Looked up rather than called: an enum call runs enum's machinery for each event, several microseconds on the
+# cold caches a watcher of frames at 30 Hz meets (docs/performance.md, M8).
+_OPERATIONS = {int(op): op for op in Operation}
+
 def entry_from_pb(entry: entry_pb2.Entry, call: ReadCall | None = None) -> EntryRecord:
     """Record form of a wire entry (client side).
 
@@ -55,7 +59,7 @@ def event_from_pb(pb: entry_pb2.ChangeEvent, call: ReadCall | None = None) -> Ch
     event = ChangeEvent(
         0,
         pb.revision,
-        Operation(pb.operation),
+        _OPERATIONS.get(pb.operation) or Operation(pb.operation),  # an unknown value: Operation says so
         pb.address.subarchitecture,
         pb.address.id,
         pb.type,

@@ -185,6 +185,8 @@ def send(sock: socket.socket, frame: bytes, fd: int | None = None) -> None:
 
 
 _ANCILLARY = socket.CMSG_SPACE(16 * 4)  # room for the descriptors one read may bring
+# A plain int: `flags & socket.MSG_CTRUNC` (an IntFlag) runs enum's machinery at every read.
+_CTRUNC = int(socket.MSG_CTRUNC)
 
 
 def _descriptors(ancillary: list[tuple[int, int, bytes]], flags: int) -> list[int]:
@@ -194,7 +196,7 @@ def _descriptors(ancillary: list[tuple[int, int, bytes]], flags: int) -> list[in
         if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
             usable = len(payload) - len(payload) % 4
             fds.extend(array.array("i", payload[:usable]))
-    if flags & socket.MSG_CTRUNC:
+    if flags & _CTRUNC:
         for fd in fds:
             os.close(fd)
         raise ProtocolError("more memory files arrived than one read takes")
