@@ -375,17 +375,11 @@ final class SharedSession {
   private void readLoop(ShmWire.Reader reader, InputStream in) {
     byte[] buf = new byte[ShmWire.MAX_FRAME];
     try {
-      while (dead == null) {
-        int n = in.read(buf);
-        FileDescriptor[] fds = socket.getReceivedFileDescriptors();
-        if (n < 0) {
-          closeAll(fds);
-          end("the server closed the session");
-          return;
-        }
-        for (ShmWire.Frame frame : reader.feed(buf, n, fds)) {
-          handle(frame);
-        }
+      // One read per call of readOnce: the JIT compiles a method by its calls, but this loop, entered
+      // once, only by its back-edges (tens of thousands), so a frame's work kept in it ran in the
+      // bytecode interpreter for the whole of M8's phase (docs/performance.md, M8).
+      while (dead == null && readOnce(reader, in, buf)) {
+        // every frame of the read is handled
       }
     } catch (IOException e) {
       end("read failed: " + e.getMessage());
@@ -394,6 +388,22 @@ final class SharedSession {
     } finally {
       closeAll(reader.stray().toArray(new FileDescriptor[0]));
     }
+  }
+
+  /** One read of the socket and the frames it completed; false once the server closed the session. */
+  private boolean readOnce(ShmWire.Reader reader, InputStream in, byte[] buf)
+      throws IOException, ShmWire.ProtocolError {
+    int n = in.read(buf);
+    FileDescriptor[] fds = socket.getReceivedFileDescriptors();
+    if (n < 0) {
+      closeAll(fds);
+      end("the server closed the session");
+      return false;
+    }
+    for (ShmWire.Frame frame : reader.feed(buf, n, fds)) {
+      handle(frame);
+    }
+    return true;
   }
 
   private void handle(ShmWire.Frame frame) {
