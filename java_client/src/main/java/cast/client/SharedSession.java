@@ -346,24 +346,8 @@ final class SharedSession {
 
   private void sendLoop(OutputStream out) {
     try {
-      while (true) {
-        List<byte[]> frames = new ArrayList<>();
-        synchronized (lock) {
-          while (dead == null && outbox.isEmpty() && givenBack.isEmpty()) {
-            lock.wait();
-          }
-          if (dead != null) {
-            return;
-          }
-          frames.addAll(ShmWire.release(givenBack)); // gathered: many leases, one frame
-          givenBack.clear();
-          frames.addAll(outbox);
-          outbox.clear();
-        }
-        for (byte[] f : frames) {
-          out.write(f);
-        }
-        out.flush();
+      while (sendOnce(out)) { // a method per turn, as readOnce, so that the JIT compiles it
+        // what was queued is sent
       }
     } catch (IOException e) {
       end("write failed: " + e.getMessage());
@@ -403,6 +387,28 @@ final class SharedSession {
     for (ShmWire.Frame frame : reader.feed(buf, n, fds)) {
       handle(frame);
     }
+    return true;
+  }
+
+  /** Wait for frames to send and send them; false once the session ended. */
+  private boolean sendOnce(OutputStream out) throws IOException, InterruptedException {
+    List<byte[]> frames = new ArrayList<>();
+    synchronized (lock) {
+      while (dead == null && outbox.isEmpty() && givenBack.isEmpty()) {
+        lock.wait();
+      }
+      if (dead != null) {
+        return false;
+      }
+      frames.addAll(ShmWire.release(givenBack)); // gathered: many leases, one frame
+      givenBack.clear();
+      frames.addAll(outbox);
+      outbox.clear();
+    }
+    for (byte[] f : frames) {
+      out.write(f);
+    }
+    out.flush();
     return true;
   }
 
