@@ -61,12 +61,21 @@ def test_high_priority_callbacks_run_before_pending_low_ones(make_component: Any
     reader = make_component(cast.UnmanagedComponent, "reader")
     writer = make_component(cast.UnmanagedComponent, "writer")
     gate = threading.Event()
+    blocking = threading.Event()
     order: list[str] = []
-    reader.on_change(cast.ChangeFilter(id="block"), lambda ch: gate.wait(30))
+
+    def block(change: cast.WorkingMemoryChange) -> None:
+        blocking.set()
+        gate.wait(30)
+
+    reader.on_change(cast.ChangeFilter(id="block"), block)
     reader.on_change(cast.ChangeFilter(id="low"), lambda ch: order.append("low"), priority="low")
     reader.on_change(cast.ChangeFilter(id="mid"), lambda ch: order.append("mid"))
     reader.on_change(cast.ChangeFilter(id="high"), lambda ch: order.append("high"), priority=cast.Priority.HIGH)
     writer.add("block", Pose())
+    # Running before the rest arrive: a dispatcher slow to wake would otherwise find "high" queued
+    # too, run it first (as it should), and the six would never be pending at once.
+    wait_for(blocking.is_set, what="the blocking callback to start")
     writer.add("low", Pose())
     writer.overwrite("low", Pose())
     writer.add("mid", Pose())
