@@ -273,8 +273,8 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::mutex threadMu_;  // guards thread_ and stopped_
   std::thread thread_;   // the reader thread, once started
   bool stopped_ = false;
-  shm::Inbox inbox_;
-  std::atomic<std::uint64_t> socketReads_{0};  // what one read gave (kept: a read neither allocates nor clears memory)
+  shm::Inbox inbox_;  // what one read gave (kept: a read neither allocates nor clears memory)
+  std::atomic<std::uint64_t> socketReads_{0};  // socketReads()
 
   mutable std::mutex stateMu_;  // guards what follows
   std::shared_ptr<Mapping> staging_;  // null once the session ended
