@@ -28,9 +28,7 @@ class Proxy:
                 client, _ = self._listener.accept()
             except OSError:
                 return
-            if self.refusing or self.drop_next > 0:
-                if not self.refusing:
-                    self.drop_next -= 1
+            if self._drops():
                 client.close()
                 continue
             try:
@@ -43,6 +41,15 @@ class Proxy:
                 self._conns += [client, upstream]
             threading.Thread(target=self._pipe, args=(client, upstream), daemon=True).start()
             threading.Thread(target=self._pipe, args=(upstream, client), daemon=True).start()
+
+    def _drops(self) -> bool:
+        """Whether the connection just accepted is closed at once: while refusing, or one of ``drop_next``."""
+        if self.refusing:
+            return True
+        if self.drop_next > 0:
+            self.drop_next -= 1
+            return True
+        return False
 
     @staticmethod
     def _pipe(src: socket.socket, dst: socket.socket) -> None:
