@@ -26,7 +26,8 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], machine: dict[str, An
         "# Benchmark results",
         "",
         f"Command: `{command}`. Machine: {machine['cores']} cores, {machine['python']}, grpcio {machine['grpcio']}, "
-        f"protobuf {machine['protobuf']}, Redis {machine['redis']}, {machine['platform']}.",
+        f"protobuf {machine['protobuf']}, Redis {machine['redis']}, {machine['platform']}, "
+        f"CPU idle: {machine.get('idle', 'unknown')}.",
         "",
         "| id | figure | value | floor | vs floor | peer | vs peer | target | met |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -118,8 +119,51 @@ def plot_panels(path: Path, xs: Sequence[float], panels: dict[str, dict[str, Seq
     plt.close(fig)
 
 
+_QOS_NONE_US = 2_000_000_000  # the kernel's PM QoS default: no CPU latency limit
+
+
+def cpu_idle(cpus: Path = Path("/sys/devices/system/cpu"), haltpoll: Path = Path("/sys/module/haltpoll/parameters"),
+             qos: Path = Path("/dev/cpu_dma_latency")) -> str:
+    """How this machine's CPUs idle, which the latencies of paced phases (M3, M8) depend on.
+
+    At 30 Hz every process sleeps between frames, so each frame wakes idle
+    CPUs, and what that costs is the machine's: the cpuidle driver and CPU
+    0's idle states with their exit latencies, the guest halt-polling window
+    when a VM's haltpoll driver runs (0: an idle CPU halts at once and is woken
+    by the host), and the PM QoS CPU latency limit where it can be read (root;
+    a process holding ``/dev/cpu_dma_latency`` at 0 keeps idle CPUs polling).
+    docs/performance.md, "Idle CPUs and latency". What cannot be read is left out.
+    """
+    parts = []
+    driver = _read(cpus / "cpuidle" / "current_driver")
+    if driver:
+        states = []
+        for state in sorted((cpus / "cpu0" / "cpuidle").glob("state*"), key=lambda p: int(p.name[5:] or 0)):
+            name, latency = _read(state / "name"), _read(state / "latency")
+            if name:
+                states.append(f"{name} {latency} µs" if latency else name)
+        parts.append(f"{driver} ({', '.join(states)})" if states else driver)
+        poll_ns = _read(haltpoll / "guest_halt_poll_ns") if driver == "haltpoll" else ""
+        if poll_ns:
+            parts.append(f"halt polling {poll_ns} ns")
+    try:
+        with open(qos, "rb") as f:
+            limit = int.from_bytes(f.read(4), "little", signed=True)
+        parts.append("CPU latency limit " + ("none" if limit >= _QOS_NONE_US else f"{limit} µs"))
+    except (OSError, ValueError):
+        pass
+    return "; ".join(parts) or "unknown"
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return ""
+
+
 def machine_info(floors: dict[str, Any], redis_version: str) -> dict[str, Any]:
-    """Cores and versions, and the floors for the report header."""
+    """Cores, versions and how the CPUs idle, and the floors for the report header."""
     import os
 
     import google.protobuf
@@ -132,5 +176,6 @@ def machine_info(floors: dict[str, Any], redis_version: str) -> dict[str, Any]:
         "protobuf": google.protobuf.__version__,
         "redis": redis_version,
         "platform": platform.platform(),
+        "idle": cpu_idle(),
         "floors": floors,
     }

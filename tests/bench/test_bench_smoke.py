@@ -29,7 +29,7 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     table = (tmp_path / "latest.md").read_text()
     for row_id in IDS:
         assert f"| {row_id} |" in table
-    assert "cores" in table and "grpcio" in table and "Redis" in table
+    assert "cores" in table and "grpcio" in table and "Redis" in table and "CPU idle: " in table
     doc = json.loads((tmp_path / "latest.json").read_text())
     assert sorted(doc["results"]) == IDS
     for row in doc["results"].values():

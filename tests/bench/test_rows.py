@@ -17,7 +17,7 @@ from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.images import REMOTE, WATCHERS, figures, shared_bytes
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, drive, frame
-from bench.report import plot_panels
+from bench.report import cpu_idle, plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
 from bench.rows_scale import m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
@@ -365,3 +365,25 @@ def test_m8_finds_the_line_where_a_watchers_library_said_its_watch_ended() -> No
         with tempfile.TemporaryFile("w+") as log:
             log.write(text)
             assert (found in _watch_ended(log)) if found else _watch_ended(log) == ""
+
+
+def test_cpu_idle_names_the_driver_its_states_halt_polling_and_the_latency_limit(tmp_path: Path) -> None:
+    cpus, params, qos = tmp_path / "cpu", tmp_path / "haltpoll", tmp_path / "cpu_dma_latency"
+    (cpus / "cpuidle").mkdir(parents=True)
+    (cpus / "cpuidle" / "current_driver").write_text("haltpoll\n")
+    for i, (name, latency) in enumerate([("POLL", 0), ("haltpoll idle", 1)] * 6):  # state10 sorts after state2
+        state = cpus / "cpu0" / "cpuidle" / f"state{i}"
+        state.mkdir(parents=True)
+        (state / "name").write_text(f"{name}\n" if i < 2 else f"S{i}\n")
+        (state / "latency").write_text(f"{latency if i < 2 else i * 10}\n")
+    params.mkdir()
+    (params / "guest_halt_poll_ns").write_text("0\n")
+    qos.write_bytes((2_000_000_000).to_bytes(4, "little"))
+    states = "POLL 0 µs, haltpoll idle 1 µs, " + ", ".join(f"S{i} {i * 10} µs" for i in range(2, 12))
+    assert cpu_idle(cpus, params, qos) == f"haltpoll ({states}); halt polling 0 ns; CPU latency limit none"
+    qos.write_bytes((0).to_bytes(4, "little"))  # a process holds /dev/cpu_dma_latency at 0: idle CPUs poll
+    assert cpu_idle(cpus, params, qos).endswith("; CPU latency limit 0 µs")
+    # Another driver: no halt polling; a limit that cannot be read (not root) is left out.
+    (cpus / "cpuidle" / "current_driver").write_text("intel_idle\n")
+    assert cpu_idle(cpus, params, tmp_path / "absent") == f"intel_idle ({states})"
+    assert cpu_idle(tmp_path / "none", params, tmp_path / "absent") == "unknown"
