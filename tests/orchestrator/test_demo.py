@@ -68,6 +68,7 @@ def test_demo_runs_for_a_fixed_time_and_exits_zero(demo_built: Path, tmp_path: P
     assert "cast: all 5 components started in" in text
     assert "segmenter | frame 1: new region obj-1" in text
     assert "summary of scene-description" in text and "every component ran and stopped cleanly" in text
+    assert "┃ SA " in text and "│ vision " in text  # the summary's cells padded from the table's edges too
     assert "questions answered" in text  # the coordinator's stop() reports on the conversation
     data = json.loads(summary.read_text())
     # Its outcomes for experiments: one report per answer it printed (the times are measured, never asserted).

@@ -29,7 +29,7 @@ def print_json(value: Any) -> None:
 
 def print_table(title: str, columns: Sequence[str], rows: Sequence[Sequence[Any]], numeric: Sequence[str] = ()) -> None:
     """A table on stdout (plain text when stdout is not a terminal)."""
-    table = Table(title=title, title_justify="left", pad_edge=False)
+    table = Table(title=title, title_justify="left")
     for col in columns:
         table.add_column(col, justify="right" if col in numeric else "left", overflow="fold")
     for row in rows:

@@ -186,7 +186,7 @@ _SESSION_STYLE = {"running": "green", "starting": "yellow", "started": "cyan", "
 
 
 def _components_table(snap: Snapshot) -> Table:
-    table = Table(title="components", title_justify="left", expand=False, pad_edge=False)
+    table = Table(title="components", title_justify="left", expand=False)
     cols = ["id", "SA", "lang", "kind", *(["host"] if snap.multihost else []), "launch", "process", "session", "pid",
             "restarts"]
     for col in cols:
@@ -202,7 +202,7 @@ def _components_table(snap: Snapshot) -> Table:
 
 
 def _sa_table(snap: Snapshot, live: bool) -> Table:
-    table = Table(title="subarchitectures", title_justify="left", expand=False, pad_edge=False)
+    table = Table(title="subarchitectures", title_justify="left", expand=False)
     cols = ["SA", "policy", "entries", "events"]
     if live:
         cols += ["events/s", "waiting", "running"]
