@@ -150,7 +150,7 @@ def cpu_idle(cpus: Path = Path("/sys/devices/system/cpu"), haltpoll: Path = Path
         with open(qos, "rb") as f:
             limit = int.from_bytes(f.read(4), "little", signed=True)
         parts.append("CPU latency limit " + ("none" if limit >= _QOS_NONE_US else f"{limit} µs"))
-    except (OSError, ValueError):
+    except OSError:
         pass
     return "; ".join(parts) or "unknown"
 
