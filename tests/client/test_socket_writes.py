@@ -214,13 +214,32 @@ def test_a_writes_frame_over_its_bound_is_refused_naming_the_bound_before_any_of
     assert b"(1 to 65536 allowed)" in other.next_frame().body
 
 
-def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_applies_every_one(raw: Any) -> None:
+def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_applies_every_one(
+    raw: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cast.server import socket_writes
+
     h, session = raw()
     _, other = raw(h, "other")
+    # The flood's later turns wait until the other write has been sent: the server (a thread of this process)
+    # could otherwise apply all its turns while this thread waits for the GIL or a core, and the other write
+    # would land after the last by the test's timing, not the server's. A server without turns applies the
+    # whole flood in its first call, before the gate: the other write lands after the last, and this fails.
+    sent = threading.Event()
+    drain = socket_writes.SocketWrites._drain
+
+    def gated(self: Any) -> None:
+        if self._draining and not sent.is_set():
+            self._loop.call_later(0.001, self._drain)
+        else:
+            drain(self)
+
+    monkeypatch.setattr(socket_writes.SocketWrites, "_drain", gated)
     count = 400 * REQUESTS_PER_TURN  # hundreds of turns: the other write lands among them, not after the last
     session.write(*(add(i + 1, f"flood{i}", b"f") for i in range(count)))  # one frame
     first = session.replies(1)  # the server is applying the flood
     other.write(add(1, "between", b"b"))
+    sent.set()
     (between,) = other.replies(1)
     replies = first + session.replies(count - 1)
     assert [r.id for r in replies] == list(range(1, count + 1))
