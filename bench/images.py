@@ -18,8 +18,10 @@ a Python watcher in that namespace, which gets every value as bytes.
 In the same run: Zenoh (bench/zenoh_peer.py) and iceoryx2
 (bench/iceoryx2_peer.py, the zero-copy limit), each a Python publisher and
 four Python subscribers that read every byte of every message, carry the same
-sizes at the same paces; the bare gRPC unary echo of 1 MiB (bench/floors.py)
-is measured once, for context.
+sizes at the same paces; at 1 MiB and 30 Hz so does a bare Python relay
+between one writer and four readers (bench/relay_floor.py: CAST's two hops and
+one copy, without its rules), for what the path itself costs; the bare gRPC
+unary echo of 1 MiB (bench/floors.py) is measured once, for context.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from bench import iceoryx2_peer, zenoh_peer
+from bench import iceoryx2_peer, relay_floor, zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast, expected_frames
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
@@ -358,10 +360,10 @@ def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[
         out["floor"].append(echo.big_echo(max(20, frames // 2), SIZE))
     finally:
         echo.close()
-    for name, fn in (("zenoh", zenoh_peer.large), ("iceoryx2", iceoryx2_peer.large)):
+    for name, fn in (("zenoh", zenoh_peer.large), ("iceoryx2", iceoryx2_peer.large), ("relay", relay_floor.large)):
         for key, size, paced in (("hz", SIZE, True), ("hz_6m", BIG, True), ("b2b", SIZE, False)):
-            if name == "iceoryx2" and size == BIG:
-                continue  # the limit is shown at 1 MiB
+            if (name == "iceoryx2" and size == BIG) or (name == "relay" and key != "hz"):
+                continue  # the limit is shown at 1 MiB; the relay beside the latency judged
             log(f"M8 {name}: {size >> 20} MiB, {f'{HZ} Hz' if paced else 'back to back'}")
             _guard(out, f"{name}_{key}", _peer, fn, count[size], 1 / HZ if paced else 0.0, size,
                    WARM_PER_FRAME * frames, cold if key == "hz" else 0)

@@ -27,6 +27,7 @@ M8_PHASES = {  # bench/images.py's phases on the server's host: key -> how the r
     "queue_b2b": "1 MiB, queue, back to back",
     "latest_b2b": "1 MiB, latest, back to back",
 }
+RELAY = "bare Python relay (CAST's two hops and one copy, no rules), 1 MiB, 30 Hz"  # bench/relay_floor.py
 M9_GROWTH = 3.0
 
 
@@ -120,7 +121,7 @@ def m8_misses(m8: dict[str, Any]) -> list[str]:
     misses += _remote_misses(m8)
     for key, what in (("zenoh_hz", "Zenoh, 1 MiB, 30 Hz"), ("zenoh_hz_6m", "Zenoh, 6 MiB, 30 Hz"),
                       ("zenoh_b2b", "Zenoh, 1 MiB, back to back"), ("iceoryx2_hz", "iceoryx2, 1 MiB, 30 Hz"),
-                      ("iceoryx2_b2b", "iceoryx2, 1 MiB, back to back")):
+                      ("iceoryx2_b2b", "iceoryx2, 1 MiB, back to back"), ("relay_hz", RELAY)):
         got = m8.get(key, {"error": "not run"})
         if "error" in got:  # a comparison the row promises and could not make
             misses.append(f"{what}: {got['error']}")
@@ -197,7 +198,7 @@ def _other_figures(m8: dict[str, Any]) -> list[dict[str, Any]]:
                            f"{shared:.0f}); idle {m8['server_memory_idle'] / 2**20:.0f}, bound "
                            f"{m8_memory_bound(m8) / 2**20:.0f}", round(peak / 2**20, 1)))
     for key, what in (("zenoh_hz", "Zenoh, 1 MiB, 30 Hz"), ("zenoh_hz_6m", "Zenoh, 6 MiB, 30 Hz"),
-                      ("iceoryx2_hz", "iceoryx2, 1 MiB, 30 Hz")):
+                      ("iceoryx2_hz", "iceoryx2, 1 MiB, 30 Hz"), ("relay_hz", RELAY)):
         got = m8.get(key, {})
         if "error" in got:
             figures.append(fig(f"{what}: not measured ({got['error'][:120]})", math.nan))
@@ -223,7 +224,7 @@ def m8_row(m8: dict[str, Any]) -> dict[str, Any]:
         "back, each phase measured after a warm-up burst of its frames to every reader (the first seconds of "
         "1 MiB at 30 Hz, cold, shown beside); a Python watcher in another network namespace (bytes); peer Zenoh "
         "and floor iceoryx2 (zero-copy), a Python publisher and four Python subscribers reading every byte, same "
-        "run",
+        "run; at 1 MiB 30 Hz also a bare Python relay between a writer and four readers (what the path costs)",
         "target": f"1 MiB at 30 Hz: every watcher's p50 <= {M8_ZENOH_P50} x Zenoh's, p99 <= {M8_P99_US} µs; 6 MiB "
         f"at 30 Hz: p99 <= {M8_BIG_P99_US} µs; 1 MiB back to back: MB/s to the four >= {M8_ZENOH_MB} x Zenoh's; "
         "0 lost, every checksum right, the other host gets every frame as bytes; server memory (private + "

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.rows_scale import RELAY
 from tests.conftest import ROOT
 
 IDS = sorted(["D1", "M1", "M1P", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "M10", "O1", "R1", "REC1"])
@@ -55,7 +56,8 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     rec1 = doc["results"]["REC1"]["figures"]
     assert rec1[0]["floor"] > 0 and rec1[1]["name"] == "recorder throughput (changes/s)" and rec1[1]["value"] > 0
     # M1 against the stream ping-pong too; M3 against Zenoh; M8 with its four watchers at both sizes, Zenoh (the
-    # peer column) and iceoryx2 (the floor column), the watcher on another host; M9 at each count.
+    # peer column) and iceoryx2 (the floor column), the bare relay beside them, the watcher on another host; M9 at each
+    # count.
     m1_names = {f["name"] for f in doc["results"]["M1"]["figures"]}
     assert "add_per_s (calls/s) vs stream ping-pong" in m1_names, m1_names
     assert doc["results"]["M3"]["figures"][0]["peer"] > 0, doc["results"]["M3"]
@@ -69,6 +71,7 @@ def test_quick_benchmark_writes_table_json_and_plots(tmp_path: Path) -> None:
     assert b2b["floor"] > 0 and b2b["peer"] > 0, b2b
     assert any(name.startswith("1 MiB, 30 Hz, Python, other host: MB received as bytes") for name in m8), m8
     assert "iceoryx2, 1 MiB, back to back: MB/s delivered, all subscribers" in m8
+    assert m8[f"{RELAY}: p50 (µs), median of subscribers"]["value"] > 0, m8
     m9 = {f["name"] for f in doc["results"]["M9"]["figures"]}
     assert {"10 sessions: p99 (µs)", "20 sessions: p99 (µs)"} <= m9, doc["results"]["M9"]
     # M10: the ROS bridge beside rclpy -> rclpy (the peer column), both sizes.

@@ -20,7 +20,7 @@ from bench.peer_fanout import END, WARM, Receiver, drive, frame
 from bench.report import cpu_idle, plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
-from bench.rows_scale import m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
+from bench.rows_scale import RELAY, m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
 from bench.stream_cases import window
 
 MS = 1_000_000  # ns
@@ -222,7 +222,7 @@ def _m8() -> dict[str, Any]:
             "cast_queue_hz": phase(), "cast_queue_hz_6m": phase(p99=9000.0), "cast_queue_b2b": phase(),
             "cast_latest_b2b": phase(), "cast_remote": remote,
             "zenoh_hz": peer(), "zenoh_hz_6m": peer(p50=5000.0), "zenoh_b2b": peer(),
-            "iceoryx2_hz": peer(p50=150.0), "iceoryx2_b2b": peer(mb=6000.0)}
+            "iceoryx2_hz": peer(p50=150.0), "iceoryx2_b2b": peer(mb=6000.0), "relay_hz": peer(p50=600.0)}
 
 
 def test_m8_is_met_when_every_target_is() -> None:
@@ -249,6 +249,7 @@ def test_m8_is_met_when_every_target_is() -> None:
         (lambda m: m.update(cast_remote={"error": "`ip netns add` failed"}), "`ip netns add` failed"),
         (lambda m: m.update(iceoryx2_hz={"error": "iceoryx2 not measured"}), "iceoryx2, 1 MiB, 30 Hz: iceoryx2 not"),
         (lambda m: m.update(zenoh_b2b={"error": "no zenoh"}), "Zenoh, 1 MiB, back to back: no zenoh"),
+        (lambda m: m.update(relay_hz={"error": "relay did not start"}), "bare Python relay (CAST's two hops"),
         (lambda m: m["cast_latest_b2b"]["server_memory"].update(peak=m8_memory_bound(m) + 1), "server memory peak"),
     ],
 )
@@ -267,6 +268,8 @@ def test_m8_figures_name_the_peers_and_say_what_was_not_measured() -> None:
     assert (p50["value"], p50["floor"], p50["peer"]) == (900.0, 150.0, 1000.0)  # floor iceoryx2, peer Zenoh
     b2b = figures["1 MiB, queue, back to back: MB/s delivered, all watchers"]
     assert (b2b["floor"], b2b["peer"]) == (6000.0, 1500.0)
+    relay = figures[f"{RELAY}: p50 (µs), median of subscribers"]
+    assert relay["value"] == 600.0  # what the path costs without CAST's rules: shown, not judged
     broken = _m8()
     broken["iceoryx2_b2b"] = {"error": "iceoryx2 not measured: no module"}
     assert any(name.startswith("iceoryx2, 1 MiB, back to back: not measured (iceoryx2 not measured: no module")
