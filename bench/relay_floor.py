@@ -126,7 +126,7 @@ class _Relay:
             conn, _ = self.listener.accept()
         except BlockingIOError:
             return
-        conn.setblocking(True)
+        conn.setblocking(True)  # the writer and the readers send their hello as they connect: read at once
         hello, fds, _, _ = socket.recv_fds(conn, 16, 1)
         if hello == _HELLO_WRITER:
             self.staging = memoryview(mmap.mmap(fds[0], self.slot_bytes, prot=mmap.PROT_READ))
