@@ -33,3 +33,24 @@ def test_the_sleeper_wakes_when_the_time_set_comes(
     a.wait()
     assert time.monotonic() - begun < 1
     a.close()
+
+
+@pytest.mark.parametrize("timerfd", [True, False], ids=["timerfd", "event"])
+def test_a_cancelled_alarm_lets_the_sleeper_sleep_until_set_again(
+    timerfd: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    if not timerfd:
+        monkeypatch.setattr(alarm, "_libc_timerfd", lambda: None)
+    a = Alarm()
+    for _ in range(3):  # the same time again and again, as the dispatcher sets it around each callback
+        a.set(0.05)
+        a.cancel()
+    woke = threading.Event()
+    sleeper = threading.Thread(target=lambda: (a.wait(), woke.set()))
+    sleeper.start()
+    if timerfd:  # the fallback's Event cannot be recalled: its sleeper wakes at a set and sleeps out the time
+        assert not woke.wait(0.3)
+    a.set(0.02)  # another time than the one kept
+    sleeper.join(5)
+    assert woke.is_set()
+    a.close()

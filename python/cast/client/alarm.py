@@ -47,7 +47,8 @@ def _libc_timerfd() -> tuple[int, Callable[..., int]] | None:
     except (OSError, AttributeError):
         return None
     create.argtypes, create.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    settime.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Itimerspec), ctypes.c_void_p]
+    # No argtypes for settime: converting through them was most of a call's cost (set and cancel run around every
+    # callback), and its arguments are always two ints, a pointer made in this module and None (NULL).
     settime.restype = ctypes.c_int
     fd = create(_CLOCK_MONOTONIC, _TFD_CLOEXEC)
     return None if fd < 0 else (fd, settime)
@@ -61,6 +62,10 @@ class Alarm:
         self._settime: Callable[..., int] | None = None
         self._event: threading.Event | None = None
         self._due = 0.0  # the fallback's deadline (time.monotonic())
+        # The last time set and its itimerspec, kept (never changed once made) because the dispatcher sets the same
+        # time at every callback; replaced whole, so a thread setting another time never changes what one reads.
+        self._spec: tuple[float, object] = (0.0, None)
+        self._zero = ctypes.byref(_Itimerspec())  # all zero: disarmed
         if hasattr(os, "timerfd_create"):  # Python 3.13+
             self._fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_CLOEXEC)  # type: ignore[attr-defined]
             return
@@ -79,9 +84,12 @@ class Alarm:
             self._due = time.monotonic() + seconds
             self._event.set()
         elif self._settime is not None:
-            sec = int(seconds)
-            spec = _Itimerspec(it_value=_Timespec(sec, int((seconds - sec) * 1e9) or 1))  # one per call: any thread
-            if self._settime(self._fd, 0, ctypes.byref(spec), None) != 0:
+            last, ref = self._spec
+            if last != seconds or ref is None:
+                sec = int(seconds)
+                ref = ctypes.byref(_Itimerspec(it_value=_Timespec(sec, int((seconds - sec) * 1e9) or 1)))
+                self._spec = (seconds, ref)
+            if self._settime(self._fd, 0, ref, None) != 0:
                 raise OSError(ctypes.get_errno(), "timerfd_settime failed")
         else:
             os.timerfd_settime(self._fd, initial=seconds)  # type: ignore[attr-defined]
@@ -91,8 +99,7 @@ class Alarm:
         if self._event is not None or self._fd < 0:
             return
         if self._settime is not None:
-            spec = _Itimerspec()  # all zero: disarmed
-            if self._settime(self._fd, 0, ctypes.byref(spec), None) != 0:
+            if self._settime(self._fd, 0, self._zero, None) != 0:
                 raise OSError(ctypes.get_errno(), "timerfd_settime failed")
         else:
             os.timerfd_settime(self._fd, initial=0)  # type: ignore[attr-defined]
