@@ -11,12 +11,15 @@ from cast.client import alarm
 from cast.client.alarm import Alarm
 
 
-@pytest.mark.parametrize("timerfd", [True, False], ids=["timerfd", "event"])
-def test_the_sleeper_wakes_when_the_time_set_comes(
-    timerfd: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    if not timerfd:
+@pytest.fixture(params=[True, False], ids=["timerfd", "event"])
+def timerfd(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> bool:
+    """Whether the alarms made in the test use a timerfd (else libc's is hidden: the Event fallback)."""
+    if not request.param:
         monkeypatch.setattr(alarm, "_libc_timerfd", lambda: None)
+    return bool(request.param)
+
+
+def test_the_sleeper_wakes_when_the_time_set_comes(timerfd: bool) -> None:
     a = Alarm()
     assert (a._event is None) == timerfd
     woke: list[float] = []
@@ -35,13 +38,9 @@ def test_the_sleeper_wakes_when_the_time_set_comes(
     a.close()
 
 
-@pytest.mark.parametrize("timerfd", [True, False], ids=["timerfd", "event"])
-def test_a_cancelled_alarm_lets_the_sleeper_sleep_until_set_again(
-    timerfd: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    if not timerfd:
-        monkeypatch.setattr(alarm, "_libc_timerfd", lambda: None)
+def test_a_cancelled_alarm_lets_the_sleeper_sleep_until_set_again(timerfd: bool) -> None:
     a = Alarm()
+    assert (a._event is None) == timerfd
     for _ in range(3):  # the same time again and again, as the dispatcher sets it around each callback
         a.set(0.05)
         a.cancel()

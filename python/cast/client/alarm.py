@@ -85,7 +85,7 @@ class Alarm:
             self._event.set()
         elif self._settime is not None:
             last, ref = self._spec
-            if last != seconds or ref is None:
+            if last != seconds:  # never at the first set: the time kept starts at 0, below any time set
                 sec = int(seconds)
                 ref = ctypes.byref(_Itimerspec(it_value=_Timespec(sec, int((seconds - sec) * 1e9) or 1)))
                 self._spec = (seconds, ref)
