@@ -158,10 +158,10 @@ web-deps:
 	@command -v chromium >/dev/null || { echo "installing Debian's chromium"; \
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium; }
 
-bench: setup proto bench-deps cpp java
+bench: setup proto bench-deps cpp java ros2-deps
 	$(PY) -m bench.run
 
-bench-quick: setup proto bench-deps cpp java
+bench-quick: setup proto bench-deps cpp java ros2-deps
 	$(PY) -m bench.run --quick --out bench/results/quick
 
 # The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),

@@ -189,6 +189,9 @@ class _WatchStream:
         # subscription, whose wake-ups may come at once from another thread.
         self._link = read[0].link if read is not None and on_socket else None
         self._due = socket_events.due_on(self._loop) if self._link is not None else None
+        # A gRPC stream's wake-up on the loop first gives the socket streams woken before it their turn
+        # (socket_events.before_task_woken): the order of service stays the order woken.
+        self._loop_due = socket_events.due_on(self._loop)
         self._sub = Subscription(access.system.host, self._notify)
         self._unlisten = self._link.listen(self._link_changed) if self._link is not None else None
 
@@ -198,6 +201,7 @@ class _WatchStream:
             if self._due is not None:
                 self._due.add(self)  # sent before the write's reply, by the write path (socket_events)
             else:
+                socket_events.before_task_woken(self._loop_due)
                 self._woken()
                 watch_woken()
         elif self._due is not None:
