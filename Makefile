@@ -1,10 +1,11 @@
 # CAST on gRPC: the one entry point. `make test` and `make demo` install what is missing.
 SHELL := /bin/bash
-# The interpreter .venv and .venv-ros2 are made from: Debian's /usr/bin/python3 where there is one
-# (built with profile-guided optimisation and LTO: the same Python code runs in about 20 % less CPU
-# than in an interpreter built without them, such as pyenv's default build; docs/decisions.md, "The
-# Python interpreter"), else python3 from PATH. `make PYTHON=...` picks another.
-PYTHON ?= $(shell test -x /usr/bin/python3 && echo /usr/bin/python3 || echo python3)
+# The interpreter .venv and .venv-ros2 are made from: the distribution's /usr/bin/python3 where it is
+# 3.11 or newer (Debian's is built with profile-guided optimisation and LTO: the same Python code runs
+# in about 20 % less CPU than in an interpreter built without them, such as pyenv's default build;
+# docs/decisions.md, "The Python interpreter"), else python3 from PATH. `make PYTHON=...` picks another.
+PYTHON ?= $(shell /usr/bin/python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null \
+            && echo /usr/bin/python3 || echo python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 PROTOS := $(wildcard proto/cast/v1/*.proto)
@@ -51,11 +52,16 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml setup.py VERSION | pytho
 setup: $(VENV)/.installed
 
 # Debian's python3 makes environments only with its venv module, a package of its own (python3-venv):
-# installed when missing (apt-get update only then).
+# installed when missing (apt-get update only then). Another interpreter without it is named, not mended.
 python-venv:
 	@$(PYTHON) -c "import ensurepip, venv" 2>/dev/null || { \
-	  echo "installing python3-venv for $(PYTHON)"; \
-	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q python3-venv; }
+	  if [ "$(PYTHON)" = /usr/bin/python3 ] && command -v apt-get >/dev/null; then \
+	    echo "installing python3-venv for $(PYTHON)"; \
+	    $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q python3-venv; \
+	  else \
+	    echo "$(PYTHON) has no venv module (ensurepip): install it, or pick another with make PYTHON=/path/to/python3.11" >&2; \
+	    exit 1; \
+	  fi; }
 
 # The same generator as the wheel's and sdist's build hook (setup.py), so the tree and a package
 # hold the same code: grpcio-tools' protoc, .pyi stubs by mypy-protobuf.
