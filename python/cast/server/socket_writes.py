@@ -53,7 +53,6 @@ class SocketWrites:
     def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]],
                  send: Callable[[bytes], bool], pause: Callable[[bool], None]) -> None:
         self._loop = asyncio.get_running_loop()
-        self._due = socket_events.due_on(self._loop)
         self._writes = Writes(system, caller, self._flush)
         self._send = send
         self._pause = pause
@@ -86,14 +85,8 @@ class SocketWrites:
         """Apply up to REQUESTS_PER_TURN queued requests; the rest in the next turn, the connection paused."""
         self._draining = False
         before = woken()
-        due = self._due
-        due.hold()  # the socket streams these writes wake are served below, or get their callbacks at release
-        try:
-            self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
-            if woken() == before:
-                due.serve()  # the socket watchers' events of these writes, now, before their replies
-        finally:
-            due.release()
+        # The socket watchers' events of these writes are sent within, before their replies (cast.server.writes).
+        self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
         if self._queue:
             self._draining = True
             self._pause(True)
@@ -118,7 +111,7 @@ class SocketWrites:
         """Send the replies ready now, in one REPLIES frame (after the socket watchers' events of their writes)."""
         self._flushing = False
         if self._writes.ready:
-            self._due.serve()  # a request that waited (a lock, the journal) was applied in a task of its own
+            socket_events.serve()  # a request that waited (a lock, the journal) was applied in a task of its own
             self._send(wire.replies(self._writes.take().SerializeToString()))
 
     def close(self) -> None:

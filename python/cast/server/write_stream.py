@@ -9,7 +9,7 @@ reads the stream's messages and yields the replies.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable, Iterable
+from collections.abc import AsyncIterator, Callable
 
 from cast.core.records import Identity
 from cast.core.system import System
@@ -27,24 +27,6 @@ class WriteStream:
         self._late = asyncio.Event()  # a waiting request was answered
         self._writes = Writes(system, caller, self._late.set)
 
-    def _apply(self, due: socket_events.Due, requests: Iterable[wm_pb2.WriteRequest]) -> int:
-        """Apply one message's requests; their socket watchers' events go at once unless gRPC ones' tasks woke.
-
-        Returns :func:`woken` as it was before. While the requests are applied
-        the loop's socket streams get no callbacks of their own (they are
-        served here), unless the writes also woke gRPC watch streams, whose
-        tasks and the socket streams then go in the order woken.
-        """
-        before = woken()
-        due.hold()
-        try:
-            self._writes.apply(requests)
-            if woken() == before:
-                due.serve()
-        finally:
-            due.release()
-        return before
-
     async def run(self, messages: AsyncIterator[wm_pb2.WriteRequests]) -> AsyncIterator[wm_pb2.WriteReplies]:
         """Yield the replies until the client has closed its side and every request is answered.
 
@@ -61,7 +43,6 @@ class WriteStream:
         streams, the reply waits one turn of the loop, theirs.
         """
         writes = self._writes
-        due = socket_events.due_on(asyncio.get_running_loop())
         source = messages.__aiter__()
         reading: asyncio.Future[wm_pb2.WriteRequests] | None = None
         try:
@@ -72,7 +53,8 @@ class WriteStream:
                         message = await source.__anext__()
                     except StopAsyncIteration:
                         break
-                    before = self._apply(due, message.requests)
+                    before = woken()
+                    writes.apply(message.requests)
                 else:
                     if reading is None:
                         reading = asyncio.ensure_future(source.__anext__())
@@ -82,26 +64,26 @@ class WriteStream:
                     self._late.clear()
                     if reading.done():
                         done, reading = reading, None
+                        before = woken()
                         try:
-                            requests = done.result().requests
+                            writes.apply(done.result().requests)
                         except StopAsyncIteration:
                             break
-                        before = self._apply(due, requests)
                 if writes.ready:
                     if woken() != before:
                         # Events before acknowledgements: the gRPC watch streams these writes woke are ready to
                         # run (socket ones' callbacks among them, in the order woken); one turn of the loop lets
                         # them send their events before this reply costs its send.
                         await asyncio.sleep(0)
-                    due.serve()  # the socket watchers' events of these writes go now, before the reply
+                    socket_events.serve()  # the socket watchers' events of these writes go now, before the reply
                     yield writes.take()
             while writes.waiting:  # the client closed its side: answer what still waits, then end
                 await asyncio.wait(set(writes.waiting))
                 if writes.ready:
-                    due.serve()
+                    socket_events.serve()
                     yield writes.take()
             if writes.ready:
-                due.serve()
+                socket_events.serve()
                 yield writes.take()
         finally:
             if reading is not None:

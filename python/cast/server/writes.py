@@ -33,6 +33,7 @@ from cast.core.access import Access, Steps, resume_async, settle_at_once
 from cast.core.records import Identity
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
+from cast.server import socket_events
 from cast.server.rpc import error_class
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.v1 import working_memory_pb2 as wm_pb2
@@ -134,6 +135,7 @@ class Writes:
         self._until = 0.0
         self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
         self.waiting: set[asyncio.Task[None]] = set()  # requests that wait (locks, a journal)
+        self._due = socket_events.due_on(asyncio.get_running_loop())  # the loop's socket watch streams due
 
     @property
     def ready(self) -> bool:
@@ -141,9 +143,26 @@ class Writes:
         return bool(self._ready)
 
     def apply(self, requests: Iterable[wm_pb2.WriteRequest]) -> None:
-        """Apply requests in order: each is answered now or, if it must wait, later."""
-        for request in requests:
-            self._handle(request)
+        """Apply requests in order: each is answered now or, if it must wait, later.
+
+        The socket watchers' events of these requests are sent before this
+        returns, unless the requests also woke gRPC watch streams' tasks
+        (:func:`woken` moved): the transport then lets the loop turn before
+        its replies, and the socket streams are served by their callbacks in
+        the order woken. Meanwhile the loop's list of socket streams is held
+        (:meth:`cast.server.socket_events.Due.hold`), so that the streams
+        these requests wake get no callback only to find themselves served.
+        """
+        before = _Woken.count
+        due = self._due
+        due.hold()
+        try:
+            for request in requests:
+                self._handle(request)
+            if _Woken.count == before:
+                due.serve()
+        finally:
+            due.release()
 
     def take(self) -> wm_pb2.WriteReplies:
         """The replies ready now, in one message (several replies share the cost of a message)."""
