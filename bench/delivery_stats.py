@@ -15,7 +15,7 @@ from typing import Any
 
 from bench.harness import summary_us
 
-__all__ = ["parse_watcher", "totals", "watcher_figures"]
+__all__ = ["latencies_us", "parse_watcher", "pooled", "totals", "watcher_figures"]
 
 
 def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
@@ -32,6 +32,11 @@ def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+def latencies_us(sent: Mapping[int, int], stamps: Mapping[int, int]) -> list[float]:
+    """Write -> arrival (µs) of each write in ``sent`` that arrived, in key order."""
+    return [(stamps[k] - t0) / 1e3 for k, t0 in sorted(sent.items()) if k in stamps]
+
+
 def watcher_figures(sent: Mapping[int, int], got: Mapping[str, Any], extra_events: int = 0) -> dict[str, Any]:
     """Latency (µs), counts and delivered MB/s of one watcher.
 
@@ -41,15 +46,17 @@ def watcher_figures(sent: Mapping[int, int], got: Mapping[str, Any], extra_event
     the entry). Lost is what the watcher neither received nor was told it
     skipped (a latest watch reports what it skipped, which is not lost).
     MB/s (10**6 bytes) is the value bytes received over the time from the first
-    write to the last arrival.
+    write to the last arrival. ``samples_us`` holds the latencies themselves
+    (:func:`pooled` joins rounds by them).
     """
     stamps: Mapping[int, int] = got["stamps"]
-    samples = [(stamps[k] - t0) / 1e3 for k, t0 in sorted(sent.items()) if k in stamps]
+    samples = latencies_us(sent, stamps)
     lost = len(sent) + extra_events - got["events"] - got["skipped"]
     span_ns = (max(stamps.values()) - min(sent.values())) if stamps and sent else 0
     latency = summary_us(samples) if samples else {"p50_us": math.nan, "p99_us": math.nan, "mean_us": math.nan}
     return {
         **latency,
+        "samples_us": samples,
         "received": len(samples),
         "skipped": got["skipped"],
         "lost": lost,
@@ -63,3 +70,51 @@ def totals(sent: Mapping[int, int], watchers: Sequence[Mapping[str, Any]]) -> di
     first = min(sent.values()) if sent else 0
     delivered = sum(w["bytes"] for w in watchers)
     return {"mb_per_s": round(delivered / (last - first) * 1e3, 1) if last > first else 0.0, "bytes": delivered}
+
+
+_ADDED = ("received", "skipped", "lost", "bytes", "shared")  # a watcher's counts: the rounds' add up
+
+
+def pooled(rounds: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """One phase measured in several rounds, each with watchers of its own, as one result.
+
+    ``rounds``: each a phase's result as bench/images.py's ``figures`` gives
+    it, every watcher with its ``samples_us``. Per watcher, p50/p99/mean are
+    of every round's samples together; its counts add up; its checksum is
+    right if it was in every round; MB/s is the mean of the rounds'; the cold
+    figures are the first round's (the only one with cold frames). The phase's
+    frames add up, its server memory is the highest of the rounds', and
+    ``rounds`` keeps each round's p50 per watcher. A round that failed
+    (``error``) makes the whole an error: the row reports it.
+    """
+    for number, r in enumerate(rounds, 1):
+        if "error" in r:
+            return {"error": f"round {number} of {len(rounds)}: {r['error']}"}
+    first = rounds[0]
+    watchers: dict[str, Any] = {}
+    for label, w in first["watchers"].items():
+        each = [r["watchers"][label] for r in rounds if label in r["watchers"]]
+        samples = [x for one in each for x in one["samples_us"]]
+        joined = {**w, **(summary_us(samples) if samples else {}), "samples_us": samples,
+                  "checksum_ok": all(one.get("checksum_ok") for one in each),
+                  "mb_per_s": round(sum(one["mb_per_s"] for one in each) / len(each), 1)}
+        for key in _ADDED:
+            if key in w:
+                joined[key] = sum(one.get(key, 0) for one in each)
+        ended = [one["watch_ended"] for one in each if one.get("watch_ended")]
+        if ended:
+            joined["watch_ended"] = ended[0]
+        watchers[label] = joined
+    out = {**first, "watchers": watchers, "frames": sum(r["frames"] for r in rounds),
+           "rounds": [{label: w["p50_us"] for label, w in r["watchers"].items()} for r in rounds],
+           "total": {"mb_per_s": round(sum(r["total"]["mb_per_s"] for r in rounds) / len(rounds), 1),
+                     "bytes": sum(r["total"]["bytes"] for r in rounds)}}
+    memories = [r["server_memory"] for r in rounds if "server_memory" in r]
+    if memories:
+        out["server_memory"] = {key: max(m[key] for m in memories) for key in memories[0]}
+    missing: dict[str, str] = {}
+    for r in rounds:
+        missing.update(r.get("missing", {}))
+    if "missing" in first:
+        out["missing"] = missing
+    return out

@@ -13,7 +13,7 @@ import pytest
 
 from bench import peer_fanout
 from bench.checksum import expected_cast, expected_frames, word_sum
-from bench.delivery_stats import parse_watcher, totals, watcher_figures
+from bench.delivery_stats import parse_watcher, pooled, totals, watcher_figures
 from bench.images import REMOTE, WATCHERS, figures, shared_bytes
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, drive, frame
@@ -63,6 +63,34 @@ def test_m8_judges_the_frames_after_the_warm_up_and_shows_the_first_seconds_apar
     assert out["frames"] == 10 and out["total"]["bytes"] == 10 * 1000  # MB/s of the measured frames only
     whole = figures(sent, got, 2, lambda g: 5, 1000)  # without the parts: the burst is in the latencies
     assert whole["watchers"]["Java"]["p99_us"] == 50_000.0 and "cold_p50_us" not in whole["watchers"]["Java"]
+
+
+def _round(latencies_ms: list[int], lost: int = 0, checksum_ok: bool = True, peak: int = 100) -> dict[str, Any]:
+    """One round of a phase as figures() gives it: one watcher, Java, with these latencies."""
+    sent = {r: r * 100 * MS for r in range(1, len(latencies_ms) + 1)}
+    got = {"Java": parse_watcher({"stamps": {str(r): sent[r] + d * MS for r, d in zip(sent, latencies_ms, strict=True)},
+                                  "bytes": 1000 * len(sent), "events": len(sent) + 2 - lost, "shared": len(sent)})}
+    out = figures(sent, got, 2, lambda g: 0 if checksum_ok else 1, 1000)
+    return {**out, "size": 1000, "server_memory": {"peak": peak, "private": 1, "shared": 1}, "missing": {}}
+
+
+def test_rounds_pooled_are_judged_on_every_rounds_latencies_together() -> None:
+    fast, slow = _round([1] * 10, peak=300), _round([3] * 11 + [9], lost=2, checksum_ok=False, peak=200)
+    both = pooled([fast, slow])
+    java = both["watchers"]["Java"]
+    # The first tenth of each round left out as warm-up: 9 samples of 1 ms, 10 of 3 ms, one of 9 ms together.
+    # The rounds' own p50s were 1 and 3 ms.
+    assert java["p50_us"] == 3000.0 and java["p99_us"] == 9000.0 and len(java["samples_us"]) == 20
+    assert pooled([fast, _round([3] * 9 + [9])])["watchers"]["Java"]["p50_us"] == 1000.0  # by samples, not rounds
+    assert java["received"] == 22 and java["lost"] == 2 and java["shared"] == 22
+    assert not java["checksum_ok"]  # wrong in one round: wrong
+    assert both["frames"] == 22 and both["server_memory"]["peak"] == 300
+    assert both["rounds"] == [{"Java": 1000.0}, {"Java": 3000.0}]
+
+
+def test_a_round_that_failed_fails_the_pooled_phase() -> None:
+    assert pooled([_round([1] * 10), {"error": "Java watcher exited 1"}]) == {
+        "error": "round 2 of 2: Java watcher exited 1"}
 
 
 def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -289,6 +317,17 @@ def test_m8_shows_the_first_seconds_beside_the_peers_without_judging_them() -> N
     cold = figures_["1 MiB, queue, 30 Hz, first 2 s (cold, not judged), Java: p50 (µs)"]
     assert (cold["value"], cold["floor"], cold["peer"]) == (50_000.0, 200.0, 1200.0)
     assert not any("first" in name for name in (f["name"] for f in m8_row(_m8())["figures"]))  # none measured
+
+
+def test_m8_shows_each_round_of_the_judged_phase_beside_zenohs_same_round() -> None:
+    m8 = _m8()
+    m8["cast_queue_hz"]["rounds"] = [{"Python 1": 1100.0, "Java": 1300.0}, {"Python 1": 1250.0, "Java": 1200.0}]
+    m8["zenoh_hz"]["rounds"] = [{"subscriber 1": 1000.0, "subscriber 2": 1200.0}, {"subscriber 1": 1150.0,
+                                                                                   "subscriber 2": 1150.0}]
+    rounds = [f for f in m8_row(m8)["figures"] if ", round " in f["name"]]
+    assert [(f["value"], f["peer"]) for f in rounds] == [(1300.0, 1100.0), (1250.0, 1150.0)]
+    assert rounds[0]["name"].startswith("1 MiB, queue, 30 Hz, round 1 of 2: the slowest watcher's p50 (Java")
+    assert m8_misses(m8) == []  # shown, not judged: the pooled figures are
 
 
 def _m9(p99_10: float, p99_500: float, lost: int = 0) -> dict[str, Any]:
