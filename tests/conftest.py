@@ -54,7 +54,9 @@ from cast.testing import wait_for as kit_wait_for  # noqa: E402
 from tests.durations import Recorder, longest_files_first  # noqa: E402
 
 GEN_DIR = _GEN_DIR
-PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"), str(ROOT / "python")])
+# CAST_TEST_INSTALLED=1: the processes import the cast of the running interpreter (a compiled wheel), not the tree's.
+PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"),
+                              *([] if os.environ.get("CAST_TEST_INSTALLED") == "1" else [str(ROOT / "python")])])
 
 
 # Markers by folder (pyproject.toml lists them); "namespaces" goes to the tests of modules that use

@@ -276,6 +276,7 @@ def _sent_in_order(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return order
 
 
+@pytest.mark.incompatible_with_mypyc
 def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     h, session = raw()
     order = _sent_in_order(monkeypatch)
@@ -290,6 +291,7 @@ def test_a_writes_events_go_out_before_its_reply_on_the_socket(raw: Any, monkeyp
         assert [o for o in order if o != "applied"] == ["event", "reply"], (i, order)
 
 
+@pytest.mark.incompatible_with_mypyc
 def test_one_writes_events_reach_every_socket_watcher_in_the_callback_that_applied_it_before_its_reply(
     raw: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:

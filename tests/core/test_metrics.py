@@ -4,8 +4,7 @@ latency histogram, reports, merging servers, and counting off."""
 from __future__ import annotations
 
 import threading
-from types import SimpleNamespace
-from typing import Any, cast
+from typing import Any
 
 import pytest
 from hypothesis import given
@@ -173,7 +172,7 @@ def test_reports_aggregate_per_component_and_name_and_bad_ones_are_refused() -> 
     got = {k: v for k, v in r["c1"]["answers_correct"].items() if k != "last_time"}
     assert got == {"count": 3, "sum": 8.5, "min": -1.5, "max": 7.0, "last": 7.0, "mean": 8.5 / 3}
     assert r["c2"]["answers_correct"]["count"] == 1
-    for name, value in (("", 1), ("x" * 129, 1), ("n", float("nan")), ("n", float("inf")), ("n", "many")):
+    for name, value in (("", 1), ("x" * 129, 1), ("n", float("nan")), ("n", float("inf"))):
         with pytest.raises(InvalidArgumentError):
             metrics.report("c1", name, value)  # type: ignore[arg-type]
     for i in range(MAX_REPORT_NAMES - 1):
@@ -190,8 +189,9 @@ def _match(sa: str, time_ns: int) -> Match:
 
 def _delivered(metrics: Metrics, ages_ns: list[int], now: int) -> dict[str, Any]:
     """Hand events of the given ages to one watcher at ``now``; its histogram."""
-    polled = SimpleNamespace(polled=[("a", len(ages_ns))], with_values=False)  # what a Subscription polled
-    metrics.delivered(Identity("watcher", "a"), cast(Subscription, polled), [_match("a", now - a) for a in ages_ns],
+    polled = Subscription(System("m", ["a"]).host, lambda: None)
+    polled.polled = [("a", len(ages_ns))]  # what a Subscription polled
+    metrics.delivered(Identity("watcher", "a"), polled, [_match("a", now - a) for a in ages_ns],
                       lambda m: False)
     latency: dict[str, Any] = metrics.snapshot()["delivery_latency"]["watchers"]["watcher"]
     return latency

@@ -15,6 +15,7 @@ import socket
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
+from dataclasses import replace
 
 from google.protobuf import descriptor_pb2
 
@@ -191,7 +192,7 @@ class LocalTransport:
 
     @staticmethod
     def _copy(task: TaskRecord) -> TaskRecord:
-        return TaskRecord(**vars(task))
+        return replace(task)
 
     def retract(self, task_id: str) -> None:
         """Withdraw a task."""

@@ -129,13 +129,16 @@ class Access:
         shared = self.system.shared
         if shared is not None:
             op = shared.place(op)
+        refused: CastError | None = None
         try:
             result = self._host.write(self.who, op)
-        except CastError:
+        except CastError as exc:
             if m is not None:
                 m.refused(self.who)
+            refused = exc
+        if refused is not None:  # yielded outside the handler (mypyc)
             yield DURABLE  # a refusal names versions and holders: only durable ones
-            raise
+            raise refused
         if m is not None:
             m.wrote(self.who, op)  # counted once applied, before the wait for the journal
         yield DURABLE
@@ -147,13 +150,16 @@ class Access:
         shared = self.system.shared
         if shared is not None:
             ops = [shared.place(op) for op in ops]
+        refused: CastError | None = None
         try:
             results = self._host.batch(self.who, ops)
-        except CastError:
+        except CastError as exc:
             if m is not None:
                 m.refused(self.who)
+            refused = exc
+        if refused is not None:  # yielded outside the handler (mypyc)
             yield DURABLE
-            raise
+            raise refused
         if m is not None:
             m.wrote_batch(self.who, ops)
         yield DURABLE
@@ -170,6 +176,7 @@ class Access:
         waited_from = 0  # monotonic ns of the first wait; a wait is counted once, however it ends
         try:
             while True:
+                blocked: LockedError | None = None
                 try:
                     depth = yield from self._settled(lambda: self._host.try_lock(self.who, sa, entry_id, mode))
                 except LockedError as exc:
@@ -177,7 +184,9 @@ class Access:
                         raise
                     if not waited_from:
                         waited_from = time.monotonic_ns()
-                    yield Unlocked(sa, entry_id, exc)
+                    blocked = exc
+                if blocked is not None:  # yielded outside the handler (mypyc)
+                    yield Unlocked(sa, entry_id, blocked)
                     continue
                 if self._metrics is not None:
                     self._metrics.locked(self.who, sa)
@@ -334,11 +343,14 @@ class Access:
     # ---------------------------------------------------------------- helpers
 
     def _settled(self, call: Callable[[], T]) -> Steps[T]:
+        refused: CastError | None = None
         try:
             result = call()
-        except CastError:
+        except CastError as exc:
+            refused = exc
+        if refused is not None:  # yielded outside the handler (mypyc)
             yield DURABLE  # a refusal names versions and holders: only durable ones
-            raise
+            raise refused
         yield DURABLE
         return result
 

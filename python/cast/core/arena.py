@@ -139,6 +139,17 @@ class Extents:
         return self.used == 0
 
 
+def _populate(madvise: Callable[[int, int, int], int], held: list[ctypes.c_char], size: int) -> None:
+    """:meth:`Segment.populate`'s thread (a module function, not a closure: mypyc)."""
+    try:
+        base = ctypes.addressof(held[0])
+        for start in range(0, size, _POPULATE_STEP):
+            if madvise(base + start, min(_POPULATE_STEP, size - start), MADV_POPULATE_WRITE) != 0:
+                return  # an older kernel: pages come on use
+    finally:
+        held.clear()
+
+
 class Segment:
     """One sealed memory file of the arena and the server's writable mapping of it."""
 
@@ -176,16 +187,8 @@ class Segment:
         except (TypeError, ValueError, BufferError):  # closed already
             return
 
-        def run() -> None:
-            try:
-                base = ctypes.addressof(held[0])
-                for start in range(0, self.size, _POPULATE_STEP):
-                    if madvise(base + start, min(_POPULATE_STEP, self.size - start), MADV_POPULATE_WRITE) != 0:
-                        return  # an older kernel: pages come on use
-            finally:
-                held.clear()
-
-        threading.Thread(target=run, name=f"cast-arena-{self.id}", daemon=True).start()
+        threading.Thread(target=_populate, args=(madvise, held, self.size), name=f"cast-arena-{self.id}",
+                         daemon=True).start()
 
     def close(self) -> bool:
         """Unmap and close; False (nothing done) while something still holds a view of it."""

@@ -139,8 +139,8 @@ class Journal:
         self._hold_file = os.environ.get("CAST_FAILPOINT_JOURNAL_HOLD", "")
         self._delay_s = float(os.environ.get("CAST_FAILPOINT_JOURNAL_DELAY_MS") or 0) / 1000
         self._open_run()
-        self._thread = threading.Thread(target=self._run, name="cast-journal", daemon=True)
-        self._thread.start()
+        self._committer = threading.Thread(target=self._run, name="cast-journal", daemon=True)
+        self._committer.start()
 
     def _open_run(self) -> None:
         """Decide this run's history id and version floor, and mark the file in use (durably)."""
@@ -381,7 +381,7 @@ class Journal:
                 return
             self._closing = True
             self._cond.notify_all()
-        self._thread.join()
+        self._committer.join()
         if self._failure is None:
             self._db.execute("INSERT OR REPLACE INTO meta VALUES ('clean', '1')")
         self._db.close()

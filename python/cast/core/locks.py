@@ -27,7 +27,9 @@ class Locking:
     limits: Limits
     _mutex: threading.Lock
     _wms: dict[str, WorkingMemory]
-    _wm: Callable[[str], WorkingMemory]
+
+    def _wm(self, sa: str) -> WorkingMemory:
+        raise NotImplementedError  # the host's (cast.core.host.MemoryHost._wm)
 
     def _init_locks(self) -> None:
         self._lock_waiters: dict[tuple[str, str], list[Callable[[], None]]] = {}

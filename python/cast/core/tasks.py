@@ -16,7 +16,7 @@ import itertools
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from cast.core.host import MemoryHost
 from cast.core.metrics import Metrics
@@ -286,7 +286,7 @@ class TaskBoard:
     def _emit(self, task: TaskRecord, queue: bool) -> None:
         revision = self._publish(task) if self._publish is not None else 0
         if queue:
-            snapshot = TaskRecord(**vars(task))
+            snapshot = replace(task)
             self._decisions.setdefault(task.component, []).append((snapshot, task.subarchitecture, revision))
             for listener in list(self._listeners):
                 listener(task.component)

@@ -13,6 +13,8 @@ import heapq
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from mypy_extensions import mypyc_attr
+
 from cast.core.host import MemoryHost
 from cast.core.records import ChangeEvent, Operation
 from cast.errors import HistoryExpiredError, InvalidArgumentError, ResourceExhaustedError
@@ -20,6 +22,7 @@ from cast.errors import HistoryExpiredError, InvalidArgumentError, ResourceExhau
 __all__ = ["EventFilter", "Match", "Subscription"]
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # cast.client.filters.ChangeFilter
 @dataclass(frozen=True)
 class EventFilter:
     """Selects events: every set field must match; empty fields match anything."""

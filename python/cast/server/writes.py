@@ -27,7 +27,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, ClassVar
 
 from cast.core.access import Access, Steps, resume_async, settle_at_once
 from cast.core.records import Identity
@@ -48,7 +48,7 @@ _Answer = Callable[[wm_pb2.WriteReply, Any], None]
 class _Woken:
     """How many times a write woke a gRPC watch stream's task on the event loop so far (:func:`watch_woken`)."""
 
-    count = 0
+    count: ClassVar[int] = 0
 
 
 def watch_woken() -> None:
