@@ -174,12 +174,18 @@ def test_reports_aggregate_per_component_and_name_and_bad_ones_are_refused() -> 
     assert r["c2"]["answers_correct"]["count"] == 1
     for name, value in (("", 1), ("x" * 129, 1), ("n", float("nan")), ("n", float("inf"))):
         with pytest.raises(InvalidArgumentError):
-            metrics.report("c1", name, value)  # type: ignore[arg-type]
+            metrics.report("c1", name, value)
     for i in range(MAX_REPORT_NAMES - 1):
         metrics.report("c1", f"m{i}", i)
     with pytest.raises(ResourceExhaustedError, match="limit"):
         metrics.report("c1", "one-too-many", 1)
     metrics.report("c1", "answers_correct", 1)  # a known name is still taken
+
+
+@pytest.mark.incompatible_with_mypyc  # compiled, the annotation refuses it first, with a TypeError
+def test_a_report_value_that_is_not_a_number_is_refused_by_name() -> None:
+    with pytest.raises(InvalidArgumentError, match="report 'n': the value must be a number, got 'many'"):
+        Metrics("m", ["a"]).report("c1", "n", "many")  # type: ignore[arg-type]
 
 
 def _match(sa: str, time_ns: int) -> Match:
