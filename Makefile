@@ -65,6 +65,20 @@ python-venv:
 	    exit 1; \
 	  fi; }
 
+# The compiled build (make mypyc) compiles C against the interpreter's headers (Python.h) with gcc:
+# Debian's python3-dev and gcc are installed when missing, as python3-venv is above.
+.PHONY: python-dev
+python-dev:
+	@$(PYTHON) -c "import os, sysconfig; os.stat(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" 2>/dev/null \
+	  && command -v gcc >/dev/null || { \
+	  if [ "$(PYTHON)" = /usr/bin/python3 ] && command -v apt-get >/dev/null; then \
+	    echo "installing python3-dev and gcc for $(PYTHON)"; \
+	    $(SUDO) apt-get update -q && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -q python3-dev gcc; \
+	  else \
+	    echo "$(PYTHON) has no C headers (Python.h) or there is no gcc: install them, or pick another interpreter" >&2; \
+	    exit 1; \
+	  fi; }
+
 # The same generator as the wheel's and sdist's build hook (setup.py), so the tree and a package
 # hold the same code: grpcio-tools' protoc, .pyi stubs by mypy-protobuf.
 $(GEN_STAMP): $(PROTOS) build_support/cast_protos.py $(VENV)/.installed
@@ -181,7 +195,7 @@ MYPYC_PY := $(MYPYC_VENV)/bin/python
 MYPYC_SOURCES := setup.py pyproject.toml requirements-dev.txt VERSION $(PROTOS) \
   $(shell find python/cast -name '*.py' -not -path 'python/cast/v1/*' 2>/dev/null)
 .PHONY: mypyc test-mypyc
-$(MYPYC_VENV)/.installed: $(MYPYC_SOURCES) $(GEN_STAMP) | $(VENV)/.installed
+$(MYPYC_VENV)/.installed: $(MYPYC_SOURCES) $(GEN_STAMP) | $(VENV)/.installed python-dev
 	test -x $(MYPYC_PY) || $(PYTHON) -m venv $(MYPYC_VENV)
 	$(UV) pip install --quiet --python $(MYPYC_PY) -r requirements-dev.txt
 	rm -rf build/mypyc-dist

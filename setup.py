@@ -11,6 +11,10 @@ grpcio-tools' protoc (a build requirement) from ``proto/cast/v1``:
 
 An editable install (``make setup``: ``pip install -e .``) generates nothing: it imports the
 checkout's ``python/cast/v1``, which ``make proto`` keeps current.
+
+With ``CAST_MYPYC=1`` a wheel's build also compiles the modules in ``MYPYC_MODULES`` with mypyc
+(``make mypyc``; docs/decisions.md, "The compiled build"); any other build, and every editable one,
+is pure Python.
 """
 
 from __future__ import annotations
