@@ -15,7 +15,7 @@ from typing import Any
 
 from bench.harness import summary_us
 
-__all__ = ["latencies_us", "parse_watcher", "pooled", "totals", "watcher_figures"]
+__all__ = ["latencies_us", "ordinal", "parse_watcher", "pooled", "totals", "watcher_figures"]
 
 
 def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
@@ -72,6 +72,12 @@ def totals(sent: Mapping[int, int], watchers: Sequence[Mapping[str, Any]]) -> di
     return {"mb_per_s": round(delivered / (last - first) * 1e3, 1) if last > first else 0.0, "bytes": delivered}
 
 
+def ordinal(number: int) -> str:
+    """``number`` as a word (first, second, ...): how the benchmarks name a round."""
+    words = ("first", "second", "third", "fourth", "fifth")
+    return words[number - 1] if 1 <= number <= len(words) else f"{number}th"
+
+
 _ADDED = ("received", "skipped", "lost", "bytes", "shared")  # a watcher's counts: the rounds' add up
 
 
@@ -89,7 +95,7 @@ def pooled(rounds: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """
     for number, r in enumerate(rounds, 1):
         if "error" in r:
-            return {"error": f"round {number} of {len(rounds)}: {r['error']}"}
+            return {"error": f"the {ordinal(number)} of {len(rounds)} rounds: {r['error']}"}
     first = rounds[0]
     watchers: dict[str, Any] = {}
     for label, w in first["watchers"].items():

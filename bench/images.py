@@ -40,7 +40,7 @@ from typing import IO, Any
 from bench import iceoryx2_peer, relay_floor, zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast, expected_frames
-from bench.delivery_stats import parse_watcher, pooled, totals, watcher_figures
+from bench.delivery_stats import ordinal, parse_watcher, pooled, totals, watcher_figures
 from bench.floors import EchoFloor
 from bench.harness import PYTHON, ROOT
 from bench.other_clients import cpp_command, java_command
@@ -343,7 +343,7 @@ def _judged(out: dict[str, Any], server: Server, writer: list[str], frames: int,
         number = len(rounds[side]) + 1
         first_cold = 0 if rounds[side] else cold
         what = "CAST queue_hz: 1 MiB, queue" if side == "cast" else "zenoh: 1 MiB"
-        log(f"M8 {what}, {HZ} Hz, round {number} of {JUDGED_ROUNDS.count(side)}")
+        log(f"M8 {what}, {HZ} Hz, the {ordinal(number)} of {JUDGED_ROUNDS.count(side)} rounds")
         got: dict[str, Any] = {}
         if side == "cast":
             _guard(got, "r", cast_phase, server, writer, commands, SIZE, frames, 1 / HZ, f"queue_hz{number}",

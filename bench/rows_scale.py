@@ -9,6 +9,7 @@ import math
 import statistics
 from typing import Any
 
+from bench.delivery_stats import ordinal
 from bench.rows import fig
 
 __all__ = ["M8_BIG_P99_US", "M8_P99_US", "M8_PHASES", "m8_memory_bound", "m8_misses", "m8_row", "m9_misses", "m9_row"]
@@ -138,8 +139,8 @@ def _round_figures(m8: dict[str, Any], key: str, zen: str) -> list[dict[str, Any
     for number, (ours, peer) in enumerate(zip(mine, theirs, strict=False), 1):
         if ours and peer:
             slowest = max(ours, key=lambda label: ours[label])
-            figures.append(fig(f"{M8_PHASES[key]}, round {number} of {len(mine)}: the slowest watcher's p50 "
-                               f"({slowest}, µs; peer: Zenoh's round {number})", ours[slowest],
+            figures.append(fig(f"{M8_PHASES[key]}, the {ordinal(number)} of {len(mine)} rounds: the slowest "
+                               f"watcher's p50 ({slowest}, µs; peer: Zenoh's {ordinal(number)})", ours[slowest],
                                peer=round(float(statistics.median(peer.values())), 1)))
     return figures
 

@@ -90,7 +90,7 @@ def test_rounds_pooled_are_judged_on_every_rounds_latencies_together() -> None:
 
 def test_a_round_that_failed_fails_the_pooled_phase() -> None:
     assert pooled([_round([1] * 10), {"error": "Java watcher exited 1"}]) == {
-        "error": "round 2 of 2: Java watcher exited 1"}
+        "error": "the second of 2 rounds: Java watcher exited 1"}
 
 
 def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -324,9 +324,9 @@ def test_m8_shows_each_round_of_the_judged_phase_beside_zenohs_same_round() -> N
     m8["cast_queue_hz"]["rounds"] = [{"Python 1": 1100.0, "Java": 1300.0}, {"Python 1": 1250.0, "Java": 1200.0}]
     m8["zenoh_hz"]["rounds"] = [{"subscriber 1": 1000.0, "subscriber 2": 1200.0}, {"subscriber 1": 1150.0,
                                                                                    "subscriber 2": 1150.0}]
-    rounds = [f for f in m8_row(m8)["figures"] if ", round " in f["name"]]
+    rounds = [f for f in m8_row(m8)["figures"] if " rounds: " in f["name"]]
     assert [(f["value"], f["peer"]) for f in rounds] == [(1300.0, 1100.0), (1250.0, 1150.0)]
-    assert rounds[0]["name"].startswith("1 MiB, queue, 30 Hz, round 1 of 2: the slowest watcher's p50 (Java")
+    assert rounds[0]["name"].startswith("1 MiB, queue, 30 Hz, the first of 2 rounds: the slowest watcher's p50 (Java")
     assert m8_misses(m8) == []  # shown, not judged: the pooled figures are
 
 
