@@ -118,9 +118,6 @@ def pooled(rounds: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     memories = [r["server_memory"] for r in rounds if "server_memory" in r]
     if memories:
         out["server_memory"] = {key: max(m[key] for m in memories) for key in memories[0]}
-    missing: dict[str, str] = {}
-    for r in rounds:
-        missing.update(r.get("missing", {}))
-    if "missing" in first:
-        out["missing"] = missing
+    if "missing" in first:  # a watcher that could not start, in any round
+        out["missing"] = {label: why for r in rounds for label, why in r.get("missing", {}).items()}
     return out

@@ -400,6 +400,7 @@ def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[
             _guard(out, f"{name}_{key}", _peer, fn, count[size], 1 / HZ if paced else 0.0, size,
                    WARM_PER_FRAME * frames, cold if key == "hz" else 0)
     for result in out.values():  # the latencies themselves were for pooling; the figures stay
-        for w in result.get("watchers", {}).values() if isinstance(result, dict) else ():
-            w.pop("samples_us", None)
+        if isinstance(result, dict):
+            for w in result.get("watchers", {}).values():
+                w.pop("samples_us", None)
     return out
