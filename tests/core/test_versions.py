@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from cast.core.host import BatchOp, MemoryHost
-from cast.core.records import Identity, Limits, Operation
+from cast.core.records import EntryRecord, Identity, Limits, Operation
 from cast.errors import (
     AlreadyExistsError,
     ConsistencyError,
@@ -95,6 +95,27 @@ def test_type_index_is_newest_first_with_limit(host: MemoryHost) -> None:
     host.delete(A, "vision", "e1")
     assert [r.id for r in host.get_by_type(A, "vision", "t.T")[0]] == ["e3", "e2", "e0"]
     assert host.get_by_type(A, "vision", "t.Nothing")[0] == []
+
+
+class _CountingEntries(dict[str, EntryRecord]):
+    """A WM's entries that count the reads by id."""
+
+    reads = 0
+
+    def __getitem__(self, key: str) -> EntryRecord:
+        type(self).reads += 1
+        return super().__getitem__(key)
+
+
+def test_a_type_read_with_a_limit_reads_only_that_many_entries(host: MemoryHost) -> None:
+    """A limit is kept while reading, not applied to a list of the whole type (which the compiled build once made)."""
+    for i in range(1000):
+        host.add(A, "vision", f"e{i}", "t.T", b"")
+    wm = host._wm("vision")
+    wm.entries = _CountingEntries(wm.entries)
+    records, _ = host.get_by_type(A, "vision", "t.T", limit=3)
+    assert [r.id for r in records] == ["e999", "e998", "e997"]
+    assert _CountingEntries.reads == 3
 
 
 def test_records_read_are_not_changed_by_later_writes(host: MemoryHost) -> None:

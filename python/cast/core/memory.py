@@ -138,8 +138,12 @@ class WorkingMemory:
         ids = self._by_type.get(type_name)
         if not ids:
             return iter(())
-        it = (self.entries[i] for i in reversed(ids))
-        return itertools.islice(it, limit) if limit > 0 else it
+        # No generator expression: the compiled build makes one a list, which read every entry of the type
+        # for a limit of 1 (docs/decisions.md, "The compiled build").
+        newest: Iterator[str] = reversed(ids)
+        if limit > 0:
+            newest = itertools.islice(newest, limit)
+        return map(self.entries.__getitem__, newest)
 
     def type_counts(self) -> dict[str, int]:
         """Number of entries per type."""

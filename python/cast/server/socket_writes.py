@@ -86,7 +86,8 @@ class SocketWrites:
         self._draining = False
         before = woken()
         # The socket watchers' events of these writes are sent within, before their replies (cast.server.writes).
-        self._writes.apply(self._queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(self._queue))))
+        queue = self._queue
+        self._writes.apply([queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(queue)))])
         if self._queue:
             self._draining = True
             self._pause(True)
