@@ -206,10 +206,14 @@ $(MYPYC_VENV)/.installed: $(MYPYC_SOURCES) $(GEN_STAMP) | $(VENV)/.installed pyt
 mypyc: $(MYPYC_VENV)/.installed
 
 # The compiled build against the tests that exercise its modules: the core, the server's paths,
-# the Python client both ways (tests a compiled module cannot honour are marked and left out).
-test-mypyc: mypyc proto grpcurl
-	CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider -m "not incompatible_with_mypyc" \
-	  tests/core tests/integration tests/client
+# the Python client both ways, the server under bad input and failures (tests/reliability), and
+# large values by shared memory with C++ and Java clients (tests a compiled module cannot honour
+# are marked and left out).
+test-mypyc: mypyc proto grpcurl cpp java
+	$(TEST_JVM) CAST_TEST_MVN="$(MVN)" CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider \
+	  -m "not incompatible_with_mypyc" -n $(TEST_WORKERS) --dist loadfile \
+	  tests/core tests/integration tests/client tests/reliability \
+	  tests/interop/test_shared_memory_interop.py tests/interop/test_streamed_interop.py
 
 # The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),
 # built with Debian's gRPC and protobuf into build/cpp (components in build/cpp/bin). Missing
