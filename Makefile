@@ -121,14 +121,15 @@ PYTEST_ALL = $(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TE
 # Everything the three suites need; installed and built one after the other (apt-get takes no
 # second caller) before any suite runs.
 TEST_BUILDS := setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
-  ros-demo-types
+  ros-demo-types python-dev
 test-python: $(TEST_BUILDS)
 	$(PYTEST_ALL)
 
 # The packages as a team uses them (tests/packaging, docs/packages.md): the wheel built and
-# installed in a fresh venv outside the tree, the C++ library installed to a prefix and found
-# with find_package, the Java example built on the installed cast-bom and cast-client.
-package-test: setup proto cpp java
+# installed in a fresh venv outside the tree (the compiled one built from a bare checkout), the C++
+# library installed to a prefix and found with find_package, the Java example built on the
+# installed cast-bom and cast-client.
+package-test: setup proto cpp java python-dev
 	$(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
 # The three suites side by side: the C++ and Java unit tests (about a minute each, mostly waiting

@@ -69,6 +69,10 @@ if os.environ.get("CAST_MYPYC") == "1":
         sys.exit("CAST_MYPYC=1 builds wheels only: compiled modules in the tree would run instead of edited sources")
     from mypyc.build import mypycify
 
+    # mypyc type-checks the package before build_py runs, so the wire API's code must be in the tree
+    # first: a fresh checkout has none (make proto makes it; an sdist carries it).
+    if not (HERE / "python" / "cast" / "v1" / "__init__.py").exists():
+        generate(HERE / "proto", HERE / "python", "the compiled build (setup.py, CAST_MYPYC=1)")
     ext_modules = mypycify(
         MYPYC_MODULES,
         opt_level=os.environ.get("MYPYC_OPT_LEVEL", "3"),

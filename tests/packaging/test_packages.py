@@ -177,6 +177,33 @@ def test_the_wheel_and_sdist_hold_the_generated_code_and_current_metadata(instal
     assert {"VERSION", "setup.py", "build_support/cast_protos.py", "CHANGELOG.md", "LICENSE"} <= members
 
 
+def test_the_compiled_wheel_builds_from_a_checkout_that_has_no_generated_code(tmp_path: Path) -> None:
+    """docs/packages.md, "The compiled wheel": CAST_MYPYC=1 in a fresh checkout (no python/cast/v1 yet)."""
+    checkout = tmp_path / "checkout"
+    tracked = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    for name in filter(None, tracked.decode().split("\0")):
+        if (ROOT / name).is_file():  # a file deleted in the working tree is not copied
+            (checkout / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, checkout / name)
+    assert not (checkout / "python" / "cast" / "v1").exists()
+    # An environment with the development requirements and no cast installed (this one's editable
+    # install would show mypy the tree's generated code), as the page's commands make it.
+    builder = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=False).create(builder)
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("CAST_", "PYTHON", "VIRTUAL_ENV"))}
+    python = str(builder / "bin" / "python")
+    run([str(Path(sys.executable).parent / "uv"), "pip", "install", "--quiet", "--python", python,
+         "-r", str(checkout / "requirements-dev.txt")], checkout, env, 600)
+    run([sys.executable, "-m", "pip", "--python", python, "wheel", "--quiet",
+         "--no-build-isolation", "--no-deps", "-w", str(tmp_path / "dist"), "."], checkout,
+        {**env, "CAST_MYPYC": "1"}, 900)
+    [wheel] = (tmp_path / "dist").glob("cast_grpc-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    compiled = {n.split(".", 1)[0] for n in names if n.endswith(".so")}
+    assert {"cast/core/access", "cast/server/writes", "cast/wire/shared_memory"} <= compiled, sorted(compiled)
+    assert {f"cast/v1/{stem}_pb2.py" for stem in PROTOS} <= names
+
+
 def test_the_installed_cast_serves_and_runs_the_quick_start(installed: Installed) -> None:
     python = str(installed.venv / "bin" / "python")
     where = run([python, "-c", "import cast, cast.v1.directory_pb2 as d; print(cast.__file__); print(d.__file__)"],
