@@ -86,6 +86,8 @@ class SocketWrites:
         self._draining = False
         before = woken()
         # The socket watchers' events of these writes are sent within, before their replies (cast.server.writes).
+        # Taken off the queue as a list, which the compiled build would make of a generator anyway: the same
+        # requests leave the queue in both builds.
         queue = self._queue
         self._writes.apply([queue.popleft() for _ in range(min(REQUESTS_PER_TURN, len(queue)))])
         if self._queue:
