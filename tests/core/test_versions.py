@@ -103,7 +103,7 @@ class _CountingEntries(dict[str, EntryRecord]):
     reads = 0
 
     def __getitem__(self, key: str) -> EntryRecord:
-        type(self).reads += 1
+        self.reads += 1
         return super().__getitem__(key)
 
 
@@ -112,10 +112,10 @@ def test_a_type_read_with_a_limit_reads_only_that_many_entries(host: MemoryHost)
     for i in range(1000):
         host.add(A, "vision", f"e{i}", "t.T", b"")
     wm = host._wm("vision")
-    wm.entries = _CountingEntries(wm.entries)
+    wm.entries = counting = _CountingEntries(wm.entries)
     records, _ = host.get_by_type(A, "vision", "t.T", limit=3)
     assert [r.id for r in records] == ["e999", "e998", "e997"]
-    assert _CountingEntries.reads == 3
+    assert counting.reads == 3
 
 
 def test_records_read_are_not_changed_by_later_writes(host: MemoryHost) -> None:
