@@ -283,3 +283,18 @@ def test_a_component_that_finishes_before_the_connect_check_is_reported_as_finis
     assert "1 of 3 components running after" in out.stdout, out.stdout
     assert "finished already (exit code 0): quick; failed: broken" in out.stdout, out.stdout
     assert "not running" not in out.stdout
+
+
+def test_the_final_summary_waits_for_a_stopped_components_session_to_end(tmp_path: Path) -> None:
+    # The component's process exits but a detached child holds its connections for 1 s more: the
+    # directory sees the heartbeat stream end only then, and the summary is taken after that.
+    cfg = write_config(tmp_path / "lingering.yaml", {
+        "subarchitectures": {"work": {"components": {"lingering": {"class": "orch_components:Lingering",
+                                                                   "args": {"linger": 1.0}}}}},
+    })
+    summary = tmp_path / "summary.json"
+    out = subprocess.run([CAST, "run", str(cfg), "--for", "0.5", "--no-status", "--runtime-dir", str(tmp_path / "rt"),
+                          "--summary-json", str(summary)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    sessions = {c["id"]: c["session"] for c in json.loads(summary.read_text())["components"]}
+    assert sessions == {"lingering": "disconnected"}, out.stdout

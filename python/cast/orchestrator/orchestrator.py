@@ -42,6 +42,8 @@ __all__ = ["Orchestrator", "RunOptions", "RunResult"]
 _PRIVATE_ENV = ("CAST_SECRET", "CAST_SECRET_FILE")
 REMOTE_STATUS_S = 2.0
 """How often the live view asks servers on other hosts about their SAs."""
+SESSIONS_END_S = 2.0
+"""How long the final summary waits for the directory to see stopped components' sessions end."""
 
 
 @dataclass
@@ -216,6 +218,7 @@ class Orchestrator:
                 await supervisor.stop_all(self.config.orchestrator.stop_timeout)
                 await loop.run_in_executor(None, servers.stop_in_process)
                 status_task.cancel()
+                await self._wait_sessions_ended(servers)
                 await tracker.refresh_remote()  # the SAs of servers on other hosts, still running
                 snapshot = tracker.snapshot()
                 counted = await metrics.snapshot()  # every component has stopped: the final counts
@@ -385,6 +388,21 @@ class Orchestrator:
                 return [f"{cid} did not finish start() within {timeout:.0f} s" if cid in connected
                         else f"{cid} did not connect within {timeout:.0f} s" for cid in waiting]
             await asyncio.sleep(0.05)
+
+    async def _wait_sessions_ended(self, servers: ServerGroup) -> None:
+        """Wait, briefly, until the directory has seen every stopped component's session end.
+
+        A component's process can exit a moment before the directory's server notices its
+        heartbeat stream close; the final summary is taken after that, so it shows each one
+        disconnected rather than the state of a race. Manual components were not stopped by the
+        run and are not waited for; the wait is bounded, since a summary must still be printed.
+        """
+        ours = {c.id for c in self.config.components if not c.manual}
+        deadline = time.monotonic() + SESSIONS_END_S
+        while time.monotonic() < deadline:
+            if not any(i.session_id for i in servers.directory.system.sessions.components() if i.id in ours):
+                return
+            await asyncio.sleep(0.02)
 
     async def _show_status(self, tracker: StatusTracker) -> None:
         if not self.output.live_status:

@@ -188,3 +188,28 @@ class Quick(cast.UnmanagedComponent):
     def run(self) -> None:
         self.add(self.new_id(), Int64Value(value=1))
         self.request_stop()
+
+
+class Lingering(cast.UnmanagedComponent):
+    """Exits at stop() without closing its connections, which a detached child keeps open ``linger`` s more.
+
+    The servers see its streams end only when the child exits: the orchestrator's final summary
+    must wait for that rather than show the session still running.
+    """
+
+    def configure(self, args: dict[str, Any]) -> None:
+        self.linger = float(args.get("linger", 1.0))
+
+    def stop(self) -> None:
+        # Copies of its sockets that gRPC does not know of: its fork handler closes the originals in the child.
+        held = [os.dup(int(fd)) for fd in os.listdir("/proc/self/fd")
+                if os.readlink(f"/proc/self/fd/{fd}").startswith("socket:")]
+        if os.fork() == 0:  # the child holds every socket the parent had; its own session, so not killed with the group
+            os.setsid()
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            for fd in (1, 2):  # the parent's log pipe closes with the parent: the orchestrator waits for that
+                os.dup2(devnull, fd)
+            time.sleep(self.linger)
+            os._exit(0)
+        del held
+        os._exit(0)
