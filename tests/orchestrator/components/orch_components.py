@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -201,9 +202,12 @@ class Lingering(cast.UnmanagedComponent):
         self.linger = float(args.get("linger", 1.0))
 
     def stop(self) -> None:
-        # Copies of its sockets that gRPC does not know of: its fork handler closes the originals in the child.
-        held = [os.dup(int(fd)) for fd in os.listdir("/proc/self/fd")
-                if os.readlink(f"/proc/self/fd/{fd}").startswith("socket:")]
+        # Copies of its sockets that gRPC does not know of (its fork handler closes the originals in the
+        # child); a descriptor stays open until closed, so the copies need no name.
+        for fd in map(int, os.listdir("/proc/self/fd")):
+            with contextlib.suppress(OSError):  # the listing's own descriptor is closed by now
+                if os.readlink(f"/proc/self/fd/{fd}").startswith("socket:"):
+                    os.dup(fd)
         if os.fork() == 0:  # the child holds every socket the parent had; its own session, so not killed with the group
             os.setsid()
             devnull = os.open(os.devnull, os.O_WRONLY)
@@ -211,5 +215,4 @@ class Lingering(cast.UnmanagedComponent):
                 os.dup2(devnull, fd)
             time.sleep(self.linger)
             os._exit(0)
-        del held
         os._exit(0)
