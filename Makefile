@@ -118,8 +118,8 @@ TEST_JVM = JDK_JAVA_OPTIONS="$(TEST_JAVA_OPTIONS)"
 PYTEST_ALL = $(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests -n $(TEST_WORKERS) --dist loadfile \
   --no-loadscope-reorder --durations=30 \
   --reruns $(TEST_RERUNS) -rR
-# Everything the three suites need; installed and built one after the other (apt-get takes no
-# second caller) before any suite runs.
+# Everything the suites need; installed and built one after the other (apt-get takes no second caller)
+# before any suite runs.
 TEST_BUILDS := setup proto examples cpp java java-demo bench-deps export-deps node grpcurl web-deps ros-deps \
   ros-demo-types python-dev
 test-python: $(TEST_BUILDS)
@@ -132,24 +132,46 @@ test-python: $(TEST_BUILDS)
 package-test: setup proto cpp java python-dev
 	$(TEST_JVM) CAST_TEST_MVN="$(MVN)" $(PY) -m pytest -q tests/packaging
 
-# The three suites side by side: the C++ and Java unit tests (about a minute each, mostly waiting
-# on the servers they start) run beside pytest; each prints its log whole when it ends
-# (build/test-cpp.log, build/test-java.log) so that pytest's lines stay readable. A failed suite
-# fails `make test` once the others have ended.
-test: $(TEST_BUILDS)
-	$(MAKE) --no-print-directory -j3 suite-cpp suite-java suite-python
-	$(MAKE) --no-print-directory test-mypyc
+# make test in three steps. First what Debian installs, one package set after the other (apt-get takes
+# no second caller). Then the builds in three lanes at once: the C++ build keeps both cores busy for
+# three minutes, while Maven and mypyc's C compiler (one 9 MB file) use one core each and pip mostly
+# waits on the network; a lane's output is shown whole when it ends. Last the suites side by side: the
+# C++ and Java unit tests (about a minute each, mostly waiting on the servers they start), pytest on the
+# tree, and pytest on the compiled build (make test-mypyc's tests, one worker), each but pytest on the
+# tree printing its log whole when it ends (build/test-NAME.log) so that pytest's lines stay readable.
+# The tree's run leaves to the compiled build's run the tests of the server's paths
+# (COMPILED_RUN_TESTS); the core's and the Python client's tests run both ways. A failed suite fails
+# `make test` once the others have ended.
+TEST_DEPS := python-venv python-dev cpp-deps java-deps node-deps export-deps bench-deps web-deps ros1-debs
+TEST_MYPYC_WORKERS ?= 1
+COMPILED_RUN_TESTS := tests/integration tests/reliability tests/interop/test_shared_memory_interop.py \
+  tests/interop/test_streamed_interop.py
+test:
+	$(MAKE) --no-print-directory $(TEST_DEPS)
+	$(MAKE) --no-print-directory -j3 -Orecurse test-lane-cpp test-lane-java test-lane-python
+	$(MAKE) --no-print-directory -j4 suite-cpp suite-java suite-python suite-mypyc
+
+.PHONY: test-lane-cpp test-lane-java test-lane-python
+test-lane-cpp:
+	$(MAKE) --no-print-directory -j1 cpp
+test-lane-java:
+	$(MAKE) --no-print-directory -j1 java java-demo
+# One after the other: the editable installs and the compiled wheel's build all write the tree's egg-info.
+test-lane-python:
+	$(MAKE) --no-print-directory -j1 setup proto examples node grpcurl ros-deps ros-demo-types mypyc
 
 # $(call logged,NAME,COMMAND): COMMAND's output to build/test-NAME.log, printed whole when it ends.
 logged = mkdir -p build; ( $(2) ) > build/test-$(1).log 2>&1; status=$$?; \
   printf "\n---- the $(1) tests (build/test-$(1).log), exit status %s\n" $$status; cat build/test-$(1).log; exit $$status
-.PHONY: suite-cpp suite-java suite-python
+.PHONY: suite-cpp suite-java suite-python suite-mypyc
 suite-cpp:
 	@$(call logged,cpp,$(CTEST))
 suite-java:
 	@$(call logged,java,$(JAVA_TESTS))
 suite-python:
-	$(PYTEST_ALL)
+	$(PYTEST_ALL) $(foreach t,$(COMPILED_RUN_TESTS),--compiled-run-has $(t))
+suite-mypyc:
+	@$(call logged,mypyc,$(PYTEST_MYPYC) -n $(TEST_MYPYC_WORKERS))
 
 # The shipped design-space experiment (docs/experiments.md): the demo's components as one, two
 # and three SAs, the vision task manager fifo or priority, each run EXPERIMENT_SECONDS, twice.
@@ -210,11 +232,11 @@ mypyc: $(MYPYC_VENV)/.installed
 # the Python client both ways, the server under bad input and failures (tests/reliability), and
 # large values by shared memory with C++ and Java clients (tests a compiled module cannot honour
 # are marked and left out).
+PYTEST_MYPYC = $(TEST_JVM) CAST_TEST_MVN="$(MVN)" CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider \
+  -m "not incompatible_with_mypyc" --dist loadfile --no-loadscope-reorder --reruns $(TEST_RERUNS) -rR \
+  tests/core tests/client $(COMPILED_RUN_TESTS)
 test-mypyc: mypyc proto grpcurl cpp java
-	$(TEST_JVM) CAST_TEST_MVN="$(MVN)" CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider \
-	  -m "not incompatible_with_mypyc" -n $(TEST_WORKERS) --dist loadfile \
-	  tests/core tests/integration tests/client tests/reliability \
-	  tests/interop/test_shared_memory_interop.py tests/interop/test_streamed_interop.py
+	$(PYTEST_MYPYC) -n $(TEST_WORKERS)
 
 # The C++ client library, its unit tests and the C++ components (cpp_client/, examples/cpp/),
 # built with Debian's gRPC and protobuf into build/cpp (components in build/cpp/bin). Missing

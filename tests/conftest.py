@@ -64,8 +64,28 @@ PYTHONPATH = os.pathsep.join([str(_GEN_DIR), str(ROOT / "tests" / "components"),
 _FOLDER_MARKERS = {"interop": "interop", "web": "browser", "bench": "bench", "packaging": "packaging", "ros": "ros"}
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark each test with what it needs beyond the Python environment; the longest files first."""
+def pytest_addoption(parser: pytest.Parser) -> None:
+    """``--compiled-run-has PATH``: the tests under PATH run against the compiled build instead (make test)."""
+    parser.addoption(
+        "--compiled-run-has", action="append", default=[], metavar="PATH",
+        help="leave out the tests under PATH (a folder or file under the checkout) that the compiled build's run "
+             "takes (make test runs them there, beside this run); those marked incompatible_with_mypyc stay here")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark each test with what it needs beyond the Python environment; the longest files first; leave out
+    the tests the compiled build's run takes (``--compiled-run-has``), which the summary counts as deselected."""
+    elsewhere = [(ROOT / p).resolve() for p in config.getoption("compiled_run_has")]
+    missing = [str(p) for p in elsewhere if not p.exists()]
+    if missing:
+        raise pytest.UsageError(f"--compiled-run-has names no test folder or file: {missing}; give paths under {ROOT}")
+    if elsewhere:
+        left = [i for i in items if any(i.path.is_relative_to(p) for p in elsewhere)
+                and not i.get_closest_marker("incompatible_with_mypyc")]
+        if left:
+            config.hook.pytest_deselected(items=left)
+            taken = set(map(id, left))
+            items[:] = [i for i in items if id(i) not in taken]
     longest_files_first(items)
     for item in items:
         parts = item.path.relative_to(ROOT / "tests").parts

@@ -62,11 +62,17 @@ class Recorder:
         self.seconds[_file(report.nodeid)] += float(getattr(report, "duration", 0.0))
 
     def write(self, session: pytest.Session) -> None:
-        """build/test-durations.json, when the run was the whole suite and every test ran."""
+        """build/test-durations.json, when the run was the whole suite and every test ran.
+
+        Files the run left to the compiled build's run (``--compiled-run-has``) keep their last record.
+        """
         args = [str(a) for a in session.config.args]
         whole = args in (["tests"], [str(ROOT / "tests")]) and not session.config.option.keyword \
             and not session.config.option.markexpr
         if not whole or session.testsfailed or not self.seconds:
             return
+        seconds = dict(self.seconds)
+        if session.config.getoption("compiled_run_has"):
+            seconds = {**{f: s for f, s in known_seconds().items() if (ROOT / f).is_file()}, **seconds}
         LAST_RUN.parent.mkdir(exist_ok=True)
-        LAST_RUN.write_text(json.dumps(dict(sorted(self.seconds.items(), key=lambda kv: -kv[1])), indent=0) + "\n")
+        LAST_RUN.write_text(json.dumps(dict(sorted(seconds.items(), key=lambda kv: -kv[1])), indent=0) + "\n")

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,3 +50,19 @@ def test_the_committed_record_names_test_files_that_exist() -> None:
     missing = [name for name in record if not (ROOT / name).is_file()]
     assert not missing, f"tests/durations.json names files that are gone: {missing}; copy build/test-durations.json"
     assert len(record) > 100
+
+
+def test_the_trees_run_leaves_to_the_compiled_run_its_tests_but_those_compiled_code_cannot_run() -> None:
+    """make test's pytest on the tree with ``--compiled-run-has``: a test there runs in the compiled build's
+    run instead, except one marked incompatible_with_mypyc (the compiled run leaves it out)."""
+    target = "tests/core/test_metrics.py"
+    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", target,
+                          "--compiled-run-has", target], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    kept = [line for line in out.stdout.splitlines() if line.startswith(f"{target}::")]
+    assert kept == [f"{target}::test_a_report_value_that_is_not_a_number_is_refused_by_name"], out.stdout
+    assert re.search(r"1/\d+ tests collected \(\d+ deselected\)", out.stdout), out.stdout
+    wrong = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", target,
+                            "--compiled-run-has", "tests/no_such_folder"], cwd=ROOT, capture_output=True, text=True,
+                           timeout=120)
+    assert wrong.returncode != 0 and "--compiled-run-has names no test folder or file" in wrong.stderr, wrong.stderr
