@@ -139,13 +139,13 @@ package-test: setup proto cpp java python-dev
 # C++ and Java unit tests (about a minute each, mostly waiting on the servers they start), pytest on the
 # tree, and pytest on the compiled build (make test-mypyc's tests, one worker), each but pytest on the
 # tree printing its log whole when it ends (build/test-NAME.log) so that pytest's lines stay readable.
-# The tree's run leaves to the compiled build's run the tests of the server's paths
-# (COMPILED_RUN_TESTS); the core's and the Python client's tests run both ways. A failed suite fails
-# `make test` once the others have ended.
+# The tree's run leaves to the compiled build's run the tests of its modules (COMPILED_RUN_TESTS: the
+# same source, and every other test runs the tree's core, client and server), but for those marked
+# incompatible_with_mypyc. A failed suite fails `make test` once the others have ended.
 TEST_DEPS := python-venv python-dev cpp-deps java-deps node-deps export-deps bench-deps web-deps ros1-debs
 TEST_MYPYC_WORKERS ?= 1
-COMPILED_RUN_TESTS := tests/integration tests/reliability tests/interop/test_shared_memory_interop.py \
-  tests/interop/test_streamed_interop.py
+COMPILED_RUN_TESTS := tests/core tests/integration tests/client tests/reliability \
+  tests/interop/test_shared_memory_interop.py tests/interop/test_streamed_interop.py
 test:
 	$(MAKE) --no-print-directory $(TEST_DEPS)
 	$(MAKE) --no-print-directory -j3 -Orecurse test-lane-cpp test-lane-java test-lane-python
@@ -153,7 +153,7 @@ test:
 
 .PHONY: test-lane-cpp test-lane-java test-lane-python
 test-lane-cpp:
-	$(MAKE) --no-print-directory -j1 cpp
+	$(MAKE) --no-print-directory cpp
 test-lane-java:
 	$(MAKE) --no-print-directory -j1 java java-demo
 # One after the other: the editable installs and the compiled wheel's build all write the tree's egg-info.
@@ -234,7 +234,7 @@ mypyc: $(MYPYC_VENV)/.installed
 # are marked and left out).
 PYTEST_MYPYC = $(TEST_JVM) CAST_TEST_MVN="$(MVN)" CAST_TEST_INSTALLED=1 $(MYPYC_PY) -m pytest -q -p no:cacheprovider \
   -m "not incompatible_with_mypyc" --dist loadfile --no-loadscope-reorder --reruns $(TEST_RERUNS) -rR \
-  tests/core tests/client $(COMPILED_RUN_TESTS)
+  $(COMPILED_RUN_TESTS)
 test-mypyc: mypyc proto grpcurl cpp java
 	$(PYTEST_MYPYC) -n $(TEST_WORKERS)
 
