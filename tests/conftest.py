@@ -109,8 +109,13 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
         _RECORDER.write(session)
 
 
-def pytest_terminal_summary(terminalreporter: Any) -> None:
-    """Each rerun test's first failure, shortened: `-rR` names the test only, and a rerun is a defect to fix."""
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    """Where the tests left to the compiled build went (``--compiled-run-has``; under xdist the summary
+    does not count them); each rerun test's first failure, shortened: `-rR` names the test only, and a
+    rerun is a defect to fix."""
+    elsewhere = config.getoption("compiled_run_has")
+    if elsewhere:
+        terminalreporter.write_line(f"left to the compiled build's run (make test-mypyc): {' '.join(elsewhere)}")
     reruns = terminalreporter.stats.get("rerun", [])
     if not reruns:
         return

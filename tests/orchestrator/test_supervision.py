@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import json
 import os
+import pty
 import re
+import select
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -111,6 +114,40 @@ def test_sigterm_stops_components_in_reverse_order_and_leaves_no_process(tmp_pat
     wait_for(lambda: all(gone(p) for p in [*pids, child]), timeout=10, what="every process to be gone")
     assert not (run.runtime_dir / "system.json").exists() and not (run.runtime_dir / "secret").exists()
     assert (run.runtime_dir / "logs" / "first.log").read_text().strip().endswith("stop() called")
+
+
+def test_closing_its_terminal_stops_the_run_in_order_and_the_summary_is_still_written(tmp_path: Path) -> None:
+    cfg = write_config(tmp_path / "hangup.yaml", {
+        "system": "hangup",
+        "subarchitectures": {"work": {"components": {
+            "first": {"class": "orch_components:Recorder"},
+            "last": {"class": "orch_components:Recorder"},
+        }}},
+    })
+    runtime, summary = tmp_path / "rt", tmp_path / "summary.json"
+    terminal, tty = pty.openpty()
+    # A session of its own whose controlling terminal is the pty, as a shell in a window gives it, with the
+    # live status view on: closing the pty's other end is closing the window (the kernel sends the SIGHUP).
+    take_tty = ("import fcntl, os, sys, termios; fcntl.ioctl(0, termios.TIOCSCTTY, 0); "
+                "os.execv(sys.argv[1], sys.argv[1:])")
+    proc = subprocess.Popen([sys.executable, "-c", take_tty, CAST, "run", str(cfg), "--runtime-dir", str(runtime),
+                             "--summary-json", str(summary)], stdin=tty, stdout=tty, stderr=tty, start_new_session=True)
+    os.close(tty)
+    shown, deadline = b"", time.monotonic() + 60
+    try:
+        while b"components started in" not in shown:
+            assert time.monotonic() < deadline and proc.poll() is None, shown.decode(errors="replace")
+            if select.select([terminal], [], [], 0.5)[0]:
+                shown += os.read(terminal, 65536)
+    finally:
+        os.close(terminal)
+    assert proc.wait(timeout=60) == 0
+    data = json.loads(summary.read_text())
+    assert data["failures"] == [], data
+    assert {c["id"]: c["session"] for c in data["components"]} == {"first": "disconnected", "last": "disconnected"}
+    for name in ("first", "last"):
+        assert (runtime / "logs" / f"{name}.log").read_text().strip().endswith("stop() called")
+    assert not (runtime / "system.json").exists()
 
 
 def _child_pid(run: Any) -> int:

@@ -2,9 +2,10 @@
 
 The servers run in this process's event loop; each component runs as its own
 process (or, with ``in_process: true``, on a thread of the server hosting its
-SA). Shutdown, on Ctrl-C, SIGTERM or the end of ``--for``: components in
-reverse start order (SIGTERM, so their runner calls stop(); SIGKILL after the
-stop timeout), then in-process components, then the servers.
+SA). Shutdown, on Ctrl-C, SIGTERM, SIGHUP (its terminal closed) or the end of
+``--for``: components in reverse start order (SIGTERM, so their runner calls
+stop(); SIGKILL after the stop timeout), then in-process components, then the
+servers.
 """
 
 from __future__ import annotations
@@ -311,12 +312,18 @@ class Orchestrator:
         # User policy classes and in-process components import from python_path.
         sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
 
+    def _on_hangup(self) -> None:
+        # The terminal closed (SIGHUP): stop as on SIGTERM, with nowhere left to show it.
+        self.output.hang_up()
+        self._on_signal()
+
     def _handle_signals(self, loop: asyncio.AbstractEventLoop, install: bool) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        handlers = {signal.SIGINT: self._on_signal, signal.SIGTERM: self._on_signal, signal.SIGHUP: self._on_hangup}
+        for sig, handler in handlers.items():
             # Not in the main thread (an orchestrator embedded in a test): the caller stops it.
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 if install:
-                    loop.add_signal_handler(sig, self._on_signal)
+                    loop.add_signal_handler(sig, handler)
                 else:
                     loop.remove_signal_handler(sig)
 
