@@ -1,4 +1,8 @@
-"""Signals of our processes: SIGINT/SIGTERM end a long-running command; SIGQUIT prints every thread's stack.
+"""Signals of our processes: SIGINT/SIGTERM/SIGHUP end a long-running command; SIGQUIT prints every thread's stack.
+
+SIGHUP is a terminal that went away (its window closed): a command then stops as
+on SIGTERM, finishing what it writes (a journal, a recording), with standard
+output and error pointed at /dev/null first, since the terminal refuses writes.
 
 SIGQUIT is the JVM's habit (a thread dump, and the process goes on), which
 Python's :mod:`faulthandler` gives too: a component or ``cast`` command that
@@ -16,8 +20,10 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Iterable
 
-__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "terminate_when_stdin_closes", "until_terminated"]
+__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "silence", "terminal_descriptors",
+           "terminate_when_stdin_closes", "termination"]
 
 STACK_DUMP_SIGNAL = signal.SIGQUIT
 """The signal on which a Python or Java process of ours prints every thread's stack and carries on."""
@@ -34,15 +40,45 @@ def dump_stacks_on_sigquit() -> None:
         faulthandler.register(STACK_DUMP_SIGNAL, file=sys.stderr, all_threads=True, chain=False)
 
 
-async def until_terminated() -> None:
-    """Return once SIGINT or SIGTERM arrives (handled on the event loop, so no callback races the loop)."""
+def terminal_descriptors() -> list[int]:
+    """Standard output and error, those of them that are a terminal (ask before it hangs up: then asking fails)."""
+    return [fd for fd in (1, 2) if os.isatty(fd)]
+
+
+def silence(descriptors: Iterable[int]) -> None:
+    """Point each descriptor at /dev/null: its terminal is gone.
+
+    Neither what is written to it from now on nor what Python still buffers for it (flushed at exit)
+    may fail then.
+    """
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in descriptors:
+            with contextlib.suppress(OSError):
+                os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
+
+
+def termination() -> asyncio.Event:
+    """An event set once SIGINT, SIGTERM or SIGHUP arrives, handled on the running event loop.
+
+    The handlers are in place on return: a command that says it is up calls this first, so that a
+    signal sent as soon as it says so stops it in order rather than by the signal's default action.
+    """
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    terminals = terminal_descriptors()
+
+    def hung_up() -> None:
+        silence(terminals)
+        stop.set()
+
+    for sig, handler in ((signal.SIGINT, stop.set), (signal.SIGTERM, stop.set), (signal.SIGHUP, hung_up)):
         # Not available off the main thread or on some platforms: then only cancellation ends the wait.
         with contextlib.suppress(NotImplementedError):
-            loop.add_signal_handler(sig, stop.set)
-    await stop.wait()
+            loop.add_signal_handler(sig, handler)
+    return stop
 
 
 def terminate_when_stdin_closes() -> threading.Thread:

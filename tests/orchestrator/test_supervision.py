@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import json
 import os
-import pty
 import re
-import select
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,6 +17,7 @@ import psutil
 from cast.core.records import Identity
 from cast.orchestrator.supervisor import Phase
 from tests.orchestrator.conftest import CAST, COMPONENTS, Embedded, start_cast_run, wait_for, write_config
+from tests.terminal import Terminal
 
 
 def gone(pid: int) -> bool:
@@ -125,23 +123,14 @@ def test_closing_its_terminal_stops_the_run_in_order_and_the_summary_is_still_wr
         }}},
     })
     runtime, summary = tmp_path / "rt", tmp_path / "summary.json"
-    terminal, tty = pty.openpty()
-    # A session of its own whose controlling terminal is the pty, as a shell in a window gives it, with the
-    # live status view on: closing the pty's other end is closing the window (the kernel sends the SIGHUP).
-    take_tty = ("import fcntl, os, sys, termios; fcntl.ioctl(0, termios.TIOCSCTTY, 0); "
-                "os.execv(sys.argv[1], sys.argv[1:])")
-    proc = subprocess.Popen([sys.executable, "-c", take_tty, CAST, "run", str(cfg), "--runtime-dir", str(runtime),
-                             "--summary-json", str(summary)], stdin=tty, stdout=tty, stderr=tty, start_new_session=True)
-    os.close(tty)
-    shown, deadline = b"", time.monotonic() + 60
+    # With the live status view on, as in a terminal.
+    window = Terminal([CAST, "run", str(cfg), "--runtime-dir", str(runtime), "--summary-json", str(summary)])
     try:
-        while b"components started in" not in shown:
-            assert time.monotonic() < deadline and proc.poll() is None, shown.decode(errors="replace")
-            if select.select([terminal], [], [], 0.5)[0]:
-                shown += os.read(terminal, 65536)
+        window.wait_for("components started in")
+        window.close()
+        assert window.proc.wait(timeout=60) == 0
     finally:
-        os.close(terminal)
-    assert proc.wait(timeout=60) == 0
+        window.end()
     data = json.loads(summary.read_text())
     assert data["failures"] == [], data
     assert {c["id"]: c["session"] for c in data["components"]} == {"first": "disconnected", "last": "disconnected"}

@@ -18,6 +18,7 @@ from cast.client.filters import ChangeFilter
 from cast.v1.entry_pb2 import ChangeEvent
 from tests.conftest import ServerHandle, wait_for
 from tests.recording.conftest import (
+    CAST,
     RecordProcess,
     cli_env,
     read_indexed,
@@ -27,6 +28,7 @@ from tests.recording.conftest import (
     wait_recorded,
 )
 from tests.recording.conftest import cast as cast_cli
+from tests.terminal import Terminal
 
 OPS = {1: "ADD", 2: "OVERWRITE", 3: "DELETE"}
 
@@ -349,3 +351,22 @@ def test_a_cast_run_system_on_two_servers_is_found_through_its_runtime_directory
     assert {e.address.subarchitecture for e in changes} == {"vision", "motor"}
     assert "/vision/cast.v1.Task" in read.topics() and "/motor/google.protobuf.StringValue" in read.topics()
     assert read.metadata["cast.recording"]["system"] == "two"
+
+
+def test_closing_its_terminal_finishes_the_file(server: ServerHandle, tmp_path: Path) -> None:
+    path = tmp_path / "window.mcap"
+    window = Terminal([CAST, "record", "--endpoint", server.endpoint, "-o", str(path)], env=cli_env(TERM="xterm"))
+    writer = server.connect("w", "vision")
+    try:
+        window.wait_for("recording to")  # the live line
+        for i in range(3):
+            writer.add(f"h{i}", Counter(value=i))
+        wait_recorded(path, 3)
+        window.close()
+        assert window.proc.wait(timeout=60) == 0
+    finally:
+        writer._cast_close()
+        window.end()
+    read = read_indexed(path)
+    assert len(read.on("/cast/changes")) == 3
+    assert read.metadata["cast.recording.end"]["reason"] == "SIGHUP"

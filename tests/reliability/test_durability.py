@@ -31,6 +31,7 @@ from cast.v1 import directory_pb2, directory_pb2_grpc, entry_pb2, working_memory
 from tests.conftest import PYTHONPATH, SECRET, VENV_BIN
 from tests.reliability.conftest import kill9, metadata, serve, wait_for, write_config
 from tests.reliability.figures import record, soak
+from tests.terminal import Terminal
 
 A = Identity("a", "vision")
 B = Identity("b", "language")
@@ -355,3 +356,26 @@ def test_each_write_becomes_visible_exactly_once(tmp_path: Path, mode: str) -> N
     assert [r.id for r in s.host.all_entries("vision")] == [f"e{i}" for i in range(5, 10)]
     assert s.host.pending_writes() == 0
     s.close()
+
+
+def test_closing_the_terminal_of_cast_serve_closes_its_journal_cleanly(tmp_path: Path) -> None:
+    # SIGHUP (the window closed) stops the server as SIGTERM does: what is queued is written and the
+    # journal marked clean, where the signal's default action ended the process in the middle.
+    db = tmp_path / "wm.db"
+    config = write_config(tmp_path / "system.yaml", {
+        "system": "durable", "subarchitectures": {"vision": {}},
+        "persistence": {"path": str(db), "durability": "batch"},
+    })
+    env = dict(os.environ, CAST_SECRET=SECRET, PYTHONPATH=PYTHONPATH)
+    window = Terminal([str(VENV_BIN / "cast"), "serve", str(config), "--listen", "127.0.0.1:0"], env=env)
+    try:
+        window.wait_for("listening on ")
+        window.close()
+        assert window.proc.wait(timeout=60) == 0
+    finally:
+        window.end()
+    journal = Journal(db, "batch")
+    try:
+        assert journal.was_clean
+    finally:
+        journal.close()

@@ -16,7 +16,7 @@ from cast.agent.processes import ProcessTable
 from cast.agent.service import AgentServicer
 from cast.agent.trust import AgentTrust, TrustInterceptor
 from cast.errors import InvalidArgumentError
-from cast.signals import until_terminated
+from cast.signals import termination
 from cast.v1 import agent_pb2, agent_pb2_grpc
 
 __all__ = ["AGENT_SERVICE", "RunningAgent", "serve_agent", "start_agent"]
@@ -90,12 +90,13 @@ async def serve_agent(
     listen: str, root: Path, trust: AgentTrust, log_dir: Path | None = None,
     on_started: Callable[[RunningAgent], None] | None = None,
 ) -> None:
-    """Serve until SIGINT or SIGTERM; the first line printed says where it listens and whom it trusts."""
+    """Serve until SIGINT, SIGTERM or SIGHUP; the first line printed says where it listens and whom it trusts."""
+    terminated = termination()
     running = await start_agent(listen, root, trust, log_dir)
     print(f"cast agent listening on {running.endpoint} (root {running.table.root}; trusts {trust.describe()})",
           flush=True)
     if on_started is not None:
         on_started(running)
-    await until_terminated()
+    await terminated.wait()
     print("cast agent stopping: stopping every process it started", file=sys.stderr, flush=True)
     await running.stop()

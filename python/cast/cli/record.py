@@ -38,6 +38,7 @@ from cast.recording.channels import Gap
 from cast.recording.mcap_file import RecordingWriter
 from cast.recording.recorder import RECORD_ID, Recorder, RecordOptions, RecordStats
 from cast.runtime_dir import RuntimeDir, default_runtime_dir
+from cast.signals import silence, terminal_descriptors
 
 __all__ = ["Reach", "add_commands", "add_connection_options", "reach", "stop_on_signals", "unreachable"]
 
@@ -78,13 +79,20 @@ def unreachable(reach: Reach, error: CastError) -> CastError:
 
 @contextlib.contextmanager
 def stop_on_signals(stop: threading.Event, why: list[str]) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` (and name themselves in ``why``) instead of interrupting; restored after."""
+    """SIGINT, SIGTERM and SIGHUP set ``stop`` (and name themselves in ``why``) instead of interrupting.
+
+    Restored after. SIGHUP (the terminal closed) first points the terminal's output at /dev/null.
+    """
+    terminals = terminal_descriptors()
+
     def handler(signum: int, _frame: FrameType | None) -> None:
+        if signum == signal.SIGHUP:
+            silence(terminals)
         if not why:
             why.append(signal.Signals(signum).name)
         stop.set()
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
@@ -167,14 +175,15 @@ def _record(args: argparse.Namespace) -> int:
         except CastError as exc:
             raise unreachable(where, exc) from None
         writer = RecordingWriter(out, recorder.header())
-        console.print(f"cast record: recording {', '.join(recorder.subarchitectures)} of system "
-                      f"'{recorder.system.name}' to {out} (Ctrl-C to stop)", soft_wrap=True)
         until = None if args.for_seconds is None else time.monotonic() + args.for_seconds
 
         def gap(g: Gap) -> None:
             console.print(f"cast record: {g.describe()}", style="bold red", soft_wrap=True)
 
+        # Handlers first: a signal sent as soon as the line below is seen still finishes the file.
         with stop_on_signals(stop, why):
+            console.print(f"cast record: recording {', '.join(recorder.subarchitectures)} of system "
+                          f"'{recorder.system.name}' to {out} (Ctrl-C to stop)", soft_wrap=True)
             if console.is_terminal:
                 with Live(_Status(recorder.stats, out.name), console=console, refresh_per_second=4,
                           transient=True):

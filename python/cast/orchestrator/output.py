@@ -10,13 +10,14 @@ and carry on.
 
 from __future__ import annotations
 
-import contextlib
 import os
 from types import TracebackType
 
 from rich.console import Console, RenderableType
 from rich.live import Live
 from rich.markup import escape
+
+from cast.signals import silence
 
 __all__ = ["Output"]
 
@@ -74,13 +75,7 @@ class Output:
         exit) fails later.
         """
         self._live = None  # its clean-up would write to the terminal
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        try:
-            for fd in self._terminal_fds:
-                with contextlib.suppress(OSError):
-                    os.dup2(devnull, fd)
-        finally:
-            os.close(devnull)
+        silence(self._terminal_fds)
         self.console = Console(file=open(os.devnull, "w"), highlight=False, soft_wrap=True)
 
     def _print(self, renderable: RenderableType) -> None:
