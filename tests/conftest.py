@@ -74,7 +74,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark each test with what it needs beyond the Python environment; the longest files first; leave out
-    the tests the compiled build's run takes (``--compiled-run-has``), which the summary counts as deselected."""
+    the tests the compiled build's run takes (``--compiled-run-has``: deselected, and named in the summary)."""
     elsewhere = [(ROOT / p).resolve() for p in config.getoption("compiled_run_has")]
     missing = [str(p) for p in elsewhere if not p.exists()]
     if missing:
