@@ -41,8 +41,12 @@ class Terminal:
             if select.select([self._window], [], [], 0.5)[0]:
                 self.shown += os.read(self._window, 65536)
 
+    def type(self, line: str) -> None:
+        """Type ``line`` and Enter into the window (to a shell running there)."""
+        os.write(self._window, f"{line}\n".encode())
+
     def close(self) -> None:
-        """Close the window (the command gets SIGHUP)."""
+        """Close the window (the command gets SIGHUP; a shell there sends its jobs one more)."""
         if self._open:
             self._open = False
             os.close(self._window)

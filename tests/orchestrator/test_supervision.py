@@ -123,12 +123,15 @@ def test_closing_its_terminal_stops_the_run_in_order_and_the_summary_is_still_wr
         }}},
     })
     runtime, summary = tmp_path / "rt", tmp_path / "summary.json"
-    # With the live status view on, as in a terminal.
-    window = Terminal([CAST, "run", str(cfg), "--runtime-dir", str(runtime), "--summary-json", str(summary)])
+    # Typed into an interactive shell in a window, with the live status view on, as a user runs it. Closing
+    # the window sends `cast run` SIGHUP twice: the kernel's to the foreground job and the shell's to its jobs.
+    window = Terminal(["/bin/bash", "--norc", "--noprofile", "-i"], cwd=tmp_path)
     try:
+        window.type(f"{CAST} run {cfg} --runtime-dir {runtime} --summary-json {summary}")
         window.wait_for("components started in")
+        pid = json.loads((runtime / "system.json").read_text())["pid"]
         window.close()
-        assert window.proc.wait(timeout=60) == 0
+        wait_for(lambda: gone(pid), timeout=60, what="`cast run` to end")
     finally:
         window.end()
     data = json.loads(summary.read_text())

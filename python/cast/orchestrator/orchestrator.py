@@ -87,6 +87,7 @@ class Orchestrator:
         self.env = dict(os.environ if env is None else env)
         self.runtime = RuntimeDir(options.runtime_dir)
         self._stop = asyncio.Event()
+        self._hung_up = False
         self._signer: TokenSigner | None = None
         self._security: LaunchSecurity | None = None
         self._servers: ServerGroup | None = None
@@ -313,7 +314,11 @@ class Orchestrator:
         sys.path[:0] = [str(p) for p in self.config.python_path if str(p) not in sys.path]
 
     def _on_hangup(self) -> None:
-        # The terminal closed (SIGHUP): stop as on SIGTERM, with nowhere left to show it.
+        # The terminal closed (SIGHUP): stop as on SIGTERM, with nowhere left to show it. A closed window
+        # sends it twice (the kernel to the foreground job, the shell to its jobs): not a second Ctrl-C.
+        if self._hung_up:
+            return
+        self._hung_up = True
         self.output.hang_up()
         self._on_signal()
 
