@@ -17,7 +17,7 @@ from rich.console import Console, RenderableType
 from rich.live import Live
 from rich.markup import escape
 
-from cast.signals import silence
+from cast.signals import silence, terminal_descriptors
 
 __all__ = ["Output"]
 
@@ -107,13 +107,9 @@ class Output:
 
 
 def _terminal_fds(console: Console) -> list[int]:
-    """The descriptors of the console's terminal: its own, and standard error's when it is that terminal."""
+    """Those of standard output and error that are the console's terminal."""
     try:
-        fd = console.file.fileno()
-        if not os.isatty(fd):
-            return []
-        if fd != 2 and os.isatty(2) and os.path.samestat(os.fstat(2), os.fstat(fd)):
-            return [fd, 2]
-        return [fd]
+        own = os.fstat(console.file.fileno())
     except (OSError, ValueError):  # not a file of the OS (a test's buffer)
         return []
+    return [fd for fd in terminal_descriptors() if os.path.samestat(os.fstat(fd), own)]
