@@ -29,7 +29,8 @@ from cast.client.shm import SharedLink
 from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
-from cast.client.write_stream import LOCK_REPLY_MARGIN_S, WriteStream, reply_result
+from cast.client.write_replies import reply_result
+from cast.client.write_stream import LOCK_REPLY_MARGIN_S, WriteStream
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -260,7 +261,8 @@ class GrpcTransport:
         ``server_sa``: the SA whose server the request goes to, when not ``sa`` (a batch goes to its first's).
         """
         link = self._server(server_sa or sa).shared
-        session = link.session(budget.left()) if link is not None else None
+        # With the token the write goes with: a renewed one opens the session the value is staged in and sent on.
+        session = link.session(budget.left(), self._tokens.token()) if link is not None else None
         staged = session.stage(data) if session is not None and len(data) >= session.threshold else None
         if session is None or staged is None:
             fill_write(req, sa, entry_id, type_name, data if isinstance(data, bytes) else bytes(data))

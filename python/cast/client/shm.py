@@ -37,6 +37,7 @@ ENV = "CAST_SHARED_MEMORY"
 _CONNECT_S = 2.0  # the handshake's bound
 _RETRY_S = 5.0  # how long after a failure the link tries again
 _RETRY_ELSEWHERE_S = 60.0  # ... when the server is elsewhere or offers none (a restart of it may change that)
+_RENEW_DRAIN_S = 30.0  # how long a renewed token's new session waits for the old one's outstanding writes
 _UCRED = struct.Struct("3i")
 
 
@@ -87,7 +88,7 @@ def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str, within: f
         if first.kind != wire.WELCOME or first.fd is None:
             raise ValueError(f"answered HELLO with a frame of kind {first.kind}")
         sock.setblocking(False)
-        session = ClientSession(sock, first.body, first.fd, endpoint)
+        session = ClientSession(sock, first.body, first.fd, endpoint, token)
         if session.server_id != info.server_id:
             session.close()
             raise ValueError(f"its socket belongs to another server (id {session.server_id}, not "
@@ -113,15 +114,19 @@ class SharedLink:
         self.reason = ""  # why values travel as bytes, while they do
         self._closed = False
 
-    def session(self, within: float | None = None) -> ClientSession | None:
+    def session(self, within: float | None = None, token: str | None = None) -> ClientSession | None:
         """The live session, opened now if none is (at most every few seconds after a failure); None: bytes.
 
         ``within``: the longest opening it may take (a call's time left), waiting for another thread's opening
-        included (past it, bytes); None: its own bounds.
+        included (past it, bytes); None: its own bounds. ``token``: a writer's current token; a session opened
+        with another (the token was renewed) is ended after its outstanding writes and a new one opened, since a
+        session's identity is its HELLO's token and a write's staged value must be in the session it goes on.
         """
         session = self._session
         if session is not None and not session.dead:
-            return session
+            if token is None or session.token == token:
+                return session
+            self.renew(_RENEW_DRAIN_S)
         if self._closed or time.monotonic() < self._retry_at:
             return None
         started = time.monotonic()
@@ -192,6 +197,24 @@ class SharedLink:
         finally:
             if call is not None:
                 call.end(answered)
+
+    def current(self) -> ClientSession | None:
+        """The session open now, if any (none is opened)."""
+        session = self._session
+        return session if session is not None and not session.dead else None
+
+    def renew(self, drain_s: float) -> None:
+        """End the session after its outstanding writes (``drain_s`` at most): the token was renewed.
+
+        A session's identity is its HELLO's token, so the next write opens a
+        new one with the new token, and no write of the new one overtakes the
+        old one's.
+        """
+        with self._lock:
+            session, self._session = self._session, None
+        if session is not None:
+            session.writes.drain(drain_s)
+            session.close()
 
     def check(self) -> None:
         """Read what the server sent; a session it ended is noticed now (a stream to it broke)."""

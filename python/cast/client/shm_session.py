@@ -12,8 +12,12 @@
 - counts the references each call received and says so when the call ends
   (RECEIVED), so that the server takes back what never arrived.
 
-No thread of its own: frames from the server (SEGMENT, RETIRE, REFUSED, the
-end) are read whenever the session is used. How a session is opened, and
+It also carries the component's Write-stream requests to that server
+(:attr:`ClientSession.writes`, :mod:`cast.client.socket_writes`).
+
+No thread of its own: frames from the server (SEGMENT, RETIRE, REFUSED,
+EVENTS, REPLIES, the end) are read whenever the session is used, by the
+thread that needs them. How a session is opened, and
 when there is none: :mod:`cast.client.shm`.
 """
 
@@ -29,6 +33,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from cast.client.socket_writes import SessionWrites
 from cast.core.arena import Extents, round_up
 from cast.errors import UnavailableError
 from cast.v1 import entry_pb2
@@ -129,10 +134,11 @@ class _Segment:
 class ClientSession:
     """One session with a server's shared memory (after WELCOME)."""
 
-    def __init__(self, sock: socket.socket, body: bytes, staging_fd: int, endpoint: str) -> None:
+    def __init__(self, sock: socket.socket, body: bytes, staging_fd: int, endpoint: str, token: str) -> None:
         _, self.id, server_id, self.threshold, self.window, staging_size = wire.parse_welcome(body)
         self.server_id = server_id.hex()
         self.endpoint = endpoint
+        self.token = token  # its HELLO's: the identity of every write sent here
         self._sock = sock
         try:
             self._staging = mmap.mmap(staging_fd, staging_size)
@@ -154,6 +160,7 @@ class ClientSession:
         self.event_handlers: dict[int, Callable[[bytes], None]] = {}
         self.on_end: list[Callable[[str], None]] = []  # told why, once the session ended
         self.dead = ""  # why the session ended ("" while it lives)
+        self.writes = SessionWrites(self)  # the Write-stream requests sent here
 
     # ---------------------------------------------------------------- writes
 
@@ -292,7 +299,7 @@ class ClientSession:
         return -1 if self.dead else self._sock.fileno()
 
     def poll(self, wait: float = 0.0) -> bool:
-        """Read what the server sent (SEGMENT, RETIRE, REFUSED, EVENTS, the end); wait up to ``wait`` s for something.
+        """Read what the server sent (SEGMENT, RETIRE, REFUSED, EVENTS, REPLIES, the end); wait ``wait`` s for it.
 
         False when another thread was reading (it handles what came).
         """
@@ -303,32 +310,57 @@ class ClientSession:
         try:
             if wait:
                 select.select([self._sock], [], [], wait)
-            inbox = self._inbox
-            while not self.dead:
-                try:
-                    data, fds = inbox.receive(self._sock)
-                except (BlockingIOError, InterruptedError):
-                    break
-                except (OSError, wire.ProtocolError) as exc:
-                    self._end(f"read failed: {exc}")
-                    break
-                if not data:
-                    self._end("the server closed the session")
-                    break
-                drained = len(data) < inbox.size  # the socket held no more: no second read to learn it
-                try:
-                    frames = self._reader.feed(data, fds)
-                except wire.ProtocolError as exc:
-                    self._end(str(exc))
-                    break
-                for frame in frames:
-                    self._handle(frame)
-                if drained:
-                    break
+            self._read_available()
         finally:
             self._read_lock.release()
         self._close_retired()
         return True
+
+    def read_until(self, done: Callable[[], bool], wait: float) -> bool:
+        """Read and handle what comes until ``done()`` or ``wait`` s passed; False at once if another thread reads.
+
+        A thread waiting for something the socket brings (a write's reply)
+        reads it itself, rather than wait for a reader thread to hand it over.
+        """
+        if self.dead:
+            return True
+        if not self._read_lock.acquire(blocking=False):
+            return False
+        try:
+            end = time.monotonic() + wait
+            while not self.dead and not done():
+                left = end - time.monotonic()
+                if left <= 0 or not select.select([self._sock], [], [], left)[0]:
+                    break
+                self._read_available()
+        finally:
+            self._read_lock.release()
+        self._close_retired()
+        return True
+
+    def _read_available(self) -> None:
+        """Read and handle every frame the socket holds now. Call with the read lock held."""
+        inbox = self._inbox
+        while not self.dead:
+            try:
+                data, fds = inbox.receive(self._sock)
+            except (BlockingIOError, InterruptedError):
+                break
+            except (OSError, wire.ProtocolError) as exc:
+                self._end(f"read failed: {exc}")
+                break
+            if not data:
+                self._end("the server closed the session")
+                break
+            drained = len(data) < inbox.size  # the socket held no more: no second read to learn it
+            try:
+                for frame in self._reader.feed(data, fds):
+                    self._handle(frame)
+            except wire.ProtocolError as exc:
+                self._end(str(exc))
+                break
+            if drained:
+                break
 
     def _handle(self, frame: wire.Frame) -> None:
         if frame.kind == wire.SEGMENT:
@@ -346,6 +378,8 @@ class ClientSession:
             handler = self.event_handlers.get(call)
             if handler is not None:
                 handler(frame.body[8:])
+        elif frame.kind == wire.REPLIES:
+            self.writes.replies(frame.body)
         elif frame.kind == wire.REFUSED:
             self._end(f"the server ended it: {frame.body.decode(errors='replace')}")
         elif frame.fd is not None:
@@ -360,6 +394,7 @@ class ClientSession:
             return
         self.dead = why or "closed"
         log.debug("shared-memory session with %s ended: %s", self.endpoint, self.dead)
+        self.writes.end(self.dead)
         for tell in self.on_end:
             tell(self.dead)
         self.on_end.clear()
@@ -383,6 +418,10 @@ class ClientSession:
     def close(self) -> None:
         """End the session (what it holds lent is given back by the server)."""
         self._end("closed")
+
+    def abandon(self, why: str) -> None:
+        """End the session because the server looks hung (``why``): what is outstanding on it fails."""
+        self._end(why)
 
     def __del__(self) -> None:
         if not self.dead:

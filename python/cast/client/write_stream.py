@@ -6,6 +6,12 @@ stream a write is one message each way, and many may be in flight
 on one stream, which the server applies in arrival order, so a component's
 writes keep their order.
 
+While the component has a shared-memory session with the server (on its
+host), every request goes on the session's socket instead, with the same
+rules (:mod:`cast.client.socket_writes`); switching waits until what the gRPC
+call has outstanding was answered, so that no request overtakes an earlier
+one.
+
 The token is checked before each send (a ``stat`` of the token file at most
 once a second, :class:`cast.client.credentials.TokenSource`); when the
 orchestrator has renewed it, the stream is replaced by one opened with the
@@ -31,24 +37,25 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import Future, InvalidStateError
+from concurrent.futures import Future
 from typing import Any, cast
 
 import grpc
 
 from cast.client.channel import MAX_MESSAGE_BYTES, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
+from cast.client.socket_writes import SessionWrites
+from cast.client.write_replies import reply_result, settle, what
 from cast.errors import (
     CastError,
     DeadlineExceededError,
     InvalidArgumentError,
     UnauthenticatedError,
     UnavailableError,
-    error_for_code,
 )
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["LOCK_REPLY_MARGIN_S", "WriteStream", "reply_result"]
+__all__ = ["LOCK_REPLY_MARGIN_S", "WriteStream"]
 
 log = logging.getLogger("cast.client")
 
@@ -66,33 +73,6 @@ LOCK_REPLY_MARGIN_S = 1.0
 The server ends the wait itself at the timeout (DEADLINE_EXCEEDED); the margin is the answer's way
 back. Past it the server is taken for hung, as for any other request past its deadline.
 """
-
-
-def reply_result(reply: wm_pb2.WriteReply) -> wm_pb2.WriteReply:
-    """The reply itself if it carries a result; the error the unary call would have raised otherwise."""
-    if reply.WhichOneof("result") == "error":
-        error = reply.error
-        raise error_for_code(error.code, error.message or error.code, error.error_class)
-    return reply
-
-
-def _settle(future: Future[wm_pb2.WriteReply], reply: wm_pb2.WriteReply | None, error: CastError | None) -> None:
-    try:
-        if error is not None:
-            future.set_exception(error)
-        else:
-            future.set_result(reply)  # type: ignore[arg-type]
-    except InvalidStateError:
-        pass  # settled already: its deadline passed
-
-
-def _what(request: wm_pb2.WriteRequest) -> str:
-    """How an error names the request: "add of 'x'", "lock of 'x'", "batch of 3 writes"."""
-    kind = request.WhichOneof("operation") or "request"
-    if kind == "batch":
-        return f"batch of {len(request.batch.operations)} writes"
-    body = getattr(request, kind)
-    return f"{kind} of '{body.address.id}'"
 
 
 def _messages(requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None]) -> Iterator[wm_pb2.WriteRequests]:
@@ -188,7 +168,7 @@ class _Call:
         self.pending[request_id] = future
         if timeout is not None:
             deadline = time.monotonic() + timeout
-            self.deadlines[request_id] = (deadline, timeout, _what(request))
+            self.deadlines[request_id] = (deadline, timeout, what(request))
             self.sent = True
             if self.watch_until is None or deadline < self.watch_until:
                 self.watch_wake.notify()
@@ -225,7 +205,7 @@ class _Call:
                 self.deadlines.pop(reply.id, None)
         for future, reply in settled:
             if future is not None:  # None: its deadline passed, the caller has its error
-                _settle(future, reply, None)
+                settle(future, reply, None)
         if self.followers:  # read without the lock: a follower counts itself before it checks its future
             with self.lock:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
@@ -242,9 +222,9 @@ class _Call:
         for future in left:
             if error is not None and error.code == "UNAUTHENTICATED" and not self.stalled:
                 # Refused when it opened, before any request was read: nothing was applied.
-                _settle(future, None, error)
+                settle(future, None, error)
                 continue
-            _settle(future, None, UnavailableError(
+            settle(future, None, UnavailableError(
                 f"the write stream to {self.endpoint} broke ({status}): this write may or may not have been "
                 "applied; the client reconnects by itself, retry the call later"
             ))
@@ -336,7 +316,7 @@ class _Call:
                         expired.append((future, waited, what))
             self.changed.notify_all()  # followers whose request expired
         for future, waited, what in expired:
-            _settle(future, None, DeadlineExceededError(
+            settle(future, None, DeadlineExceededError(
                 f"no reply from {self.endpoint} to the {what} within {waited:g} s: it may or may not have been "
                 "applied; the write stream was ended and the next write opens a new one"
             ))
@@ -379,7 +359,7 @@ class WriteStream:
         return self._submit(request, True, self._timeout if timeout == -1.0 else timeout)[1]
 
     def _submit(self, request: wm_pb2.WriteRequest, detached: bool,
-                timeout: float | None) -> tuple[_Call, Future[wm_pb2.WriteReply]]:
+                timeout: float | None) -> tuple[_Call | SessionWrites, Future[wm_pb2.WriteReply]]:
         size = request.ByteSize()
         if size > _MAX_REQUEST_BYTES:
             # Sent, it would end the stream (and every write in flight on it) with RESOURCE_EXHAUSTED.
@@ -391,6 +371,16 @@ class WriteStream:
         with self._lock:
             if self._closed:
                 raise UnavailableError("the component is closing: no more writes")
+            writes = self._session_writes(token, timeout)
+            if writes is not None:
+                call = self._call
+                if call is not None and not call.broken:
+                    with call.lock:
+                        call.drain(_DRAIN_S)  # no request on the socket overtakes one still on the gRPC call
+                future = writes.send(request, detached, timeout)
+                if future is not None:
+                    return writes, future
+                # The session ended just now: the gRPC stream takes it.
             call = self._call
             if call is None or call.broken or call.token != token:
                 call = self._open(call, token)
@@ -405,6 +395,14 @@ class WriteStream:
             f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
             "was not sent; the client reconnects by itself, retry the call later"
         )
+
+    def _session_writes(self, token: str, timeout: float | None) -> SessionWrites | None:
+        """The session's socket while there is a session with the server (opened on the way if need be)."""
+        link = self._server.shared
+        if link is None:
+            return None
+        session = link.session(self._timeout if timeout is None else timeout, token)
+        return session.writes if session is not None else None
 
     def _open(self, old: _Call | None, token: str) -> _Call:
         if old is not None and not old.broken:
@@ -443,6 +441,9 @@ class WriteStream:
         with self._lock:
             self._closed = True
             call, self._call = self._call, None
+        session = self._server.shared.current() if self._server.shared is not None else None
+        if session is not None:
+            session.writes.drain(timeout)  # answered while the session is still open (the transport ends it)
         if call is None:
             return
         with call.lock:

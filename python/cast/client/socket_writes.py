@@ -1,0 +1,216 @@
+"""A component's Write-stream requests on its shared-memory session's socket: WRITES out, REPLIES in.
+
+docs/client-protocol.md, "Writes on the session's socket". While a component
+has a session with a server on its host, :class:`cast.client.write_stream.WriteStream`
+sends every request here instead of on its gRPC call: the same
+``WriteRequest`` messages in WRITES frames, answered by id in REPLIES frames,
+out of order when a lock waits. No gRPC message, thread or hand-off on
+either side (docs/performance.md). Mirrors the C++ client's
+socket_writes.cc and the server's :mod:`cast.server.socket_writes`.
+
+Replies are read by whoever waits for one, as on the Write stream
+(leader/follower): a caller waiting for its own reply reads the session's
+socket itself while no other thread does (the dispatcher, reading a watch's
+events there, settles it otherwise), so a sequential write costs no hand-off
+to a reader thread and back. A pump thread, started by the first pipelined
+request, reads for the requests nobody waits on. Every reader fails the
+requests past their deadline with DeadlineExceededError and then ends the
+session, since a server that answers nothing in that time is hung; the
+session's end fails what is outstanding with UnavailableError ("may or may
+not have been applied"), and the next write opens a new session or goes by
+gRPC.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import TYPE_CHECKING
+
+from google.protobuf.message import DecodeError
+
+from cast.client.write_replies import settle, what
+from cast.errors import DeadlineExceededError, UnavailableError
+from cast.v1 import working_memory_pb2 as wm_pb2
+from cast.wire import shared_memory as wire
+
+if TYPE_CHECKING:
+    from cast.client.shm_session import ClientSession
+
+__all__ = ["SessionWrites"]
+
+# How long one read waits before its reader looks at the deadlines again (and lets another thread read).
+_READ_SLICE_S = 0.05
+
+
+def _writes_frame(request: bytes) -> bytes:
+    """A WRITES frame of one serialized ``WriteRequest``: ``WriteRequests`` field 1, written without a copy of it."""
+    size = len(request)
+    length = bytearray()
+    while True:
+        byte = size & 0x7F
+        size >>= 7
+        if size:
+            length.append(byte | 0x80)
+        else:
+            length.append(byte)
+            break
+    return wire.writes(b"\x0a" + bytes(length) + request)
+
+
+class SessionWrites:
+    """The requests of one session: sent in WRITES frames, settled by the REPLIES that name them."""
+
+    def __init__(self, session: ClientSession) -> None:
+        self._session = session
+        self.endpoint = session.endpoint
+        self.lock = threading.Lock()
+        self.changed = threading.Condition(self.lock)  # replies settled, or the session ended
+        self._pump_wake = threading.Condition(self.lock)  # a pipelined request, or the end
+        self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
+        self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
+        self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
+        self.followers = 0  # threads waiting on `changed`
+        self.ended = ""  # why the session ended ("" while it lives)
+        self._ids = itertools.count(1)
+        self._pump: threading.Thread | None = None
+
+    def send(self, request: wm_pb2.WriteRequest, detached: bool,
+             timeout: float | None) -> Future[wm_pb2.WriteReply] | None:
+        """Send ``request`` (its id is set here); the future of its reply, or None once the session ended.
+
+        ``detached``: nobody waits on it (the pump reads its reply). Past
+        ``timeout`` s (None: none) it fails with DeadlineExceededError.
+        Sends of one component are made one at a time by its write stream, so
+        the frames leave in id order.
+        """
+        future: Future[wm_pb2.WriteReply] = Future()
+        with self.lock:
+            if self.ended:
+                return None
+            request.id = request_id = next(self._ids)
+            self.pending[request_id] = future
+            if timeout is not None:
+                self.deadlines[request_id] = (time.monotonic() + timeout, timeout, what(request))
+            if detached:
+                self.detached.add(request_id)
+                if self._pump is None:
+                    self._pump = threading.Thread(target=self._run_pump, name="cast-socket-replies", daemon=True)
+                    self._pump.start()
+                self._pump_wake.notify()
+        # A frame that cannot be sent ends the session, which fails this request with the others.
+        self._session.send(_writes_frame(request.SerializeToString()))
+        return future
+
+    def outstanding(self) -> int:
+        """Requests sent and not answered yet."""
+        return len(self.pending)
+
+    # ---------------------------------------------------------------- frames
+
+    def replies(self, body: bytes) -> None:
+        """A REPLIES frame (from whichever thread read it): settle the requests it answers.
+
+        :class:`wire.ProtocolError` when it is not a ``WriteReplies``.
+        """
+        try:
+            message = wm_pb2.WriteReplies.FromString(body)
+        except DecodeError as exc:
+            raise wire.ProtocolError(f"a REPLIES frame of {len(body)} bytes is not a cast.v1.WriteReplies "
+                                     f"({exc})") from None
+        with self.lock:
+            pop = self.pending.pop
+            settled = [(pop(reply.id, None), reply) for reply in message.replies]
+            for reply in message.replies:
+                self.detached.discard(reply.id)
+                self.deadlines.pop(reply.id, None)
+            if self.followers:
+                self.changed.notify_all()  # followers whose reply this was, and drain()
+        for future, reply in settled:
+            if future is not None:  # None: its deadline passed, its caller has the error
+                settle(future, reply, None)
+
+    def end(self, why: str) -> None:
+        """The session ended: what is outstanding fails with UnavailableError; nothing more is sent here."""
+        with self.lock:
+            self.ended = why or "closed"
+            left = list(self.pending.values())
+            self.pending.clear()
+            self.detached.clear()
+            self.deadlines.clear()
+            self.changed.notify_all()
+            self._pump_wake.notify()
+        for future in left:
+            settle(future, None, UnavailableError(
+                f"the shared-memory session with {self.endpoint} ended ({self.ended}): this write may or may not "
+                "have been applied; the client reconnects by itself, retry the call later"
+            ))
+
+    # --------------------------------------------------------------- readers
+
+    def wait(self, future: Future[wm_pb2.WriteReply]) -> wm_pb2.WriteReply:
+        """The reply of ``future``: read the socket while nobody else does, else wait for who does."""
+        self._read_for(future.done)
+        return future.result()
+
+    def drain(self, timeout: float) -> None:
+        """Wait until no request is outstanding, or ``timeout`` s."""
+        end = time.monotonic() + timeout
+        self._read_for(lambda: not self.pending, end)
+
+    def _read_for(self, done: Callable[[], bool], end: float | None = None) -> None:
+        """Read (or wait for the thread reading) until ``done()``, the session's end, or ``end``."""
+        session = self._session
+        while not done() and not self.ended:
+            left = _READ_SLICE_S if end is None else min(_READ_SLICE_S, end - time.monotonic())
+            if left <= 0:
+                return
+            if not session.read_until(done, left):
+                # Another thread reads (the dispatcher, the pump, another caller): it settles, then wakes us.
+                with self.lock:
+                    self.followers += 1
+                    try:
+                        if not done() and not self.ended:
+                            self.changed.wait(left)
+                    finally:
+                        self.followers -= 1
+            if session.dead:
+                return  # its end failed what was outstanding (or fails it now, on the thread that saw it)
+            self._expire()
+
+    def _run_pump(self) -> None:
+        """Read for the pipelined requests, while there are any; end with the session."""
+        while True:
+            with self.lock:
+                while not self.ended and not self.detached:
+                    self._pump_wake.wait()
+                if self.ended:
+                    return
+            self._read_for(lambda: not self.detached, time.monotonic() + _READ_SLICE_S)
+            self._expire()
+
+    def _expire(self) -> None:
+        """Fail the requests past their deadline; then end the session, as the Write stream ends its call."""
+        now = time.monotonic()
+        with self.lock:
+            if not self.deadlines or min(d for d, _, _ in self.deadlines.values()) > now:
+                return
+            expired = []
+            for request_id, (deadline, waited, name) in list(self.deadlines.items()):
+                if deadline <= now:
+                    del self.deadlines[request_id]
+                    self.detached.discard(request_id)
+                    future = self.pending.pop(request_id, None)
+                    if future is not None:
+                        expired.append((future, waited, name))
+            self.changed.notify_all()
+        for future, waited, name in expired:
+            settle(future, None, DeadlineExceededError(
+                f"no reply from {self.endpoint} to the {name} on the shared-memory session within {waited:g} s: it "
+                "may or may not have been applied; the session was ended and the next write opens a new one"
+            ))
+        # A server that answers nothing in that time is hung (or the path to it is): the others fail with it.
+        self._session.abandon(f"{self.endpoint} answered no write on the shared-memory session within its deadline")

@@ -1,0 +1,201 @@
+"""The Python client's writes on its shared-memory session's socket (cast.client.socket_writes).
+
+docs/client-protocol.md, "Writes on the session's socket": a component on the
+server's host sends every Write-stream request as a WRITES frame on its
+session and reads the REPLIES frames; the gRPC ``Write`` stream is not opened.
+A real server with shared memory (in a thread of this process, or `cast
+serve` where it must hang). The frames themselves, played by hand, are
+tested in test_socket_writes.py; the C++ client's use of them in
+cpp_client/tests/server/socket_writes_test.cc.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from google.protobuf.wrappers_pb2 import BytesValue
+
+import cast
+from cast.client.credentials import TokenSource
+from cast.client.grpc_transport import GrpcTransport
+from cast.core.records import Identity
+from cast.v1 import working_memory_pb2 as wm_pb2
+from tests.client.test_shared_memory import MIB, Host, image
+from tests.client.test_shared_memory import host as host  # the fixture, used by name
+from tests.conftest import start_server, wait_for
+
+
+class _NoGrpcWrites:
+    """A server link's stubs with every way a write takes over gRPC refused."""
+
+    def __init__(self, real: Any) -> None:
+        self._real = real
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("Write", "Add", "Overwrite", "Delete", "Batch", "Lock", "Unlock"):
+            raise AssertionError(f"{name} called over gRPC: with a session, writes go on its socket")
+        return getattr(self._real, name)
+
+
+def _socket_only(c: Any) -> Any:
+    """``c``'s link to its server, its writes over gRPC refused from now on."""
+    link = c._transport._server("vision")
+    link.wm = _NoGrpcWrites(link.wm)
+    return link
+
+
+def test_a_components_writes_go_on_its_session_and_apply_once_in_call_order(host: Callable[..., Host]) -> None:
+    h = host()
+    writer, watcher = h.component("w"), h.component("r")
+    seen: list[tuple[int, bytes]] = []
+    watcher.on_change(cast.address_filter("img", cast.Operation.ADD, cast.Operation.OVERWRITE, include_entry=True),
+                      lambda ch: seen.append((ch.revision, ch.entry(BytesValue).value.value[:1])))
+    link = _socket_only(writer)
+    values = [image(MIB, seed=1), BytesValue(value=b"\x02" * 100)]  # staged in shared memory, and small
+    writer.add("img", values[0])
+    waited = [writer.overwrite("img", values[i % 2]).revision for i in range(1, 5)]
+    futures = [writer.overwrite_async("img", values[i % 2]) for i in range(5, 25)]
+    pipelined = [f.result(30).revision for f in futures]
+    writer.batch([("add", "other", BytesValue(value=b"x")), ("delete", "other", None)])
+    writer.lock("img", cast.LockMode.O)
+    writer.unlock("img")
+    revisions = waited + pipelined
+    assert revisions == sorted(revisions) and len(set(revisions)) == len(revisions)  # applied once each, in order
+    wait_for(lambda: len(seen) == 25, what="every write's event")
+    assert [r for r, _ in seen] == sorted(r for r, _ in seen)
+    assert [first for _, first in seen] == [values[i % 2].value[:1] for i in range(25)]
+    assert watcher.get("img", BytesValue).value == values[24 % 2].value
+    assert link.write_stream is not None and link.write_stream._call is None  # no gRPC call was ever opened
+    session = link.shared.current()
+    assert session is not None and session.writes.outstanding() == 0
+
+
+def test_pipelined_writes_outstanding_when_the_component_closes_are_answered_first(host: Callable[..., Host]) -> None:
+    h = host()
+    writer, reader = h.component("w"), h.component("r")
+    _socket_only(writer)
+    writer.add("n", BytesValue(value=b"0"))
+    futures = [writer.overwrite_async("n", BytesValue(value=str(i).encode())) for i in range(1, 301)]
+    writer._cast_close()
+    assert all(f.done() for f in futures)
+    assert [f.result().revision for f in futures] == sorted(f.result().revision for f in futures)
+    assert reader.get("n", BytesValue).value == b"300"
+
+
+def test_a_session_that_ends_fails_its_outstanding_writes_as_unavailable_and_the_next_write_opens_another(
+        host: Callable[..., Host]) -> None:
+    h = host()
+    holder, waiter = h.component("holder"), h.component("waiter")
+    holder.add("e", BytesValue())
+    holder.lock("e", cast.LockMode.O)
+    link = _socket_only(waiter)
+    first = link.shared.current()
+    assert first is not None
+    errors: list[BaseException] = []
+
+    def wait_lock() -> None:
+        try:
+            waiter.lock("e", cast.LockMode.O, timeout=60)
+        except BaseException as exc:  # the test looks at it
+            errors.append(exc)
+
+    thread = threading.Thread(target=wait_lock)
+    thread.start()
+    wait_for(lambda: h.system.host._waiter_count == 1, what="the lock waiting on the server")
+    assert first.writes.outstanding() == 1
+    first._sock.shutdown(socket.SHUT_RDWR)  # the connection ends under the waiting lock
+    thread.join(10)
+    assert len(errors) == 1 and isinstance(errors[0], cast.UnavailableError), errors
+    assert "shared-memory session" in str(errors[0]) and "may or may not have been applied" in str(errors[0])
+    wait_for(lambda: h.system.host._waiter_count == 0, what="the server giving up the lock's wait")
+    waiter.add("after", BytesValue(value=b"9"))  # on a new session
+    assert link.shared.current() not in (None, first)
+    assert holder.get("after", BytesValue).value == b"9"
+
+
+def test_a_write_waits_for_what_the_grpc_stream_has_outstanding_before_it_takes_the_socket(
+        host: Callable[..., Host]) -> None:
+    h = host()
+    holder, waiter = h.component("holder"), h.component("waiter")
+    holder.add("e", BytesValue())
+    holder.lock("e", cast.LockMode.O)
+    link = waiter._transport._server("vision")
+    session = link.shared.current()
+    assert session is not None
+    link.shared._session, link.shared._retry_at = None, time.monotonic() + 60  # no session for now: gRPC
+    session.close()
+    stream = waiter._transport._stream("vision")
+    lock = wm_pb2.WriteRequest()
+    lock.lock.address.id, lock.lock.address.subarchitecture, lock.lock.mode = "e", "vision", int(cast.LockMode.O)
+    granted = stream.submit(lock, timeout=60)  # waits on the server, outstanding on the gRPC call
+    wait_for(lambda: h.system.host._waiter_count == 1, what="the lock waiting on the server")
+    link.shared._retry_at = 0.0  # a session may open again: the next write takes the socket
+    done: list[int] = []
+    later = threading.Thread(target=lambda: done.append(waiter.add("later", BytesValue()).revision))
+    later.start()
+    time.sleep(0.5)
+    assert not done, "a write went on the socket while the gRPC call had a request outstanding"
+    holder.unlock("e")
+    later.join(10)
+    assert granted.result(10).WhichOneof("result") != "error"
+    assert done and link.shared.current() is not None
+    assert stream._call is not None and not stream._call.pending
+
+
+def test_a_renewed_token_opens_a_new_session_for_the_writes_after_it_large_ones_too(
+        host: Callable[..., Host], tmp_path: Path) -> None:
+    h = host()
+    identity = Identity("w", "vision")
+    token_file = tmp_path / "token"
+    token_file.write_text(h.signer.issue(identity) + "\n")
+    writer = cast.UnmanagedComponent()
+    writer._cast_bind(GrpcTransport(h.endpoint, TokenSource.from_file(str(token_file)), identity))
+    h.made.append(writer)
+    link = _socket_only(writer)
+    writer.add("t", BytesValue(value=b"1"))
+    first = link.shared.current()
+    assert first is not None
+    time.sleep(1.1)  # the token file is looked at once a second
+    token_file.write_text(h.signer.issue(identity, ttl_seconds=7200) + "\n")
+    os.utime(token_file, (time.time() + 5, time.time() + 5))
+    big = image(MIB, seed=3)
+    writer.overwrite("t", big)  # staged in the new session, the one it goes on
+    second = link.shared.current()
+    assert second is not None and second is not first and first.dead
+    assert second.token != first.token
+    assert h.component("r").get("t", BytesValue).value == big.value
+
+
+def test_a_write_to_a_hung_server_ends_by_its_deadline_and_the_next_one_after_it_recovers(tmp_path: Path) -> None:
+    server = start_server(tmp_path, {"system": "t", "subarchitectures": {"vision": {}}})
+    identity = Identity("w", "vision")
+    writer = cast.UnmanagedComponent()
+    writer._cast_bind(GrpcTransport(server.endpoint, server.token("w", "vision"), identity, call_timeout=1.0))
+    try:
+        writer.add("h", BytesValue(value=b"1"))
+        link = _socket_only(writer)
+        first = link.shared.current()
+        assert first is not None
+        os.kill(server.process.pid, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            with pytest.raises(cast.DeadlineExceededError, match="shared-memory session"):
+                writer.overwrite("h", BytesValue(value=b"2"))
+            assert time.monotonic() - started < 1.0 + 1.5  # its deadline, and what a loaded machine adds
+            assert first.dead  # ended: what else was outstanding on it failed with it
+        finally:
+            os.kill(server.process.pid, signal.SIGCONT)
+        writer.overwrite("h", BytesValue(value=b"3"))
+        assert writer.get("h", BytesValue).value == b"3"
+        assert link.shared.current() not in (None, first)
+    finally:
+        writer._cast_close()
+        server.stop()
