@@ -29,6 +29,7 @@ using Clock = std::chrono::steady_clock;
 // or offers none, longer (a restart of it may change that).
 constexpr std::chrono::seconds kRetry{5};
 constexpr std::chrono::seconds kRetryElsewhere{60};
+constexpr std::chrono::milliseconds kRenewDrain{30000};  // a renewed token: how long the old session's writes may take
 
 // Closes a descriptor when it goes, unless taken.
 class Fd {
@@ -313,6 +314,15 @@ std::string SharedLink::reason() const {
   return reason_;
 }
 
+std::shared_ptr<ClientSession> SharedLink::writerSession(Within within) {
+  std::shared_ptr<ClientSession> s = session(within);
+  if (s && s->token() != tokens_->token()) {
+    renew(kRenewDrain);
+    s = session(within);
+  }
+  return s;
+}
+
 std::shared_ptr<ClientSession> SharedLink::current() const {
   std::lock_guard<std::mutex> lock(mu_);
   return session_ && !session_->dead() ? session_ : nullptr;
@@ -348,7 +358,7 @@ namespace {
 // in the request.
 bool stage(SharedLink& link, std::size_t size, const std::function<void(std::uint8_t*)>& fill, Staging& staged,
            SharedLink::Within within) {
-  std::shared_ptr<ClientSession> session = link.session(within);
+  std::shared_ptr<ClientSession> session = link.writerSession(within);
   if (!session || size < session->threshold()) return false;
   std::optional<Staged> region = session->stage(size, fill);
   if (!region) return false;

@@ -83,6 +83,11 @@ class SharedLink {
   // the opening may take, waiting for another thread's opening included (a
   // call's time left: opening on a call's way spends the call's time).
   std::shared_ptr<ClientSession> session(Within within = std::nullopt);
+  // session() for a write sent with the token in force now: a session
+  // opened with an older one (the token was renewed) ends first, after its
+  // outstanding writes (renew), so that a value is staged in the session its
+  // write goes on, with the new token's identity.
+  std::shared_ptr<ClientSession> writerSession(Within within = std::nullopt);
   // The live session, never opening one (nullptr: none).
   std::shared_ptr<ClientSession> current() const;
   // A read call's part of the session (nullptr without one): its metadata,

@@ -375,12 +375,8 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
   // outstanding, so that no request overtakes an earlier one.
   const std::string token = tokens_->token();
   if (server_.shared) {
-    std::shared_ptr<ClientSession> session = server_.shared->session(timeout.value_or(callTimeout_));
-    if (session && session->token() != token) {
-      // A renewed token: a session says it in its HELLO, so a new one opens (after the old one's replies).
-      server_.shared->renew(kTokenDrain);
-      session = server_.shared->session(timeout.value_or(callTimeout_));
-    }
+    // A renewed token: a session says it in its HELLO, so a new one opens (after the old one's replies).
+    std::shared_ptr<ClientSession> session = server_.shared->writerSession(timeout.value_or(callTimeout_));
     if (session) {
       std::shared_ptr<Call> grpcCall;
       {

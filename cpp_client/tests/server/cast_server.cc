@@ -5,7 +5,9 @@
 #include <sys/socket.h>
 #include <sys/un.h>
 
+#include <cstdio>
 #include <ctime>
+#include <fstream>
 #include <string>
 
 #include "cast/credentials.h"
@@ -84,6 +86,14 @@ int endSessionSockets() {
   }
   ::closedir(dir);
   return ended;
+}
+
+void writeTokenFile(const std::string& path, const std::string& token) {
+  {
+    std::ofstream out(path + ".tmp");
+    out << token;
+  }
+  std::rename((path + ".tmp").c_str(), path.c_str());
 }
 
 }  // namespace cast::testing

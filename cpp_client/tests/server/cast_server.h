@@ -67,6 +67,9 @@ bool eventually(const std::function<bool()>& condition, std::chrono::millisecond
 // if the server had closed them. How many it ended.
 int endSessionSockets();
 
+// Replaces the token file at `path` whole, as the orchestrator renews it.
+void writeTokenFile(const std::string& path, const std::string& token);
+
 inline constexpr std::size_t kMiB = std::size_t{1} << 20;
 
 // An Int64Value holding `n`, the entry type of most of these tests.

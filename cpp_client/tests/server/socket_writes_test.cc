@@ -115,4 +115,22 @@ TEST(SocketWrites, ASocketThatEndsFailsTheOutstandingWritesAsUnavailableAndLater
   held.release();
 }
 
+TEST(SocketWrites, ALargeWriteAfterTheTokenWasRenewedIsStagedInTheNewSessionItGoesOn) {
+  CastServer& server = sharedServer();
+  const std::string path = server.dir() + "/sw-renewed.token";
+  cast::testing::writeTokenFile(path, server.token("sw-renewed", "vision"));
+  cast::TransportOptions options;
+  options.tokenFile = path;
+  auto writer = server.connect("sw-renewed", "vision", options);
+  auto reader = server.connect("sw-renewed-reader", "vision");
+  writer->add("sw-r", value(kMiB, 1));
+  std::this_thread::sleep_for(1100ms);  // a token issued later differs; the file is looked at once a second
+  cast::testing::writeTokenFile(path, server.token("sw-renewed", "vision"));
+  // Staged in a session opened with the new token, the one the write then goes on: staged in the old
+  // one, which the write's renewal ends, the server would refuse it (its session is gone).
+  const BytesValue big = value(kMiB, 2);
+  writer->overwrite("sw-r", big);
+  EXPECT_TRUE(reader->get<BytesValue>("sw-r").value() == big.value());
+}
+
 }  // namespace

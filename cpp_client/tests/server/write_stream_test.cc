@@ -10,8 +10,6 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
-#include <cstdio>
-#include <fstream>
 #include <functional>
 #include <future>
 #include <string>
@@ -210,18 +208,10 @@ TEST(WriteStream, ManyLargeValuesInFlightAndOneOverTheMessageLimit) {
   EXPECT_FALSE(writer->exists("ws-too-big"));
 }
 
-void writeToken(const std::string& path, const std::string& token) {
-  {
-    std::ofstream out(path + ".tmp");
-    out << token;
-  }
-  std::rename((path + ".tmp").c_str(), path.c_str());  // whole, as the orchestrator renews it
-}
-
 TEST(WriteStream, ARefusedTokenIsReadAgainFromItsFileAndTheWriteSentOnceMore) {
   CastServer& server = sharedServer();
   const std::string path = server.dir() + "/ws-renewed.token";
-  writeToken(path, server.token("ws-renewed", "vision"));
+  cast::testing::writeTokenFile(path, server.token("ws-renewed", "vision"));
   cast::TransportOptions options;
   options.tokenFile = path;
   auto renewed = server.connect("ws-renewed", "vision", options);
@@ -230,14 +220,15 @@ TEST(WriteStream, ARefusedTokenIsReadAgainFromItsFileAndTheWriteSentOnceMore) {
 
   // A token the server refuses (another secret) replaces the file's: the
   // stream opened with it is refused, and the file has nothing newer.
-  writeToken(path, server.token("ws-renewed", "vision", false, "another-secret-0123456789abcdef-012345"));
+  cast::testing::writeTokenFile(path,
+                                server.token("ws-renewed", "vision", false, "another-secret-0123456789abcdef-012345"));
   std::this_thread::sleep_for(1100ms);  // the token file is looked at once a second at most
   EXPECT_THROW(renewed->add("ws-t2", number(2)), cast::UnauthenticatedError);
   EXPECT_FALSE(reader->exists("ws-t2"));
 
   // Renewed again: the refusal makes the client read the file at once, and
   // send the write once more, on a stream opened with the new token.
-  writeToken(path, server.token("ws-renewed", "vision"));
+  cast::testing::writeTokenFile(path, server.token("ws-renewed", "vision"));
   renewed->add("ws-t2", number(2));
   EXPECT_EQ(reader->get<Int64Value>("ws-t2").value(), 2);
 }
