@@ -286,7 +286,8 @@ final class Dispatcher {
   /**
    * As {@link #deliver(Transport.Change)}, but while {@code overflow} holds the change is queued
    * over the capacity instead of waiting for room (a shared-memory session's reader, which must
-   * go on reading while a thread waits for a segment that may be behind this change's frame).
+   * go on reading while a thread waits for a segment, or a write for its reply, that may be behind
+   * this change's frame).
    */
   void deliver(Transport.Change change, BooleanSupplier overflow) {
     try {

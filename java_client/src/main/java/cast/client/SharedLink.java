@@ -48,6 +48,8 @@ final class SharedLink {
   static final long RETRY_MS = 5000; // how long after a failure the link tries again
   static final long RETRY_ELSEWHERE_MS = 60_000; // ... when the server is elsewhere or offers none
   private static final int ANCILLARY_BYTES = 1024; // room for the descriptors of 16 frames and more
+  /** A renewed token: how long the old session's outstanding writes may take before it ends. */
+  static final Duration RENEW_DRAIN = WriteStream.DRAIN;
 
   /** Why there is no session; {@code elsewhere}: the server is on another host (trying again soon is no use). */
   static final class NoSession extends Exception {
@@ -66,6 +68,7 @@ final class SharedLink {
   private final Function<String, String> environment;
   private final ReentrantLock opening = new ReentrantLock(); // held while a session is being opened
   private volatile SharedSession session;
+  private volatile SharedSession retiring; // renew(): the old session, while its writes are answered
   private long retryAt; // System.nanoTime(); guarded by opening
   private boolean told; // the fallback was said at INFO; guarded by opening
   private volatile String reason = ""; // why values travel as bytes, while they do
@@ -139,6 +142,63 @@ final class SharedLink {
       return s;
     } finally {
       opening.unlock();
+    }
+  }
+
+  /**
+   * {@link #session(Duration)} for a write sent with the token of the moment: a session opened
+   * with an older one (the token was renewed) gives way first ({@link #renew}), so that a value is
+   * staged in the session its write goes on, with the new token's identity, not in one the write's
+   * renewal then ends (the server would refuse the staged value of a session that is gone).
+   */
+  SharedSession writerSession(Duration within) {
+    SharedSession s = session(within);
+    if (s != null && !s.token.equals(token.get())) {
+      renew(s, RENEW_DRAIN);
+      s = session(within);
+    }
+    return s;
+  }
+
+  /**
+   * The session that gave way to a renewed token while its outstanding writes are answered, or
+   * null: a write on the new session waits for them first ({@link WriteStream}), so that none
+   * overtakes an earlier one.
+   */
+  SharedSession retiring() {
+    return retiring;
+  }
+
+  /** The live session, never opened here; null without one. */
+  SharedSession current() {
+    SharedSession s = session;
+    return s != null && s.dead() == null ? s : null;
+  }
+
+  /**
+   * Its token was renewed: {@code old} (if still the link's session) gives way, once its
+   * outstanding writes were answered (for at most {@code drain}), so that the next use opens a
+   * new session with the token of the moment in its HELLO, and no write on the new one overtakes
+   * an earlier one.
+   */
+  void renew(SharedSession old, Duration drain) {
+    opening.lock();
+    try {
+      if (session != old) {
+        return; // it ended, or was replaced, meanwhile
+      }
+      retiring = old; // before a new session can be opened: whoever writes on that one sees it
+      session = null;
+    } finally {
+      opening.unlock();
+    }
+    try {
+      old.writes().drain(drain);
+      old.end("its token was renewed");
+    } finally {
+      if (retiring == old) {
+        retiring = null;
+      }
     }
   }
 
@@ -320,7 +380,7 @@ final class SharedLink {
         SharedSession.closeAll(first.fd());
         throw new NoSession(e.getMessage(), false);
       }
-      session = new SharedSession(socket, welcome, first.fd(), endpoint);
+      session = new SharedSession(socket, welcome, first.fd(), endpoint, token);
       if (!session.serverId.equals(info.getServerId())) {
         throw new NoSession(
             "its socket belongs to another server (id " + session.serverId + ", not " + info.getServerId() + ")",

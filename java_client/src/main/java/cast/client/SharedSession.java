@@ -39,17 +39,24 @@ import org.newsclub.net.unix.FileDescriptorCast;
  *   <li>counts the references each read call received and says so (RECEIVED), so that the
  *       server takes back what never arrived ({@link ReadCall});
  *   <li>hands a watch call's EVENTS frames to the {@link EventsHandler} of that call (docs/client-protocol.md,
- *       "A watch's events on the session's socket").
+ *       "A watch's events on the session's socket");
+ *   <li>carries the component's writes to that server, once it has the session: WRITES frames out,
+ *       REPLIES frames in ({@link SessionWrites}; docs/client-protocol.md, "Writes on the session's
+ *       socket"), as the identity of the token its HELLO carried ({@link #token}).
  * </ul>
  *
- * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, EVENTS, the end: a server
- * that died is noticed at once), one sends (RELEASE, RECEIVED), so that giving a value back
- * never waits for the server. The reader runs an EVENTS frame's handler itself, which queues the
- * changes on the component's dispatcher: from the kernel to the dispatcher's queue on one thread. Segments are mapped with {@link FileChannel#map}; a segment the
- * server retired, or every segment once the session ended, is unmapped as soon as no lease of
- * it is held (the memory of a dead server goes at once, not at some later garbage collection).
- * So a buffer taken from a view must not be read after the view was closed: its memory may be
- * gone. The staging area is unmapped when the session ends. The twin of
+ * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, EVENTS, REPLIES, the end:
+ * a server that died is noticed at once), one sends (RELEASE, RECEIVED), so that giving a value
+ * back never waits for the server. A WRITES frame is written by the thread that sends the write
+ * (one frame at a time on the socket, whoever writes it). The reader runs an EVENTS frame's
+ * handler itself, which queues the changes on the component's dispatcher: from the kernel to the
+ * dispatcher's queue on one thread; it answers the writes of a REPLIES frame after the EVENTS
+ * frames before it (the server sends a write's events before its reply), and while a write waits
+ * for its reply it queues events over the dispatcher's capacity rather than wait for room ({@link
+ * #mustRead}). Segments are mapped with {@link FileChannel#map}; a segment the server retired,
+ * or every segment once the session ended, is unmapped as soon as no lease of it is held (the
+ * memory of a dead server goes at once, not at some later garbage collection). So a buffer taken
+ * from a view must not be read after the view was closed: its memory may be gone. The staging area is unmapped when the session ends. The twin of
  * python/cast/client/shm_session.py and cpp_client/src/shm_session.cc; {@link SharedLink}
  * opens it.
  */
@@ -67,7 +74,12 @@ final class SharedSession {
   final long threshold;
   final long window;
   final String endpoint;
+  /** The token its HELLO carried: the identity of the writes on its socket. */
+  final String token;
   private final AFUNIXSocket socket;
+  private final SessionWrites writes;
+  private final Object writing = new Object(); // held while a frame is written to the socket: frames whole
+  private volatile OutputStream out; // set by start
   private final ShmStaging staging;
   private final Object lock = new Object(); // segments, dead, calls, the outbox
   private final Map<Long, Segment> segments = new HashMap<>(); // mapped, by id
@@ -95,10 +107,16 @@ final class SharedSession {
     void sessionEnded(String why);
   }
 
-  /** The session of a socket whose WELCOME ({@code welcome}, with the staging area's {@code stagingFd}) came. */
-  SharedSession(AFUNIXSocket socket, ShmWire.Welcome welcome, FileDescriptor stagingFd, String endpoint)
+  /**
+   * The session of a socket whose WELCOME ({@code welcome}, with the staging area's {@code
+   * stagingFd}) came in answer to a HELLO with {@code token}.
+   */
+  SharedSession(
+      AFUNIXSocket socket, ShmWire.Welcome welcome, FileDescriptor stagingFd, String endpoint, String token)
       throws IOException {
     this.socket = socket;
+    this.token = token;
+    this.writes = new SessionWrites(this, endpoint);
     this.id = welcome.session();
     this.idHex = HexFormat.of().formatHex(id);
     this.serverId = HexFormat.of().formatHex(welcome.serverId());
@@ -110,6 +128,7 @@ final class SharedSession {
 
   /** Start reading and sending (once the session passed the client's checks). */
   void start(List<ShmWire.Frame> already, ShmWire.Reader reader, InputStream in, OutputStream out) {
+    this.out = out;
     for (ShmWire.Frame f : already) {
       handle(f);
     }
@@ -124,6 +143,11 @@ final class SharedSession {
   /** Why the session ended, or null while it lives. */
   String dead() {
     return dead;
+  }
+
+  /** The component's Write-stream requests on this session's socket. */
+  SessionWrites writes() {
+    return writes;
   }
 
   /** A segment as mapped here, and how many leases of its values are held. */
@@ -254,6 +278,16 @@ final class SharedSession {
     }
   }
 
+  /**
+   * Whether the reader must read on rather than wait for room in a dispatcher's queue: a thread
+   * waits for a SEGMENT frame ({@link #segmentAwaited}), or a write for its REPLIES frame. Either
+   * may be behind the frame the reader holds, and the waiter may be the dispatcher's own callback,
+   * which would then wait for the room its own wait keeps from being made.
+   */
+  boolean mustRead() {
+    return writes.outstanding() > 0 || segmentAwaited();
+  }
+
   /** A new read call on this session. */
   ReadCall newCall() {
     synchronized (lock) {
@@ -334,6 +368,24 @@ final class SharedSession {
 
   // ------------------------------------------------------------------ frames
 
+  /**
+   * Write {@code frame} to the socket from this thread, whole, after any frame being written (nothing
+   * once the session ended). A write that fails ends the session.
+   */
+  void sendNow(byte[] frame) {
+    if (dead != null) {
+      return;
+    }
+    try {
+      synchronized (writing) {
+        out.write(frame);
+        out.flush();
+      }
+    } catch (IOException e) {
+      end("write failed: " + e.getMessage());
+    }
+  }
+
   /** Queue a frame for the sender thread (nothing once the session ended). */
   void send(byte[] frame) {
     synchronized (lock) {
@@ -405,10 +457,12 @@ final class SharedSession {
       frames.addAll(outbox);
       outbox.clear();
     }
-    for (byte[] f : frames) {
-      out.write(f);
+    synchronized (writing) {
+      for (byte[] f : frames) {
+        out.write(f);
+      }
+      out.flush();
     }
-    out.flush();
     return true;
   }
 
@@ -448,6 +502,7 @@ final class SharedSession {
             }
           }
         }
+        case ShmWire.REPLIES -> writes.replies(frame.body());
         case ShmWire.REFUSED -> end("the server ended it: " + ShmWire.text(frame.body()));
         default -> closeAll(frame.fd()); // a kind this client does not know: ignored
       }
@@ -485,6 +540,7 @@ final class SharedSession {
     }
     mapped.forEach(this::retire); // each unmapped once no value of it is held
     LOG.fine("shared-memory session with " + endpoint + " ended: " + why);
+    writes.ended(dead); // what is outstanding may or may not have been applied
     for (Long call : List.copyOf(eventHandlers.keySet())) {
       EventsHandler handler = eventHandlers.remove(call);
       if (handler != null) {

@@ -1,6 +1,9 @@
 package cast.client;
 
+import com.google.protobuf.CodedOutputStream;
+import com.google.protobuf.MessageLite;
 import java.io.FileDescriptor;
+import java.io.IOException;
 import java.nio.ByteBuffer;
 import java.nio.ByteOrder;
 import java.nio.charset.StandardCharsets;
@@ -12,10 +15,10 @@ import java.util.List;
 /**
  * The frames of a shared-memory session on a server's Unix socket (docs/client-protocol.md,
  * "Large values by shared memory", "Frames"): a little-endian {@code u32} length of what
- * follows (1 to 65,536; up to 64 MiB for EVENTS), a {@code u8} kind and its fields. A frame that carries a memory file
- * came with it as {@code SCM_RIGHTS}, no later than its first byte: the {@link Reader} keeps the
- * descriptors that arrive in order and gives the next one to each frame of a kind that carries
- * one. The twin of python/cast/wire/shared_memory.py. No sockets
+ * follows (1 to 65,536; up to 64 MiB for WRITES, REPLIES and EVENTS), a {@code u8} kind and its
+ * fields. A frame that carries a memory file came with it as {@code SCM_RIGHTS}, no later than its
+ * first byte: the {@link Reader} keeps the descriptors that arrive in order and gives the next one
+ * to each frame of a kind that carries one. The twin of python/cast/wire/shared_memory.py. No sockets
  * here: {@link SharedSession} moves the bytes.
  */
 final class ShmWire {
@@ -28,11 +31,13 @@ final class ShmWire {
   static final int HELLO = 1; // u16 version, then the token (UTF-8) to the end
   static final int RELEASE = 2; // n x u64 value ids given back
   static final int RECEIVED = 3; // u64 call, u64 count, u8 ended
+  static final int WRITES = 4; // a serialized cast.v1.WriteRequests to the end
   // Server -> client.
   static final int WELCOME = 10; // u16 version, 16 bytes session, 16 bytes server id, u64 threshold, window, staging
   static final int REFUSED = 11; // the reason (UTF-8) to the end; the server then closes
   static final int SEGMENT = 12; // u32 segment id, u64 size; carries the segment's memory file
   static final int RETIRE = 13; // u32 segment id
+  static final int REPLIES = 14; // a serialized cast.v1.WriteReplies to the end
   static final int EVENTS = 15; // u64 call, then a serialized cast.v1.WatchResponse to the end
 
   /** The largest frame either side sends or accepts, but for the kinds that carry messages. */
@@ -89,6 +94,29 @@ final class ShmWire {
     return frames;
   }
 
+  /**
+   * WRITES: {@code message} (a {@code cast.v1.WriteRequests}) serialized straight into the frame, so
+   * that a value sent as bytes is copied once on its way to the socket; IllegalArgumentException
+   * when the frame would be over {@link #MAX_MESSAGE_FRAME}.
+   */
+  static byte[] writes(MessageLite message) {
+    int size = message.getSerializedSize();
+    if (size + 1 > MAX_MESSAGE_FRAME) {
+      throw new IllegalArgumentException(
+          "a WRITES frame of " + (size + 1) + " bytes is over its bound of " + MAX_MESSAGE_FRAME + " bytes");
+    }
+    byte[] out = new byte[5 + size];
+    ByteBuffer.wrap(out).order(ByteOrder.LITTLE_ENDIAN).putInt(1 + size).put((byte) WRITES);
+    CodedOutputStream coded = CodedOutputStream.newInstance(out, 5, size);
+    try {
+      message.writeTo(coded);
+    } catch (IOException e) { // an array of the message's own size: cannot run out of room
+      throw new IllegalStateException("serializing a WRITES frame: " + e.getMessage(), e);
+    }
+    coded.checkNoSpaceLeft();
+    return out;
+  }
+
   /** RECEIVED: {@code count} references received on {@code call} so far; {@code ended}: the call is over. */
   static byte[] received(long call, long count, boolean ended) {
     return frame(RECEIVED, 17).putLong(call).putLong(count).put((byte) (ended ? 1 : 0)).array();
@@ -132,7 +160,7 @@ final class ShmWire {
 
   /** The largest length (kind byte and fields) a frame of {@code kind} may have. */
   static int bound(int kind) {
-    return kind == 4 || kind == 14 || kind == EVENTS ? MAX_MESSAGE_FRAME : MAX_FRAME;
+    return kind == WRITES || kind == REPLIES || kind == EVENTS ? MAX_MESSAGE_FRAME : MAX_FRAME;
   }
 
   /** The call an EVENTS frame's body names; the body is then at its serialized WatchResponse. */

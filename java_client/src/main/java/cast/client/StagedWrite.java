@@ -31,11 +31,12 @@ final class StagedWrite {
 
   /**
    * Staging for a write to {@code server}: its session, opened now (in at most {@code within},
-   * the write's time left) if it can be, or none.
+   * the write's time left) if it can be, or none; after a renewed token, the new session the
+   * write will go on ({@link SharedLink#writerSession}).
    */
   static StagedWrite to(GrpcServer server, Duration within) {
     SharedLink link = server.shared;
-    return new StagedWrite(link == null ? null : link.session(within));
+    return new StagedWrite(link == null ? null : link.writerSession(within));
   }
 
   /** {@code value}'s bytes staged, and what the request says of them; null: send the bytes. */

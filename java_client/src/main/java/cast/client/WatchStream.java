@@ -334,7 +334,7 @@ final class WatchStream {
       this.gen = gen;
       this.read = read;
       SharedSession session = read == null ? null : read.session();
-      this.overflow = session == null ? () -> false : session::segmentAwaited;
+      this.overflow = session == null ? () -> false : session::mustRead;
     }
 
     @Override

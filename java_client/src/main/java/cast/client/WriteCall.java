@@ -35,8 +35,11 @@ import java.util.logging.Logger;
  */
 final class WriteCall implements ClientResponseObserver<WriteRequests, WriteReplies> {
   private static final Logger LOG = Logger.getLogger("cast.client");
-  /** Where the deadlines of every call of the process are timed: one daemon thread. */
-  private static final ScheduledThreadPoolExecutor DEADLINES = deadlineTimer();
+  /**
+   * Where the deadlines of every call of the process are timed, and those of the writes on
+   * shared-memory sessions' sockets ({@link SessionWrites}): one daemon thread.
+   */
+  static final ScheduledThreadPoolExecutor DEADLINES = deadlineTimer();
 
   private final GrpcServer server;
   final String token; // the token its metadata carried
@@ -286,7 +289,7 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
   }
 
   /** How an error names a request: "add of 'x'", "lock of 'x'", "batch of 3 writes". */
-  private static String describe(WriteRequest.Builder request) {
+  static String describe(WriteRequest.Builder request) {
     return switch (request.getOperationCase()) {
       case ADD -> "add of '" + request.getAdd().getAddress().getId() + "'";
       case OVERWRITE -> "overwrite of '" + request.getOverwrite().getAddress().getId() + "'";

@@ -39,9 +39,24 @@ import java.util.concurrent.TimeUnit;
  * messages; a sender waits (up to the call timeout) while {@link #OUTBOX_BYTES} are queued: a
  * component that writes faster than the server reads is held back instead of buffering
  * without bound.
+ *
+ * <p>On the server's host, while the component has a shared-memory session with that server
+ * ({@link SharedLink}), every request goes on the session's Unix socket instead, in a WRITES frame
+ * that the sending thread writes itself, and its reply comes in a REPLIES frame ({@link
+ * SessionWrites}; docs/client-protocol.md, "Writes on the session's socket"): the same messages
+ * and rules, without gRPC's threads and hand-offs on either side. All or nothing: the server has
+ * no order between two transports, so a request goes on the socket only once what the gRPC call
+ * has outstanding was answered, and on the gRPC call again only once the session ended (which
+ * failed what it had outstanding). The session's identity is the token of its HELLO: when the
+ * token was renewed, the session gives way to a new one once its outstanding requests were
+ * answered. {@code CAST_SHARED_MEMORY=off}, or a server elsewhere, leaves everything on the gRPC
+ * call.
  */
 final class WriteStream {
-  /** How long a token change waits for the old call's outstanding replies before opening the new call. */
+  /**
+   * How long a token change waits for the old call's (or session's) outstanding replies before
+   * opening the new one; and a switch from the gRPC call to the session's socket, for the call's.
+   */
   static final Duration DRAIN = Duration.ofSeconds(30);
   /** Requests that queued up go in messages of at most about this many bytes (a larger request alone). */
   static final int MESSAGE_BYTES = 1 << 20;
@@ -110,11 +125,13 @@ final class WriteStream {
 
   /**
    * Send {@code request} (its id is set here) after every earlier one; the future of its reply.
-   * A synchronous caller ({@code async} false) sends it itself when nobody else is sending; an
-   * asynchronous one leaves it to the pump and returns at once, so the requests it queues go
-   * together.
+   * On the session's socket the caller writes its frame itself. On the gRPC call, a synchronous
+   * caller ({@code async} false) sends it itself when nobody else is sending; an asynchronous one
+   * leaves it to the pump and returns at once, so the requests it queues go together.
    */
   CompletableFuture<WriteReply> submit(WriteRequest.Builder request, boolean async, Duration deadline) {
+    // Refused here, in front of both transports: a message over the limit would end the gRPC
+    // call, or the session (a WRITES frame has the same bound), failing every write in flight.
     long size = request.build().getSerializedSize();
     if (size > GrpcServer.MAX_MESSAGE_BYTES) {
       throw new InvalidArgumentError(
@@ -123,11 +140,22 @@ final class WriteStream {
               + " (8 MiB by default): store large data elsewhere and keep a reference");
     }
     String token = credentials.token();
+    SharedLink link = server.shared;
+    Duration within = deadline != null ? deadline : callTimeout;
+    // Opened on the way if there is none (within the request's time), and a renewed token's new
+    // one opened after the old one's replies, outside the lock: the other writers need not wait
+    // for a DescribeSystem and a handshake.
+    SharedSession session = link == null ? null : link.writerSession(within);
     synchronized (sendLock) {
+      if (session != null) {
+        CompletableFuture<WriteReply> reply = onSession(link, session, request, deadline, within);
+        if (reply != null) {
+          return reply;
+        }
+      }
       for (int attempt = 0; ; attempt++) {
         if (closed) {
-          throw new UnavailableError(
-              "the connection to " + server.endpoint + " is closed: no more writes (the component is stopping)");
+          throw closedError();
         }
         WriteCall c = call;
         if (c == null || c.isBroken() || !c.token.equals(token)) {
@@ -142,6 +170,39 @@ final class WriteStream {
         }
       }
     }
+  }
+
+  /**
+   * Send {@code request} on the session's socket (holding sendLock); null when no session is left
+   * to take it (it ended just now, and no new one opens): the gRPC call takes it then.
+   */
+  private CompletableFuture<WriteReply> onSession(
+      SharedLink link, SharedSession session, WriteRequest.Builder request, Duration deadline, Duration within) {
+    for (int attempt = 0; session != null && attempt < 2; attempt++) {
+      if (closed) {
+        throw closedError();
+      }
+      WriteCall c = call;
+      if (c != null && !c.isBroken()) {
+        c.drain(DRAIN); // at once when it has nothing outstanding
+      }
+      SharedSession old = link.retiring(); // a renewed token's: another thread is waiting for its replies
+      if (old != null && old != session) {
+        old.writes().drain(DRAIN);
+      }
+      CompletableFuture<WriteReply> reply = session.writes().send(request, deadline);
+      if (reply != null) {
+        return reply;
+      }
+      session = link.session(within); // it ended just now: a new one, or none (then gRPC)
+    }
+    return null;
+  }
+
+  /** What a write gets once the transport is closing. */
+  private UnavailableError closedError() {
+    return new UnavailableError(
+        "the connection to " + server.endpoint + " is closed: no more writes (the component is stopping)");
   }
 
   /** Open a new call with {@code token}, after the old one (if it still works) answered everything. */
@@ -232,13 +293,22 @@ final class WriteStream {
     }
   }
 
-  /** Stop sending; wait up to {@code timeout} for outstanding replies, then end the call. */
+  /**
+   * Stop sending; wait up to {@code timeout} for outstanding replies (on the session's socket,
+   * then on the call: they may be asynchronous results), then end the call. The session itself
+   * is ended by the transport afterwards.
+   */
   void close(Duration timeout) {
     WriteCall c;
     synchronized (sendLock) {
       closed = true;
       c = call;
       call = null;
+    }
+    SharedLink link = server.shared;
+    SharedSession session = link == null ? null : link.current();
+    if (session != null) {
+      session.writes().drain(timeout);
     }
     if (c == null) {
       return;

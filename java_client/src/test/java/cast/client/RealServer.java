@@ -150,10 +150,42 @@ final class RealServer implements AutoCloseable {
 
   /** A connection with {@code contract} (its endpoint this server's). */
   Connection connect(LaunchContract contract, Calls calls) {
+    return connect(contract, calls, true);
+  }
+
+  /**
+   * A connection as {@link #connect(String, String, boolean, Calls)}; {@code sharedMemory} false:
+   * as with {@code CAST_SHARED_MEMORY=off} for it alone, so that its writes go on the gRPC Write
+   * stream (with a session they go on its socket).
+   */
+  Connection connect(String id, String sa, boolean privileged, Calls calls, boolean sharedMemory) {
+    return connect(new LaunchContract(endpoint, id, sa, token(id, sa, privileged, 0), Args.empty()), calls, sharedMemory);
+  }
+
+  /** A connection with {@code contract}, with shared memory or not ({@link #connect(String, String, boolean, Calls, boolean)}). */
+  Connection connect(LaunchContract contract, Calls calls, boolean sharedMemory) {
     ClientInterceptor[] seen = calls == null ? new ClientInterceptor[0] : new ClientInterceptor[] {calls};
     GrpcTransport transport =
         new GrpcTransport(contract, e -> GrpcServer.channel(e, null, seen), GrpcTransport.DEFAULT_CALL_TIMEOUT);
+    if (!sharedMemory) {
+      for (GrpcServer s : transport.allServers()) { // before any use: no session was opened yet
+        s.shared =
+            new SharedLink(
+                s.endpoint,
+                () -> "",
+                within -> {
+                  throw new AssertionError("a client with shared memory off does not ask where it is");
+                },
+                name -> name.equals(SharedLink.ENV) ? "off" : null);
+      }
+    }
     return new Connection(transport, who -> {});
+  }
+
+  /** WRITES frames {@code c} sent so far on its live session with the server of SA vision (0 without one). */
+  static long writeFrames(Connection c) {
+    SharedSession s = ((GrpcTransport) c.transport()).server("vision").shared.current();
+    return s == null ? 0 : s.writes().framesSent.get();
   }
 
   /** SIGSTOP: the server takes requests into its socket and answers none, until killed. */

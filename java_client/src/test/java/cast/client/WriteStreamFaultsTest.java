@@ -13,21 +13,25 @@ import java.util.concurrent.CompletableFuture;
 import java.util.concurrent.ExecutionException;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicReference;
-import org.junit.jupiter.api.Test;
+import org.junit.jupiter.params.ParameterizedTest;
+import org.junit.jupiter.params.provider.ValueSource;
 
 /**
  * The Write stream when things go wrong, against real servers ({@link RealServer}, one per
  * test): a server that dies fails the writes in flight with UnavailableError and the next
  * write opens a new stream; a renewed token goes on a new stream; closing waits for the
- * replies of writes in flight.
+ * replies of writes in flight. Each runs with a shared-memory session, whose socket then carries
+ * the writes (the stream that breaks is the session's, a renewed token opens a new session), and
+ * with shared memory off, on the gRPC stream ({@code sharedMemory}).
  */
 class WriteStreamFaultsTest {
-  @Test
-  void aBrokenStreamFailsTheWritesInFlightAndTheNextWriteOpensANewOne() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void aBrokenStreamFailsTheWritesInFlightAndTheNextWriteOpensANewOne(boolean sharedMemory) throws Exception {
     try (RealServer server = new RealServer()) {
       RealServer.Calls calls = new RealServer.Calls();
       try (Connection holder = server.connect("holder", "vision", false, null);
-          Connection waiter = server.connect("waiter", "vision", false, calls)) {
+          Connection waiter = server.connect("waiter", "vision", false, calls, sharedMemory)) {
         waiter.add("e", Int64Value.of(0));
         holder.lock("e", LockMode.OD);
         // A lock that waits for the holder, then writes sent to a server that no longer answers.
@@ -48,15 +52,21 @@ class WriteStreamFaultsTest {
         for (int i = 1; i <= 3; i++) {
           inFlight.add(waiter.overwriteAsync("e", Int64Value.of(i)));
         }
+        long writesByGrpcBeforeKill = calls.count("WorkingMemory/Write");
         server.kill();
         locking.join(30_000);
         assertInstanceOf(UnavailableError.class, lockFailure.get());
         String message = lockFailure.get().getMessage();
-        assertTrue(message.startsWith("the write stream to " + server.endpoint() + " broke ("), message);
+        String broke =
+            sharedMemory
+                ? "the shared-memory session with " + server.endpoint() + " ended ("
+                : "the write stream to " + server.endpoint() + " broke (";
+        assertTrue(message.startsWith(broke), message);
         assertTrue(message.contains("may or may not have been applied"), message);
         for (CompletableFuture<WriteResult> f : inFlight) {
           ExecutionException e = assertThrows(ExecutionException.class, () -> f.get(30, TimeUnit.SECONDS));
           assertInstanceOf(UnavailableError.class, e.getCause());
+          assertTrue(e.getCause().getMessage().startsWith(broke), e.getCause().getMessage());
         }
         // The same address again, an empty memory: the next write that gets through is on a new stream.
         server.restart();
@@ -72,13 +82,18 @@ class WriteStreamFaultsTest {
             Duration.ofSeconds(30),
             "a write after the restart");
         assertEquals(1, waiter.get("after", Int64Value.class).getValue());
-        assertTrue(calls.count("WorkingMemory/Write") >= 2, calls.methods.toString());
+        if (sharedMemory) { // the session's socket carried the writes; after the restart a new session, or gRPC meanwhile
+          assertEquals(0, writesByGrpcBeforeKill, calls.methods.toString());
+        } else {
+          assertTrue(calls.count("WorkingMemory/Write") >= 2, calls.methods.toString());
+        }
       }
     }
   }
 
-  @Test
-  void aRenewedTokenGoesOnANewStreamAndARefusedWriteIsSentOnceMoreWithIt() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void aRenewedTokenGoesOnANewStreamAndARefusedWriteIsSentOnceMoreWithIt(boolean sharedMemory) throws Exception {
     try (RealServer server = new RealServer()) {
       long expires = System.currentTimeMillis() / 1000 + 4; // time to connect both and write once
       // "open": its stream is open before the token expires; "late": its first write comes after.
@@ -91,12 +106,16 @@ class WriteStreamFaultsTest {
       try (Connection open =
               server.connect(
                   new LaunchContract(server.endpoint(), "open", "vision", "", Args.empty(), null, openFile.toString()),
-                  openCalls);
+                  openCalls,
+                  sharedMemory);
           Connection late =
               server.connect(
                   new LaunchContract(server.endpoint(), "late", "vision", "", Args.empty(), null, lateFile.toString()),
-                  lateCalls)) {
+                  lateCalls,
+                  sharedMemory)) {
         open.add("t", Int64Value.of(1));
+        SharedSession first = SharedMemoryTest.transport(open).server("vision").shared.current();
+        assertEquals(sharedMemory, first != null, "a session with shared memory on, none without");
         RealServer.waitFor(
             () -> System.currentTimeMillis() / 1000.0 > expires + 0.3, Duration.ofSeconds(10), "the tokens to expire");
         // "late" opens its stream now (a delete registers no schema first): the server refuses the whole call.
@@ -111,13 +130,28 @@ class WriteStreamFaultsTest {
         UnauthenticatedError expired =
             assertThrows(UnauthenticatedError.class, () -> open.add("t", Int64Value.of(2)));
         assertTrue(expired.getMessage().contains("expired"), expired.getMessage());
-        renew(openFile, RealServer.token("open", "vision", false, 0));
+        String renewed = RealServer.token("open", "vision", false, 0);
+        renew(openFile, renewed);
         open.add("t", Int64Value.of(3));
         assertEquals(3, late.get("t", Int64Value.class).getValue());
-        assertEquals(2, openCalls.count("WorkingMemory/Write"), openCalls.methods.toString());
-        // Three calls when the retry used the old token once more (the file is checked at most
-        // once a second), two when the write came more than a second after the refusal.
-        assertTrue(lateCalls.count("WorkingMemory/Write") >= 2, lateCalls.methods.toString());
+        if (sharedMemory) {
+          // Its writes went on its session's socket; the renewed token on a new session, whose HELLO carried it.
+          assertEquals(0, openCalls.count("WorkingMemory/Write"), openCalls.methods.toString());
+          SharedSession second = SharedMemoryTest.transport(open).server("vision").shared.current();
+          assertNotSame(first, second);
+          assertNotNull(first.dead(), "the old session ended");
+          assertEquals(renewed, second.token);
+          assertEquals(1, second.writes().framesSent.get(), "the write sent again went on the new session");
+          // "late" had no session (its expired token could not ask for one), so the gRPC stream; unless
+          // a session could be opened by the time of its write with the renewed token.
+          assertTrue(lateCalls.count("WorkingMemory/Write") >= 2 || RealServer.writeFrames(late) >= 1,
+              lateCalls.methods.toString());
+        } else {
+          assertEquals(2, openCalls.count("WorkingMemory/Write"), openCalls.methods.toString());
+          // Three calls when the retry used the old token once more (the file is checked at most
+          // once a second), two when the write came more than a second after the refusal.
+          assertTrue(lateCalls.count("WorkingMemory/Write") >= 2, lateCalls.methods.toString());
+        }
       } finally {
         Files.deleteIfExists(openFile);
         Files.deleteIfExists(lateFile);
@@ -131,10 +165,11 @@ class WriteStreamFaultsTest {
     Files.move(next, file, StandardCopyOption.REPLACE_EXISTING, StandardCopyOption.ATOMIC_MOVE);
   }
 
-  @Test
-  void closingWaitsForTheRepliesOfWritesInFlightAndRefusesLaterOnes() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void closingWaitsForTheRepliesOfWritesInFlightAndRefusesLaterOnes(boolean sharedMemory) throws Exception {
     try (RealServer server = new RealServer()) {
-      Connection wm = server.connect("closer", "vision", false, null);
+      Connection wm = server.connect("closer", "vision", false, null, sharedMemory);
       wm.add("c", Int64Value.of(0));
       List<CompletableFuture<WriteResult>> inFlight = new ArrayList<>();
       for (int i = 1; i <= 100; i++) {

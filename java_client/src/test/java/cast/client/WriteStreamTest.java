@@ -17,13 +17,19 @@ import org.junit.jupiter.api.AfterAll;
 import org.junit.jupiter.api.BeforeAll;
 import org.junit.jupiter.api.Test;
 import org.junit.jupiter.api.TestInstance;
+import org.junit.jupiter.params.ParameterizedTest;
+import org.junit.jupiter.params.provider.ValueSource;
 
 /**
  * The Write stream against a real server ({@link RealServer}): every write and lock of a
  * component goes on one WorkingMemory.Write call per server, with the results and the named
  * errors of the unary calls; addAsync/overwriteAsync keep many writes in flight in call
  * order; values of 1 MiB and more travel both ways and to a watcher. What happens when the
- * stream breaks, or the token is renewed: {@link WriteStreamFaultsTest}.
+ * stream breaks, or the token is renewed: {@link WriteStreamFaultsTest}. With a shared-memory
+ * session (on the server's host, as here) the same requests go on the session's socket instead
+ * (docs/client-protocol.md, "Writes on the session's socket"): the tests that say which transport
+ * carried them run once with shared memory and once without ({@code sharedMemory}); the others
+ * run on the socket ({@link SocketWritesTest} has its own).
  */
 @TestInstance(TestInstance.Lifecycle.PER_CLASS)
 class WriteStreamTest {
@@ -39,10 +45,12 @@ class WriteStreamTest {
     server.close();
   }
 
-  @Test
-  void everyWriteAndLockGoesOnOneWriteStreamAndReadsStayUnary() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void everyWriteAndLockGoesOnOneWriteStreamAndReadsStayUnary(boolean sharedMemory) throws Exception {
     RealServer.Calls calls = new RealServer.Calls();
-    try (Connection wm = server.connect("streamer", "vision", false, calls)) {
+    long frames;
+    try (Connection wm = server.connect("streamer-" + sharedMemory, "vision", false, calls, sharedMemory)) {
       WriteResult added = wm.add("s1", Int64Value.of(1));
       WriteResult overwritten = wm.overwrite("s1", Int64Value.of(2), added.version());
       assertEquals(added.revision() + 1, overwritten.revision());
@@ -60,8 +68,16 @@ class WriteStreamTest {
       assertEquals(batch.get(1).version(), deleted.version(), "a delete answers the version the entry had");
       assertFalse(wm.exists("s1"));
       assertThrows(NotFoundError.class, () -> wm.get("s1", Int64Value.class));
+      frames = RealServer.writeFrames(wm);
     }
-    assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+    // Eight requests: add, overwrite, batch, lock, tryLock, unlock, the guard's unlock, delete.
+    if (sharedMemory) {
+      assertEquals(0, calls.count("WorkingMemory/Write"), calls.methods.toString());
+      assertEquals(8, frames, "a WRITES frame each on the session's socket");
+    } else {
+      assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+      assertEquals(0, frames);
+    }
     for (String unary : List.of("Add", "Overwrite", "Delete", "Batch", "Lock", "Unlock")) {
       assertEquals(0, calls.count("WorkingMemory/" + unary), unary + " went unary: " + calls.methods);
     }
@@ -110,46 +126,56 @@ class WriteStreamTest {
     }
   }
 
-  @Test
-  void asyncWritesArePipelinedInCallOrderAndTheirRefusalsArriveOnTheirFutures() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void asyncWritesArePipelinedInCallOrderAndTheirRefusalsArriveOnTheirFutures(boolean sharedMemory) throws Exception {
     RealServer.Calls calls = new RealServer.Calls();
-    try (Connection wm = server.connect("pipeliner", "vision", false, calls)) {
-      WriteResult first = wm.add("p1", Int64Value.of(0));
+    long frames;
+    try (Connection wm = server.connect("pipeliner-" + sharedMemory, "vision", false, calls, sharedMemory)) {
+      String p = sharedMemory ? "p-shm-" : "p-grpc-"; // the entries of each run its own
+      WriteResult first = wm.add(p + "1", Int64Value.of(0));
       int messagesBefore = calls.writeMessages.get();
       List<CompletableFuture<WriteResult>> inFlight = new ArrayList<>();
       for (int i = 1; i <= 200; i++) {
-        inFlight.add(wm.overwriteAsync("p1", Int64Value.of(i)));
+        inFlight.add(wm.overwriteAsync(p + "1", Int64Value.of(i)));
       }
-      CompletableFuture<WriteResult> taken = wm.addAsync("p1", Int64Value.of(-1));
-      CompletableFuture<WriteResult> stale = wm.overwriteAsync("p1", Int64Value.of(-2), first.version());
+      CompletableFuture<WriteResult> taken = wm.addAsync(p + "1", Int64Value.of(-1));
+      CompletableFuture<WriteResult> stale = wm.overwriteAsync(p + "1", Int64Value.of(-2), first.version());
       long revision = first.revision();
       for (CompletableFuture<WriteResult> f : inFlight) {
         assertEquals(++revision, f.get(60, TimeUnit.SECONDS).revision(), "applied in call order");
       }
-      // What queued up while a message was sent went together in the next: fewer messages than writes
-      // (how many fewer depends on the machine's load; one message per write is what must not be).
-      int messages = calls.writeMessages.get() - messagesBefore;
-      assertTrue(messages < 202, messages + " messages for 202 writes");
+      if (!sharedMemory) {
+        // What queued up while a message was sent went together in the next: fewer messages than writes
+        // (how many fewer depends on the machine's load; one message per write is what must not be).
+        int messages = calls.writeMessages.get() - messagesBefore;
+        assertTrue(messages < 202, messages + " messages for 202 writes");
+      }
       ExecutionException e = assertThrows(ExecutionException.class, () -> taken.get(60, TimeUnit.SECONDS));
       assertInstanceOf(AlreadyExistsError.class, e.getCause());
       e = assertThrows(ExecutionException.class, () -> stale.get(60, TimeUnit.SECONDS));
       assertInstanceOf(ConsistencyError.class, e.getCause());
-      assertEquals(200, wm.get("p1", Int64Value.class).getValue());
+      assertEquals(200, wm.get(p + "1", Int64Value.class).getValue());
       // A continuation may write synchronously: it does not run on the thread that reads the replies.
       WriteResult chained =
-          wm.addAsync("p2", Int64Value.of(1))
-              .thenApply(r -> wm.overwrite("p2", Int64Value.of(2), r.version()))
+          wm.addAsync(p + "2", Int64Value.of(1))
+              .thenApply(r -> wm.overwrite(p + "2", Int64Value.of(2), r.version()))
               .get(60, TimeUnit.SECONDS);
       assertTrue(chained.version() > 0 || chained.revision() > 0);
-      assertEquals(2, wm.get("p2", Int64Value.class).getValue());
+      assertEquals(2, wm.get(p + "2", Int64Value.class).getValue());
+      frames = RealServer.writeFrames(wm);
     }
-    assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+    assertEquals(sharedMemory ? 0 : 1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+    assertEquals(sharedMemory ? 205 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
   }
 
-  @Test
-  void manyThreadsWriteAtOnceOnTheOneStream() throws Exception {
+  @ParameterizedTest(name = "shared memory {0}")
+  @ValueSource(booleans = {true, false})
+  void manyThreadsWriteAtOnceOnTheOneStream(boolean sharedMemory) throws Exception {
     RealServer.Calls calls = new RealServer.Calls();
-    try (Connection wm = server.connect("threads", "motor", false, calls)) {
+    long frames;
+    try (Connection wm = server.connect("threads-" + sharedMemory, "motor", false, calls, sharedMemory)) {
+      String w = sharedMemory ? "w-shm-" : "w-grpc-"; // the entries of each run its own
       List<Thread> writers = new ArrayList<>();
       List<Long> revisions = new CopyOnWriteArrayList<>();
       List<Throwable> failures = new CopyOnWriteArrayList<>();
@@ -158,9 +184,9 @@ class WriteStreamTest {
         writers.add(new Thread(() -> {
           try {
             for (int i = 0; i < 100; i++) {
-              revisions.add(wm.add("w" + thread + "-" + i, Int64Value.of(i)).revision());
+              revisions.add(wm.add(w + thread + "-" + i, Int64Value.of(i)).revision());
               if (i % 10 == 0) {
-                revisions.add(wm.overwriteAsync("w" + thread + "-" + i, Int64Value.of(-i)).get().revision());
+                revisions.add(wm.overwriteAsync(w + thread + "-" + i, Int64Value.of(-i)).get().revision());
               }
             }
           } catch (Throwable e) {
@@ -174,9 +200,11 @@ class WriteStreamTest {
       }
       assertEquals(List.of(), failures);
       assertEquals(440, revisions.stream().distinct().count(), "every write applied once");
-      assertEquals(-90, wm.get("w3-90", Int64Value.class).getValue());
+      assertEquals(-90, wm.get(w + "3-90", Int64Value.class).getValue());
+      frames = RealServer.writeFrames(wm);
     }
-    assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+    assertEquals(sharedMemory ? 0 : 1, calls.count("WorkingMemory/Write"), calls.methods.toString());
+    assertEquals(sharedMemory ? 440 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
   }
 
   @Test
