@@ -24,6 +24,7 @@ import pytest
 from google.protobuf.wrappers_pb2 import BytesValue
 
 import cast
+from cast.client import socket_writes
 from cast.client.credentials import TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
@@ -199,3 +200,48 @@ def test_a_write_to_a_hung_server_ends_by_its_deadline_and_the_next_one_after_it
     finally:
         writer._cast_close()
         server.stop()
+
+
+def test_a_writer_that_found_another_thread_reading_reads_its_own_reply_once_that_thread_left(
+        host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch) -> None:
+    # A slice longer than the test's bounds: a waiting writer must be woken when the reader leaves, not
+    # find out at the end of its slice that nobody reads its reply.
+    monkeypatch.setattr(socket_writes, "_READ_SLICE_S", 60.0)
+    h = host()
+    holder, w = h.component("holder"), h.component("w")
+    for entry in ("e", "f"):
+        holder.add(entry, BytesValue())
+        holder.lock(entry, cast.LockMode.O)
+    session = w._transport._server("vision").shared.current()
+    assert session is not None
+    granted: list[str] = []
+
+    def lock(entry: str) -> None:
+        w.lock(entry, cast.LockMode.O, timeout=60)
+        granted.append(entry)
+
+    reader = threading.Thread(target=lock, args=("e",))
+    reader.start()
+    wait_for(lambda: h.system.host._waiter_count == 1, what="the first lock waiting on the server")
+    follower = threading.Thread(target=lock, args=("f",))
+    follower.start()
+    wait_for(lambda: h.system.host._waiter_count == 2 and session.writes.followers == 1,
+             what="the second lock waiting, its thread following the first")
+    # Woken by the first reply, the follower finds the reader still reading (the race this is about, made
+    # certain here): it follows again, and must be told when the reader leaves.
+    read_until = session.read_until
+    busy_once = [True]
+
+    def read_until_busy_once(done: Callable[[], bool], wait: float) -> bool:
+        if threading.current_thread() is follower and busy_once:
+            busy_once.clear()
+            return False
+        return read_until(done, wait)
+
+    session.read_until = read_until_busy_once  # type: ignore[method-assign]
+    holder.unlock("e")  # the reading thread gets its reply and leaves
+    reader.join(10)
+    assert granted == ["e"]
+    holder.unlock("f")  # the follower's reply: read by the follower itself, once told the reader left
+    follower.join(10)
+    assert granted == ["e", "f"]

@@ -313,8 +313,14 @@ class ClientSession:
             self._read_available()
         finally:
             self._read_lock.release()
+        self.writes.reader_left()
         self._close_retired()
         return True
+
+    @property
+    def reading(self) -> bool:
+        """Whether a thread is reading the socket now (it handles what comes, then says it left)."""
+        return self._read_lock.locked()
 
     def read_until(self, done: Callable[[], bool], wait: float) -> bool:
         """Read and handle what comes until ``done()`` or ``wait`` s passed; False at once if another thread reads.
@@ -335,6 +341,7 @@ class ClientSession:
                 self._read_available()
         finally:
             self._read_lock.release()
+        self.writes.reader_left()
         self._close_retired()
         return True
 

@@ -151,6 +151,16 @@ class SessionWrites:
 
     # --------------------------------------------------------------- readers
 
+    def reader_left(self) -> None:
+        """A thread stopped reading the session's socket: a writer waiting for its reply reads next.
+
+        Without it, a writer that found another thread reading would wait out
+        its slice for a reply that no one reads (the reader got its own and left).
+        """
+        if self.followers:  # read without the lock: a follower counts itself before it looks who reads
+            with self.lock:
+                self.changed.notify_all()  # each looks again: one of them reads next
+
     def wait(self, future: Future[wm_pb2.WriteReply]) -> wm_pb2.WriteReply:
         """The reply of ``future``: read the socket while nobody else does, else wait for who does."""
         self._read_for(future.done)
@@ -171,9 +181,9 @@ class SessionWrites:
             if not session.read_until(done, left):
                 # Another thread reads (the dispatcher, the pump, another caller): it settles, then wakes us.
                 with self.lock:
-                    self.followers += 1
+                    self.followers += 1  # before it looks who reads: a reader leaving now sees it and wakes it
                     try:
-                        if not done() and not self.ended:
+                        if not done() and not self.ended and session.reading:
                             self.changed.wait(left)
                     finally:
                         self.followers -= 1
