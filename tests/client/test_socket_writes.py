@@ -342,7 +342,8 @@ def test_a_write_on_the_stream_sends_its_socket_watchers_events_before_its_reply
         got: list[int] = []
         seen.append(got)
         h.component(f"watcher{n}").on_change(cast.address_filter("e"), lambda ch, got=got: got.append(ch.revision))
-    writer = h.component("writer")  # a Python component: its writes on the gRPC Write stream
+    monkeypatch.setenv("CAST_SHARED_MEMORY", "off")  # the writer alone (the watchers have sessions): the gRPC stream
+    writer = h.component("writer")
     tasks_woken = writes.woken()
     for i in range(5):
         order.clear()
