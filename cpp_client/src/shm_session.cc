@@ -37,6 +37,7 @@ constexpr std::chrono::milliseconds kReaderTurn{100};
 constexpr std::chrono::milliseconds kRoomTurn{10};
 
 std::atomic<std::uint64_t> eventFrames{0};
+std::atomic<std::uint64_t> readerThreads{0};
 
 const Logger& log() {
   static const Logger logger("cast.client.shm");
@@ -319,6 +320,8 @@ void ClientSession::stopEvents(std::uint64_t call) {
 
 std::uint64_t ClientSession::eventFramesHandled() { return eventFrames.load(std::memory_order_relaxed); }
 
+std::uint64_t ClientSession::readersStarted() { return readerThreads.load(std::memory_order_relaxed); }
+
 void ClientSession::events(const std::string& body) {
   const std::uint64_t call = shm::parseEventsCall(body);
   std::lock_guard<std::mutex> lock(eventsMu_);
@@ -334,6 +337,7 @@ void ClientSession::startReader() {
   std::lock_guard<std::mutex> lock(threadMu_);
   if (thread_.joinable() || stopped_ || dead_) return;
   thread_ = std::thread([weak = weak_from_this()] { readLoop(weak); });
+  readerThreads.fetch_add(1, std::memory_order_relaxed);
 }
 
 void ClientSession::readLoop(const std::weak_ptr<ClientSession>& weak) {
@@ -432,10 +436,41 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
   if (dead_) return;
   std::unique_lock<std::timed_mutex> lock(readMu_, std::defer_lock);
   if (wait.count() > 0 ? !lock.try_lock_for(wait) : !lock.try_lock()) return;  // another reader handles what came
+  reading_.store(true);
   if (wait.count() > 0) {
     pollfd p{socket_, POLLIN, 0};
     ::poll(&p, 1, static_cast<int>(wait.count()));
   }
+  readAvailable();
+  reading_.store(false);
+  lock.unlock();
+  readerLeft();
+}
+
+bool ClientSession::readUntil(const std::function<bool()>& done, std::chrono::milliseconds wait) {
+  if (dead_) return true;
+  std::unique_lock<std::timed_mutex> lock(readMu_, std::try_to_lock);
+  if (!lock) return false;
+  reading_.store(true);
+  const auto until = std::chrono::steady_clock::now() + wait;
+  while (!dead_ && !done()) {
+    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - std::chrono::steady_clock::now());
+    if (left.count() <= 0) break;
+    pollfd p{socket_, POLLIN, 0};
+    if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) continue;  // its time is up, or a signal: look again
+    readAvailable();
+  }
+  reading_.store(false);
+  lock.unlock();
+  readerLeft();
+  return true;
+}
+
+void ClientSession::readerLeft() {
+  if (writes_) writes_->readerLeft();
+}
+
+void ClientSession::readAvailable() {
   polling_.store(std::this_thread::get_id());
   struct Done {
     std::atomic<std::thread::id>& polling;

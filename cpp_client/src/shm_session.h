@@ -208,6 +208,9 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // EVENTS frames handed to a receiver in this process, for tests and
   // diagnostics (every session's).
   static std::uint64_t eventFramesHandled();
+  // Reader threads started in this process (every session's), for tests and
+  // diagnostics.
+  static std::uint64_t readersStarted();
   // Reads of this session's socket so far (empty ones included), for tests
   // and diagnostics.
   std::uint64_t socketReads() const { return socketReads_.load(std::memory_order_relaxed); }
@@ -222,6 +225,14 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // Reads what the server sent (SEGMENT, RETIRE, REFUSED, the end); waits up
   // to `wait` for something when it is not zero.
   void poll(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
+  // Reads and handles what comes until `done()` or `wait` passed, on this
+  // thread; false at once when another thread reads (it handles what comes).
+  // A thread waiting for a write's reply reads it itself this way, rather
+  // than be woken by the reader thread that read it.
+  bool readUntil(const std::function<bool()>& done, std::chrono::milliseconds wait);
+  // Whether a thread reads the socket now (it says so when it stops:
+  // SessionWrites::readerLeft).
+  bool reading() const { return reading_.load(); }
   // Whether the session ended, and why ("" while it lives).
   bool dead() const { return dead_.load(); }
   std::string why() const;
@@ -238,6 +249,10 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   void end(const std::string& why);
   // One turn of the reader thread: the writes' deadlines, then what came.
   void readOnce();
+  // Reads and handles every frame the socket holds now (readMu_ held).
+  void readAvailable();
+  // readMu_ is let go: say so to the writes waiting for a reader.
+  void readerLeft();
   static void readLoop(const std::weak_ptr<ClientSession>& weak);
   void flushLocked();                          // sendMu_ held
   bool writeLocked(const std::string& frame);  // sendMu_ held
@@ -284,6 +299,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::uint64_t calls_ = 0;
   std::string why_;
   std::atomic<bool> dead_{false};
+  std::atomic<bool> reading_{false};  // readMu_ is held to read (poll, readUntil)
   std::unique_ptr<SessionWrites> writes_;  // made with the session, gone before its socket is closed
 };
 

@@ -16,7 +16,7 @@ SessionWrites::SessionWrites(ClientSession& session, std::string endpoint)
     : session_(session), endpoint_(std::move(endpoint)) {}
 
 bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
-                         std::optional<std::chrono::milliseconds> timeout) {
+                         std::optional<std::chrono::milliseconds> timeout, bool waited) {
   v1::WriteRequests message;
   {
     std::lock_guard<std::mutex> lock(mu_);
@@ -30,11 +30,31 @@ bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
     }
     pending_.emplace(request.id(), std::move(p));
   }
-  session_.startReader();
+  if (!waited) session_.startReader();
   message.add_requests()->Swap(&request);
   // A frame that cannot be sent ends the session, which fails this request with the others.
   session_.send(shm::writes(message.SerializeAsString()));
   return true;
+}
+
+void SessionWrites::await(const std::function<bool()>& answered) {
+  // How long one read waits before its reader looks at the deadlines again.
+  constexpr std::chrono::milliseconds kSlice{50};
+  while (!answered() && !session_.dead()) {
+    if (!session_.readUntil(answered, kSlice)) {
+      std::unique_lock<std::mutex> lock(mu_);
+      followers_.fetch_add(1);  // before it looks who reads: a reader leaving now sees it and wakes it
+      changed_.wait_for(lock, kSlice, [&] { return answered() || ended_ || !session_.reading(); });
+      followers_.fetch_sub(1);
+    }
+    expire();
+  }
+}
+
+void SessionWrites::readerLeft() {
+  if (followers_.load() == 0) return;
+  std::lock_guard<std::mutex> lock(mu_);
+  changed_.notify_all();
 }
 
 void SessionWrites::drain(std::chrono::milliseconds timeout) {
@@ -62,6 +82,10 @@ void SessionWrites::replies(const std::string& body) {
     if (pending_.empty()) changed_.notify_all();
   }
   for (auto& [handler, reply] : answered) handler(reply, nullptr);
+  if (followers_.load() > 0) {
+    std::lock_guard<std::mutex> lock(mu_);
+    changed_.notify_all();  // a waiter whose reply this was (its handler has run)
+  }
 }
 
 void SessionWrites::ended(const std::string& why) {

@@ -15,6 +15,7 @@
 // opens a new session or goes by gRPC.
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
@@ -48,7 +49,21 @@ class SessionWrites {
   // `onReply` once, from the session's thread, or here when the frame could
   // not be sent; past `timeout` (nullopt: none) DeadlineExceededError, and
   // the session ends. False, with nothing taken, once the session ended.
-  bool send(v1::WriteRequest& request, ReplyHandler& onReply, std::optional<std::chrono::milliseconds> timeout);
+  // `waited`: the caller waits for the reply with await(), reading it
+  // itself; otherwise (a pipelined write) the session's reader thread reads
+  // it, started here if it is not running.
+  bool send(v1::WriteRequest& request, ReplyHandler& onReply, std::optional<std::chrono::milliseconds> timeout,
+            bool waited = false);
+  // Returns once `answered()` (the reply of a request sent `waited` was
+  // handled) or the session ended: reads the socket on this thread while no
+  // other thread does, else waits for the one that does (it wakes this one
+  // when it settles a reply or stops reading), and fails what passed its
+  // deadline meanwhile (expire). So a sequential write costs no hand-off from
+  // a reader thread, as in the Python client.
+  void await(const std::function<bool()>& answered);
+  // From the session: a thread stopped reading the socket; one waiting in
+  // await() reads next.
+  void readerLeft();
   // Waits up to `timeout` until no request is outstanding.
   void drain(std::chrono::milliseconds timeout);
   // Requests sent and not yet answered.
@@ -75,6 +90,7 @@ class SessionWrites {
   std::mutex mu_;
   std::condition_variable changed_;  // a reply came, or the session ended
   std::map<std::uint64_t, Pending> pending_;
+  std::atomic<int> followers_{0};  // threads in await() waiting for another reader
   std::uint64_t nextId_ = 1;
   bool ended_ = false;
 };

@@ -357,7 +357,8 @@ std::shared_ptr<WriteStream::Call> WriteStream::current(const std::string& token
   return fresh;
 }
 
-void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool direct, std::optional<Millis> timeout) {
+std::shared_ptr<ClientSession> WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool direct,
+                                                std::optional<Millis> timeout) {
   // Refused here, not by gRPC: a message over the limit would end the stream
   // and fail every write in flight with it.
   const std::size_t size = request.ByteSizeLong();
@@ -368,7 +369,7 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
                          server_.endpoint + " (gRPC messages up to 64 MiB); the server takes values up to its "
                          "limits.max_value_bytes (8 MiB by default): keep large data elsewhere and write a "
                          "reference to it"));
-    return;
+    return nullptr;
   }
   // The session's socket while there is a session (opened on the way if
   // needed, within the request's time): after what the gRPC call has
@@ -384,12 +385,12 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
         if (closed_) {
           onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
                                                               " is closed: no more writes"));
-          return;
+          return nullptr;
         }
         grpcCall = call_;
       }
       if (grpcCall) grpcCall->drain(kTokenDrain);  // at once when nothing is outstanding (queued ones are too)
-      if (session->writes().send(request, onReply, timeout)) return;
+      if (session->writes().send(request, onReply, timeout, direct)) return direct ? session : nullptr;
       // The session ended just now: the gRPC stream takes it.
     }
   }
@@ -406,18 +407,19 @@ void WriteStream::send(v1::WriteRequest& request, ReplyHandler onReply, bool dir
                            "the write stream to " + server_.endpoint + " could not be opened: the server "
                            "completed no connection within " + secondsText(timeout.value_or(callTimeout_)) +
                            ", so this write was not sent; the client reconnects by itself, retry the call later"));
-      return;
+      return nullptr;
     }
     if (!call) {
       onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
                                                           " is closed: no more writes"));
-      return;
+      return nullptr;
     }
-    if (call->send(request, size, onReply, direct, timeout)) return;
+    if (call->send(request, size, onReply, direct, timeout)) return nullptr;
   }
   onReply(nullptr, std::make_shared<UnavailableError>("the write stream to " + server_.endpoint +
                                                       " broke twice while this write was sent: it was not applied; "
                                                       "the client reconnects by itself, retry the call later"));
+  return nullptr;
 }
 
 v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis> timeout) {
@@ -433,11 +435,14 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
     auto promise = std::make_shared<std::promise<Outcome>>();
     std::future<Outcome> future = promise->get_future();
     // Answered by the reply, or by the call's watcher past `timeout` (DeadlineExceededError).
-    send(attempt == 0 ? request : *again,
-         [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
-           promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
-         },
-         true, timeout);
+    std::shared_ptr<ClientSession> on = send(
+        attempt == 0 ? request : *again,
+        [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
+          promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
+        },
+        true, timeout);
+    // On the session's socket this thread reads its reply itself while no other thread reads there.
+    if (on) on->writes().await([&future] { return future.wait_for(Millis(0)) == std::future_status::ready; });
     Outcome outcome = future.get();
     if (!outcome.error) return std::move(outcome.reply);
     // A refused token may just have been renewed in its file: read it and

@@ -70,8 +70,11 @@ class WriteStream {
   // it from this thread at once (a caller that waits for the reply); otherwise
   // it goes to the stream's writer thread with whatever queues up behind it.
   // Past `timeout` (nullopt: none) it is answered DeadlineExceededError and
-  // the stream ends.
-  void send(v1::WriteRequest& request, ReplyHandler onReply, bool direct, std::optional<Millis> timeout);
+  // the stream ends. The session whose socket it went on when `direct`, for
+  // the caller to read its reply there (SessionWrites::await); nullptr
+  // otherwise.
+  std::shared_ptr<ClientSession> send(v1::WriteRequest& request, ReplyHandler onReply, bool direct,
+                                      std::optional<Millis> timeout);
   // Sends `request` and waits up to `timeout` (nullopt: as long as it takes)
   // for its reply, DeadlineExceededError past it. A reply's error is thrown as
   // the unary call would throw it; a refused token is read again from its

@@ -18,6 +18,7 @@
 
 #include "cast/cast.h"
 #include "cast_server.h"
+#include "shm_session.h"
 
 namespace {
 
@@ -73,6 +74,21 @@ TEST(SocketWrites, AMixOfStagedAndSmallValuesWaitedForAndPipelinedIsAppliedOnceI
     EXPECT_TRUE(seen[i].second == values[i].value()) << "write " << i;
   }
   EXPECT_TRUE(writer->get<BytesValue>("sw-x").value() == values.back().value());
+}
+
+TEST(SocketWrites, ASequentialWriterReadsItsOwnRepliesAndAPipelinedOneStartsTheReaderThread) {
+  using cast::detail::ClientSession;
+  auto writer = sharedServer().connect("sw-sequential", "vision");
+  auto reader = sharedServer().connect("sw-sequential-reader", "vision");
+  const std::uint64_t before = ClientSession::readersStarted();
+  for (int i = 0; i < 20; ++i) writer->add("sw-s" + std::to_string(i), value(i % 4 == 0 ? kMiB : 8, i));
+  { cast::LockGuard held = writer->lock("sw-s0"); }  // a lock and its unlock, waited for too
+  // Each reply read by the thread that waited for it: no reader thread, no hand-off from one.
+  EXPECT_EQ(ClientSession::readersStarted(), before);
+  EXPECT_TRUE(reader->exists("sw-s19"));
+  std::future<cast::WriteResult> pipelined = writer->addAsync("sw-s-async", value(8, 1));
+  EXPECT_NO_THROW(pipelined.get());  // read by the reader thread it started: nobody waits on its reply
+  EXPECT_EQ(ClientSession::readersStarted(), before + 1);
 }
 
 TEST(SocketWrites, PipelinedWritesOutstandingWhenTheComponentClosesAreAnsweredFirst) {
