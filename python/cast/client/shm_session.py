@@ -312,9 +312,7 @@ class ClientSession:
                 select.select([self._sock], [], [], wait)
             self._read_available()
         finally:
-            self._read_lock.release()
-        self.writes.reader_left()
-        self._close_retired()
+            self._stop_reading()
         return True
 
     @property
@@ -340,10 +338,14 @@ class ClientSession:
                     break
                 self._read_available()
         finally:
-            self._read_lock.release()
+            self._stop_reading()
+        return True
+
+    def _stop_reading(self) -> None:
+        """Let the read lock go: a writer waiting for a reader reads next; unmap what the frames retired."""
+        self._read_lock.release()
         self.writes.reader_left()
         self._close_retired()
-        return True
 
     def _read_available(self) -> None:
         """Read and handle every frame the socket holds now. Call with the read lock held."""
