@@ -3,6 +3,9 @@
 SIGHUP is a terminal that went away (its window closed): a command then stops as
 on SIGTERM, finishing what it writes (a journal, a recording), with standard
 output and error pointed at /dev/null first, since the terminal refuses writes.
+A line written after the window closed and before the SIGHUP is handled meets
+the same refusal (EIO): :func:`say` writes a command's lines so that it is the
+terminal's silence, not the command's end.
 
 SIGQUIT is the JVM's habit (a thread dump, and the process goes on), which
 Python's :mod:`faulthandler` gives too: a component or ``cast`` command that
@@ -15,14 +18,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import faulthandler
 import os
 import signal
 import sys
 import threading
 from collections.abc import Iterable
+from typing import TextIO
 
-__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "silence", "terminal_descriptors",
+__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "say", "silence", "terminal_descriptors",
            "terminate_when_stdin_closes", "termination"]
 
 STACK_DUMP_SIGNAL = signal.SIGQUIT
@@ -58,6 +63,33 @@ def silence(descriptors: Iterable[int]) -> None:
                 os.dup2(devnull, fd)
     finally:
         os.close(devnull)
+
+
+def say(line: str, to: TextIO | None = None) -> None:
+    """Write ``line`` and a newline to ``to`` (standard output by default) in one write, flushed.
+
+    One write, so that a reader waiting for the line (a test, a parent process) sees it whole or not
+    at all, even with ``PYTHONUNBUFFERED`` (where ``print`` writes the text and its newline apart).
+    A terminal that refuses it (EIO: its window closed, the SIGHUP not handled yet) is pointed at
+    /dev/null with standard output and error when they are that terminal, and the line is dropped: the
+    SIGHUP that comes stops the command in order. Any other error is raised.
+    """
+    out = sys.stdout if to is None else to
+    try:
+        out.write(line + "\n")
+        out.flush()
+    except OSError as exc:
+        if exc.errno != errno.EIO:
+            raise
+        gone = os.fstat(out.fileno())
+        silence(fd for fd in (1, 2) if _same_file(fd, gone))
+
+
+def _same_file(fd: int, other: os.stat_result) -> bool:
+    try:
+        return os.path.samestat(os.fstat(fd), other)
+    except OSError:
+        return False
 
 
 def termination() -> asyncio.Event:

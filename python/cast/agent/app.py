@@ -16,7 +16,7 @@ from cast.agent.processes import ProcessTable
 from cast.agent.service import AgentServicer
 from cast.agent.trust import AgentTrust, TrustInterceptor
 from cast.errors import InvalidArgumentError
-from cast.signals import termination
+from cast.signals import say, termination
 from cast.v1 import agent_pb2, agent_pb2_grpc
 
 __all__ = ["AGENT_SERVICE", "RunningAgent", "serve_agent", "start_agent"]
@@ -93,10 +93,9 @@ async def serve_agent(
     """Serve until SIGINT, SIGTERM or SIGHUP; the first line printed says where it listens and whom it trusts."""
     terminated = termination()
     running = await start_agent(listen, root, trust, log_dir)
-    print(f"cast agent listening on {running.endpoint} (root {running.table.root}; trusts {trust.describe()})",
-          flush=True)
+    say(f"cast agent listening on {running.endpoint} (root {running.table.root}; trusts {trust.describe()})")
     if on_started is not None:
         on_started(running)
     await terminated.wait()
-    print("cast agent stopping: stopping every process it started", file=sys.stderr, flush=True)
+    say("cast agent stopping: stopping every process it started", sys.stderr)
     await running.stop()

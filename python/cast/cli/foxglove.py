@@ -20,12 +20,13 @@ from cast.errors import CastError
 from cast.foxglove.address import DEFAULT_LISTEN, listening_line, parse_foxglove_listen
 from cast.foxglove.sink import FoxgloveSink
 from cast.foxglove.view import VIEW_ID, LiveView, ViewOptions
+from cast.signals import say
 
 __all__ = ["add_commands"]
 
 
 def _say(text: str) -> None:
-    print(f"cast foxglove: {text}", flush=True)
+    say(f"cast foxglove: {text}")
 
 
 def _attach(sink: FoxgloveSink, where: Reach, args: argparse.Namespace, note: Callable[[str], None]) -> LiveView:
@@ -50,7 +51,7 @@ def _foxglove(args: argparse.Namespace) -> int:
 
     def note(text: str) -> None:
         if held is None:
-            print(f"cast foxglove: {text}", file=sys.stderr, flush=True)
+            say(f"cast foxglove: {text}", sys.stderr)
         else:
             held.append(text)
 

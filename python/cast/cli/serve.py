@@ -14,6 +14,7 @@ from cast.cli.options import parse_sets
 from cast.config import load_config
 from cast.config.model import ServerConfig, SystemConfig
 from cast.errors import InvalidArgumentError, NotFoundError
+from cast.signals import say
 
 __all__ = ["add_commands"]
 
@@ -53,7 +54,7 @@ def _serve(args: argparse.Namespace) -> int:
                 in_process.start(comp)
         running.on_stop(in_process.stop_all)
         if endpoint is not None:
-            print(f"metrics on http://{endpoint.address}/metrics", flush=True)  # after the listening line
+            say(f"metrics on http://{endpoint.address}/metrics")  # after the listening line
             running.on_stop(endpoint.close)
 
     settings = settings_from_config(config)
@@ -94,11 +95,11 @@ def _await_run(directory: str, signer: TokenSigner, barrier: Any, config: System
             link.directory.AwaitRun(directory_pb2.AwaitRunRequest(), metadata=metadata, timeout=5.0)
         except grpc.RpcError as exc:
             if exc.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE):
-                print(f"await-run: {exc.code().name}: {exc.details()}", file=sys.stderr, flush=True)
+                say(f"await-run: {exc.code().name}: {exc.details()}", sys.stderr)
             time.sleep(0.2)
             continue
         barrier.release()
-        print(f"start barrier released (by the directory at {directory})", flush=True)
+        say(f"start barrier released (by the directory at {directory})")
     link.close()
 
 

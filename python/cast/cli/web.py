@@ -18,17 +18,18 @@ from typing import Any
 
 from cast.cli.record import add_connection_options, reach, stop_on_signals, unreachable
 from cast.errors import CastError
+from cast.signals import say
 from cast.web.address import DEFAULT_LISTEN, listening_line, parse_web_listen
 
 __all__ = ["add_commands"]
 
 
 def _say(text: str) -> None:
-    print(f"cast web: {text}", flush=True)
+    say(f"cast web: {text}")
 
 
 def _note(text: str) -> None:
-    print(f"cast web: {text}", file=sys.stderr, flush=True)
+    say(f"cast web: {text}", sys.stderr)
 
 
 def _web(args: argparse.Namespace) -> int:

@@ -30,7 +30,7 @@ from cast.server.task_manager import TaskManagerServicer
 from cast.server.wire import wire_system
 from cast.server.working_memory import WorkingMemoryServicer
 from cast.server.working_memory import add_to_server as add_working_memory
-from cast.signals import termination
+from cast.signals import say, termination
 from cast.v1 import (
     directory_pb2,
     directory_pb2_grpc,
@@ -263,9 +263,9 @@ async def serve_forever(
     """Serve until SIGINT, SIGTERM or SIGHUP, printing ``listening on HOST:PORT`` first."""
     terminated = termination()
     running = await start_server(system, signer, listen, settings)
-    print(f"listening on {running.endpoint}", flush=True)
+    say(f"listening on {running.endpoint}")
     if on_started is not None:
         on_started(running)
     await terminated.wait()
-    print("stopping", file=sys.stderr, flush=True)
+    say("stopping", sys.stderr)
     await running.stop()
