@@ -431,7 +431,8 @@ def test_memory_stays_bounded_with_a_slow_queue_watcher_and_with_latest(host: An
 
     def reader(name: str) -> Callable[[cast.WorkingMemoryChange], None]:
         def take(ch: cast.WorkingMemoryChange) -> None:
-            gate.wait(20)
+            # Held until every write was made (set on failure too): a loaded machine may take a minute or more.
+            gate.wait(600)
             got[name].append(ch.entry(BytesValue).value.value[0])
         return take
 
@@ -451,17 +452,19 @@ def test_memory_stays_bounded_with_a_slow_queue_watcher_and_with_latest(host: An
     next(stalled)  # WatchCreated; nothing more is read
     writer.add("img", image(MIB, 0))
     peak = 0
-    for seed in range(1, 60):
-        writer.overwrite("img", image(MIB, seed))
-        peak = max(peak, h.shared()["value_bytes"])
-        # The queue watcher's client has taken it (its standby thread reads while the first callback blocks):
-        # without this wait a loaded machine could let the writer outrun that thread, and the watch fall behind
-        # the short history on the server, as designed for a reader that does not keep up.
-        wait_for(lambda n=seed + 1: slow_queue._dispatcher._pending == n, what=f"value {seed} queued in the client")
+    try:
+        for seed in range(1, 60):
+            writer.overwrite("img", image(MIB, seed))
+            peak = max(peak, h.shared()["value_bytes"])
+            # The queue watcher's client has taken it (its standby thread reads while the first callback blocks):
+            # without this wait a loaded machine could let the writer outrun that thread, and the watch fall
+            # behind the short history on the server, as designed for a reader that does not keep up.
+            wait_for(lambda n=seed + 1: slow_queue._dispatcher._pending == n, what=f"value {seed} queued in the client")
+    finally:
+        gate.set()
     # History, the entry, and what each of the three readers may hold lent: never more, however far behind.
     bound = history + MIB + 3 * (window + MIB)
     assert peak <= bound, f"{peak} bytes held, over {bound}"
-    gate.set()
     wait_for(lambda: got["latest"] and got["latest"][-1] == 59 % 251, what="latest's newest value")
     wait_for(lambda: len(got["queue"]) == 60, what="every value to the queue watcher")
     assert got["queue"] == [seed % 251 for seed in range(60)]  # in order, none lost
