@@ -76,7 +76,7 @@ def test_a_components_writes_go_on_its_session_and_apply_once_in_call_order(host
     assert watcher.get("img", BytesValue).value == values[24 % 2].value
     assert link.write_stream is not None and link.write_stream._call is None  # no gRPC call was ever opened
     session = link.shared.current()
-    assert session is not None and session.writes.outstanding() == 0
+    assert session is not None and not session.writes.outstanding.pending
 
 
 def test_pipelined_writes_outstanding_when_the_component_closes_are_answered_first(host: Callable[..., Host]) -> None:
@@ -111,7 +111,7 @@ def test_a_session_that_ends_fails_its_outstanding_writes_as_unavailable_and_the
     thread = threading.Thread(target=wait_lock)
     thread.start()
     wait_for(lambda: h.system.host._waiter_count == 1, what="the lock waiting on the server")
-    assert first.writes.outstanding() == 1
+    assert len(first.writes.outstanding.pending) == 1
     first._sock.shutdown(socket.SHUT_RDWR)  # the connection ends under the waiting lock
     thread.join(10)
     assert len(errors) == 1 and isinstance(errors[0], cast.UnavailableError), errors
@@ -148,7 +148,7 @@ def test_a_write_waits_for_what_the_grpc_stream_has_outstanding_before_it_takes_
     later.join(10)
     assert granted.result(10).WhichOneof("result") != "error"
     assert done and link.shared.current() is not None
-    assert stream._call is not None and not stream._call.pending
+    assert stream._call is not None and not stream._call.outstanding.pending
 
 
 def test_a_renewed_token_opens_a_new_session_for_the_writes_after_it_large_ones_too(

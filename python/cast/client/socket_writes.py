@@ -23,7 +23,6 @@ gRPC.
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
 from collections.abc import Callable
@@ -32,7 +31,7 @@ from typing import TYPE_CHECKING
 
 from google.protobuf.message import DecodeError
 
-from cast.client.write_replies import settle, what
+from cast.client.write_replies import Outstanding, settle, settle_replies
 from cast.errors import DeadlineExceededError, UnavailableError
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -70,12 +69,9 @@ class SessionWrites:
         self.lock = threading.Lock()
         self.changed = threading.Condition(self.lock)  # replies settled, or the session ended
         self._pump_wake = threading.Condition(self.lock)  # a pipelined request, or the end
-        self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
-        self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
-        self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
+        self.outstanding = Outstanding()
         self.followers = 0  # threads waiting on `changed`
         self.ended = ""  # why the session ended ("" while it lives)
-        self._ids = itertools.count(1)
         self._pump: threading.Thread | None = None
 
     def send(self, request: wm_pb2.WriteRequest, detached: bool,
@@ -87,16 +83,11 @@ class SessionWrites:
         Sends of one component are made one at a time by its write stream, so
         the frames leave in id order.
         """
-        future: Future[wm_pb2.WriteReply] = Future()
         with self.lock:
             if self.ended:
                 return None
-            request.id = request_id = next(self._ids)
-            self.pending[request_id] = future
-            if timeout is not None:
-                self.deadlines[request_id] = (time.monotonic() + timeout, timeout, what(request))
+            future = self.outstanding.add(request, detached, timeout)
             if detached:
-                self.detached.add(request_id)
                 if self._pump is None:
                     self._pump = threading.Thread(target=self._run_pump, name="cast-socket-replies", daemon=True)
                     self._pump.start()
@@ -104,10 +95,6 @@ class SessionWrites:
         # A frame that cannot be sent ends the session, which fails this request with the others.
         self._session.send(_writes_frame(request.SerializeToString()))
         return future
-
-    def outstanding(self) -> int:
-        """Requests sent and not answered yet."""
-        return len(self.pending)
 
     # ---------------------------------------------------------------- frames
 
@@ -122,25 +109,16 @@ class SessionWrites:
             raise wire.ProtocolError(f"a REPLIES frame of {len(body)} bytes is not a cast.v1.WriteReplies "
                                      f"({exc})") from None
         with self.lock:
-            pop = self.pending.pop
-            settled = [(pop(reply.id, None), reply) for reply in message.replies]
-            for reply in message.replies:
-                self.detached.discard(reply.id)
-                self.deadlines.pop(reply.id, None)
+            answered = self.outstanding.answer(message.replies)
             if self.followers:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
-        for future, reply in settled:
-            if future is not None:  # None: its deadline passed, its caller has the error
-                settle(future, reply, None)
+        settle_replies(answered)
 
     def end(self, why: str) -> None:
         """The session ended: what is outstanding fails with UnavailableError; nothing more is sent here."""
         with self.lock:
             self.ended = why or "closed"
-            left = list(self.pending.values())
-            self.pending.clear()
-            self.detached.clear()
-            self.deadlines.clear()
+            left = self.outstanding.take_all()
             self.changed.notify_all()
             self._pump_wake.notify()
         for future in left:
@@ -169,7 +147,8 @@ class SessionWrites:
     def drain(self, timeout: float) -> None:
         """Wait until no request is outstanding, or ``timeout`` s."""
         end = time.monotonic() + timeout
-        self._read_for(lambda: not self.pending, end)
+        pending = self.outstanding.pending
+        self._read_for(lambda: not pending, end)
 
     def _read_for(self, done: Callable[[], bool], end: float | None = None) -> None:
         """Read (or wait for the thread reading) until ``done()``, the session's end, or ``end``."""
@@ -193,29 +172,24 @@ class SessionWrites:
 
     def _run_pump(self) -> None:
         """Read for the pipelined requests, while there are any; end with the session."""
+        detached = self.outstanding.detached
         while True:
             with self.lock:
-                while not self.ended and not self.detached:
+                while not self.ended and not detached:
                     self._pump_wake.wait()
                 if self.ended:
                     return
-            self._read_for(lambda: not self.detached, time.monotonic() + _READ_SLICE_S)
+            self._read_for(lambda: not detached, time.monotonic() + _READ_SLICE_S)
             self._expire()
 
     def _expire(self) -> None:
         """Fail the requests past their deadline; then end the session, as the Write stream ends its call."""
         now = time.monotonic()
         with self.lock:
-            if not self.deadlines or min(d for d, _, _ in self.deadlines.values()) > now:
+            earliest = self.outstanding.earliest()
+            if earliest is None or earliest[0] > now:
                 return
-            expired = []
-            for request_id, (deadline, waited, name) in list(self.deadlines.items()):
-                if deadline <= now:
-                    del self.deadlines[request_id]
-                    self.detached.discard(request_id)
-                    future = self.pending.pop(request_id, None)
-                    if future is not None:
-                        expired.append((future, waited, name))
+            expired = self.outstanding.take_expired(now)
             self.changed.notify_all()
         for future, waited, name in expired:
             settle(future, None, DeadlineExceededError(

@@ -1,18 +1,91 @@
-"""A write request's reply: settled on its future, turned into its result or error, named in errors.
+"""Write requests in flight and their replies: the table of what is outstanding, settling, naming.
 
 Shared by the two ways a component's Write-stream requests travel: the gRPC
 ``Write`` stream (:mod:`cast.client.write_stream`) and the shared-memory
-session's socket (:mod:`cast.client.socket_writes`).
+session's socket (:mod:`cast.client.socket_writes`). Each keeps an
+:class:`Outstanding` table under its own lock, since each wakes its own
+threads as the table changes.
 """
 
 from __future__ import annotations
 
+import itertools
+import time
+from collections.abc import Iterable
 from concurrent.futures import Future, InvalidStateError
 
 from cast.errors import CastError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["reply_result", "settle", "what"]
+__all__ = ["Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
+
+Expired = tuple[Future[wm_pb2.WriteReply], float, str]
+"""A request past its deadline: its future, the timeout it had, and what it was (:func:`what`)."""
+
+
+class Outstanding:
+    """The requests sent and not answered yet: their futures, their deadlines, those nobody waits on.
+
+    Ids are given here, in send order. Not locked: its owner calls it with
+    its own lock held, and settles the futures it hands back after letting go.
+    """
+
+    def __init__(self) -> None:
+        self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
+        self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
+        self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
+        self._ids = itertools.count(1)
+
+    def add(self, request: wm_pb2.WriteRequest, detached: bool, timeout: float | None) -> Future[wm_pb2.WriteReply]:
+        """Give ``request`` the next id and a future; past ``timeout`` s (None: never) it is expired."""
+        future: Future[wm_pb2.WriteReply] = Future()
+        request.id = request_id = next(self._ids)
+        self.pending[request_id] = future
+        if timeout is not None:
+            self.deadlines[request_id] = (time.monotonic() + timeout, timeout, what(request))
+        if detached:
+            self.detached.add(request_id)
+        return future
+
+    def answer(self, replies: Iterable[wm_pb2.WriteReply]) -> list[tuple[Future[wm_pb2.WriteReply], wm_pb2.WriteReply]]:
+        """Take the requests ``replies`` answer; each with its reply, for :func:`settle_replies`.
+
+        A reply to no outstanding request (its deadline passed, its caller has
+        the error) is left out.
+        """
+        pop, detached, deadlines = self.pending.pop, self.detached, self.deadlines
+        answered = []
+        for reply in replies:
+            future = pop(reply.id, None)
+            if future is not None:
+                detached.discard(reply.id)
+                deadlines.pop(reply.id, None)
+                answered.append((future, reply))
+        return answered
+
+    def earliest(self) -> tuple[float, float, str] | None:
+        """The earliest deadline, with its request's timeout and name; None when no request has one."""
+        return min(self.deadlines.values()) if self.deadlines else None
+
+    def take_expired(self, now: float) -> list[Expired]:
+        """Take the requests whose deadline is ``now`` or earlier."""
+        expired = []
+        for request_id, (deadline, waited, name) in list(self.deadlines.items()):
+            if deadline <= now:
+                del self.deadlines[request_id]
+                self.detached.discard(request_id)
+                future = self.pending.pop(request_id, None)
+                if future is not None:
+                    expired.append((future, waited, name))
+        return expired
+
+    def take_all(self) -> list[Future[wm_pb2.WriteReply]]:
+        """Take every outstanding request (the way they went ended)."""
+        left = list(self.pending.values())
+        self.pending.clear()
+        self.detached.clear()
+        self.deadlines.clear()
+        return left
 
 
 def reply_result(reply: wm_pb2.WriteReply) -> wm_pb2.WriteReply:
@@ -32,6 +105,12 @@ def settle(future: Future[wm_pb2.WriteReply], reply: wm_pb2.WriteReply | None, e
             future.set_result(reply)  # type: ignore[arg-type]
     except InvalidStateError:
         pass  # settled already: its deadline passed
+
+
+def settle_replies(answered: list[tuple[Future[wm_pb2.WriteReply], wm_pb2.WriteReply]]) -> None:
+    """Complete each future with its reply (:meth:`Outstanding.answer`'s list)."""
+    for future, reply in answered:
+        settle(future, reply, None)
 
 
 def what(request: wm_pb2.WriteRequest) -> str:

@@ -31,7 +31,6 @@ notice a hung server only when the connection's ping goes unanswered.
 
 from __future__ import annotations
 
-import itertools
 import logging
 import queue
 import threading
@@ -45,7 +44,7 @@ import grpc
 from cast.client.channel import MAX_MESSAGE_BYTES, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
 from cast.client.socket_writes import SessionWrites
-from cast.client.write_replies import reply_result, settle, what
+from cast.client.write_replies import Outstanding, reply_result, settle, settle_replies
 from cast.errors import (
     CastError,
     DeadlineExceededError,
@@ -124,9 +123,7 @@ class _Call:
         self.token = token
         self.endpoint = server.endpoint
         self.requests: queue.SimpleQueue[tuple[wm_pb2.WriteRequest, int] | None] = queue.SimpleQueue()
-        self.pending: dict[int, Future[wm_pb2.WriteReply]] = {}
-        self.detached: set[int] = set()  # pending ids whose caller does not wait (async calls)
-        self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
+        self.outstanding = Outstanding()
         self.lock = threading.Lock()
         # Followers (and drain) wait on `changed`, the pump on `pump_wake`, the watch thread on
         # `watch_wake`: notifying a condition nobody waits on is cheap, waking a thread that only goes
@@ -144,7 +141,6 @@ class _Call:
         self.watch_until: float | None = None
         self.sent = False  # a request was sent since the watch thread last looked
         self.look_every = look_every
-        self.ids = itertools.count(1)
         metadata = (("authorization", f"Bearer {token}"),)
         # The stubs' type (an iterator) hides what the call object also is: a grpc.Future with a next().
         self.responses: Any = cast(Any, server.open_stream(server.wm.Write, _messages(self.requests),
@@ -163,17 +159,12 @@ class _Call:
 
         ``timeout``: seconds until its deadline (None: none, a lock that waits as long as it takes).
         """
-        future: Future[wm_pb2.WriteReply] = Future()
-        request.id = request_id = next(self.ids)
-        self.pending[request_id] = future
+        future = self.outstanding.add(request, detached, timeout)
         if timeout is not None:
-            deadline = time.monotonic() + timeout
-            self.deadlines[request_id] = (deadline, timeout, what(request))
             self.sent = True
-            if self.watch_until is None or deadline < self.watch_until:
+            if self.watch_until is None or time.monotonic() + timeout < self.watch_until:
                 self.watch_wake.notify()
         if detached:
-            self.detached.add(request_id)
             self.pump_wake.notify()  # the pump reads for it
         self.requests.put((request, size))
         return future
@@ -198,14 +189,8 @@ class _Call:
             self._fail(None, f"{type(exc).__name__}: {exc}")
             return False
         with self.lock:
-            pop = self.pending.pop
-            settled = [(pop(reply.id, None), reply) for reply in message.replies]
-            for reply in message.replies:
-                self.detached.discard(reply.id)
-                self.deadlines.pop(reply.id, None)
-        for future, reply in settled:
-            if future is not None:  # None: its deadline passed, the caller has its error
-                settle(future, reply, None)
+            answered = self.outstanding.answer(message.replies)
+        settle_replies(answered)
         if self.followers:  # read without the lock: a follower counts itself before it checks its future
             with self.lock:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
@@ -215,10 +200,7 @@ class _Call:
         self.requests.put(None)  # ends the request iterator, and with it gRPC's thread that reads it
         with self.lock:
             self.broken = True
-            left = list(self.pending.values())
-            self.pending.clear()
-            self.detached.clear()
-            self.deadlines.clear()
+            left = self.outstanding.take_all()
         for future in left:
             if error is not None and error.code == "UNAUTHENTICATED" and not self.stalled:
                 # Refused when it opened, before any request was read: nothing was applied.
@@ -236,7 +218,7 @@ class _Call:
             self.reading = False
             if self.followers:
                 self.changed.notify_all()  # one of them reads next
-            if self.detached or self.ended:
+            if self.outstanding.detached or self.ended:
                 self.pump_wake.notify()
 
     def _wake_all(self) -> None:
@@ -274,7 +256,7 @@ class _Call:
     def _pump(self) -> None:
         while True:
             with self.lock:
-                while not self.broken and (self.reading or not (self.detached or self.ended)):
+                while not self.broken and (self.reading or not (self.outstanding.detached or self.ended)):
                     self.pump_wake.wait()
                 if self.broken:
                     return
@@ -293,8 +275,9 @@ class _Call:
                 if self.broken:
                     return
                 now = time.monotonic()
-                if self.deadlines:
-                    deadline, timeout, what = min(self.deadlines.values())
+                earliest = self.outstanding.earliest()
+                if earliest is not None:
+                    deadline, timeout, what = earliest
                     if deadline <= now:
                         break
                     self.watch_until = deadline
@@ -306,14 +289,7 @@ class _Call:
                 self.watch_wake.wait(None if self.watch_until is None else self.watch_until - now)
             self.stalled = (f"{self.endpoint} answered no request within its deadline ({what} waited {timeout:g} s): "
                             "the server looks hung, so the stream was ended")
-            expired = []
-            for request_id, (deadline, waited, what) in list(self.deadlines.items()):
-                if deadline <= now:
-                    del self.deadlines[request_id]
-                    self.detached.discard(request_id)
-                    future = self.pending.pop(request_id, None)
-                    if future is not None:
-                        expired.append((future, waited, what))
+            expired = self.outstanding.take_expired(now)
             self.changed.notify_all()  # followers whose request expired
         for future, waited, what in expired:
             settle(future, None, DeadlineExceededError(
@@ -326,7 +302,8 @@ class _Call:
         """Wait until every outstanding request is answered (or ``timeout``). Call with :attr:`lock` held."""
         self.followers += 1
         try:
-            self.changed.wait_for(lambda: not self.pending, timeout)
+            pending = self.outstanding.pending
+            self.changed.wait_for(lambda: not pending, timeout)
         finally:
             self.followers -= 1
 
