@@ -256,6 +256,28 @@ def wait_for(condition: Callable[[], Any], timeout: float = 60.0, what: str = "c
     return kit_wait_for(condition, timeout, what)
 
 
+class OnAThread:
+    """A call running on a thread of its own (a lock that waits, say); what it raised is kept for the test."""
+
+    def __init__(self, call: Callable[[], object]) -> None:
+        self._call = call
+        self._error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._call()
+        except BaseException as exc:  # the test looks at it
+            self._error = exc
+
+    def raised(self, timeout: float = 60.0) -> BaseException | None:
+        """What the call raised (None: it returned), once it ended; fails the test if it is still running."""
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), f"the call on its thread did not end within {timeout:g} s"
+        return self._error
+
+
 def maven() -> list[str]:
     """The tests' Maven command: ``$CAST_TEST_MVN`` (the Makefile's MVN, say with a local repository of its
     own), else ``mvn -B -ntp``."""

@@ -31,7 +31,7 @@ from cast.core.records import Identity
 from cast.v1 import working_memory_pb2 as wm_pb2
 from tests.client.test_shared_memory import MIB, Host, image
 from tests.client.test_shared_memory import host as host  # the fixture, used by name
-from tests.conftest import start_server, wait_for
+from tests.conftest import OnAThread, start_server, wait_for
 
 
 class _NoGrpcWrites:
@@ -100,22 +100,13 @@ def test_a_session_that_ends_fails_its_outstanding_writes_as_unavailable_and_the
     link = _socket_only(waiter)
     first = link.shared.current()
     assert first is not None
-    errors: list[BaseException] = []
-
-    def wait_lock() -> None:
-        try:
-            waiter.lock("e", cast.LockMode.O, timeout=60)
-        except BaseException as exc:  # the test looks at it
-            errors.append(exc)
-
-    thread = threading.Thread(target=wait_lock)
-    thread.start()
+    waiting = OnAThread(lambda: waiter.lock("e", cast.LockMode.O, timeout=60))
     wait_for(lambda: h.system.host._waiter_count == 1, what="the lock waiting on the server")
     assert len(first.writes.outstanding.pending) == 1
     first._sock.shutdown(socket.SHUT_RDWR)  # the connection ends under the waiting lock
-    thread.join(10)
-    assert len(errors) == 1 and isinstance(errors[0], cast.UnavailableError), errors
-    assert "shared-memory session" in str(errors[0]) and "may or may not have been applied" in str(errors[0])
+    error = waiting.raised()
+    assert isinstance(error, cast.UnavailableError), error
+    assert "shared-memory session" in str(error) and "may or may not have been applied" in str(error)
     wait_for(lambda: h.system.host._waiter_count == 0, what="the server giving up the lock's wait")
     waiter.add("after", BytesValue(value=b"9"))  # on a new session
     assert link.shared.current() not in (None, first)

@@ -26,7 +26,7 @@ from cast.server.wire import wire_system
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.v1 import working_memory_pb2_grpc as wm_grpc
 from tests.client.conftest import ThreadServer
-from tests.conftest import wait_for
+from tests.conftest import OnAThread, wait_for
 
 
 def test_async_writes_apply_in_call_order_and_errors_arrive_on_their_future(make_component: Any) -> None:
@@ -237,23 +237,14 @@ def test_a_broken_stream_fails_outstanding_calls_and_the_next_write_reconnects(r
     waiter = remote("waiter")
     holder.add("e", Pose())
     holder.lock("e", cast.LockMode.O)
-    errors: list[BaseException] = []
-
-    def wait_lock() -> None:
-        try:
-            waiter.lock("e", cast.LockMode.O, timeout=60)
-        except BaseException as exc:  # the test looks at it
-            errors.append(exc)
-
-    thread = threading.Thread(target=wait_lock)
-    thread.start()
+    waiting = OnAThread(lambda: waiter.lock("e", cast.LockMode.O, timeout=60))
     wait_for(lambda: remote.server.system.host._waiter_count == 1, what="the lock waiting on the server")
     stream = waiter._transport._server("vision").write_stream
     assert stream is not None and stream._call is not None
     stream._call.cancel()  # the stream breaks under the waiting lock, as when the connection drops
-    thread.join(10)
-    assert len(errors) == 1 and isinstance(errors[0], cast.UnavailableError), errors
-    assert "may or may not have been applied" in str(errors[0])
+    error = waiting.raised()
+    assert isinstance(error, cast.UnavailableError), error
+    assert "may or may not have been applied" in str(error)
     waiter.add("after", Pose(x=9))  # a new stream
     assert waiter.get("after", Pose).x == 9
 

@@ -24,6 +24,7 @@ from contextlib import contextmanager
 
 from cast.client.credentials import TokenSource
 from cast.client.shm_session import ClientSession, ReadCall
+from cast.client.write_replies import DRAIN_S
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.wire import shared_memory as wire
 
@@ -37,7 +38,6 @@ ENV = "CAST_SHARED_MEMORY"
 _CONNECT_S = 2.0  # the handshake's bound
 _RETRY_S = 5.0  # how long after a failure the link tries again
 _RETRY_ELSEWHERE_S = 60.0  # ... when the server is elsewhere or offers none (a restart of it may change that)
-_RENEW_DRAIN_S = 30.0  # how long a renewed token's new session waits for the old one's outstanding writes
 _UCRED = struct.Struct("3i")
 
 
@@ -126,7 +126,7 @@ class SharedLink:
         if session is not None and not session.dead:
             if token is None or session.token == token:
                 return session
-            self.renew(_RENEW_DRAIN_S)
+            self.renew(DRAIN_S)
         if self._closed or time.monotonic() < self._retry_at:
             return None
         started = time.monotonic()

@@ -17,7 +17,12 @@ from concurrent.futures import Future, InvalidStateError
 from cast.errors import CastError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
+__all__ = ["DRAIN_S", "Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
+
+DRAIN_S = 30.0
+"""How long a new way for writes (a stream or session opened with a renewed token, the session's
+socket after the gRPC stream) waits for what the old one has outstanding before taking over: no
+write overtakes an earlier one."""
 
 Expired = tuple[Future[wm_pb2.WriteReply], float, str]
 """A request past its deadline: its future, the timeout it had, and what it was (:func:`what`)."""

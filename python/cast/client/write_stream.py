@@ -44,7 +44,7 @@ import grpc
 from cast.client.channel import MAX_MESSAGE_BYTES, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
 from cast.client.socket_writes import SessionWrites
-from cast.client.write_replies import Outstanding, reply_result, settle, settle_replies
+from cast.client.write_replies import DRAIN_S, Outstanding, reply_result, settle, settle_replies
 from cast.errors import (
     CastError,
     DeadlineExceededError,
@@ -58,8 +58,6 @@ __all__ = ["LOCK_REPLY_MARGIN_S", "WriteStream"]
 
 log = logging.getLogger("cast.client")
 
-# How long a token change waits for the old stream's outstanding replies before opening the new one.
-_DRAIN_S = 30.0
 # What one message gathers of queued requests: large values in flight (64 images of 1 MiB) must not
 # make a message over gRPC's limit, which would break the stream for every write on it.
 _MESSAGE_BYTES = 4 * 1024 * 1024
@@ -353,7 +351,7 @@ class WriteStream:
                 call = self._call
                 if call is not None and not call.broken:
                     with call.lock:
-                        call.drain(_DRAIN_S)  # no request on the socket overtakes one still on the gRPC call
+                        call.drain(DRAIN_S)  # no request on the socket overtakes one still on the gRPC call
                 future = writes.send(request, detached, timeout)
                 if future is not None:
                     return writes, future
@@ -384,7 +382,7 @@ class WriteStream:
     def _open(self, old: _Call | None, token: str) -> _Call:
         if old is not None and not old.broken:
             with old.lock:
-                old.drain(_DRAIN_S)  # the new token's stream must not overtake the old one's writes
+                old.drain(DRAIN_S)  # the new token's stream must not overtake the old one's writes
             old.close()
         self._call = _Call(self._server, token, self._timeout)
         return self._call
