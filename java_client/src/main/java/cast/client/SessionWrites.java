@@ -124,18 +124,7 @@ final class SessionWrites {
 
   /** Wait until no request is outstanding (or the session ended), or {@code timeout}. */
   synchronized void drain(Duration timeout) {
-    long deadline = System.nanoTime() + timeout.toNanos();
-    try {
-      while (!pending.isEmpty() && !ended) {
-        long left = deadline - System.nanoTime();
-        if (left <= 0) {
-          return;
-        }
-        TimeUnit.NANOSECONDS.timedWait(this, left);
-      }
-    } catch (InterruptedException e) {
-      Thread.currentThread().interrupt();
-    }
+    Monitors.waitUntil(this, () -> pending.isEmpty() || ended, timeout);
   }
 
   /** Requests sent and not yet answered. */

@@ -320,18 +320,7 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
 
   /** Wait until every outstanding request is answered, or {@code timeout}. */
   synchronized void drain(Duration timeout) {
-    long deadline = System.nanoTime() + timeout.toNanos();
-    try {
-      while (!pending.isEmpty() && !broken) {
-        long left = deadline - System.nanoTime();
-        if (left <= 0) {
-          return;
-        }
-        TimeUnit.NANOSECONDS.timedWait(this, left);
-      }
-    } catch (InterruptedException e) {
-      Thread.currentThread().interrupt();
-    }
+    Monitors.waitUntil(this, () -> pending.isEmpty() || broken, timeout);
   }
 
   /** Half-close, once what is queued was handed to gRPC: the server answers what it has and ends the call. */
