@@ -217,7 +217,8 @@ class Component:
         Many writes may be in flight at once (no need for a batch to keep the
         link busy); they are applied in call order. Errors (AlreadyExistsError,
         ...) arrive on the future. Over gRPC the future completes on a client
-        thread: keep its callbacks short.
+        thread: keep its callbacks short. A callback may write and wait itself
+        (the thread runs it once it stopped reading replies).
         """
         sa = self._sa(subarchitecture)
         type_name_, data = self._serialise(value, sa)

@@ -337,15 +337,21 @@ class ClientSession:
                 if left <= 0 or not select.select([self._sock], [], [], left)[0]:
                     break
                 self._read_available()
+                if self.writes.answered:
+                    break  # async writes answered: their callbacks run once it let go (SessionWrites)
         finally:
             self._stop_reading()
         return True
 
     def _stop_reading(self) -> None:
-        """Let the read lock go: a writer waiting for a reader reads next; unmap what the frames retired."""
+        """Let the read lock go: a writer waiting for a reader reads next; unmap what the frames retired.
+
+        Last, the async writes answered meanwhile are settled, on this thread but no longer the reader.
+        """
         self._read_lock.release()
         self.writes.reader_left()
         self._close_retired()
+        self.writes.settle_answered()
 
     def _read_available(self) -> None:
         """Read and handle every frame the socket holds now. Call with the read lock held."""

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 from google.protobuf.message import DecodeError
 
-from cast.client.write_replies import Outstanding, settle, settle_replies
+from cast.client.write_replies import Answered, Outstanding, settle, settle_replies
 from cast.errors import DeadlineExceededError, UnavailableError
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -70,6 +70,9 @@ class SessionWrites:
         self.changed = threading.Condition(self.lock)  # replies settled, or the session ended
         self._pump_wake = threading.Condition(self.lock)  # a pipelined request, or the end
         self.outstanding = Outstanding()
+        # Async writes answered by the thread reading now: settled once it lets go of the socket (their
+        # futures' callbacks may write and wait, which would otherwise wait for that very thread).
+        self.answered: Answered = []
         self.followers = 0  # threads waiting on `changed`
         self.ended = ""  # why the session ended ("" while it lives)
         self._pump: threading.Thread | None = None
@@ -109,10 +112,11 @@ class SessionWrites:
             raise wire.ProtocolError(f"a REPLIES frame of {len(body)} bytes is not a cast.v1.WriteReplies "
                                      f"({exc})") from None
         with self.lock:
-            answered = self.outstanding.answer(message.replies)
+            waited, unwaited = self.outstanding.answer(message.replies)
+            self.answered += unwaited
             if self.followers:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
-        settle_replies(answered)
+        settle_replies(waited)
 
     def end(self, why: str) -> None:
         """The session ended: what is outstanding fails with UnavailableError; nothing more is sent here."""
@@ -138,6 +142,13 @@ class SessionWrites:
         if self.followers:  # read without the lock: a follower counts itself before it looks who reads
             with self.lock:
                 self.changed.notify_all()  # each looks again: one of them reads next
+
+    def settle_answered(self) -> None:
+        """Settle the async writes answered while the socket was read; called once the reader let go of it."""
+        if self.answered:  # read without the lock: only a reader adds to it, and it calls this after
+            with self.lock:
+                answered, self.answered = self.answered, []
+            settle_replies(answered)
 
     def wait(self, future: Future[wm_pb2.WriteReply]) -> wm_pb2.WriteReply:
         """The reply of ``future``: read the socket while nobody else does, else wait for who does."""

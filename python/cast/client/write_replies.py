@@ -17,12 +17,15 @@ from concurrent.futures import Future, InvalidStateError
 from cast.errors import CastError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["DRAIN_S", "Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
+__all__ = ["DRAIN_S", "Answered", "Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
 
 DRAIN_S = 30.0
 """How long a new way for writes (a stream or session opened with a renewed token, the session's
 socket after the gRPC stream) waits for what the old one has outstanding before taking over: no
 write overtakes an earlier one."""
+
+Answered = list[tuple[Future[wm_pb2.WriteReply], wm_pb2.WriteReply]]
+"""Requests answered: each future with its reply."""
 
 Expired = tuple[Future[wm_pb2.WriteReply], float, str]
 """A request past its deadline: its future, the timeout it had, and what it was (:func:`what`)."""
@@ -52,21 +55,29 @@ class Outstanding:
             self.detached.add(request_id)
         return future
 
-    def answer(self, replies: Iterable[wm_pb2.WriteReply]) -> list[tuple[Future[wm_pb2.WriteReply], wm_pb2.WriteReply]]:
-        """Take the requests ``replies`` answer; each with its reply, for :func:`settle_replies`.
+    def answer(self, replies: Iterable[wm_pb2.WriteReply]) -> tuple[Answered, Answered]:
+        """Take the requests ``replies`` answer, each with its reply (for :func:`settle_replies`).
 
+        Two lists: those a caller waits for, and the detached ones, whose
+        futures may have callbacks of the user's (an async write's). Those
+        callbacks may write and wait in turn, so the reader settles them only
+        once it has let go of what it reads, or their waits would wait for it.
         A reply to no outstanding request (its deadline passed, its caller has
         the error) is left out.
         """
         pop, detached, deadlines = self.pending.pop, self.detached, self.deadlines
-        answered = []
+        waited: Answered = []
+        unwaited: Answered = []
         for reply in replies:
             future = pop(reply.id, None)
             if future is not None:
-                detached.discard(reply.id)
                 deadlines.pop(reply.id, None)
-                answered.append((future, reply))
-        return answered
+                if reply.id in detached:
+                    detached.discard(reply.id)
+                    unwaited.append((future, reply))
+                else:
+                    waited.append((future, reply))
+        return waited, unwaited
 
     def earliest(self) -> tuple[float, float, str] | None:
         """The earliest deadline, with its request's timeout and name; None when no request has one."""
@@ -112,7 +123,7 @@ def settle(future: Future[wm_pb2.WriteReply], reply: wm_pb2.WriteReply | None, e
         pass  # settled already: its deadline passed
 
 
-def settle_replies(answered: list[tuple[Future[wm_pb2.WriteReply], wm_pb2.WriteReply]]) -> None:
+def settle_replies(answered: Answered) -> None:
     """Complete each future with its reply (:meth:`Outstanding.answer`'s list)."""
     for future, reply in answered:
         settle(future, reply, None)

@@ -44,7 +44,7 @@ import grpc
 from cast.client.channel import MAX_MESSAGE_BYTES, ServerLink, map_rpc_error
 from cast.client.credentials import TokenSource
 from cast.client.socket_writes import SessionWrites
-from cast.client.write_replies import DRAIN_S, Outstanding, reply_result, settle, settle_replies
+from cast.client.write_replies import DRAIN_S, Answered, Outstanding, reply_result, settle, settle_replies
 from cast.errors import (
     CastError,
     DeadlineExceededError,
@@ -172,27 +172,31 @@ class _Call:
             self.ended = True
             self._wake_all()
 
-    def _lead(self) -> bool:
-        """Read one message and settle its replies (the caller is the reader); False once the call is over."""
+    def _lead(self) -> Answered | None:
+        """Read one message and settle the replies callers wait for (the caller is the reader).
+
+        The async writes it answered, for the reader to settle once it let go of the stream (their
+        futures' callbacks may write and wait, :meth:`Outstanding.answer`); None once the call is over.
+        """
         try:
             message = next(self.responses)
         except StopIteration:
             self._fail(None, "the server ended it")
-            return False
+            return None
         except grpc.RpcError as exc:
             error = map_rpc_error(exc)
             self._fail(error, self.stalled or str(error))
-            return False
+            return None
         except Exception as exc:  # noqa: BLE001 - whatever happened, the outstanding calls must fail
             self._fail(None, f"{type(exc).__name__}: {exc}")
-            return False
+            return None
         with self.lock:
-            answered = self.outstanding.answer(message.replies)
-        settle_replies(answered)
+            waited, unwaited = self.outstanding.answer(message.replies)
+        settle_replies(waited)
         if self.followers:  # read without the lock: a follower counts itself before it checks its future
             with self.lock:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
-        return True
+        return unwaited
 
     def _fail(self, error: CastError | None, status: str) -> None:
         self.requests.put(None)  # ends the request iterator, and with it gRPC's thread that reads it
@@ -244,11 +248,13 @@ class _Call:
                 if future.done():
                     break
                 self.reading = True
+            unwaited: Answered | None = []
             try:
-                while not future.done() and self._lead():
-                    pass
+                while not future.done() and unwaited == []:
+                    unwaited = self._lead()
             finally:
                 self._release()
+            settle_replies(unwaited or [])
         return future.result()
 
     def _pump(self) -> None:
@@ -260,11 +266,12 @@ class _Call:
                     return
                 self.reading = True
             try:
-                alive = self._lead()
+                unwaited = self._lead()
             finally:
                 self._release()
-            if not alive:
+            if unwaited is None:
                 return
+            settle_replies(unwaited)
 
     def _watch(self) -> None:
         """End the call when an outstanding request passes its deadline (the module's docstring)."""

@@ -31,7 +31,8 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * under outstanding writes fails them with UnavailableError naming the session, and later writes
  * succeed; a write past its deadline fails with DeadlineExceededError and ends the session, failing
  * the others; a large value written after the token was renewed is staged in the new session it
- * goes on; a callback that writes while its dispatcher's queue is full gets its reply. The twin
+ * goes on; a callback that writes while its dispatcher's queue is full gets its reply, and so does
+ * an async write's continuation that writes and waits. The twin
  * of cpp_client/tests/server/socket_writes_test.cc. (The Write stream's own tests,
  * WriteStreamTest and WriteStreamFaultsTest, run on the socket too, and again with shared memory
  * off.)
@@ -296,6 +297,30 @@ class SocketWritesTest {
       assertEquals(value(8, 39), echo.get("sw-echoed", BytesValue.class));
       SharedSession session = ((GrpcTransport) echo.transport()).server("vision").shared.current();
       assertEquals(41, session.writes().framesSent.get(), "the add and the callbacks' writes, on the socket");
+    }
+  }
+
+  @Test
+  void aContinuationOfAnAsyncWriteThatWritesAndWaitsGetsItsReply() throws Exception {
+    // The futures of addAsync/overwriteAsync complete on the component's results thread, not the
+    // session's reader: a continuation's own write is read by the reader meanwhile.
+    try (Connection writer = shared.connect("sw-then", "vision", false, null)) {
+      writer.add("sw-then-e", value(8, 0));
+      CompletableFuture<long[]> both =
+          writer
+              .overwriteAsync("sw-then-e", value(8, 1))
+              .thenApply(
+                  first ->
+                      new long[] {
+                        first.version(), writer.overwrite("sw-then-e", value(8, 2)).version()
+                      });
+      // A write nobody reads would fail after its deadline (30 s).
+      long[] versions = both.get(30, TimeUnit.SECONDS);
+      assertTrue(versions[1] > versions[0]);
+      assertEquals(value(8, 2), writer.get("sw-then-e", BytesValue.class));
+      SharedSession session = SharedMemoryTest.session(writer);
+      assertNotNull(session);
+      assertNull(session.dead(), "the session lives on: no write of it passed its deadline");
     }
   }
 }
