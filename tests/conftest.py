@@ -22,8 +22,14 @@ from typing import Any
 
 import pytest
 import yaml
+from hypothesis import HealthCheck, settings
 
 ROOT = Path(__file__).resolve().parent.parent
+
+# Property tests assert properties, not times: hypothesis's default 200 ms deadline per example failed
+# them on a loaded machine. Its too-slow health check likewise.
+settings.register_profile("cast", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("cast")
 VENV_BIN = Path(sys.executable).parent
 SECRET = "test-secret-0123456789abcdef-0123456789"
 

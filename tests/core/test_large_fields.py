@@ -83,7 +83,7 @@ def test_what_the_full_parse_refuses_is_still_refused(data: bytes) -> None:
         REG.validate(ANY, data)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.lists(st.tuples(st.sampled_from([1, 2, 3]),
                           st.sampled_from([b"ok", b"\xff", b"z" * LARGE, b"y" * (4 * LARGE)])), max_size=4),
        st.integers(min_value=0, max_value=8))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cast.core.host import MemoryHost
@@ -144,7 +144,7 @@ def _outcome(fn: object, *args: object) -> object:
         return type(exc)
 
 
-@settings(max_examples=2000 if soak() else 150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=2000 if soak() else 150)
 @given(st.lists(ops, max_size=80))
 def test_core_agrees_with_the_reference_model(steps: list[tuple[object, ...]]) -> None:
     host = MemoryHost(SAS)
