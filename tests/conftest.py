@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # them on a loaded machine. Its too-slow health check likewise.
 settings.register_profile("cast", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("cast")
+
 VENV_BIN = Path(sys.executable).parent
 SECRET = "test-secret-0123456789abcdef-0123456789"
 

@@ -27,7 +27,7 @@ import threading
 from collections.abc import Iterable
 from typing import TextIO
 
-__all__ = ["STACK_DUMP_SIGNAL", "dump_stacks_on_sigquit", "say", "silence", "terminal_descriptors",
+__all__ = ["STACK_DUMP_SIGNAL", "descriptors_on", "dump_stacks_on_sigquit", "say", "silence", "terminal_descriptors",
            "terminate_when_stdin_closes", "termination"]
 
 STACK_DUMP_SIGNAL = signal.SIGQUIT
@@ -81,15 +81,17 @@ def say(line: str, to: TextIO | None = None) -> None:
     except OSError as exc:
         if exc.errno != errno.EIO:
             raise
-        gone = os.fstat(out.fileno())
-        silence(fd for fd in (1, 2) if _same_file(fd, gone))
+        silence(descriptors_on(os.fstat(out.fileno())))
 
 
-def _same_file(fd: int, other: os.stat_result) -> bool:
-    try:
-        return os.path.samestat(os.fstat(fd), other)
-    except OSError:
-        return False
+def descriptors_on(file: os.stat_result, among: Iterable[int] = (1, 2)) -> list[int]:
+    """Those of ``among`` (standard output and error by default) that are ``file``; a closed one is not."""
+    found = []
+    for fd in among:
+        with contextlib.suppress(OSError):
+            if os.path.samestat(os.fstat(fd), file):
+                found.append(fd)
+    return found
 
 
 def termination() -> asyncio.Event:

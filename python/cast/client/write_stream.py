@@ -160,7 +160,8 @@ class _Call:
         future = self.outstanding.add(request, detached, timeout)
         if timeout is not None:
             self.sent = True
-            if self.watch_until is None or time.monotonic() + timeout < self.watch_until:
+            deadline = self.outstanding.deadlines[request.id][0]
+            if self.watch_until is None or deadline < self.watch_until:
                 self.watch_wake.notify()
         if detached:
             self.pump_wake.notify()  # the pump reads for it

@@ -17,7 +17,7 @@ from rich.console import Console, RenderableType
 from rich.live import Live
 from rich.markup import escape
 
-from cast.signals import silence, terminal_descriptors
+from cast.signals import descriptors_on, silence, terminal_descriptors
 
 __all__ = ["Output"]
 
@@ -112,4 +112,4 @@ def _terminal_fds(console: Console) -> list[int]:
         own = os.fstat(console.file.fileno())
     except (OSError, ValueError):  # not a file of the OS (a test's buffer)
         return []
-    return [fd for fd in terminal_descriptors() if os.path.samestat(os.fstat(fd), own)]
+    return descriptors_on(own, terminal_descriptors())
