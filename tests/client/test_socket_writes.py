@@ -202,6 +202,35 @@ def test_a_malformed_writes_frame_is_refused_with_its_reason_and_nothing_of_it_a
     assert not h.component("reader").exists("never")
 
 
+def test_the_writes_frames_of_one_read_are_answered_in_one_replies_frame_in_order(raw: Any) -> None:
+    h, session = raw()
+    # Eight frames in one send of a few hundred bytes: the server reads them in one go, as it does a pipelining
+    # client's, and answers them together rather than with a REPLIES frame each.
+    session.sock.sendall(b"".join(
+        wire.writes(wm_pb2.WriteRequests(requests=[add(i + 1, f"piped{i}", b"p")]).SerializeToString())
+        for i in range(8)
+    ))
+    frame = session.next_frame()
+    while frame.kind in (wire.SEGMENT, wire.RETIRE):
+        frame = session.next_frame()
+    assert frame.kind == wire.REPLIES, frame
+    replies = wm_pb2.WriteReplies.FromString(frame.body).replies
+    assert [r.id for r in replies] == list(range(1, 9))
+    assert all(r.WhichOneof("result") == "write" for r in replies)
+    assert h.component("reader").exists("piped7")
+
+
+def test_the_writes_read_before_a_malformed_frame_are_applied_and_the_session_refused(raw: Any) -> None:
+    h, session = raw()
+    good = wire.writes(wm_pb2.WriteRequests(requests=[add(1, "before", b"a")]).SerializeToString())
+    session.sock.sendall(good + wire.writes(b"\xff\xff\xff"))  # one read: a good frame, then one that does not parse
+    (reply,) = session.replies(1)
+    assert reply.WhichOneof("result") == "write", reply
+    refused = session.next_frame()
+    assert refused.kind == wire.REFUSED and b"is not a cast.v1.WriteRequests" in refused.body, refused
+    assert h.component("reader").exists("before")
+
+
 def test_a_writes_frame_over_its_bound_is_refused_naming_the_bound_before_any_of_it_is_read(raw: Any) -> None:
     h, session = raw()
     session.sock.sendall(struct.pack("<IB", wire.MAX_WRITES_FRAME + 1, wire.WRITES))

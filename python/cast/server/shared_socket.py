@@ -121,8 +121,12 @@ class _Connection:
             try:
                 self._handle(frame)
             except (wire.ProtocolError, CastError) as exc:
+                if self._writes is not None:
+                    self._writes.apply()  # the WRITES before the bad frame: applied, as when each came alone
                 self.refuse(str(exc) if isinstance(exc, wire.ProtocolError) else exc.message)
                 return
+        if self._writes is not None and not self.closed:  # one REPLIES frame for the WRITES of this read
+            self._writes.apply()
 
     def _handle(self, frame: wire.Frame) -> None:
         shared = self._owner.system.shared

@@ -66,10 +66,10 @@ class SocketWrites:
         return bool(self._queue)
 
     def received(self, body: bytes) -> None:
-        """A WRITES frame: its requests are applied now, or in later turns of the loop behind what is queued.
+        """A WRITES frame: its requests are queued, applied by :meth:`apply` once the read that brought it is handled.
 
         A body that does not parse raises :class:`wire.ProtocolError`, before
-        any of it is applied.
+        any of it is queued.
         """
         try:
             message = wm_pb2.WriteRequests.FromString(body)
@@ -78,7 +78,15 @@ class SocketWrites:
                 f"WRITES frame of {len(body)} bytes is not a cast.v1.WriteRequests ({exc}): nothing of it was applied"
             ) from None
         self._queue.extend(message.requests)
-        if not self._draining:
+
+    def apply(self) -> None:
+        """Apply what the WRITES frames of one read queued: now, or in later turns of the loop behind what waits.
+
+        The frames of one read are answered together, in one REPLIES frame: a
+        client with many writes in flight sends them faster than they are
+        applied, and gets one reply frame per read rather than one per request.
+        """
+        if self._queue and not self._draining:
             self._drain()
 
     def _drain(self) -> None:
