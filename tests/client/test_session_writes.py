@@ -91,6 +91,55 @@ def test_pipelined_writes_outstanding_when_the_component_closes_are_answered_fir
     assert reader.get("n", BytesValue).value == b"300"
 
 
+@pytest.mark.incompatible_with_mypyc  # the server's compiled modules call received and apply directly
+def test_async_writes_made_while_others_are_in_flight_go_out_together_in_order(
+        host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch) -> None:
+    from cast.server import socket_writes as server_writes
+
+    h = host()
+    writer, reader = h.component("w"), h.component("r")
+    _socket_only(writer)
+    writer.add("n", BytesValue(value=b"0"))
+    # The server reads the first frame and then waits for the gate: every reply comes after the last write is
+    # made, so how many frames carry the 100 writes is the client's doing alone.
+    gate, frames = threading.Event(), [0]
+    received, apply = server_writes.SocketWrites.received, server_writes.SocketWrites.apply
+
+    def counted(self: Any, body: bytes) -> None:
+        frames[0] += 1
+        received(self, body)
+
+    def gated(self: Any) -> None:
+        gate.wait(10)
+        apply(self)
+
+    monkeypatch.setattr(server_writes.SocketWrites, "received", counted)
+    monkeypatch.setattr(server_writes.SocketWrites, "apply", gated)
+    futures = [writer.overwrite_async("n", BytesValue(value=str(i).encode())) for i in range(1, 101)]
+    gate.set()
+    revisions = [f.result(10).revision for f in futures]
+    assert revisions == sorted(revisions) and len(set(revisions)) == 100
+    assert reader.get("n", BytesValue).value == b"100"
+    # Each frame leaves with as many held back as were in flight: 1, 2, 4, 8, ... writes a frame, then what
+    # was held when the replies came. One frame a write would be 100.
+    assert frames[0] <= 12, frames
+
+
+def test_an_async_write_behind_a_lock_that_waits_is_sent_and_answered_meanwhile(host: Callable[..., Host]) -> None:
+    h = host()
+    holder, w = h.component("holder"), h.component("w")
+    _socket_only(w)
+    holder.add("x", BytesValue())
+    holder.lock("x", cast.LockMode.O)
+    waiting = OnAThread(lambda: w.lock("x", cast.LockMode.O, timeout=30))
+    wait_for(lambda: h.system.host._waiter_count == 1, what="the lock waiting on the server")
+    # In flight: the lock alone. Were the write held back until a reply came, it would wait for the lock.
+    assert w.add_async("y", BytesValue(value=b"y")).result(10).revision > 0
+    assert waiting.thread.is_alive() and h.system.host._waiter_count == 1
+    holder.unlock("x")
+    assert waiting.raised(10) is None
+
+
 def test_a_session_that_ends_fails_its_outstanding_writes_as_unavailable_and_the_next_write_opens_another(
         host: Callable[..., Host]) -> None:
     h = host()

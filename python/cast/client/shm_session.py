@@ -155,6 +155,9 @@ class ClientSession:
         self._state = threading.Lock()  # the staging regions and the segment table
         self._send_lock = threading.Lock()
         self._unsent: collections.deque[int] = collections.deque()  # value ids given back, not yet sent
+        # Write requests held back while others are in flight (SessionWrites), each a WRITES frame's entry: sent
+        # together, before anything else this session sends, by the next thread that sends or reads a reply.
+        self.held_writes: collections.deque[bytes] = collections.deque()
         self._calls = 0
         # call number -> what takes that watch call's EVENTS frames (run by whichever thread reads the socket)
         self.event_handlers: dict[int, Callable[[bytes], None]] = {}
@@ -234,6 +237,14 @@ class ClientSession:
                     f"({self.dead or f'within {_SEGMENT_WAIT_S:g} s'}): read again"
                 )
 
+    def send_held(self) -> None:
+        """Send the write requests held back, unless another thread is sending (it sends them when it is done)."""
+        if self.held_writes and self._send_lock.acquire(blocking=False):
+            try:
+                self._flush()
+            finally:
+                self._sent()
+
     def give_back(self, value_id: int) -> None:
         """A lease is gone: RELEASE it.
 
@@ -251,7 +262,7 @@ class ClientSession:
     # -------------------------------------------------------------- frames
 
     def send(self, frame: bytes) -> None:
-        """Send a frame (with the RELEASEs waiting); nothing once the session is over."""
+        """Send a frame (after the RELEASEs and write requests waiting); nothing once the session is over."""
         self._send_lock.acquire()
         try:
             self._flush()
@@ -262,7 +273,7 @@ class ClientSession:
     def _sent(self) -> None:
         """Let the send lock go; then send what was given back meanwhile by a thread that could not take it."""
         self._send_lock.release()
-        while self._unsent and self._send_lock.acquire(blocking=False):
+        while (self._unsent or self.held_writes) and self._send_lock.acquire(blocking=False):
             try:
                 self._flush()
             finally:
@@ -274,6 +285,12 @@ class ClientSession:
             ids.append(self._unsent.popleft())
         for start in range(0, len(ids), 8000):
             self._write(wire.release(ids[start: start + 8000]))
+        held = self.held_writes
+        if held:
+            entries = []
+            while held:
+                entries.append(held.popleft())
+            self._write(wire.writes(b"".join(entries)))
 
     def _write(self, frame: bytes) -> None:
         if self.dead:

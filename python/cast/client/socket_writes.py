@@ -43,10 +43,16 @@ __all__ = ["SessionWrites"]
 
 # How long one read waits before its reader looks at the deadlines again (and lets another thread read).
 _READ_SLICE_S = 0.05
+# An async request sent while more requests are in flight than are held back is held back too (up to this many,
+# and only if this small), and sent with those held before it once a reply comes: one frame and one wake-up of
+# the server for many requests, while as many are still in flight to keep it busy (docs/performance.md,
+# "Pipelined writes on the socket").
+_HOLD_MAX = 64
+_HOLD_BYTES = 16 << 10
 
 
-def _writes_frame(request: bytes) -> bytes:
-    """A WRITES frame of one serialized ``WriteRequest``: ``WriteRequests`` field 1, written without a copy of it."""
+def _entry(request: bytes) -> bytes:
+    """One serialized ``WriteRequest`` as an entry of a WRITES frame's ``WriteRequests`` (its field 1)."""
     size = len(request)
     length = bytearray()
     while True:
@@ -57,7 +63,7 @@ def _writes_frame(request: bytes) -> bytes:
         else:
             length.append(byte)
             break
-    return wire.writes(b"\x0a" + bytes(length) + request)
+    return b"\x0a" + bytes(length) + request
 
 
 class SessionWrites:
@@ -76,6 +82,7 @@ class SessionWrites:
         self.followers = 0  # threads waiting on `changed`
         self.ended = ""  # why the session ended ("" while it lives)
         self._pump: threading.Thread | None = None
+        self._locks: set[int] = set()  # ids of lock requests sent, maybe still outstanding (none is held back)
 
     def send(self, request: wm_pb2.WriteRequest, detached: bool,
              timeout: float | None) -> Future[wm_pb2.WriteReply] | None:
@@ -86,18 +93,47 @@ class SessionWrites:
         Sends of one component are made one at a time by its write stream, so
         the frames leave in id order.
         """
+        session = self._session
         with self.lock:
             if self.ended:
                 return None
             future = self.outstanding.add(request, detached, timeout)
+            entry = _entry(request.SerializeToString())
+            if request.HasField("lock"):
+                self._locks = {i for i in self._locks if i in self.outstanding.pending}  # those answered go
+                self._locks.add(request.id)
             if detached:
                 if self._pump is None:
                     self._pump = threading.Thread(target=self._run_pump, name="cast-socket-replies", daemon=True)
                     self._pump.start()
                 self._pump_wake.notify()
-        # A frame that cannot be sent ends the session, which fails this request with the others.
-        self._session.send(_writes_frame(request.SerializeToString()))
+                if self._hold(session, len(entry)):
+                    session.held_writes.append(entry)
+                    return future
+        # A frame that cannot be sent ends the session, which fails this request with the others. Those held back
+        # go first (send() sends them before its frame), so the requests leave in id order.
+        session.send(wire.writes(entry))
         return future
+
+    def _hold(self, session: ClientSession, size: int) -> bool:
+        """Whether an async request of ``size`` bytes is held back rather than sent now. Call with the lock held.
+
+        Held while more requests are in flight than are held: a reply will
+        come, and its reader sends what is held (:meth:`replies`, which
+        answers under this lock, so no reply slips between this look and
+        the request joining the held ones). Never while a lock request is
+        outstanding: a lock may wait long in the server, and the requests
+        behind it are answered meanwhile.
+        """
+        held = len(session.held_writes)
+        if held >= _HOLD_MAX or size > _HOLD_BYTES:
+            return False
+        if self._locks:
+            pending = self.outstanding.pending
+            self._locks = {i for i in self._locks if i in pending}
+            if self._locks:
+                return False
+        return len(self.outstanding.pending) - held - 1 > held  # sent and not answered, against held
 
     # ---------------------------------------------------------------- frames
 
@@ -116,6 +152,7 @@ class SessionWrites:
             self.answered += unwaited
             if self.followers:
                 self.changed.notify_all()  # followers whose reply this was, and drain()
+        self._session.send_held()
         settle_replies(waited)
 
     def end(self, why: str) -> None:
