@@ -116,13 +116,16 @@ def test_async_writes_made_while_others_are_in_flight_go_out_together_in_order(
     monkeypatch.setattr(server_writes.SocketWrites, "received", counted)
     monkeypatch.setattr(server_writes.SocketWrites, "apply", gated)
     futures = [writer.overwrite_async("n", BytesValue(value=str(i).encode())) for i in range(1, 101)]
+    # Two of 40 KiB (sent as bytes: under the 64 KiB shared-memory threshold): never held back.
+    futures += [writer.overwrite_async("n", BytesValue(value=bytes([i]) * (40 << 10))) for i in (1, 2)]
     gate.set()
     revisions = [f.result(10).revision for f in futures]
-    assert revisions == sorted(revisions) and len(set(revisions)) == 100
-    assert reader.get("n", BytesValue).value == b"100"
-    # Each frame leaves with as many held back as were in flight: 1, 2, 4, 8, ... writes a frame, then what
-    # was held when the replies came. One frame a write would be 100.
-    assert frames[0] <= 12, frames
+    assert revisions == sorted(revisions) and len(set(revisions)) == 102
+    assert reader.get("n", BytesValue).value == bytes([2]) * (40 << 10)
+    # A request goes in one frame with those held back while more were in flight than held: frames of 1, 2,
+    # 4, 8, 16 and 32 writes, then the 37 held with the first large one, then the second alone: 8 frames,
+    # where one frame a write would be 102 (and, were the large ones held too, 7).
+    assert frames[0] == 8, frames
 
 
 def test_an_async_write_behind_a_lock_that_waits_is_sent_and_answered_meanwhile(host: Callable[..., Host]) -> None:

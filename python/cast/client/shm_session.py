@@ -270,6 +270,14 @@ class ClientSession:
         finally:
             self._sent()
 
+    def send_write(self, entry: bytes) -> None:
+        """Send a write request (a WRITES frame's entry) in one frame with those held back before it."""
+        self._send_lock.acquire()
+        try:
+            self._flush(entry)
+        finally:
+            self._sent()
+
     def _sent(self) -> None:
         """Let the send lock go; then send what was given back meanwhile by a thread that could not take it."""
         self._send_lock.release()
@@ -279,7 +287,8 @@ class ClientSession:
             finally:
                 self._send_lock.release()
 
-    def _flush(self) -> None:
+    def _flush(self, entry: bytes = b"") -> None:
+        """Send the RELEASEs waiting, then the write requests held back and ``entry`` after them, in one frame."""
         ids = []
         while self._unsent:
             ids.append(self._unsent.popleft())
@@ -290,7 +299,10 @@ class ClientSession:
             entries = []
             while held:
                 entries.append(held.popleft())
+            entries.append(entry)
             self._write(wire.writes(b"".join(entries)))
+        elif entry:
+            self._write(wire.writes(entry))
 
     def _write(self, frame: bytes) -> None:
         if self.dead:

@@ -84,9 +84,9 @@ class SessionWrites:
         self._pump: threading.Thread | None = None
         self._locks: set[int] = set()  # ids of lock requests sent, maybe still outstanding (none is held back)
 
-    def send(self, request: wm_pb2.WriteRequest, detached: bool,
+    def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool,
              timeout: float | None) -> Future[wm_pb2.WriteReply] | None:
-        """Send ``request`` (its id is set here); the future of its reply, or None once the session ended.
+        """Send ``request`` of ``size`` bytes (its id is set here); its reply's future, or None once the session ended.
 
         ``detached``: nobody waits on it (the pump reads its reply). Past
         ``timeout`` s (None: none) it fails with DeadlineExceededError.
@@ -98,7 +98,6 @@ class SessionWrites:
             if self.ended:
                 return None
             future = self.outstanding.add(request, detached, timeout)
-            entry = _entry(request.SerializeToString())
             if request.HasField("lock"):
                 self._locks = {i for i in self._locks if i in self.outstanding.pending}  # those answered go
                 self._locks.add(request.id)
@@ -107,16 +106,18 @@ class SessionWrites:
                     self._pump = threading.Thread(target=self._run_pump, name="cast-socket-replies", daemon=True)
                     self._pump.start()
                 self._pump_wake.notify()
-                if self._hold(session, len(entry)):
-                    session.held_writes.append(entry)
+                if size <= _HOLD_BYTES and self._hold(session):
+                    # Serialised here, with its id: a small request (a large one is never held, nor serialised
+                    # under the lock that readers settling replies take).
+                    session.held_writes.append(_entry(request.SerializeToString()))
                     return future
         # A frame that cannot be sent ends the session, which fails this request with the others. Those held back
-        # go first (send() sends them before its frame), so the requests leave in id order.
-        session.send(wire.writes(entry))
+        # go in front of it, in its frame, so the requests leave in id order.
+        session.send_write(_entry(request.SerializeToString()))
         return future
 
-    def _hold(self, session: ClientSession, size: int) -> bool:
-        """Whether an async request of ``size`` bytes is held back rather than sent now. Call with the lock held.
+    def _hold(self, session: ClientSession) -> bool:
+        """Whether a small async request is held back rather than sent now. Call with the lock held.
 
         Held while more requests are in flight than are held: a reply will
         come, and its reader sends what is held (:meth:`replies`, which
@@ -126,7 +127,7 @@ class SessionWrites:
         behind it are answered meanwhile.
         """
         held = len(session.held_writes)
-        if held >= _HOLD_MAX or size > _HOLD_BYTES:
+        if held >= _HOLD_MAX:
             return False
         if self._locks:
             pending = self.outstanding.pending

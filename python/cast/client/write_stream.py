@@ -360,7 +360,7 @@ class WriteStream:
                 if call is not None and not call.broken:
                     with call.lock:
                         call.drain(DRAIN_S)  # no request on the socket overtakes one still on the gRPC call
-                future = writes.send(request, detached, timeout)
+                future = writes.send(request, size, detached, timeout)
                 if future is not None:
                     return writes, future
                 # The session ended just now: the gRPC stream takes it.
