@@ -99,7 +99,7 @@ class SessionWrites:
                 return None
             future = self.outstanding.add(request, detached, timeout)
             if request.HasField("lock"):
-                self._locks = {i for i in self._locks if i in self.outstanding.pending}  # those answered go
+                self._lock_outstanding()  # those answered go first
                 self._locks.add(request.id)
             if detached:
                 if self._pump is None:
@@ -127,14 +127,16 @@ class SessionWrites:
         behind it are answered meanwhile.
         """
         held = len(session.held_writes)
-        if held >= _HOLD_MAX:
+        if held >= _HOLD_MAX or self._lock_outstanding():
             return False
+        return len(self.outstanding.pending) - held - 1 > held  # sent and not answered, against held
+
+    def _lock_outstanding(self) -> bool:
+        """Whether a lock request sent here is outstanding (forgets those answered). Call with the lock held."""
         if self._locks:
             pending = self.outstanding.pending
             self._locks = {i for i in self._locks if i in pending}
-            if self._locks:
-                return False
-        return len(self.outstanding.pending) - held - 1 > held  # sent and not answered, against held
+        return bool(self._locks)
 
     # ---------------------------------------------------------------- frames
 
