@@ -57,7 +57,7 @@ class Coordinator(cast.UnmanagedComponent):
             with self.mutex:  # before the add: the answer may come before add() returns
                 self.asked[number] = time.monotonic()
             self.add(f"question-{number}", question, subarchitecture=self.language_sa)
-            print(f"asks q{number}{' (urgent)' if priority else ''}: {text}", flush=True)
+            self.say(f"asks q{number}{' (urgent)' if priority else ''}: {text}")
             if self.wait_for_stop(self.every):
                 return
         self.wait_for_stop()
@@ -69,10 +69,19 @@ class Coordinator(cast.UnmanagedComponent):
             with self.mutex:
                 self.answered += 1
                 asked = self.asked.pop(question.number, None)
-            print(f"q{question.number} {question.text} -> {question.answer}", flush=True)
+            self.say(f"q{question.number} {question.text} -> {question.answer}")
             if asked is not None:  # once per question, whatever else overwrites its entry
                 self.report("questions_answered", 1)
                 self.report("answer_time_s", time.monotonic() - asked)
+
+    def say(self, line: str) -> None:
+        """Print one line of the conversation.
+
+        The asking thread and the answer callback both print: ``print`` writes the text and its
+        newline in two calls, so without the lock one line could land inside the other.
+        """
+        with self.mutex:
+            print(line, flush=True)
 
     def stop(self) -> None:
         """Say how the conversation went."""
