@@ -69,7 +69,7 @@ PHASES: tuple[tuple[str, str, int, bool], ...] = (
 # that they are judged at steady state as M7 judges Java (docs/decisions.md). As many as that so that the Java
 # watcher's per-frame methods pass the JVM's thresholds for its optimising compiler (C2: 5,000 calls, more
 # while its queue is long): with 4 x as many (1,200) they all still ran as C1's profiling code when measured
-# (-XX:+LogCompilation; docs/performance.md, "The warm-up reaches C2"). Values of the smallest size that goes
+# (-XX:+LogCompilation; docs/performance-m8.md, "The warm-up reaches C2"). Values of the smallest size that goes
 # by shared memory, so that the history (HISTORY_BYTES) holds 1,024 of them: a cold reader would have to fall
 # that far behind to lose its watch (64 values of 1 MiB did once). The 1 MiB 30 Hz phase begins with COLD_S of
 # paced frames before that, every reader cold (its "first seconds": shown, not judged).

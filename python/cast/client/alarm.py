@@ -4,7 +4,7 @@ The dispatcher's standby thread (cast.client.dispatcher) must look again
 STANDBY_S after a callback begins, and callbacks begin at every event. Waking
 the standby at each one (an ``Event``) to start its wait cost a context switch
 and a turn of the GIL at the very moment the callback reads its event, and
-another wake-up when that wait ended (docs/performance.md, M8, "The standby
+another wake-up when that wait ended (docs/performance-m8.md, "The standby
 thread's alarm").
 A Linux timerfd is armed by the dispatcher with one system call when a callback
 begins and disarmed with another when it returns, so the standby wakes only

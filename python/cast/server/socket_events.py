@@ -19,7 +19,7 @@ alike, before the reply, which waits that turn of the loop. A unary write
 or Batch serves the list and replies at once, its gRPC watch streams' tasks
 running in the next turn. Serving the
 socket ones first there put the gRPC watchers behind them all
-(docs/performance.md, M8, "Socket watchers served in one pass"). These
+(docs/performance-m8.md, "Socket watchers served in one pass"). These
 callbacks also serve what no write path does: writes of in-process
 components and of the journal's committer, whose wake-ups come from other
 threads, a connection that drained, a watch replaying its history.
