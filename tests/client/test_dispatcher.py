@@ -208,7 +208,7 @@ def test_a_callbacks_start_does_not_wake_the_standby_thread() -> None:
     """The standby looks again STANDBY_S after a callback begins by an alarm, which a short callback cancels.
 
     Woken at every start, it took a core and the GIL at the moment each event's callback ran (a camera
-    frame's read: docs/performance.md, M8).
+    frame's read: docs/performance-m8.md, "The standby thread's alarm").
     """
     d, source, standby = _with_standby()
     woken: list[int] = []

@@ -24,7 +24,8 @@ if TYPE_CHECKING:
 __all__ = ["address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb"]
 
 # Looked up rather than called: an enum call runs enum's machinery for each event (0.3 us warm, more on the cold
-# caches a watcher of frames at 30 Hz meets; docs/performance.md, M8).
+# caches a watcher of frames at 30 Hz meets; docs/performance-m8.md, "Small cuts, and where each process's CPU
+# goes").
 _OPERATIONS = {int(op): op for op in Operation}
 
 def entry_from_pb(entry: entry_pb2.Entry, call: ReadCall | None = None) -> EntryRecord:

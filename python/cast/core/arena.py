@@ -365,7 +365,7 @@ class Arena:
         coming (one was placed in the last :data:`SPARE_IDLE_S` before ``now``,
         ``time.monotonic()`` by default), so that the next segment the values
         need is one whose pages are faulted in already (making one costs ~60
-        ms of CPU per 64 MiB, docs/performance.md, M8). At most one spare is
+        ms of CPU per 64 MiB, docs/performance-m8.md, "The write alone"). At most one spare is
         kept, it counts in ``segments`` like any other, and once the values
         stop it is retired too. A retired segment takes no more values; the
         server closes it once it holds no view of it, and its memory goes back

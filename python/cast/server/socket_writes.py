@@ -6,7 +6,8 @@ as WRITES frames on the session's Unix socket instead of the gRPC Write
 stream, and gets the replies as REPLIES frames (a serialized
 ``cast.v1.WriteReplies``): the same messages, the same rules
 (:mod:`cast.server.writes`), applied on the server's event loop as the frame
-is read, without gRPC's threads and hand-offs (docs/performance.md, M8). The
+is read, without gRPC's threads and hand-offs (docs/performance-m8.md, "Writes
+on the session's socket"). The
 caller is the session's: the token its HELLO carried, verified then and again
 once it expires, so a session whose token expired has its writes refused
 with UNAUTHENTICATED as the Write stream's are.

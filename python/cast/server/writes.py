@@ -66,7 +66,8 @@ def woken() -> int:
 
     When it moved, the Write stream and the session's WRITES let the loop turn
     once before they send the replies, so that the events those streams send
-    go out before the writer's acknowledgement (docs/performance.md, M8). A
+    go out before the writer's acknowledgement (docs/performance-m8.md, "Where
+    the time of one frame goes"). A
     unary write or Batch does not wait for them (docs/client-protocol.md).
     """
     return _Woken.count

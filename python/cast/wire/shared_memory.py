@@ -215,7 +215,8 @@ class Inbox:
     :func:`receive` makes a fresh bytes object of ``size`` for every read;
     past glibc's threshold (128 KiB) that is an ``mmap`` and a ``munmap`` each
     time, about 12 us on a warm machine, twice per frame for a reader that
-    reads until the socket is empty (docs/performance.md, M8).
+    reads until the socket is empty (docs/performance-m8.md, "Cold caches, and
+    the session's reads").
     """
 
     __slots__ = ("_view", "size")

@@ -205,7 +205,8 @@ final class Dispatcher {
   private void loop() {
     // One call per runNext: the JIT compiles a method by its calls, but this loop, entered once,
     // only by its back-edges, so the work of each call kept in it ran in the bytecode interpreter
-    // for tens of thousands of calls (docs/performance.md, M8).
+    // for tens of thousands of calls (docs/performance-m8.md, "The Java watcher's loops in the
+    // interpreter").
     while (runNext()) {
       // the next call, until the dispatcher stops
     }

@@ -413,7 +413,8 @@ final class SharedSession {
     try {
       // One read per call of readOnce: the JIT compiles a method by its calls, but this loop, entered
       // once, only by its back-edges (tens of thousands), so a frame's work kept in it ran in the
-      // bytecode interpreter for the whole of M8's phase (docs/performance.md, M8).
+      // bytecode interpreter for the whole of M8's phase (docs/performance-m8.md, "The Java watcher's
+      // loops in the interpreter").
       while (dead == null && readOnce(reader, in, buf)) {
         // every frame of the read is handled
       }
