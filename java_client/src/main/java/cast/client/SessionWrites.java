@@ -26,8 +26,10 @@ import java.util.concurrent.atomic.AtomicLong;
  *
  * <p>A request is written to the socket by the thread that sends it (no hop to another thread on
  * the way out; a socket the server does not read holds the sender back, as a full outbox holds
- * back the gRPC stream's), and answered from the session's reader thread, which reads the REPLIES
- * frames. A request past its deadline fails with DeadlineExceededError and the session is ended,
+ * back the gRPC stream's). A thread that waits for its reply reads the REPLIES frame itself when no
+ * other thread reads the socket ({@link #await}, {@link SharedSession#readUntil}), as the Python and
+ * C++ clients do; else the thread reading (the session's reader thread, or another waiting writer)
+ * answers it and wakes it. A write nobody waits for makes the reader thread read all the time. A request past its deadline fails with DeadlineExceededError and the session is ended,
  * as the Write stream ends its call, so that its other requests fail with UnavailableError ("may
  * or may not have been applied") and the next write opens a new session or goes by gRPC.
  *
@@ -48,6 +50,7 @@ final class SessionWrites {
   private boolean ended;
   private ScheduledFuture<?> watch; // the task that looks at the deadlines, or null
   private long watchAt; // System.nanoTime() when it is due
+  private volatile int followers; // threads in await waiting for another thread to read; changed under this
   /** WRITES frames sent on this session (for tests and diagnostics). */
   final AtomicLong framesSent = new AtomicLong();
 
@@ -64,14 +67,25 @@ final class SessionWrites {
     this.endpoint = endpoint;
   }
 
+  /** The future of a reply to a request sent here: {@link #await} reads it on the waiting thread. */
+  static final class Reply extends CompletableFuture<WriteReply> {
+    final SessionWrites writes;
+
+    Reply(SessionWrites writes) {
+      this.writes = writes;
+    }
+  }
+
   /**
    * Send {@code request} (its id is set here) in a WRITES frame, from this thread; the future of
    * its reply, or null, with nothing sent, once the session ended. Past {@code deadline} (null:
    * none) the future fails with DeadlineExceededError and the session ends. A frame that cannot be
-   * written ends the session, which fails this request with the others.
+   * written ends the session, which fails this request with the others. {@code waited}: a thread
+   * will wait for the reply ({@link #await}), which reads it itself; else the session's reader
+   * thread reads it (and from then on everything).
    */
-  CompletableFuture<WriteReply> send(WriteRequest.Builder request, Duration deadline) {
-    CompletableFuture<WriteReply> reply = new CompletableFuture<>();
+  Reply send(WriteRequest.Builder request, Duration deadline, boolean waited) {
+    Reply reply = new Reply(this);
     long id;
     synchronized (this) {
       if (ended) {
@@ -100,9 +114,52 @@ final class SessionWrites {
                   + " default): store large data elsewhere and keep a reference"));
       return reply;
     }
+    if (waited) {
+      session.waitedWriteSent();
+    } else {
+      session.readOn();
+    }
     session.sendNow(frame);
     framesSent.incrementAndGet();
     return reply;
+  }
+
+  /** How long a waiting writer that another thread reads for sleeps before it looks again. */
+  private static final long FOLLOW_MS = 50;
+
+  /**
+   * Wait until {@code reply} is done: read the socket on this thread while no other thread does;
+   * else wait for the thread reading to answer it, or to let the socket go. Interrupted: returns
+   * with the thread's interrupt flag set (the caller's {@code get} then says so).
+   */
+  void await(Reply reply) {
+    while (!reply.isDone()) {
+      if (session.readUntil(reply::isDone)) {
+        continue; // answered, or the session ended (which fails it)
+      }
+      synchronized (this) {
+        followers++; // before it looks who reads: a reader leaving now sees it and wakes it
+        try {
+          while (!reply.isDone() && !ended && session.reading()) {
+            wait(FOLLOW_MS);
+          }
+        } catch (InterruptedException e) {
+          Thread.currentThread().interrupt();
+          return;
+        } finally {
+          followers--;
+        }
+      }
+    }
+  }
+
+  /** A thread stopped reading the socket: the writers waiting for another thread to read look again. */
+  void readerLeft() {
+    if (followers > 0) {
+      synchronized (this) {
+        notifyAll();
+      }
+    }
   }
 
   /** Request {@code id} will not be answered here after all: no reply is expected for it. */
@@ -133,7 +190,7 @@ final class SessionWrites {
   }
 
   /**
-   * From the session's reader thread: a REPLIES frame's body answers the requests it names (a
+   * From the thread reading the socket: a REPLIES frame's body answers the requests it names (a
    * request no longer outstanding, whose deadline passed, has its error already).
    */
   void replies(ByteBuffer body) throws ShmWire.ProtocolError {
@@ -158,6 +215,11 @@ final class SessionWrites {
     for (int i = 0; i < answered.size(); i++) {
       if (answered.get(i) != null) {
         answered.get(i).complete(message.getReplies(i));
+      }
+    }
+    if (followers > 0) {
+      synchronized (this) {
+        notifyAll(); // a writer waiting while this thread read: its reply may be among these
       }
     }
   }

@@ -148,7 +148,7 @@ final class WriteStream {
     SharedSession session = link == null ? null : link.writerSession(within);
     synchronized (sendLock) {
       if (session != null) {
-        CompletableFuture<WriteReply> reply = onSession(link, session, request, deadline, within);
+        CompletableFuture<WriteReply> reply = onSession(link, session, request, deadline, within, async);
         if (reply != null) {
           return reply;
         }
@@ -177,7 +177,12 @@ final class WriteStream {
    * to take it (it ended just now, and no new one opens): the gRPC call takes it then.
    */
   private CompletableFuture<WriteReply> onSession(
-      SharedLink link, SharedSession session, WriteRequest.Builder request, Duration deadline, Duration within) {
+      SharedLink link,
+      SharedSession session,
+      WriteRequest.Builder request,
+      Duration deadline,
+      Duration within,
+      boolean async) {
     for (int attempt = 0; session != null && attempt < 2; attempt++) {
       if (closed) {
         throw closedError();
@@ -190,7 +195,7 @@ final class WriteStream {
       if (old != null && old != session) {
         old.writes().drain(DRAIN);
       }
-      CompletableFuture<WriteReply> reply = session.writes().send(request, deadline);
+      CompletableFuture<WriteReply> reply = session.writes().send(request, deadline, !async);
       if (reply != null) {
         return reply;
       }
@@ -282,6 +287,9 @@ final class WriteStream {
 
   /** The reply; a request with a deadline is failed by its call when the deadline passes. */
   private static WriteReply await(CompletableFuture<WriteReply> reply) {
+    if (reply instanceof SessionWrites.Reply r) {
+      r.writes.await(r); // this thread reads its reply on the session's socket when no other does
+    }
     try {
       return reply.get();
     } catch (ExecutionException e) {

@@ -347,6 +347,39 @@ class SharedMemoryTest {
   }
 
   @Test
+  void aCallbacksValuesAreGivenBackByTheDispatcherThreadItself() throws Exception {
+    try (RealServer server = new RealServer();
+        Connection writer = server.connect("writer", "vision", false, null);
+        Connection reader = server.connect("reader", "vision", false, null)) {
+      List<Long> sums = new CopyOnWriteArrayList<>();
+      reader.onChange(
+          Filters.addressFilter("img").withEntry(),
+          change -> {
+            long sum = 0;
+            try (ValueView view = change.view()) { // closed: the value goes back as the callback returns
+              for (ByteBuffer b = view.field(1); b.hasRemaining(); ) {
+                sum += b.get();
+              }
+            }
+            sums.add(sum);
+          });
+      writer.add("img", image(MIB, 0));
+      for (int i = 1; i < 20; i++) {
+        writer.overwrite("img", image(MIB, i));
+      }
+      RealServer.waitFor(() -> sums.size() == 20, Duration.ofSeconds(20), "twenty events");
+      waitForNothingLent(server);
+      SharedSession session = session(reader);
+      // No other thread of the reader writes on its socket but the sender's rare RECEIVED: each
+      // RELEASE went from the thread that let the value go, with no hand-off to the sender thread.
+      assertTrue(session.releasesInline.get() >= 15, "inline " + session.releasesInline.get());
+      assertTrue(
+          session.releasesBySender.get() < session.releasesInline.get(),
+          "by the sender " + session.releasesBySender.get() + ", inline " + session.releasesInline.get());
+    }
+  }
+
+  @Test
   void aLatestWatcherGivesBackTheValuesItSkipped() throws Exception {
     try (RealServer server = new RealServer();
         Connection writer = server.connect("writer", "vision", false, null);

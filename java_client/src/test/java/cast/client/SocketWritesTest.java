@@ -27,6 +27,8 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * this host ({@link RealServer}): a Java component with a session sends every write there
  * (docs/client-protocol.md, "Writes on the session's socket"), none on the gRPC Write stream. A
  * mix of staged and small values, waited for and pipelined, is applied once each in call order;
+ * a thread that waits for its write reads the reply itself until a pipelined write needs the
+ * reader thread, which reads again when the writes pause;
  * pipelined writes outstanding when the component closes are answered first; a socket that ends
  * under outstanding writes fails them with UnavailableError naming the session, and later writes
  * succeed; a write past its deadline fails with DeadlineExceededError and ends the session, failing
@@ -121,6 +123,31 @@ class SocketWritesTest {
       assertEquals(0, calls.count("WorkingMemory/Write"), calls.methods.toString());
       assertEquals(0, calls.count("WorkingMemory/Add") + calls.count("WorkingMemory/Overwrite"));
       assertEquals(8, SharedMemoryTest.metrics(shared).getStagedWrites() - stagedBefore);
+    }
+  }
+
+  @Test
+  void aThreadThatWaitsForItsWriteReadsTheReplyItselfUntilSomethingNeedsTheReader() throws Exception {
+    try (Connection writer = shared.connect("sw-own-reply", "vision", false, null)) {
+      SharedSession session = SharedMemoryTest.session(writer);
+      assertNotNull(session);
+      Thread.sleep(SharedSession.WRITER_PAUSE_MS * 2); // the reader thread reads: no write came yet
+      for (int i = 0; i < 50; i++) {
+        writer.add("sw-own" + i, value(i % 10 == 0 ? MIB : 8, i));
+      }
+      // The first reply may be read by the reader thread (it held the socket); it then leaves the
+      // socket to the writer while the writes come.
+      assertTrue(session.waiterReads.get() >= 40, "reads by the waiting writer: " + session.waiterReads.get());
+      assertFalse(session.readsAlways());
+      // Once the writes pause, the reader thread reads again: the server's end is noticed with no write.
+      Thread.sleep(SharedSession.WRITER_PAUSE_MS * 3);
+      assertTrue(session.reading(), "the reader thread waits on the socket");
+      assertNotNull(writer.addAsync("sw-own-async", value(8, 1)).get(10, TimeUnit.SECONDS));
+      assertTrue(session.readsAlways(), "a write nobody waits for: the reader thread reads all the time");
+      for (int i = 0; i < 10; i++) { // answered by whichever thread reads: the reader thread, mostly
+        writer.overwrite("sw-own" + i, value(8, i + 1));
+      }
+      assertEquals(value(8, 10), writer.get("sw-own9", BytesValue.class));
     }
   }
 
