@@ -27,7 +27,7 @@ import java.util.concurrent.atomic.AtomicLong;
  * <p>A request is written to the socket by the thread that sends it (no hop to another thread on
  * the way out; a socket the server does not read holds the sender back, as a full outbox holds
  * back the gRPC stream's). A thread that waits for its reply reads the REPLIES frame itself when no
- * other thread reads the socket ({@link #await}, {@link SharedSession#readUntil}), as the Python and
+ * other thread reads the socket ({@link #await}, {@link SessionSocket#readUntil}), as the Python and
  * C++ clients do; else the thread reading (the session's reader thread, or another waiting writer)
  * answers it and wakes it. A write nobody waits for makes the reader thread read all the time. A request past its deadline fails with DeadlineExceededError and the session is ended,
  * as the Write stream ends its call, so that its other requests fail with UnavailableError ("may
@@ -115,7 +115,7 @@ final class SessionWrites {
       return reply;
     }
     if (waited) {
-      session.waitedWriteSent();
+      session.io().waitedWriteSent();
     } else {
       session.readOn();
     }
@@ -134,13 +134,13 @@ final class SessionWrites {
    */
   void await(Reply reply) {
     while (!reply.isDone()) {
-      if (session.readUntil(reply::isDone)) {
+      if (session.io().readUntil(reply::isDone)) {
         continue; // answered, or the session ended (which fails it)
       }
       synchronized (this) {
         followers++; // before it looks who reads: a reader leaving now sees it and wakes it
         try {
-          while (!reply.isDone() && !ended && session.reading()) {
+          while (!reply.isDone() && !ended && session.io().reading()) {
             wait(FOLLOW_MS);
           }
         } catch (InterruptedException e) {

@@ -12,7 +12,6 @@ import java.io.RandomAccessFile;
 import java.nio.ByteBuffer;
 import java.nio.MappedByteBuffer;
 import java.nio.channels.FileChannel;
-import java.util.ArrayDeque;
 import java.util.ArrayList;
 import java.util.HashMap;
 import java.util.HexFormat;
@@ -21,8 +20,6 @@ import java.util.Map;
 import java.util.concurrent.ConcurrentHashMap;
 import java.util.concurrent.TimeUnit;
 import java.util.concurrent.atomic.AtomicLong;
-import java.util.concurrent.locks.ReentrantLock;
-import java.util.function.BooleanSupplier;
 import java.util.logging.Logger;
 import org.newsclub.net.unix.AFUNIXSocket;
 import org.newsclub.net.unix.FileDescriptorCast;
@@ -47,20 +44,17 @@ import org.newsclub.net.unix.FileDescriptorCast;
  *       socket"), as the identity of the token its HELLO carried ({@link #token}).
  * </ul>
  *
- * <p>Two daemon threads: one reads the socket (SEGMENT, RETIRE, REFUSED, EVENTS, REPLIES, the end:
- * a server that died is noticed at once), except while threads that wait for their writes' replies
- * read them themselves ({@link #readUntil}, {@link #readOn}); one sends what another thread was
- * writing when it was given (RELEASE, RECEIVED), so that giving a value back never waits for
- * another thread's frame. A WRITES frame is written by the thread that sends the write, a RELEASE by
- * the thread that let the value go when no other is writing (one frame at a time on the socket,
- * whoever writes it). Whichever thread reads runs an EVENTS frame's handler itself, which queues the changes on the component's dispatcher: from the kernel to the
- * dispatcher's queue on one thread; it answers the writes of a REPLIES frame after the EVENTS
- * frames before it (the server sends a write's events before its reply), and while a write waits
- * for its reply it queues events over the dispatcher's capacity rather than wait for room ({@link
+ * <p>Its socket's threads, which thread reads and which writes when, are {@link SessionSocket}'s.
+ * Whichever thread reads runs an EVENTS frame's handler itself, which queues the changes on the
+ * component's dispatcher: from the kernel to the dispatcher's queue on one thread; it answers the
+ * writes of a REPLIES frame after the EVENTS frames before it (the server sends a write's events
+ * before its reply), and while a write waits for its reply it queues events over the dispatcher's
+ * capacity rather than wait for room ({@link
  * #mustRead}). Segments are mapped with {@link FileChannel#map}; a segment the server retired,
  * or every segment once the session ended, is unmapped as soon as no lease of it is held (the
  * memory of a dead server goes at once, not at some later garbage collection). So a buffer taken
- * from a view must not be read after the view was closed: its memory may be gone. The staging area is unmapped when the session ends. The twin of
+ * from a view must not be read after the view was closed: its memory may be gone. The staging area
+ * is unmapped when the session ends. The twin of
  * python/cast/client/shm_session.py and cpp_client/src/shm_session.cc; {@link SharedLink}
  * opens it.
  */
@@ -81,27 +75,11 @@ final class SharedSession {
   /** The token its HELLO carried: the identity of the writes on its socket. */
   final String token;
   private final AFUNIXSocket socket;
+  private final SessionSocket io; // who reads the socket and who writes it
   private final SessionWrites writes;
-  // Held while a frame is written to the socket (frames whole); a lock rather than a monitor so that a
-  // value given back is sent by the thread that let it go when no one else is writing (sendGivenBack).
-  private final ReentrantLock writing = new ReentrantLock();
-  private volatile OutputStream out; // set by start
-  // Held by the thread that reads the socket: the reader thread, or a thread waiting for its write's
-  // reply, which reads it itself (readUntil). The three below are used under it only.
-  private final ReentrantLock reading = new ReentrantLock();
-  private ShmWire.Reader frames; // set by start
-  private InputStream in; // set by start
-  private byte[] readBuffer; // made by the first read
-  // The reader thread reads on (rather than leave the socket to waiting writers while they write):
-  // something came that no thread waits for. Set once, by readOn.
-  private volatile boolean readAlways;
-  // System.nanoTime() when a write that a thread waits for was last sent (long before, at first).
-  private volatile long lastWaited = System.nanoTime() - TimeUnit.MILLISECONDS.toNanos(2 * WRITER_PAUSE_MS);
   private final ShmStaging staging;
-  private final Object lock = new Object(); // segments, dead, calls, the outbox
+  private final Object lock = new Object(); // segments, dead, calls
   private final Map<Long, Segment> segments = new HashMap<>(); // mapped, by id
-  private final ArrayDeque<byte[]> outbox = new ArrayDeque<>();
-  private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE
   private long calls;
   private volatile String dead; // why the session ended, null while it lives
   // call number -> what takes that watch call's EVENTS frames (run on the reader thread)
@@ -109,12 +87,6 @@ final class SharedSession {
   private int segmentWaiters; // threads waiting in awaitSegment; guarded by lock
   /** EVENTS frames read on this session (for tests and diagnostics). */
   final AtomicLong eventFrames = new AtomicLong();
-  /** Reads of the socket by threads waiting for their write's reply (for tests and diagnostics). */
-  final AtomicLong waiterReads = new AtomicLong();
-  /** RELEASE frames sent by the thread that let the values go (for tests and diagnostics). */
-  final AtomicLong releasesInline = new AtomicLong();
-  /** RELEASE frames sent by the sender thread, another thread writing then (for tests and diagnostics). */
-  final AtomicLong releasesBySender = new AtomicLong();
 
   /**
    * What takes one watch call's EVENTS frames: {@link #frame} runs on the session's reader
@@ -140,6 +112,26 @@ final class SharedSession {
     this.socket = socket;
     this.token = token;
     this.writes = new SessionWrites(this, endpoint);
+    this.io =
+        new SessionSocket(
+            socket,
+            endpoint,
+            new SessionSocket.Owner() {
+              @Override
+              public void handle(ShmWire.Frame frame) {
+                SharedSession.this.handle(frame);
+              }
+
+              @Override
+              public void end(String why) {
+                SharedSession.this.end(why);
+              }
+
+              @Override
+              public void readerLeft() {
+                writes.readerLeft();
+              }
+            });
     this.id = welcome.session();
     this.idHex = HexFormat.of().formatHex(id);
     this.serverId = HexFormat.of().formatHex(welcome.serverId());
@@ -150,113 +142,27 @@ final class SharedSession {
   }
 
   /**
-   * Start reading and sending (once the session passed the client's checks). While only writes
-   * that a thread waits for use the session, each such thread reads its own reply ({@link
-   * #readUntil}), and the reader thread reads only once they paused for {@link #WRITER_PAUSE_MS}
-   * (so that a server that dies is noticed and its memory let go). Once something comes that no
-   * thread waits for (a watch's events, a read call's values, the replies of writes nobody waits
-   * for: {@link #readOn}), the reader thread reads all the time.
+   * Start reading and sending (once the session passed the client's checks): {@link
+   * SessionSocket} says which thread reads and writes when.
    */
   void start(List<ShmWire.Frame> already, ShmWire.Reader reader, InputStream in, OutputStream out) {
-    this.out = out;
-    reading.lock();
-    try {
-      this.frames = reader;
-      this.in = in;
-    } finally {
-      reading.unlock();
-    }
     for (ShmWire.Frame f : already) {
       handle(f);
     }
-    Thread r = new Thread(this::readLoop, "cast-shm-read-" + endpoint);
-    r.setDaemon(true);
-    r.start();
-    Thread s = new Thread(() -> sendLoop(out), "cast-shm-send-" + endpoint);
-    s.setDaemon(true);
-    s.start();
+    io.start(reader, in, out);
+  }
+
+  /** Who reads this session's socket and who writes it. */
+  SessionSocket io() {
+    return io;
   }
 
   /**
-   * How long the writes that threads wait for must pause before the reader thread reads the
-   * socket again (while it does, such a write is answered by it instead of reading its reply
-   * itself: one wake-up more).
-   */
-  static final long WRITER_PAUSE_MS = 100;
-
-  /**
-   * From now on the reader thread reads all the time: something comes that no thread waits for (a
-   * watch's events, the segment a read call's value is in, the replies of writes nobody waits for).
+   * From now on the session's reader thread reads all the time: something may come that no thread
+   * waits for ({@link SessionSocket#readOn}).
    */
   void readOn() {
-    if (!readAlways) {
-      synchronized (lock) {
-        readAlways = true;
-        lock.notifyAll(); // the reader thread, waiting for the writers' pause
-      }
-    }
-  }
-
-  /** Whether the reader thread reads all the time now (for tests and diagnostics). */
-  boolean readsAlways() {
-    return readAlways;
-  }
-
-  /** A write that a thread will wait for is being sent: that thread reads its reply. */
-  void waitedWriteSent() {
-    lastWaited = System.nanoTime();
-  }
-
-  /** Whether a thread reads the socket now (it says so when it stops: {@link SessionWrites#readerLeft}). */
-  boolean reading() {
-    return reading.isLocked();
-  }
-
-  /**
-   * Read and handle what comes, on this thread, until {@code done} or the session ended; false at
-   * once when another thread reads (it handles what comes). A thread waiting for its write's reply
-   * reads it itself this way, rather than be woken by the reader thread that read it (as the
-   * Python and C++ clients do). It blocks in the socket's read: a reply past its deadline ends the
-   * session ({@link SessionWrites}), which closes the socket and ends the read.
-   */
-  boolean readUntil(BooleanSupplier done) {
-    if (dead != null) {
-      return true;
-    }
-    if (!reading.tryLock()) {
-      return false;
-    }
-    String failed = null;
-    try {
-      while (dead == null && !done.getAsBoolean()) {
-        waiterReads.incrementAndGet();
-        if (!readOnce()) {
-          break;
-        }
-      }
-    } catch (IOException e) {
-      failed = "read failed: " + e.getMessage();
-    } catch (ShmWire.ProtocolError e) {
-      failed = e.getMessage();
-    } finally {
-      stopReading();
-    }
-    if (failed != null) {
-      end(failed);
-    }
-    return true;
-  }
-
-  /** Let the socket go: a writer waiting for a reader reads next; what a dead session left is closed. */
-  private void stopReading() {
-    try {
-      if (dead != null && frames != null) {
-        closeAll(frames.stray().toArray(new FileDescriptor[0]));
-      }
-    } finally {
-      reading.unlock();
-      writes.readerLeft();
-    }
+    io.readOn();
   }
 
   /** Why the session ended, or null while it lives. */
@@ -467,217 +373,35 @@ final class SharedSession {
   }
 
   /**
-   * A lease's last holder let go: RELEASE it ({@link #sendGivenBack}; nothing once the session
-   * ended), and unmap its segment if that was retired and this was its last lease.
+   * A lease's last holder let go: RELEASE it ({@link SessionSocket#giveBack}; nothing once the
+   * session ended), and unmap its segment if that was retired and this was its last lease.
    */
   private void giveBack(long valueId, Segment segment) {
     boolean unmap = false;
-    boolean queued = false;
     synchronized (lock) {
-      if (dead == null) {
-        givenBack.add(valueId);
-        queued = true;
-      }
       if (segment != null) {
         segment.held--;
         unmap = segment.retired && segment.held == 0;
       }
     }
-    if (queued) {
-      sendGivenBack();
+    if (dead == null) {
+      io.giveBack(valueId);
     }
     if (unmap) {
       ShmStaging.unmap(segment.map);
     }
   }
 
-  /**
-   * Send the RELEASE of what was given back from this thread when no other is writing, as the
-   * Python and C++ clients do, rather than wake the sender thread for every value a watcher lets
-   * go. Else the sender thread sends it (it is woken), so that letting a value go never waits for
-   * another thread's write.
-   */
-  private void sendGivenBack() {
-    if (!writing.tryLock()) {
-      synchronized (lock) {
-        lock.notifyAll();
-      }
-      return;
-    }
-    String failed = null;
-    try {
-      List<Long> ids;
-      synchronized (lock) {
-        if (dead != null || givenBack.isEmpty()) {
-          return; // sent meanwhile by the sender thread
-        }
-        ids = new ArrayList<>(givenBack);
-        givenBack.clear();
-      }
-      for (byte[] f : ShmWire.release(ids)) {
-        out.write(f);
-        releasesInline.incrementAndGet();
-      }
-      out.flush();
-    } catch (IOException e) {
-      failed = "write failed: " + e.getMessage();
-    } finally {
-      writing.unlock();
-    }
-    if (failed != null) {
-      end(failed);
-    }
-  }
-
   // ------------------------------------------------------------------ frames
 
-  /**
-   * Write {@code frame} to the socket from this thread, whole, after any frame being written (nothing
-   * once the session ended). A write that fails ends the session.
-   */
+  /** Write {@code frame} to the socket from this thread, whole ({@link SessionSocket#sendNow}). */
   void sendNow(byte[] frame) {
-    if (dead != null) {
-      return;
-    }
-    String failed = null;
-    writing.lock();
-    try {
-      out.write(frame);
-      out.flush();
-    } catch (IOException e) {
-      failed = "write failed: " + e.getMessage();
-    } finally {
-      writing.unlock();
-    }
-    if (failed != null) {
-      end(failed);
-    }
+    io.sendNow(frame);
   }
 
   /** Queue a frame for the sender thread (nothing once the session ended). */
   void send(byte[] frame) {
-    synchronized (lock) {
-      if (dead == null) {
-        outbox.add(frame);
-        lock.notifyAll();
-      }
-    }
-  }
-
-  private void sendLoop(OutputStream out) {
-    try {
-      while (sendOnce(out)) { // a method per turn, as readOnce, so that the JIT compiles it
-        // what was queued is sent
-      }
-    } catch (IOException e) {
-      end("write failed: " + e.getMessage());
-    } catch (InterruptedException e) {
-      end("interrupted");
-    }
-  }
-
-  private void readLoop() {
-    // One read per call of readTurn: the JIT compiles a method by its calls, but this loop, entered
-    // once, only by its back-edges (tens of thousands), so a frame's work kept in it ran in the
-    // bytecode interpreter for the whole of M8's phase (docs/performance-m8.md, "The Java watcher's
-    // loops in the interpreter").
-    while (dead == null && (writersPause() || readTurn())) {
-      // every frame of the read is handled
-    }
-  }
-
-  /**
-   * While writes that threads wait for come, and nothing else needs the reader, wait until they
-   * paused for {@link #WRITER_PAUSE_MS} (or something needs it); true if it waited.
-   */
-  private boolean writersPause() {
-    long left = TimeUnit.MILLISECONDS.toNanos(WRITER_PAUSE_MS) - (System.nanoTime() - lastWaited);
-    if (readAlways || left <= 0) {
-      return false;
-    }
-    synchronized (lock) {
-      if (!readAlways && dead == null) {
-        try {
-          TimeUnit.NANOSECONDS.timedWait(lock, left);
-        } catch (InterruptedException e) {
-          end("interrupted");
-        }
-      }
-    }
-    return true;
-  }
-
-  /**
-   * One read of the reader thread, holding the socket meanwhile (a waiting writer then waits for
-   * its reply from this thread); false once the session ended.
-   */
-  private boolean readTurn() {
-    String failed = null;
-    boolean more = false;
-    reading.lock();
-    try {
-      more = dead == null && readOnce();
-    } catch (IOException e) {
-      failed = "read failed: " + e.getMessage();
-    } catch (ShmWire.ProtocolError e) {
-      failed = e.getMessage();
-    } finally {
-      stopReading();
-    }
-    if (failed != null) {
-      end(failed);
-    }
-    return more;
-  }
-
-  /**
-   * One read of the socket and the frames it completed (holding {@link #reading}); false once the
-   * server closed the session.
-   */
-  private boolean readOnce() throws IOException, ShmWire.ProtocolError {
-    if (readBuffer == null) {
-      readBuffer = new byte[ShmWire.MAX_FRAME];
-    }
-    int n = in.read(readBuffer);
-    FileDescriptor[] fds = socket.getReceivedFileDescriptors();
-    if (n < 0) {
-      closeAll(fds);
-      end("the server closed the session");
-      return false;
-    }
-    for (ShmWire.Frame frame : frames.feed(readBuffer, n, fds)) {
-      handle(frame);
-    }
-    return true;
-  }
-
-  /** Wait for frames to send and send them; false once the session ended. */
-  private boolean sendOnce(OutputStream out) throws IOException, InterruptedException {
-    List<byte[]> frames = new ArrayList<>();
-    synchronized (lock) {
-      while (dead == null && outbox.isEmpty() && givenBack.isEmpty()) {
-        lock.wait();
-      }
-      if (dead != null) {
-        return false;
-      }
-      List<byte[]> releases = ShmWire.release(givenBack); // gathered: many leases, one frame
-      releasesBySender.addAndGet(releases.size());
-      frames.addAll(releases);
-      givenBack.clear();
-      frames.addAll(outbox);
-      outbox.clear();
-    }
-    writing.lock();
-    try {
-      for (byte[] f : frames) {
-        out.write(f);
-      }
-      out.flush();
-    } finally {
-      writing.unlock();
-    }
-    return true;
+    io.send(frame);
   }
 
   private void handle(ShmWire.Frame frame) {
@@ -748,9 +472,7 @@ final class SharedSession {
       dead = why == null ? "closed" : why;
       mapped = new ArrayList<>(segments.values());
       segments.clear();
-      givenBack.clear();
-      outbox.clear();
-      lock.notifyAll(); // claims waiting for a segment, and the sender, see the end
+      lock.notifyAll(); // claims waiting for a segment see the end
     }
     mapped.forEach(this::retire); // each unmapped once no value of it is held
     LOG.fine("shared-memory session with " + endpoint + " ended: " + why);
@@ -761,15 +483,7 @@ final class SharedSession {
         handler.sessionEnded(dead);
       }
     }
-    try {
-      socket.close();
-    } catch (IOException e) {
-      LOG.fine("closing the shared-memory socket: " + e.getMessage());
-    }
-    // Else the thread reading (this one, maybe, inside a frame's handling) sees the end and does it.
-    if (!reading.isHeldByCurrentThread() && reading.tryLock()) {
-      stopReading();
-    }
+    io.close();
     staging.close();
   }
 

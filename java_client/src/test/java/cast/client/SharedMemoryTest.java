@@ -372,10 +372,10 @@ class SharedMemoryTest {
       SharedSession session = session(reader);
       // No other thread of the reader writes on its socket but the sender's rare RECEIVED: each
       // RELEASE went from the thread that let the value go, with no hand-off to the sender thread.
-      assertTrue(session.releasesInline.get() >= 15, "inline " + session.releasesInline.get());
+      assertTrue(session.io().releasesInline.get() >= 15, "inline " + session.io().releasesInline.get());
       assertTrue(
-          session.releasesBySender.get() < session.releasesInline.get(),
-          "by the sender " + session.releasesBySender.get() + ", inline " + session.releasesInline.get());
+          session.io().releasesBySender.get() < session.io().releasesInline.get(),
+          "by the sender " + session.io().releasesBySender.get() + ", inline " + session.io().releasesInline.get());
     }
   }
 

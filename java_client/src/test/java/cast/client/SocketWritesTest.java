@@ -131,19 +131,19 @@ class SocketWritesTest {
     try (Connection writer = shared.connect("sw-own-reply", "vision", false, null)) {
       SharedSession session = SharedMemoryTest.session(writer);
       assertNotNull(session);
-      Thread.sleep(SharedSession.WRITER_PAUSE_MS * 2); // the reader thread reads: no write came yet
+      Thread.sleep(SessionSocket.WRITER_PAUSE_MS * 2); // the reader thread reads: no write came yet
       for (int i = 0; i < 50; i++) {
         writer.add("sw-own" + i, value(i % 10 == 0 ? MIB : 8, i));
       }
       // The first reply may be read by the reader thread (it held the socket); it then leaves the
       // socket to the writer while the writes come.
-      assertTrue(session.waiterReads.get() >= 40, "reads by the waiting writer: " + session.waiterReads.get());
-      assertFalse(session.readsAlways());
+      assertTrue(session.io().waiterReads.get() >= 40, "reads by the waiting writer: " + session.io().waiterReads.get());
+      assertFalse(session.io().readsAlways());
       // Once the writes pause, the reader thread reads again: the server's end is noticed with no write.
-      Thread.sleep(SharedSession.WRITER_PAUSE_MS * 3);
-      assertTrue(session.reading(), "the reader thread waits on the socket");
+      Thread.sleep(SessionSocket.WRITER_PAUSE_MS * 3);
+      assertTrue(session.io().reading(), "the reader thread waits on the socket");
       assertNotNull(writer.addAsync("sw-own-async", value(8, 1)).get(10, TimeUnit.SECONDS));
-      assertTrue(session.readsAlways(), "a write nobody waits for: the reader thread reads all the time");
+      assertTrue(session.io().readsAlways(), "a write nobody waits for: the reader thread reads all the time");
       for (int i = 0; i < 10; i++) { // answered by whichever thread reads: the reader thread, mostly
         writer.overwrite("sw-own" + i, value(8, i + 1));
       }

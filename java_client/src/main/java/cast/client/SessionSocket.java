@@ -1,0 +1,401 @@
+package cast.client;
+
+import java.io.FileDescriptor;
+import java.io.IOException;
+import java.io.InputStream;
+import java.io.OutputStream;
+import java.util.ArrayDeque;
+import java.util.ArrayList;
+import java.util.List;
+import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicLong;
+import java.util.concurrent.locks.ReentrantLock;
+import java.util.function.BooleanSupplier;
+import java.util.logging.Logger;
+import org.newsclub.net.unix.AFUNIXSocket;
+
+/**
+ * The Unix socket of one shared-memory session (docs/client-protocol.md, "Large values by shared
+ * memory"): which thread reads it and which writes it. What the frames mean is the {@link Owner}'s
+ * ({@link SharedSession}).
+ *
+ * <p>Reading. One thread at a time reads, holding {@link #reading}, and handles every frame of what
+ * it read before it lets go, so frames are handled in the order they came. A thread waiting for
+ * its write's reply reads it itself when no other thread reads ({@link #readUntil}), as the Python
+ * and C++ clients' waiting threads do, rather than be woken by a reader thread that read it. The
+ * reader thread reads whenever something may come that no thread waits for: from the start, until
+ * writes that threads wait for come (it then leaves the socket to them, and reads again once they
+ * paused for {@link #WRITER_PAUSE_MS}, so that a server that dies is noticed and its memory let go
+ * without another write); all the time once a watch's events, a read call's values or a write
+ * nobody waits for may come ({@link #readOn}). Reads block with no timeout (junixsocket's read
+ * timeout would bound the socket's writes too): the session's end closes the socket, which ends
+ * them.
+ *
+ * <p>Writing. One frame at a time, whole, holding {@link #writing}: a write's WRITES frame by the
+ * thread that sends the write ({@link #sendNow}), a RELEASE by the thread that let the value go
+ * when no other is writing ({@link #giveBack}), the rest (RECEIVED, and a RELEASE while another
+ * thread was writing) by the sender thread, so that giving a value back never waits for another
+ * thread's frame.
+ */
+final class SessionSocket {
+  private static final Logger LOG = Logger.getLogger("cast.client");
+
+  /**
+   * How long the writes that threads wait for must pause before the reader thread reads the
+   * socket again (while it does, such a write is answered by it instead of reading its reply
+   * itself: one wake-up more).
+   */
+  static final long WRITER_PAUSE_MS = 100;
+
+  /** What the session does with the socket's frames and its failures. */
+  interface Owner {
+    /** A frame read, on the thread that read it, in the order read. */
+    void handle(ShmWire.Frame frame);
+
+    /** The socket failed or the server closed it ({@code why}): the session ends (and closes this). */
+    void end(String why);
+
+    /** A thread stopped reading: the writes waiting for another thread to read look again. */
+    void readerLeft();
+  }
+
+  private final AFUNIXSocket socket;
+  private final String endpoint;
+  private final Owner owner;
+  // Held while a frame is written (frames whole); a lock rather than a monitor for giveBack's tryLock.
+  private final ReentrantLock writing = new ReentrantLock();
+  private volatile OutputStream out; // set by start
+  // Held by the thread that reads; the three below are used under it only.
+  private final ReentrantLock reading = new ReentrantLock();
+  private ShmWire.Reader frames; // set by start
+  private InputStream in; // set by start
+  private byte[] readBuffer; // made by the first read
+  private final Object queue = new Object(); // the outbox, what was given back, the reader's pause
+  private final ArrayDeque<byte[]> outbox = new ArrayDeque<>(); // guarded by queue
+  private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE; guarded by queue
+  private volatile boolean closed;
+  // The reader thread reads all the time: something may come that no thread waits for. Set once, by readOn.
+  private volatile boolean readAlways;
+  // System.nanoTime() when a write that a thread waits for was last sent (long before, at first).
+  private volatile long lastWaited = System.nanoTime() - TimeUnit.MILLISECONDS.toNanos(2 * WRITER_PAUSE_MS);
+  /** Reads by threads waiting for their write's reply (for tests and diagnostics). */
+  final AtomicLong waiterReads = new AtomicLong();
+  /** RELEASE frames sent by the thread that let the values go (for tests and diagnostics). */
+  final AtomicLong releasesInline = new AtomicLong();
+  /** RELEASE frames sent by the sender thread, another thread writing then (for tests and diagnostics). */
+  final AtomicLong releasesBySender = new AtomicLong();
+
+  /** The socket of a session with the server at {@code endpoint}, whose frames go to {@code owner}. */
+  SessionSocket(AFUNIXSocket socket, String endpoint, Owner owner) {
+    this.socket = socket;
+    this.endpoint = endpoint;
+    this.owner = owner;
+  }
+
+  /** Start the reader and sender threads, on the socket's streams and what remains of its {@code reader}. */
+  void start(ShmWire.Reader reader, InputStream in, OutputStream out) {
+    this.out = out;
+    reading.lock();
+    try {
+      this.frames = reader;
+      this.in = in;
+    } finally {
+      reading.unlock();
+    }
+    Thread r = new Thread(this::readLoop, "cast-shm-read-" + endpoint);
+    r.setDaemon(true);
+    r.start();
+    Thread s = new Thread(this::sendLoop, "cast-shm-send-" + endpoint);
+    s.setDaemon(true);
+    s.start();
+  }
+
+  // ----------------------------------------------------------------- reading
+
+  /**
+   * From now on the reader thread reads all the time: something may come that no thread waits
+   * for (a watch's events, the segment a read call's value is in, the replies of writes nobody
+   * waits for).
+   */
+  void readOn() {
+    if (!readAlways) {
+      synchronized (queue) {
+        readAlways = true;
+        queue.notifyAll(); // the reader thread, waiting for the writers' pause
+      }
+    }
+  }
+
+  /** Whether the reader thread reads all the time now (for tests and diagnostics). */
+  boolean readsAlways() {
+    return readAlways;
+  }
+
+  /** A write that a thread will wait for is being sent: that thread reads its reply. */
+  void waitedWriteSent() {
+    lastWaited = System.nanoTime();
+  }
+
+  /** Whether a thread reads the socket now (it says so when it stops: {@link Owner#readerLeft}). */
+  boolean reading() {
+    return reading.isLocked();
+  }
+
+  /**
+   * Read and handle what comes, on this thread, until {@code done} or the socket closed; false at
+   * once when another thread reads (it handles what comes). A reply past its deadline ends the
+   * session ({@link SessionWrites}), which closes the socket and so ends the read.
+   */
+  boolean readUntil(BooleanSupplier done) {
+    if (closed) {
+      return true;
+    }
+    if (!reading.tryLock()) {
+      return false;
+    }
+    String failed = null;
+    try {
+      while (!closed && !done.getAsBoolean()) {
+        waiterReads.incrementAndGet();
+        if (!readOnce()) {
+          break;
+        }
+      }
+    } catch (IOException e) {
+      failed = "read failed: " + e.getMessage();
+    } catch (ShmWire.ProtocolError e) {
+      failed = e.getMessage();
+    } finally {
+      stopReading();
+    }
+    if (failed != null) {
+      owner.end(failed);
+    }
+    return true;
+  }
+
+  /** Let the socket go: a writer waiting for a reader reads next; what a closed socket left is closed. */
+  private void stopReading() {
+    try {
+      if (closed && frames != null) {
+        SharedSession.closeAll(frames.stray().toArray(new FileDescriptor[0]));
+      }
+    } finally {
+      reading.unlock();
+      owner.readerLeft();
+    }
+  }
+
+  private void readLoop() {
+    // One read per call of readTurn: the JIT compiles a method by its calls, but this loop, entered
+    // once, only by its back-edges (tens of thousands), so a frame's work kept in it ran in the
+    // bytecode interpreter for the whole of M8's phase (docs/performance-m8.md, "The Java watcher's
+    // loops in the interpreter").
+    while (!closed && (writersPause() || readTurn())) {
+      // every frame of the read is handled
+    }
+  }
+
+  /**
+   * While writes that threads wait for come, and nothing else needs the reader, wait until they
+   * paused for {@link #WRITER_PAUSE_MS} (or something needs it); true if it waited.
+   */
+  private boolean writersPause() {
+    long left = TimeUnit.MILLISECONDS.toNanos(WRITER_PAUSE_MS) - (System.nanoTime() - lastWaited);
+    if (readAlways || left <= 0) {
+      return false;
+    }
+    synchronized (queue) {
+      if (!readAlways && !closed) {
+        try {
+          TimeUnit.NANOSECONDS.timedWait(queue, left);
+        } catch (InterruptedException e) {
+          owner.end("interrupted");
+        }
+      }
+    }
+    return true;
+  }
+
+  /** One read of the reader thread, holding the socket meanwhile; false once the socket closed. */
+  private boolean readTurn() {
+    String failed = null;
+    boolean more = false;
+    reading.lock();
+    try {
+      more = !closed && readOnce();
+    } catch (IOException e) {
+      failed = "read failed: " + e.getMessage();
+    } catch (ShmWire.ProtocolError e) {
+      failed = e.getMessage();
+    } finally {
+      stopReading();
+    }
+    if (failed != null) {
+      owner.end(failed);
+    }
+    return more;
+  }
+
+  /** One read and the frames it completed (holding {@link #reading}); false once the server closed the socket. */
+  private boolean readOnce() throws IOException, ShmWire.ProtocolError {
+    if (readBuffer == null) {
+      readBuffer = new byte[ShmWire.MAX_FRAME];
+    }
+    int n = in.read(readBuffer);
+    FileDescriptor[] fds = socket.getReceivedFileDescriptors();
+    if (n < 0) {
+      SharedSession.closeAll(fds);
+      owner.end("the server closed the session");
+      return false;
+    }
+    for (ShmWire.Frame frame : frames.feed(readBuffer, n, fds)) {
+      owner.handle(frame);
+    }
+    return true;
+  }
+
+  // ----------------------------------------------------------------- writing
+
+  /**
+   * Write {@code frame} from this thread, whole, after any frame being written (nothing once the
+   * socket closed). A write that fails ends the session.
+   */
+  void sendNow(byte[] frame) {
+    if (closed) {
+      return;
+    }
+    String failed = null;
+    writing.lock();
+    try {
+      out.write(frame);
+      out.flush();
+    } catch (IOException e) {
+      failed = "write failed: " + e.getMessage();
+    } finally {
+      writing.unlock();
+    }
+    if (failed != null) {
+      owner.end(failed);
+    }
+  }
+
+  /** Queue a frame for the sender thread (nothing once the socket closed). */
+  void send(byte[] frame) {
+    synchronized (queue) {
+      if (!closed) {
+        outbox.add(frame);
+        queue.notifyAll();
+      }
+    }
+  }
+
+  /**
+   * Give value {@code valueId} back (RELEASE): from this thread when no other is writing, as the
+   * Python and C++ clients do, rather than wake the sender thread for every value a watcher lets
+   * go; else the sender thread sends it (it is woken), so that letting a value go never waits for
+   * another thread's write.
+   */
+  void giveBack(long valueId) {
+    synchronized (queue) {
+      if (closed) {
+        return;
+      }
+      givenBack.add(valueId);
+    }
+    if (!writing.tryLock()) {
+      synchronized (queue) {
+        queue.notifyAll();
+      }
+      return;
+    }
+    String failed = null;
+    try {
+      List<Long> ids;
+      synchronized (queue) {
+        if (closed || givenBack.isEmpty()) {
+          return; // sent meanwhile by the sender thread
+        }
+        ids = new ArrayList<>(givenBack);
+        givenBack.clear();
+      }
+      for (byte[] f : ShmWire.release(ids)) {
+        out.write(f);
+        releasesInline.incrementAndGet();
+      }
+      out.flush();
+    } catch (IOException e) {
+      failed = "write failed: " + e.getMessage();
+    } finally {
+      writing.unlock();
+    }
+    if (failed != null) {
+      owner.end(failed);
+    }
+  }
+
+  private void sendLoop() {
+    try {
+      while (sendOnce()) { // a method per turn, as readTurn, so that the JIT compiles it
+        // what was queued is sent
+      }
+    } catch (IOException e) {
+      owner.end("write failed: " + e.getMessage());
+    } catch (InterruptedException e) {
+      owner.end("interrupted");
+    }
+  }
+
+  /** Wait for frames to send and send them; false once the socket closed. */
+  private boolean sendOnce() throws IOException, InterruptedException {
+    List<byte[]> sending = new ArrayList<>();
+    synchronized (queue) {
+      while (!closed && outbox.isEmpty() && givenBack.isEmpty()) {
+        queue.wait();
+      }
+      if (closed) {
+        return false;
+      }
+      List<byte[]> releases = ShmWire.release(givenBack); // gathered: many leases, one frame
+      releasesBySender.addAndGet(releases.size());
+      sending.addAll(releases);
+      givenBack.clear();
+      sending.addAll(outbox);
+      outbox.clear();
+    }
+    writing.lock();
+    try {
+      for (byte[] f : sending) {
+        out.write(f);
+      }
+      out.flush();
+    } finally {
+      writing.unlock();
+    }
+    return true;
+  }
+
+  // ------------------------------------------------------------------- end
+
+  /**
+   * Close the socket (the session ended): nothing more is sent, the thread reading sees its end,
+   * the descriptors of a frame cut short are closed. Idempotent.
+   */
+  void close() {
+    synchronized (queue) {
+      closed = true;
+      givenBack.clear();
+      outbox.clear();
+      queue.notifyAll(); // the sender, and the reader waiting for the writers' pause, see the end
+    }
+    try {
+      socket.close();
+    } catch (IOException e) {
+      LOG.fine("closing the shared-memory socket: " + e.getMessage());
+    }
+    // Else the thread reading (this one, maybe, inside a frame's handling) sees the end and does it.
+    if (!reading.isHeldByCurrentThread() && reading.tryLock()) {
+      stopReading();
+    }
+  }
+}
