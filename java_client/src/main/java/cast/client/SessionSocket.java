@@ -8,6 +8,7 @@ import java.util.ArrayDeque;
 import java.util.ArrayList;
 import java.util.List;
 import java.util.concurrent.TimeUnit;
+import java.util.concurrent.atomic.AtomicInteger;
 import java.util.concurrent.atomic.AtomicLong;
 import java.util.concurrent.locks.ReentrantLock;
 import java.util.function.BooleanSupplier;
@@ -26,8 +27,9 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * reader thread reads whenever something may come that no thread waits for: from the start, until
  * writes that threads wait for come (it then leaves the socket to them, and reads again once they
  * paused for {@link #WRITER_PAUSE_MS}, so that a server that dies is noticed and its memory let go
- * without another write); all the time once a watch's events, a read call's values or a write
- * nobody waits for may come ({@link #readOn}). Reads block with no timeout (junixsocket's read
+ * without another write); while a lock request waits, since a thread blocked in the socket's read
+ * cannot be interrupted and a lock may wait long ({@link #readFor}); all the time once a watch's
+ * events, a read call's values or a write nobody waits for may come ({@link #readOn}). Reads block with no timeout (junixsocket's read
  * timeout would bound the socket's writes too): the session's end closes the socket, which ends
  * them.
  *
@@ -76,6 +78,8 @@ final class SessionSocket {
   private volatile boolean closed;
   // The reader thread reads all the time: something may come that no thread waits for. Set once, by readOn.
   private volatile boolean readAlways;
+  // Requests whose waiting thread does not read (locks, which may wait long): the reader thread reads meanwhile.
+  private final AtomicInteger readingFor = new AtomicInteger();
   // System.nanoTime() when a write that a thread waits for was last sent (long before, at first).
   private volatile long lastWaited = System.nanoTime() - TimeUnit.MILLISECONDS.toNanos(2 * WRITER_PAUSE_MS);
   /** Reads by threads waiting for their write's reply (for tests and diagnostics). */
@@ -134,6 +138,24 @@ final class SessionSocket {
   /** A write that a thread will wait for is being sent: that thread reads its reply. */
   void waitedWriteSent() {
     lastWaited = System.nanoTime();
+  }
+
+  /**
+   * A request is being sent whose waiting thread will not read its reply (a lock, which may wait
+   * long: a thread blocked in the socket's read cannot be interrupted): the reader thread reads
+   * until {@link #readDone}.
+   */
+  void readFor() {
+    if (readingFor.getAndIncrement() == 0) {
+      synchronized (queue) {
+        queue.notifyAll(); // the reader thread, waiting for the writers' pause
+      }
+    }
+  }
+
+  /** The reply of a request {@link #readFor} was for came (or never will). */
+  void readDone() {
+    readingFor.decrementAndGet();
   }
 
   /** Whether a thread reads the socket now (it says so when it stops: {@link Owner#readerLeft}). */
@@ -202,11 +224,11 @@ final class SessionSocket {
    */
   private boolean writersPause() {
     long left = TimeUnit.MILLISECONDS.toNanos(WRITER_PAUSE_MS) - (System.nanoTime() - lastWaited);
-    if (readAlways || left <= 0) {
+    if (readAlways || left <= 0 || readingFor.get() > 0) {
       return false;
     }
     synchronized (queue) {
-      if (!readAlways && !closed) {
+      if (!readAlways && !closed && readingFor.get() == 0) {
         try {
           TimeUnit.NANOSECONDS.timedWait(queue, left);
         } catch (InterruptedException e) {

@@ -70,9 +70,12 @@ final class SessionWrites {
   /** The future of a reply to a request sent here: {@link #await} reads it on the waiting thread. */
   static final class Reply extends CompletableFuture<WriteReply> {
     final SessionWrites writes;
+    /** The waiting thread reads the reply itself (not for a lock: see {@link SessionSocket#readFor}). */
+    final boolean readsItself;
 
-    Reply(SessionWrites writes) {
+    Reply(SessionWrites writes, boolean readsItself) {
       this.writes = writes;
+      this.readsItself = readsItself;
     }
   }
 
@@ -85,7 +88,10 @@ final class SessionWrites {
    * thread reads it (and from then on everything).
    */
   Reply send(WriteRequest.Builder request, Duration deadline, boolean waited) {
-    Reply reply = new Reply(this);
+    // A lock may wait long, and a thread blocked in the socket's read cannot be interrupted: the
+    // reader thread reads its reply, and its waiting thread waits on the future as before.
+    boolean lock = request.getOperationCase() == WriteRequest.OperationCase.LOCK;
+    Reply reply = new Reply(this, waited && !lock);
     long id;
     synchronized (this) {
       if (ended) {
@@ -114,8 +120,12 @@ final class SessionWrites {
                   + " default): store large data elsewhere and keep a reference"));
       return reply;
     }
-    if (waited) {
+    if (reply.readsItself) {
       session.io().waitedWriteSent();
+    } else if (waited) {
+      SessionSocket io = session.io();
+      io.readFor();
+      reply.whenComplete((r, e) -> io.readDone());
     } else {
       session.readOn();
     }
@@ -130,10 +140,11 @@ final class SessionWrites {
   /**
    * Wait until {@code reply} is done: read the socket on this thread while no other thread does;
    * else wait for the thread reading to answer it, or to let the socket go. Interrupted: returns
-   * with the thread's interrupt flag set (the caller's {@code get} then says so).
+   * with the thread's interrupt flag set (the caller's {@code get} then says so). A reply that the
+   * waiting thread does not read itself (a lock's) is left to the caller's {@code get}.
    */
   void await(Reply reply) {
-    while (!reply.isDone()) {
+    while (reply.readsItself && !reply.isDone()) {
       if (session.io().readUntil(reply::isDone)) {
         continue; // answered, or the session ended (which fails it)
       }

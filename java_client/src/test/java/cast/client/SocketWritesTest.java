@@ -28,7 +28,8 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * (docs/client-protocol.md, "Writes on the session's socket"), none on the gRPC Write stream. A
  * mix of staged and small values, waited for and pipelined, is applied once each in call order;
  * a thread that waits for its write reads the reply itself until a pipelined write needs the
- * reader thread, which reads again when the writes pause;
+ * reader thread, which reads again when the writes pause; a lock request waiting on the server is
+ * read for by the reader thread, so that its thread can be interrupted, and the session lives on;
  * pipelined writes outstanding when the component closes are answered first; a socket that ends
  * under outstanding writes fails them with UnavailableError naming the session, and later writes
  * succeed; a write past its deadline fails with DeadlineExceededError and ends the session, failing
@@ -169,6 +170,64 @@ class SocketWritesTest {
     try (Connection reader = shared.connect("sw-close-reader", "vision", false, null)) {
       assertTrue(reader.exists("sw-c99"));
       assertEquals(value(MIB, 99), reader.get("sw-c99", BytesValue.class));
+    }
+  }
+
+  @Test
+  void anInterruptedLockRequestIsCancelledAndTheSessionLivesOn() throws Exception {
+    try (Connection holder = shared.connect("sw-int-holder", "vision", false, null);
+        Connection waiter = shared.connect("sw-int-waiter", "vision", false, null)) {
+      holder.add("sw-int", value(8, 1));
+      LockGuard held = holder.lock("sw-int");
+      SharedSession session = SharedMemoryTest.session(waiter);
+      assertNotNull(session);
+      AtomicReference<Throwable> failed = new AtomicReference<>();
+      Thread waiting =
+          new Thread(
+              () -> {
+                try {
+                  for (int i = 0; i < 5; i++) { // writes waited for: the reader thread leaves the socket to them
+                    waiter.add("sw-int-before" + i, value(8, i));
+                  }
+                  waiter.lock("sw-int", LockMode.OD).close();
+                  failed.set(new AssertionError("granted"));
+                } catch (Throwable t) {
+                  failed.set(t);
+                }
+              });
+      waiting.start();
+      Thread.sleep(300); // the lock request waits on the server; its thread reads the socket for the reply
+      assertTrue(session.io().reading());
+      long reads = session.io().waiterReads.get();
+      assertTrue(reads >= 3, "the waiting writer reads the socket itself: " + reads);
+      waiting.interrupt();
+      waiting.join(20_000);
+      assertNotNull(failed.get(), "the interrupted writer returned");
+      assertInstanceOf(CastError.class, failed.get());
+      assertEquals("CANCELLED", ((CastError) failed.get()).code(), failed.get().getMessage());
+      // A lock's waiting thread does not read the socket (a read cannot be interrupted): the reader thread does.
+      assertEquals(reads, session.io().waiterReads.get(), "the lock's waiting thread did not read");
+      assertNull(session.dead(), "the session lives on");
+      // Another lock request waits, and is granted once the holder lets go: the reader thread read its reply.
+      AtomicReference<Throwable> second = new AtomicReference<>();
+      Thread granted =
+          new Thread(
+              () -> {
+                try (LockGuard g = waiter.lock("sw-int", LockMode.OD)) {
+                  second.set(null);
+                } catch (Throwable t) {
+                  second.set(t);
+                }
+              });
+      second.set(new AssertionError("not granted yet"));
+      granted.start();
+      Thread.sleep(200);
+      held.close();
+      granted.join(20_000);
+      assertNull(second.get(), "the second lock request was granted");
+      waiter.add("sw-int-after", value(8, 2));
+      assertSame(session, SharedMemoryTest.session(waiter));
+      assertEquals(value(8, 2), holder.get("sw-int-after", BytesValue.class));
     }
   }
 
