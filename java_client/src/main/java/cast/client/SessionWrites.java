@@ -29,9 +29,10 @@ import java.util.concurrent.atomic.AtomicLong;
  * back the gRPC stream's). A thread that waits for its reply reads the REPLIES frame itself when no
  * other thread reads the socket ({@link #await}, {@link SessionSocket#readUntil}), as the Python and
  * C++ clients do; else the thread reading (the session's reader thread, or another waiting writer)
- * answers it and wakes it. A write nobody waits for makes the reader thread read all the time. A request past its deadline fails with DeadlineExceededError and the session is ended,
- * as the Write stream ends its call, so that its other requests fail with UnavailableError ("may
- * or may not have been applied") and the next write opens a new session or goes by gRPC.
+ * answers it and wakes it. A write nobody waits for makes the reader thread read all the time. A
+ * request past its deadline fails with DeadlineExceededError and the session is ended, as the
+ * Write stream ends its call, so that its other requests fail with UnavailableError ("may or may
+ * not have been applied") and the next write opens a new session or goes by gRPC.
  *
  * <p>The deadlines are watched as C++'s reader thread watches them, at the earliest one, but from
  * the gRPC stream's timer thread ({@link WriteCall#DEADLINES}): the reader here blocks in a read
