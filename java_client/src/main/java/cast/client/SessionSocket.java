@@ -29,9 +29,9 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * paused for {@link #WRITER_PAUSE_MS}, so that a server that dies is noticed and its memory let go
  * without another write); while a lock request waits, since a thread blocked in the socket's read
  * cannot be interrupted and a lock may wait long ({@link #readFor}); all the time once a watch's
- * events, a read call's values or a write nobody waits for may come ({@link #readOn}). Reads block with no timeout (junixsocket's read
- * timeout would bound the socket's writes too): the session's end closes the socket, which ends
- * them.
+ * events, a read call's values or a write nobody waits for may come ({@link #readOn}). Reads
+ * block with no timeout (junixsocket's read timeout would bound the socket's writes too): the
+ * session's end closes the socket, which ends them.
  *
  * <p>Writing. One frame at a time, whole, holding {@link #writing}: a write's WRITES frame by the
  * thread that sends the write ({@link #sendNow}), a RELEASE by the thread that let the value go
@@ -175,23 +175,15 @@ final class SessionSocket {
     if (!reading.tryLock()) {
       return false;
     }
-    String failed = null;
     try {
       while (!closed && !done.getAsBoolean()) {
         waiterReads.incrementAndGet();
-        if (!readOnce()) {
+        if (!readOrEnd()) {
           break;
         }
       }
-    } catch (IOException e) {
-      failed = "read failed: " + e.getMessage();
-    } catch (ShmWire.ProtocolError e) {
-      failed = e.getMessage();
     } finally {
       stopReading();
-    }
-    if (failed != null) {
-      owner.end(failed);
     }
     return true;
   }
@@ -241,22 +233,29 @@ final class SessionSocket {
 
   /** One read of the reader thread, holding the socket meanwhile; false once the socket closed. */
   private boolean readTurn() {
-    String failed = null;
-    boolean more = false;
     reading.lock();
     try {
-      more = !closed && readOnce();
+      return !closed && readOrEnd();
+    } finally {
+      stopReading();
+    }
+  }
+
+  /**
+   * One read and its frames (holding {@link #reading}); a read that fails ends the session, as the
+   * server's end does in {@link #readOnce}. False once the socket closed or failed.
+   */
+  private boolean readOrEnd() {
+    String failed;
+    try {
+      return readOnce();
     } catch (IOException e) {
       failed = "read failed: " + e.getMessage();
     } catch (ShmWire.ProtocolError e) {
       failed = e.getMessage();
-    } finally {
-      stopReading();
     }
-    if (failed != null) {
-      owner.end(failed);
-    }
-    return more;
+    owner.end(failed);
+    return false;
   }
 
   /** One read and the frames it completed (holding {@link #reading}); false once the server closed the socket. */
@@ -287,19 +286,8 @@ final class SessionSocket {
     if (closed) {
       return;
     }
-    String failed = null;
     writing.lock();
-    try {
-      out.write(frame);
-      out.flush();
-    } catch (IOException e) {
-      failed = "write failed: " + e.getMessage();
-    } finally {
-      writing.unlock();
-    }
-    if (failed != null) {
-      owner.end(failed);
-    }
+    writeAndLetGo(List.of(frame));
   }
 
   /** Queue a frame for the sender thread (nothing once the socket closed). */
@@ -331,19 +319,34 @@ final class SessionSocket {
       }
       return;
     }
+    List<byte[]> releases;
+    synchronized (queue) {
+      if (closed || givenBack.isEmpty()) {
+        writing.unlock();
+        return; // sent meanwhile by the sender thread
+      }
+      releases = takeReleases();
+    }
+    releasesInline.addAndGet(releases.size());
+    writeAndLetGo(releases);
+  }
+
+  /** The RELEASE frames of what was given back, which is then forgotten (holding {@link #queue}). */
+  private List<byte[]> takeReleases() {
+    List<byte[]> releases = ShmWire.release(givenBack); // gathered: many leases, one frame
+    givenBack.clear();
+    return releases;
+  }
+
+  /**
+   * Write {@code frames}, whole, then let {@link #writing} go (the caller took it); a write that
+   * fails ends the session.
+   */
+  private void writeAndLetGo(List<byte[]> frames) {
     String failed = null;
     try {
-      List<Long> ids;
-      synchronized (queue) {
-        if (closed || givenBack.isEmpty()) {
-          return; // sent meanwhile by the sender thread
-        }
-        ids = new ArrayList<>(givenBack);
-        givenBack.clear();
-      }
-      for (byte[] f : ShmWire.release(ids)) {
+      for (byte[] f : frames) {
         out.write(f);
-        releasesInline.incrementAndGet();
       }
       out.flush();
     } catch (IOException e) {
@@ -361,16 +364,14 @@ final class SessionSocket {
       while (sendOnce()) { // a method per turn, as readTurn, so that the JIT compiles it
         // what was queued is sent
       }
-    } catch (IOException e) {
-      owner.end("write failed: " + e.getMessage());
     } catch (InterruptedException e) {
       owner.end("interrupted");
     }
   }
 
   /** Wait for frames to send and send them; false once the socket closed. */
-  private boolean sendOnce() throws IOException, InterruptedException {
-    List<byte[]> sending = new ArrayList<>();
+  private boolean sendOnce() throws InterruptedException {
+    List<byte[]> sending;
     synchronized (queue) {
       while (!closed && outbox.isEmpty() && givenBack.isEmpty()) {
         queue.wait();
@@ -378,22 +379,13 @@ final class SessionSocket {
       if (closed) {
         return false;
       }
-      List<byte[]> releases = ShmWire.release(givenBack); // gathered: many leases, one frame
-      releasesBySender.addAndGet(releases.size());
-      sending.addAll(releases);
-      givenBack.clear();
+      sending = takeReleases();
+      releasesBySender.addAndGet(sending.size());
       sending.addAll(outbox);
       outbox.clear();
     }
     writing.lock();
-    try {
-      for (byte[] f : sending) {
-        out.write(f);
-      }
-      out.flush();
-    } finally {
-      writing.unlock();
-    }
+    writeAndLetGo(sending);
     return true;
   }
 

@@ -128,7 +128,7 @@ final class SessionWrites {
       io.readFor();
       reply.whenComplete((r, e) -> io.readDone());
     } else {
-      session.readOn();
+      session.io().readOn();
     }
     session.sendNow(frame);
     framesSent.incrementAndGet();

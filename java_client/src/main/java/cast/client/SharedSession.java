@@ -157,14 +157,6 @@ final class SharedSession {
     return io;
   }
 
-  /**
-   * From now on the session's reader thread reads all the time: something may come that no thread
-   * waits for ({@link SessionSocket#readOn}).
-   */
-  void readOn() {
-    io.readOn();
-  }
-
   /** Why the session ended, or null while it lives. */
   String dead() {
     return dead;
@@ -281,7 +273,7 @@ final class SharedSession {
    */
   void onEvents(long call, EventsHandler handler) {
     eventHandlers.put(call, handler);
-    readOn();
+    io.readOn();
     String why = dead;
     if (why != null && eventHandlers.remove(call, handler)) {
       handler.sessionEnded(why);
@@ -323,7 +315,7 @@ final class SharedSession {
 
   private Lease claim(SharedValue ref) {
     long valueId = ref.getValueId();
-    readOn(); // the segment may still be in the socket, and the call's next values come with no one waiting
+    io.readOn(); // the segment may still be in the socket, and the call's next values come with no one waiting
     Segment segment;
     try {
       segment = awaitSegment(ref.getSegment()); // counts the lease held
