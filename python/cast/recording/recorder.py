@@ -2,7 +2,12 @@
 
 One watch stream per server (the client library's :class:`WatchStream`), so a
 broken connection or a restarted server is resumed from the revision after the
-last one received, with no gap and no duplicate. When a resume is refused (the
+last one received, with no gap and no duplicate. On a server's host the
+stream's events come as frames on a shared-memory session's socket, read by the
+recorder's own dispatcher thread, as a component's do (docs/client-protocol.md,
+"A watch's events on the session's socket"), and large values are lent there
+rather than sent; elsewhere, or with ``CAST_SHARED_MEMORY=off``, they come on
+the gRPC call. When a resume is refused (the
 server's history no longer reaches back that far, or it restarted without its
 history) or the recorder fell behind the history, the recorder watches again
 from the server's current revision and writes a :class:`Gap` for each SA that
@@ -22,6 +27,8 @@ import grpc
 
 from cast.client.channel import Backoff, ServerLink, map_rpc_error
 from cast.client.credentials import ClientTls, TokenSource
+from cast.client.dispatcher import Dispatcher
+from cast.client.shm import SharedLink
 from cast.client.watch_stream import WatchStream
 from cast.core.records import ChangeEvent
 from cast.core.watch import EventFilter
@@ -37,6 +44,7 @@ RECORD_ID = "cast-record"
 
 _RESYNC_RETRY_S = 1.0
 _SCHEMA_ATTEMPTS = 3
+_DESCRIBE_S = 5.0  # how long a server may take to say where its shared memory is
 
 
 class MessageSink(Protocol):
@@ -117,9 +125,13 @@ class Recorder:
             if server is None:
                 link = self._links.get(address) or ServerLink(address, tls)
                 self._links[address] = link
+                self._attach_shared(link)
                 server = by_endpoint[address] = _Server(link, [])
                 self._servers.append(server)
             server.sas.append(info.name)
+        # Reads the sessions' sockets, where the watches' events come on a server's host; made with the first
+        # stream, so that a recorder that never starts has no thread.
+        self._dispatcher: Dispatcher | None = None
         self.channels = ChannelMap(self._schema)
         self.stats = RecordStats(per_subarchitecture=dict.fromkeys(chosen, 0))
         self._last: dict[str, int] = {}  # per SA, the newest revision recorded (or known to be before the start)
@@ -154,6 +166,20 @@ class Recorder:
                 time.sleep(backoff.next())
         return None
 
+    def _attach_shared(self, link: ServerLink) -> None:
+        """Shared memory with ``link``'s server when on its host (cast.client.shm), opened with the first watch."""
+        if link.shared is not None:
+            return
+
+        def describe(within: float | None) -> dir_pb2.SystemDescription:
+            # The server itself says where its shared memory is: ask it, not the directory.
+            timeout = _DESCRIBE_S if within is None else min(_DESCRIBE_S, within)
+            desc: dir_pb2.SystemDescription = link.directory.DescribeSystem(
+                dir_pb2.DescribeSystemRequest(), metadata=self._tokens.metadata(), timeout=timeout)
+            return desc
+
+        link.shared = SharedLink(link.endpoint, self._tokens, describe)
+
     def _filters(self, sas: Sequence[str]) -> list[EventFilter]:
         types = self.options.types or ("",)
         return [EventFilter(subarchitecture=sa, type=t, include_entry=True) for sa in sas for t in types]
@@ -168,7 +194,10 @@ class Recorder:
             # Called on the stream's thread: the watch is created again on the main thread.
             self._queue.put((server, error))
 
-        server.link.watch_stream = WatchStream(server.link, self._tokens, sink, failed, self._closing)
+        if self._dispatcher is None:
+            self._dispatcher = Dispatcher(RECORD_ID)
+        server.link.watch_stream = WatchStream(server.link, self._tokens, sink, failed, self._closing,
+                                               self._dispatcher)
         return server.link.watch_stream
 
     def start(self) -> None:
@@ -311,4 +340,8 @@ class Recorder:
                 server.stream.close()
         for link in self._links.values():
             link.close()
+            if link.shared is not None:
+                link.shared.close()
+        if self._dispatcher is not None:
+            self._dispatcher.stop()
 
