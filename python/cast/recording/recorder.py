@@ -45,6 +45,14 @@ RECORD_ID = "cast-record"
 _RESYNC_RETRY_S = 1.0
 _SCHEMA_ATTEMPTS = 3
 _DESCRIBE_S = 5.0  # how long a server may take to say where its shared memory is
+BATCH_S = 0.01
+"""After taking what has come, how long the recording loop lets changes gather before it takes them again.
+
+Taking each change as it comes costs a wake-up of the loop's thread per change, and each change's
+work on cold caches; at 1,000 changes/s that was about a third of the recorder's CPU
+(docs/performance.md, "REC1: what recording costs"). The file is flushed every second anyway; a
+live view shows a change at most this much later."""
+_TAKE_MAX = 1000  # changes taken at once at most, between looks at the stop, the time and the connections
 
 
 class MessageSink(Protocol):
@@ -257,8 +265,10 @@ class Recorder:
             except queue.Empty:
                 pass
             else:
-                if not self._handle(writer, server, item, on_gap):
+                if not self._take(writer, server, item, on_gap):
                     break
+                if self._queue.empty():
+                    stop.wait(BATCH_S)  # the changes coming meanwhile are taken together, after it
             self._retry_resyncs(writer, on_gap)
             self._update_connection()
             writer.flush_if_due()
@@ -270,6 +280,21 @@ class Recorder:
                 break
             if isinstance(item, ChangeEvent) and not self._handle(writer, server, item, on_gap):
                 break
+
+    def _take(self, writer: MessageSink, server: _Server, item: ChangeEvent | CastError,
+              on_gap: Callable[[Gap], None]) -> bool:
+        """Handle ``item`` and what is queued behind it now, up to _TAKE_MAX; False once the recording must end.
+
+        Bounded, so that a recorder behind a flood of changes still looks at its stop and its time.
+        """
+        for _ in range(_TAKE_MAX):
+            if not self._handle(writer, server, item, on_gap):
+                return False
+            try:
+                server, item = self._queue.get_nowait()
+            except queue.Empty:
+                return True
+        return self._handle(writer, server, item, on_gap)
 
     def _handle(self, writer: MessageSink, server: _Server, item: ChangeEvent | CastError,
                 on_gap: Callable[[Gap], None]) -> bool:
