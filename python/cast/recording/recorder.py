@@ -49,7 +49,7 @@ BATCH_S = 0.01
 """After taking what has come, how long the recording loop lets changes gather before it takes them again.
 
 Taking each change as it comes costs a wake-up of the loop's thread per change, and each change's
-work on cold caches; at 1,000 changes/s that was about a third of the recorder's CPU
+work on cold caches; at 1,000 changes/s that was about a quarter of the recorder's CPU
 (docs/performance.md, "REC1: what recording costs"). The file is flushed every second anyway; a
 live view shows a change at most this much later."""
 _TAKE_MAX = 1000  # changes taken at once at most, between looks at the stop, the time and the connections
