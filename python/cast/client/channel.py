@@ -177,7 +177,7 @@ class ServerLink:
         return [thread for thread in threading.enumerate() if _spins_for(thread, state)]
 
     def close(self, deadline: float | None = None) -> None:
-        """Close the channel (every stream on it ends), then wait for the tracked threads to end.
+        """Close the channel (every stream on it ends), wait for its threads, then end its shared-memory session.
 
         ``deadline`` is a ``time.monotonic()`` instant; the default is :data:`JOIN_S` from now.
         """
@@ -189,6 +189,8 @@ class ServerLink:
             threads = [t for t in self._threads if t is not me]
         for thread in [*threads, *self._pollers()]:
             thread.join(max(0.0, end - time.monotonic()))
+        if self.shared is not None:
+            self.shared.close()
 
 
 def _spins_for(thread: threading.Thread, state: object) -> bool:

@@ -25,7 +25,7 @@ from cast.client.conversions import address, entry_from_pb, fill_write, task_fro
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.dispatcher import Dispatcher
 from cast.client.session import Session
-from cast.client.shm import SharedLink
+from cast.client.shm import attach
 from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
@@ -48,8 +48,6 @@ log = logging.getLogger("cast.client")
 
 # Deadline of one AwaitRun long-poll: how soon a stop request ends the wait for the start barrier.
 _AWAIT_RUN_POLL_S = 1.0
-# How long asking a server where its shared memory is may take: it is asked on the way of a write or a watch.
-_DESCRIBE_S = 5.0
 
 
 class _Budget:
@@ -178,15 +176,7 @@ class GrpcTransport:
 
     def _attach_shared(self, server: ServerLink) -> None:
         """Shared memory with ``server`` when on its host (cast.client.shm), opened when first needed."""
-
-        def describe(within: float | None) -> dir_pb2.SystemDescription:
-            # The server itself says where its shared memory is: ask it, not the directory.
-            timeout = _DESCRIBE_S if within is None else min(_DESCRIBE_S, within)
-            desc: dir_pb2.SystemDescription = self._call(server.directory.DescribeSystem,
-                                                         dir_pb2.DescribeSystemRequest(), timeout=timeout)
-            return desc
-
-        server.shared = SharedLink(server.endpoint, self._tokens, describe)
+        attach(server, self._tokens, self._call)
 
     def _server(self, sa: str) -> ServerLink:
         # An SA the directory does not know is sent to the directory's server,
@@ -586,5 +576,3 @@ class GrpcTransport:
         deadline = time.monotonic() + JOIN_S
         for server in self._servers.values():
             server.close(deadline)
-            if server.shared is not None:
-                server.shared.close()

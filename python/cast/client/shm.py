@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
 
 from cast.client.credentials import TokenSource
 from cast.client.shm_session import ClientSession, ReadCall
@@ -28,7 +29,10 @@ from cast.client.write_replies import DRAIN_S
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.wire import shared_memory as wire
 
-__all__ = ["ENV", "SharedLink", "Unreachable", "connect", "turned_off"]
+if TYPE_CHECKING:
+    from cast.client.channel import ServerLink
+
+__all__ = ["ENV", "SharedLink", "Unreachable", "attach", "connect", "turned_off"]
 
 log = logging.getLogger("cast.client")
 
@@ -36,6 +40,8 @@ ENV = "CAST_SHARED_MEMORY"
 """``off`` (or ``0``, ``false``, ``no``) in a process's environment: it never uses shared memory."""
 
 _CONNECT_S = 2.0  # the handshake's bound
+# How long asking a server where its shared memory is may take: it is asked on the way of a write or a watch.
+_DESCRIBE_S = 5.0
 _RETRY_S = 5.0  # how long after a failure the link tries again
 _RETRY_ELSEWHERE_S = 60.0  # ... when the server is elsewhere or offers none (a restart of it may change that)
 _UCRED = struct.Struct("3i")
@@ -97,6 +103,24 @@ def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str, within: f
     except BaseException:
         sock.close()
         raise
+
+
+def attach(link: ServerLink, tokens: TokenSource, call: Callable[..., Any]) -> SharedLink:
+    """Give ``link`` shared memory with its server, opened when first needed.
+
+    ``call(method, request, timeout=)`` makes a call with the caller's credentials: the one that asks the
+    server where its shared memory is.
+    """
+
+    def describe(within: float | None) -> dir_pb2.SystemDescription:
+        # The server itself says where its shared memory is: ask it, not the directory.
+        timeout = _DESCRIBE_S if within is None else min(_DESCRIBE_S, within)
+        desc: dir_pb2.SystemDescription = call(link.directory.DescribeSystem, dir_pb2.DescribeSystemRequest(),
+                                               timeout=timeout)
+        return desc
+
+    link.shared = SharedLink(link.endpoint, tokens, describe)
+    return link.shared
 
 
 class SharedLink:

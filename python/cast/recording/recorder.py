@@ -21,14 +21,14 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import grpc
 
 from cast.client.channel import Backoff, ServerLink, map_rpc_error
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.dispatcher import Dispatcher
-from cast.client.shm import SharedLink
+from cast.client.shm import attach
 from cast.client.watch_stream import WatchStream
 from cast.core.records import ChangeEvent
 from cast.core.watch import EventFilter
@@ -44,7 +44,6 @@ RECORD_ID = "cast-record"
 
 _RESYNC_RETRY_S = 1.0
 _SCHEMA_ATTEMPTS = 3
-_DESCRIBE_S = 5.0  # how long a server may take to say where its shared memory is
 BATCH_S = 0.01
 """After taking what has come, how long the recording loop lets changes gather before it takes them again.
 
@@ -133,7 +132,8 @@ class Recorder:
             if server is None:
                 link = self._links.get(address) or ServerLink(address, tls)
                 self._links[address] = link
-                self._attach_shared(link)
+                if link.shared is None:  # shared memory with that server when on its host, opened with the watch
+                    attach(link, self._tokens, self._call)
                 server = by_endpoint[address] = _Server(link, [])
                 self._servers.append(server)
             server.sas.append(info.name)
@@ -150,10 +150,14 @@ class Recorder:
 
     # ----------------------------------------------------------------- calls
 
+    def _call(self, method: Callable[..., Any], request: Any, timeout: float | None = None) -> Any:
+        """``method(request)`` with the recorder's token, within ``timeout`` (default: its call timeout)."""
+        return method(request, metadata=self._tokens.metadata(), timeout=self._timeout if timeout is None else timeout)
+
     def _describe(self) -> dir_pb2.SystemDescription:
         try:
-            desc: dir_pb2.SystemDescription = self._directory.directory.DescribeSystem(
-                dir_pb2.DescribeSystemRequest(), metadata=self._tokens.metadata(), timeout=self._timeout)
+            desc: dir_pb2.SystemDescription = self._call(self._directory.directory.DescribeSystem,
+                                                         dir_pb2.DescribeSystemRequest())
         except grpc.RpcError as exc:
             raise map_rpc_error(exc) from None
         return desc
@@ -164,8 +168,7 @@ class Recorder:
         backoff = Backoff()
         for attempt in range(_SCHEMA_ATTEMPTS):
             try:
-                resp = link.directory.GetSchema(dir_pb2.GetSchemaRequest(type=type_name),
-                                                metadata=self._tokens.metadata(), timeout=self._timeout)
+                resp = self._call(link.directory.GetSchema, dir_pb2.GetSchemaRequest(type=type_name))
                 return bytes(resp.files.SerializeToString()) if resp.files.file else None
             except grpc.RpcError as exc:
                 error = map_rpc_error(exc)
@@ -173,20 +176,6 @@ class Recorder:
                     return None
                 time.sleep(backoff.next())
         return None
-
-    def _attach_shared(self, link: ServerLink) -> None:
-        """Shared memory with ``link``'s server when on its host (cast.client.shm), opened with the first watch."""
-        if link.shared is not None:
-            return
-
-        def describe(within: float | None) -> dir_pb2.SystemDescription:
-            # The server itself says where its shared memory is: ask it, not the directory.
-            timeout = _DESCRIBE_S if within is None else min(_DESCRIBE_S, within)
-            desc: dir_pb2.SystemDescription = link.directory.DescribeSystem(
-                dir_pb2.DescribeSystemRequest(), metadata=self._tokens.metadata(), timeout=timeout)
-            return desc
-
-        link.shared = SharedLink(link.endpoint, self._tokens, describe)
 
     def _filters(self, sas: Sequence[str]) -> list[EventFilter]:
         types = self.options.types or ("",)
@@ -365,8 +354,6 @@ class Recorder:
                 server.stream.close()
         for link in self._links.values():
             link.close()
-            if link.shared is not None:
-                link.shared.close()
         if self._dispatcher is not None:
             self._dispatcher.stop()
 
