@@ -35,7 +35,7 @@ from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operatio
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
 from cast.core.watch import EventFilter
-from cast.errors import CastError, DeadlineExceededError, UnavailableError
+from cast.errors import CastError, DeadlineExceededError, UnauthenticatedError, UnavailableError
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import inspection_pb2 as insp_pb2
 from cast.v1 import task_manager_pb2 as tm_pb2
@@ -348,11 +348,20 @@ class GrpcTransport:
 
     def get(self, sa: str, entry_id: str) -> EntryRecord:
         """Read one entry (a large value lent by shared memory when on the server's host)."""
-        req = wm_pb2.GetRequest()
-        req.address.id, req.address.subarchitecture = entry_id, sa
         server, budget = self._server(sa), _Budget(self._timeout)
         assert server.shared is not None
-        with server.shared.read(budget.left()) as call:
+        with server.shared.read(budget.left(), self._tokens.token()) as call:
+            if call is not None and call.session.reads:  # a session: the read goes on its socket, a frame each way
+                request = wm_pb2.WriteRequest(read_call=call.number)
+                request.get.address.id, request.get.address.subarchitecture = entry_id, sa
+                try:
+                    reply = self._stream(sa).read(call.session.writes, request, budget.left())
+                except UnauthenticatedError:
+                    reply = None  # the session's token expired: the unary call reads the renewed one
+                if reply is not None:
+                    return entry_from_pb(reply.get.entry, call)
+            req = wm_pb2.GetRequest()
+            req.address.id, req.address.subarchitecture = entry_id, sa
             resp = self._call(server.wm.Get, req, budget.left(), call.metadata if call is not None else ())
             return entry_from_pb(resp.entry, call)
 

@@ -95,6 +95,7 @@ def connect(info: dir_pb2.SharedMemoryInfo, token: str, endpoint: str, within: f
             raise ValueError(f"answered HELLO with a frame of kind {first.kind}")
         sock.setblocking(False)
         session = ClientSession(sock, first.body, first.fd, endpoint, token)
+        session.reads = info.reads
         if session.server_id != info.server_id:
             session.close()
             raise ValueError(f"its socket belongs to another server (id {session.server_id}, not "
@@ -207,12 +208,14 @@ class SharedLink:
                      self.endpoint, reason)
 
     @contextmanager
-    def read(self, within: float | None = None) -> Iterator[ReadCall | None]:
+    def read(self, within: float | None = None, token: str | None = None) -> Iterator[ReadCall | None]:
         """A read call's session part (None without a session): its metadata, and its end when the call is over.
 
-        ``within``: the longest opening the session may take (see :meth:`session`).
+        ``within``: the longest opening the session may take; ``token``: the
+        reader's current token, for a read sent on the session's socket (see
+        :meth:`session`).
         """
-        session = self.session(within)
+        session = self.session(within, token)
         call = session.new_call() if session is not None else None
         answered = False
         try:

@@ -139,6 +139,7 @@ class ClientSession:
         self.server_id = server_id.hex()
         self.endpoint = endpoint
         self.token = token  # its HELLO's: the identity of every write sent here
+        self.reads = False  # the server answers gets in WRITES frames (SharedMemoryInfo.reads)
         self._sock = sock
         try:
             self._staging = mmap.mmap(staging_fd, staging_size)

@@ -10,7 +10,8 @@ While the component has a shared-memory session with the server (on its
 host), every request goes on the session's socket instead, with the same
 rules (:mod:`cast.client.socket_writes`); switching waits until what the gRPC
 call has outstanding was answered, so that no request overtakes an earlier
-one.
+one. Its single-entry reads go there too (:meth:`WriteStream.read`): a frame
+each way costs a fraction of a unary call.
 
 The token is checked before each send (a ``stat`` of the token file at most
 once a second, :class:`cast.client.credentials.TokenSource`); when the
@@ -414,6 +415,28 @@ class WriteStream:
             if refused and self._tokens.refresh():
                 reply = self._retry(request, timeout)
         return reply_result(reply)
+
+    def read(self, writes: SessionWrites, request: wm_pb2.WriteRequest,
+             timeout: float | None) -> wm_pb2.WriteReply | None:
+        """Send a read (a get) on a session's socket, after this stream's writes; its reply, None if the session ended.
+
+        The read's lent value, if any, belongs to the session whose socket
+        carries it, so it goes on ``writes`` (that session's) or not at all;
+        the caller then makes the unary call. The reply's error is raised as
+        the unary call's would be.
+        """
+        size = request.ByteSize()
+        with self._lock:
+            if self._closed:
+                raise UnavailableError("the component is closing: no more calls")
+            call = self._call
+            if call is not None and not call.broken:
+                with call.lock:
+                    call.drain(DRAIN_S)  # the read sees the writes the gRPC call still has outstanding
+            future = writes.send(request, size, False, timeout)
+        if future is None:
+            return None
+        return reply_result(writes.wait(future))
 
     def _retry(self, request: wm_pb2.WriteRequest, timeout: float | None) -> wm_pb2.WriteReply:
         call, future = self._submit(request, False, timeout)

@@ -160,13 +160,14 @@ class _Connection:
             )
         who = self._owner.auth.verify(token)  # UNAUTHENTICATED, as a CastError: refused with its message
         auth = self._owner.auth
-        self._writes = SocketWrites(self._owner.system, lambda: auth.verify_until(token), self.send, self._pause_writes)
         shared = self._owner.system.shared
         assert shared is not None
         session = shared.open_session(who)
         session.send_segment = self._send_segment
         session.link = self
         self.session = session
+        self._writes = SocketWrites(self._owner.system, lambda: auth.verify_until(token), self.send,
+                                    self._pause_writes, session)
         frame = wire.welcome(session.id, bytes.fromhex(shared.server_id), shared.settings.threshold_bytes,
                              shared.settings.window_bytes, session.staging_bytes)
         if self.send(frame, session.staging_fd) and not self._pending:
@@ -312,7 +313,7 @@ class SharedSocket:
         """What DescribeSystem tells clients of it."""
         shared = self.system.shared
         assert shared is not None
-        return directory_pb2.SharedMemoryInfo(socket=self.name, server_id=shared.server_id)
+        return directory_pb2.SharedMemoryInfo(socket=self.name, server_id=shared.server_id, reads=True)
 
     def _accept(self) -> None:
         while True:

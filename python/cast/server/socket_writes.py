@@ -28,6 +28,7 @@ from collections.abc import Callable
 from google.protobuf.message import DecodeError
 
 from cast.core.records import Identity
+from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.server import socket_events
 from cast.server.writes import Writes, woken
@@ -48,13 +49,14 @@ class SocketWrites:
 
     ``send`` sends a frame on the connection (in order, queued while the
     socket is full); ``pause(True)`` stops reading the connection,
-    ``pause(False)`` resumes.
+    ``pause(False)`` resumes; ``session``: the connection's session, on which
+    gets lend their large values.
     """
 
     def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]],
-                 send: Callable[[bytes], bool], pause: Callable[[bool], None]) -> None:
+                 send: Callable[[bytes], bool], pause: Callable[[bool], None], session: SharedSession) -> None:
         self._loop = asyncio.get_running_loop()
-        self._writes = Writes(system, caller, self._flush)
+        self._writes = Writes(system, caller, self._flush, session)
         self._send = send
         self._pause = pause
         self._queue: deque[wm_pb2.WriteRequest] = deque()  # requests read, not yet applied

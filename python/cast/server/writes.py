@@ -31,9 +31,11 @@ from typing import Any, ClassVar
 
 from cast.core.access import Access, Steps, resume_async, settle_at_once
 from cast.core.records import Identity
+from cast.core.shared import SharedSession
 from cast.core.system import System
 from cast.errors import CastError, InvalidArgumentError
 from cast.server import socket_events
+from cast.server.conversions import fill_entry
 from cast.server.rpc import error_class
 from cast.server.write_requests import batch_ops, lock_mode, write_op
 from cast.v1 import working_memory_pb2 as wm_pb2
@@ -124,12 +126,15 @@ class Writes:
 
     ``caller`` gives the caller's identity and its token's expiry (0: never),
     verified afresh; ``on_late`` is called on the loop when a request that
-    waited has been answered (its reply is ready).
+    waited has been answered (its reply is ready); ``session``: the
+    shared-memory session whose socket carries the requests, on which a
+    get's large value is lent (None, the gRPC stream: values as bytes).
     """
 
     def __init__(self, system: System, caller: Callable[[], tuple[Identity, float]],
-                 on_late: Callable[[], None]) -> None:
+                 on_late: Callable[[], None], session: SharedSession | None = None) -> None:
         self._system = system
+        self._session = session
         self._caller = caller
         self._on_late = on_late
         self._who: Identity | None = None  # the caller, while its token has not expired
@@ -188,6 +193,9 @@ class Writes:
                     f"write request {request_id} is empty: set add, overwrite, delete, batch, lock or unlock"
                 )
             access = Access(self._system, self._identity())  # who, before what
+            if kind == "get":  # a read never waits: answered here, in order with the writes around it
+                self._ready.append(self._get(access, reply, request.get, request.read_call))
+                return
             steps, answer = _call(access, kind, getattr(request, kind))
             try:
                 step = next(steps)
@@ -211,6 +219,16 @@ class Writes:
         task = asyncio.ensure_future(self._finish(reply, steps, pending, answer, timeout))
         self.waiting.add(task)
         task.add_done_callback(self.waiting.discard)
+
+    def _get(self, access: Access, reply: wm_pb2.WriteReply, body: wm_pb2.GetRequest,
+             read_call: int) -> wm_pb2.WriteReply:
+        """A get's reply: the entry, its large value lent on the session's ``read_call`` when there is one."""
+        address = body.address
+        record = access.get(address.subarchitecture, address.id)
+        session = self._session
+        lent = access.lend(session, read_call, record.shared) if session is not None and read_call else None
+        fill_entry(reply.get.entry, record, lent)
+        return reply
 
     def _identity(self) -> Identity:
         """The caller now: verified at the first request and again each time its token's expiry has come."""
