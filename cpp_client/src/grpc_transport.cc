@@ -167,12 +167,23 @@ class GrpcTransport final : public Transport {
   // its metadata names the session and the call, and the call's end says
   // what it received. Opening the session on its way spends its time (Budget).
 
+  // A get with a session goes on its socket when the server answers gets
+  // there (SharedMemoryInfo.reads): a frame each way, in order with the
+  // component's writes; otherwise, or when that cannot be, the unary call.
   EntryRecord get(const std::string& sa, const std::string& id) override {
-    v1::GetRequest req;
-    *req.mutable_address() = addressPb(sa, id);
     Server& s = server(sa);
     const Budget budget(timeout_);
-    std::unique_ptr<ReadCall> read = s.shared->read(budget.left());
+    // With the token in force now: a read on the socket carries the session's identity, as a write does.
+    std::unique_ptr<ReadCall> read = s.shared->read(budget.left(), true);
+    if (read && read->session()->reads()) {
+      if (std::optional<v1::GetResponse> resp = getOnSocket(sa, id, *read, budget)) {
+        EntryRecord record = entryFromPb(resp->entry(), read.get());
+        read->end(true);
+        return record;
+      }
+    }
+    v1::GetRequest req;
+    *req.mutable_address() = addressPb(sa, id);
     auto resp = call<v1::GetResponse>(
         [&](auto* ctx, auto* r) {
           if (read) ctx->AddMetadata(kSharedMemoryMetadata, read->metadata());
@@ -182,6 +193,24 @@ class GrpcTransport final : public Transport {
     EntryRecord record = entryFromPb(resp.entry(), read.get());
     if (read) read->end(true);
     return record;
+  }
+
+  // A get as a WriteRequest on the socket of `read`'s session, its large
+  // value lent on `read` (the SEGMENT frame comes before the reply); nullopt
+  // when the unary call must read instead: the session ended, or refused its
+  // token (it expired; the unary call carries the renewed one).
+  std::optional<v1::GetResponse> getOnSocket(const std::string& sa, const std::string& id, ReadCall& read,
+                                             const Budget& budget) {
+    v1::WriteRequest request;
+    request.set_read_call(read.number());
+    *request.mutable_get()->mutable_address() = addressPb(sa, id);
+    try {
+      std::optional<v1::WriteReply> reply = writeStream(sa).read(*read.session(), std::move(request), budget.left());
+      if (reply) return std::move(*reply->mutable_get());
+    } catch (const UnauthenticatedError&) {
+      // The unary call below reads the token again.
+    }
+    return std::nullopt;
   }
 
   std::vector<EntryRecord> getByType(const std::string& sa, const std::string& type, std::uint32_t limit) override {
@@ -409,6 +438,8 @@ class GrpcTransport final : public Transport {
   void stateChanged() override { session_.stateChanged(); }
 
   bool awaitRun(const StopWait& stopping) override { return session_.awaitRun(*directory_, stopping); }
+
+  std::shared_ptr<ClientSession> sharedSession(const std::string& sa) override { return server(sa).shared->current(); }
 
   void close() override {
     {

@@ -171,7 +171,9 @@ std::shared_ptr<ClientSession> connectShared(const v1::SharedMemoryInfo& info, c
   try {
     // Takes the socket and the staging area's descriptor, whatever happens.
     const int fd = staging.take();
-    return std::make_shared<ClientSession>(sock.take(), welcome, fd, endpoint);
+    auto session = std::make_shared<ClientSession>(sock.take(), welcome, fd, endpoint);
+    session->setReads(info.reads());
+    return session;
   } catch (const std::system_error& e) {
     throw NoSession(e.what(), false);
   }
@@ -295,8 +297,8 @@ void SharedLink::fallback(const std::string& why, std::chrono::seconds retry, bo
   }
 }
 
-std::unique_ptr<ReadCall> SharedLink::read(Within within) {
-  std::shared_ptr<ClientSession> s = session(within);
+std::unique_ptr<ReadCall> SharedLink::read(Within within, bool currentToken) {
+  std::shared_ptr<ClientSession> s = currentToken ? writerSession(within) : session(within);
   return s ? s->newCall() : nullptr;
 }
 

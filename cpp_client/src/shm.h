@@ -92,7 +92,9 @@ class SharedLink {
   std::shared_ptr<ClientSession> current() const;
   // A read call's part of the session (nullptr without one): its metadata,
   // and its end when the call is over. `within` as for session().
-  std::unique_ptr<ReadCall> read(Within within = std::nullopt);
+  // `currentToken`: a read sent on the session's socket, which carries its
+  // HELLO's identity as a write does: the session is writerSession()'s.
+  std::unique_ptr<ReadCall> read(Within within = std::nullopt, bool currentToken = false);
   // Reads what the server sent: a session it ended (a stream to it broke) is
   // noticed now, and what was mapped of it unmapped.
   void check();

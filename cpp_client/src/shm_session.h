@@ -14,7 +14,8 @@
 // - counts the references each read call received and says so when the call
 //   ends (RECEIVED), so that the server takes back what never arrived.
 //
-// - carries the component's writes once it has a session (socket_writes.h);
+// - carries the component's writes once it has a session (socket_writes.h),
+//   and its gets when the server answers them there (reads());
 // - hands the EVENTS frames of a Watch call that asked for them to that call's
 //   receiver (docs/client-protocol.md, "A watch's events on the session's
 //   socket").
@@ -167,6 +168,11 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // The token its HELLO carried: the identity of the writes on its socket.
   const std::string& token() const { return token_; }
   void setToken(std::string token) { token_ = std::move(token); }
+  // Whether the server answers gets in WRITES frames (SharedMemoryInfo.reads):
+  // only then does a get go on this socket; a server of an earlier release
+  // would refuse it as an empty request, so the get is a unary call.
+  bool reads() const { return reads_.load(std::memory_order_relaxed); }
+  void setReads(bool reads) { reads_.store(reads, std::memory_order_relaxed); }
 
   // ------------------------------------------------------------- writes
   // `data` copied into a free region of the staging area; nullopt when there
@@ -300,6 +306,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   std::string why_;
   std::atomic<bool> dead_{false};
   std::atomic<bool> reading_{false};  // readMu_ is held to read (poll, readUntil)
+  std::atomic<bool> reads_{false};    // reads()
   std::unique_ptr<SessionWrites> writes_;  // made with the session, gone before its socket is closed
 };
 

@@ -30,6 +30,7 @@ bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
     }
     pending_.emplace(request.id(), std::move(p));
   }
+  sent_.fetch_add(1, std::memory_order_relaxed);
   if (!waited) session_.startReader();
   message.add_requests()->Swap(&request);
   // A frame that cannot be sent ends the session, which fails this request with the others.

@@ -2,7 +2,8 @@
 // socket (docs/client-protocol.md, "Writes on the session's socket"): WRITES
 // frames out, REPLIES frames in. Private to the gRPC transport: the Write
 // stream (write_stream.h) sends here instead of on its gRPC call while the
-// session with that server lives. Mirrors the server's
+// session with that server lives, and its gets too when the server answers
+// them here (WriteStream::read). Mirrors the server's
 // server/socket_writes.py.
 //
 // The same messages as the Write stream (a WriteRequests, a WriteReplies),
@@ -68,6 +69,9 @@ class SessionWrites {
   void drain(std::chrono::milliseconds timeout);
   // Requests sent and not yet answered.
   std::size_t outstanding();
+  // Requests sent on this socket so far (writes, locks, gets), for tests and
+  // diagnostics.
+  std::uint64_t sent() const { return sent_.load(std::memory_order_relaxed); }
 
   // From the session's reader thread: fails the requests past their
   // deadline (and then ends the session); how long until the next deadline.
@@ -91,6 +95,7 @@ class SessionWrites {
   std::condition_variable changed_;  // a reply came, or the session ended
   std::map<std::uint64_t, Pending> pending_;
   std::atomic<int> followers_{0};  // threads in await() waiting for another reader
+  std::atomic<std::uint64_t> sent_{0};  // sent()
   std::uint64_t nextId_ = 1;
   bool ended_ = false;
 };

@@ -29,6 +29,8 @@ namespace cast {
 
 namespace detail {
 
+class ClientSession;
+
 // One write of a batch.
 struct BatchOp {
   Operation operation = Operation::Add;
@@ -162,6 +164,12 @@ class Transport {
   virtual bool awaitRun(const StopWait& stopping) = 0;
   // Ends sessions and streams; no sink is called after close() returns.
   virtual void close() = 0;
+  // The shared-memory session with the server of `sa` open now (shm.h),
+  // never opening one; nullptr without one. For tests and diagnostics.
+  virtual std::shared_ptr<ClientSession> sharedSession(const std::string& sa) {
+    (void)sa;
+    return nullptr;
+  }
 
  private:
   // A future already holding what `write()` returned or threw.

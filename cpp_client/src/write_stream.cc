@@ -54,6 +54,7 @@ std::string describe(const v1::WriteRequest& request) {
     case v1::WriteRequest::kBatch: return "batch of " + std::to_string(request.batch().operations_size()) + " writes";
     case v1::WriteRequest::kLock: return "lock of '" + request.lock().address().id() + "'";
     case v1::WriteRequest::kUnlock: return "unlock of '" + request.unlock().address().id() + "'";
+    case v1::WriteRequest::kGet: return "get of '" + request.get().address().id() + "'";
     default: return "request";
   }
 }
@@ -451,6 +452,33 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
     if (attempt == 0 && again && outcome.error->code() == "UNAUTHENTICATED" && tokens_->refresh()) continue;
     outcome.error->raise();
   }
+}
+
+std::optional<v1::WriteReply> WriteStream::read(ClientSession& session, v1::WriteRequest request,
+                                                std::optional<Millis> timeout) {
+  std::shared_ptr<Call> grpcCall;
+  {
+    std::lock_guard<std::mutex> lock(stateMu_);
+    if (closed_) throw UnavailableError("the connection to " + server_.endpoint + " is closed: no more calls");
+    grpcCall = call_;
+  }
+  // The read sees the writes the gRPC call still has outstanding (at once when there are none).
+  if (grpcCall) grpcCall->drain(kTokenDrain);
+  struct Outcome {
+    v1::WriteReply reply;
+    std::shared_ptr<CastError> error;
+  };
+  auto promise = std::make_shared<std::promise<Outcome>>();
+  std::future<Outcome> future = promise->get_future();
+  ReplyHandler onReply = [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
+    promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
+  };
+  if (!session.writes().send(request, onReply, timeout, true)) return std::nullopt;
+  // This thread reads its reply itself while no other thread reads the socket.
+  session.writes().await([&future] { return future.wait_for(Millis(0)) == std::future_status::ready; });
+  Outcome outcome = future.get();
+  if (outcome.error) outcome.error->raise();
+  return std::move(outcome.reply);
 }
 
 std::future<WriteResult> WriteStream::writeAsync(v1::WriteRequest request,

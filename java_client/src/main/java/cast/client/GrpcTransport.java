@@ -9,6 +9,7 @@ import cast.v1.ReportRequest;
 import cast.v1.RetractRequest;
 import cast.v1.SubarchitectureInfo;
 import cast.v1.SystemDescription;
+import cast.v1.WriteReply;
 import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
@@ -361,13 +362,25 @@ final class GrpcTransport implements Transport {
 
   /**
    * A large value is lent by shared memory when on the server's host (docs/client-protocol.md);
-   * opening the session on the read's way spends the read's time ({@link Budget}).
+   * opening the session on the read's way spends the read's time ({@link Budget}). With a session
+   * whose server answers gets on its socket ({@link SharedSession#reads}), the get goes there, a
+   * frame each way instead of a unary call, after the component's writes ({@link #getOnSocket});
+   * else, or when the session cannot take it, the unary Get.
    */
   @Override
   public StoredEntry get(String sa, String id) {
-    var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
     GrpcServer server = server(sa);
     Budget budget = new Budget(callTimeout);
+    // With the token of the moment: after a renewal, the new session (whose HELLO's token is the
+    // identity the get is answered as) once the old one's writes were answered.
+    SharedSession session = server.shared == null ? null : server.shared.writerSession(budget.left());
+    if (session != null && session.reads) {
+      StoredEntry entry = getOnSocket(sa, id, session, budget);
+      if (entry != null) {
+        return entry;
+      }
+    }
+    var req = GetRequest.newBuilder().setAddress(Conversions.address(sa, id)).build();
     SharedSession.ReadCall read = SharedLink.newCall(server.shared, budget.left());
     boolean answered = false;
     try {
@@ -379,6 +392,37 @@ final class GrpcTransport implements Transport {
       if (read != null) {
         read.end(answered); // RECEIVED: what the call sent and this client did not get is taken back
       }
+    }
+  }
+
+  /**
+   * {@code get} of entry {@code id} as a {@code WriteRequest} on {@code session}'s socket
+   * (docs/client-protocol.md, "Writes on the session's socket"), its large value lent on a read
+   * call of that session, which then ends as a unary read's does; null when the session cannot
+   * take it: it ended before the get was sent, or it refused its token (which expired: the unary
+   * call reads the renewed one).
+   */
+  private StoredEntry getOnSocket(String sa, String id, SharedSession session, Budget budget) {
+    SharedSession.ReadCall read = session.newCall();
+    WriteRequest.Builder request = WriteRequest.newBuilder().setReadCall(read.number);
+    request.getGetBuilder().setAddress(Conversions.address(sa, id));
+    boolean answered = false;
+    try {
+      WriteReply reply;
+      try {
+        reply = writes(sa).read(session, request, budget.left());
+      } catch (UnauthenticatedError e) {
+        reply = null; // refused: nothing was lent on the call
+      }
+      if (reply == null) {
+        answered = true; // nothing came on the call: nothing to say of it
+        return null;
+      }
+      StoredEntry entry = Conversions.entry(reply.getGet().getEntry(), read);
+      answered = true;
+      return entry;
+    } finally {
+      read.end(answered); // RECEIVED: what the server lent and this client did not get is taken back
     }
   }
 

@@ -21,8 +21,10 @@ import java.util.concurrent.atomic.AtomicLong;
  * (docs/client-protocol.md, "Writes on the session's socket"): WRITES frames out, REPLIES frames
  * in. The {@link WriteStream} sends here instead of on its gRPC call while the session with that
  * server lives. The same messages as the Write stream (a {@code WriteRequests}, a {@code
- * WriteReplies}), the same rules: replies matched by id, out of order when a lock waits. The twin
- * of cpp_client/src/socket_writes.cc; the server's side is python/cast/server/socket_writes.py.
+ * WriteReplies}), the same rules: replies matched by id, out of order when a lock waits. A get goes
+ * here too, as a request a thread waits for ({@link WriteStream#read}), when the server answers
+ * gets on the socket. The twin of cpp_client/src/socket_writes.cc; the server's side is
+ * python/cast/server/socket_writes.py.
  *
  * <p>A request is written to the socket by the thread that sends it (no hop to another thread on
  * the way out; a socket the server does not read holds the sender back, as a full outbox holds

@@ -381,6 +381,7 @@ final class SharedLink {
         throw new NoSession(e.getMessage(), false);
       }
       session = new SharedSession(socket, welcome, first.fd(), endpoint, token);
+      session.reads = info.getReads();
       if (!session.serverId.equals(info.getServerId())) {
         throw new NoSession(
             "its socket belongs to another server (id " + session.serverId + ", not " + info.getServerId() + ")",

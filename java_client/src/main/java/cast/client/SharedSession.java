@@ -41,7 +41,8 @@ import org.newsclub.net.unix.FileDescriptorCast;
  *       "A watch's events on the session's socket");
  *   <li>carries the component's writes to that server, once it has the session: WRITES frames out,
  *       REPLIES frames in ({@link SessionWrites}; docs/client-protocol.md, "Writes on the session's
- *       socket"), as the identity of the token its HELLO carried ({@link #token}).
+ *       socket"), as the identity of the token its HELLO carried ({@link #token}); and its gets,
+ *       when the server answers them there ({@link #reads}).
  * </ul>
  *
  * <p>Its socket's threads, which thread reads and which writes when, are {@link SessionSocket}'s.
@@ -74,6 +75,12 @@ final class SharedSession {
   final String endpoint;
   /** The token its HELLO carried: the identity of the writes on its socket. */
   final String token;
+  /**
+   * The server answers gets in WRITES frames ({@code SharedMemoryInfo.reads}, set by {@link
+   * SharedLink#connect}): a component's get goes on this socket. False from a server of an older
+   * release, which would refuse a get as an empty request: the unary Get then.
+   */
+  volatile boolean reads;
   private final AFUNIXSocket socket;
   private final SessionSocket io; // who reads the socket and who writes it
   private final SessionWrites writes;
@@ -208,7 +215,10 @@ final class SharedSession {
 
   // ------------------------------------------------------------------- reads
 
-  /** One read call (a Get, a Watch stream) on this session: its metadata names it. */
+  /**
+   * One read call (a Get, a Watch stream, a get on this socket) on this session: its metadata
+   * names it, or a get's {@code read_call}.
+   */
   final class ReadCall {
     final long number;
     private long count; // guarded by this

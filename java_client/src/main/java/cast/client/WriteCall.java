@@ -297,6 +297,7 @@ final class WriteCall implements ClientResponseObserver<WriteRequests, WriteRepl
       case BATCH -> "batch of " + request.getBatch().getOperationsCount() + " writes";
       case LOCK -> "lock of '" + request.getLock().getAddress().getId() + "'";
       case UNLOCK -> "unlock of '" + request.getUnlock().getAddress().getId() + "'";
+      case GET -> "get of '" + request.getGet().getAddress().getId() + "'";
       default -> "request";
     };
   }

@@ -50,7 +50,8 @@ import java.util.concurrent.TimeUnit;
  * failed what it had outstanding). The session's identity is the token of its HELLO: when the
  * token was renewed, the session gives way to a new one once its outstanding requests were
  * answered. {@code CAST_SHARED_MEMORY=off}, or a server elsewhere, leaves everything on the gRPC
- * call.
+ * call. A component's single-entry reads go on the session's socket too, after its writes, when
+ * the server answers them there ({@link #read}): a frame each way costs a fraction of a unary call.
  */
 final class WriteStream {
   /**
@@ -187,14 +188,7 @@ final class WriteStream {
       if (closed) {
         throw closedError();
       }
-      WriteCall c = call;
-      if (c != null && !c.isBroken()) {
-        c.drain(DRAIN); // at once when it has nothing outstanding
-      }
-      SharedSession old = link.retiring(); // a renewed token's: another thread is waiting for its replies
-      if (old != null && old != session) {
-        old.writes().drain(DRAIN);
-      }
+      drainOthers(link, session);
       CompletableFuture<WriteReply> reply = session.writes().send(request, deadline, !async);
       if (reply != null) {
         return reply;
@@ -202,6 +196,44 @@ final class WriteStream {
       session = link.session(within); // it ended just now: a new one, or none (then gRPC)
     }
     return null;
+  }
+
+  /**
+   * Wait (holding sendLock) until what the gRPC call, and a renewed token's session still
+   * answering, have outstanding was answered, so that a request on {@code session}'s socket
+   * overtakes none of them: the server has no order between two transports. At once when they
+   * have nothing outstanding.
+   */
+  private void drainOthers(SharedLink link, SharedSession session) {
+    WriteCall c = call;
+    if (c != null && !c.isBroken()) {
+      c.drain(DRAIN);
+    }
+    SharedSession old = link == null ? null : link.retiring(); // another thread is waiting for its replies
+    if (old != null && old != session) {
+      old.writes().drain(DRAIN);
+    }
+  }
+
+  /**
+   * Send a read (a get) on {@code session}'s socket after every request sent before it, and wait
+   * up to {@code wait} for its reply; null, with nothing sent, when the session has ended (the
+   * caller then makes the unary call). The read's lent value belongs to the session whose socket
+   * carries it (its {@code read_call} is one of that session's), so it goes on that socket or not
+   * at all, never on the gRPC call. The waiting thread reads its reply itself as a waiting writer
+   * does (a get never waits on the server); the reply's error is thrown as the unary call's would
+   * be. The twin of {@code WriteStream.read} in python/cast/client/write_stream.py.
+   */
+  WriteReply read(SharedSession session, WriteRequest.Builder request, Duration wait) {
+    SessionWrites.Reply reply;
+    synchronized (sendLock) {
+      if (closed) {
+        throw closedError();
+      }
+      drainOthers(server.shared, session); // the read sees the writes sent before it by gRPC too
+      reply = session.writes().send(request, wait, true);
+    }
+    return reply == null ? null : checked(await(reply));
   }
 
   /** What a write gets once the transport is closing. */

@@ -47,7 +47,7 @@ class WriteStreamTest {
 
   @ParameterizedTest(name = "shared memory {0}")
   @ValueSource(booleans = {true, false})
-  void everyWriteAndLockGoesOnOneWriteStreamAndReadsStayUnary(boolean sharedMemory) throws Exception {
+  void everyWriteAndLockGoesOnOneWriteStreamAndAGetOnTheSessionsSocketIfAny(boolean sharedMemory) throws Exception {
     RealServer.Calls calls = new RealServer.Calls();
     long frames;
     try (Connection wm = server.connect("streamer-" + sharedMemory, "vision", false, calls, sharedMemory)) {
@@ -70,19 +70,21 @@ class WriteStreamTest {
       assertThrows(NotFoundError.class, () -> wm.get("s1", Int64Value.class));
       frames = RealServer.writeFrames(wm);
     }
-    // Eight requests: add, overwrite, batch, lock, tryLock, unlock, the guard's unlock, delete.
+    // Eight requests: add, overwrite, batch, lock, tryLock, unlock, the guard's unlock, delete; and
+    // with a session the get too, on its socket (SocketReadsTest), else the unary Get.
     if (sharedMemory) {
       assertEquals(0, calls.count("WorkingMemory/Write"), calls.methods.toString());
-      assertEquals(8, frames, "a WRITES frame each on the session's socket");
+      assertEquals(9, frames, "a WRITES frame each on the session's socket");
+      assertEquals(0, calls.count("WorkingMemory/Get"));
     } else {
       assertEquals(1, calls.count("WorkingMemory/Write"), calls.methods.toString());
       assertEquals(0, frames);
+      assertEquals(1, calls.count("WorkingMemory/Get"));
     }
     for (String unary : List.of("Add", "Overwrite", "Delete", "Batch", "Lock", "Unlock")) {
       assertEquals(0, calls.count("WorkingMemory/" + unary), unary + " went unary: " + calls.methods);
     }
     assertEquals(1, calls.count("WorkingMemory/Exists"));
-    assertEquals(1, calls.count("WorkingMemory/Get"));
   }
 
   @Test
@@ -166,7 +168,8 @@ class WriteStreamTest {
       frames = RealServer.writeFrames(wm);
     }
     assertEquals(sharedMemory ? 0 : 1, calls.count("WorkingMemory/Write"), calls.methods.toString());
-    assertEquals(sharedMemory ? 205 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
+    // 205 writes and the 2 gets (SocketReadsTest).
+    assertEquals(sharedMemory ? 207 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
   }
 
   @ParameterizedTest(name = "shared memory {0}")
@@ -204,7 +207,8 @@ class WriteStreamTest {
       frames = RealServer.writeFrames(wm);
     }
     assertEquals(sharedMemory ? 0 : 1, calls.count("WorkingMemory/Write"), calls.methods.toString());
-    assertEquals(sharedMemory ? 440 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
+    // 440 writes and the get (SocketReadsTest).
+    assertEquals(sharedMemory ? 441 : 0, frames, "every write in a WRITES frame on the session's socket, or none");
   }
 
   @Test
