@@ -197,8 +197,10 @@ class GrpcTransport final : public Transport {
 
   // A get as a WriteRequest on the socket of `read`'s session, its large
   // value lent on `read` (the SEGMENT frame comes before the reply); nullopt
-  // when the unary call must read instead: the session ended, or refused its
-  // token (it expired; the unary call carries the renewed one).
+  // when the unary call must read instead: the session ended (before the get
+  // was sent or before its reply: a read changes nothing, so it is made
+  // again), or refused its token (it expired; the unary call carries the
+  // renewed one).
   std::optional<v1::GetResponse> getOnSocket(const std::string& sa, const std::string& id, ReadCall& read,
                                              const Budget& budget) {
     v1::WriteRequest request;
@@ -209,6 +211,8 @@ class GrpcTransport final : public Transport {
       if (reply) return std::move(*reply->mutable_get());
     } catch (const UnauthenticatedError&) {
       // The unary call below reads the token again.
+    } catch (const UnavailableError&) {
+      // The session ended under the get: the unary call below reads instead.
     }
     return std::nullopt;
   }

@@ -222,3 +222,28 @@ def test_a_server_that_does_not_say_it_answers_gets_on_the_socket_gets_unary_cal
     with c.get_view("x") as view:
         assert view.shared and bytes(view.field(1)) == big.value  # lent all the same, on the unary call
     assert called == ["Get"]
+
+
+def test_a_get_whose_session_ends_before_its_reply_is_made_again_as_the_unary_call(
+        host: Callable[..., Host]) -> None:
+    h = host()
+    c = h.component("c")
+    c.add("x", BytesValue(value=b"v"))
+    link = c._transport._server("vision")
+    first = link.shared.current()
+    assert first is not None and first.reads
+    called: list[str] = []
+    real = link.wm
+
+    class Counting:
+        def __getattr__(self, name: str) -> Any:
+            if name == "Get":
+                called.append(name)
+            return getattr(real, name)
+
+    link.wm = Counting()
+    # A frame the server refuses, ahead of the get on the same socket: the server ends the session without
+    # reading the get, which this thread's own read of the socket then finds outstanding.
+    wire.send(first._sock, wire.encode(99, b"?"))
+    assert c.get("x", BytesValue).value == b"v"
+    assert called == ["Get"] and first.dead

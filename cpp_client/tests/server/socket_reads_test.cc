@@ -166,4 +166,18 @@ TEST(SocketReads, ASessionWhoseServerDoesNotAnswerGetsThereGetsTheUnaryCall) {
   EXPECT_EQ(session->writes().sent(), sent + 1);  // writes still do
 }
 
+TEST(SocketReads, AGetWhoseSessionEndsBeforeItsReplyIsMadeAgainAsTheUnaryCall) {
+  SocketReader reader(sharedServer(), "sr-ended");
+  reader.component->add("sr-e", payload(8, 7));
+  const std::shared_ptr<ClientSession> session = reader.session();
+  ASSERT_TRUE(session);
+  ASSERT_TRUE(session->reads());
+  // A frame of a kind the server does not know, ahead of the get on the same socket: the server ends the
+  // session without reading the get, which this thread's own read of the socket then finds outstanding.
+  const std::string unknown{'\x02', '\x00', '\x00', '\x00', '\x63', '?'};
+  session->send(unknown);
+  EXPECT_TRUE(reader.component->get<BytesValue>("sr-e").value() == payload(8, 7).value());
+  EXPECT_TRUE(session->dead());
+}
+
 }  // namespace

@@ -358,6 +358,8 @@ class GrpcTransport:
                     reply = self._stream(sa).read(call.session.writes, request, budget.left())
                 except UnauthenticatedError:
                     reply = None  # the session's token expired: the unary call reads the renewed one
+                except UnavailableError:
+                    reply = None  # the session ended before the reply: a read changes nothing, so read again
                 if reply is not None:
                     return entry_from_pb(reply.get.entry, call)
             req = wm_pb2.GetRequest()

@@ -399,8 +399,9 @@ final class GrpcTransport implements Transport {
    * {@code get} of entry {@code id} as a {@code WriteRequest} on {@code session}'s socket
    * (docs/client-protocol.md, "Writes on the session's socket"), its large value lent on a read
    * call of that session, which then ends as a unary read's does; null when the session cannot
-   * take it: it ended before the get was sent, or it refused its token (which expired: the unary
-   * call reads the renewed one).
+   * take it: it ended (before the get was sent, or before its reply: a read changes nothing, so
+   * it is made again), or it refused its token (which expired: the unary call reads the renewed
+   * one).
    */
   private StoredEntry getOnSocket(String sa, String id, SharedSession session, Budget budget) {
     SharedSession.ReadCall read = session.newCall();
@@ -413,6 +414,8 @@ final class GrpcTransport implements Transport {
         reply = writes(sa).read(session, request, budget.left());
       } catch (UnauthenticatedError e) {
         reply = null; // refused: nothing was lent on the call
+      } catch (UnavailableError e) {
+        return null; // the session ended under the get: what it lent went back with it
       }
       if (reply == null) {
         answered = true; // nothing came on the call: nothing to say of it

@@ -182,4 +182,27 @@ class SocketReadsTest {
       SharedMemoryTest.waitForNothingLent(server);
     }
   }
+
+  @Test
+  void aGetWhoseSessionEndsBeforeItsReplyIsMadeAgainAsTheUnaryCall() throws Exception {
+    RealServer.Calls calls = new RealServer.Calls();
+    try (Connection c = server.connect("sr-ended", "vision", false, calls)) {
+      c.add("sr-ended-e", small("e"));
+      SharedSession session = SharedMemoryTest.session(c);
+      assertNotNull(session);
+      assertTrue(session.reads);
+      // A frame of a kind the server does not know, ahead of the get on the same socket: the server
+      // ends the session without reading the get, which the get's thread, reading its own reply,
+      // finds outstanding when the socket ends.
+      session.sendNow(new byte[] {2, 0, 0, 0, 99, '?'});
+      assertEquals(small("e"), c.get("sr-ended-e", BytesValue.class));
+      assertNotNull(session.dead(), "the server ended the session");
+      // Made again as the unary call; or, had the session's reader thread seen the end before the
+      // get was sent (it reads after 100 ms without a waited-for write), sent on a new session.
+      SharedSession now = SharedMemoryTest.session(c);
+      assertTrue(
+          calls.count("WorkingMemory/Get") == 1 || (now != null && now != session),
+          calls.methods.toString());
+    }
+  }
 }
