@@ -51,6 +51,26 @@ class _NoUnaryGet:
         return getattr(self._real, name)
 
 
+class _UnaryGets:
+    """A server link's stubs that count the unary Gets made through them."""
+
+    def __init__(self, real: Any) -> None:
+        self._real = real
+        self.count = 0
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "Get":
+            self.count += 1
+        return getattr(self._real, name)
+
+
+def _count_unary_gets(c: Any) -> _UnaryGets:
+    """``c``'s unary Gets from now on, counted."""
+    link = c._transport._server("vision")
+    link.wm = counting = _UnaryGets(link.wm)
+    return counting
+
+
 def test_a_get_on_the_socket_answers_what_the_unary_get_does_in_order_with_the_writes_around_it(raw: Any) -> None:
     h, session = raw()
     h.component("other").add("theirs", BytesValue(value=b"t"))
@@ -152,19 +172,9 @@ def test_a_get_from_a_client_without_a_session_is_the_unary_call(host: Callable[
     h = host()
     c = h.component("c")
     c.add("x", BytesValue(value=b"v"))
-    called: list[str] = []
-    link = c._transport._server("vision")
-    real = link.wm
-
-    class Counting:
-        def __getattr__(self, name: str) -> Any:
-            if name == "Get":
-                called.append(name)
-            return getattr(real, name)
-
-    link.wm = Counting()
+    gets = _count_unary_gets(c)
     assert c.get("x", BytesValue).value == b"v"
-    assert called == ["Get"]
+    assert gets.count == 1
     with pytest.raises(grpc.RpcError):  # the server's Write stream needs a token: a get on it too
         list(h.stub().Write(iter([wm_pb2.WriteRequests(requests=[get(1, "x")])]), timeout=10))
 
@@ -208,20 +218,10 @@ def test_a_server_that_does_not_say_it_answers_gets_on_the_socket_gets_unary_cal
     c = h.component("c")
     big = image(MIB, 7)
     c.add("x", big)
-    called: list[str] = []
-    link = c._transport._server("vision")
-    real = link.wm
-
-    class Counting:
-        def __getattr__(self, name: str) -> Any:
-            if name == "Get":
-                called.append(name)
-            return getattr(real, name)
-
-    link.wm = Counting()
+    gets = _count_unary_gets(c)
     with c.get_view("x") as view:
         assert view.shared and bytes(view.field(1)) == big.value  # lent all the same, on the unary call
-    assert called == ["Get"]
+    assert gets.count == 1
 
 
 def test_a_get_whose_session_ends_before_its_reply_is_made_again_as_the_unary_call(
@@ -232,18 +232,9 @@ def test_a_get_whose_session_ends_before_its_reply_is_made_again_as_the_unary_ca
     link = c._transport._server("vision")
     first = link.shared.current()
     assert first is not None and first.reads
-    called: list[str] = []
-    real = link.wm
-
-    class Counting:
-        def __getattr__(self, name: str) -> Any:
-            if name == "Get":
-                called.append(name)
-            return getattr(real, name)
-
-    link.wm = Counting()
+    gets = _count_unary_gets(c)
     # A frame the server refuses, ahead of the get on the same socket: the server ends the session without
     # reading the get, which this thread's own read of the socket then finds outstanding.
     wire.send(first._sock, wire.encode(99, b"?"))
     assert c.get("x", BytesValue).value == b"v"
-    assert called == ["Get"] and first.dead
+    assert gets.count == 1 and first.dead

@@ -356,10 +356,10 @@ class GrpcTransport:
                 request.get.address.id, request.get.address.subarchitecture = entry_id, sa
                 try:
                     reply = self._stream(sa).read(call.session.writes, request, budget.left())
-                except UnauthenticatedError:
-                    reply = None  # the session's token expired: the unary call reads the renewed one
-                except UnavailableError:
-                    reply = None  # the session ended before the reply: a read changes nothing, so read again
+                except (UnauthenticatedError, UnavailableError):
+                    # The session's token expired (the unary call reads the renewed one), or the session ended
+                    # before the reply (a read changes nothing, so it is made again).
+                    reply = None
                 if reply is not None:
                     return entry_from_pb(reply.get.entry, call)
             req = wm_pb2.GetRequest()

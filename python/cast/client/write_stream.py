@@ -357,10 +357,7 @@ class WriteStream:
                 raise UnavailableError("the component is closing: no more writes")
             writes = self._session_writes(token, timeout)
             if writes is not None:
-                call = self._call
-                if call is not None and not call.broken:
-                    with call.lock:
-                        call.drain(DRAIN_S)  # no request on the socket overtakes one still on the gRPC call
+                self._drain_call()
                 future = writes.send(request, size, detached, timeout)
                 if future is not None:
                     return writes, future
@@ -379,6 +376,16 @@ class WriteStream:
             f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
             "was not sent; the client reconnects by itself, retry the call later"
         )
+
+    def _drain_call(self) -> None:
+        """Wait until the gRPC call has nothing outstanding: no request on the socket overtakes one still there.
+
+        Called with :attr:`_lock` held; at once when the call has nothing outstanding.
+        """
+        call = self._call
+        if call is not None and not call.broken:
+            with call.lock:
+                call.drain(DRAIN_S)
 
     def _session_writes(self, token: str, timeout: float | None) -> SessionWrites | None:
         """The session's socket while there is a session with the server (opened on the way if need be)."""
@@ -429,10 +436,7 @@ class WriteStream:
         with self._lock:
             if self._closed:
                 raise UnavailableError("the component is closing: no more calls")
-            call = self._call
-            if call is not None and not call.broken:
-                with call.lock:
-                    call.drain(DRAIN_S)  # the read sees the writes the gRPC call still has outstanding
+            self._drain_call()  # the read sees the writes the gRPC call still has outstanding
             future = writes.send(request, size, False, timeout)
         if future is None:
             return None

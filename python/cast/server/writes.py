@@ -190,7 +190,7 @@ class Writes:
             kind = request.WhichOneof("operation")
             if kind is None:
                 raise InvalidArgumentError(
-                    f"write request {request_id} is empty: set add, overwrite, delete, batch, lock or unlock"
+                    f"write request {request_id} is empty: set add, overwrite, delete, batch, lock, unlock or get"
                 )
             access = Access(self._system, self._identity())  # who, before what
             if kind == "get":  # a read never waits: answered here, in order with the writes around it
