@@ -59,6 +59,20 @@ std::string describe(const v1::WriteRequest& request) {
   }
 }
 
+// What a request a thread waits for ends with: its reply, or the error it failed with (the reply's own
+// error, when it carries one).
+struct Outcome {
+  v1::WriteReply reply;
+  std::shared_ptr<CastError> error;
+};
+
+// The handler that settles `promise` with the request's outcome.
+ReplyHandler settling(std::shared_ptr<std::promise<Outcome>> promise) {
+  return [promise = std::move(promise)](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
+    promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
+  };
+}
+
 }  // namespace
 
 std::shared_ptr<CastError> replyError(const v1::WriteReply& reply) {
@@ -380,17 +394,11 @@ std::shared_ptr<ClientSession> WriteStream::send(v1::WriteRequest& request, Repl
     // A renewed token: a session says it in its HELLO, so a new one opens (after the old one's replies).
     std::shared_ptr<ClientSession> session = server_.shared->writerSession(timeout.value_or(callTimeout_));
     if (session) {
-      std::shared_ptr<Call> grpcCall;
-      {
-        std::lock_guard<std::mutex> lock(stateMu_);
-        if (closed_) {
-          onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
-                                                              " is closed: no more writes"));
-          return nullptr;
-        }
-        grpcCall = call_;
+      if (!drainCall()) {
+        onReply(nullptr, std::make_shared<UnavailableError>("the connection to " + server_.endpoint +
+                                                            " is closed: no more writes"));
+        return nullptr;
       }
-      if (grpcCall) grpcCall->drain(kTokenDrain);  // at once when nothing is outstanding (queued ones are too)
       if (session->writes().send(request, onReply, timeout, direct)) return direct ? session : nullptr;
       // The session ended just now: the gRPC stream takes it.
     }
@@ -428,20 +436,11 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
   // request sent again: keep a copy for that only then, values may be large.
   std::optional<v1::WriteRequest> again;
   if (!tokens_->path().empty()) again = request;
-  struct Outcome {
-    v1::WriteReply reply;
-    std::shared_ptr<CastError> error;
-  };
   for (int attempt = 0;; ++attempt) {
     auto promise = std::make_shared<std::promise<Outcome>>();
     std::future<Outcome> future = promise->get_future();
     // Answered by the reply, or by the call's watcher past `timeout` (DeadlineExceededError).
-    std::shared_ptr<ClientSession> on = send(
-        attempt == 0 ? request : *again,
-        [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
-          promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
-        },
-        true, timeout);
+    std::shared_ptr<ClientSession> on = send(attempt == 0 ? request : *again, settling(promise), true, timeout);
     // On the session's socket this thread reads its reply itself while no other thread reads there.
     if (on) on->writes().await([&future] { return future.wait_for(Millis(0)) == std::future_status::ready; });
     Outcome outcome = future.get();
@@ -454,25 +453,24 @@ v1::WriteReply WriteStream::call(v1::WriteRequest request, std::optional<Millis>
   }
 }
 
-std::optional<v1::WriteReply> WriteStream::read(ClientSession& session, v1::WriteRequest request,
-                                                std::optional<Millis> timeout) {
+bool WriteStream::drainCall() {
   std::shared_ptr<Call> grpcCall;
   {
     std::lock_guard<std::mutex> lock(stateMu_);
-    if (closed_) throw UnavailableError("the connection to " + server_.endpoint + " is closed: no more calls");
+    if (closed_) return false;
     grpcCall = call_;
   }
-  // The read sees the writes the gRPC call still has outstanding (at once when there are none).
-  if (grpcCall) grpcCall->drain(kTokenDrain);
-  struct Outcome {
-    v1::WriteReply reply;
-    std::shared_ptr<CastError> error;
-  };
+  if (grpcCall) grpcCall->drain(kTokenDrain);  // at once when nothing is outstanding (queued ones are too)
+  return true;
+}
+
+std::optional<v1::WriteReply> WriteStream::read(ClientSession& session, v1::WriteRequest request,
+                                                std::optional<Millis> timeout) {
+  // The read sees the writes the gRPC call still has outstanding.
+  if (!drainCall()) throw UnavailableError("the connection to " + server_.endpoint + " is closed: no more calls");
   auto promise = std::make_shared<std::promise<Outcome>>();
   std::future<Outcome> future = promise->get_future();
-  ReplyHandler onReply = [promise](const v1::WriteReply* reply, const std::shared_ptr<CastError>& failed) {
-    promise->set_value(reply ? Outcome{*reply, replyError(*reply)} : Outcome{{}, failed});
-  };
+  ReplyHandler onReply = settling(promise);
   if (!session.writes().send(request, onReply, timeout, true)) return std::nullopt;
   // This thread reads its reply itself while no other thread reads the socket.
   session.writes().await([&future] { return future.wait_for(Millis(0)) == std::future_status::ready; });

@@ -104,6 +104,10 @@ class WriteStream {
  private:
   struct Call;
   std::shared_ptr<Call> current(const std::string& token, Millis connectWait, bool* unreachable);
+  // Waits until the gRPC call has nothing outstanding, so that no request on
+  // the session's socket overtakes one still there; false once the stream is
+  // closed.
+  bool drainCall();
 
   Server& server_;
   std::shared_ptr<TokenSource> tokens_;

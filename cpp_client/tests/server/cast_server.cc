@@ -10,7 +10,11 @@
 #include <fstream>
 #include <string>
 
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
 #include "cast/credentials.h"
+#include "cast/v1/inspection.grpc.pb.h"
 #include "cast/testing.h"
 
 namespace cast::testing {
@@ -86,6 +90,17 @@ int endSessionSockets() {
   }
   ::closedir(dir);
   return ended;
+}
+
+cast::v1::SharedMemoryMetrics sharedMemoryFigures(const CastServer& server) {
+  auto channel = grpc::CreateChannel(server.endpoint(), grpc::InsecureChannelCredentials());
+  grpc::ClientContext ctx;
+  ctx.AddMetadata("authorization", "Bearer " + server.token("shm-tool", "vision"));
+  cast::v1::GetMetricsResponse resp;
+  const grpc::Status status =
+      cast::v1::Inspection::NewStub(channel)->GetMetrics(&ctx, cast::v1::GetMetricsRequest(), &resp);
+  EXPECT_TRUE(status.ok()) << status.error_message();
+  return resp.shared_memory();
 }
 
 void writeTokenFile(const std::string& path, const std::string& token) {

@@ -18,6 +18,7 @@
 #include <google/protobuf/wrappers.pb.h>
 
 #include "cast/connect.h"
+#include "cast/v1/inspection.pb.h"
 #include "cast/grpc_transport.h"
 #include "transport.h"
 
@@ -78,6 +79,20 @@ inline google::protobuf::Int64Value number(std::int64_t n) {
   v.set_value(n);
   return v;
 }
+
+// A BytesValue of `size` bytes that differ from one `seed` to the next (an
+// image-sized value when `size` is large).
+inline google::protobuf::BytesValue image(std::size_t size, int seed) {
+  std::string bytes(size, '\0');
+  for (std::size_t i = 0; i < size; ++i) bytes[i] = static_cast<char>((seed * 7 + i) % 251);
+  google::protobuf::BytesValue v;
+  v.set_value(std::move(bytes));
+  return v;
+}
+
+// The server's shared-memory figures (Inspection.GetMetrics), asked as a
+// tool component of "vision": which path a value took, what is lent.
+cast::v1::SharedMemoryMetrics sharedMemoryFigures(const CastServer& server);
 
 // Whether `text` (an error's message, a log) holds `part`.
 inline bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }

@@ -28,7 +28,6 @@
 
 #include "cast/cast.h"
 #include "cast/v1/directory.grpc.pb.h"
-#include "cast/v1/inspection.grpc.pb.h"
 #include "cast/v1/working_memory.grpc.pb.h"
 #include "cast_server.h"
 #include "shm.h"
@@ -39,17 +38,10 @@ using namespace std::chrono_literals;
 using cast::testing::CastServer;
 using cast::testing::contains;
 using cast::testing::eventually;
+using cast::testing::image;
 using cast::testing::kMiB;
 using cast::testing::sharedServer;
 using google::protobuf::BytesValue;
-
-BytesValue image(std::size_t size, int seed) {
-  std::string bytes(size, '\0');
-  for (std::size_t i = 0; i < size; ++i) bytes[i] = static_cast<char>((seed * 7 + i) % 251);
-  BytesValue v;
-  v.set_value(std::move(bytes));
-  return v;
-}
 
 // What the test process has mapped of any server's shared memory.
 int memoryFilesMapped() {
@@ -67,15 +59,7 @@ class Raw {
       : server_(server), channel_(grpc::CreateChannel(server.endpoint(), grpc::InsecureChannelCredentials())),
         wm_(cast::v1::WorkingMemory::NewStub(channel_)) {}
 
-  cast::v1::SharedMemoryMetrics metrics() {
-    grpc::ClientContext ctx;
-    auth(ctx, "shm-tool");
-    cast::v1::GetMetricsResponse resp;
-    const grpc::Status status =
-        cast::v1::Inspection::NewStub(channel_)->GetMetrics(&ctx, cast::v1::GetMetricsRequest(), &resp);
-    EXPECT_TRUE(status.ok()) << status.error_message();
-    return resp.shared_memory();
-  }
+  cast::v1::SharedMemoryMetrics metrics() { return cast::testing::sharedMemoryFigures(server_); }
 
   // A session of `component` opened as any client opens one.
   std::shared_ptr<cast::detail::ClientSession> session(const std::string& component) {

@@ -9,7 +9,6 @@
 // after it a new session. A session whose server did not say it answers gets
 // there (SharedMemoryInfo.reads false: an earlier release) gets unary calls.
 #include <google/protobuf/wrappers.pb.h>
-#include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
 #include <future>
@@ -19,7 +18,6 @@
 #include <vector>
 
 #include "cast/cast.h"
-#include "cast/v1/inspection.grpc.pb.h"
 #include "cast_server.h"
 #include "shm_session.h"
 #include "transport.h"
@@ -30,17 +28,10 @@ using namespace std::chrono_literals;
 using cast::detail::ClientSession;
 using cast::testing::CastServer;
 using cast::testing::eventually;
+using cast::testing::image;
 using cast::testing::kMiB;
 using cast::testing::sharedServer;
 using google::protobuf::BytesValue;
-
-BytesValue payload(std::size_t size, int seed) {
-  std::string bytes(size, '\0');
-  for (std::size_t i = 0; i < size; ++i) bytes[i] = static_cast<char>((seed * 7 + i) % 251);
-  BytesValue v;
-  v.set_value(std::move(bytes));
-  return v;
-}
 
 // A component of `sa` "vision" and its transport, whose shared-memory session
 // the test looks at (Transport::sharedSession).
@@ -55,33 +46,21 @@ struct SocketReader {
   std::unique_ptr<cast::Connection> component;
 };
 
-// The server's shared-memory figures (Inspection.GetMetrics).
-cast::v1::SharedMemoryMetrics sharedFigures(const CastServer& server) {
-  auto channel = grpc::CreateChannel(server.endpoint(), grpc::InsecureChannelCredentials());
-  grpc::ClientContext ctx;
-  ctx.AddMetadata("authorization", "Bearer " + server.token("sr-tool", "vision"));
-  cast::v1::GetMetricsResponse resp;
-  const grpc::Status status =
-      cast::v1::Inspection::NewStub(channel)->GetMetrics(&ctx, cast::v1::GetMetricsRequest(), &resp);
-  EXPECT_TRUE(status.ok()) << status.error_message();
-  return resp.shared_memory();
-}
-
 TEST(SocketReads, AGetGoesOnTheSessionsSocketAndSeesTheWritesPipelinedBeforeIt) {
   SocketReader reader(sharedServer(), "sr-reader");
   auto& c = *reader.component;
-  c.add("sr-n", payload(8, 0));
+  c.add("sr-n", image(8, 0));
   const std::shared_ptr<ClientSession> session = reader.session();
   ASSERT_TRUE(session);
   ASSERT_TRUE(session->reads());  // this server answers gets on the socket, and says so
   std::uint64_t sent = session->writes().sent();
-  EXPECT_TRUE(c.get<BytesValue>("sr-n").value() == payload(8, 0).value());
+  EXPECT_TRUE(c.get<BytesValue>("sr-n").value() == image(8, 0).value());
   EXPECT_EQ(session->writes().sent(), sent + 1);  // the get was one more request on the socket
   std::vector<std::future<cast::WriteResult>> pipelined;
-  for (int i = 1; i <= 50; ++i) pipelined.push_back(c.overwriteAsync("sr-n", payload(16 + i, i)));
+  for (int i = 1; i <= 50; ++i) pipelined.push_back(c.overwriteAsync("sr-n", image(16 + i, i)));
   // Sent after the 50 writes on the same socket, answered in order with them: it sees them all.
   const cast::Entry<BytesValue> entry = c.getEntry<BytesValue>("sr-n");
-  EXPECT_TRUE(entry.value.value() == payload(66, 50).value());
+  EXPECT_TRUE(entry.value.value() == image(66, 50).value());
   std::vector<std::uint64_t> versions;
   for (auto& f : pipelined) versions.push_back(f.get().version);
   EXPECT_EQ(entry.version, versions.back());
@@ -93,11 +72,11 @@ TEST(SocketReads, ALargeValueReadOnTheSocketIsLentAndGivenBackAndAMissingEntryIs
   CastServer& server = sharedServer();
   auto writer = server.connect("sr-big-writer", "vision");
   SocketReader reader(server, "sr-big-reader");
-  const BytesValue big = payload(kMiB, 3);
+  const BytesValue big = image(kMiB, 3);
   writer->add("sr-img", big);
   const std::shared_ptr<ClientSession> session = reader.session();
   ASSERT_TRUE(session);
-  const auto before = sharedFigures(server);
+  const auto before = cast::testing::sharedMemoryFigures(server);
   std::uint64_t sent = session->writes().sent();
   {
     cast::ValueView view = reader.component->getView("sr-img");
@@ -108,7 +87,7 @@ TEST(SocketReads, ALargeValueReadOnTheSocketIsLentAndGivenBackAndAMissingEntryIs
     EXPECT_TRUE(reader.component->get<BytesValue>("sr-img").value() == big.value());
     EXPECT_EQ(session->writes().sent(), ++sent);
   }
-  EXPECT_GE(sharedFigures(server).lent() - before.lent(), 2u);
+  EXPECT_GE(cast::testing::sharedMemoryFigures(server).lent() - before.lent(), 2u);
   try {
     reader.component->get<BytesValue>("sr-missing");
     ADD_FAILURE() << "a get of a missing entry returned";
@@ -117,8 +96,8 @@ TEST(SocketReads, ALargeValueReadOnTheSocketIsLentAndGivenBackAndAMissingEntryIs
   }
   EXPECT_EQ(session->writes().sent(), ++sent);  // refused on the socket too, as the unary call would be
   // What was lent on those calls is given back once nothing holds it.
-  EXPECT_TRUE(eventually([&] { return sharedFigures(server).lent_bytes() == 0; }))
-      << sharedFigures(server).lent_bytes();
+  EXPECT_TRUE(eventually([&] { return cast::testing::sharedMemoryFigures(server).lent_bytes() == 0; }))
+      << cast::testing::sharedMemoryFigures(server).lent_bytes();
 }
 
 TEST(SocketReads, AGetAfterTheTokenWasRenewedGoesOnTheNewSession) {
@@ -128,14 +107,14 @@ TEST(SocketReads, AGetAfterTheTokenWasRenewedGoesOnTheNewSession) {
   cast::TransportOptions options;
   options.tokenFile = path;
   SocketReader reader(server, "sr-renewed", options);
-  reader.component->add("sr-t", payload(8, 1));
-  EXPECT_TRUE(reader.component->get<BytesValue>("sr-t").value() == payload(8, 1).value());
+  reader.component->add("sr-t", image(8, 1));
+  EXPECT_TRUE(reader.component->get<BytesValue>("sr-t").value() == image(8, 1).value());
   const std::shared_ptr<ClientSession> first = reader.session();
   ASSERT_TRUE(first);
   std::this_thread::sleep_for(1100ms);  // a token issued later differs; the file is looked at once a second
   cast::testing::writeTokenFile(path, server.token("sr-renewed", "vision"));
   // A get on the socket carries the session's identity: a session opened with the new token takes it.
-  EXPECT_TRUE(reader.component->get<BytesValue>("sr-t").value() == payload(8, 1).value());
+  EXPECT_TRUE(reader.component->get<BytesValue>("sr-t").value() == image(8, 1).value());
   const std::shared_ptr<ClientSession> second = reader.session();
   ASSERT_TRUE(second);
   EXPECT_NE(second, first);
@@ -147,14 +126,14 @@ TEST(SocketReads, ASessionWhoseServerDoesNotAnswerGetsThereGetsTheUnaryCall) {
   CastServer& server = sharedServer();
   auto writer = server.connect("sr-old-writer", "vision");
   SocketReader reader(server, "sr-old-reader");
-  const BytesValue big = payload(kMiB, 4);
+  const BytesValue big = image(kMiB, 4);
   writer->add("sr-old", big);
-  writer->add("sr-old-small", payload(8, 5));
+  writer->add("sr-old-small", image(8, 5));
   const std::shared_ptr<ClientSession> session = reader.session();
   ASSERT_TRUE(session);
   session->setReads(false);  // as from a server of an earlier release: SharedMemoryInfo.reads unset
   const std::uint64_t sent = session->writes().sent();
-  EXPECT_TRUE(reader.component->get<BytesValue>("sr-old-small").value() == payload(8, 5).value());
+  EXPECT_TRUE(reader.component->get<BytesValue>("sr-old-small").value() == image(8, 5).value());
   {
     cast::ValueView view = reader.component->getView("sr-old");
     EXPECT_TRUE(view.shared());  // lent all the same, on the unary call
@@ -162,13 +141,13 @@ TEST(SocketReads, ASessionWhoseServerDoesNotAnswerGetsThereGetsTheUnaryCall) {
   }
   EXPECT_THROW(reader.component->get<BytesValue>("sr-old-missing"), cast::NotFoundError);
   EXPECT_EQ(session->writes().sent(), sent);  // none of them went on the socket
-  reader.component->add("sr-old-2", payload(8, 6));
+  reader.component->add("sr-old-2", image(8, 6));
   EXPECT_EQ(session->writes().sent(), sent + 1);  // writes still do
 }
 
 TEST(SocketReads, AGetWhoseSessionEndsBeforeItsReplyIsMadeAgainAsTheUnaryCall) {
   SocketReader reader(sharedServer(), "sr-ended");
-  reader.component->add("sr-e", payload(8, 7));
+  reader.component->add("sr-e", image(8, 7));
   const std::shared_ptr<ClientSession> session = reader.session();
   ASSERT_TRUE(session);
   ASSERT_TRUE(session->reads());
@@ -176,7 +155,7 @@ TEST(SocketReads, AGetWhoseSessionEndsBeforeItsReplyIsMadeAgainAsTheUnaryCall) {
   // session without reading the get, which this thread's own read of the socket then finds outstanding.
   const std::string unknown{'\x02', '\x00', '\x00', '\x00', '\x63', '?'};
   session->send(unknown);
-  EXPECT_TRUE(reader.component->get<BytesValue>("sr-e").value() == payload(8, 7).value());
+  EXPECT_TRUE(reader.component->get<BytesValue>("sr-e").value() == image(8, 7).value());
   EXPECT_TRUE(session->dead());
 }
 
