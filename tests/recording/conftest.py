@@ -60,9 +60,12 @@ class RecordProcess:
             stop_process(self.process, 5)
 
 
-def record(endpoint: str, path: Path, *args: str) -> RecordProcess:
-    """Start `cast record --endpoint ENDPOINT -o PATH ARGS...` and wait until its watches are created."""
-    proc = subprocess.Popen([CAST, "record", "--endpoint", endpoint, "-o", str(path), *args], env=cli_env(),
+def record(endpoint: str, path: Path, *args: str, env: dict[str, str] | None = None) -> RecordProcess:
+    """Start `cast record --endpoint ENDPOINT -o PATH ARGS...` and wait until its watches are created.
+
+    ``env``: its environment (:func:`cli_env` when None).
+    """
+    proc = subprocess.Popen([CAST, "record", "--endpoint", endpoint, "-o", str(path), *args], env=env or cli_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     handle = RecordProcess(proc, path)
 
