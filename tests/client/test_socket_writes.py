@@ -24,7 +24,7 @@ from google.protobuf.wrappers_pb2 import BytesValue
 
 import cast
 from cast.core.records import Identity
-from cast.server.socket_writes import REQUESTS_PER_TURN
+from cast.server.socket_writes import MAX_HELD, MAX_UNSENT, REQUESTS_PER_TURN
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import directory_pb2_grpc as dir_grpc
 from cast.v1 import entry_pb2
@@ -418,3 +418,34 @@ def test_a_flood_of_writes_reaches_a_socket_watcher_once_in_order_in_bounded_bat
         stop.set()
         stream.cancel()
         reader.close()
+
+
+def _unread_replies(h: Host, session: RawSession, count: int) -> None:
+    """``count`` gets of a 60 KiB entry (bytes in their replies) that ``session`` does not read: past MAX_UNSENT."""
+    h.component("other").add("big", BytesValue(value=b"x" * (60 << 10)))
+    gets = [wm_pb2.WriteRequest(id=i) for i in range(1, count + 1)]
+    for request in gets:
+        request.get.address.subarchitecture, request.get.address.id = "vision", "big"
+    session.write(*gets)
+
+
+def test_a_client_that_leaves_much_unread_has_its_writes_held_while_its_socket_is_still_read(raw: Any) -> None:
+    h, session = raw()
+    shared = h.system.shared
+    assert shared is not None
+    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "writer"]
+    assert link is not None
+    _unread_replies(h, session, 100)  # 6 MiB of replies: more than MAX_UNSENT waits for it
+    wait_for(lambda: link.unsent > MAX_UNSENT, what="replies waiting for the client")
+    session.write(add(101, "mine", b"held"))
+    wait_for(lambda: link._writes is not None and len(link._writes._queue) >= 1, what="the add read, held")
+    assert not h.component("reader").exists("mine")  # held: read, not applied, while the client reads nothing
+    assert link._reading  # still read (for the RELEASEs a client sends meanwhile)
+    # Past MAX_HELD bytes of held WRITES the socket is not read: a client flooding writes meanwhile is bounded.
+    session.write(add(102, "large", b"y" * (MAX_HELD + MIB)))
+    wait_for(lambda: not link._reading, what="the connection paused past MAX_HELD")
+    replies = session.replies(102)  # the client reads: what was held is applied and answered, in order
+    assert [r.id for r in replies] == list(range(1, 103))
+    assert all(r.WhichOneof("result") != "error" for r in replies), [r.error for r in replies if r.error.code]
+    assert h.component("reader").exists("mine") and h.component("reader2").exists("large")
+    wait_for(lambda: link._reading, what="the connection read again")

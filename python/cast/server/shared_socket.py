@@ -178,10 +178,10 @@ class _Connection:
         self._read_or_not()
 
     def _read_or_not(self) -> None:
-        """Read the socket unless its writes wait to be applied or the client leaves too much unread."""
+        """Read the socket unless its writes wait to be applied (or, held, fill their bound: SocketWrites)."""
         if self.closed:
             return
-        want = not self._busy and self._unsent <= MAX_UNSENT
+        want = not self._busy
         if want != self._reading:
             self._reading = want
             if want:
@@ -234,8 +234,9 @@ class _Connection:
         # A descriptor waiting here belongs to a live segment or the session's staging area: it stays open.
         self._pending.append((frame, fd))
         self._unsent += len(frame)
-        if self._unsent > MAX_UNSENT:
-            self._read_or_not()
+        if self._unsent > MAX_UNSENT and self._writes is not None:
+            # Its writes wait until it read more; the socket is still read, for its RELEASEs (SocketWrites).
+            self._writes.hold(True)
         return True
 
     def _writable(self) -> None:
@@ -254,12 +255,17 @@ class _Connection:
             self._unsent -= sent
             if sent < len(frame):
                 self._pending[0] = (frame[sent:], None)
-                self._read_or_not()
+                self._caught_up()
                 return
             self._pending.popleft()
         self._loop.remove_writer(self._sock.fileno())
-        self._read_or_not()
+        self._caught_up()
         self._tell()
+
+    def _caught_up(self) -> None:
+        """Some frames went: once no more than MAX_UNSENT bytes wait, the client's writes are applied again."""
+        if self._unsent <= MAX_UNSENT and self._writes is not None and not self.closed:
+            self._writes.hold(False)
 
     def refuse(self, reason: str) -> None:
         """Tell the client why (REFUSED), then close."""
