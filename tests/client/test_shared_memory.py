@@ -86,6 +86,14 @@ class Host:
                                                                     metadata=self.metadata(cid, sa)).shared_memory
         return shm.connect(info, self.signer.issue(Identity(cid, sa)), self.endpoint)
 
+    def link(self, cid: str) -> Any:
+        """The server's connection of ``cid``'s one shared-memory session."""
+        shared = self.system.shared
+        assert shared is not None
+        (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == cid]
+        assert link is not None
+        return link
+
     def stub(self) -> wm_grpc.WorkingMemoryStub:
         return wm_grpc.WorkingMemoryStub(self.channel)
 

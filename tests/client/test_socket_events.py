@@ -124,8 +124,7 @@ def test_a_watch_whose_socket_ends_resumes_on_a_new_one_without_gap_or_duplicate
     wait_for(lambda: len(got) == 10, what="the first values")
     shared = h.system.shared
     assert shared is not None
-    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "watcher"]
-    assert link is not None
+    link = h.link("watcher")
     h.server.loop.call_soon_threadsafe(link.close, "ended by the test")  # type: ignore[attr-defined]
     for seed in range(10, 40):
         writer.overwrite("img", image(MIB, seed))
@@ -145,10 +144,7 @@ def test_a_client_that_does_not_read_its_socket_holds_up_nothing_and_its_frames_
     stalled = h.session("stalled")
     stream, _ = _raw_watch(h, "stalled", stalled, True, stop)  # its socket is never read
     _every_value_watched(h, 40)  # past the stalled one's window of lent values: bytes in its frames
-    shared = h.system.shared
-    assert shared is not None
-    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "stalled"]
-    assert link is not None
+    link = h.link("stalled")
     # What waits for the client: the bound, then at most one batch (here one value of 1 MiB and its event).
     assert link.unsent <= EVENTS_UNSENT + 2 * MIB, link.unsent
     stop.set()
@@ -330,10 +326,7 @@ def test_a_watcher_whose_queue_is_full_gives_back_its_values_and_keeps_its_sessi
 
     watcher.on_change(cast.address_filter("img", include_entry=True), slow)
     session = watcher._transport._directory.shared.session()
-    shared = h.system.shared
-    assert shared is not None
-    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "watcher"]
-    assert link is not None
+    link = h.link("watcher")
     most = [0]  # the most that waited for the watcher, sampled (a spy would not see into the compiled build)
     done = threading.Event()
 

@@ -27,16 +27,10 @@ from cast.core.records import Identity
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
 from tests.client.test_shared_memory import MIB, Host, image
-from tests.client.test_socket_writes import add
+from tests.client.test_socket_writes import add, get
 from tests.client.test_socket_writes import host as host  # the fixtures, used by name
 from tests.client.test_socket_writes import raw as raw
 from tests.conftest import wait_for
-
-
-def get(request_id: int, entry_id: str, read_call: int = 0) -> wm_pb2.WriteRequest:
-    request = wm_pb2.WriteRequest(id=request_id, read_call=read_call)
-    request.get.address.subarchitecture, request.get.address.id = "vision", entry_id
-    return request
 
 
 class _NoUnaryGet:

@@ -121,6 +121,12 @@ def raw(host: Callable[..., Host]) -> Iterator[Callable[..., tuple[Host, RawSess
         s.close()
 
 
+def get(request_id: int, entry_id: str, read_call: int = 0) -> wm_pb2.WriteRequest:
+    request = wm_pb2.WriteRequest(id=request_id, read_call=read_call)
+    request.get.address.subarchitecture, request.get.address.id = "vision", entry_id
+    return request
+
+
 def add(request_id: int, entry_id: str, data: bytes | None = None, staged: wm_pb2.StagedValue | None = None,
         overwrite: bool = False) -> wm_pb2.WriteRequest:
     request = wm_pb2.WriteRequest(id=request_id)
@@ -255,15 +261,15 @@ def test_a_flood_of_writes_on_one_socket_lets_other_clients_writes_through_and_a
     # would land after the last by the test's timing, not the server's. A server without turns applies the
     # whole flood in its first call, before the gate: the other write lands after the last, and this fails.
     sent = threading.Event()
-    drain = socket_writes.SocketWrites._drain
+    next_turn = socket_writes.SocketWrites._next_turn
 
     def gated(self: Any) -> None:
-        if self._draining and not sent.is_set():
-            self._loop.call_later(0.001, self._drain)
+        if not sent.is_set():
+            self._loop.call_later(0.001, self._next_turn)
         else:
-            drain(self)
+            next_turn(self)
 
-    monkeypatch.setattr(socket_writes.SocketWrites, "_drain", gated)
+    monkeypatch.setattr(socket_writes.SocketWrites, "_next_turn", gated)
     count = 400 * REQUESTS_PER_TURN  # hundreds of turns: the other write lands among them, not after the last
     session.write(*(add(i + 1, f"flood{i}", b"f") for i in range(count)))  # one frame
     first = session.replies(1)  # the server is applying the flood
@@ -423,18 +429,12 @@ def test_a_flood_of_writes_reaches_a_socket_watcher_once_in_order_in_bounded_bat
 def _unread_replies(h: Host, session: RawSession, count: int) -> None:
     """``count`` gets of a 60 KiB entry (bytes in their replies) that ``session`` does not read: past MAX_UNSENT."""
     h.component("other").add("big", BytesValue(value=b"x" * (60 << 10)))
-    gets = [wm_pb2.WriteRequest(id=i) for i in range(1, count + 1)]
-    for request in gets:
-        request.get.address.subarchitecture, request.get.address.id = "vision", "big"
-    session.write(*gets)
+    session.write(*[get(i, "big") for i in range(1, count + 1)])
 
 
 def test_a_client_that_leaves_much_unread_has_its_writes_held_while_its_socket_is_still_read(raw: Any) -> None:
     h, session = raw()
-    shared = h.system.shared
-    assert shared is not None
-    (link,) = [s.link for s in shared.sessions.values() if s.who.component_id == "writer"]
-    assert link is not None
+    link = h.link("writer")
     _unread_replies(h, session, 100)  # 6 MiB of replies: more than MAX_UNSENT waits for it
     wait_for(lambda: link.unsent > MAX_UNSENT, what="replies waiting for the client")
     session.write(add(101, "mine", b"held"))

@@ -234,9 +234,7 @@ class _Connection:
         # A descriptor waiting here belongs to a live segment or the session's staging area: it stays open.
         self._pending.append((frame, fd))
         self._unsent += len(frame)
-        if self._unsent > MAX_UNSENT and self._writes is not None:
-            # Its writes wait until it read more; the socket is still read, for its RELEASEs (SocketWrites).
-            self._writes.hold(True)
+        self._hold_or_not()
         return True
 
     def _writable(self) -> None:
@@ -255,17 +253,17 @@ class _Connection:
             self._unsent -= sent
             if sent < len(frame):
                 self._pending[0] = (frame[sent:], None)
-                self._caught_up()
+                self._hold_or_not()
                 return
             self._pending.popleft()
         self._loop.remove_writer(self._sock.fileno())
-        self._caught_up()
+        self._hold_or_not()
         self._tell()
 
-    def _caught_up(self) -> None:
-        """Some frames went: once no more than MAX_UNSENT bytes wait, the client's writes are applied again."""
-        if self._unsent <= MAX_UNSENT and self._writes is not None and not self.closed:
-            self._writes.hold(False)
+    def _hold_or_not(self) -> None:
+        """Hold the client's writes while more than MAX_UNSENT bytes wait for it (its socket is still read)."""
+        if self._writes is not None and not self.closed:
+            self._writes.hold(self._unsent > MAX_UNSENT)
 
     def refuse(self, reason: str) -> None:
         """Tell the client why (REFUSED), then close."""

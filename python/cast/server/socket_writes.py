@@ -120,12 +120,13 @@ class SocketWrites:
         elif self._queue and not self._draining:
             self._drain()
 
+    def _next_turn(self) -> None:
+        """The turn scheduled for the requests left: applied now, unless held since (then once it caught up)."""
+        self._draining = False
+        self.apply()
+
     def _drain(self) -> None:
         """Apply up to REQUESTS_PER_TURN queued requests; the rest in the next turn, the connection paused."""
-        self._draining = False
-        if self._held:
-            self._pause(self._queued_bytes > MAX_HELD)  # applied once the client caught up (hold(False))
-            return
         before = woken()
         # The socket watchers' events of these writes are sent within, before their replies (cast.server.writes).
         # Taken off the queue as a list, which the compiled build would make of a generator anyway: the same
@@ -135,7 +136,7 @@ class SocketWrites:
         if self._queue:
             self._draining = True
             self._pause(True)
-            self._loop.call_soon(self._drain)
+            self._loop.call_soon(self._next_turn)
         else:
             self._queued_bytes = 0
             self._pause(False)
