@@ -75,11 +75,6 @@ class SocketWrites:
         self._held = False  # the client leaves too much unread: requests read wait (hold)
         self._queued_bytes = 0  # bytes of the WRITES frames read since the queue was last empty
 
-    @property
-    def busy(self) -> bool:
-        """Whether requests read are still waiting to be applied (the connection is not read meanwhile)."""
-        return bool(self._queue)
-
     def received(self, body: bytes) -> None:
         """A WRITES frame: its requests are queued, applied by :meth:`apply` once the read that brought it is handled.
 
