@@ -28,8 +28,8 @@ from cast.server.socket_writes import MAX_UNSENT
 from cast.server.working_memory import EVENTS_UNSENT
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
-from tests.client.test_shared_memory import MIB, Host, image
-from tests.client.test_shared_memory import host as host  # the fixture, used by name
+from tests.client.shm_host import MIB, Host, image
+from tests.client.shm_host import host as host  # the fixture, used by name
 from tests.conftest import wait_for
 
 
@@ -338,8 +338,10 @@ def test_a_watcher_whose_queue_is_full_gives_back_its_values_and_keeps_its_sessi
     sampler.start()
     try:
         writer.add("img", image(64 << 10, 0))
-        for seed in range(1, count):
-            writer.overwrite("img", image(64 << 10, seed))
+        # Pipelined, so that the writer outruns the watcher by far more than MAX_UNSENT on a loaded machine too.
+        written = [writer.overwrite_async("img", image(64 << 10, seed)) for seed in range(1, count)]
+        for w in written:
+            w.result(60)
         wait_for(lambda: len(got) == count, what="every value")
     finally:
         done.set()
