@@ -29,8 +29,8 @@ from cast.client.credentials import TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.v1 import working_memory_pb2 as wm_pb2
-from tests.client.test_shared_memory import MIB, Host, image
-from tests.client.test_shared_memory import host as host  # the fixture, used by name
+from tests.client.shm_host import MIB, Host, image
+from tests.client.shm_host import host as host  # the fixture, used by name
 from tests.conftest import OnAThread, start_server, wait_for
 
 

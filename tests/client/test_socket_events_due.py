@@ -22,8 +22,8 @@ import cast
 from cast.core.records import Identity
 from cast.server import socket_events
 from cast.server.socket_events import Due
-from tests.client.test_shared_memory import MIB, Host, image
-from tests.client.test_shared_memory import host as host  # the fixture, used by name
+from tests.client.shm_host import MIB, Host, image
+from tests.client.shm_host import host as host  # the fixture, used by name
 from tests.client.test_socket_writes import RawSession, add
 from tests.conftest import wait_for
 

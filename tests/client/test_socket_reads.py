@@ -26,7 +26,7 @@ from cast.client.grpc_transport import GrpcTransport
 from cast.core.records import Identity
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
-from tests.client.test_shared_memory import MIB, Host, image
+from tests.client.shm_host import MIB, Host, image
 from tests.client.test_socket_writes import add, get
 from tests.client.test_socket_writes import host as host  # the fixtures, used by name
 from tests.client.test_socket_writes import raw as raw

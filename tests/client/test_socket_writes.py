@@ -30,7 +30,7 @@ from cast.v1 import directory_pb2_grpc as dir_grpc
 from cast.v1 import entry_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
-from tests.client.test_shared_memory import BYTES_VALUE, MIB, Host, image
+from tests.client.shm_host import BYTES_VALUE, MIB, Host, image
 from tests.conftest import wait_for
 
 TYPE_URL = "type.googleapis.com/" + BYTES_VALUE
