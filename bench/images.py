@@ -45,6 +45,7 @@ from bench.floors import EchoFloor
 from bench.harness import PYTHON, ROOT
 from bench.other_clients import cpp_command, java_command
 from bench.other_host import OtherHost
+from bench.peer_fanout import WARM_BURST, WARM_PAUSE_S
 
 __all__ = ["BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "ServerMemory", "run"]
 
@@ -71,7 +72,8 @@ PHASES: tuple[tuple[str, str, int, bool], ...] = (
 # while its queue is long): with 4 x as many (1,200) they all still ran as C1's profiling code when measured
 # (-XX:+LogCompilation; docs/performance-m8.md, "The warm-up reaches C2"). Values of the smallest size that goes
 # by shared memory, so that the history (HISTORY_BYTES) holds 1,024 of them: a cold reader would have to fall
-# that far behind to lose its watch (64 values of 1 MiB did once). The 1 MiB 30 Hz phase begins with COLD_S of
+# that far behind to lose its watch (64 values of 1 MiB did once), which the bursts with pauses between them
+# (bench.peer_fanout.WARM_BURST, for the peers alike) keep it from doing. The 1 MiB 30 Hz phase begins with COLD_S of
 # paced frames before that, every reader cold (its "first seconds": shown, not judged).
 WARM_PER_FRAME = 34
 WARM_SIZE = 64 << 10  # shared_memory.threshold_bytes' default
@@ -288,14 +290,16 @@ def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, 
     """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile.
 
     The writer sends ``cold`` paced values, ``warm`` of WARM_SIZE bytes back
-    to back, then the ``frames`` measured (:func:`figures`).
+    to back in bursts (as :func:`bench.peer_fanout.drive`), then the
+    ``frames`` measured (:func:`figures`).
     """
     watchers = _Watchers(server, commands, tag)
     try:
         memory = ServerMemory(server.proc.process.pid)
         try:
             sent = _write(server, [*writer, "image-write", str(size), str(frames), str(round(gap_s * 1e6)),
-                                   str(warm), str(WARM_SIZE), str(cold)], tag)
+                                   str(warm), str(WARM_SIZE), str(cold), str(WARM_BURST),
+                                   str(round(WARM_PAUSE_S * 1e6))], tag)
             got = watchers.results()
         finally:
             peaks = memory.stop()

@@ -23,12 +23,14 @@
 //
 // Image-sized entries (M8, bench/images.py):
 //
-//   cast_bench image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]]
+//   cast_bench image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US]]]
 //                               adds "img" (a BytesValue of SIZE bytes), then
 //                               COLD overwrites (default 0) paced as the N below
 //                               (the readers' first seconds), WARM (default 0) of
-//                               WARM_SIZE bytes back to back and a pause of 0.3 s
-//                               (a warm-up on the watchers' real path), then N
+//                               WARM_SIZE bytes back to back, in bursts of BURST
+//                               (default: all of them) each followed by a pause
+//                               of PAUSE_US, and a pause of 0.3 s (a warm-up on
+//                               the watchers' real path), then N
 //                               overwrites, the i-th started at start + i * GAP_US
 //                               (0: back to back), stamping CLOCK_MONOTONIC just
 //                               before each; deletes "img" (the watchers' end
@@ -179,11 +181,17 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 // (bench.peer_fanout.SETTLE_S for the peers).
 constexpr auto kSettle = std::chrono::milliseconds(300);
 
-int imageWriteMode(cast::Component& c, long size, long n, long gapUs, long warm, long warmSize, long cold) {
+// image-write's warm-up: `count` values of `size` bytes, back to back in bursts of `burst` (0: one burst), each
+// burst followed by `pauseUs`, so that no watcher falls a history's length behind before the measured part.
+struct WarmUp {
+  long count = 0, size = 0, burst = 0, pauseUs = 0;
+};
+
+int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold) {
   // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
   std::vector<google::protobuf::BytesValue> values(4);
   for (std::size_t k = 0; k < values.size(); ++k) {
-    const long bytes = k < 2 ? size : warmSize;
+    const long bytes = k < 2 ? size : warm.size;
     values[k].set_value(std::string(static_cast<std::size_t>(std::max(0L, bytes)), static_cast<char>(k % 2 + 1)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
@@ -200,8 +208,12 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, long warm,
   };
   c.add("img", values[0]);
   overwrite(cold, gapUs, 0);  // the first seconds, every reader cold
-  if (warm > 0) {
-    overwrite(warm, 0, 2);
+  if (warm.count > 0) {
+    const long burst = warm.burst > 0 ? warm.burst : warm.count;
+    for (long left = warm.count; left > 0; left -= burst) {
+      overwrite(std::min(burst, left), 0, 2);
+      if (left > burst) std::this_thread::sleep_for(std::chrono::microseconds(warm.pauseUs));
+    }
     std::this_thread::sleep_for(kSettle);
   }
   overwrite(n, gapUs, 0);
@@ -290,7 +302,7 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
 
 int usage() {
   std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | "
-               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD]] | "
+               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US]]] | "
                "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
 }
@@ -316,8 +328,10 @@ int main(int argc, char** argv) {
       code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);
     else if (mode == "image-write")
       code = imageWriteMode(component, n, std::strtol(argv[3], nullptr, 10), std::strtol(argv[4], nullptr, 10),
-                            argc > 5 ? std::strtol(argv[5], nullptr, 10) : 0,
-                            argc > 6 ? std::strtol(argv[6], nullptr, 10) : n,
+                            WarmUp{argc > 5 ? std::strtol(argv[5], nullptr, 10) : 0,
+                                   argc > 6 ? std::strtol(argv[6], nullptr, 10) : n,
+                                   argc > 8 ? std::strtol(argv[8], nullptr, 10) : 0,
+                                   argc > 9 ? std::strtol(argv[9], nullptr, 10) : 0},
                             argc > 7 ? std::strtol(argv[7], nullptr, 10) : 0);
     else if (mode == "image-watch") code = imageWatchMode(component, argv[2]);
     else return usage();

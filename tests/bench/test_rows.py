@@ -95,6 +95,8 @@ def test_a_round_that_failed_fails_the_pooled_phase() -> None:
 
 def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(peer_fanout, "SETTLE_S", 0.05)
+    monkeypatch.setattr(peer_fanout, "WARM_BURST", 2)
+    monkeypatch.setattr(peer_fanout, "WARM_PAUSE_S", 0.05)
     seqs: list[int] = []
     sizes: list[int] = []
 
@@ -108,8 +110,11 @@ def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytes
     assert expected_frames(seqs, 64, dict.fromkeys(range(2, 7), 16)) == sum(word_sum(frame(q, z)) for q, z in
                                                                              zip(seqs, sizes, strict=True)) % 2**64
     assert sent[1] - sent[0] >= 99 * MS and sent[10] - sent[7] >= 3 * 99 * MS  # cold and measured frames paced
-    assert sent[6] - sent[2] < 100 * MS  # the burst back to back: its four gaps paced would take 400 ms
-    assert sent[7] - sent[6] >= 50 * MS  # the pause after the burst
+    # The warm-up (2-6) in bursts of two back to back, a pause after each but the last: 2 3 | 4 5 | 6.
+    assert sent[3] - sent[2] < 100 * MS and sent[5] - sent[4] < 100 * MS  # paced, a gap would take 100 ms
+    assert sent[4] - sent[3] >= 50 * MS and sent[6] - sent[5] >= 50 * MS  # the pauses between bursts
+    assert sent[6] - sent[2] < 2 * 50 * MS + 100 * MS  # and no more: two pauses, the rest back to back
+    assert sent[7] - sent[6] >= 50 * MS  # the pause after the warm-up
 
 
 def test_receiver_stamps_data_and_ends_at_end(capsys: pytest.CaptureFixture[str]) -> None:
