@@ -28,8 +28,8 @@
 //                               COLD overwrites (default 0) paced as the N below
 //                               (the readers' first seconds), WARM (default 0) of
 //                               WARM_SIZE bytes back to back, in bursts of BURST
-//                               (default: all of them) each followed by a pause
-//                               of PAUSE_US, and a pause of 0.3 s (a warm-up on
+//                               (default: all of them), a pause of PAUSE_US
+//                               between bursts, and one of 0.3 s (a warm-up on
 //                               the watchers' real path), then N
 //                               overwrites, the i-th started at start + i * GAP_US
 //                               (0: back to back), stamping CLOCK_MONOTONIC just
@@ -181,8 +181,8 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 // (bench.peer_fanout.SETTLE_S for the peers).
 constexpr auto kSettle = std::chrono::milliseconds(300);
 
-// image-write's warm-up: `count` values of `size` bytes, back to back in bursts of `burst` (0: one burst), each
-// burst followed by `pauseUs`, so that no watcher falls a history's length behind before the measured part.
+// image-write's warm-up: `count` values of `size` bytes, back to back in bursts of `burst` (0: one burst), with
+// `pauseUs` between bursts, so that no watcher falls a history's length behind before the measured part.
 struct WarmUp {
   long count = 0, size = 0, burst = 0, pauseUs = 0;
 };
