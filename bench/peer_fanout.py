@@ -138,7 +138,7 @@ class Subscribers:
 
 
 SETTLE_S = 0.3  # the pause after a back-to-back warm-up, as M8's C++ writer makes (cast_bench image-write)
-# The warm-up goes in bursts of WARM_BURST, each followed by WARM_PAUSE_S: a quarter of what M8's history holds of
+# The warm-up goes in bursts of WARM_BURST with WARM_PAUSE_S between them: a quarter of what M8's history holds of
 # the warm-up's values (1,024 of 64 KiB in 64 MiB), and time for the slowest watcher to take a burst, so that
 # no watcher can fall a history's length behind the writer in a part that is not measured (one burst of 10,200
 # could: docs/performance-m8.md, "A server the scheduler favours loses the watchers in the warm-up").
