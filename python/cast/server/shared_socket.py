@@ -144,14 +144,22 @@ class _Connection:
         elif frame.kind == wire.WRITES:
             assert self._writes is not None
             self._writes.received(frame.body)
+        elif frame.kind == wire.NUDGE:
+            # A thread of the client blocked in the socket's read, to be woken (docs/client-protocol.md, "Frames").
+            if frame.body:
+                raise wire.ProtocolError(f"NUDGE carries nothing, this one {len(frame.body)} bytes")
+            if not self._pending:  # else the client has bytes to read already: its reader is not blocked
+                self.send(wire.NUDGED_FRAME)
         else:
             raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
 
     def _hello(self, body: bytes) -> None:
         self._hello_timer.cancel()
         version, token = wire.parse_hello(body)
-        if version != wire.VERSION:
-            raise wire.ProtocolError(f"protocol version {version} is not served (this server speaks {wire.VERSION})")
+        if not 1 <= version <= wire.VERSION:
+            raise wire.ProtocolError(
+                f"protocol version {version} is not served (this server speaks 1 to {wire.VERSION})"
+            )
         pid, uid, _ = _UCRED.unpack(self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
         if uid != os.geteuid():
             raise wire.ProtocolError(

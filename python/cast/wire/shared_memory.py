@@ -24,19 +24,32 @@ from collections import deque
 from typing import NamedTuple
 
 __all__ = [
-    "HELLO", "MAX_FRAME", "MAX_WRITES_FRAME", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT",
-    "VERSION", "WELCOME", "WRITES", "Frame", "FrameReader", "Inbox", "ProtocolError", "encode", "hello", "receive",
-    "received", "refused", "release", "replies", "retire", "segment", "send", "welcome", "writes",
+    "HELLO", "HELLO_VERSION", "MAX_FRAME", "MAX_WRITES_FRAME", "NUDGE", "NUDGED", "NUDGED_FRAME", "NUDGE_FRAME",
+    "NUDGE_VERSION", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT", "VERSION", "WELCOME", "WRITES",
+    "Frame", "FrameReader", "Inbox", "ProtocolError", "encode", "hello", "receive", "received", "refused", "release",
+    "replies", "retire", "segment", "send", "welcome", "writes",
 ]
 
-VERSION = 1
-"""The protocol's version, sent in HELLO and WELCOME."""
+VERSION = 2
+"""The newest version of the protocol this module speaks: a server's, sent in WELCOME.
+
+A server serves every version from 1 to its own; a client says in HELLO the
+version it needs and uses what a later version adds only when WELCOME's
+version has it (2: NUDGE).
+"""
+
+HELLO_VERSION = 1
+"""The version this module's client says in HELLO: it uses nothing a later version adds."""
+
+NUDGE_VERSION = 2
+"""The first version whose servers answer NUDGE."""
 
 # Client -> server
 HELLO = 1  # u16 version, then the token (UTF-8) to the end
 RELEASE = 2  # n x u64 value ids given back
 RECEIVED = 3  # u64 call, u64 count, u8 ended
 WRITES = 4  # a serialized cast.v1.WriteRequests (up to MAX_WRITES_FRAME)
+NUDGE = 5  # nothing; answered by NUDGED (version 2)
 # Server -> client
 WELCOME = 10  # u16 version, 16 bytes session, 16 bytes server id, u64 threshold, u64 window, u64 staging size; 1 fd
 REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
@@ -44,6 +57,7 @@ SEGMENT = 12  # u32 segment id, u64 size; 1 fd
 RETIRE = 13  # u32 segment id
 REPLIES = 14  # a serialized cast.v1.WriteReplies (up to MAX_WRITES_FRAME)
 EVENTS = 15  # u64 call, then a serialized cast.v1.WatchResponse (up to MAX_WRITES_FRAME)
+NUDGED = 16  # nothing: the answer to a NUDGE (version 2)
 
 MAX_FRAME = 1 << 16
 """The largest frame either side sends or accepts (a RELEASE of 8,000 ids fits), but WRITES and REPLIES."""
@@ -83,7 +97,7 @@ def encode(kind: int, body: bytes = b"") -> bytes:
 
 def hello(token: str) -> bytes:
     """HELLO: the protocol version and the caller's token."""
-    return encode(HELLO, _U16.pack(VERSION) + token.encode())
+    return encode(HELLO, _U16.pack(HELLO_VERSION) + token.encode())
 
 
 def release(value_ids: list[int]) -> bytes:
@@ -124,6 +138,13 @@ def refused(reason: str) -> bytes:
 def segment(segment_id: int, size: int) -> bytes:
     """SEGMENT (sent with the segment's memory file)."""
     return encode(SEGMENT, _SEGMENT.pack(segment_id, size))
+
+
+NUDGE_FRAME = encode(NUDGE)
+"""NUDGE: the server answers NUDGED, which wakes a thread of the client blocked in the socket's read."""
+
+NUDGED_FRAME = encode(NUDGED)
+"""NUDGED: the server's answer to a NUDGE (nothing else)."""
 
 
 def retire(segment_id: int) -> bytes:

@@ -1,0 +1,112 @@
+"""NUDGE and NUDGED on the shared-memory session's socket, and the versions a server serves (docs/client-protocol.md).
+
+A client thread blocked in the socket's read (the Java client's dispatcher
+thread) cannot be woken from inside its process; another thread sends NUDGE
+and the server answers NUDGED, which the blocked read returns with. A real
+server on port 0 (in a thread of this process); raw sessions opened by hand,
+as in tests/client/test_socket_writes.py. The Java client's use of it is
+tested in java_client's DispatcherReadsTest.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import struct
+from typing import Any
+
+import pytest
+
+from cast.core.records import Identity
+from cast.v1 import directory_pb2 as dir_pb2
+from cast.v1 import directory_pb2_grpc as dir_grpc
+from cast.wire import shared_memory as wire
+from tests.client.test_socket_writes import add
+from tests.client.test_socket_writes import host as host  # the fixtures, used by name
+from tests.client.test_socket_writes import raw as raw
+from tests.conftest import wait_for
+
+
+def test_the_server_says_its_version_and_answers_a_nudge_with_nudged(raw: Any) -> None:
+    _, session = raw()
+    wire.send(session.sock, wire.NUDGE_FRAME)
+    frame = session.next_frame()
+    assert (frame.kind, frame.body) == (wire.NUDGED, b""), frame
+    # The session goes on as before: a write is answered.
+    session.write(add(1, "after", b"a"))
+    (reply,) = session.replies(1)
+    assert reply.WhichOneof("result") == "write", reply
+
+
+def test_welcome_carries_the_servers_version_and_hello_may_say_any_version_up_to_it(raw: Any) -> None:
+    h, _ = raw()
+    for version in range(1, wire.VERSION + 1):
+        sock = _hello(h, "v", version)
+        frame = _first_frame(sock)
+        assert frame.kind == wire.WELCOME, frame
+        assert wire.parse_welcome(frame.body)[0] == wire.VERSION == wire.NUDGE_VERSION
+        sock.close()
+    for version in (0, wire.VERSION + 1):
+        refused = _first_frame(_hello(h, "v", version))
+        assert refused.kind == wire.REFUSED, refused
+        assert f"protocol version {version} is not served (this server speaks 1 to {wire.VERSION})".encode() \
+            in refused.body
+
+
+def test_a_nudge_with_a_body_is_refused_naming_it(raw: Any) -> None:
+    _, session = raw()
+    wire.send(session.sock, wire.encode(wire.NUDGE, b"xyz"))
+    refused = session.next_frame()
+    assert refused.kind == wire.REFUSED and b"NUDGE carries nothing, this one 3 bytes" in refused.body, refused
+    with pytest.raises((EOFError, ConnectionResetError)):
+        session.next_frame()
+
+
+def test_a_client_that_nudges_and_never_reads_costs_the_server_no_memory(raw: Any) -> None:
+    h, session = raw()
+    link = h.link("writer")
+    session.sock.setblocking(False)
+    sent = 0
+    try:
+        while sent < 200_000:  # far more NUDGEDs than the socket's buffers hold
+            session.sock.send(wire.NUDGE_FRAME * 100)
+            sent += 100
+    except BlockingIOError:
+        pass  # the server stopped reading it: its answers filled the socket
+    session.sock.setblocking(True)
+    wait_for(lambda: link.unsent > 0, what="the server's answers filling the client's socket")
+    # Once the socket is full the server answers no more: what waits to be sent stays one frame at most.
+    assert link.unsent <= len(wire.NUDGED_FRAME), link.unsent
+    # Another client is served meanwhile.
+    _, other = raw(h, "other")
+    other.write(add(1, "through", b"t"))
+    (reply,) = other.replies(1)
+    assert reply.WhichOneof("result") == "write", reply
+    assert link.unsent <= len(wire.NUDGED_FRAME)
+
+
+def _hello(h: Any, cid: str, version: int) -> socket.socket:
+    """A connection to ``h``'s session socket that said HELLO with ``version``."""
+    token = h.signer.issue(Identity(cid, "vision"))
+    info = dir_grpc.DirectoryStub(h.channel).DescribeSystem(
+        dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),)).shared_memory
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(10)
+    sock.connect("\0" + info.socket)
+    body = struct.pack("<H", version) + token.encode()
+    wire.send(sock, wire.encode(wire.HELLO, body))
+    return sock
+
+
+def _first_frame(sock: socket.socket) -> wire.Frame:
+    reader = wire.FrameReader()
+    while True:
+        data, fds = wire.receive(sock)
+        if not data:
+            raise EOFError("the server closed the session")
+        frames = reader.feed(data, fds)
+        for f in frames:
+            if f.fd is not None:
+                os.close(f.fd)
+        if frames:
+            return frames[0]
