@@ -520,6 +520,11 @@ public abstract class Component implements AutoCloseable {
     return binding == null ? 0 : binding.dispatcher.pending();
   }
 
+  /** The dispatcher running this component's callbacks, or null before it is bound (for tests). */
+  Dispatcher dispatcher() {
+    return binding == null ? null : binding.dispatcher;
+  }
+
   /** Whether the calling thread is this component's dispatcher thread. */
   public boolean onDispatcherThread() {
     return binding != null && Thread.currentThread() == binding.dispatcher.thread();

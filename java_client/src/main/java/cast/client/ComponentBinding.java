@@ -63,6 +63,13 @@ final class ComponentBinding {
           public void event(Transport.Change change, java.util.function.BooleanSupplier overflow) {
             dispatcher.deliver(change, overflow);
           }
+
+          @Override
+          public void readBy(SessionSocket socket) {
+            if (socket.nudges()) { // else the dispatcher, blocked in its read, could not be woken
+              dispatcher.attach(socket);
+            }
+          }
         },
         (error, watchId) -> {
           dispatcher.stopped(error, watchId);

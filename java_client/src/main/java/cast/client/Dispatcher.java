@@ -31,9 +31,44 @@ import java.util.logging.Logger;
  * its Watch stream and lags on the server, which keeps a bounded history and
  * says so (HistoryExpiredError) past it, instead of the client buffering without
  * bound. The same policy as the Python client (docs/decisions.md).
+ *
+ * <p>The thread also reads the component's shared-memory session socket while it has nothing to
+ * run ({@link #attach}: a socket that carries a watch's events, docs/client-protocol.md "A watch's
+ * events on the session's socket"): blocked in the socket's read, it handles what comes itself,
+ * so an event's callback runs on the thread the kernel woke for its frame, with no hand-off
+ * between threads (docs/performance-m8.md, "The Java dispatcher reads the session's socket,
+ * blocked in its read"). A call queued by another thread meanwhile wakes it by a NUDGE, which the
+ * server answers on the socket. Before each call it reads what the socket already holds, so a
+ * change of a higher priority still goes first; while one call runs longer than {@link
+ * SessionSocket#STANDBY_MS}, the socket's reader thread reads in its place.
  */
 final class Dispatcher {
   private static final Logger LOG = Logger.getLogger("cast.component");
+
+  /**
+   * A socket the dispatcher thread reads while it has nothing to run: a shared-memory session's
+   * ({@link SessionSocket}), whose reader thread reads it the rest of the time.
+   */
+  interface Source {
+    /**
+     * Read once and handle what was read on this thread; with {@code onlyIfReady}, only if bytes
+     * are there already (else nothing), without it blocked until something comes. False at once,
+     * reading nothing, when another thread reads it; true once it ended.
+     */
+    boolean read(boolean onlyIfReady);
+
+    /** Wake the thread blocked in {@link #read}: a NUDGE, which the server answers on the socket. */
+    void nudge();
+
+    /** Whether it ended (the dispatcher then forgets it). */
+    boolean ended();
+
+    /** {@code d} reads it from now on while it has nothing to run, or no dispatcher does (null). */
+    void dispatched(Dispatcher d);
+
+    /** A call began on the dispatcher thread (its standby, asleep while the dispatcher was idle, wakes to watch it). */
+    void callBegan();
+  }
 
   private final Thread thread;
   private final Object lock = new Object();
@@ -46,6 +81,14 @@ final class Dispatcher {
   private final List<LinkedHashMap<Object, Runnable>> levels = new ArrayList<>(); // guarded by lock
   private long pending; // queued or running; guarded by lock
   private boolean stopped; // guarded by lock
+  // The socket the thread reads while idle (attach); written under lock, read without it before a call.
+  private volatile Source source;
+  private Source inRead; // what the thread is in read(false) of, or about to be; null else; guarded by lock
+  private boolean nudged; // a NUDGE was sent for that read; guarded by lock
+  private boolean sourceBusy; // another thread read the source when this one tried; guarded by lock
+  private long freed; // times a thread let the source go (sourceFree); guarded by lock
+  private volatile long callStarted; // System.nanoTime() at the start of the call running now; 0 between calls
+  private volatile long lastCallEnded = System.nanoTime(); // when the last call returned (the standby's idle)
 
   private record Registration(ChangeCallback callback, WatchHandle handle, WatchOptions options) {}
 
@@ -186,6 +229,10 @@ final class Dispatcher {
     levels.get(priority.ordinal()).put(key, call);
     pending++;
     lock.notifyAll();
+    if (inRead != null && !nudged && Thread.currentThread() != thread) {
+      nudged = true; // once per read: its answer wakes the thread, which then runs what was queued
+      inRead.nudge();
+    }
     return true;
   }
 
@@ -207,18 +254,45 @@ final class Dispatcher {
     // only by its back-edges, so the work of each call kept in it ran in the bytecode interpreter
     // for tens of thousands of calls (docs/performance-m8.md, "The Java watcher's loops in the
     // interpreter").
-    while (runNext()) {
-      // the next call, until the dispatcher stops
+    try {
+      while (runNext()) {
+        // the next call, until the dispatcher stops
+      }
+    } finally {
+      Source s;
+      synchronized (lock) {
+        s = source;
+        source = null;
+      }
+      if (s != null) {
+        s.dispatched(null); // its reader thread reads it again, for as long as it lives
+      }
     }
   }
 
-  /** Wait for the next call and run it; false once the dispatcher stopped (or was interrupted). */
+  /**
+   * Wait for the next call and run it; false once the dispatcher stopped (or was interrupted).
+   * With a source attached and nothing to run, the wait is one read of the source (what it brings
+   * is queued on this thread); with a call to run, what the source holds already is read first.
+   */
   private boolean runNext() {
     Runnable call;
+    Source reading = null;
+    long seen = 0;
     synchronized (lock) {
       while ((call = next()) == null) {
         if (stopped) {
           return false;
+        }
+        Source s = source;
+        if (s != null && s.ended()) {
+          source = null; // its session ended; a new session's socket is attached by its watch
+        } else if (s != null && !sourceBusy) {
+          inRead = s;
+          nudged = false;
+          seen = freed;
+          reading = s;
+          break;
         }
         try {
           lock.wait();
@@ -226,18 +300,108 @@ final class Dispatcher {
           return false;
         }
       }
+      if (call != null && pending <= capacity && !sourceBusy) {
+        reading = source;
+        seen = freed;
+      }
+    }
+    if (call == null) {
+      readSource(reading, false, seen);
+      return true;
+    }
+    if (reading != null) {
+      readSource(reading, true, seen);
+    }
+    callStarted = System.nanoTime();
+    Source s = source;
+    if (s != null) {
+      s.callBegan();
     }
     try {
       call.run();
     } catch (Throwable t) { // a callback's failure is reported, the dispatcher goes on
       LOG.log(Level.SEVERE, thread.getName() + ": callback failed", t);
     } finally {
+      callStarted = 0;
+      lastCallEnded = System.nanoTime();
       synchronized (lock) {
         pending--;
         lock.notifyAll(); // drain() waits for 0, a blocking submit for room
       }
     }
     return true;
+  }
+
+  /** One read of {@code s} on this thread; if another thread reads it, wait (in runNext) until it lets go. */
+  private void readSource(Source s, boolean onlyIfReady, long seen) {
+    boolean read = false;
+    try {
+      read = s.read(onlyIfReady);
+    } finally {
+      synchronized (lock) {
+        inRead = null;
+        if (!read && freed == seen) {
+          sourceBusy = true; // until sourceFree: that thread queues what it reads, which wakes this one
+        }
+      }
+    }
+  }
+
+  // ------------------------------------------------------------- the source
+
+  /**
+   * Read {@code s} on the dispatcher thread while it has nothing to run, from now on (in place of
+   * a source attached before, whose session ended); false if the dispatcher stopped.
+   */
+  boolean attach(Source s) {
+    Source old;
+    synchronized (lock) {
+      if (stopped) {
+        return false;
+      }
+      old = source;
+      if (old == s) {
+        return true;
+      }
+      source = s;
+      sourceBusy = false;
+      lock.notifyAll(); // the thread, waiting with no source until now
+      if (inRead != null && !nudged) {
+        nudged = true; // the thread, blocked in the old source's read, reads the new one
+        inRead.nudge();
+      }
+    }
+    if (old != null) {
+      old.dispatched(null);
+    }
+    s.dispatched(this);
+    return true;
+  }
+
+  /** A thread let the source go: the dispatcher, waiting because that thread read it, reads again. */
+  void sourceFree() {
+    synchronized (lock) {
+      freed++;
+      if (sourceBusy) {
+        sourceBusy = false;
+        lock.notifyAll();
+      }
+    }
+  }
+
+  /** The source this dispatcher reads, or null (for tests and diagnostics). */
+  Source source() {
+    return source;
+  }
+
+  /** System.nanoTime() at the start of the call running now; 0 between calls (the standby's watch). */
+  long callStarted() {
+    return callStarted;
+  }
+
+  /** System.nanoTime() when the last call returned (the standby sleeps once the dispatcher was idle a while). */
+  long lastCallEnded() {
+    return lastCallEnded;
   }
 
   // ------------------------------------------------------- watch callbacks
@@ -441,6 +605,10 @@ final class Dispatcher {
     synchronized (lock) {
       stopped = true;
       lock.notifyAll();
+      if (inRead != null && !nudged) {
+        nudged = true; // the thread, blocked in the source's read
+        inRead.nudge();
+      }
     }
     if (Thread.currentThread() != thread) {
       try {

@@ -29,9 +29,14 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * paused for {@link #WRITER_PAUSE_MS}, so that a server that dies is noticed and its memory let go
  * without another write); while a lock request waits, since a thread blocked in the socket's read
  * cannot be interrupted and a lock may wait long ({@link #readFor}); all the time once a watch's
- * events, a read call's values or a write nobody waits for may come ({@link #readOn}). Reads
- * block with no timeout (junixsocket's read timeout would bound the socket's writes too): the
- * session's end closes the socket, which ends them.
+ * events, a read call's values or a write nobody waits for may come ({@link #readOn}). Once the
+ * component's dispatcher reads the socket itself ({@link Dispatcher#attach}, with a server that
+ * answers NUDGE), it reads while it has nothing to run and the reader thread is its standby: it
+ * reads while a lock request or a claim waits ({@link #readFor}) and while one of the dispatcher's
+ * calls runs longer than {@link #STANDBY_MS}, looking every {@link #STANDBY_MS} while the
+ * dispatcher is busy and asleep once it was idle for {@link #IDLE_MS}. Reads block with no timeout
+ * (junixsocket's read timeout would bound the socket's writes too): the session's end closes the
+ * socket, which ends them, and a NUDGE the server answers wakes the dispatcher's.
  *
  * <p>Writing. One frame at a time, whole, holding {@link #writing}: a write's WRITES frame by the
  * thread that sends the write ({@link #sendNow}), a RELEASE by the thread that let the value go
@@ -39,7 +44,7 @@ import org.newsclub.net.unix.AFUNIXSocket;
  * thread was writing) by the sender thread, so that giving a value back never waits for another
  * thread's frame.
  */
-final class SessionSocket {
+final class SessionSocket implements Dispatcher.Source {
   private static final Logger LOG = Logger.getLogger("cast.client");
 
   /**
@@ -48,6 +53,12 @@ final class SessionSocket {
    * itself: one wake-up more).
    */
   static final long WRITER_PAUSE_MS = 100;
+
+  /** How long one of the dispatcher's calls may run before the reader thread reads the socket in its place. */
+  static final long STANDBY_MS = 10;
+
+  /** How long the dispatcher must have been idle before the reader thread stops looking every STANDBY_MS. */
+  static final long IDLE_MS = 1000;
 
   /** What the session does with the socket's frames and its failures. */
   interface Owner {
@@ -76,6 +87,10 @@ final class SessionSocket {
   private final ArrayDeque<byte[]> outbox = new ArrayDeque<>(); // guarded by queue
   private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE; guarded by queue
   private volatile boolean closed;
+  private final boolean nudges; // the server answers NUDGE: a dispatcher may read the socket (Dispatcher.attach)
+  // The dispatcher that reads the socket while idle (the reader thread is its standby), or null.
+  private volatile Dispatcher dispatcher;
+  private volatile boolean standbyAsleep; // the reader thread waits with no timeout, the dispatcher idle; set under queue
   // The reader thread reads all the time: something may come that no thread waits for. Set once, by readOn.
   private volatile boolean readAlways;
   // Requests whose waiting thread does not read (locks, which may wait long): the reader thread reads meanwhile.
@@ -84,14 +99,24 @@ final class SessionSocket {
   private volatile long lastWaited = System.nanoTime() - TimeUnit.MILLISECONDS.toNanos(2 * WRITER_PAUSE_MS);
   /** Reads by threads waiting for their write's reply (for tests and diagnostics). */
   final AtomicLong waiterReads = new AtomicLong();
+  /** Reads by the dispatcher's thread ({@link #read}, for tests and diagnostics). */
+  final AtomicLong dispatcherReads = new AtomicLong();
+  /** Reads by the reader thread (for tests and diagnostics). */
+  final AtomicLong readerReads = new AtomicLong();
+  /** NUDGE frames sent (for tests and diagnostics). */
+  final AtomicLong nudgesSent = new AtomicLong();
   /** RELEASE frames sent by the thread that let the values go (for tests and diagnostics). */
   final AtomicLong releasesInline = new AtomicLong();
   /** RELEASE frames sent by the sender thread, another thread writing then (for tests and diagnostics). */
   final AtomicLong releasesBySender = new AtomicLong();
 
-  /** The socket of a session with the server at {@code endpoint}, whose frames go to {@code owner}. */
-  SessionSocket(AFUNIXSocket socket, String endpoint, Owner owner) {
+  /**
+   * The socket of a session with the server at {@code endpoint}, whose frames go to {@code owner};
+   * {@code nudges}: the server answers NUDGE (its WELCOME's version).
+   */
+  SessionSocket(AFUNIXSocket socket, String endpoint, Owner owner, boolean nudges) {
     this.socket = socket;
+    this.nudges = nudges;
     this.endpoint = endpoint;
     this.owner = owner;
   }
@@ -197,6 +222,10 @@ final class SessionSocket {
     } finally {
       reading.unlock();
       owner.readerLeft();
+      Dispatcher d = dispatcher;
+      if (d != null) {
+        d.sourceFree(); // it may wait to read because this thread did
+      }
     }
   }
 
@@ -212,9 +241,14 @@ final class SessionSocket {
 
   /**
    * While writes that threads wait for come, and nothing else needs the reader, wait until they
-   * paused for {@link #WRITER_PAUSE_MS} (or something needs it); true if it waited.
+   * paused for {@link #WRITER_PAUSE_MS} (or something needs it); true if it waited. While a
+   * dispatcher reads the socket, stand by instead ({@link #standBy}).
    */
   private boolean writersPause() {
+    Dispatcher d = dispatcher;
+    if (d != null) {
+      return standBy(d);
+    }
     long left = TimeUnit.MILLISECONDS.toNanos(WRITER_PAUSE_MS) - (System.nanoTime() - lastWaited);
     if (readAlways || left <= 0 || readingFor.get() > 0) {
       return false;
@@ -231,10 +265,53 @@ final class SessionSocket {
     return true;
   }
 
+  /**
+   * The reader thread as the standby of dispatcher {@code d}, which reads the socket while idle:
+   * false (read now) while a request it reads for waits, or while {@code d}'s call runs longer than
+   * {@link #STANDBY_MS}; else wait (true): until that call's time is up, {@link #STANDBY_MS} while
+   * {@code d} was busy lately, with no timeout once it was idle for {@link #IDLE_MS} (its next call
+   * wakes this thread: {@link #callBegan}).
+   */
+  private boolean standBy(Dispatcher d) {
+    if (readingFor.get() > 0) {
+      return false;
+    }
+    long standby = TimeUnit.MILLISECONDS.toNanos(STANDBY_MS);
+    long now = System.nanoTime();
+    long started = d.callStarted();
+    if (started != 0 && now - started >= standby) {
+      return false;
+    }
+    synchronized (queue) {
+      if (closed || readingFor.get() > 0 || dispatcher != d) {
+        return true;
+      }
+      try {
+        if (started != 0) {
+          TimeUnit.NANOSECONDS.timedWait(queue, started + standby - now);
+        } else if (now - d.lastCallEnded() < TimeUnit.MILLISECONDS.toNanos(IDLE_MS)) {
+          TimeUnit.NANOSECONDS.timedWait(queue, standby);
+        } else {
+          standbyAsleep = true;
+          // Read again after saying so: a call that began before it was said is seen here, one after wakes it.
+          if (d.callStarted() == 0) {
+            queue.wait();
+          }
+        }
+      } catch (InterruptedException e) {
+        owner.end("interrupted");
+      } finally {
+        standbyAsleep = false;
+      }
+    }
+    return true;
+  }
+
   /** One read of the reader thread, holding the socket meanwhile; false once the socket closed. */
   private boolean readTurn() {
     reading.lock();
     try {
+      readerReads.incrementAndGet();
       return !closed && readOrEnd();
     } finally {
       stopReading();
@@ -274,6 +351,79 @@ final class SessionSocket {
       owner.handle(frame);
     }
     return true;
+  }
+
+  // ------------------------------------------------ read by the dispatcher
+
+  /** Whether the server answers NUDGE, so that a dispatcher may read this socket ({@link Dispatcher#attach}). */
+  boolean nudges() {
+    return nudges;
+  }
+
+  /**
+   * One read on this thread (the dispatcher's) and its frames: at once if bytes are there, else
+   * only without {@code onlyIfReady}, blocked until something comes (a frame, a NUDGE's answer,
+   * the socket's end). False at once when another thread reads.
+   */
+  @Override
+  public boolean read(boolean onlyIfReady) {
+    if (closed) {
+      return true;
+    }
+    if (!reading.tryLock()) {
+      return false;
+    }
+    try {
+      if (!closed && (!onlyIfReady || ready())) {
+        dispatcherReads.incrementAndGet();
+        readOrEnd();
+      }
+    } finally {
+      stopReading();
+    }
+    return true;
+  }
+
+  /** Whether bytes wait in the socket (holding {@link #reading}); true when it cannot tell (the read will say why). */
+  private boolean ready() {
+    try {
+      return in.available() > 0;
+    } catch (IOException e) {
+      return true;
+    }
+  }
+
+  @Override
+  public void nudge() {
+    nudgesSent.incrementAndGet();
+    send(ShmWire.nudge());
+  }
+
+  @Override
+  public boolean ended() {
+    return closed;
+  }
+
+  @Override
+  public void dispatched(Dispatcher d) {
+    synchronized (queue) {
+      dispatcher = d;
+      queue.notifyAll(); // the reader thread: to stand by, or to read again
+    }
+  }
+
+  @Override
+  public void callBegan() {
+    if (standbyAsleep) {
+      synchronized (queue) {
+        queue.notifyAll();
+      }
+    }
+  }
+
+  /** The dispatcher that reads the socket while idle, or null (for tests and diagnostics). */
+  Dispatcher dispatcher() {
+    return dispatcher;
   }
 
   // ----------------------------------------------------------------- writing

@@ -138,7 +138,8 @@ final class SharedSession {
               public void readerLeft() {
                 writes.readerLeft();
               }
-            });
+            },
+            welcome.version() >= ShmWire.NUDGE_VERSION);
     this.id = welcome.session();
     this.idHex = HexFormat.of().formatHex(id);
     this.serverId = HexFormat.of().formatHex(welcome.serverId());
@@ -346,30 +347,42 @@ final class SharedSession {
 
   /** The segment named, once its SEGMENT frame came, with one more lease of it held. */
   private Segment awaitSegment(long segmentId) {
-    // Sent before the message naming it: it is in the socket already, or comes at once.
+    // Sent before the message naming it: it is in the socket already, or comes at once. The reader
+    // thread reads for the wait: the dispatcher, which may read the socket itself, may be the waiter.
     long deadline = System.nanoTime() + TimeUnit.MILLISECONDS.toNanos(SEGMENT_WAIT_MS);
-    synchronized (lock) {
-      while (true) {
-        Segment segment = segments.get(segmentId);
-        if (segment != null) {
-          segment.held++;
-          return segment;
+    boolean readerAsked = false;
+    try {
+      synchronized (lock) {
+        while (true) {
+          Segment segment = segments.get(segmentId);
+          if (segment != null) {
+            segment.held++;
+            return segment;
+          }
+          long left = deadline - System.nanoTime();
+          if (dead != null || left <= 0) {
+            throw new UnavailableError(
+                "shared-memory segment " + segmentId + " of the server at " + endpoint + " did not arrive ("
+                    + (dead != null ? dead : "within " + SEGMENT_WAIT_MS / 1000.0 + " s") + "): read again");
+          }
+          if (!readerAsked) {
+            readerAsked = true;
+            io.readFor();
+          }
+          segmentWaiters++;
+          try {
+            TimeUnit.NANOSECONDS.timedWait(lock, left);
+          } catch (InterruptedException e) {
+            Thread.currentThread().interrupt();
+            throw new UnavailableError("interrupted while waiting for shared-memory segment " + segmentId);
+          } finally {
+            segmentWaiters--;
+          }
         }
-        long left = deadline - System.nanoTime();
-        if (dead != null || left <= 0) {
-          throw new UnavailableError(
-              "shared-memory segment " + segmentId + " of the server at " + endpoint + " did not arrive ("
-                  + (dead != null ? dead : "within " + SEGMENT_WAIT_MS / 1000.0 + " s") + "): read again");
-        }
-        segmentWaiters++;
-        try {
-          TimeUnit.NANOSECONDS.timedWait(lock, left);
-        } catch (InterruptedException e) {
-          Thread.currentThread().interrupt();
-          throw new UnavailableError("interrupted while waiting for shared-memory segment " + segmentId);
-        } finally {
-          segmentWaiters--;
-        }
+      }
+    } finally {
+      if (readerAsked) {
+        io.readDone();
       }
     }
   }
@@ -443,6 +456,7 @@ final class SharedSession {
           }
         }
         case ShmWire.REPLIES -> writes.replies(frame.body());
+        case ShmWire.NUDGED -> {} // it woke the thread that read it: nothing more
         case ShmWire.REFUSED -> end("the server ended it: " + ShmWire.text(frame.body()));
         default -> closeAll(frame.fd()); // a kind this client does not know: ignored
       }

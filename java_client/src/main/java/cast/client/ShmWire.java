@@ -24,14 +24,20 @@ import java.util.List;
 final class ShmWire {
   private ShmWire() {}
 
-  /** The protocol's version, sent in HELLO and answered in WELCOME. */
-  static final int VERSION = 1;
+  /**
+   * The version this client says in HELLO: it needs nothing a later version adds, and uses NUDGE
+   * only with a server whose WELCOME says {@link #NUDGE_VERSION} or later.
+   */
+  static final int HELLO_VERSION = 1;
+  /** The first version whose servers answer NUDGE (WELCOME carries the server's version). */
+  static final int NUDGE_VERSION = 2;
 
   // Client -> server.
   static final int HELLO = 1; // u16 version, then the token (UTF-8) to the end
   static final int RELEASE = 2; // n x u64 value ids given back
   static final int RECEIVED = 3; // u64 call, u64 count, u8 ended
   static final int WRITES = 4; // a serialized cast.v1.WriteRequests to the end
+  static final int NUDGE = 5; // nothing; the server answers NUDGED (version 2)
   // Server -> client.
   static final int WELCOME = 10; // u16 version, 16 bytes session, 16 bytes server id, u64 threshold, window, staging
   static final int REFUSED = 11; // the reason (UTF-8) to the end; the server then closes
@@ -39,6 +45,7 @@ final class ShmWire {
   static final int RETIRE = 13; // u32 segment id
   static final int REPLIES = 14; // a serialized cast.v1.WriteReplies to the end
   static final int EVENTS = 15; // u64 call, then a serialized cast.v1.WatchResponse to the end
+  static final int NUDGED = 16; // nothing: the answer to a NUDGE, which wakes a thread blocked in the socket's read
 
   /** The largest frame either side sends or accepts, but for the kinds that carry messages. */
   static final int MAX_FRAME = 1 << 16;
@@ -72,7 +79,12 @@ final class ShmWire {
   /** HELLO: the protocol version and the caller's token. */
   static byte[] hello(String token) {
     byte[] text = token.getBytes(StandardCharsets.UTF_8);
-    return frame(HELLO, 2 + text.length).putShort((short) VERSION).put(text).array();
+    return frame(HELLO, 2 + text.length).putShort((short) HELLO_VERSION).put(text).array();
+  }
+
+  /** NUDGE: the server answers NUDGED (a fresh array each time: the caller's to send). */
+  static byte[] nudge() {
+    return frame(NUDGE, 0).array();
   }
 
   /** RELEASE frames for {@code valueIds} (one lease given back per id), {@link #RELEASE_IDS} a frame. */

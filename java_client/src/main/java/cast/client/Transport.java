@@ -153,6 +153,13 @@ interface Transport extends AutoCloseable {
     default void event(Change change, java.util.function.BooleanSupplier overflow) {
       event(change);
     }
+
+    /**
+     * A watch call's events come on {@code socket}, a shared-memory session's: the component's
+     * dispatcher may read it itself while it has nothing to run ({@link Dispatcher#attach}); by
+     * default the socket's reader thread does.
+     */
+    default void readBy(SessionSocket socket) {}
   }
 
   // ---------------------------------------------------------------- session

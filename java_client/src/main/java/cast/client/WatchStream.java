@@ -307,6 +307,10 @@ final class WatchStream {
       Call call = new Call(gen, read);
       if (read != null) {
         read.session().onEvents(read.number, call); // before the call starts: a frame may precede `created`
+        Transport.EventSink sink = streams.sink;
+        if (sink != null) {
+          sink.readBy(read.session().io()); // the component's dispatcher reads the events itself, where it can
+        }
       }
       SharedLink.watching(server.wmAsync, read).watch(call); // beforeStart sets `requests`
       for (Watch w : watches.values()) {

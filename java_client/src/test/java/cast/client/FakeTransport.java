@@ -359,6 +359,11 @@ final class FakeTransport implements Transport {
 
   // --------------------------------------------------------------- watching
 
+  /** The sink the component set (its dispatcher's). */
+  EventSink sink() {
+    return sink;
+  }
+
   @Override
   public void setEventSink(EventSink sink, BiConsumer<CastError, Integer> onError) {
     this.sink = sink;

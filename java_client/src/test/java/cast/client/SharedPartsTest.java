@@ -63,7 +63,8 @@ class SharedPartsTest {
     ByteBuffer hello = ByteBuffer.wrap(ShmWire.hello("tok")).order(ByteOrder.LITTLE_ENDIAN);
     assertEquals(6, hello.getInt());
     assertEquals(ShmWire.HELLO, hello.get());
-    assertEquals(ShmWire.VERSION, hello.getShort());
+    assertEquals(ShmWire.HELLO_VERSION, hello.getShort());
+    assertArrayEquals(new byte[] {1, 0, 0, 0, (byte) ShmWire.NUDGE}, ShmWire.nudge());
     ByteBuffer received = ByteBuffer.wrap(ShmWire.received(3, 64, true)).order(ByteOrder.LITTLE_ENDIAN);
     assertEquals(18, received.getInt());
     assertEquals(ShmWire.RECEIVED, received.get());
