@@ -53,6 +53,12 @@ def test_welcome_carries_the_servers_version_and_hello_may_say_any_version_up_to
             in refused.body
 
 
+def test_the_python_client_says_version_1_so_that_servers_of_version_1_serve_it_too() -> None:
+    frame = wire.hello("tok")
+    assert frame[4] == wire.HELLO
+    assert wire.parse_hello(frame[5:]) == (wire.HELLO_VERSION, "tok") == (1, "tok")
+
+
 def test_a_nudge_with_a_body_is_refused_naming_it(raw: Any) -> None:
     _, session = raw()
     wire.send(session.sock, wire.encode(wire.NUDGE, b"xyz"))
