@@ -229,11 +229,18 @@ final class Dispatcher {
     levels.get(priority.ordinal()).put(key, call);
     pending++;
     lock.notifyAll();
-    if (inRead != null && !nudged && Thread.currentThread() != thread) {
-      nudged = true; // once per read: its answer wakes the thread, which then runs what was queued
-      inRead.nudge();
+    if (Thread.currentThread() != thread) {
+      wakeFromRead(); // it then runs what was queued
     }
     return true;
+  }
+
+  /** The thread, if blocked in a source's read, is woken: one NUDGE per read, its answer ends it (holding lock). */
+  private void wakeFromRead() {
+    if (inRead != null && !nudged) {
+      nudged = true;
+      inRead.nudge();
+    }
   }
 
   /** The oldest call of the highest priority that has one, taken off its queue; null if none (holding lock). */
@@ -366,10 +373,7 @@ final class Dispatcher {
       source = s;
       sourceBusy = false;
       lock.notifyAll(); // the thread, waiting with no source until now
-      if (inRead != null && !nudged) {
-        nudged = true; // the thread, blocked in the old source's read, reads the new one
-        inRead.nudge();
-      }
+      wakeFromRead(); // blocked in the old source's read, it reads the new one
     }
     if (old != null) {
       old.dispatched(null);
@@ -605,10 +609,7 @@ final class Dispatcher {
     synchronized (lock) {
       stopped = true;
       lock.notifyAll();
-      if (inRead != null && !nudged) {
-        nudged = true; // the thread, blocked in the source's read
-        inRead.nudge();
-      }
+      wakeFromRead();
     }
     if (Thread.currentThread() != thread) {
       try {
