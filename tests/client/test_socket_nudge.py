@@ -18,10 +18,8 @@ from typing import Any
 import pytest
 
 from cast.core.records import Identity
-from cast.v1 import directory_pb2 as dir_pb2
-from cast.v1 import directory_pb2_grpc as dir_grpc
 from cast.wire import shared_memory as wire
-from tests.client.test_socket_writes import add
+from tests.client.test_socket_writes import add, session_socket
 from tests.client.test_socket_writes import host as host  # the fixtures, used by name
 from tests.client.test_socket_writes import raw as raw
 from tests.conftest import wait_for
@@ -94,17 +92,13 @@ def test_a_client_that_nudges_and_never_reads_costs_the_server_no_memory(raw: An
 def _hello(h: Any, cid: str, version: int) -> socket.socket:
     """A connection to ``h``'s session socket that said HELLO with ``version``."""
     token = h.signer.issue(Identity(cid, "vision"))
-    info = dir_grpc.DirectoryStub(h.channel).DescribeSystem(
-        dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),)).shared_memory
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    sock.settimeout(10)
-    sock.connect("\0" + info.socket)
-    body = struct.pack("<H", version) + token.encode()
-    wire.send(sock, wire.encode(wire.HELLO, body))
+    sock = session_socket(h, token)
+    wire.send(sock, wire.encode(wire.HELLO, struct.pack("<H", version) + token.encode()))
     return sock
 
 
 def _first_frame(sock: socket.socket) -> wire.Frame:
+    """The first frame the server sends on ``sock`` (descriptors that came with frames closed)."""
     reader = wire.FrameReader()
     while True:
         data, fds = wire.receive(sock)

@@ -36,15 +36,21 @@ from tests.conftest import wait_for
 TYPE_URL = "type.googleapis.com/" + BYTES_VALUE
 
 
+def session_socket(h: Host, token: str) -> socket.socket:
+    """A connection to ``h``'s shared-memory socket, found as a client finds it (DescribeSystem)."""
+    info = dir_grpc.DirectoryStub(h.channel).DescribeSystem(
+        dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),)).shared_memory
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(10)
+    sock.connect("\0" + info.socket)
+    return sock
+
+
 class RawSession:
     """A session opened by hand: HELLO, WELCOME, then WRITES out and frames in, as a client library does."""
 
     def __init__(self, h: Host, token: str) -> None:
-        info = dir_grpc.DirectoryStub(h.channel).DescribeSystem(
-            dir_pb2.DescribeSystemRequest(), metadata=(("authorization", f"Bearer {token}"),)).shared_memory
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(10)
-        self.sock.connect("\0" + info.socket)
+        self.sock = session_socket(h, token)
         self.reader = wire.FrameReader()
         self.frames: list[wire.Frame] = []
         self.extra: list[wm_pb2.WriteReply] = []  # replies read past those asked for

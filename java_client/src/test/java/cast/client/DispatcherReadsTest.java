@@ -28,6 +28,20 @@ class DispatcherReadsTest {
     return session.io();
   }
 
+  /** {@code watcher}'s seeds of "img" (SocketEventsTest.seeds), once the first value {@code writer} adds came. */
+  static List<Integer> watchFirstValue(Connection writer, Connection watcher) throws InterruptedException {
+    List<Integer> got = new CopyOnWriteArrayList<>();
+    watcher.onChange(Filters.addressFilter("img").withEntry(), SocketEventsTest.seeds(got));
+    SocketEventsTest.write(writer, 0, 1);
+    SocketEventsTest.waitForCount(got, 1);
+    return got;
+  }
+
+  /** Wait until {@code d} has nothing to run and a thread reads {@code io} (the dispatcher, in its read). */
+  static void waitIdleInRead(SessionSocket io, Dispatcher d, String what) throws InterruptedException {
+    RealServer.waitFor(() -> io.reading() && d.pending() == 0, Duration.ofSeconds(5), what);
+  }
+
   @Test
   void theDispatcherThreadReadsTheEventsAndRunsTheirCallbacksItself() throws Exception {
     try (RealServer server = new RealServer();
@@ -65,13 +79,10 @@ class DispatcherReadsTest {
     try (RealServer server = new RealServer();
         Connection writer = server.connect("writer", "vision", false, null);
         Connection watcher = server.connect("watcher", "vision", false, null)) {
-      List<Integer> got = new CopyOnWriteArrayList<>();
-      watcher.onChange(Filters.addressFilter("img").withEntry(), SocketEventsTest.seeds(got));
-      SocketEventsTest.write(writer, 0, 1);
-      SocketEventsTest.waitForCount(got, 1);
+      List<Integer> got = watchFirstValue(writer, watcher);
       SessionSocket io = socket(watcher);
       Dispatcher d = watcher.dispatcher();
-      RealServer.waitFor(() -> io.reading() && d.pending() == 0, Duration.ofSeconds(5), "the dispatcher idle in its read");
+      waitIdleInRead(io, d, "the dispatcher idle in its read");
       for (int i = 1; i <= 3; i++) {
         AtomicReference<Thread> ranOn = new AtomicReference<>();
         CountDownLatch ran = new CountDownLatch(1);
@@ -84,7 +95,7 @@ class DispatcherReadsTest {
         assertTrue(ran.await(5, TimeUnit.SECONDS), "the call queued by another thread ran (call " + i + ")");
         assertSame(d.thread(), ranOn.get());
         assertEquals(i, io.nudgesSent.get());
-        RealServer.waitFor(() -> io.reading() && d.pending() == 0, Duration.ofSeconds(5), "the dispatcher idle again");
+        waitIdleInRead(io, d, "the dispatcher idle again");
       }
       // The socket is still the dispatcher's, and events go on arriving in order.
       SocketEventsTest.write(writer, 1, 5);
@@ -129,7 +140,7 @@ class DispatcherReadsTest {
       SocketEventsTest.waitForCount(got, 8);
       assertEquals(SocketEventsTest.expected(8), got);
       // Back to the dispatcher: it reads the next frames itself.
-      RealServer.waitFor(() -> io.reading() && d.pending() == 0, Duration.ofSeconds(5), "the dispatcher idle in its read");
+      waitIdleInRead(io, d, "the dispatcher idle in its read");
       long readerAfter = io.readerReads.get();
       SocketEventsTest.write(writer, 8, 12);
       SocketEventsTest.waitForCount(got, 12);
@@ -164,13 +175,10 @@ class DispatcherReadsTest {
     try (RealServer server = new RealServer();
         Connection writer = server.connect("writer", "vision", false, null)) {
       Connection watcher = server.connect("watcher", "vision", false, null);
-      List<Integer> got = new CopyOnWriteArrayList<>();
-      watcher.onChange(Filters.addressFilter("img").withEntry(), SocketEventsTest.seeds(got));
-      SocketEventsTest.write(writer, 0, 1);
-      SocketEventsTest.waitForCount(got, 1);
+      List<Integer> got = watchFirstValue(writer, watcher);
       SessionSocket io = socket(watcher);
       Dispatcher d = watcher.dispatcher();
-      RealServer.waitFor(() -> io.reading() && d.pending() == 0, Duration.ofSeconds(5), "the dispatcher idle in its read");
+      waitIdleInRead(io, d, "the dispatcher idle in its read");
       long start = System.nanoTime();
       d.stop(Duration.ofSeconds(5));
       assertFalse(d.thread().isAlive(), "the dispatcher thread ended");
