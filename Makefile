@@ -216,7 +216,7 @@ bench-quick: setup proto bench-deps cpp java ros2-deps mypyc
 MYPYC_VENV := .venv-mypyc
 MYPYC_PY := $(MYPYC_VENV)/bin/python
 MYPYC_SOURCES := setup.py pyproject.toml requirements-dev.txt VERSION $(PROTOS) \
-  $(shell find python/cast -name '*.py' -not -path 'python/cast/v1/*' 2>/dev/null)
+  $(shell find python/cast \( -name '*.py' -o -name '*.c' \) -not -path 'python/cast/v1/*' 2>/dev/null)
 .PHONY: mypyc test-mypyc
 $(MYPYC_VENV)/.installed: $(MYPYC_SOURCES) $(GEN_STAMP) | $(VENV)/.installed python-dev
 	test -x $(MYPYC_PY) || $(PYTHON) -m venv $(MYPYC_VENV)

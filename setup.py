@@ -13,6 +13,7 @@ An editable install (``make setup``: ``pip install -e .``) generates nothing: it
 checkout's ``python/cast/v1``, which ``make proto`` keeps current.
 
 With ``CAST_MYPYC=1`` a wheel's build also compiles the modules in ``MYPYC_MODULES`` with mypyc
+and builds the Python client's C decoder of EVENTS frames (``cast.client._events_native``)
 (``make mypyc``; docs/decisions.md, "The compiled build"); any other build, and every editable one,
 is pure Python.
 """
@@ -23,7 +24,7 @@ import os
 import sys
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import Extension, setup
 from setuptools.command.build_py import build_py
 from setuptools.command.sdist import sdist
 
@@ -79,5 +80,10 @@ if os.environ.get("CAST_MYPYC") == "1":
         group_name="cast",
         target_dir="build/mypyc",
     )
+    # The client's EVENTS frames decoded in C (docs/decisions.md, "EVENTS frames decoded in C"); without it
+    # cast.client.conversions decodes them with protobuf.
+    ext_modules.append(Extension(
+        "cast.client._events_native", ["python/cast/client/events_native.c"], extra_compile_args=["-O2"],
+    ))
 
 setup(cmdclass={"build_py": BuildPyWithProtos, "sdist": SdistWithProtos}, ext_modules=ext_modules)

@@ -245,16 +245,16 @@ def test_frames_another_thread_reads_reach_the_callbacks_in_order_once(
 def test_a_value_that_cannot_be_claimed_reopens_the_call_without_gap_or_duplicate(
     host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    original = shm_session.ClientSession.claim
+    original = shm_session.ClientSession.claim_at
     claims = [0]
 
-    def fails_once(self: shm_session.ClientSession, ref: Any) -> Any:
+    def fails_once(self: shm_session.ClientSession, *ref: int) -> Any:
         claims[0] += 1
         if claims[0] == 5:
             raise UnavailableError("shared-memory segment 99 did not arrive (a test): read again")
-        return original(self, ref)
+        return original(self, *ref)
 
-    monkeypatch.setattr(shm_session.ClientSession, "claim", fails_once)
+    monkeypatch.setattr(shm_session.ClientSession, "claim_at", fails_once)
     h = host()
     watcher = _every_value_watched(h, 20)  # the frame that failed and those behind it came again, each once
     assert claims[0] > 20 and watcher._transport._directory.watch_stream.reconnects >= 1

@@ -8,6 +8,8 @@ direction is :mod:`cast.server.conversions`; what both share is in
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from cast.core.records import ChangeEvent, EntryRecord, Operation
@@ -21,12 +23,29 @@ from cast.wire.values import TYPE_URL_PREFIX, any_to_type_data, ns
 if TYPE_CHECKING:
     from cast.client.shm_session import ReadCall
 
-__all__ = ["address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb"]
+__all__ = [
+    "NATIVE_EVENTS", "address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb",
+    "turn_events",
+]
 
 # Looked up rather than called: an enum call runs enum's machinery for each event (0.3 us warm, more on the cold
 # caches a watcher of frames at 30 Hz meets; docs/performance-m8.md, "Small cuts, and where each process's CPU
 # goes").
 _OPERATIONS = {int(op): op for op in Operation}
+
+# EVENTS frames decoded in C where the build has it (the compiled build: setup.py, CAST_MYPYC=1), for about a
+# tenth of upb's and the attributes' cost on cold caches (docs/performance-m8.md, "The Python receive path in
+# C"); CAST_NATIVE_EVENTS=0 keeps the pure path (docs/python.md).
+_native: object | None = None
+if os.environ.get("CAST_NATIVE_EVENTS", "1") != "0":
+    try:
+        from cast.client import _events_native as _native  # type: ignore[attr-defined, no-redef]
+    except ImportError:  # a pure build (make setup's editable install): protobuf decodes them
+        _native = None
+if _native is not None:
+    _native.configure(ChangeEvent, EntryRecord, _OPERATIONS, Operation)  # type: ignore[attr-defined]
+NATIVE_EVENTS = _native is not None
+"""Whether :func:`turn_events` decodes EVENTS frames in C (the compiled build, unless CAST_NATIVE_EVENTS=0)."""
 
 def entry_from_pb(entry: entry_pb2.Entry, call: ReadCall | None = None) -> EntryRecord:
     """Record form of a wire entry (client side).
@@ -73,6 +92,30 @@ def event_from_pb(pb: entry_pb2.ChangeEvent, call: ReadCall | None = None) -> Ch
     if pb.skipped:
         event.skipped, event.first_skipped_revision = pb.skipped, pb.first_skipped_revision
     return event
+
+
+def turn_events(
+    body: bytes,
+    call: ReadCall,
+    sink: Callable[[ChangeEvent, Sequence[int]], None],
+    seen: dict[str, int],
+) -> None:
+    """The events of one EVENTS frame's encoded WatchResponse, in order, each handed to ``sink(event, watch_ids)``.
+
+    Each value lent by shared memory is claimed on ``call``, and ``seen[sa]``
+    is raised to each event's revision once it was handed on; an error (a
+    claim that failed, say) ends it there, the events before handed on.
+    Decoded in C where the build has it; whatever the C decoder does not
+    handle exactly as protobuf does (it says so, having done nothing) takes
+    the pure path, so both give the same events and the same errors.
+    """
+    if _native is not None and _native.turn(body, call.claim_at, sink, seen):  # type: ignore[attr-defined]
+        return
+    for pb in wm_pb2.WatchResponse.FromString(body).events:
+        event = event_from_pb(pb, call)
+        sink(event, pb.watch_ids)
+        if event.revision > seen.get(event.subarchitecture, 0):
+            seen[event.subarchitecture] = event.revision
 
 
 def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:

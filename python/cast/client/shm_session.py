@@ -93,10 +93,14 @@ class ReadCall:
 
     def claim(self, ref: entry_pb2.SharedValue) -> tuple[memoryview, Lease]:
         """The bytes of a value lent on this call, and its lease."""
+        return self.claim_at(ref.segment, ref.offset, ref.size, ref.value_id)
+
+    def claim_at(self, segment: int, offset: int, size: int, value_id: int) -> tuple[memoryview, Lease]:
+        """:meth:`claim` of a reference given by its fields (what the native EVENTS decoder reads)."""
         self.count += 1
         if self.count % _RECEIVED_EVERY == 0:
             self.session.send(wire.received(self.number, self.count, False))
-        return self.session.claim(ref)
+        return self.session.claim_at(segment, offset, size, value_id)
 
     def end(self, answered: bool = False) -> None:
         """The call is over: the server takes back what it sent and this call never received.
@@ -210,19 +214,19 @@ class ClientSession:
             self._calls += 1
             return ReadCall(self, self._calls)
 
-    def claim(self, ref: entry_pb2.SharedValue) -> tuple[memoryview, Lease]:
+    def claim_at(self, segment_id: int, offset: int, size: int, value_id: int) -> tuple[memoryview, Lease]:
         """A read-only view of a lent value's bytes and its lease; UnavailableError if its segment never came."""
-        lease = Lease(self, ref.value_id)  # given back whatever happens next
-        segment = self._segments.get(ref.segment)
+        lease = Lease(self, value_id)  # given back whatever happens next
+        segment = self._segments.get(segment_id)
         if segment is None:
-            segment = self._await_segment(ref.segment)
-        end = ref.offset + ref.size
+            segment = self._await_segment(segment_id)
+        end = offset + size
         if end > segment.size:
             raise UnavailableError(
-                f"the server at {self.endpoint} named bytes {ref.offset}..{end} of shared-memory segment "
-                f"{ref.segment}, which has {segment.size}: read again"
+                f"the server at {self.endpoint} named bytes {offset}..{end} of shared-memory segment "
+                f"{segment_id}, which has {segment.size}: read again"
             )
-        return segment.view[ref.offset: end], lease
+        return segment.view[offset: end], lease
 
     def _await_segment(self, segment_id: int) -> _Segment:
         # Sent before the message naming it: it is in the socket already, or comes at once.

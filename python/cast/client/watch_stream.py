@@ -13,7 +13,7 @@ from typing import Any
 import grpc
 
 from cast.client.channel import TRANSIENT, Backoff, LinkClosedError, ServerLink, map_rpc_error
-from cast.client.conversions import event_from_pb, filter_to_pb
+from cast.client.conversions import event_from_pb, filter_to_pb, turn_events
 from cast.client.credentials import TokenSource
 from cast.client.dispatcher import HIGH, Dispatcher
 from cast.client.shm_session import ReadCall
@@ -238,9 +238,10 @@ class WatchStream:
             self._turning = True
             try:
                 read = self._read
-                while self._frames and not self._socket_broke:  # once broken, the rest comes again on a new call
-                    resp = wm_pb2.WatchResponse.FromString(self._frames.popleft())
-                    self._events(resp, read)
+                # Frames are queued only while their call's read is current; once broken, the rest comes again on
+                # a new call.
+                while read is not None and self._frames and not self._socket_broke:
+                    turn_events(self._frames.popleft(), read, self._sink, self._seen)
             except CastError as exc:  # a value that could not be claimed: the call is read again from here
                 self._socket_broke = exc.message
                 call = self._call
