@@ -201,6 +201,9 @@ def test_packed_and_unpacked_watch_ids_both_read(native: ModuleType) -> None:
     for body in (packed, unpacked):
         fast = _turn(body, native)
         assert fast == _turn(body, None) and fast["events"][0][1] == [4, 2**32 - 1]
+    empty_packed = bytes([0x0A, len(event) + 2]) + event + bytes([0x52, 0])  # tag 10, length 0: no ids
+    fast = _turn(empty_packed, native)
+    assert fast == _turn(empty_packed, None) and fast["events"][0][1] == []
 
 
 def _varint(n: int) -> bytes:

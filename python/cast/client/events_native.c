@@ -308,14 +308,15 @@ static int watch_ids(Reader *r, int wire_type, Event *e) {
     } else if (wire_type != WT_VARINT) {
         return -1;
     }
-    do {
+    /* One value unpacked; a packed field's every value, none when it is empty. */
+    for (int first = 1; wire_type == WT_LEN ? packed.p < packed.end : first; first = 0) {
         if (varint(from, &v) < 0) return -1;
         PyObject *id = PyLong_FromUnsignedLong((uint32_t)v);
         if (id == NULL) return -1;
         int failed = PyList_Append(e->watch_ids, id);
         Py_DECREF(id);
         if (failed) return -1;
-    } while (wire_type == WT_LEN && packed.p < packed.end);
+    }
     return 0;
 }
 
