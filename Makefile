@@ -369,8 +369,9 @@ lint: setup proto
 
 # The fast loop for an edit-test cycle (a few minutes on 2 cores; README, "Developing"): lint, the
 # working-memory core, the Python client both ways (over gRPC and in process), the C++ and Java
-# unit tests. No browser, Redis, Go, ROS or network namespaces.
-check: lint test-cpp test-java
+# unit tests. No browser, Redis, Go, ROS or network namespaces. Python's C headers (python-dev): the client's
+# tests build its C decoder of EVENTS frames themselves in the editable checkout.
+check: lint python-dev test-cpp test-java
 	$(TEST_JVM) $(PY) -m pytest -q tests/core tests/client
 
 clean:
