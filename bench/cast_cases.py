@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import subprocess
 import threading
 import time
@@ -18,7 +17,7 @@ from google.protobuf.wrappers_pb2 import BytesValue, StringValue
 
 import cast
 from bench.floors import GAP_S, EchoFloor
-from bench.harness import PYTHON, ROOT, latencies_us, percentile, rate, start, summary_us
+from bench.harness import PYTHON, child_env, latencies_us, percentile, rate, start, summary_us
 from cast.auth import TokenSigner
 from cast.client.component import Component
 from cast.client.grpc_transport import GrpcTransport
@@ -133,7 +132,7 @@ def m3_latency(server: Server, n: int, gap_s: float = GAP_S) -> dict[str, Any]:
     processes stamp with CLOCK_MONOTONIC (time.perf_counter), which is shared
     by all processes of a Linux machine.
     """
-    env = {**os.environ, **server.env("m3-watcher", "bench"), "PYTHONPATH": str(ROOT / "python")}
+    env = child_env(server.env("m3-watcher", "bench"))
     watcher = subprocess.Popen([PYTHON, "-c", LATENCY_WATCHER, str(n)], env=env, stdout=subprocess.PIPE, text=True)
     assert watcher.stdout is not None
     assert watcher.stdout.readline().strip() == "ready"
@@ -194,7 +193,7 @@ def m4_fanout(server: Server, events: int, watchers: int = 16, processes: int = 
     per_proc = watchers // processes
     procs = []
     for p in range(processes):
-        env = {**os.environ, **server.env(f"fan{p}", "fanout"), "PYTHONPATH": str(ROOT / "python")}
+        env = child_env(server.env(f"fan{p}", "fanout"))
         # Tokens name the component (the server checks them at Register): one per watcher of the process.
         tokens = [server.signer.issue(Identity(f"fan{p}-{w}", "fanout")) for w in range(per_proc)]
         proc = subprocess.Popen(

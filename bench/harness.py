@@ -11,12 +11,23 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 PYTHON = sys.executable
+
+
+def child_env(extra: Mapping[str, str]) -> dict[str, str]:
+    """The environment of a Python process the benchmark starts: this one's plus ``extra``.
+
+    Nothing is put in front of the child's import path: it runs the same
+    interpreter, so it imports the same ``cast`` package as the benchmark (the
+    compiled wheel of ``.venv-mypyc`` under ``make bench``, the editable tree
+    under ``.venv``), the build the report's header names.
+    """
+    return {**os.environ, **extra}
 
 
 def free_port() -> int:

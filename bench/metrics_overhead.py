@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -30,7 +29,7 @@ import grpc
 from google.protobuf import any_pb2
 
 from bench.cast_cases import VALUE, Server, m4_fanout
-from bench.harness import PYTHON, ROOT, scratch
+from bench.harness import PYTHON, child_env, scratch
 from bench.rows import fig
 from cast.core.access import Access, run_sync
 from cast.core.records import BatchOp, Identity, Operation
@@ -66,7 +65,7 @@ class WriterSide:
 
     def __init__(self, work: Path, metrics: bool) -> None:
         self.server = Server(work, [SA, "fanout"], serve_args=() if metrics else ("--no-metrics",))
-        env = {**os.environ, **self.server.env("ovh-watcher", SA), "PYTHONPATH": str(ROOT / "python")}
+        env = child_env(self.server.env("ovh-watcher", SA))
         self.watcher = subprocess.Popen([PYTHON, "-c", WATCHER], env=env, stdin=subprocess.PIPE,
                                         stdout=subprocess.PIPE, text=True)
         assert self.watcher.stdout is not None
