@@ -20,9 +20,9 @@ PYTHON = sys.executable
 
 
 def child_env(extra: Mapping[str, str]) -> dict[str, str]:
-    """The environment of a Python process the benchmark starts: this one's plus ``extra``.
+    """The environment of a component process the benchmark starts: this one's plus ``extra`` (its launch contract).
 
-    Nothing is put in front of the child's import path: it runs the same
+    Nothing is put in front of a Python child's import path: it runs the same
     interpreter, so it imports the same ``cast`` package as the benchmark (the
     compiled wheel of ``.venv-mypyc`` under ``make bench``, the editable tree
     under ``.venv``), the build the report's header names.

@@ -42,7 +42,7 @@ from bench.cast_cases import Server
 from bench.checksum import expected_cast, expected_frames
 from bench.delivery_stats import ordinal, parse_watcher, pooled, totals, watcher_figures
 from bench.floors import EchoFloor
-from bench.harness import PYTHON, ROOT
+from bench.harness import PYTHON, ROOT, child_env
 from bench.other_clients import cpp_command, java_command
 from bench.other_host import OtherHost
 from bench.peer_fanout import WARM_BURST, WARM_PAUSE_S
@@ -178,7 +178,7 @@ class _Watchers:
                 self.missing[label] = command
                 continue
             log: IO[str] = tempfile.TemporaryFile("w+")
-            env = {**os.environ, **server.env(f"m8-{tag}-w{i}", SA)}
+            env = child_env(server.env(f"m8-{tag}-w{i}", SA))
             self.procs.append(subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=log, text=True,
                                                cwd=ROOT))
             self.labels.append(label)
@@ -230,7 +230,7 @@ def _tail(log: IO[str]) -> str:
 
 
 def _write(server: Server, command: list[str], tag: str) -> dict[int, int]:
-    env = {**os.environ, **server.env(f"m8-{tag}-writer", SA)}
+    env = child_env(server.env(f"m8-{tag}-writer", SA))
     out = subprocess.run(command, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
     lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
     if out.returncode != 0 or not lines:

@@ -42,7 +42,7 @@ from typing import IO, Any
 
 from bench.cast_cases import VALUE, Server, m3_latency
 from bench.floors import GAP_S
-from bench.harness import ROOT, summary_us
+from bench.harness import ROOT, child_env, summary_us
 
 CPP_BENCH = Path(os.environ.get("CAST_CPP_BIN_DIR") or ROOT / "build" / "cpp" / "bin") / "cast_bench"
 JAVA_JAR = ROOT / "java_client" / "target" / "cast-client-all.jar"
@@ -72,10 +72,6 @@ def java_command() -> list[str] | str:
     return [java, "-cp", os.pathsep.join([str(JAVA_JAR), str(JAVA_TEST_CLASSES)]), JAVA_BENCH_CLASS]
 
 
-def _env(server: Server, component_id: str, sa: str) -> dict[str, str]:
-    return {**os.environ, **server.env(component_id, sa)}
-
-
 def _last_json(out: str, what: str) -> Any:
     lines = [line for line in out.strip().splitlines() if line.startswith("{")]
     if not lines:
@@ -98,7 +94,7 @@ def _run(cmd: list[str], env: dict[str, str], what: str) -> Any:
 
 def add_rate(cmd: list[str], server: Server, sa: str, n: int, tag: str, warm: int = 200) -> float:
     """Sequential Add calls/s of one component (`warm` adds first, 200 as for Python)."""
-    out = _run([*cmd, "add", str(n), str(warm)], _env(server, f"m7-add-{tag}", sa), f"{cmd[-1]} add")
+    out = _run([*cmd, "add", str(n), str(warm)], child_env(server.env(f"m7-add-{tag}", sa)), f"{cmd[-1]} add")
     return float(out["per_s"])
 
 
@@ -113,7 +109,7 @@ def latency(
     errors = tempfile.TemporaryFile("w+")
     watcher = subprocess.Popen(
         [*cmd, "watch", str(n + warm)],
-        env=_env(server, f"m7-watcher{tag}", sa),
+        env=child_env(server.env(f"m7-watcher{tag}", sa)),
         stdout=subprocess.PIPE,
         stderr=errors,
         text=True,
@@ -129,7 +125,7 @@ def latency(
             int(k): v
             for k, v in _run(
                 [*cmd, "write", str(n), str(round(gap_s * 1000)), str(warm)],
-                _env(server, f"m7-writer{tag}", sa),
+                child_env(server.env(f"m7-writer{tag}", sa)),
                 f"{cmd[-1]} write",
             ).items()
         }
@@ -297,7 +293,7 @@ def run(
         if label == "Python":
             return PythonBlocks(server, SA, 200)
         warm = jit_warm if label == "Java" and jit_warm else 200
-        return Blocks(commands[label], _env(server, f"m7-add-{label.lower()}", SA), warm, f"{label} blocks")
+        return Blocks(commands[label], child_env(server.env(f"m7-add-{label.lower()}", SA)), warm, f"{label} blocks")
 
     def event_latency(label: str, warm: int = 0) -> dict[str, Any]:
         if label == "Python":

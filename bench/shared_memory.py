@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -34,7 +33,7 @@ from bench import zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
-from bench.harness import PYTHON, ROOT
+from bench.harness import PYTHON, ROOT, child_env
 from bench.other_clients import cpp_command, java_command
 
 __all__ = ["run"]
@@ -68,7 +67,7 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, langu
     writer, watcher = _commands(language)
     watchers = []
     for i in range(WATCHERS):
-        env = {**os.environ, **server.env(f"{tag}-w{i}", SA)}
+        env = child_env(server.env(f"{tag}-w{i}", SA))
         watchers.append(subprocess.Popen([*watcher, "queue"], env=env, cwd=ROOT,
                                          stdout=subprocess.PIPE, stderr=tempfile.TemporaryFile("w+"), text=True))
     try:
@@ -76,7 +75,7 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, langu
             assert proc.stdout is not None
             if proc.stdout.readline().strip() != "ready":
                 raise RuntimeError("a watcher did not start")
-        env = {**os.environ, **server.env(f"{tag}-writer", SA)}
+        env = child_env(server.env(f"{tag}-writer", SA))
         out = subprocess.run([*writer, str(size), str(frames), str(round(gap_s * 1e6))],
                              env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
         if out.returncode != 0:
