@@ -20,7 +20,7 @@ PYTHON = sys.executable
 
 
 def child_env(extra: Mapping[str, str]) -> dict[str, str]:
-    """The environment of a component process the benchmark starts: this one's plus ``extra`` (its launch contract).
+    """The environment of a process the benchmark starts: this one's plus ``extra`` (launch contract, secret).
 
     Nothing is put in front of a Python child's import path: it runs the same
     interpreter, so it imports the same ``cast`` package as the benchmark (the
@@ -116,7 +116,7 @@ def start(cmd: Sequence[str], cwd: Path | None = None, env: dict[str, str] | Non
         stderr=subprocess.DEVNULL,
         text=True,
         cwd=cwd,
-        env={**os.environ, **(env or {})},
+        env=child_env(env or {}),
     )
     assert proc.stdout is not None
     line = proc.stdout.readline().strip()

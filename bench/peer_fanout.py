@@ -14,7 +14,6 @@ reads every byte of each message (bench.checksum) before it stamps it.
 from __future__ import annotations
 
 import json
-import os
 import struct
 import subprocess
 import tempfile
@@ -25,7 +24,7 @@ from typing import Any
 
 from bench.checksum import MOD, word_sum
 from bench.delivery_stats import parse_watcher
-from bench.harness import ROOT
+from bench.harness import ROOT, child_env
 
 __all__ = ["END", "SETTLE_S", "WARM", "Receiver", "Subscribers", "drive", "frame"]
 
@@ -84,7 +83,7 @@ class Subscribers:
         self.procs = [
             subprocess.Popen(
                 [*command, str(i)], stdout=subprocess.PIPE, stderr=self._logs[i], text=True, cwd=ROOT,
-                env={**os.environ, **(env or {})},
+                env=child_env(env or {}),
             )
             for i in range(count)
         ]

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -31,7 +30,7 @@ from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
 from bench.cast_cases import SECRET, Server
-from bench.harness import PYTHON, percentile, scratch
+from bench.harness import PYTHON, child_env, percentile, scratch
 from bench.metrics_overhead import SA, WriterSide, alternating
 from bench.rows import fig
 from cast.client.credentials import TokenSource
@@ -47,7 +46,7 @@ CAST = str(Path(PYTHON).parent / "cast")
 
 def _recorder_process(endpoint: str, path: Path) -> subprocess.Popen[str]:
     """`cast record` attached to ``endpoint``, once it says it records."""
-    env = {**os.environ, "CAST_SECRET": SECRET, "CAST_RUNTIME_DIR": "/nonexistent"}
+    env = child_env({"CAST_SECRET": SECRET, "CAST_RUNTIME_DIR": "/nonexistent"})
     proc = subprocess.Popen([CAST, "record", "-o", str(path), "--endpoint", endpoint], env=env, text=True,
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
     assert proc.stderr is not None
@@ -118,7 +117,7 @@ def replay_timing(work: Path, count: int, gap_s: float, log: Callable[[str], Non
     """Absolute error of replayed intervals against recorded ones, ms (median, p95)."""
     source = Server(work / "src", [SA])
     target = Server(work / "dst", [SA])
-    env = {**os.environ, "CAST_SECRET": SECRET, "CAST_RUNTIME_DIR": "/nonexistent"}
+    env = child_env({"CAST_SECRET": SECRET, "CAST_RUNTIME_DIR": "/nonexistent"})
     try:
         path = work / "timing.mcap"
         recorder = _recorder_process(source.endpoint, path)
