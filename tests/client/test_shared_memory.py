@@ -116,6 +116,18 @@ def test_the_socket_reads_go_into_one_buffer_kept_from_read_to_read() -> None:
         assert seen[0] is seen[1] is seen[2]
 
 
+def test_a_bad_frame_leaves_every_memory_file_of_its_read_to_close() -> None:
+    """Frames cut before a bad one in the same read are not handed out: their files go to stray(), none is lost."""
+    reader = wire.FrameReader()
+    fds = [os.memfd_create("t") for _ in range(3)]
+    good = wire.segment(1, 4096) + wire.segment(2, 4096)
+    with pytest.raises(wire.ProtocolError, match="1 to"):
+        reader.feed(good + b"\x00\x00\x00\x00\x04", fds)  # two SEGMENT frames, then a length of 0
+    assert sorted(reader.stray()) == sorted(fds)
+    for fd in fds:
+        os.close(fd)
+
+
 def test_a_watcher_reads_each_events_frame_with_one_read_of_its_socket(host: Any) -> None:
     """A read that brings less than the buffer holds emptied the socket: no second read just to learn it."""
     h = host()

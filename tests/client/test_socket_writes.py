@@ -214,6 +214,15 @@ def test_a_malformed_writes_frame_is_refused_with_its_reason_and_nothing_of_it_a
     assert not h.component("reader").exists("never")
 
 
+def test_every_request_is_answered_with_its_result_a_batch_of_no_operations_too(raw: Any) -> None:
+    _, session = raw()
+    empty = wm_pb2.WriteRequest(id=1, batch=wm_pb2.BatchRequest())
+    session.write(empty, add(2, "after-empty", b"x"))
+    first, second = session.replies(2)
+    assert (first.id, first.WhichOneof("result"), len(first.batch.results)) == (1, "batch", 0)
+    assert second.WhichOneof("result") == "write"
+
+
 def test_the_writes_frames_of_one_read_are_answered_in_one_replies_frame_in_order(raw: Any) -> None:
     h, session = raw()
     # Eight frames in one send of a few hundred bytes: the server reads them in one go, as it does a pipelining

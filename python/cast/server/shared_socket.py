@@ -106,6 +106,7 @@ class _Connection:
             self.close(f"read failed: {exc}")
             return
         if not data:
+            _close_all(fds)
             self.close("")
             return
         try:
@@ -113,8 +114,10 @@ class _Connection:
         except wire.ProtocolError as exc:
             self.refuse(f"bad frame: {exc}")
             return
-        for fd in self._reader.stray():
-            os.close(fd)  # clients send no memory files
+        finally:
+            # Clients send no memory files: any that came is closed at once, whatever becomes of the read.
+            _close_all(self._reader.stray())
+        _close_all([frame.fd for frame in frames if frame.fd is not None])
         for frame in frames:
             if self.closed:
                 return
@@ -290,6 +293,7 @@ class _Connection:
             self._loop.remove_reader(self._sock.fileno())
             self._loop.remove_writer(self._sock.fileno())
         self._sock.close()
+        _close_all(self._reader.stray())
         self._pending.clear()
         self._unsent = 0
         if self._writes is not None:
@@ -357,6 +361,13 @@ class SharedSocket:
         self._sock.close()
         for connection in list(self.connections):
             connection.close("")
+
+
+def _close_all(fds: list[int]) -> None:
+    """Close descriptors a client sent (the server uses none of them)."""
+    for fd in fds:
+        with contextlib.suppress(OSError):
+            os.close(fd)
 
 
 def lend(access: Access, read: tuple[SharedSession, int] | None, record_shared: object) -> Lent | None:

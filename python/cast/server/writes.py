@@ -81,6 +81,7 @@ def _write_answer(reply: wm_pb2.WriteReply, result: Any) -> None:
 
 
 def _batch_answer(reply: wm_pb2.WriteReply, results: Any) -> None:
+    reply.batch.SetInParent()  # a batch of no operations is answered too, with no results
     add = reply.batch.results.add
     for r in results:
         add(revision=r.revision, version=r.version)

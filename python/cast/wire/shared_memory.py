@@ -266,7 +266,16 @@ class FrameReader:
         """Add what one read gave; the frames now complete."""
         self._buf += data
         self._fds.extend(fds)
-        out = []
+        out: list[Frame] = []
+        try:
+            return self._frames(out)
+        except ProtocolError:
+            # The frames before the bad one are not handed out: their memory files go back, for stray() to close.
+            self._fds.extendleft(reversed([frame.fd for frame in out if frame.fd is not None]))
+            raise
+
+    def _frames(self, out: list[Frame]) -> list[Frame]:
+        """The complete frames in the buffer, appended to ``out`` as they are cut (taken off the buffer at the end)."""
         buf = self._buf
         at = 0
         while len(buf) - at >= 4:
