@@ -111,7 +111,7 @@ def turn_events(
     handle exactly as protobuf does (it says so, having done nothing) takes
     the pure path, so both give the same events and the same errors.
     """
-    if _native is not None and _native.turn(body, call.claim_at, sink, seen):  # type: ignore[attr-defined]
+    if _native is not None and _native.turn(body, call.claimer(), sink, seen):  # type: ignore[attr-defined]
         return
     for pb in wm_pb2.WatchResponse.FromString(body).events:
         event = event_from_pb(pb, call)

@@ -97,6 +97,10 @@ class Dispatcher:
         self._alarm: Alarm | None = None  # made with the standby thread
         self._alarm_set = False
         self._thread.start()
+        # Compared with threading.get_ident(), which is C, where threading.current_thread() would be a Python call
+        # at every event (docs/performance-m8.md, "Claims and leases in C").
+        self.ident = self._thread.ident
+        """The dispatcher thread's ``threading.get_ident()``."""
 
     def room(self) -> int:
         """How many more calls fit before the queue is full."""
@@ -116,7 +120,7 @@ class Dispatcher:
 
     def submit(self, fn: Callable[..., object], *args: object, block: bool = True, priority: int = MEDIUM) -> None:
         """Queue ``fn(*args)`` at ``priority`` (HIGH, MEDIUM, LOW); with ``block``, wait while the queue is full."""
-        mine = threading.current_thread() is self._thread
+        mine = threading.get_ident() == self.ident
         with self._lock:
             if block and self._pending >= self.capacity and not mine:
                 self._was_full = True

@@ -32,6 +32,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
+from types import ModuleType
 
 from cast.client.socket_writes import SessionWrites
 from cast.core.arena import Extents, round_up
@@ -51,6 +52,29 @@ _SEGMENT_WAIT_S = 5.0  # how long a claim waits for the SEGMENT frame sent befor
 _SEND_S = 5.0  # how long a frame may wait for room in the socket: the server reads it at once unless stuck
 _READ_BYTES = 256 << 10  # one read takes what the socket holds (EVENTS frames carry small values' bytes)
 _RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
+
+
+def native_module() -> ModuleType | None:
+    """The C claims, leases and fields where the build has them (the compiled build), unless CAST_NATIVE_SHARED=0.
+
+    Claiming a lent value, reading its field and giving it back cost a 30 Hz
+    watcher a dozen Python functions per value in the pure path
+    (docs/performance-m8.md, "Claims and leases in C");
+    ``cast.client._shared_native`` does the same in C and leaves every case
+    but the common one to the pure path.
+    """
+    if os.environ.get("CAST_NATIVE_SHARED", "1") == "0":
+        return None
+    try:
+        from cast.client import _shared_native  # type: ignore[attr-defined]
+    except ImportError:  # a pure build (make setup's editable install)
+        return None
+    return _shared_native  # type: ignore[no-any-return]
+
+
+_native = native_module()
+NATIVE_SHARED = _native is not None
+"""Whether lent values are claimed, read and given back in C (the compiled build, unless CAST_NATIVE_SHARED=0)."""
 
 
 class Staged:
@@ -94,6 +118,10 @@ class ReadCall:
     def claim(self, ref: entry_pb2.SharedValue) -> tuple[memoryview, Lease]:
         """The bytes of a value lent on this call, and its lease."""
         return self.claim_at(ref.segment, ref.offset, ref.size, ref.value_id)
+
+    def claimer(self) -> Callable[[int, int, int, int], tuple[memoryview, Lease]]:
+        """What claims a reference given by its fields: :meth:`claim_at`, or the same in C where the build has it."""
+        return self.claim_at if _native is None else _native.Claimer(self)
 
     def claim_at(self, segment: int, offset: int, size: int, value_id: int) -> tuple[memoryview, Lease]:
         """:meth:`claim` of a reference given by its fields (what the native EVENTS decoder reads)."""
@@ -216,7 +244,7 @@ class ClientSession:
 
     def claim_at(self, segment_id: int, offset: int, size: int, value_id: int) -> tuple[memoryview, Lease]:
         """A read-only view of a lent value's bytes and its lease; UnavailableError if its segment never came."""
-        lease = Lease(self, value_id)  # given back whatever happens next
+        lease = Lease(self, value_id) if _native is None else _native.Lease(self, value_id)  # given back whatever next
         segment = self._segments.get(segment_id)
         if segment is None:
             segment = self._await_segment(segment_id)
@@ -286,6 +314,10 @@ class ClientSession:
     def _sent(self) -> None:
         """Let the send lock go; then send what was given back meanwhile by a thread that could not take it."""
         self._send_lock.release()
+        self._send_waiting()
+
+    def _send_waiting(self) -> None:
+        """Send what threads that could not take the send lock gave back or held meanwhile; call without the lock."""
         while (self._unsent or self.held_writes) and self._send_lock.acquire(blocking=False):
             try:
                 self._flush()
@@ -383,9 +415,15 @@ class ClientSession:
         Last, the async writes answered meanwhile are settled, on this thread but no longer the reader.
         """
         self._read_lock.release()
-        self.writes.reader_left()
-        self._close_retired()
-        self.writes.settle_answered()
+        # Each looked at here before it is called: at every frame there is mostly nothing to do, and a call is what
+        # a 30 Hz watcher's cold caches make dear (docs/performance-m8.md, "Claims and leases in C").
+        writes = self.writes
+        if writes.followers:
+            writes.reader_left()
+        if self._retired:
+            self._close_retired()
+        if writes.answered:
+            writes.settle_answered()
 
     def _read_available(self) -> None:
         """Read and handle every frame the socket holds now. Call with the read lock held."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import builtins
 from dataclasses import dataclass
+from operator import attrgetter
 from typing import TYPE_CHECKING, Generic, NamedTuple, TypeVar
 
 from google.protobuf.message import DecodeError, Message
@@ -96,28 +97,23 @@ class WorkingMemoryChange:
         self.first_skipped_revision = older.first_skipped_revision or older.revision
         return self
 
-    operation = property(lambda self: self._ev.operation, doc="ADD, OVERWRITE or DELETE.")
-    revision = property(lambda self: self._ev.revision, doc="The WM revision of the change.")
-    type = property(lambda self: self._ev.type, doc="Full message name of the entry's value.")
-    version = property(lambda self: self._ev.version, doc="The entry's version after the change.")
-    source_component = property(lambda self: self._ev.source_component, doc="Id of the writing component.")
-    source_subarchitecture = property(lambda self: self._ev.source_subarchitecture, doc="SA of the writer.")
-    time_ns = property(lambda self: self._ev.time_ns, doc="Server time of the change (ns since the epoch).")
+    # Getters made by attrgetter, which are C: a callback reads these at every event, and a Python getter is a
+    # function call each time (docs/performance-m8.md, "Claims and leases in C").
+    operation = property(attrgetter("_ev.operation"), doc="ADD, OVERWRITE or DELETE.")
+    revision = property(attrgetter("_ev.revision"), doc="The WM revision of the change.")
+    type = property(attrgetter("_ev.type"), doc="Full message name of the entry's value.")
+    version = property(attrgetter("_ev.version"), doc="The entry's version after the change.")
+    source_component = property(attrgetter("_ev.source_component"), doc="Id of the writing component.")
+    source_subarchitecture = property(attrgetter("_ev.source_subarchitecture"), doc="SA of the writer.")
+    time_ns = property(attrgetter("_ev.time_ns"), doc="Server time of the change (ns since the epoch).")
 
     @property
     def address(self) -> WorkingMemoryAddress:
         """The entry changed."""
         return WorkingMemoryAddress(self._ev.id, self._ev.subarchitecture)
 
-    @property
-    def id(self) -> str:
-        """The changed entry's id."""
-        return self._ev.id
-
-    @property
-    def subarchitecture(self) -> str:
-        """The SA whose WM changed."""
-        return self._ev.subarchitecture
+    id = property(attrgetter("_ev.id"), doc="The changed entry's id.")
+    subarchitecture = property(attrgetter("_ev.subarchitecture"), doc="The SA whose WM changed.")
 
     @property
     def has_entry(self) -> bool:
@@ -153,13 +149,13 @@ class Task:
     def __init__(self, record: TaskRecord) -> None:
         self._rec = record
 
-    task_id = property(lambda self: self._rec.task_id, doc="Id given by the task manager.")
-    name = property(lambda self: self._rec.name, doc="Name given at proposal.")
-    subarchitecture = property(lambda self: self._rec.subarchitecture, doc="SA whose TM decided.")
-    component = property(lambda self: self._rec.component, doc="The proposer.")
-    priority = property(lambda self: self._rec.priority, doc="Priority given at proposal.")
-    state = property(lambda self: self._rec.state, doc="WAITING, ADOPTED, REJECTED, ...")
-    reason = property(lambda self: self._rec.reason, doc="Why it was rejected or ended.")
+    task_id = property(attrgetter("_rec.task_id"), doc="Id given by the task manager.")
+    name = property(attrgetter("_rec.name"), doc="Name given at proposal.")
+    subarchitecture = property(attrgetter("_rec.subarchitecture"), doc="SA whose TM decided.")
+    component = property(attrgetter("_rec.component"), doc="The proposer.")
+    priority = property(attrgetter("_rec.priority"), doc="Priority given at proposal.")
+    state = property(attrgetter("_rec.state"), doc="WAITING, ADOPTED, REJECTED, ...")
+    reason = property(attrgetter("_rec.reason"), doc="Why it was rejected or ended.")
 
     def data(self, cls: type[M]) -> M | None:
         """The proposal's payload as ``cls`` (None if none was given)."""

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import builtins
 
+from cast.client.shm_session import native_module
 from cast.client.types import M, WorkingMemoryAddress, decode
 from cast.core.records import EntryRecord
 from cast.errors import InvalidArgumentError
 
 __all__ = ["ValueView", "field_of"]
+
+_native = native_module()  # field_of in C where the build has it (docs/decisions.md, "Claims and leases in C")
 
 
 def _varint(data: memoryview, at: int, what: str) -> tuple[int, int]:
@@ -122,7 +125,8 @@ class ValueView:
     @property
     def shared(self) -> bool:
         """Whether the bytes are in shared memory (lent by the server on this host), not a received copy."""
-        return self._held().shared is not None
+        record = self._record  # not through _held: an image callback reads this at every frame
+        return (record if record is not None else self._held()).shared is not None
 
     @property
     def data(self) -> memoryview:
@@ -133,8 +137,15 @@ class ValueView:
 
     def field(self, number: int) -> memoryview:
         """The bytes of top-level field ``number`` (a ``bytes``, string or message field), read-only, not copied."""
-        record = self._held()
-        return field_of(self.data, number, f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'")
+        record = self._record  # as data does, not through it: an image callback reads this at every frame
+        if record is None:
+            record = self._held()
+        data = memoryview(record.data).toreadonly()
+        self._views.append(data)
+        found = _native.field_of(data, number) if _native is not None else None
+        if found is not None:
+            return found  # type: ignore[no-any-return]
+        return field_of(data, number, f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'")
 
     def decode(self, cls: builtins.type[M]) -> M:
         """The value as a ``cls`` message (a copy, as :meth:`cast.Component.get` gives)."""
@@ -142,12 +153,12 @@ class ValueView:
         return decode(cls, record.type, record.data,
                       f"entry '{record.id}' in subarchitecture '{record.subarchitecture}'")
 
-    def release(self) -> None:
+    def release(self, *_exc: object) -> None:
         """Give the value back; the views handed out end with it.
 
         BufferError, and the value still held, while something made from a
         view (a numpy array, another memoryview on it) is alive: drop those
-        first.
+        first. (It ends the ``with`` block too, which passes the exception.)
         """
         views, self._views = self._views, []
         for i, view in enumerate(views):
@@ -163,8 +174,7 @@ class ValueView:
     def __enter__(self) -> ValueView:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.release()
+    __exit__ = release  # itself, not a function that calls it: one call fewer per block
 
     def __repr__(self) -> str:
         if self._record is None:

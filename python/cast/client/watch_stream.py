@@ -225,7 +225,7 @@ class WatchStream:
             self._frames.append(body)
             if self._turning:
                 return  # read by a claim of the frame being turned: turned next, in order
-        if threading.current_thread() is dispatcher.thread:
+        if threading.get_ident() == dispatcher.ident:
             self._turn_frames()
         else:
             dispatcher.submit(self._turn_frames, block=False, priority=HIGH)

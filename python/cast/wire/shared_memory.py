@@ -21,7 +21,6 @@ import os
 import socket
 import struct
 from collections import deque
-from typing import NamedTuple
 
 __all__ = [
     "HELLO", "HELLO_VERSION", "MAX_FRAME", "MAX_WRITES_FRAME", "NUDGE", "NUDGED", "NUDGED_FRAME", "NUDGE_FRAME",
@@ -82,12 +81,20 @@ class ProtocolError(Exception):
     """A frame that breaks the protocol: the connection is closed."""
 
 
-class Frame(NamedTuple):
+class Frame:
     """One decoded frame: its kind, its fields (after the kind byte), and the memory file it carries, if any."""
 
-    kind: int
-    body: bytes
-    fd: int | None
+    # A class, not a NamedTuple: compiled (the compiled build), it is made in C, where a NamedTuple's __new__ is
+    # Python code run for every frame on both sides (docs/performance-m8.md, "Claims and leases in C").
+    __slots__ = ("body", "fd", "kind")
+
+    def __init__(self, kind: int, body: bytes, fd: int | None) -> None:
+        self.kind = kind
+        self.body = body
+        self.fd = fd
+
+    def __repr__(self) -> str:
+        return f"Frame(kind={self.kind}, body={self.body!r}, fd={self.fd})"
 
 
 def encode(kind: int, body: bytes = b"") -> bytes:
