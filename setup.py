@@ -85,7 +85,7 @@ if os.environ.get("CAST_MYPYC") == "1":
     ext_modules.append(Extension(
         "cast.client._events_native", ["python/cast/client/events_native.c"], extra_compile_args=["-O2"],
     ))
-    # Lent values claimed, read and given back in C (docs/decisions.md, "Claims and leases in C"); without it
+    # Lent values claimed, read and given back in C (docs/decisions.md, "Claims, leases and fields in C"); without it
     # cast.client.shm_session and cast.client.views do it in Python.
     ext_modules.append(Extension(
         "cast.client._shared_native", ["python/cast/client/shared_native.c"], extra_compile_args=["-O2"],

@@ -11,14 +11,11 @@ decoder does not fails here.
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import random
 import subprocess
 import sys
-import sysconfig
 from collections.abc import Iterator
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -32,32 +29,15 @@ from cast.core.records import ChangeEvent, EntryRecord, Operation
 from cast.errors import UnavailableError
 from cast.v1 import entry_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
-
-ROOT = Path(__file__).resolve().parents[2]
-SOURCE = ROOT / "python" / "cast" / "client" / "events_native.c"
-INSTALLED = os.environ.get("CAST_TEST_INSTALLED") == "1"
+from tests.client.native_build import INSTALLED, ROOT, native_module
 
 
 @pytest.fixture(scope="module")
 def native(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
     """The C decoder: the build's own, or (an editable checkout has none) built here from its source."""
-    try:
-        from cast.client import _events_native  # type: ignore[attr-defined]
-
-        return _events_native  # type: ignore[no-any-return]
-    except ImportError:
-        assert not INSTALLED, "the compiled build (make mypyc) has no cast.client._events_native"
-    out = tmp_path_factory.mktemp("native") / f"_events_native{sysconfig.get_config_var('EXT_SUFFIX')}"
-    subprocess.run(
-        ["gcc", "-O2", "-Wall", "-Werror", "-shared", "-fPIC", f"-I{sysconfig.get_paths()['include']}",
-         str(SOURCE), "-o", str(out)],
-        check=True,
-    )
-    spec = importlib.util.spec_from_file_location("cast.client._events_native", out)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    module.configure(ChangeEvent, EntryRecord, {int(op): op for op in Operation}, Operation)
+    module, installed = native_module("_events_native", tmp_path_factory)
+    if not installed:  # the build's own is configured by cast.client.conversions
+        module.configure(ChangeEvent, EntryRecord, {int(op): op for op in Operation}, Operation)
     return module
 
 

@@ -12,16 +12,13 @@ module and to None, and compares what the server's end received.
 from __future__ import annotations
 
 import gc
-import importlib.util
 import os
 import random
 import socket
 import subprocess
 import sys
-import sysconfig
 import threading
 from collections.abc import Iterator
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -31,33 +28,15 @@ from cast.client import shm_session, views
 from cast.client.shm_session import ClientSession
 from cast.errors import InvalidArgumentError, UnavailableError
 from cast.wire import shared_memory as wire
+from tests.client.native_build import INSTALLED, ROOT, native_module
 
-ROOT = Path(__file__).resolve().parents[2]
-SOURCE = ROOT / "python" / "cast" / "client" / "shared_native.c"
-INSTALLED = os.environ.get("CAST_TEST_INSTALLED") == "1"
 SEGMENT_ID, SEGMENT_SIZE = 3, 1 << 16
 
 
 @pytest.fixture(scope="module")
 def native(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
     """The C module: the build's own, or (an editable checkout has none) built here from its source."""
-    try:
-        from cast.client import _shared_native  # type: ignore[attr-defined]
-
-        return _shared_native  # type: ignore[no-any-return]
-    except ImportError:
-        assert not INSTALLED, "the compiled build (make mypyc) has no cast.client._shared_native"
-    out = tmp_path_factory.mktemp("native") / f"_shared_native{sysconfig.get_config_var('EXT_SUFFIX')}"
-    subprocess.run(
-        ["gcc", "-O2", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", f"-I{sysconfig.get_paths()['include']}",
-         str(SOURCE), "-o", str(out)],
-        check=True,
-    )
-    spec = importlib.util.spec_from_file_location("cast.client._shared_native", out)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return native_module("_shared_native", tmp_path_factory)[0]
 
 
 @pytest.fixture(params=["C", "pure"])

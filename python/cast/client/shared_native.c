@@ -55,6 +55,15 @@ static Py_ssize_t waiting(PyObject *session, PyObject *name) {
     return n;
 }
 
+/* 1 when ids given back or write requests held back wait to be sent (session._unsent, held_writes), 0 when
+ * none, -1 with the error set. */
+static int others_waiting(PyObject *session) {
+    Py_ssize_t unsent = waiting(session, s_unsent);
+    if (unsent != 0) return unsent < 0 ? -1 : 1;
+    Py_ssize_t held = waiting(session, s_held_writes);
+    return held < 0 ? -1 : held > 0;
+}
+
 /* 1 when the frame was sent whole on the socket, 0 when the pure path must finish it (``rest`` then holds
  * what is left to send, a new reference), -1 with an error that is not the socket's. Call with the send lock. */
 static int send_now(PyObject *session, PyObject *frame, PyObject **rest) {
@@ -85,9 +94,8 @@ static int release_now(PyObject *session, unsigned long long value_id) {
     int is_dead = PyObject_IsTrue(dead);
     Py_DECREF(dead);
     if (is_dead != 0) return is_dead < 0 ? -1 : 0;
-    Py_ssize_t unsent = waiting(session, s_unsent), held = unsent == 0 ? waiting(session, s_held_writes) : 0;
-    if (unsent < 0 || held < 0) return -1;
-    if (unsent || held) return 0; /* they go first, in order: the pure path sends them with this id */
+    int others = others_waiting(session);
+    if (others != 0) return others < 0 ? -1 : 0; /* they go first, in order: the pure path sends them with this id */
     PyObject *lock = PyObject_GetAttr(session, s_send_lock);
     if (lock == NULL) return -1;
     PyObject *got = PyObject_CallMethodOneArg(lock, s_acquire, Py_False);
@@ -126,10 +134,9 @@ static int release_now(PyObject *session, unsigned long long value_id) {
     Py_DECREF(let);
     PyErr_Restore(et, ev, tb);
     if (result < 0) return -1;
-    unsent = waiting(session, s_unsent);
-    held = unsent == 0 ? waiting(session, s_held_writes) : 0;
-    if (unsent < 0 || held < 0) return -1;
-    if (unsent || held) {
+    others = others_waiting(session);
+    if (others < 0) return -1;
+    if (others) {
         PyObject *more = PyObject_CallMethodNoArgs(session, s_send_waiting);
         if (more == NULL) return -1;
         Py_DECREF(more);
@@ -279,14 +286,6 @@ done:
     return out;
 }
 
-static PyObject *claimer_tp_call(PyObject *self, PyObject *args, PyObject *kwargs) {
-    if (kwargs != NULL && PyDict_GET_SIZE(kwargs)) {
-        PyErr_SetString(PyExc_TypeError, "claim(segment, offset, size, value_id) takes no keyword arguments");
-        return NULL;
-    }
-    return claimer_call((Claimer *)self, &PyTuple_GET_ITEM(args, 0), (size_t)PyTuple_GET_SIZE(args), NULL);
-}
-
 static PyObject *claimer_vectorcall(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames) {
     return claimer_call((Claimer *)self, args, nargsf, kwnames);
 }
@@ -327,7 +326,7 @@ static PyTypeObject ClaimerType = {
     .tp_basicsize = sizeof(Claimer),
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
     .tp_new = claimer_new,
-    .tp_call = claimer_tp_call,
+    .tp_call = PyVectorcall_Call, /* a call with a tuple goes through the vectorcall too */
     .tp_vectorcall_offset = offsetof(Claimer, vectorcall),
     .tp_traverse = (traverseproc)claimer_traverse,
     .tp_clear = (inquiry)claimer_clear,

@@ -25,7 +25,7 @@ from cast.errors import InvalidArgumentError
 
 __all__ = ["ValueView", "field_of"]
 
-_native = native_module()  # field_of in C where the build has it (docs/decisions.md, "Claims and leases in C")
+_native = native_module()  # field_of in C where the build has it (docs/decisions.md, "Claims, leases and fields in C")
 
 
 def _varint(data: memoryview, at: int, what: str) -> tuple[int, int]:
