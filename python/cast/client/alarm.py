@@ -13,16 +13,24 @@ for a callback that runs past the time set.
 :class:`Alarm` uses ``os.timerfd_*`` (Python 3.13+) or, before that, libc's
 ``timerfd_create``/``timerfd_settime`` through ctypes; where neither exists it
 falls back to an ``Event`` that wakes the sleeper at once, which then sleeps
-until the time set (the older behaviour, correct, costlier).
+until the time set (the older behaviour, correct, costlier). The compiled
+build arms and disarms the timerfd in C (``cast.client._shared_native``):
+through ctypes the arming took about 10 us of each event's path on a 30 Hz
+watcher's cold caches (docs/performance-m8.md, "The standby's alarm armed in
+C"), and :meth:`Alarm.setter` gives the dispatcher a call with no Python
+frame in it.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import threading
 import time
 from collections.abc import Callable
+
+from cast.client.shm_session import native_module
 
 __all__ = ["Alarm"]
 
@@ -54,6 +62,15 @@ def _libc_timerfd() -> tuple[int, Callable[..., int]] | None:
     return None if fd < 0 else (fd, settime)
 
 
+def _native_arm() -> Callable[[int, int], None] | None:
+    """The C ``timerfd_arm(fd, ns)`` where the build has it (cast.client.shm_session.native_module), else None."""
+    native = native_module()
+    return None if native is None else native.timerfd_arm
+
+
+_arm = _native_arm()
+
+
 class Alarm:
     """Armed by any thread (:meth:`set`), slept on by one (:meth:`wait`); closed once (:meth:`close`)."""
 
@@ -66,20 +83,43 @@ class Alarm:
         # time at every callback; replaced whole, so a thread setting another time never changes what one reads.
         self._spec: tuple[float, object] = (0.0, None)
         self._zero = ctypes.byref(_Itimerspec())  # all zero: disarmed
+        self._arm: Callable[[int, int], None] | None = None  # C timerfd_arm(fd, ns): a timerfd, the compiled build
         if hasattr(os, "timerfd_create"):  # Python 3.13+
             self._fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_CLOEXEC)  # type: ignore[attr-defined]
-            return
-        made = _libc_timerfd()
-        if made is None:
-            self._event = threading.Event()
         else:
+            made = _libc_timerfd()
+            if made is None:
+                self._event = threading.Event()
+                return
             self._fd, self._settime = made
+        self._arm = _arm
+
+    def setter(self, seconds: float) -> Callable[[], None]:
+        """A call that does ``set(seconds)``: with the C arm one C call, no Python frame (the dispatcher's, each event).
+
+        Like :meth:`canceller`'s call, it names the timerfd by its descriptor:
+        not to be called once the alarm is closed.
+        """
+        arm = self._arm
+        if arm is not None:
+            return functools.partial(arm, self._fd, _nanoseconds(seconds))
+        return functools.partial(self.set, seconds)
+
+    def canceller(self) -> Callable[[], None]:
+        """A call that does :meth:`cancel`: with the C arm one C call, no Python frame."""
+        arm = self._arm
+        if arm is not None:
+            return functools.partial(arm, self._fd, 0)
+        return self.cancel
 
     def set(self, seconds: float) -> None:
         """Wake the sleeper ``seconds`` from now (at once for 0 or less), replacing any earlier time."""
         seconds = max(seconds, 1e-9)  # 0 would disarm a timerfd
         if self._fd < 0 and self._event is None:
             return  # closed: its owner stopped
+        if self._arm is not None:
+            self._arm(self._fd, _nanoseconds(seconds))
+            return
         if self._event is not None:
             self._due = time.monotonic() + seconds
             self._event.set()
@@ -98,7 +138,9 @@ class Alarm:
         """Unset it: the sleeper sleeps on until the next :meth:`set` (the fallback's ``Event`` cannot be recalled)."""
         if self._event is not None or self._fd < 0:
             return
-        if self._settime is not None:
+        if self._arm is not None:
+            self._arm(self._fd, 0)
+        elif self._settime is not None:
             if self._settime(self._fd, 0, self._zero, None) != 0:
                 raise OSError(ctypes.get_errno(), "timerfd_settime failed")
         else:
@@ -123,3 +165,8 @@ class Alarm:
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+
+
+def _nanoseconds(seconds: float) -> int:
+    """``seconds`` as a timerfd's nanoseconds: at least 1, since 0 would disarm it."""
+    return max(1, int(seconds * 1e9))

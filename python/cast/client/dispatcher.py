@@ -96,6 +96,9 @@ class Dispatcher:
         # dispatcher sets it when a callback begins and it is not set already (cast.client.alarm says why).
         self._alarm: Alarm | None = None  # made with the standby thread
         self._alarm_set = False
+        # Its set(STANDBY_S) and cancel() as calls made once: C calls, no Python frame, in the compiled build (alarm).
+        self._arm_standby: Callable[[], None] | None = None
+        self._disarm_standby: Callable[[], None] = _nothing
         self._thread.start()
         # Compared with threading.get_ident(), which is C, where threading.current_thread() would be a Python call
         # at every event (docs/performance-m8.md, "Claims and leases in C").
@@ -136,7 +139,9 @@ class Dispatcher:
         if self._standby is None:
             with self._lock:
                 if self._standby is None:
-                    self._alarm = Alarm()
+                    self._alarm = alarm = Alarm()
+                    self._disarm_standby = alarm.canceller()
+                    self._arm_standby = alarm.setter(STANDBY_S)
                     self._standby = threading.Thread(
                         target=self._stand_by, name=f"{self._thread.name}-standby", daemon=True
                     )
@@ -267,10 +272,10 @@ class Dispatcher:
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
         self._call_started = time.monotonic()
-        alarm = self._alarm
-        if alarm is not None and not self._alarm_set:
+        arm = self._arm_standby
+        if arm is not None and not self._alarm_set:
             self._alarm_set = True
-            alarm.set(STANDBY_S)
+            arm()
         try:
             fn(*args)
         except Exception:
@@ -282,7 +287,7 @@ class Dispatcher:
             if self._alarm_set:
                 # Over before the standby looked: it sleeps on (cheaper than waking it to find nothing running).
                 self._alarm_set = False
-                self._alarm.cancel()  # type: ignore[union-attr]  # set only when there is one
+                self._disarm_standby()
             with self._lock:
                 self._pending -= 1
                 if self._waiters:
@@ -317,3 +322,7 @@ class Dispatcher:
                 os.close(self._wake_fd)
             if alarm is not None and standby is not None and not standby.is_alive():
                 alarm.close()
+
+
+def _nothing() -> None:
+    """The standby's disarming before there is a standby (never called: nothing arms it then)."""
