@@ -15,10 +15,10 @@ for a callback that runs past the time set.
 falls back to an ``Event`` that wakes the sleeper at once, which then sleeps
 until the time set (the older behaviour, correct, costlier). The compiled
 build arms and disarms the timerfd in C (``cast.client._shared_native``):
-through ctypes the arming took about 10 us of each event's path on a 30 Hz
-watcher's cold caches (docs/performance-m8.md, "The standby's alarm armed in
-C"), and :meth:`Alarm.setter` gives the dispatcher a call with no Python
-frame in it.
+through ctypes the arming took about 11 us of each event's path on a 30 Hz
+watcher's cold caches (docs/performance-m8.md, "The Python watcher's own
+path, step by step"), and :meth:`Alarm.setter` gives the dispatcher a call
+with no Python frame in it.
 """
 
 from __future__ import annotations
