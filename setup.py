@@ -90,5 +90,10 @@ if os.environ.get("CAST_MYPYC") == "1":
     ext_modules.append(Extension(
         "cast.client._shared_native", ["python/cast/client/shared_native.c"], extra_compile_args=["-O2"],
     ))
+    # A session's socket read, its frames cut and a watch's frame turned at once, in C (docs/decisions.md, "The
+    # session's reads in C"); without it cast.client.shm_session and cast.client.watch_stream do it in Python.
+    ext_modules.append(Extension(
+        "cast.client._receive_native", ["python/cast/client/receive_native.c"], extra_compile_args=["-O2"],
+    ))
 
 setup(cmdclass={"build_py": BuildPyWithProtos, "sdist": SdistWithProtos}, ext_modules=ext_modules)

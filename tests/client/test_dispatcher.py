@@ -6,6 +6,7 @@ import os
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from cast.client.dispatcher import STANDBY_S, Dispatcher
@@ -77,6 +78,9 @@ class _Socket:
                 self.readers.extend([threading.current_thread().name] * len(data))
         finally:
             self.lock.release()
+
+    def reader(self) -> Callable[[], bool]:
+        return self.poll
 
     def close(self) -> None:
         self.mine.close()

@@ -139,10 +139,13 @@ def test_a_watcher_reads_each_events_frame_with_one_read_of_its_socket(host: Any
     session = reader._transport._directory.shared.session()
     counting = _CountingSocket(session._sock)
     session._sock = counting
+    receiver = session._receiver  # the compiled build reads in C, and counts its reads itself
+    before = receiver.reads if receiver is not None else 0
     for n in range(1, 6):
         writer.overwrite("img", image(MIB, n))
         wait_for(lambda n=n: len(seen) == n + 1, what=f"event {n + 1}")  # type: ignore[misc]
-    assert counting.reads == 5, counting.reads
+    reads = counting.reads if receiver is None else receiver.reads - before
+    assert reads == 5, reads
 
 
 def test_a_lent_image_starts_on_a_cache_line_so_arrays_over_it_are_aligned(host: Any) -> None:

@@ -20,14 +20,13 @@ from google.protobuf.wrappers_pb2 import BytesValue
 import cast
 from cast.client import shm_session
 from cast.client.local_transport import LocalTransport
-from cast.client.watch_stream import EVENTS_METADATA
+from cast.client.watch_stream import EVENTS_METADATA, WatchStream
 from cast.core.records import Identity, Limits
 from cast.core.shared import SharedSettings
 from cast.errors import UnavailableError
 from cast.server.socket_writes import MAX_UNSENT
 from cast.server.working_memory import EVENTS_UNSENT
 from cast.v1 import working_memory_pb2 as wm_pb2
-from cast.wire import shared_memory as wire
 from tests.client.shm_host import MIB, Host, image
 from tests.client.shm_host import host as host  # the fixture, used by name
 from tests.conftest import wait_for
@@ -74,20 +73,29 @@ def _raw_watch(h: Host, cid: str, session: shm_session.ClientSession, on_socket:
     return stream, call
 
 
+def _spy_on_event_frames(monkeypatch: pytest.MonkeyPatch, threads: list[str]) -> None:
+    """Note in ``threads`` the thread that hands each EVENTS frame to its watch call (whichever path reads it)."""
+    original = WatchStream._handler
+
+    def spy(self: WatchStream, read: shm_session.ReadCall) -> Callable[[bytes], None]:
+        handler = original(self, read)
+
+        def noted(body: bytes) -> None:
+            threads.append(threading.current_thread().name)
+            handler(body)
+
+        return noted
+
+    monkeypatch.setattr(WatchStream, "_handler", spy)
+
+
 def test_a_components_events_come_as_frames_read_by_its_dispatcher_thread(
     host: Callable[..., Host], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    handled: list[tuple[int, str]] = []
-    original = shm_session.ClientSession._handle
-
-    def spy(self: shm_session.ClientSession, frame: wire.Frame) -> None:
-        handled.append((frame.kind, threading.current_thread().name))
-        original(self, frame)
-
-    monkeypatch.setattr(shm_session.ClientSession, "_handle", spy)
+    events: list[str] = []
+    _spy_on_event_frames(monkeypatch, events)
     h = host()
     _every_value_watched(h, 20)
-    events = [name for kind, name in handled if kind == wire.EVENTS]
     assert len(events) >= 1 and set(events) == {"cast-dispatch-watcher"}, events
 
 
@@ -203,14 +211,7 @@ def test_frames_another_thread_reads_reach_the_callbacks_in_order_once(
     # A read waiting for its segment reads the session's socket on its own thread, EVENTS frames included:
     # those are queued for the dispatcher behind the frames before them, never delivered out of order.
     readers: list[str] = []
-    original = shm_session.ClientSession._handle
-
-    def spy(self: shm_session.ClientSession, frame: wire.Frame) -> None:
-        if frame.kind == wire.EVENTS:
-            readers.append(threading.current_thread().name)
-        original(self, frame)
-
-    monkeypatch.setattr(shm_session.ClientSession, "_handle", spy)
+    _spy_on_event_frames(monkeypatch, readers)
     h = host()
     writer, watcher = h.component("writer"), h.component("watcher")
     got: list[int] = []

@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from cast.client.shm_session import ReadCall
 
 __all__ = [
-    "NATIVE_EVENTS", "address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "task_from_pb",
-    "turn_events",
+    "NATIVE_EVENTS", "address", "entry_from_pb", "event_from_pb", "fill_write", "filter_to_pb", "native_turn",
+    "task_from_pb", "turn_events",
 ]
 
 # Looked up rather than called: an enum call runs enum's machinery for each event (0.3 us warm, more on the cold
@@ -118,6 +118,15 @@ def turn_events(
         sink(event, pb.watch_ids)
         if event.revision > seen.get(event.subarchitecture, 0):
             seen[event.subarchitecture] = event.revision
+
+
+def native_turn() -> Callable[..., bool] | None:
+    """The C decoder itself, ``turn(body, claim, sink, seen) -> handled``, where the build has it, else None.
+
+    For a caller in C that calls it without :func:`turn_events` around it
+    (cast.client._receive_native); on False it calls :func:`turn_events`.
+    """
+    return None if _native is None else _native.turn  # type: ignore[attr-defined]
 
 
 def filter_to_pb(f: EventFilter) -> entry_pb2.ChangeFilter:

@@ -51,6 +51,10 @@ class Source(Protocol):
         """Read what is there without waiting, handling each frame (on this thread); False if another thread is."""
         ...
 
+    def reader(self) -> Callable[[], bool]:
+        """``poll()`` as one callable, taken once: what the dispatcher thread calls when the socket is readable."""
+        ...
+
 
 class Dispatcher:
     """Runs queued calls on its own thread, in order; a failing callback is logged, not fatal.
@@ -85,6 +89,7 @@ class Dispatcher:
         self._sleeping = False
         self._closed = False  # the eventfd closed (after the thread ended)
         self._sources: dict[int, Source] = {}  # fd -> source; changed on this thread only
+        self._readers: dict[int, Callable[[], bool]] = {}  # fd -> its source's reader(); as _sources
         self._attach: deque[Source] = deque()  # sources to add, from any thread
         self._poller = select.poll()
         self._poller.register(self._wake_fd, select.POLLIN)
@@ -236,13 +241,14 @@ class Dispatcher:
         sources = self._sources
         for fd, source in list(sources.items()):
             if source.fileno() != fd:  # ended (its socket closed): forgotten before a new one may take its number
-                del sources[fd]
+                del sources[fd], self._readers[fd]
                 self._poller.unregister(fd)
         while self._attach:
             source = self._attach.popleft()
             fd = source.fileno()
             if fd >= 0 and sources.get(fd) is not source:
                 sources[fd] = source
+                self._readers[fd] = source.reader()
                 self._poller.register(fd, _READABLE)
         if timeout is None:
             self._sleeping = True
@@ -259,8 +265,8 @@ class Dispatcher:
             if fd == self._wake_fd:
                 self._drain_wake()
                 continue
-            ready_source = sources.get(fd)
-            if ready_source is not None and not ready_source.poll():
+            read = self._readers.get(fd)
+            if read is not None and not read():
                 # Another thread is reading it (and queues what it reads here): the socket stays readable until
                 # it has, so wait for a call or a moment rather than spin on it.
                 self._sleeping = True

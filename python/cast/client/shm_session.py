@@ -24,6 +24,7 @@ when there is none: :mod:`cast.client.shm`.
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import mmap
 import os
@@ -36,7 +37,7 @@ from types import ModuleType
 
 from cast.client.socket_writes import SessionWrites
 from cast.core.arena import Extents, round_up
-from cast.errors import UnavailableError
+from cast.errors import CastError, UnavailableError
 from cast.v1 import entry_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 from cast.wire import shared_memory as wire
@@ -75,6 +76,29 @@ def native_module() -> ModuleType | None:
 _native = native_module()
 NATIVE_SHARED = _native is not None
 """Whether lent values are claimed, read and given back in C (the compiled build, unless CAST_NATIVE_SHARED=0)."""
+
+
+def receive_module() -> ModuleType | None:
+    """The session's reads and frames in C where the build has it (the compiled build), unless CAST_NATIVE_RECEIVE=0.
+
+    From the dispatcher's ``poll`` to a watch's decoder the pure path is a
+    dozen Python functions per frame, about 70 us of a 30 Hz watcher's
+    latency on cold caches (docs/performance-m8.md, "The session's reads in
+    C"); ``cast.client._receive_native`` does the same in C.
+    """
+    if os.environ.get("CAST_NATIVE_RECEIVE", "1") == "0":
+        return None
+    try:
+        from cast.client import _receive_native  # type: ignore[attr-defined]
+    except ImportError:  # a pure build (make setup's editable install)
+        return None
+    _receive_native.configure(wire.Frame, wire.ProtocolError, CastError)
+    return _receive_native  # type: ignore[no-any-return]
+
+
+_receive = receive_module()
+NATIVE_RECEIVE = _receive is not None
+"""Whether session sockets are read and their frames cut in C (the compiled build, unless CAST_NATIVE_RECEIVE=0)."""
 
 
 class Staged:
@@ -181,7 +205,9 @@ class ClientSession:
         self._regions = Extents(staging_size)
         self._quarantined = 0  # staged bytes of writes whose outcome is unknown: never reused
         self._reader = wire.FrameReader()
-        self._inbox = wire.Inbox(_READ_BYTES)  # read under _read_lock
+        self._inbox: wire.Inbox | None = None  # read under _read_lock (the pure path's; made at its first read)
+        # The C reads and frames (the compiled build): its buffer and descriptors are the reader's and inbox's.
+        self._receiver = None if _receive is None else _receive.Receiver(sock, _READ_BYTES)
         self._segments: dict[int, _Segment] = {}
         self._retired: list[_Segment] = []
         self._read_lock = threading.Lock()
@@ -364,6 +390,11 @@ class ClientSession:
         """The session socket's descriptor (-1 once ended), for a thread that waits for frames."""
         return -1 if self.dead else self._sock.fileno()
 
+    def reader(self) -> Callable[[], bool]:
+        """:meth:`poll` without a wait, as one callable: the same in C where the build has it (the dispatcher's)."""
+        receiver = self._receiver
+        return self.poll if receiver is None else functools.partial(receiver.pump, self)
+
     def poll(self, wait: float = 0.0) -> bool:
         """Read what the server sent (SEGMENT, RETIRE, REFUSED, EVENTS, REPLIES, the end); wait ``wait`` s for it.
 
@@ -415,6 +446,10 @@ class ClientSession:
         Last, the async writes answered meanwhile are settled, on this thread but no longer the reader.
         """
         self._read_lock.release()
+        self._after_reading()
+
+    def _after_reading(self) -> None:
+        """What is left to do once the read lock was let go (the C reader calls it only when there is some)."""
         # Each looked at here before it is called: at every frame there is mostly nothing to do, and a call is what
         # a 30 Hz watcher's cold caches make dear (docs/performance-m8.md, "Claims and leases in C").
         writes = self.writes
@@ -427,7 +462,12 @@ class ClientSession:
 
     def _read_available(self) -> None:
         """Read and handle every frame the socket holds now. Call with the read lock held."""
+        if self._receiver is not None:
+            self._receiver.read_available(self)  # the same, in C
+            return
         inbox = self._inbox
+        if inbox is None:
+            inbox = self._inbox = wire.Inbox(_READ_BYTES)
         while not self.dead:
             try:
                 data, fds = inbox.receive(self._sock)
@@ -489,7 +529,7 @@ class ClientSession:
             self._sock.close()
         except OSError:
             pass
-        for fd in self._reader.stray():
+        for fd in self._reader.stray() if self._receiver is None else self._receiver.stray():
             os.close(fd)
         with self._state:
             # Mappings still held by values go when those do (their leases keep this object).

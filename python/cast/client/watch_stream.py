@@ -13,10 +13,10 @@ from typing import Any
 import grpc
 
 from cast.client.channel import TRANSIENT, Backoff, LinkClosedError, ServerLink, map_rpc_error
-from cast.client.conversions import event_from_pb, filter_to_pb, turn_events
+from cast.client.conversions import event_from_pb, filter_to_pb, native_turn, turn_events
 from cast.client.credentials import TokenSource
 from cast.client.dispatcher import HIGH, Dispatcher
-from cast.client.shm_session import ReadCall
+from cast.client.shm_session import ReadCall, receive_module
 from cast.client.transport import EventSink
 from cast.core.watch import EventFilter
 from cast.errors import CastError, DeadlineExceededError, HistoryExpiredError, UnavailableError, error_for_code
@@ -28,6 +28,8 @@ EVENTS_METADATA = ("cast-watch-events", "socket")
 """Call metadata asking the server for the call's event batches as EVENTS frames on the session's socket."""
 
 log = logging.getLogger("cast.client")
+
+_receive = receive_module()
 
 
 class _Watch:
@@ -131,7 +133,7 @@ class WatchStream:
             self._socket_broke = ""
             if read is not None and session is not None and self._dispatcher is not None:
                 metadata += (EVENTS_METADATA,)
-                session.event_handlers[read.number] = functools.partial(self._frame, read)
+                session.event_handlers[read.number] = self._handler(read)
                 session.on_end.append(functools.partial(self._session_ended, read))
                 self._dispatcher.attach(session)
             self._call = self._server.open_stream(self._server.wm.Watch, iter(requests.get, None), metadata=metadata)
@@ -210,6 +212,24 @@ class WatchStream:
         if self._server.shared is not None:
             self._server.shared.check()
 
+    def _handler(self, read: ReadCall) -> Callable[[bytes], None]:
+        """What takes ``read``'s EVENTS frames: :meth:`_frame`, or (the compiled build) the same in C.
+
+        The C handler turns a frame at once when it was read on the
+        dispatcher thread and nothing of the call is queued or being turned,
+        as :meth:`_frame` then :meth:`_turn_frames` would, and leaves every
+        other case to :meth:`_frame`.
+        """
+        frame = functools.partial(self._frame, read)
+        turn = native_turn()
+        dispatcher = self._dispatcher
+        if _receive is None or turn is None or dispatcher is None:
+            return frame
+        return _receive.DirectTurn(  # type: ignore[no-any-return]
+            self, read, self._frames_lock, self._frames, read.claimer(), self._sink, self._seen, turn, turn_events,
+            frame, dispatcher.ident,
+        )
+
     def _frame(self, read: ReadCall, body: bytes) -> None:
         """An EVENTS frame of ``read``'s call, on the thread that read the session's socket (in the order read).
 
@@ -242,13 +262,17 @@ class WatchStream:
                 # a new call.
                 while read is not None and self._frames and not self._socket_broke:
                     turn_events(self._frames.popleft(), read, self._sink, self._seen)
-            except CastError as exc:  # a value that could not be claimed: the call is read again from here
-                self._socket_broke = exc.message
-                call = self._call
-                if call is not None:
-                    call.cancel()
+            except CastError as exc:
+                self._turn_failed(exc)
             finally:
                 self._turning = False
+
+    def _turn_failed(self, exc: CastError) -> None:
+        """A value of the call's could not be claimed: the call is read again from here (under _frames_lock)."""
+        self._socket_broke = exc.message
+        call = self._call
+        if call is not None:
+            call.cancel()
 
     def _session_ended(self, read: ReadCall, why: str) -> None:
         """The session carrying ``read``'s events ended: the call ends too, and the watches resume on a new one."""
