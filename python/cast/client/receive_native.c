@@ -5,7 +5,7 @@
  * the dispatcher's poll to the watch's decoder (ClientSession.poll,
  * _read_available, Inbox.receive, FrameReader.feed, _handle, the handler,
  * WatchStream._frame, _turn_frames, turn_events, _stop_reading) is a dozen
- * Python functions per frame, about 70 us on the cold caches a 30 Hz watcher
+ * Python functions per frame, 35-80 us on the cold caches a 30 Hz watcher
  * meets (docs/performance-m8.md, "The Python watcher's own path, step by
  * step"). This module does the same with the CPython API only:
  *

@@ -82,7 +82,7 @@ def receive_module() -> ModuleType | None:
     """The session's reads and frames in C where the build has it (the compiled build), unless CAST_NATIVE_RECEIVE=0.
 
     From the dispatcher's ``poll`` to a watch's decoder the pure path is a
-    dozen Python functions per frame, about 70 us of a 30 Hz watcher's
+    dozen Python functions per frame, 35-80 us of a 30 Hz watcher's
     latency on cold caches (docs/performance-m8.md, "The session's reads in
     C"); ``cast.client._receive_native`` does the same in C.
     """
