@@ -327,6 +327,11 @@ static int read_available(Receiver *self, PyObject *session) {
         }
         memmove(self->buf, self->buf + used, (size_t)(self->len - used));
         self->len -= used;
+        if (self->len == 0 && self->cap > 4 * self->chunk) { /* a large frame's room is not kept for good */
+            PyMem_Free(self->buf);
+            self->buf = NULL;
+            self->cap = 0;
+        }
         if (failed) {
             if (!PyErr_ExceptionMatches(protocol_error)) return -1;
             PyObject *type, *value, *tb;
@@ -471,6 +476,7 @@ static PyMethodDef receiver_methods[] = {
 
 static PyMemberDef receiver_members[] = {
     {"reads", T_ULONGLONG, offsetof(Receiver, reads), READONLY, "How many reads of the socket it made."},
+    {"capacity", T_PYSSIZET, offsetof(Receiver, cap), READONLY, "The bytes its buffer holds room for now."},
     {NULL, 0, 0, 0, NULL},
 };
 
