@@ -9,6 +9,7 @@ reads, tasks and the rest are unary calls.
 from __future__ import annotations
 
 import atexit
+import functools
 import logging
 import threading
 import time
@@ -29,7 +30,7 @@ from cast.client.shm import attach
 from cast.client.shm_session import ClientSession, Staged
 from cast.client.transport import EventSink
 from cast.client.watch_stream import WatchStream
-from cast.client.write_replies import reply_result
+from cast.client.write_replies import ResultFuture, reply_result
 from cast.client.write_stream import LOCK_REPLY_MARGIN_S, WriteStream
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
 from cast.core.sessions import ComponentState
@@ -83,6 +84,12 @@ _Staging = tuple[tuple[ClientSession, Staged], ...]
 
 _IN_DOUBT = (UnavailableError, DeadlineExceededError)
 """A write that failed so may yet be applied: its staged bytes must stay as they are (cast.client.shm)."""
+
+
+def _write_result(reply: wm_pb2.WriteReply) -> WriteResult:
+    """An async write's result from its reply; the error the reply carries, raised."""
+    write = reply_result(reply).write
+    return WriteResult(write.revision, write.version)
 
 
 def _unstage(staged: _Staging, error: BaseException | None) -> None:
@@ -222,21 +229,11 @@ class GrpcTransport:
 
     def _write_async(self, sa: str, request: wm_pb2.WriteRequest, staged: _Staging,
                      budget: _Budget) -> Future[WriteResult]:
-        result: Future[WriteResult] = Future()
-
-        def done(sent: Future[wm_pb2.WriteReply]) -> None:
-            try:
-                reply = reply_result(sent.result())
-            except BaseException as exc:  # noqa: BLE001 - every failure goes to the caller's future
-                _unstage(staged, exc)
-                result.set_exception(exc)
-                return
-            _unstage(staged, None)
-            result.set_result(WriteResult(reply.write.revision, reply.write.version))
-
+        # One future, settled by the reply's reader with the result (write_replies.ResultFuture).
+        result = ResultFuture(_write_result, functools.partial(_unstage, staged))
         timeout = budget.left_for(staged)
         try:
-            self._stream(sa).submit(request, timeout).add_done_callback(done)
+            self._stream(sa).submit(request, timeout, result)
         except BaseException as exc:
             _unstage(staged, exc)
             raise

@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from google.protobuf.message import DecodeError
 
@@ -85,19 +85,20 @@ class SessionWrites:
         self._locks: set[int] = set()  # ids of lock requests sent, maybe still outstanding (none is held back)
 
     def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool,
-             timeout: float | None) -> Future[wm_pb2.WriteReply] | None:
+             timeout: float | None, future: Future[Any] | None = None) -> Future[wm_pb2.WriteReply] | None:
         """Send ``request`` of ``size`` bytes (its id is set here); its reply's future, or None once the session ended.
 
         ``detached``: nobody waits on it (the pump reads its reply). Past
         ``timeout`` s (None: none) it fails with DeadlineExceededError.
         Sends of one component are made one at a time by its write stream, so
-        the frames leave in id order.
+        the frames leave in id order. ``future``: the one to settle with the
+        reply (a :class:`~cast.client.write_replies.ResultFuture`), else a new one.
         """
         session = self._session
         with self.lock:
             if self.ended:
                 return None
-            future = self.outstanding.add(request, detached, timeout)
+            future = self.outstanding.add(request, detached, timeout, future)
             if request.HasField("lock"):
                 self._lock_outstanding()  # those answered go first
                 self._locks.add(request.id)

@@ -11,13 +11,18 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future, InvalidStateError
+from typing import Any, Generic, TypeVar
 
 from cast.errors import CastError, error_for_code
 from cast.v1 import working_memory_pb2 as wm_pb2
 
-__all__ = ["DRAIN_S", "Answered", "Expired", "Outstanding", "reply_result", "settle", "settle_replies", "what"]
+__all__ = [
+    "DRAIN_S", "Answered", "Expired", "Outstanding", "ResultFuture", "reply_result", "settle", "settle_replies", "what",
+]
+
+T = TypeVar("T")
 
 DRAIN_S = 30.0
 """How long a new way for writes (a stream or session opened with a renewed token, the session's
@@ -44,9 +49,14 @@ class Outstanding:
         self.deadlines: dict[int, tuple[float, float, str]] = {}  # pending id -> (deadline, its timeout, what)
         self._ids = itertools.count(1)
 
-    def add(self, request: wm_pb2.WriteRequest, detached: bool, timeout: float | None) -> Future[wm_pb2.WriteReply]:
-        """Give ``request`` the next id and a future; past ``timeout`` s (None: never) it is expired."""
-        future: Future[wm_pb2.WriteReply] = Future()
+    def add(self, request: wm_pb2.WriteRequest, detached: bool, timeout: float | None,
+            future: Future[Any] | None = None) -> Future[wm_pb2.WriteReply]:
+        """Give ``request`` the next id and a future (``future``, or a new one); past ``timeout`` s it is expired.
+
+        ``timeout`` None: never.
+        """
+        if future is None:
+            future = Future()
         request.id = request_id = next(self._ids)
         self.pending[request_id] = future
         if timeout is not None:
@@ -102,6 +112,51 @@ class Outstanding:
         self.detached.clear()
         self.deadlines.clear()
         return left
+
+
+class ResultFuture(Future[T], Generic[T]):
+    """An async write's future as its caller gets it: settled with the reply, it holds what ``convert`` makes of it.
+
+    One future per async write where there were two (the reply's, and the
+    caller's chained to it by a callback): each costs a condition variable
+    and a lock, about a third of an async write's client CPU
+    (docs/performance.md, "Pipelined writes with one future each").
+    ``settled(error)`` runs once, when the future is settled, before its
+    callbacks (``error`` None for a result): what the write held is let go.
+    A reply that comes after its deadline settled the future changes nothing.
+    """
+
+    def __init__(self, convert: Callable[[wm_pb2.WriteReply], T],
+                 settled: Callable[[BaseException | None], None]) -> None:
+        super().__init__()
+        self._convert = convert
+        self._settled = [settled]  # popped once: list.pop is atomic, so two threads settling run it once
+
+    def _settle(self, error: BaseException | None) -> None:
+        try:
+            settled = self._settled.pop()
+        except IndexError:
+            return
+        settled(error)
+
+    def set_result(self, result: Any) -> None:
+        """Settle with ``result``, the write's reply: the converted value, or the error the reply carries."""
+        try:
+            value = self._convert(result)
+        except BaseException as exc:  # noqa: BLE001 - every failure goes to the caller
+            self.set_exception(exc)
+            return
+        if self.done():
+            raise InvalidStateError(f"{self!r} is settled already")
+        self._settle(None)
+        super().set_result(value)
+
+    def set_exception(self, exception: BaseException | None) -> None:
+        """Fail it with ``exception``."""
+        if self.done():
+            raise InvalidStateError(f"{self!r} is settled already")
+        self._settle(exception)
+        super().set_exception(exception)
 
 
 def reply_result(reply: wm_pb2.WriteReply) -> wm_pb2.WriteReply:

@@ -153,12 +153,13 @@ class _Call:
         server.track(self.watch)
 
     def send(self, request: wm_pb2.WriteRequest, size: int, detached: bool,
-             timeout: float | None) -> Future[wm_pb2.WriteReply]:
+             timeout: float | None, future: Future[Any] | None = None) -> Future[wm_pb2.WriteReply]:
         """Queue ``request`` (``size`` bytes) with the next id; the future of its reply. Call with :attr:`lock` held.
 
         ``timeout``: seconds until its deadline (None: none, a lock that waits as long as it takes).
+        ``future``: the one to settle with the reply (a :class:`ResultFuture`), else a new one.
         """
-        future = self.outstanding.add(request, detached, timeout)
+        future = self.outstanding.add(request, detached, timeout, future)
         if timeout is not None:
             self.sent = True
             deadline = self.outstanding.deadlines[request.id][0]
@@ -334,16 +335,17 @@ class WriteStream:
         self._call: _Call | None = None
         self._closed = False
 
-    def submit(self, request: wm_pb2.WriteRequest, timeout: float | None = -1.0) -> Future[wm_pb2.WriteReply]:
+    def submit(self, request: wm_pb2.WriteRequest, timeout: float | None = -1.0,
+               future: Future[Any] | None = None) -> Future[wm_pb2.WriteReply]:
         """Send ``request`` (its id is set here) without waiting; the future of its reply (use :func:`reply_result`).
 
         The pump thread reads its reply; past ``timeout`` (-1: the call timeout) the future fails with
-        DeadlineExceededError.
+        DeadlineExceededError. ``future``: the one settled with the reply (a :class:`ResultFuture`), else a new one.
         """
-        return self._submit(request, True, self._timeout if timeout == -1.0 else timeout)[1]
+        return self._submit(request, True, self._timeout if timeout == -1.0 else timeout, future)[1]
 
-    def _submit(self, request: wm_pb2.WriteRequest, detached: bool,
-                timeout: float | None) -> tuple[_Call | SessionWrites, Future[wm_pb2.WriteReply]]:
+    def _submit(self, request: wm_pb2.WriteRequest, detached: bool, timeout: float | None,
+                future: Future[Any] | None = None) -> tuple[_Call | SessionWrites, Future[wm_pb2.WriteReply]]:
         size = request.ByteSize()
         if size > _MAX_REQUEST_BYTES:
             # Sent, it would end the stream (and every write in flight on it) with RESOURCE_EXHAUSTED.
@@ -358,20 +360,20 @@ class WriteStream:
             writes = self._session_writes(token, timeout)
             if writes is not None:
                 self._drain_call()
-                future = writes.send(request, size, detached, timeout)
-                if future is not None:
-                    return writes, future
+                sent = writes.send(request, size, detached, timeout, future)
+                if sent is not None:
+                    return writes, sent
                 # The session ended just now: the gRPC stream takes it.
             call = self._call
             if call is None or call.broken or call.token != token:
                 call = self._open(call, token)
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, size, detached, timeout)
+                    return call, call.send(request, size, detached, timeout, future)
             call = self._open(call, token)  # it broke just now: one more try on a new call
             with call.lock:
                 if not call.broken:
-                    return call, call.send(request, size, detached, timeout)
+                    return call, call.send(request, size, detached, timeout, future)
         raise UnavailableError(
             f"server {self._server.endpoint} unavailable: the write stream could not be opened, so this write "
             "was not sent; the client reconnects by itself, retry the call later"
