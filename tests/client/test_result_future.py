@@ -71,6 +71,14 @@ def test_a_reply_after_the_deadline_changes_nothing() -> None:
     assert len(settled) == 1 and isinstance(settled[0], DeadlineExceededError)
 
 
+def test_a_reply_after_the_caller_cancelled_still_lets_the_write_go() -> None:
+    settled: list[Any] = []
+    future = _future(settled)
+    assert future.cancel()
+    settle(future, _reply(3), None)
+    assert settled == [None] and future.cancelled()
+
+
 def test_two_threads_settling_at_once_let_the_write_go_once() -> None:
     for _ in range(200):
         settled: list[Any] = []

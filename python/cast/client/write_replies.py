@@ -123,7 +123,9 @@ class ResultFuture(Future[T], Generic[T]):
     (docs/performance.md, "Pipelined writes with one future each").
     ``settled(error)`` runs once, when the future is settled, before its
     callbacks (``error`` None for a result): what the write held is let go.
-    A reply that comes after its deadline settled the future changes nothing.
+    A reply that comes after its deadline settled the future changes
+    nothing; one that comes after the caller cancelled it still lets go
+    what the write held.
     """
 
     def __init__(self, convert: Callable[[wm_pb2.WriteReply], T],
@@ -146,15 +148,11 @@ class ResultFuture(Future[T], Generic[T]):
         except BaseException as exc:  # noqa: BLE001 - every failure goes to the caller
             self.set_exception(exc)
             return
-        if self.done():
-            raise InvalidStateError(f"{self!r} is settled already")
-        self._settle(None)
-        super().set_result(value)
+        self._settle(None)  # also when the caller cancelled it: the write is over all the same
+        super().set_result(value)  # InvalidStateError when settled already (a reply after its deadline)
 
     def set_exception(self, exception: BaseException | None) -> None:
         """Fail it with ``exception``."""
-        if self.done():
-            raise InvalidStateError(f"{self!r} is settled already")
         self._settle(exception)
         super().set_exception(exception)
 
