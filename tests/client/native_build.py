@@ -11,12 +11,16 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
+import socket
 import subprocess
 import sysconfig
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+
+from cast.client.shm_session import ClientSession
+from cast.wire import shared_memory as wire
 
 ROOT = Path(__file__).resolve().parents[2]
 INSTALLED = os.environ.get("CAST_TEST_INSTALLED") == "1"
@@ -44,3 +48,18 @@ def native_module(name: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module, False
+
+
+def session_on_a_pair() -> tuple[socket.socket, ClientSession]:
+    """A real client session (after its WELCOME) on one end of a Unix socket pair, and the server's end.
+
+    The session is made with the ``_native`` and ``_receive`` modules
+    :mod:`cast.client.shm_session` holds at the time: a test sets them first.
+    """
+    server, client = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    client.setblocking(False)
+    staging = os.memfd_create("staging")
+    os.ftruncate(staging, 1 << 16)
+    body = wire.welcome(b"s" * 16, b"v" * 16, 1 << 10, 1 << 20, 1 << 16)[5:]
+    return server, ClientSession(client, body, staging, "test", "token")
+

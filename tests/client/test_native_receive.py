@@ -23,10 +23,9 @@ from typing import Any
 import pytest
 
 from cast.client import shm_session
-from cast.client.shm_session import ClientSession
 from cast.errors import CastError, UnavailableError
 from cast.wire import shared_memory as wire
-from tests.client.native_build import native_module
+from tests.client.native_build import native_module, session_on_a_pair
 
 
 @pytest.fixture(scope="module")
@@ -48,12 +47,7 @@ class Pair:
     """A client session on one end of a socket pair, noting each frame it handles; the server's end here."""
 
     def __init__(self) -> None:
-        self.server, client = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        client.setblocking(False)
-        staging = os.memfd_create("staging")
-        os.ftruncate(staging, 1 << 16)
-        body = wire.welcome(b"s" * 16, b"v" * 16, 1 << 10, 1 << 20, 1 << 16)[5:]
-        self.session = ClientSession(client, body, staging, "test", "token")
+        self.server, self.session = session_on_a_pair()
         self.handled: list[tuple[int, bytes, bool]] = []  # kind, body, came with a descriptor
         original = self.session._handle
 

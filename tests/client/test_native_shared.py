@@ -14,7 +14,6 @@ from __future__ import annotations
 import gc
 import os
 import random
-import socket
 import subprocess
 import sys
 import threading
@@ -25,10 +24,9 @@ from typing import Any
 import pytest
 
 from cast.client import shm_session, views
-from cast.client.shm_session import ClientSession
 from cast.errors import InvalidArgumentError, UnavailableError
 from cast.wire import shared_memory as wire
-from tests.client.native_build import INSTALLED, ROOT, native_module
+from tests.client.native_build import INSTALLED, ROOT, native_module, session_on_a_pair
 
 SEGMENT_ID, SEGMENT_SIZE = 3, 1 << 16
 
@@ -51,13 +49,8 @@ class Pair:
     """A client session on one end of a socket pair; the server's end, and a segment of known bytes, here."""
 
     def __init__(self) -> None:
-        self.server, client = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        client.setblocking(False)
+        self.server, self.session = session_on_a_pair()
         self.server.settimeout(5)
-        staging = os.memfd_create("staging")
-        os.ftruncate(staging, 1 << 16)
-        body = wire.welcome(b"s" * 16, b"v" * 16, 1 << 10, 1 << 20, 1 << 16)[5:]
-        self.session = ClientSession(client, body, staging, "test", "token")
         fd = os.memfd_create("segment")
         os.write(fd, bytes(i % 251 for i in range(SEGMENT_SIZE)))
         self.session._handle(wire.Frame(wire.SEGMENT, wire.segment(SEGMENT_ID, SEGMENT_SIZE)[5:], fd))

@@ -95,13 +95,13 @@ static int end_session(PyObject *session, PyObject *why) {
     return 0;
 }
 
-/* session._end("read failed: <the error set now>"): the message the pure path writes for an OSError or a
- * ProtocolError of a read. */
-static int end_read_failed(PyObject *session) {
+/* session._end(prefix + str(the error set now)): a read's OSError or ProtocolError ("read failed: ..."), or a
+ * frame's ProtocolError (no prefix), in the words the pure path uses. */
+static int end_with_error(PyObject *session, const char *prefix) {
     PyObject *type, *value, *tb;
     PyErr_Fetch(&type, &value, &tb);
     PyErr_NormalizeException(&type, &value, &tb);
-    PyObject *why = value != NULL ? PyUnicode_FromFormat("read failed: %S", value) : NULL;
+    PyObject *why = value != NULL ? PyUnicode_FromFormat("%s%S", prefix, value) : NULL;
     Py_XDECREF(type);
     Py_XDECREF(value);
     Py_XDECREF(tb);
@@ -273,7 +273,7 @@ static int read_available(Receiver *self, PyObject *session) {
         if (count < 0) {
             if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) return 0;
             PyErr_SetFromErrno(PyExc_OSError);
-            return end_read_failed(session);
+            return end_with_error(session, "read failed: ");
         }
         int got[MAX_FDS_PER_READ];
         Py_ssize_t ngot = 0;
@@ -287,7 +287,7 @@ static int read_available(Receiver *self, PyObject *session) {
         if (msg.msg_flags & MSG_CTRUNC) {
             for (Py_ssize_t i = 0; i < ngot; i++) close(got[i]);
             PyErr_SetString(protocol_error, "more memory files arrived than one read takes");
-            return end_read_failed(session);
+            return end_with_error(session, "read failed: ");
         }
         if (push_fds(self, got, ngot) < 0) return -1;
         if (count == 0) {
@@ -299,14 +299,7 @@ static int read_available(Receiver *self, PyObject *session) {
         Py_ssize_t n = cut(self, &used, &taken);
         if (n < 0) {
             if (!PyErr_ExceptionMatches(protocol_error)) return -1;
-            PyObject *type, *value, *tb;
-            PyErr_Fetch(&type, &value, &tb);
-            PyErr_NormalizeException(&type, &value, &tb);
-            PyObject *why = value != NULL ? PyObject_Str(value) : NULL;
-            Py_XDECREF(type);
-            Py_XDECREF(value);
-            Py_XDECREF(tb);
-            return end_session(session, why);
+            return end_with_error(session, "");
         }
         /* The descriptors the frames took leave the queue before any is handed on (stray() may be asked). */
         memmove(self->fds, self->fds + taken, (size_t)(self->nfds - taken) * sizeof(int));
@@ -334,14 +327,7 @@ static int read_available(Receiver *self, PyObject *session) {
         }
         if (failed) {
             if (!PyErr_ExceptionMatches(protocol_error)) return -1;
-            PyObject *type, *value, *tb;
-            PyErr_Fetch(&type, &value, &tb);
-            PyErr_NormalizeException(&type, &value, &tb);
-            PyObject *why = value != NULL ? PyObject_Str(value) : NULL;
-            Py_XDECREF(type);
-            Py_XDECREF(value);
-            Py_XDECREF(tb);
-            return end_session(session, why);
+            return end_with_error(session, "");
         }
         if (drained) return 0;
     }

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import importlib
 import logging
 import mmap
 import os
@@ -55,6 +56,16 @@ _READ_BYTES = 256 << 10  # one read takes what the socket holds (EVENTS frames c
 _RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
 
 
+def _c_module(name: str, switch: str) -> ModuleType | None:
+    """``cast.client.<name>`` where the build has it (the compiled build), unless ``switch`` is 0 in the environment."""
+    if os.environ.get(switch, "1") == "0":
+        return None
+    try:
+        return importlib.import_module(f"cast.client.{name}")
+    except ImportError:  # a pure build (make setup's editable install)
+        return None
+
+
 def native_module() -> ModuleType | None:
     """The C claims, leases and fields where the build has them (the compiled build), unless CAST_NATIVE_SHARED=0.
 
@@ -64,13 +75,7 @@ def native_module() -> ModuleType | None:
     ``cast.client._shared_native`` does the same in C and leaves every case
     but the common one to the pure path.
     """
-    if os.environ.get("CAST_NATIVE_SHARED", "1") == "0":
-        return None
-    try:
-        from cast.client import _shared_native  # type: ignore[attr-defined]
-    except ImportError:  # a pure build (make setup's editable install)
-        return None
-    return _shared_native  # type: ignore[no-any-return]
+    return _c_module("_shared_native", "CAST_NATIVE_SHARED")
 
 
 _native = native_module()
@@ -78,6 +83,7 @@ NATIVE_SHARED = _native is not None
 """Whether lent values are claimed, read and given back in C (the compiled build, unless CAST_NATIVE_SHARED=0)."""
 
 
+@functools.cache  # configured once, whichever module asks first (this one, cast.client.watch_stream)
 def receive_module() -> ModuleType | None:
     """The session's reads and frames in C where the build has it (the compiled build), unless CAST_NATIVE_RECEIVE=0.
 
@@ -86,14 +92,10 @@ def receive_module() -> ModuleType | None:
     latency on cold caches (docs/performance-m8.md, "The session's reads in
     C"); ``cast.client._receive_native`` does the same in C.
     """
-    if os.environ.get("CAST_NATIVE_RECEIVE", "1") == "0":
-        return None
-    try:
-        from cast.client import _receive_native  # type: ignore[attr-defined]
-    except ImportError:  # a pure build (make setup's editable install)
-        return None
-    _receive_native.configure(wire.Frame, wire.ProtocolError, CastError)
-    return _receive_native  # type: ignore[no-any-return]
+    module = _c_module("_receive_native", "CAST_NATIVE_RECEIVE")
+    if module is not None:
+        module.configure(wire.Frame, wire.ProtocolError, CastError)
+    return module
 
 
 _receive = receive_module()
