@@ -189,6 +189,11 @@ void Component::bind(std::shared_ptr<detail::Transport> transport, const std::st
         auto core = weak.lock();
         // A component gone has nothing to hold back: its events are dropped.
         return !core || !core->dispatcher || core->dispatcher->awaitRoom(timeout);
+      },
+      [weak](std::weak_ptr<detail::EventSource> source) {
+        if (auto core = weak.lock()) {
+          if (core->dispatcher) core->dispatcher->attach(std::move(source));
+        }
       });
   std::weak_ptr<ComponentCore> weakState = core_;
   c.transport_->startSession(language, kind(), [weakState] {

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <deque>
@@ -18,11 +19,16 @@
 #include <memory>
 #include <mutex>
 #include <thread>
+#include <vector>
 
 #include "cast/log.h"
 #include "cast/types.h"
+#include "event_source.h"
 
 namespace cast::detail {
+
+// How long one callback may run before the standby thread reads the attached sockets meanwhile.
+inline constexpr std::chrono::milliseconds kStandby{10};
 
 class Dispatcher {
  public:
@@ -45,12 +51,17 @@ class Dispatcher {
   // Runs what is queued, then ends the thread (waits up to `timeout`).
   void stop(std::chrono::milliseconds timeout = std::chrono::milliseconds(5000));
   bool onThread() const { return std::this_thread::get_id() == threadId_; }
+  // Reads `source` on the dispatcher thread from now on, until it ends
+  // (sourceFd() -1) or is gone.
+  void attach(std::weak_ptr<EventSource> source);
 
  private:
   // Shared with the thread, so a thread left running (stop() from a callback,
   // or a callback that hangs) never touches a destroyed Dispatcher.
   struct State {
-    State(std::string name, std::size_t capacity) : log(std::move(name)), capacity(capacity) {}
+    State(std::string name, std::size_t capacity);
+    State(const State&) = delete;
+    State& operator=(const State&) = delete;
     Logger log;
     std::size_t capacity;
     std::mutex mu;
@@ -60,11 +71,25 @@ class Dispatcher {
     std::size_t pending = 0;  // queued + running
     bool stopping = false;
     bool finished = false;
+    // The attached sockets (under mu), and those attached since the thread last looked.
+    std::vector<std::weak_ptr<EventSource>> sources;
+    bool polling = false;  // the thread waits in poll(): a submit writes wakeFd
+    int wakeFd = -1;       // an eventfd, made at the first attach
+    int alarmFd = -1;      // a timerfd the thread arms for kStandby at each callback's start
+    int stopFd = -1;       // an eventfd that ends the standby thread
+    std::atomic<bool> calling{false};  // a callback runs now
+    bool standbyStarted = false;
+    ~State();
   };
   static void loop(const std::shared_ptr<State>& state);
+  // Waits for a call or a readable source (`wait`), or reads what the sources hold now; handles it.
+  static void readSources(State& s, bool wait);
+  static void standBy(const std::shared_ptr<State>& state);
+  static void runOne(State& s, std::function<void()>& fn);
   std::shared_ptr<State> state_;
   std::thread thread_;
   std::thread::id threadId_;
+  std::thread standby_;  // started at the first attach
 };
 
 }  // namespace cast::detail

@@ -279,9 +279,10 @@ class GrpcTransport final : public Transport {
     onError_ = std::move(onError);
   }
 
-  void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room) override {
+  void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room,
+                       AttachSource attach) override {
     std::lock_guard<std::mutex> lock(mu_);
-    socketEvents_ = SocketEvents{std::move(now), std::move(room)};
+    socketEvents_ = SocketEvents{std::move(now), std::move(room), std::move(attach)};
   }
 
   std::map<std::string, std::uint64_t> watch(std::uint32_t watchId, const std::vector<ChangeFilter>& filters,

@@ -304,9 +304,13 @@ void ClientSession::receiveEvents(std::uint64_t call, EventsReceiver receiver) {
   }
   {
     std::lock_guard<std::mutex> lock(eventsMu_);
-    receivers_[call] = std::move(receiver);
+    receivers_[call] = receiver;
   }
-  startReader();
+  if (receiver.attach) {
+    receiver.attach(weak_from_this());
+  } else {
+    startReader();
+  }
 }
 
 void ClientSession::stopEvents(std::uint64_t call) {
@@ -445,6 +449,20 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
   reading_.store(false);
   lock.unlock();
   readerLeft();
+}
+
+int ClientSession::sourceFd() const { return dead_ ? -1 : socket_; }
+
+bool ClientSession::pump() {
+  if (dead_) return true;
+  std::unique_lock<std::timed_mutex> lock(readMu_, std::try_to_lock);
+  if (!lock) return false;  // another reader handles what came
+  reading_.store(true);
+  readAvailable();
+  reading_.store(false);
+  lock.unlock();
+  readerLeft();
+  return true;
 }
 
 bool ClientSession::readUntil(const std::function<bool()>& done, std::chrono::milliseconds wait) {

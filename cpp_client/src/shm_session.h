@@ -20,10 +20,14 @@
 //   receiver (docs/client-protocol.md, "A watch's events on the session's
 //   socket").
 //
-// No thread of its own until the first write on its socket or the first
-// Watch call taking its events here: from then on its reader thread waits on
-// the socket and handles what comes, on that thread (a watch's events go from
-// it straight to the component's queue). Until then what the server sends
+// A Watch call taking its events here hands the session to the component's
+// dispatcher thread, which waits on the socket while it has nothing to run
+// and handles what comes itself, so that an event's callback runs on the
+// thread the kernel woke for its frame (dispatcher.h). No thread of its own
+// until the first pipelined write on its socket (or a Watch call with no
+// dispatcher to read it): from then on its reader thread waits on the socket
+// too and handles what comes, on that thread (a watch's events go from it
+// straight to the component's queue). Until then what the server sends
 // (SEGMENT, RETIRE, REFUSED, the end) is read whenever the session is used;
 // any thread that uses it may read it. How a session is opened, and when
 // there is none: shm.h.
@@ -47,6 +51,7 @@
 #include "cast/types.h"
 #include "cast/v1/entry.pb.h"
 #include "cast/v1/working_memory.pb.h"
+#include "event_source.h"
 #include "shm_wire.h"
 #include "socket_writes.h"
 
@@ -71,6 +76,9 @@ struct EventsReceiver {
   // room (or a write waits for its reply): what the server sends meanwhile
   // waits in the socket, then on the server.
   std::function<bool(std::chrono::milliseconds)> room;
+  // Hands the session to the dispatcher thread that reads it from then on
+  // (the component's); unset: the session's reader thread reads it.
+  AttachSource attach;
 };
 
 // A region of mapped memory, unmapped when the last holder lets it go (a
@@ -151,7 +159,7 @@ class ReadCall {
   bool ended_ = false;
 };
 
-class ClientSession : public std::enable_shared_from_this<ClientSession> {
+class ClientSession : public EventSource, public std::enable_shared_from_this<ClientSession> {
  public:
   // Takes `socket` (connected, its WELCOME read) and maps the staging area
   // `stagingFd` (closed here); std::system_error when it cannot be mapped.
@@ -206,6 +214,7 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
 
   // ------------------------------------------------------------- events
   // The EVENTS frames of call `call` go to `receiver` from now on, read by
+  // the dispatcher thread the receiver attaches the session to, or else by
   // the reader thread (started now if it is not running).
   void receiveEvents(std::uint64_t call, EventsReceiver receiver);
   // No more frames of `call` go to its receiver: returns once none is being
@@ -231,6 +240,10 @@ class ClientSession : public std::enable_shared_from_this<ClientSession> {
   // Reads what the server sent (SEGMENT, RETIRE, REFUSED, the end); waits up
   // to `wait` for something when it is not zero.
   void poll(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
+  // EventSource: the socket, -1 once the session ended; pump() reads what is
+  // there now, on this thread, unless another thread reads (false).
+  int sourceFd() const override;
+  bool pump() override;
   // Reads and handles what comes until `done()` or `wait` passed, on this
   // thread; false at once when another thread reads (it handles what comes).
   // A thread waiting for a write's reply reads it itself this way, rather

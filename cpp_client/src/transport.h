@@ -24,6 +24,7 @@
 #include "cast/errors.h"
 #include "cast/filters.h"
 #include "cast/types.h"
+#include "event_source.h"
 
 namespace cast {
 
@@ -122,9 +123,13 @@ class Transport {
   // is). Called before the first watch, by a component with a queue; a
   // transport that never has such a reader ignores it, and one not told
   // keeps every event on its Watch call.
-  virtual void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room) {
+  // `attach` hands such a socket to the thread that runs the callbacks, which
+  // reads it itself from then on (dispatcher.h).
+  virtual void setSocketEvents(EventSink now, std::function<bool(std::chrono::milliseconds)> room,
+                               AttachSource attach) {
     (void)now;
     (void)room;
+    (void)attach;
   }
   // Creates watch `watchId` (filters already resolved) with `delivery`;
   // returns when every server involved confirmed it, with the revisions it

@@ -159,7 +159,7 @@ void WatchStream::run() {
                          [this, call](const std::string& why) {
                            breakCall(call, "the socket carrying the watch's events ended: " + why);
                          },
-                         socket_.room});
+                         socket_.room, socket_.attach});
     }
     // Opening may wait for the connection: not under mu_, so that close()
     // can cancel it.

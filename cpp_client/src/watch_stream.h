@@ -38,8 +38,10 @@ namespace cast::detail {
 // With a session, and a component that said how (SocketEvents), the call
 // asks for its event batches as EVENTS frames on the session's socket
 // (docs/client-protocol.md, "A watch's events on the session's socket"): the
-// session's reader thread turns each frame into events and queues their
-// callbacks on the component's dispatcher, with no other thread between; the
+// component's dispatcher thread reads the session's socket (dispatcher.h),
+// turns each frame into events and runs their callbacks, with no other
+// thread between (the session's reader thread does it in its place while it
+// reads for pipelined writes, queueing the callbacks); the
 // call carries the rest (created, failed, its end). When the socket ends, or
 // a frame's value cannot be claimed, the call is ended and opened again from
 // the revision after the last event queued: what was read was queued, what
@@ -47,6 +49,7 @@ namespace cast::detail {
 struct SocketEvents {
   EventSink now;  // queues without waiting (the reader looked for room first)
   std::function<bool(std::chrono::milliseconds)> room;
+  AttachSource attach;  // hands the session to the component's dispatcher thread
 };
 
 class WatchStream {

@@ -102,6 +102,23 @@ TEST(SocketEvents, LargeValuesReachTheCallbacksAsFramesOnTheSessionsSocketEachOn
   EXPECT_GE(ClientSession::eventFramesHandled() - before, 1u);
 }
 
+TEST(SocketEvents, TheDispatcherThreadReadsTheFramesItselfWithNoReaderThread) {
+  // A watcher that does not write: its component's dispatcher thread waits on the session's
+  // socket and runs each event's callback on the thread that read its frame.
+  auto writer = sharedServer().connect("se-direct-writer", "vision");
+  auto watcher = sharedServer().connect("se-direct-watcher", "vision");
+  const std::uint64_t readers = ClientSession::readersStarted();
+  const std::uint64_t before = ClientSession::eventFramesHandled();
+  Seeds seen;
+  watcher->onChange(cast::addressFilter("se-direct").withEntry(), seen.callback());
+  writer->add("se-direct", seeded(kMiB, 0));
+  for (int i = 1; i < 10; ++i) writer->overwrite("se-direct", seeded(kMiB, i));
+  ASSERT_TRUE(eventually([&] { return seen.size() >= 10; }));
+  EXPECT_EQ(seen.copy(), firstSeeds(10));
+  EXPECT_GE(ClientSession::eventFramesHandled() - before, 1u);
+  EXPECT_EQ(ClientSession::readersStarted(), readers);  // no thread between the socket and the callbacks
+}
+
 TEST(SocketEvents, SmallValuesComeInTheFramesAsBytes) {
   auto writer = sharedServer().connect("se-small-writer", "vision");
   auto watcher = sharedServer().connect("se-small-watcher", "vision");
