@@ -46,6 +46,7 @@ class PairSource : public cast::detail::EventSource {
   }
   int sourceFd() const override { return ended ? -1 : ours_; }
   bool pump() override {
+    ++attempts;
     if (busy) return false;
     ++pumps;
     char buf[256];
@@ -76,7 +77,8 @@ class PairSource : public cast::detail::EventSource {
   std::vector<std::thread::id> runners;  // the thread that ran its call
   std::atomic<bool> busy{false};         // another thread reads it: pump() refuses
   std::atomic<bool> ended{false};
-  std::atomic<int> pumps{0};
+  std::atomic<int> pumps{0};     // reads
+  std::atomic<int> attempts{0};  // reads and refusals
 
  private:
   Dispatcher& d_;
@@ -145,10 +147,14 @@ TEST(DispatcherReads, ASourceAnotherThreadReadsIsLeftToItWithoutSpinning) {
   auto source = std::make_shared<PairSource>(d);
   source->busy = true;
   d.attach(source);
-  source->send('z');  // readable, and pump() refuses: the thread waits for a call or a moment
+  source->send('z');  // readable, and pump() refuses: the thread waits for a call or a moment (1 ms)
   std::atomic<int> calls{0};
   d.submit([&] { ++calls; });
   ASSERT_TRUE(eventually([&] { return calls.load() == 1; }));
+  const int before = source->attempts.load();
+  std::this_thread::sleep_for(100ms);
+  // About one look per millisecond; a thread spinning on the readable socket would look millions of times.
+  EXPECT_LT(source->attempts.load() - before, 1000);
   source->busy = false;
   ASSERT_TRUE(eventually([&] { return source->count() == 1; }));
 }
