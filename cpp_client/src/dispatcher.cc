@@ -54,8 +54,8 @@ bool sameSource(const std::weak_ptr<EventSource>& a, const std::weak_ptr<EventSo
   return !a.owner_before(b) && !b.owner_before(a);
 }
 
-// The live sources' descriptors after `first`, and the sources in the same order; those ended or
-// gone are forgotten. Called with the state's mutex held: what it locks is let go by the caller,
+// Appends the live sources to `order` and their descriptors to `fds`, in the same order; those ended
+// or gone are forgotten. Called with the state's mutex held: what it locks is let go by the caller,
 // after that mutex (a source's last holder ends it, which may queue a call).
 void collect(std::vector<std::weak_ptr<EventSource>>& sources, std::vector<std::weak_ptr<EventSource>>& order,
              std::vector<pollfd>& fds, std::vector<std::shared_ptr<EventSource>>& held) {
@@ -220,11 +220,7 @@ void Dispatcher::readSources(State& s, bool wait) {
 
 void Dispatcher::runOne(State& s, std::function<void()>& fn) {
   s.calling.store(true);
-  bool standby = false;
-  {
-    std::lock_guard<std::mutex> lock(s.mu);
-    standby = s.standbyStarted;
-  }
+  const bool standby = s.standbyStarted.load();
   // The standby sleeps on the alarm: it wakes only for a callback that runs kStandby, never at a start.
   if (standby) setAlarm(s.alarmFd, kStandby);
   try {

@@ -71,14 +71,14 @@ class Dispatcher {
     std::size_t pending = 0;  // queued + running
     bool stopping = false;
     bool finished = false;
-    // The attached sockets (under mu), and those attached since the thread last looked.
-    std::vector<std::weak_ptr<EventSource>> sources;
+    std::vector<std::weak_ptr<EventSource>> sources;  // the attached sockets (under mu)
     bool polling = false;  // the thread waits in poll(): a submit writes wakeFd
-    int wakeFd = -1;       // an eventfd, made at the first attach
+    int wakeFd = -1;       // an eventfd the thread waits on beside its sources
     int alarmFd = -1;      // a timerfd the thread arms for kStandby at each callback's start
     int stopFd = -1;       // an eventfd that ends the standby thread
     std::atomic<bool> calling{false};  // a callback runs now
-    bool standbyStarted = false;
+    // Set (under mu) once, when the first source starts the standby thread; read at each callback's start.
+    std::atomic<bool> standbyStarted{false};
     ~State();
   };
   static void loop(const std::shared_ptr<State>& state);

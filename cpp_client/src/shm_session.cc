@@ -436,10 +436,10 @@ bool ClientSession::writeLocked(const std::string& frame) {
   return true;
 }
 
-void ClientSession::poll(std::chrono::milliseconds wait) {
-  if (dead_) return;
+bool ClientSession::poll(std::chrono::milliseconds wait) {
+  if (dead_) return true;
   std::unique_lock<std::timed_mutex> lock(readMu_, std::defer_lock);
-  if (wait.count() > 0 ? !lock.try_lock_for(wait) : !lock.try_lock()) return;  // another reader handles what came
+  if (wait.count() > 0 ? !lock.try_lock_for(wait) : !lock.try_lock()) return false;  // another reader handles what came
   reading_.store(true);
   if (wait.count() > 0) {
     pollfd p{socket_, POLLIN, 0};
@@ -449,21 +449,12 @@ void ClientSession::poll(std::chrono::milliseconds wait) {
   reading_.store(false);
   lock.unlock();
   readerLeft();
+  return true;
 }
 
 int ClientSession::sourceFd() const { return dead_ ? -1 : socket_; }
 
-bool ClientSession::pump() {
-  if (dead_) return true;
-  std::unique_lock<std::timed_mutex> lock(readMu_, std::try_to_lock);
-  if (!lock) return false;  // another reader handles what came
-  reading_.store(true);
-  readAvailable();
-  reading_.store(false);
-  lock.unlock();
-  readerLeft();
-  return true;
-}
+bool ClientSession::pump() { return poll(); }
 
 bool ClientSession::readUntil(const std::function<bool()>& done, std::chrono::milliseconds wait) {
   if (dead_) return true;

@@ -238,10 +238,11 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   // Sends a frame (after the RELEASEs waiting); nothing once the session ended.
   void send(const std::string& frame);
   // Reads what the server sent (SEGMENT, RETIRE, REFUSED, the end); waits up
-  // to `wait` for something when it is not zero.
-  void poll(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
-  // EventSource: the socket, -1 once the session ended; pump() reads what is
-  // there now, on this thread, unless another thread reads (false).
+  // to `wait` for something when it is not zero. False, reading nothing,
+  // when another thread reads the socket (it handles what comes).
+  bool poll(std::chrono::milliseconds wait = std::chrono::milliseconds(0));
+  // EventSource: the socket, -1 once the session ended; pump() is poll()
+  // without a wait.
   int sourceFd() const override;
   bool pump() override;
   // Reads and handles what comes until `done()` or `wait` passed, on this
