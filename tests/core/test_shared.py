@@ -38,11 +38,14 @@ def test_a_new_segment_is_faulted_in_while_other_threads_run() -> None:
     With a switch interval of seconds, a thread that kept the GIL through its
     ``madvise`` calls would hold it until the segment was done: this thread,
     which lets the GIL go every millisecond (as an event loop waiting for its
-    sockets does), would not get it back meanwhile.
+    sockets does), would not get it back meanwhile: it would run once or twice,
+    where it runs about once a millisecond of the ~80 ms that 256 MiB take here.
+    The segment is that large so that the count stays far from the bound on a
+    fast machine (32 MiB took 9-10 ms, too close to ten turns).
     """
     interval = sys.getswitchinterval()
     sys.setswitchinterval(5.0)
-    segment = Segment(9001, 32 * MIB)
+    segment = Segment(9001, 256 * MIB)
     try:
         segment.populate()
         populating = [t for t in threading.enumerate() if t.name == "cast-arena-9001"]
