@@ -142,7 +142,6 @@ ClientSession::ClientSession(int socket, const shm::Welcome& welcome, int stagin
       threshold_(welcome.threshold),
       window_(welcome.window),
       stagingSize_(static_cast<std::size_t>(welcome.staging)),
-      hints_(welcome.version >= shm::kStagingVersion),
       regions_(static_cast<std::size_t>(welcome.staging)) {
   void* address = stagingSize_ == 0 ? MAP_FAILED
                                     : ::mmap(nullptr, stagingSize_, PROT_READ | PROT_WRITE, MAP_SHARED, stagingFd, 0);
@@ -211,9 +210,6 @@ std::optional<Staged> ClientSession::stage(std::size_t size, const std::function
     staged.offset = *offset;
     staging = staging_;  // kept mapped while the copy runs, whatever ends the session meanwhile
   }
-  // The server's thread, likely asleep, wakes while the copy runs rather than when the WRITES frame comes
-  // (docs/performance-m8.md, "Waking the server ahead of a large write").
-  if (hints_ && size >= shm::kStagingHintBytes) hint();
   fill(reinterpret_cast<std::uint8_t*>(staging->data()) + staged.offset);
   return staged;
 }
@@ -386,15 +382,6 @@ void ClientSession::send(const std::string& frame) {
     flushLocked();
     writeLocked(frame);
   }
-  sendQueued();
-}
-
-void ClientSession::hint() {
-  if (!sendMu_.try_lock()) return;
-  flushLocked();
-  const bool sent = writeLocked(shm::staging());
-  sendMu_.unlock();
-  if (sent) hintsSent_.fetch_add(1, std::memory_order_relaxed);
   sendQueued();
 }
 

@@ -198,10 +198,6 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   void unstage(const Staged& staged, bool known);
   // Staged bytes of writes whose outcome is unknown (kept out of use).
   std::size_t quarantined() const;
-  // Whether the server takes STAGING (its WELCOME's version), and how many
-  // were sent (for tests and diagnostics).
-  bool hints() const { return hints_; }
-  std::uint64_t hintsSent() const { return hintsSent_.load(std::memory_order_relaxed); }
 
   // The Write-stream requests sent on this session's socket (socket_writes.h).
   SessionWrites& writes() { return *writes_; }
@@ -278,8 +274,6 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   // readMu_ is let go: say so to the writes waiting for a reader.
   void readerLeft();
   static void readLoop(const std::weak_ptr<ClientSession>& weak);
-  // STAGING, unless another thread is sending (the socket is busy, the server awake).
-  void hint();
   void flushLocked();                          // sendMu_ held
   bool writeLocked(const std::string& frame);  // sendMu_ held
   void sendQueued();
@@ -292,8 +286,6 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   std::uint64_t threshold_ = 0;
   std::uint64_t window_ = 0;
   std::size_t stagingSize_ = 0;
-  bool hints_ = false;
-  std::atomic<std::uint64_t> hintsSent_{0};
   std::string token_;
 
   // The thread holding sendMu_ never lets a Lease go (it only writes to the

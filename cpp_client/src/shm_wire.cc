@@ -68,11 +68,6 @@ std::string received(std::uint64_t call, std::uint64_t count, bool ended) {
 
 std::string writes(const std::string& requests) { return frame(kWrites, requests); }
 
-const std::string& staging() {
-  static const std::string f = frame(kStaging, "");
-  return f;
-}
-
 Welcome parseWelcome(const std::string& body) {
   if (body.size() != 2 + 16 + 16 + 3 * 8) throw ProtocolError("WELCOME has the wrong size");
   Welcome w;

@@ -20,22 +20,14 @@
 
 namespace cast::detail::shm {
 
-// The version this client says in HELLO: it needs nothing a later version
-// adds, and uses STAGING only with a server whose WELCOME says
-// kStagingVersion or later.
+// The protocol's version, sent in HELLO and WELCOME.
 inline constexpr std::uint16_t kVersion = 1;
-// The first version whose servers take STAGING.
-inline constexpr std::uint16_t kStagingVersion = 3;
-// STAGING goes before the copy of a value of this size or more into staging
-// (python/cast/wire/shared_memory.py, STAGING_HINT_BYTES, says why).
-inline constexpr std::size_t kStagingHintBytes = std::size_t{256} << 10;
 
 // Frame kinds. Client -> server:
 inline constexpr std::uint8_t kHello = 1;     // u16 version, then the token (UTF-8) to the end
 inline constexpr std::uint8_t kRelease = 2;   // n x u64 value ids given back
 inline constexpr std::uint8_t kReceived = 3;  // u64 call, u64 count, u8 ended
 inline constexpr std::uint8_t kWrites = 4;    // a serialized cast.v1.WriteRequests
-inline constexpr std::uint8_t kStaging = 6;   // nothing, not answered: a WRITES frame with a large staged value follows
 // Server -> client:
 inline constexpr std::uint8_t kWelcome = 10;  // u16 version, 16 B session, 16 B server id, u64 x 3; 1 fd
 inline constexpr std::uint8_t kRefused = 11;  // the reason (UTF-8) to the end
@@ -84,9 +76,6 @@ std::string release(const std::vector<std::uint64_t>& valueIds);
 std::string received(std::uint64_t call, std::uint64_t count, bool ended);
 // WRITES: a serialized WriteRequests (socket_writes.h).
 std::string writes(const std::string& requests);
-// STAGING: wakes the server's thread while a large value is copied into
-// staging, ahead of the WRITES frame naming it (protocol version 3).
-const std::string& staging();
 
 // Fields of received frames; ProtocolError when the size is wrong.
 Welcome parseWelcome(const std::string& body);

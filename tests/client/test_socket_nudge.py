@@ -42,7 +42,7 @@ def test_welcome_carries_the_servers_version_and_hello_may_say_any_version_up_to
         sock = _hello(h, "v", version)
         frame = _first_frame(sock)
         assert frame.kind == wire.WELCOME, frame
-        assert wire.parse_welcome(frame.body)[0] == wire.VERSION == wire.STAGING_VERSION
+        assert wire.parse_welcome(frame.body)[0] == wire.VERSION == wire.NUDGE_VERSION
         sock.close()
     for version in (0, wire.VERSION + 1):
         refused = _first_frame(_hello(h, "v", version))

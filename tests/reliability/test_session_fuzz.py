@@ -220,7 +220,7 @@ def _frames(rng: random.Random, c: _Connection, others: list[bytes]) -> Iterator
                                rng.choice([0, 1, 255]))
             yield wire.encode(wire.RECEIVED, body), None, False
         elif pick < 0.84:
-            yield wire.encode(rng.choice([wire.NUDGE, wire.STAGING])), None, False
+            yield wire.encode(wire.NUDGE), None, False
         elif pick < 0.89:  # a memory file nobody asked for
             fd = os.memfd_create("fuzz") if rng.random() < 0.5 else os.open("/dev/null", os.O_RDONLY)
             yield wire.writes(_requests(rng, c, others)), fd, False
@@ -235,15 +235,14 @@ def _frames(rng: random.Random, c: _Connection, others: list[bytes]) -> Iterator
             elif fatal == 2:
                 yield wire.encode(wire.RECEIVED, rng.randbytes(rng.choice([0, 16, 18]))), None, False
             elif fatal == 3:
-                empty_kind = rng.choice([wire.NUDGE, wire.STAGING])  # a body where none belongs
-                yield wire.encode(empty_kind, rng.randbytes(rng.randrange(1, 5))), None, False
+                yield wire.encode(wire.NUDGE, rng.randbytes(rng.randrange(1, 5))), None, False
             elif fatal == 4:
-                kind = rng.choice([0, 7, 9, 10, 12, 15, 99, 255])
+                kind = rng.choice([0, 6, 9, 10, 12, 15, 99, 255])
                 yield wire.encode(kind, rng.randbytes(rng.randrange(20))), None, False
             elif fatal == 5:
                 yield wire.hello("not a token"), None, False
             else:
-                kind = rng.choice([wire.RELEASE, wire.WRITES, wire.NUDGE, wire.STAGING])
+                kind = rng.choice([wire.RELEASE, wire.WRITES, wire.NUDGE])
                 length = rng.choice([0, wire.MAX_FRAME + 1, wire.MAX_WRITES_FRAME + 1, 2**32 - 1])
                 yield struct.pack("<IB", length, kind) + rng.randbytes(rng.randrange(8)), None, False
 

@@ -213,25 +213,6 @@ TEST(SharedMemory, TheStagingAreaIsReusedAfterAsyncAndBatchedWrites) {
   EXPECT_TRUE(writer->get<BytesValue>("shm-b").value() == image(kMiB, 6).value());
 }
 
-TEST(SharedMemory, AWriterWakesTheServerBeforeCopyingALargeValueAndTheServerTakesIt) {
-  Raw raw(sharedServer());
-  auto reader = sharedServer().connect("shm-hint-reader", "vision");
-  auto session = raw.session("shm-hinter");
-  ASSERT_TRUE(session->hints());  // the server's WELCOME says version 3 or later
-  reader->add("shm-hint-small", BytesValue());
-  reader->add("shm-hint", BytesValue());
-  const BytesValue small = image(cast::detail::shm::kStagingHintBytes / 2, 1);  // staged, no hint
-  ASSERT_TRUE(raw.overwrite("shm-hinter", stagedOverwrite(*session, "shm-hint-small", small)).ok());
-  EXPECT_EQ(session->hintsSent(), 0u);
-  for (int i = 0; i < 3; ++i) {
-    ASSERT_TRUE(raw.overwrite("shm-hinter", stagedOverwrite(*session, "shm-hint", image(kMiB, i))).ok());
-  }
-  EXPECT_EQ(session->hintsSent(), 3u);
-  EXPECT_FALSE(session->dead()) << session->why();  // the server read each STAGING and went on
-  EXPECT_TRUE(reader->get<BytesValue>("shm-hint").value() == image(kMiB, 2).value());
-  EXPECT_TRUE(reader->get<BytesValue>("shm-hint-small").value() == small.value());
-}
-
 TEST(SharedMemory, AWriterCannotChangeAValueAfterItsWriteWasAcknowledged) {
   Raw raw(sharedServer());
   auto reader = sharedServer().connect("shm-witness", "vision");

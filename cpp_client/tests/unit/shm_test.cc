@@ -104,22 +104,21 @@ cast::v1::SharedValue reference(std::uint32_t segment, std::uint64_t offset, std
 
 // A session over a socket pair: the test holds the server's end.
 struct Pair {
-  // `version`: the one the server's WELCOME says.
-  explicit Pair(std::uint16_t version = 1, std::size_t stagingBytes = kStaging) {
+  Pair() {
     int fds[2];
     EXPECT_EQ(::socketpair(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0, fds), 0);
     server = fds[1];
     ::fcntl(server, F_SETFL, O_NONBLOCK);
     staging = ::memfd_create("cast-test-staging", MFD_CLOEXEC);
-    EXPECT_EQ(::ftruncate(staging, static_cast<off_t>(stagingBytes)), 0);
+    EXPECT_EQ(::ftruncate(staging, kStaging), 0);
     const int stagingCopy = ::dup(staging);  // the session closes the one it is given
     shm::Welcome w;
-    w.version = version;
+    w.version = 1;
     w.session = std::string(16, '\x01');
     w.serverId = std::string(16, '\x02');
     w.threshold = 1024;
     w.window = 1 << 20;
-    w.staging = stagingBytes;
+    w.staging = kStaging;
     session = std::make_shared<ClientSession>(fds[0], w, stagingCopy, "test:1");
   }
   ~Pair() {
@@ -148,7 +147,6 @@ TEST(SharedMemoryFrames, AreLittleEndianLengthKindAndFields) {
   EXPECT_EQ(shm::release({7, 1ull << 40}), le(17, 4) + "\x02" + le(7, 8) + le(1ull << 40, 8));
   EXPECT_EQ(shm::received(3, 64, true), le(18, 4) + "\x03" + le(3, 8) + le(64, 8) + "\x01");
   EXPECT_EQ(shm::received(3, 5, false).back(), '\0');
-  EXPECT_EQ(shm::staging(), le(1, 4) + "\x06");
   const std::string body = le(1, 2) + std::string(16, 'S') + std::string(16, '\xab') + le(65536, 8) + le(1 << 26, 8) +
                            le(1 << 24, 8);
   const shm::Welcome w = shm::parseWelcome(body);
@@ -276,28 +274,6 @@ TEST(SharedMemorySession, StagesValuesInTheStagingAreaAndKeepsTheRegionOfAWriteI
   EXPECT_EQ(seen[0], 'w');  // the write in doubt still finds its bytes
   // No room: nullopt (the value travels as bytes).
   EXPECT_FALSE(p.session->stage(std::string(Pair::kStaging, 'y')));
-}
-
-TEST(SharedMemorySession, SendsStagingBeforeALargeValueOnlyToAServerOfVersion3) {
-  for (const std::uint16_t version : {1, 2, 3}) {
-    SCOPED_TRACE("WELCOME says version " + std::to_string(version));
-    Pair p(version, 2 * shm::kStagingHintBytes);
-    const bool hints = version >= shm::kStagingVersion;
-    EXPECT_EQ(p.session->hints(), hints);
-    char got[64];
-    ASSERT_TRUE(p.session->stage(std::string(shm::kStagingHintBytes - 1, 's')));  // under the size: no hint
-    EXPECT_EQ(::recv(p.server, got, sizeof got, MSG_DONTWAIT), -1);
-    EXPECT_EQ(p.session->hintsSent(), 0u);
-    ASSERT_TRUE(p.session->stage(std::string(shm::kStagingHintBytes, 'l')));
-    const ssize_t n = ::recv(p.server, got, sizeof got, MSG_DONTWAIT);
-    if (hints) {
-      ASSERT_EQ(n, static_cast<ssize_t>(shm::staging().size()));
-      EXPECT_EQ(std::string(got, static_cast<std::size_t>(n)), shm::staging());
-    } else {
-      EXPECT_EQ(n, -1);  // a server of versions 1 and 2 would end the session on a kind it does not know
-    }
-    EXPECT_EQ(p.session->hintsSent(), hints ? 1u : 0u);
-  }
 }
 
 TEST(SharedMemorySession, AValueLentIsReadInPlaceAndGivenBackWhenTheLastHolderGoes) {

@@ -193,10 +193,7 @@ class ClientSession:
     """One session with a server's shared memory (after WELCOME)."""
 
     def __init__(self, sock: socket.socket, body: bytes, staging_fd: int, endpoint: str, token: str) -> None:
-        version, self.id, server_id, self.threshold, self.window, staging_size = wire.parse_welcome(body)
-        # The server takes STAGING (protocol version 3): a large value's write wakes it ahead of its WRITES.
-        self.hints = version >= wire.STAGING_VERSION
-        self.hints_sent = 0  # STAGING frames sent (for tests and diagnostics)
+        _, self.id, server_id, self.threshold, self.window, staging_size = wire.parse_welcome(body)
         self.server_id = server_id.hex()
         self.endpoint = endpoint
         self.token = token  # its HELLO's: the identity of every write sent here
@@ -242,29 +239,11 @@ class ClientSession:
             offset = self._regions.take(taken)
         if offset is None:
             return None
-        if size >= wire.STAGING_HINT_BYTES and self.hints:
-            self._hint()
         try:
             self._staging_view[offset: offset + size] = data
         except ValueError:  # the session ended meanwhile (its staging area is unmapped)
             return None
         return Staged(offset, size, taken)
-
-    def _hint(self) -> None:
-        """STAGING, so that the server's thread wakes while the value is copied rather than when its WRITES comes.
-
-        Only when no other thread is sending and no write is held back: else
-        the socket is busy and the server awake, and sending now would send
-        the held writes early, breaking up their batch.
-        """
-        if self.held_writes or not self._send_lock.acquire(blocking=False):
-            return
-        try:
-            self._flush()
-            self._write(wire.STAGING_FRAME)
-            self.hints_sent += 1
-        finally:
-            self._sent()
 
     def staged_value(self, staged: Staged) -> wm_pb2.StagedValue:
         """What a write request says of a staged value."""

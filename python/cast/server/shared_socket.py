@@ -153,10 +153,6 @@ class _Connection:
                 raise wire.ProtocolError(f"NUDGE carries nothing, this one {len(frame.body)} bytes")
             if not self._pending:  # else the client has bytes to read already: its reader is not blocked
                 self.send(wire.NUDGED_FRAME)
-        elif frame.kind == wire.STAGING:
-            # Nothing to do: reading it woke this thread while the client copies a large value (version 3).
-            if frame.body:
-                raise wire.ProtocolError(f"STAGING carries nothing, this one {len(frame.body)} bytes")
         else:
             raise wire.ProtocolError(f"unknown frame kind {frame.kind} from a client")
 

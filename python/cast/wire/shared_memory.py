@@ -24,18 +24,17 @@ from collections import deque
 
 __all__ = [
     "HELLO", "HELLO_VERSION", "MAX_FRAME", "MAX_WRITES_FRAME", "NUDGE", "NUDGED", "NUDGED_FRAME", "NUDGE_FRAME",
-    "NUDGE_VERSION", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT", "STAGING", "STAGING_FRAME",
-    "STAGING_HINT_BYTES", "STAGING_VERSION", "VERSION", "WELCOME", "WRITES",
+    "NUDGE_VERSION", "RECEIVED", "REFUSED", "RELEASE", "REPLIES", "RETIRE", "SEGMENT", "VERSION", "WELCOME", "WRITES",
     "Frame", "FrameReader", "Inbox", "ProtocolError", "encode", "hello", "receive", "received", "refused", "release",
     "replies", "retire", "segment", "send", "welcome", "writes",
 ]
 
-VERSION = 3
+VERSION = 2
 """The newest version of the protocol this module speaks: a server's, sent in WELCOME.
 
 A server serves every version from 1 to its own; a client says in HELLO the
 version it needs and uses what a later version adds only when WELCOME's
-version has it (2: NUDGE; 3: STAGING).
+version has it (2: NUDGE).
 """
 
 HELLO_VERSION = 1
@@ -44,25 +43,12 @@ HELLO_VERSION = 1
 NUDGE_VERSION = 2
 """The first version whose servers answer NUDGE."""
 
-STAGING_VERSION = 3
-"""The first version whose servers take STAGING."""
-
-STAGING_HINT_BYTES = 256 << 10
-"""A client sends STAGING before copying a value of this size or more into its staging area.
-
-Measured with 1 MiB values, whose copy (about 80 µs) hides most of the server
-thread's wake-up (docs/performance-m8.md, "Waking the server ahead of a large
-write"); a copy under 256 KiB (about 20 µs) leaves too little to hide for a
-system call's worth.
-"""
-
 # Client -> server
 HELLO = 1  # u16 version, then the token (UTF-8) to the end
 RELEASE = 2  # n x u64 value ids given back
 RECEIVED = 3  # u64 call, u64 count, u8 ended
 WRITES = 4  # a serialized cast.v1.WriteRequests (up to MAX_WRITES_FRAME)
 NUDGE = 5  # nothing; answered by NUDGED (version 2)
-STAGING = 6  # nothing, not answered: a WRITES frame naming a large staged value follows (version 3)
 # Server -> client
 WELCOME = 10  # u16 version, 16 bytes session, 16 bytes server id, u64 threshold, u64 window, u64 staging size; 1 fd
 REFUSED = 11  # the reason (UTF-8) to the end; the server then closes
@@ -166,9 +152,6 @@ NUDGE_FRAME = encode(NUDGE)
 
 NUDGED_FRAME = encode(NUDGED)
 """NUDGED: the server's answer to a NUDGE (nothing else)."""
-
-STAGING_FRAME = encode(STAGING)
-"""STAGING: sent before a large value is copied into staging, so that the server's thread is awake for its WRITES."""
 
 
 def retire(segment_id: int) -> bytes:

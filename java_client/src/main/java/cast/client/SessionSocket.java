@@ -88,7 +88,6 @@ final class SessionSocket implements Dispatcher.Source {
   private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE; guarded by queue
   private volatile boolean closed;
   private final boolean nudges; // the server answers NUDGE: a dispatcher may read the socket (Dispatcher.attach)
-  private final boolean hints; // the server takes STAGING
   // The dispatcher that reads the socket while idle (the reader thread is its standby), or null.
   private volatile Dispatcher dispatcher;
   private volatile boolean standbyAsleep; // the reader thread waits with no timeout, the dispatcher idle; set under queue
@@ -106,8 +105,6 @@ final class SessionSocket implements Dispatcher.Source {
   final AtomicLong readerReads = new AtomicLong();
   /** NUDGE frames sent (for tests and diagnostics). */
   final AtomicLong nudgesSent = new AtomicLong();
-  /** STAGING frames sent (for tests and diagnostics). */
-  final AtomicLong hintsSent = new AtomicLong();
   /** RELEASE frames sent by the thread that let the values go (for tests and diagnostics). */
   final AtomicLong releasesInline = new AtomicLong();
   /** RELEASE frames sent by the sender thread, another thread writing then (for tests and diagnostics). */
@@ -115,12 +112,11 @@ final class SessionSocket implements Dispatcher.Source {
 
   /**
    * The socket of a session with the server at {@code endpoint}, whose frames go to {@code owner};
-   * {@code version}: its WELCOME's, which says whether the server answers NUDGE and takes STAGING.
+   * {@code nudges}: the server answers NUDGE (its WELCOME's version).
    */
-  SessionSocket(AFUNIXSocket socket, String endpoint, Owner owner, int version) {
+  SessionSocket(AFUNIXSocket socket, String endpoint, Owner owner, boolean nudges) {
     this.socket = socket;
-    this.nudges = version >= ShmWire.NUDGE_VERSION;
-    this.hints = version >= ShmWire.STAGING_VERSION;
+    this.nudges = nudges;
     this.endpoint = endpoint;
     this.owner = owner;
   }
@@ -442,20 +438,6 @@ final class SessionSocket implements Dispatcher.Source {
     }
     writing.lock();
     writeAndLetGo(List.of(frame));
-  }
-
-  /**
-   * STAGING, before a value of {@code size} bytes is copied into staging, so that the server's
-   * thread wakes while the copy runs rather than when the WRITES frame comes: only for a value of
-   * {@link ShmWire#STAGING_HINT_BYTES} or more, to a server that takes it, from this thread when no
-   * other is writing (else the socket is busy and the server awake).
-   */
-  void hintStaging(long size) {
-    if (!hints || size < ShmWire.STAGING_HINT_BYTES || closed || !writing.tryLock()) {
-      return;
-    }
-    hintsSent.incrementAndGet();
-    writeAndLetGo(List.of(ShmWire.staging()));
   }
 
   /** Queue a frame for the sender thread (nothing once the socket closed). */

@@ -139,7 +139,7 @@ final class SharedSession {
                 writes.readerLeft();
               }
             },
-            welcome.version());
+            welcome.version() >= ShmWire.NUDGE_VERSION);
     this.id = welcome.session();
     this.idHex = HexFormat.of().formatHex(id);
     this.serverId = HexFormat.of().formatHex(welcome.serverId());
@@ -192,11 +192,7 @@ final class SharedSession {
 
   /** {@code value} copied into a free region of the staging area; null when there is none (send the bytes). */
   ShmStaging.Staged stage(ByteString value) {
-    if (dead != null) {
-      return null;
-    }
-    io.hintStaging(value.size()); // before the region is even taken: the server wakes while this thread copies
-    return staging.stage(value);
+    return dead != null ? null : staging.stage(value);
   }
 
   /** What a write request says of a staged value. */

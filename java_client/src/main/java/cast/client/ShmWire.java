@@ -26,19 +26,11 @@ final class ShmWire {
 
   /**
    * The version this client says in HELLO: it needs nothing a later version adds, and uses NUDGE
-   * and STAGING only with a server whose WELCOME says {@link #NUDGE_VERSION} or {@link
-   * #STAGING_VERSION} or later.
+   * only with a server whose WELCOME says {@link #NUDGE_VERSION} or later.
    */
   static final int HELLO_VERSION = 1;
   /** The first version whose servers answer NUDGE (WELCOME carries the server's version). */
   static final int NUDGE_VERSION = 2;
-  /** The first version whose servers take STAGING. */
-  static final int STAGING_VERSION = 3;
-  /**
-   * STAGING goes before the copy of a value of this size or more into staging
-   * (python/cast/wire/shared_memory.py, STAGING_HINT_BYTES, says why).
-   */
-  static final int STAGING_HINT_BYTES = 256 << 10;
 
   // Client -> server.
   static final int HELLO = 1; // u16 version, then the token (UTF-8) to the end
@@ -46,7 +38,6 @@ final class ShmWire {
   static final int RECEIVED = 3; // u64 call, u64 count, u8 ended
   static final int WRITES = 4; // a serialized cast.v1.WriteRequests to the end
   static final int NUDGE = 5; // nothing; the server answers NUDGED (version 2)
-  static final int STAGING = 6; // nothing, not answered: a WRITES frame with a large staged value follows (version 3)
   // Server -> client.
   static final int WELCOME = 10; // u16 version, 16 bytes session, 16 bytes server id, u64 threshold, window, staging
   static final int REFUSED = 11; // the reason (UTF-8) to the end; the server then closes
@@ -94,11 +85,6 @@ final class ShmWire {
   /** NUDGE: the server answers NUDGED (a fresh array each time: the caller's to send). */
   static byte[] nudge() {
     return frame(NUDGE, 0).array();
-  }
-
-  /** STAGING: wakes the server's thread while a large value is copied, ahead of its WRITES frame. */
-  static byte[] staging() {
-    return frame(STAGING, 0).array();
   }
 
   /** RELEASE frames for {@code valueIds} (one lease given back per id), {@link #RELEASE_IDS} a frame. */

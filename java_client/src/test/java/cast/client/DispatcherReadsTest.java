@@ -193,7 +193,7 @@ class DispatcherReadsTest {
     FakeTransport t = new FakeTransport(new FakeTransport.Memory("vision"), new Identity("c", "vision", false));
     Component c = new UnmanagedComponent() {};
     c.bind(t, who -> {});
-    SessionSocket old = new SessionSocket(null, "old", null, 1);
+    SessionSocket old = new SessionSocket(null, "old", null, false);
     t.sink().readBy(old);
     assertNull(c.dispatcher().source(), "not read by the dispatcher: nothing could wake it in its read");
     assertNull(old.dispatcher());

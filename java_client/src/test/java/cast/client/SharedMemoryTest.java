@@ -217,32 +217,6 @@ class SharedMemoryTest {
   }
 
   @Test
-  void aWriterWakesTheServerBeforeCopyingALargeValueOnlyAndOnlyAServerThatTakesIt() throws Exception {
-    try (RealServer server = new RealServer();
-        Connection writer = server.connect("writer", "vision", false, null);
-        Connection reader = server.connect("reader", "vision", false, null)) {
-      SharedSession session = session(writer);
-      assertNotNull(session);
-      BytesValue small = image(ShmWire.STAGING_HINT_BYTES / 2, 1); // over the threshold: staged, but no hint
-      writer.add("small", small);
-      assertEquals(0, session.io().hintsSent.get());
-      writer.add("large", image(MIB, 0));
-      writer.overwrite("large", image(MIB, 1));
-      writer.overwrite("large", image(MIB, 2));
-      assertEquals(3, session.io().hintsSent.get());
-      assertSame(session, session(writer), "the server read each STAGING and the session went on");
-      assertEquals(small, reader.get("small", BytesValue.class));
-      assertEquals(image(MIB, 2), reader.get("large", BytesValue.class));
-    }
-    // A server of version 1 or 2 would end the session on a kind it does not know: nothing is sent to one.
-    for (int version : new int[] {1, 2}) {
-      SessionSocket old = new SessionSocket(null, "old", null, version);
-      old.hintStaging(MIB);
-      assertEquals(0, old.hintsSent.get());
-    }
-  }
-
-  @Test
   void aWriterCannotChangeAValueAfterItsWriteWasAcknowledged() throws Exception {
     try (RealServer server = new RealServer();
         Connection writer = server.connect("writer", "vision", false, null);

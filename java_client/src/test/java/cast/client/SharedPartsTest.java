@@ -65,7 +65,6 @@ class SharedPartsTest {
     assertEquals(ShmWire.HELLO, hello.get());
     assertEquals(ShmWire.HELLO_VERSION, hello.getShort());
     assertArrayEquals(new byte[] {1, 0, 0, 0, (byte) ShmWire.NUDGE}, ShmWire.nudge());
-    assertArrayEquals(new byte[] {1, 0, 0, 0, 6}, ShmWire.staging());
     ByteBuffer received = ByteBuffer.wrap(ShmWire.received(3, 64, true)).order(ByteOrder.LITTLE_ENDIAN);
     assertEquals(18, received.getInt());
     assertEquals(ShmWire.RECEIVED, received.get());
