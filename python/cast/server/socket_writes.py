@@ -87,7 +87,9 @@ class SocketWrites:
             raise wire.ProtocolError(
                 f"WRITES frame of {len(body)} bytes is not a cast.v1.WriteRequests ({exc}): nothing of it was applied"
             ) from None
-        self._queue.extend(message.requests)
+        # A slice, not the container itself: upb's repeated containers have no __iter__, so iterating one goes
+        # through the sequence protocol and ends in a formatted IndexError, on every frame (~15 µs cold, perf).
+        self._queue.extend(message.requests[:])
         self._queued_bytes += len(body)
 
     def hold(self, held: bool) -> None:
