@@ -184,12 +184,13 @@ class WritePlanner:
         tally: Tally | None, now: int,
     ) -> Planned:
         """An overwrite or a delete: the entry must exist, no other's lock stop it, the version match."""
-        sa, entry_id, action = op.subarchitecture, op.id, op.operation.name.lower()
+        # The operation's name only in the errors: an enum's .name is Python code (enum's property) on every write.
+        sa, entry_id = op.subarchitecture, op.id
         if current is None:
-            raise NotFoundError(missing_message(sa, entry_id) + f": cannot {action} it")
+            raise NotFoundError(missing_message(sa, entry_id) + f": cannot {op.operation.name.lower()} it")
         if lock is not None and lock.holder != who.component_id:
             if op.operation is Operation.OVERWRITE or lock.mode is not LockMode.O:
-                raise LockedError(locked_message(sa, entry_id, lock, action))
+                raise LockedError(locked_message(sa, entry_id, lock, op.operation.name.lower()))
         if op.expected_version is not None and op.expected_version != current.version:
             raise ConsistencyError(
                 f"entry '{entry_id}' in subarchitecture '{sa}' is at version {current.version}, "

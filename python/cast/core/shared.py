@@ -30,7 +30,7 @@ import secrets
 import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import Protocol
 
 from cast.core.arena import Arena, Placed, Segment, memory_file, round_up
 from cast.core.records import BatchOp, Identity, Limits, Operation
@@ -58,13 +58,28 @@ class SharedSettings:
     window_bytes: int = 64 << 20
 
 
-class Lent(NamedTuple):
+class Lent:
     """Where a lent value is, as a ``SharedValue`` says it."""
 
-    segment: int
-    offset: int
-    size: int
-    value_id: int
+    # A class, not a NamedTuple: one is made per value lent to each reader, on the write's path, and compiled (the
+    # compiled build) it is made in C, where a NamedTuple's __new__ is Python code (docs/performance-m8.md).
+    __slots__ = ("offset", "segment", "size", "value_id")
+
+    def __init__(self, segment: int, offset: int, size: int, value_id: int) -> None:
+        self.segment = segment
+        self.offset = offset
+        self.size = size
+        self.value_id = value_id
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Lent) and (self.segment, self.offset, self.size, self.value_id) == (
+            other.segment, other.offset, other.size, other.value_id)
+
+    def __hash__(self) -> int:
+        return hash((self.segment, self.offset, self.size, self.value_id))
+
+    def __repr__(self) -> str:
+        return f"Lent(segment={self.segment}, offset={self.offset}, size={self.size}, value_id={self.value_id})"
 
 
 class _Call:

@@ -51,7 +51,8 @@ def fill_entry(pb: entry_pb2.Entry, record: EntryRecord, lent: Lent | None = Non
     pb.value.type_url = TYPE_URL_PREFIX + record.type
     if lent is not None:
         shared = pb.shared_value
-        shared.segment, shared.offset, shared.size, shared.value_id = lent
+        shared.segment, shared.offset = lent.segment, lent.offset
+        shared.size, shared.value_id = lent.size, lent.value_id
     else:
         data = record.data
         pb.value.value = data if isinstance(data, bytes) else bytes(data)

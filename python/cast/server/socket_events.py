@@ -115,13 +115,21 @@ class Due:
 
 
 _by_loop: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Due] = weakref.WeakKeyDictionary()
+# The last loop looked up and its list: a server has one loop, and WeakKeyDictionary.get is Python code run on
+# every write (its Due holds the loop already, so this keeps nothing alive that the dictionary does not).
+_recent: tuple[asyncio.AbstractEventLoop, Due] | None = None
 
 
 def due_on(loop: asyncio.AbstractEventLoop) -> Due:
     """The list of streams due on ``loop`` (made at its first socket watch or write path)."""
+    global _recent
+    recent = _recent
+    if recent is not None and recent[0] is loop:
+        return recent[1]
     due = _by_loop.get(loop)
     if due is None:
         due = _by_loop[loop] = Due(loop)
+    _recent = (loop, due)
     return due
 
 
@@ -136,7 +144,9 @@ def serve() -> None:
     order they were woken, by their callbacks, in the turn of the loop their
     reply waits for.
     """
-    due = _by_loop.get(asyncio.get_running_loop())
+    loop = asyncio.get_running_loop()
+    recent = _recent
+    due = recent[1] if recent is not None and recent[0] is loop else _by_loop.get(loop)
     if due is not None:
         due.serve()
 
