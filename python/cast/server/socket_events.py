@@ -120,13 +120,16 @@ _by_loop: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Due] = weakref.We
 _recent: tuple[asyncio.AbstractEventLoop, Due] | None = None
 
 
+def _known(loop: asyncio.AbstractEventLoop) -> Due | None:
+    """The list of streams due on ``loop`` if it has one: the last one looked up first."""
+    recent = _recent
+    return recent[1] if recent is not None and recent[0] is loop else _by_loop.get(loop)
+
+
 def due_on(loop: asyncio.AbstractEventLoop) -> Due:
     """The list of streams due on ``loop`` (made at its first socket watch or write path)."""
     global _recent
-    recent = _recent
-    if recent is not None and recent[0] is loop:
-        return recent[1]
-    due = _by_loop.get(loop)
+    due = _known(loop)
     if due is None:
         due = _by_loop[loop] = Due(loop)
     _recent = (loop, due)
@@ -144,9 +147,7 @@ def serve() -> None:
     order they were woken, by their callbacks, in the turn of the loop their
     reply waits for.
     """
-    loop = asyncio.get_running_loop()
-    recent = _recent
-    due = recent[1] if recent is not None and recent[0] is loop else _by_loop.get(loop)
+    due = _known(asyncio.get_running_loop())
     if due is not None:
         due.serve()
 
