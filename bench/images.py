@@ -58,6 +58,10 @@ SA = "images"
 HISTORY_BYTES = 64 << 20
 WATCHERS = ("Python 1", "C++", "Java", "Python 2")
 REMOTE = "Python, other host"
+PRIVATE_EVERY_S = 0.02
+"""How often :class:`ServerMemory` reads the server's private memory."""
+SHARED_EVERY = 10
+"""Every how many of those samples it reads the server's shared memory too (every 200 ms)."""
 # (key, delivery, value size, paced at HZ): the phases on the server's host.
 PHASES: tuple[tuple[str, str, int, bool], ...] = (
     ("queue_hz", "queue", SIZE, True),
@@ -106,12 +110,17 @@ def shared_bytes(pid: int) -> int:
     """
     sizes: dict[int, int] = {}
     with open(f"/proc/{pid}/maps") as f:
-        for line in f:
-            parts = line.split(maxsplit=5)
-            if len(parts) == 6 and parts[5].startswith(("/memfd:", "/dev/shm/")):
-                start, end = (int(x, 16) for x in parts[0].split("-"))
-                inode = int(parts[4])
-                sizes[inode] = max(sizes.get(inode, 0), end - start)
+        text = f.read()
+    for line in text.splitlines():
+        # Most of a server's few hundred mappings are its libraries: skipped before they are split, which is
+        # most of what a sample costs.
+        if "/memfd:" not in line and "/dev/shm/" not in line:
+            continue
+        parts = line.split(maxsplit=5)
+        if len(parts) == 6 and parts[5].startswith(("/memfd:", "/dev/shm/")):
+            start, end = (int(x, 16) for x in parts[0].split("-"))
+            inode = int(parts[4])
+            sizes[inode] = max(sizes.get(inode, 0), end - start)
     fds = f"/proc/{pid}/fd"
     for fd in os.listdir(fds):
         try:
@@ -124,39 +133,56 @@ def shared_bytes(pid: int) -> int:
 
 
 class ServerMemory:
-    """The server's memory, sampled every 20 ms on a thread until :meth:`stop`.
+    """The server's memory, sampled on a thread until :meth:`stop`.
 
     The peak of its private resident memory (RssAnon + RssFile: its own
     mapping of its shared memory, RssShmem, is left out, not to count it twice)
     plus the whole size of the shared memory it holds (:func:`shared_bytes`),
-    and the peaks of each.
+    and the peaks of each. The private memory is read every
+    :data:`PRIVATE_EVERY_S` (one small ``/proc`` file); the shared memory every
+    :data:`SHARED_EVERY` samples and once more at the end, because reading a
+    server's mappings and descriptors costs a few hundred µs of CPU, which a
+    sampler must not take from the system it measures at every frame
+    (docs/performance.md, "The memory bound"). The shared memory changes by
+    whole arena segments, made when the others are full and retired by a pass
+    once a second that keeps one spare while values come, so its steps outlast
+    the 200 ms between those samples.
     """
 
     def __init__(self, pid: int) -> None:
         self._pid = pid
         self.peak = self.private = self.shared = 0
-        self._sample_once()
+        self._last_shared = 0
+        self._sample_once(True)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, daemon=True)
         self._thread.start()
 
-    def _sample_once(self) -> None:
+    def _sample_once(self, shared_too: bool) -> None:
         private = _status_kib(self._pid, ("RssAnon", "RssFile")) * 1024
-        shared = shared_bytes(self._pid)
-        self.private, self.shared = max(self.private, private), max(self.shared, shared)
+        self.private = max(self.private, private)
+        shared = shared_bytes(self._pid) if shared_too else self._last_shared
+        self._last_shared = shared
+        self.shared = max(self.shared, shared)
         self.peak = max(self.peak, private + shared)
 
     def _sample(self) -> None:
-        while not self._stop.wait(0.02):
+        count = 0
+        while not self._stop.wait(PRIVATE_EVERY_S):
+            count += 1
             try:
-                self._sample_once()
+                self._sample_once(count % SHARED_EVERY == 0)
             except OSError:  # the server ended
                 return
 
     def stop(self) -> dict[str, int]:
-        """Stop sampling; the peaks in bytes."""
+        """Stop sampling (a last sample of both first); the peaks in bytes."""
         self._stop.set()
         self._thread.join()
+        try:
+            self._sample_once(True)
+        except OSError:  # the server ended
+            pass
         return {"peak": self.peak, "private": self.private, "shared": self.shared}
 
 

@@ -14,7 +14,7 @@ import pytest
 from bench import peer_fanout
 from bench.checksum import expected_cast, expected_frames, word_sum
 from bench.delivery_stats import parse_watcher, pooled, totals, watcher_figures
-from bench.images import REMOTE, WATCHERS, figures, shared_bytes
+from bench.images import REMOTE, WATCHERS, ServerMemory, figures, shared_bytes
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, drive, frame
 from bench.report import cpu_idle, plot_panels
@@ -434,3 +434,15 @@ def test_cpu_idle_names_the_driver_its_states_halt_polling_and_the_latency_limit
     (cpus / "cpuidle" / "current_driver").write_text("intel_idle\n")
     assert cpu_idle(cpus, params, tmp_path / "absent") == f"intel_idle ({states})"
     assert cpu_idle(tmp_path / "none", params, tmp_path / "absent") == "unknown"
+
+
+def test_the_server_memory_sampler_reads_the_shared_memory_again_when_it_stops() -> None:
+    memory = ServerMemory(os.getpid())  # its first sample: before the memory file below
+    fd = os.memfd_create("m8-test")
+    try:
+        os.ftruncate(fd, 5 << 20)
+        peaks = memory.stop()  # sooner than the sampler's next read of the shared memory (every 200 ms)
+    finally:
+        os.close(fd)
+    assert peaks["shared"] >= 5 << 20
+    assert peaks["peak"] >= 5 << 20
