@@ -58,9 +58,9 @@ SA = "images"
 HISTORY_BYTES = 64 << 20
 WATCHERS = ("Python 1", "C++", "Java", "Python 2")
 REMOTE = "Python, other host"
-PRIVATE_EVERY_S = 0.02
+PRIVATE_EVERY_S = 0.1
 """How often :class:`ServerMemory` reads the server's private memory."""
-SHARED_EVERY = 10
+SHARED_EVERY = 2
 """Every how many of those samples it reads the server's shared memory too (every 200 ms)."""
 # (key, delivery, value size, paced at HZ): the phases on the server's host.
 PHASES: tuple[tuple[str, str, int, bool], ...] = (
