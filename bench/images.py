@@ -35,7 +35,7 @@ import tempfile
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 from bench import iceoryx2_peer, relay_floor, zenoh_peer
 from bench.cast_cases import Server
@@ -47,7 +47,9 @@ from bench.other_clients import cpp_command, java_command
 from bench.other_host import OtherHost
 from bench.peer_fanout import WARM_BURST, WARM_PAUSE_S
 
-__all__ = ["BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "ServerMemory", "run"]
+__all__ = [
+    "BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "Recorded", "ServerMemory", "record_phase", "run",
+]
 
 SIZE = 1 << 20  # a VGA RGB image is 0.9 MiB
 BIG = 6 << 20  # a 1080p RGB image is 5.9 MiB
@@ -311,13 +313,22 @@ def _warm_sizes(sent: dict[int, int], warm: int, cold: int) -> dict[int, int]:
     return {k: WARM_SIZE for k in sorted(sent)[cold:cold + warm]}
 
 
-def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, list[str] | str]], size: int,
-               frames: int, gap_s: float, tag: str, warm: int = 0, cold: int = 0) -> dict[str, Any]:
-    """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile.
+class Recorded(NamedTuple):
+    """What one phase on CAST gave, before any figure: every write's stamp and each watcher's own result."""
+
+    sent: dict[int, int]  # revision -> the writer's CLOCK_MONOTONIC stamp (ns) just before the overwrite
+    got: dict[str, dict[str, Any]]  # label -> the watcher's result (bench.delivery_stats.parse_watcher)
+    peaks: dict[str, int]  # the server's memory (ServerMemory.stop)
+    missing: dict[str, str]  # label -> why that watcher did not run (its program is not built, ...)
+
+
+def record_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, list[str] | str]], size: int,
+                 frames: int, gap_s: float, tag: str, warm: int = 0, cold: int = 0) -> Recorded:
+    """One phase on CAST: new watchers, the C++ writer, the server's memory meanwhile; what it gave, raw.
 
     The writer sends ``cold`` paced values, ``warm`` of WARM_SIZE bytes back
-    to back in bursts (as :func:`bench.peer_fanout.drive`), then the
-    ``frames`` measured (:func:`figures`).
+    to back in bursts (as :func:`bench.peer_fanout.drive`), then ``frames``
+    values of ``size`` bytes every ``gap_s`` seconds.
     """
     watchers = _Watchers(server, commands, tag)
     try:
@@ -331,9 +342,17 @@ def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, 
             peaks = memory.stop()
     finally:
         watchers.close()
+    return Recorded(sent, got, peaks, watchers.missing)
+
+
+def cast_phase(server: Server, writer: list[str], commands: Sequence[tuple[str, list[str] | str]], size: int,
+               frames: int, gap_s: float, tag: str, warm: int = 0, cold: int = 0) -> dict[str, Any]:
+    """One phase on CAST (:func:`record_phase`), and its figures: the ``frames`` measured (:func:`figures`)."""
+    run_ = record_phase(server, writer, commands, size, frames, gap_s, tag, warm, cold)
+    sent = run_.sent
     sizes = _warm_sizes(sent, warm, cold)
-    out = figures(sent, got, 2, lambda g: expected_cast(sent, g["stamps"], size, sizes), size, warm, cold)
-    return {**out, "size": size, "server_memory": peaks, "missing": watchers.missing}
+    out = figures(sent, run_.got, 2, lambda g: expected_cast(sent, g["stamps"], size, sizes), size, warm, cold)
+    return {**out, "size": size, "server_memory": run_.peaks, "missing": run_.missing}
 
 
 def _remote_phase(workdir: Path, writer: list[str], frames: int) -> dict[str, Any]:
