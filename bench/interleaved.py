@@ -35,6 +35,7 @@ from collections.abc import Mapping
 
 from bench import images
 from bench.cast_cases import Server
+from bench.delivery_stats import ordinal
 from bench.harness import scratch
 from bench.other_clients import cpp_command
 
@@ -77,7 +78,8 @@ def split(sent: Mapping[int, int], stamps: Mapping[str, Mapping[int, int]],
 
 
 def _p50s(side: Mapping[str, list[float]]) -> list[int]:
-    return [round(statistics.median(side[label])) if side[label] else -1 for label in images.WATCHERS]
+    """Each of M8's watchers' p50 on one side; -1 for one with no frame there (or that did not run)."""
+    return [round(statistics.median(side[label])) if side.get(label) else -1 for label in images.WATCHERS]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,8 +112,8 @@ def main(argv: list[str] | None = None) -> int:
                 for label in images.WATCHERS:
                     into[label].extend(side.get(label, []))
             a, b = (_p50s(side) for side in sides)
-            print(f"round {number}: A {a} (slowest {max(a)}), B {b} (slowest {max(b)})  {time.strftime('%H:%M:%S')}",
-                  flush=True)
+            print(f"{ordinal(number)} round: A {a} (slowest {max(a)}), B {b} (slowest {max(b)}), "
+                  f"{time.strftime('%H:%M:%S')}", flush=True)
     a, b = (_p50s(side) for side in pooled)
     difference = [y - x for x, y in zip(a, b, strict=True)]
     print(f"pooled: A {a} (slowest {max(a)}), B {b} (slowest {max(b)}); B - A {difference}")

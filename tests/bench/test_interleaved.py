@@ -55,7 +55,7 @@ def test_a_round_on_a_real_server_gives_every_watcher_latencies_on_both_sides() 
         cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ},
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    assert "round 1: A [" in out.stdout
+    assert "first round: A [" in out.stdout
     pooled = re.search(r"pooled: A \[([^]]*)\].*B \[([^]]*)\]", out.stdout)
     assert pooled is not None, out.stdout
     for side in pooled.groups():
