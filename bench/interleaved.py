@@ -20,8 +20,8 @@ each in turn:
 
 Both sides then share the machine's state to within a second. With nothing
 reading VAR they measure the same thing, and their difference is the
-method's bias ("A/A": within 16 µs of the slowest watcher's p50, pooled
-over six rounds, on the machine of that section).
+method's spread ("A/A": within about 25 µs of each watcher's p50, either
+way, pooled over six rounds, on the machine of that section).
 """
 
 from __future__ import annotations
