@@ -84,10 +84,16 @@ def _p50s(side: Mapping[str, list[float]]) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the rounds; print each round's p50s on both sides, then both sides pooled over the rounds."""
-    parser = argparse.ArgumentParser(prog="python -m bench.interleaved", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.interleaved",
+        description="A and B of a change to M8's path in the same rounds: every process of M8's 1 MiB 30 Hz phase "
+                    "gets VAR=alternate, the change (a local patch) takes its B path in the odd seconds of "
+                    "CLOCK_MONOTONIC (bench.interleaved.b_side), and each frame counts for the side of its "
+                    "writer's stamp. docs/performance.md, \"Writes on a stream, pipelining, image-sized entries, "
+                    "many components\".")
     parser.add_argument("var", help="the environment variable the code under test reads")
-    parser.add_argument("--frames", type=int, default=600, help="measured frames per round (20 s at 30 Hz)")
-    parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--frames", type=int, default=600, help="measured frames per round (default 600: 20 s)")
+    parser.add_argument("--rounds", type=int, default=6, help="rounds, each on a new server (default 6)")
     args = parser.parse_args(argv)
     writer = cpp_command()
     if isinstance(writer, str):
