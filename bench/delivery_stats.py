@@ -15,7 +15,7 @@ from typing import Any
 
 from bench.harness import summary_us
 
-__all__ = ["latencies_us", "ordinal", "parse_watcher", "pooled", "totals", "watcher_figures"]
+__all__ = ["latencies_us", "ordinal", "parse_watcher", "pooled", "settling", "totals", "watcher_figures"]
 
 
 def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
@@ -30,6 +30,11 @@ def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
         if optional in doc:
             out[optional] = int(doc[optional])
     return out
+
+
+def settling(count: int) -> int:
+    """How many of ``count`` measured writes, the first, the latencies leave out as warm-up (a tenth, at most 30)."""
+    return min(30, count // 10)
 
 
 def latencies_us(sent: Mapping[int, int], stamps: Mapping[int, int]) -> list[float]:

@@ -40,7 +40,7 @@ from typing import IO, Any, NamedTuple
 from bench import iceoryx2_peer, relay_floor, zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast, expected_frames
-from bench.delivery_stats import ordinal, parse_watcher, pooled, totals, watcher_figures
+from bench.delivery_stats import ordinal, parse_watcher, pooled, settling, totals, watcher_figures
 from bench.floors import EchoFloor
 from bench.harness import PYTHON, ROOT, child_env
 from bench.other_clients import cpp_command, java_command
@@ -287,7 +287,7 @@ def figures(sent: dict[int, int], got: dict[str, dict[str, Any]], extra: int,
     order = sorted(sent)
     measured = {k: sent[k] for k in order[cold + warm:]}
     early = {k: sent[k] for k in order[:cold]}
-    late = dict(sorted(measured.items())[min(30, len(measured) // 10):])
+    late = dict(sorted(measured.items())[settling(len(measured)):])
     per = {}
     mine = {label: _measured(g, measured, size) for label, g in got.items()}
     for label, g in got.items():

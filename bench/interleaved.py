@@ -35,7 +35,7 @@ from collections.abc import Mapping
 
 from bench import images
 from bench.cast_cases import Server
-from bench.delivery_stats import ordinal
+from bench.delivery_stats import latencies_us, ordinal, settling
 from bench.harness import scratch
 from bench.other_clients import cpp_command
 
@@ -47,12 +47,16 @@ SKIP_NS = 70_000_000
 _SECOND = 1_000_000_000
 
 
+def _in_b(ns: int) -> bool:
+    """Whether CLOCK_MONOTONIC time ``ns`` falls in a B second (an odd one)."""
+    return ns // _SECOND % 2 == 1
+
+
 def b_side(var: str, now_ns: int | None = None) -> bool:
     """Whether code reading ``var`` should take its B path now (the odd seconds of CLOCK_MONOTONIC)."""
     if os.environ.get(var) != "alternate":
         return False
-    now = time.monotonic_ns() if now_ns is None else now_ns
-    return now // _SECOND % 2 == 1
+    return _in_b(time.monotonic_ns() if now_ns is None else now_ns)
 
 
 def split(sent: Mapping[int, int], stamps: Mapping[str, Mapping[int, int]],
@@ -64,16 +68,12 @@ def split(sent: Mapping[int, int], stamps: Mapping[str, Mapping[int, int]],
     stamped in the first :data:`SKIP_NS` of a second is left out, and a watcher
     that has no stamp for a write has no latency for it.
     """
-    a: dict[str, list[float]] = {label: [] for label in stamps}
-    b: dict[str, list[float]] = {label: [] for label in stamps}
+    sides: tuple[dict[int, int], dict[int, int]] = ({}, {})
     for revision in sorted(sent)[-frames:] if frames > 0 else ():
         t0 = sent[revision]
-        if t0 % _SECOND < SKIP_NS:
-            continue
-        side = b if t0 // _SECOND % 2 == 1 else a
-        for label, got in stamps.items():
-            if revision in got:
-                side[label].append((got[revision] - t0) / 1e3)
+        if t0 % _SECOND >= SKIP_NS:
+            sides[_in_b(t0)][revision] = t0
+    a, b = ({label: latencies_us(side, got) for label, got in stamps.items()} for side in sides)
     return a, b
 
 
@@ -102,8 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = [(label, images._watcher_command(label, "queue")) for label in images.WATCHERS]
     pooled: tuple[dict[str, list[float]], dict[str, list[float]]] = (
         {label: [] for label in images.WATCHERS}, {label: [] for label in images.WATCHERS})
-    # The first tenth of the measured frames (at most 30) is left out, as M8's figures leave it out.
-    kept = args.frames - min(30, args.frames // 10)
+    kept = args.frames - settling(args.frames)  # as M8's figures count them
     print(f"p50 in µs, {' / '.join(images.WATCHERS)}; A: even seconds, B: odd ({args.var}=alternate)", flush=True)
     with scratch("interleaved") as work:
         for number in range(1, args.rounds + 1):

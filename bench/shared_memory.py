@@ -32,7 +32,7 @@ from typing import Any
 from bench import zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast
-from bench.delivery_stats import parse_watcher, totals, watcher_figures
+from bench.delivery_stats import parse_watcher, settling, totals, watcher_figures
 from bench.harness import PYTHON, ROOT, child_env
 from bench.other_clients import cpp_command, java_command
 
@@ -98,8 +98,7 @@ def _phase(server: Server, tag: str, size: int, frames: int, gap_s: float, langu
 
 
 def _figures(sent: dict[int, int], got: list[dict[str, Any]], extra: int) -> dict[str, Any]:
-    warm = min(30, len(sent) // 10)
-    late = dict(sorted(sent.items())[warm:])
+    late = dict(sorted(sent.items())[settling(len(sent)):])
     per = []
     for g in got:
         whole, steady = watcher_figures(sent, g, extra), watcher_figures(late, g, extra)
