@@ -46,8 +46,8 @@ import java.util.concurrent.TimeUnit;
  *   <li>{@code write N GAP_MS}: adds "lat", then N-1 overwrites spaced by GAP_MS,
  *       stamping System.nanoTime() just before each; prints {"REVISION": NS, ...}.
  *   <li>{@code image-write SIZE N GAP_US}: (bench/shared_memory.py) adds "img", a BytesValue of SIZE
- *       bytes, and overwrites it N times, the i-th at start + i * GAP_US (0: back to back), stamping
- *       System.nanoTime() just before each; then deletes it (the watchers' end mark) and prints
+ *       bytes, and overwrites it N times, the i-th at start + i * GAP_US (0: back to back), each made
+ *       and then stamped on System.nanoTime() just before it; then deletes it (the watchers' end mark) and prints
  *       {"REVISION": NS, ...} of the overwrites. The same as bench/image_writer.py.
  *   <li>{@code image-watch queue|latest}: (M8, bench/images.py; bench/shared_memory.py)
  *       onChange(addressFilter("img") with the entry, WatchOptions with that delivery); prints
@@ -199,13 +199,13 @@ public final class Bench {
   }
 
   private static void imageWrite(Component c, int size, int frames, long gapMicros) throws InterruptedException {
-    List<BytesValue> values = new ArrayList<>(); // made before the clock starts
+    List<byte[]> fills = new ArrayList<>(); // made before the clock starts
     for (int k = 0; k < 2; k++) {
       byte[] b = new byte[size];
       java.util.Arrays.fill(b, (byte) (k + 1)); // never 0: a watcher that read no byte cannot match
-      values.add(BytesValue.newBuilder().setValue(ByteString.copyFrom(b)).build());
+      fills.add(b);
     }
-    c.add("img", values.get(0));
+    c.add("img", BytesValue.newBuilder().setValue(ByteString.copyFrom(fills.get(0))).build());
     Map<Long, Long> sent = new TreeMap<>();
     long start = System.nanoTime();
     for (int i = 0; i < frames; i++) {
@@ -215,8 +215,11 @@ public final class Bench {
           TimeUnit.NANOSECONDS.sleep(delay);
         }
       }
+      // Made (its bytes copied) just before its stamp, as the peers' publisher makes its payload
+      // (bench.peer_fanout.drive): a fresh frame is in the cache when it is published.
+      BytesValue value = BytesValue.newBuilder().setValue(ByteString.copyFrom(fills.get(i % 2))).build();
       long t = System.nanoTime();
-      sent.put(c.overwrite("img", values.get(i % 2)).revision(), t);
+      sent.put(c.overwrite("img", value).revision(), t);
     }
     c.deleteEntry("img");
     System.out.println(json(sent));
