@@ -68,7 +68,9 @@ class DispatcherReadsTest {
       assertEquals(SocketEventsTest.expected(20), got);
       assertEquals(List.of(true), onDispatcher.stream().distinct().toList(), "every callback on the dispatcher thread");
       assertEquals(readerBefore, io.readerReads.get(), "the reader thread read nothing meanwhile");
-      assertTrue(io.dispatcherReads.get() >= dispatcherBefore + 19, "reads by the dispatcher: " + io.dispatcherReads);
+      // The reader thread read nothing and all 20 came, so the dispatcher read them all; in how many reads
+      // depends on how many frames wait in the socket when it reads (several, on a loaded machine).
+      assertTrue(io.dispatcherReads.get() > dispatcherBefore, "reads by the dispatcher: " + io.dispatcherReads);
       assertEquals(0, io.nudgesSent.get(), "nothing woke it but its frames");
       SharedMemoryTest.waitForNothingLent(server);
     }
