@@ -191,9 +191,10 @@ struct WarmUp {
 int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold) {
   // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
   std::vector<google::protobuf::BytesValue> values(4);
+  auto byteOf = [](std::size_t k) { return static_cast<char>(k % 2 + 1); };  // values[k]'s every byte
   for (std::size_t k = 0; k < values.size(); ++k) {
     const long bytes = k < 2 ? size : warm.size;
-    values[k].set_value(std::string(static_cast<std::size_t>(std::max(0L, bytes)), static_cast<char>(k % 2 + 1)));
+    values[k].set_value(std::string(static_cast<std::size_t>(std::max(0L, bytes)), byteOf(k)));
   }
   std::map<std::uint64_t, std::int64_t> sent;
   long written = 0;  // the values alternate 1s, 2s over every overwrite, the warm-up's too
@@ -206,9 +207,10 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
       // Each frame is made just before its stamp, as the peers' publisher makes its payload
       // (bench.peer_fanout.drive): its bytes written again in place, so that, like a camera driver's fresh
       // frame, it is in the cache when it is published rather than where 66 ms of other frames left it.
-      auto& value = values[base + static_cast<std::size_t>(written) % 2];
+      const std::size_t k = base + static_cast<std::size_t>(written) % 2;
+      auto& value = values[k];
       std::string& bytes = *value.mutable_value();
-      std::fill(bytes.begin(), bytes.end(), static_cast<char>(written % 2 + 1));
+      std::fill(bytes.begin(), bytes.end(), byteOf(k));
       const std::int64_t t0 = nowNs();
       sent[c.overwrite("img", value).revision] = t0;
     }
