@@ -15,7 +15,7 @@ from typing import Any
 
 from bench.harness import summary_us
 
-__all__ = ["latencies_us", "ordinal", "parse_watcher", "pooled", "settling", "totals", "watcher_figures"]
+__all__ = ["latencies_us", "ordinal", "parse_watcher", "settling", "totals", "watcher_figures"]
 
 
 def parse_watcher(doc: Mapping[str, Any]) -> dict[str, Any]:
@@ -52,7 +52,7 @@ def watcher_figures(sent: Mapping[int, int], got: Mapping[str, Any], extra_event
     skipped (a latest watch reports what it skipped, which is not lost).
     MB/s (10**6 bytes) is the value bytes received over the time from the first
     write to the last arrival. ``samples_us`` holds the latencies themselves
-    (:func:`pooled` joins rounds by them).
+    (bench/images.py's judged phase splits them into halves).
     """
     stamps: Mapping[int, int] = got["stamps"]
     samples = latencies_us(sent, stamps)
@@ -81,48 +81,3 @@ def ordinal(number: int) -> str:
     """``number`` as a word (first, second, ...): how the benchmarks name a round."""
     words = ("first", "second", "third", "fourth", "fifth")
     return words[number - 1] if 1 <= number <= len(words) else f"{number}th"
-
-
-_ADDED = ("received", "skipped", "lost", "bytes", "shared")  # a watcher's counts: the rounds' add up
-
-
-def pooled(rounds: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """One phase measured in several rounds, each with watchers of its own, as one result.
-
-    ``rounds``: each a phase's result as bench/images.py's ``figures`` gives
-    it, every watcher with its ``samples_us``. Per watcher, p50/p99/mean are
-    of every round's samples together; its counts add up; its checksum is
-    right if it was in every round; MB/s is the mean of the rounds'; the cold
-    figures are the first round's (the only one with cold frames). The phase's
-    frames add up, its server memory is the highest of the rounds', and
-    ``rounds`` keeps each round's p50 per watcher. A round that failed
-    (``error``) makes the whole an error: the row reports it.
-    """
-    for number, r in enumerate(rounds, 1):
-        if "error" in r:
-            return {"error": f"the {ordinal(number)} of {len(rounds)} rounds: {r['error']}"}
-    first = rounds[0]
-    watchers: dict[str, Any] = {}
-    for label, w in first["watchers"].items():
-        each = [r["watchers"][label] for r in rounds if label in r["watchers"]]
-        samples = [x for one in each for x in one["samples_us"]]
-        joined = {**w, **(summary_us(samples) if samples else {}), "samples_us": samples,
-                  "checksum_ok": all(one.get("checksum_ok") for one in each),
-                  "mb_per_s": round(sum(one["mb_per_s"] for one in each) / len(each), 1)}
-        for key in _ADDED:
-            if key in w:
-                joined[key] = sum(one.get(key, 0) for one in each)
-        ended = [one["watch_ended"] for one in each if one.get("watch_ended")]
-        if ended:
-            joined["watch_ended"] = ended[0]
-        watchers[label] = joined
-    out = {**first, "watchers": watchers, "frames": sum(r["frames"] for r in rounds),
-           "rounds": [{label: w["p50_us"] for label, w in r["watchers"].items()} for r in rounds],
-           "total": {"mb_per_s": round(sum(r["total"]["mb_per_s"] for r in rounds) / len(rounds), 1),
-                     "bytes": sum(r["total"]["bytes"] for r in rounds)}}
-    memories = [r["server_memory"] for r in rounds if "server_memory" in r]
-    if memories:
-        out["server_memory"] = {key: max(m[key] for m in memories) for key in memories[0]}
-    if "missing" in first:  # a watcher that could not start, in any round
-        out["missing"] = {label: why for r in rounds for label, why in r.get("missing", {}).items()}
-    return out

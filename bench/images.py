@@ -12,8 +12,8 @@ Phases on one ``cast serve`` (new watcher processes each, the server's memory
 sampled throughout, :class:`ServerMemory`): ``queue`` delivery of 1 MiB at
 30 Hz, of 6 MiB (a 1080p RGB frame) at 30 Hz, of 1 MiB back to back, and
 ``latest`` delivery of 1 MiB back to back. The judged 1 MiB 30 Hz phase and
-Zenoh's are measured in alternating rounds (:data:`JUDGED_ROUNDS`), each
-side's rounds pooled. Then a remote phase: a server
+Zenoh's run at once, each writing in its own seconds (:func:`in_turns`,
+bench/turns.py). Then a remote phase: a server
 listening on a veth pair to another network namespace (bench.other_host) and
 a Python watcher in that namespace, which gets every value as bytes.
 
@@ -29,7 +29,7 @@ unary echo of 1 MiB (bench/floors.py) is measured once, for context.
 from __future__ import annotations
 
 import json
-import os
+import statistics
 import subprocess
 import tempfile
 import threading
@@ -37,18 +37,20 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
-from bench import iceoryx2_peer, relay_floor, zenoh_peer
+from bench import iceoryx2_peer, relay_floor, turns, zenoh_peer
 from bench.cast_cases import Server
 from bench.checksum import expected_cast, expected_frames
-from bench.delivery_stats import ordinal, parse_watcher, pooled, settling, totals, watcher_figures
+from bench.delivery_stats import ordinal, parse_watcher, settling, totals, watcher_figures
 from bench.floors import EchoFloor
 from bench.harness import PYTHON, ROOT, child_env
 from bench.other_clients import cpp_command, java_command
 from bench.other_host import OtherHost
 from bench.peer_fanout import WARM_BURST, WARM_PAUSE_S
+from bench.server_memory import ServerMemory, idle_memory
 
 __all__ = [
-    "BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "Recorded", "ServerMemory", "record_phase", "run",
+    "BIG", "HISTORY_BYTES", "HZ", "PHASES", "SIZE", "WATCHERS", "Recorded", "ServerMemory", "in_turns", "record_phase",
+    "run",
 ]
 
 SIZE = 1 << 20  # a VGA RGB image is 0.9 MiB
@@ -60,10 +62,6 @@ SA = "images"
 HISTORY_BYTES = 64 << 20
 WATCHERS = ("Python 1", "C++", "Java", "Python 2")
 REMOTE = "Python, other host"
-PRIVATE_EVERY_S = 0.1
-"""How often :class:`ServerMemory` reads the server's private memory."""
-SHARED_EVERY = 2
-"""Every how many of those samples it reads the server's shared memory too (every 200 ms)."""
 # (key, delivery, value size, paced at HZ): the phases on the server's host.
 PHASES: tuple[tuple[str, str, int, bool], ...] = (
     ("queue_hz", "queue", SIZE, True),
@@ -84,10 +82,10 @@ PHASES: tuple[tuple[str, str, int, bool], ...] = (
 WARM_PER_FRAME = 34
 WARM_SIZE = 64 << 10  # shared_memory.threshold_bytes' default
 COLD_S = 2
-# The judged comparison (1 MiB at 30 Hz, each watcher's p50 against Zenoh's) is measured in rounds that alternate
-# the two, in this order, so that a machine that drifts over the run weighs on both alike; each side's rounds are
-# pooled (bench.delivery_stats.pooled). Only each side's first round has cold frames.
-JUDGED_ROUNDS = ("cast", "zenoh", "zenoh", "cast")
+# The judged comparison (1 MiB at 30 Hz, each watcher's p50 against Zenoh's) runs the two at once, in turns
+# (bench.turns): CAST's writer in the even seconds, Zenoh's publisher in the odd ones, JUDGED_FRAMES x a phase's
+# frames each, so that both meet the machine as it is in the same minute; each side's halves are shown beside.
+JUDGED_FRAMES = 2
 TIMEOUT_S = 300  # the writer's whole run
 AFTER_WRITER_S = 60  # how long the watchers may take to finish once the writer is done
 
@@ -97,100 +95,6 @@ def _watcher_command(label: str, delivery: str) -> list[str] | str:
         return [PYTHON, "-m", "bench.image_watcher", delivery]
     command = cpp_command() if label == "C++" else java_command()
     return command if isinstance(command, str) else [*command, "image-watch", delivery]
-
-
-def _status_kib(pid: int, keys: Sequence[str]) -> int:
-    with open(f"/proc/{pid}/status") as f:
-        return sum(int(line.split()[1]) for line in f if line.split(":")[0] in keys)
-
-
-def shared_bytes(pid: int) -> int:
-    """The whole size of every memory file (memfd) or /dev/shm file process ``pid`` maps or holds open.
-
-    Its shared memory: the arena's segments and the sessions' staging areas,
-    each counted once (by inode) at its full size, touched or not.
-    """
-    sizes: dict[int, int] = {}
-    with open(f"/proc/{pid}/maps") as f:
-        text = f.read()
-    for line in text.splitlines():
-        # Most of a server's few hundred mappings are its libraries: skipped before they are split (splitting
-        # them all was a sixth of a reading; the kernel writing out the file is most of the rest).
-        if "/memfd:" not in line and "/dev/shm/" not in line:
-            continue
-        parts = line.split(maxsplit=5)
-        if len(parts) == 6 and parts[5].startswith(("/memfd:", "/dev/shm/")):
-            start, end = (int(x, 16) for x in parts[0].split("-"))
-            inode = int(parts[4])
-            sizes[inode] = max(sizes.get(inode, 0), end - start)
-    fds = f"/proc/{pid}/fd"
-    for fd in os.listdir(fds):
-        try:
-            if os.readlink(f"{fds}/{fd}").startswith(("/memfd:", "/dev/shm/")):
-                st = os.stat(f"{fds}/{fd}")
-                sizes[st.st_ino] = max(sizes.get(st.st_ino, 0), st.st_size)
-        except OSError:  # closed meanwhile
-            continue
-    return sum(sizes.values())
-
-
-class ServerMemory:
-    """The server's memory, sampled on a thread until :meth:`stop`.
-
-    The peak of its private resident memory (RssAnon + RssFile: its own
-    mapping of its shared memory, RssShmem, is left out, not to count it twice)
-    plus the whole size of the shared memory it holds (:func:`shared_bytes`),
-    and the peaks of each. The private memory is read every
-    :data:`PRIVATE_EVERY_S` (one small ``/proc`` file); the shared memory every
-    :data:`SHARED_EVERY` samples and once more at the end, because reading a
-    server's mappings and descriptors costs a few hundred µs of CPU, which a
-    sampler must not take from the system it measures at every frame
-    (docs/performance.md, "The memory bound"). The shared memory changes by
-    whole arena segments, made when the others are full and retired by a pass
-    once a second that keeps one spare while values come, so its steps outlast
-    the 200 ms between those samples.
-    """
-
-    def __init__(self, pid: int) -> None:
-        self._pid = pid
-        self.peak = self.private = self.shared = 0
-        self._last_shared = 0
-        self._sample_once(True)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-        self._thread.start()
-
-    def _sample_once(self, shared_too: bool) -> None:
-        private = _status_kib(self._pid, ("RssAnon", "RssFile")) * 1024
-        self.private = max(self.private, private)
-        shared = shared_bytes(self._pid) if shared_too else self._last_shared
-        self._last_shared = shared
-        self.shared = max(self.shared, shared)
-        self.peak = max(self.peak, private + shared)
-
-    def _sample(self) -> None:
-        count = 0
-        while not self._stop.wait(PRIVATE_EVERY_S):
-            count += 1
-            try:
-                self._sample_once(count % SHARED_EVERY == 0)
-            except OSError:  # the server ended
-                return
-
-    def stop(self) -> dict[str, int]:
-        """Stop sampling, read both once more, and give the peaks in bytes."""
-        self._stop.set()
-        self._thread.join()
-        try:
-            self._sample_once(True)
-        except OSError:  # the server ended
-            pass
-        return {"peak": self.peak, "private": self.private, "shared": self.shared}
-
-
-def idle_memory(pid: int) -> int:
-    """The server's private resident memory plus its shared memory, once."""
-    return _status_kib(pid, ("RssAnon", "RssFile")) * 1024 + shared_bytes(pid)
 
 
 class _Watchers:
@@ -367,8 +271,8 @@ def _remote_phase(workdir: Path, writer: list[str], frames: int) -> dict[str, An
 
 
 def _peer(fn: Callable[..., dict[str, Any]], frames: int, gap_s: float, size: int, warm: int = 0,
-          cold: int = 0) -> dict[str, Any]:
-    run_ = fn(frames, gap_s, size, warm=warm, warm_size=WARM_SIZE, cold=cold)
+          cold: int = 0, **more: Any) -> dict[str, Any]:
+    run_ = fn(frames, gap_s, size, warm=warm, warm_size=WARM_SIZE, cold=cold, **more)
     labels = [f"subscriber {i + 1}" for i in range(len(run_["watchers"]))]
     sizes = _warm_sizes(run_["sent"], warm, cold)
     return {**figures(run_["sent"], dict(zip(labels, run_["watchers"], strict=True)), 0,
@@ -385,24 +289,112 @@ def _guard(out: dict[str, Any], key: str, fn: Callable[..., dict[str, Any]], *ar
 
 def _judged(out: dict[str, Any], server: Server, writer: list[str], frames: int, cold: int,
             log: Callable[[str], None]) -> None:
-    """CAST's 1 MiB 30 Hz phase and Zenoh's, in alternating rounds (JUDGED_ROUNDS), each side's rounds pooled."""
+    """CAST's 1 MiB 30 Hz phase and Zenoh's, at once and in turns (:func:`in_turns`)."""
+    log(f"M8 CAST queue_hz and Zenoh: 1 MiB, {HZ} Hz, in turns (CAST the even seconds, Zenoh the odd ones)")
+    try:
+        cast, peer = in_turns(server, writer, JUDGED_FRAMES * frames, cold, WARM_PER_FRAME * frames)
+    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        cast = peer = {"error": f"the phase in turns: {exc}"}
+    out["cast_queue_hz"], out["zenoh_hz"] = cast, peer
+    for side in (cast, peer):
+        for number, half in enumerate(side.get("halves", ()), 1):
+            log(f"  {'CAST' if side is cast else 'Zenoh'}, the {ordinal(number)} half, p50 (µs): "
+                + ", ".join(f"{label} {p50:.0f}" for label, p50 in half.items()))
+
+
+def in_turns(server: Server, writer: list[str], frames: int, cold: int, warm: int
+             ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """CAST's 1 MiB 30 Hz phase and Zenoh's at once, each writing in its turn (bench.turns): both results.
+
+    CAST's watchers start, its writer (``cast_bench image-write`` with turn
+    CAST) sends ``cold`` paced frames and ``warm`` back to back and says
+    "warm"; then Zenoh's subscribers start and its publisher does the same
+    (turn PEER); then both write their ``frames``, each in its own seconds.
+    Each result is :func:`figures`' for that side, with ``halves``: its
+    watchers' p50s over the first and over the second half of its measured
+    frames, to show how much the two systems moved together. The server's
+    memory is sampled in CAST's seconds. Raises RuntimeError when CAST's
+    side fails (Zenoh's side's own failure is its result's ``error``).
+    """
     commands = [(label, _watcher_command(label, "queue")) for label in WATCHERS]
-    rounds: dict[str, list[dict[str, Any]]] = {"cast": [], "zenoh": []}
-    for side in JUDGED_ROUNDS:
-        number = len(rounds[side]) + 1
-        first_cold = 0 if rounds[side] else cold
-        what = "CAST queue_hz: 1 MiB, queue" if side == "cast" else "zenoh: 1 MiB"
-        log(f"M8 {what}, {HZ} Hz, the {ordinal(number)} of {JUDGED_ROUNDS.count(side)} rounds")
-        got: dict[str, Any] = {}
-        if side == "cast":
-            _guard(got, "r", cast_phase, server, writer, commands, SIZE, frames, 1 / HZ, f"queue_hz{number}",
-                   WARM_PER_FRAME * frames, first_cold)
-        else:
-            _guard(got, "r", _peer, zenoh_peer.large, frames, 1 / HZ, SIZE, WARM_PER_FRAME * frames, first_cold)
-        rounds[side].append(got["r"])
-        if "watchers" in got["r"]:
-            log("  p50 (µs): " + ", ".join(f"{label} {w['p50_us']:.0f}" for label, w in got["r"]["watchers"].items()))
-    out["cast_queue_hz"], out["zenoh_hz"] = pooled(rounds["cast"]), pooled(rounds["zenoh"])
+    command = [*writer, "image-write", str(SIZE), str(frames), str(round(1e6 / HZ)), str(warm), str(WARM_SIZE),
+               str(cold), str(WARM_BURST), str(round(WARM_PAUSE_S * 1e6)), str(turns.CAST)]
+    go, peer_warm = threading.Event(), threading.Event()
+    peer: dict[str, Any] = {"error": "not measured: CAST's side failed before its turns began"}
+
+    def warmed() -> None:  # Zenoh's publisher, warmed up: waits for CAST's writer to be told too
+        peer_warm.set()
+        go.wait(TIMEOUT_S)
+
+    def zenoh() -> None:
+        try:
+            peer.update(_peer(zenoh_peer.large, frames, 1 / HZ, SIZE, warm, cold, turn=turns.PEER, go=warmed))
+            peer.pop("error")
+        except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+            peer["error"] = f"Zenoh's side: {exc}"
+        finally:
+            peer_warm.set()
+
+    thread = threading.Thread(target=zenoh, name="m8-zenoh", daemon=True)
+    watchers = _Watchers(server, commands, "queue_hz")
+    try:
+        memory = ServerMemory(server.proc.process.pid, turns.CAST)
+        try:
+            sent = _write_in_turns(server, command, thread, peer_warm, go)
+            got = watchers.results()
+        finally:
+            peaks = memory.stop()
+    finally:
+        go.set()  # Zenoh's side never waits for a writer that failed
+        watchers.close()
+        if thread.ident is not None:
+            thread.join(TIMEOUT_S)
+    sizes = _warm_sizes(sent, warm, cold)
+    cast = figures(sent, got, 2, lambda g: expected_cast(sent, g["stamps"], SIZE, sizes), SIZE, warm, cold)
+    cast |= {"size": SIZE, "server_memory": peaks, "missing": watchers.missing}
+    return {**cast, "halves": _halves(cast)}, ({**peer, "halves": _halves(peer)} if "watchers" in peer else peer)
+
+
+def _write_in_turns(server: Server, command: list[str], peer: threading.Thread, peer_warm: threading.Event,
+                    go: threading.Event) -> dict[int, int]:
+    """Run CAST's writer with its turn: once it and ``peer`` are warm, tell both to go; the writer's stamps."""
+    with tempfile.TemporaryFile("w+") as errors:
+        proc = subprocess.Popen(command, env=child_env(server.env("m8-queue_hz-writer", SA)), stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=errors, text=True, cwd=ROOT)
+        watchdog = threading.Timer(TIMEOUT_S, proc.kill)  # a writer that hangs ends the phase, not the run
+        watchdog.start()
+        try:
+            assert proc.stdin is not None and proc.stdout is not None
+            line = proc.stdout.readline().strip()
+            if line != "warm":
+                raise RuntimeError(f"the C++ writer did not warm up ({line!r}): {_tail(errors)}")
+            peer.start()
+            peer_warm.wait(TIMEOUT_S)
+            go.set()
+            proc.stdin.write("go\n")
+            proc.stdin.flush()
+            text, _ = proc.communicate(timeout=TIMEOUT_S)
+            lines = [line for line in text.splitlines() if line.startswith("{")]
+            if proc.returncode != 0 or not lines:
+                raise RuntimeError(f"the C++ writer exited {proc.returncode}: {_tail(errors)}")
+        finally:
+            watchdog.cancel()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    return {int(k): int(v) for k, v in json.loads(lines[-1]).items()}
+
+
+def _halves(result: dict[str, Any]) -> list[dict[str, float]]:
+    """Each watcher's p50 (µs) over the first and over the second half of its measured frames."""
+    halves: list[dict[str, float]] = [{}, {}]
+    for label, w in result.get("watchers", {}).items():
+        samples = w.get("samples_us", [])
+        middle = len(samples) // 2
+        for half, part in zip(halves, (samples[:middle], samples[middle:]), strict=True):
+            if part:
+                half[label] = round(float(statistics.median(part)), 1)
+    return halves
 
 
 def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[str, Any]:
@@ -425,7 +417,7 @@ def run(workdir: Path, frames: int, log: Callable[[str], None] = print) -> dict[
         _judged(out, server, writer, frames, cold, log)
         for key, delivery, size, paced in PHASES:
             if key == "queue_hz":
-                continue  # measured in rounds with Zenoh's, above
+                continue  # measured in turns with Zenoh's, above
             log(f"M8 CAST {key}: {size >> 20} MiB, {delivery}, {f'{HZ} Hz' if paced else 'back to back'}")
             commands = [(label, _watcher_command(label, delivery)) for label in WATCHERS]
             _guard(out, f"cast_{key}", cast_phase, server, writer, commands, size, count[size],

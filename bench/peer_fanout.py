@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from bench import turns
 from bench.checksum import MOD, word_sum
 from bench.delivery_stats import parse_watcher
 from bench.harness import ROOT, child_env
@@ -146,7 +147,8 @@ WARM_PAUSE_S = 0.05
 
 
 def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, warm: int = 0,
-          warm_size: int = 0, cold: int = 0) -> dict[int, int]:
+          warm_size: int = 0, cold: int = 0, turn: int = turns.NONE,
+          go: Callable[[], object] | None = None) -> dict[int, int]:
     """Puts, each stamped (ns) just before it; their stamps by sequence number, in the order put.
 
     As M8's C++ writer (``cast_bench image-write``): ``cold`` puts paced as
@@ -154,18 +156,24 @@ def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, 
     to back in bursts of WARM_BURST, each but the last followed by WARM_PAUSE_S,
     and a pause of SETTLE_S (the warm-up), then ``frames``, the i-th
     started at start + i * ``gap_s`` (0: back to back). The reader tells the
-    parts apart by number.
+    parts apart by number. ``go`` is called between the warm-up and the
+    ``frames`` (it may wait); with a ``turn`` (:mod:`bench.turns`) those are put
+    in that turn's seconds only, the pace starting again at each.
     """
     sent: dict[int, int] = {}
 
-    def paced(count: int, gap: float, size: int) -> None:
+    def paced(count: int, gap: float, size: int, turn: int = turns.NONE) -> None:
         pad = b"p" * max(0, size - _SEQ.size)
         start = time.perf_counter()
-        for i in range(count):
+        step = 0  # puts since `start`
+        for _ in range(count):
             if gap:
-                delay = start + i * gap - time.perf_counter()
+                delay = start + step * gap - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
+            if turn and turns.wait_for_turn(turn):
+                start, step = time.perf_counter(), 0
+            step += 1
             seq = len(sent)
             payload = _SEQ.pack(seq) + pad  # made before the stamp
             sent[seq] = time.perf_counter_ns()
@@ -178,5 +186,7 @@ def drive(put: Callable[[bytes], object], frames: int, gap_s: float, size: int, 
             if left > WARM_BURST:
                 time.sleep(WARM_PAUSE_S)
         time.sleep(SETTLE_S)
-    paced(frames, gap_s, size)
+    if go is not None:
+        go()
+    paced(frames, gap_s, size, turn)
     return sent

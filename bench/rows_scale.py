@@ -132,15 +132,15 @@ def m8_misses(m8: dict[str, Any]) -> list[str]:
     return misses
 
 
-def _round_figures(m8: dict[str, Any], key: str, zen: str) -> list[dict[str, Any]]:
-    """Each round of a phase measured in rounds alternating with Zenoh's (bench/images.py): its slowest watcher."""
-    mine, theirs = m8.get(f"cast_{key}", {}).get("rounds", []), m8.get(zen, {}).get("rounds", [])
+def _half_figures(m8: dict[str, Any], key: str, zen: str) -> list[dict[str, Any]]:
+    """Each half of a phase measured in turns with Zenoh's (bench/images.py, bench/turns.py): its slowest watcher."""
+    mine, theirs = m8.get(f"cast_{key}", {}).get("halves", []), m8.get(zen, {}).get("halves", [])
     figures = []
     for number, (ours, peer) in enumerate(zip(mine, theirs, strict=False), 1):
         if ours and peer:
             slowest = max(ours, key=lambda label: ours[label])
-            figures.append(fig(f"{M8_PHASES[key]}, the {ordinal(number)} of {len(mine)} rounds: the slowest "
-                               f"watcher's p50 ({slowest}, µs; peer: Zenoh's {ordinal(number)})", ours[slowest],
+            figures.append(fig(f"{M8_PHASES[key]}, the {ordinal(number)} half of the turns: the slowest watcher's "
+                               f"p50 ({slowest}, µs; peer: Zenoh's in the same half)", ours[slowest],
                                peer=round(float(statistics.median(peer.values())), 1)))
     return figures
 
@@ -174,7 +174,7 @@ def _cast_figures(m8: dict[str, Any]) -> list[dict[str, Any]]:
         if "watchers" in got:
             lost = sum(w["lost"] for w in got["watchers"].values())
             figures.append(fig(f"{M8_PHASES[key]}: lost, all watchers", lost))
-        figures += _round_figures(m8, key, zen) + _cold_figures(m8, key, zen)
+        figures += _half_figures(m8, key, zen) + _cold_figures(m8, key, zen)
     for key in ("queue_b2b", "latest_b2b"):
         got = m8.get(f"cast_{key}", {})
         if "total" not in got:
@@ -235,12 +235,12 @@ def m8_row(m8: dict[str, Any]) -> dict[str, Any]:
         "id": "M8",
         "what": "1 MiB and 6 MiB entries overwritten by a C++ writer, four watchers (Python, C++, Java, Python) "
         "reading every byte of every value (a checksum), queue delivery at 30 Hz and back to back, latest back to "
-        "back, each phase measured after a warm-up burst of its frames to every reader (the first seconds of "
-        "1 MiB at 30 Hz, cold, shown beside); the judged 1 MiB 30 Hz phase and Zenoh's in alternating rounds "
-        "(CAST, Zenoh, Zenoh, CAST), each side's samples pooled; a Python watcher in another network namespace "
-        "(bytes); peer Zenoh and floor iceoryx2 (zero-copy), a Python publisher and four Python subscribers "
-        "reading every byte, same run; at 1 MiB 30 Hz also a bare Python relay between a writer and four readers "
-        "(what the path costs)",
+        "back, each phase measured after a warm-up burst of its frames to every reader (the first seconds of 1 MiB at "
+        "30 Hz, cold, shown beside); the judged 1 MiB 30 Hz phase and Zenoh's at once, in turns (CAST's writer in "
+        "the even seconds, Zenoh's publisher in the odd ones), each half shown beside; a Python watcher in "
+        "another network namespace (bytes); peer Zenoh and floor iceoryx2 (zero-copy), a Python publisher and "
+        "four Python subscribers reading every byte, same run; at 1 MiB 30 Hz also a bare Python relay between a "
+        "writer and four readers (what the path costs)",
         "target": f"1 MiB at 30 Hz: every watcher's p50 <= {M8_ZENOH_P50} x Zenoh's, p99 <= {M8_P99_US} µs; 6 MiB "
         f"at 30 Hz: p99 <= {M8_BIG_P99_US} µs; 1 MiB back to back: MB/s to the four >= {M8_ZENOH_MB} x Zenoh's; "
         "0 lost, every checksum right, the other host gets every frame as bytes; server memory (private + "

@@ -19,11 +19,13 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections.abc import Callable
 from importlib.metadata import version
 from typing import Any
 
 import zenoh
 
+from bench import turns
 from bench.delivery_stats import watcher_figures
 from bench.harness import PYTHON, free_port
 from bench.peer_fanout import END, WARM, Receiver, Subscribers, drive, frame
@@ -65,10 +67,11 @@ class _Publisher:
             self.close()
             raise
 
-    def run(self, frames: int, gap_s: float, size: int, warm: int = 0, warm_size: int = 0,
-            cold: int = 0) -> tuple[dict[int, int], list[dict[str, Any]]]:
+    def run(self, frames: int, gap_s: float, size: int, warm: int = 0, warm_size: int = 0, cold: int = 0,
+            turn: int = turns.NONE, go: Callable[[], object] | None = None
+            ) -> tuple[dict[int, int], list[dict[str, Any]]]:
         """Publish (as :func:`bench.peer_fanout.drive`), end, and collect every subscriber's report."""
-        sent = drive(self.publisher.put, frames, gap_s, size, warm, warm_size, cold)
+        sent = drive(self.publisher.put, frames, gap_s, size, warm, warm_size, cold, turn, go)
         self.publisher.put(frame(END, 16))
         return sent, self.subs.results()
 
@@ -93,16 +96,17 @@ def latency(n: int, gap_s: float) -> dict[str, Any]:
 
 
 def large(frames: int, gap_s: float, size: int, subscribers: int = 4, warm: int = 0,
-          warm_size: int = 0, cold: int = 0) -> dict[str, Any]:
+          warm_size: int = 0, cold: int = 0, turn: int = turns.NONE,
+          go: Callable[[], object] | None = None) -> dict[str, Any]:
     """M8's run for Zenoh: ``frames`` values of ``size`` bytes, ``gap_s`` apart (0: back to back).
 
     Before them ``cold`` paced values and ``warm`` of ``warm_size`` bytes back to back, as M8's writer
-    sends (:func:`bench.peer_fanout.drive`). Each subscriber reads every byte of
-    each value (a checksum) before it stamps it, as M8's watchers do.
+    sends (:func:`bench.peer_fanout.drive`, which also says what ``turn`` and ``go`` do). Each subscriber
+    reads every byte of each value (a checksum) before it stamps it, as M8's watchers do.
     """
     pub = _Publisher(subscribers, read_all=True)
     try:
-        sent, got = pub.run(frames, gap_s, size, warm, warm_size, cold)
+        sent, got = pub.run(frames, gap_s, size, warm, warm_size, cold, turn, go)
     finally:
         pub.close()
     return {"sent": sent, "watchers": got}

@@ -23,7 +23,7 @@
 //
 // Image-sized entries (M8, bench/images.py):
 //
-//   cast_bench image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US]]]
+//   cast_bench image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US [TURN]]]]
 //                               adds "img" (a BytesValue of SIZE bytes), then
 //                               COLD overwrites (default 0) paced as the N below
 //                               (the readers' first seconds), WARM (default 0) of
@@ -40,7 +40,14 @@
 //                               tells the three parts apart by revision). The
 //                               values alternate: bytes of 1, of 2 (as
 //                               bench/image_writer.py's, so that
-//                               bench/shared_memory.py checks the watchers' sums)
+//                               bench/shared_memory.py checks the watchers' sums).
+//                               With TURN 1 (the even seconds) or 2 (the odd
+//                               ones) it prints "warm" after the warm-up, reads
+//                               one line of stdin, and writes the N only in its
+//                               turn: from 70 ms into each of its seconds of
+//                               CLOCK_MONOTONIC, the pace starting again there
+//                               (bench/turns.py, which measures M8's judged
+//                               phase and Zenoh's at once)
 //   cast_bench image-watch DELIVERY
 //                               onChange(addressFilter("img") with the entry,
 //                               Delivery queue|latest); prints "ready", then at
@@ -182,13 +189,25 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 // (bench.peer_fanout.SETTLE_S for the peers).
 constexpr auto kSettle = std::chrono::milliseconds(300);
 
+// image-write's turns (bench/turns.py): the even seconds of CLOCK_MONOTONIC (1) or the odd ones (2), each from
+// kTurnSkipNs on, so that the other side's last frame is read before this side's first.
+constexpr std::int64_t kSecondNs = 1'000'000'000, kTurnSkipNs = 70'000'000;
+
+// The first moment at or after `ns` in `turn`'s writing time (bench.turns.next_start).
+std::int64_t turnStart(int turn, std::int64_t ns) {
+  const std::int64_t parity = turn == 1 ? 0 : 1;
+  const std::int64_t second = ns / kSecondNs;
+  if (second % 2 == parity) return ns % kSecondNs >= kTurnSkipNs ? ns : second * kSecondNs + kTurnSkipNs;
+  return (second + 1) * kSecondNs + kTurnSkipNs;
+}
+
 // image-write's warm-up: `count` values of `size` bytes, back to back in bursts of `burst` (0: one burst), with
 // `pauseUs` between bursts, so that no watcher falls a history's length behind before the measured part.
 struct WarmUp {
   long count = 0, size = 0, burst = 0, pauseUs = 0;
 };
 
-int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold) {
+int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold, int turn) {
   // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
   std::vector<google::protobuf::BytesValue> values(4);
   auto byteOf = [](std::size_t k) { return static_cast<char>(k % 2 + 1); };  // values[k]'s every byte
@@ -200,10 +219,19 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
   long written = 0;  // the values alternate 1s, 2s over every overwrite, the warm-up's too
   // `count` overwrites with values[base], values[base + 1], the i-th started at start + i * gap (an absolute
   // schedule, so the rate holds whatever each overwrite took; 0: back to back), each stamped just before it.
-  auto overwrite = [&](long count, long gap, std::size_t base) {
-    const auto start = Clock::now();
-    for (long i = 0; i < count; ++i, ++written) {
-      if (gap > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gap * i));
+  // With a turn, one that would fall outside it waits for the turn's next start, and the schedule starts again.
+  auto overwrite = [&](long count, long gap, std::size_t base, int inTurn) {
+    auto start = Clock::now();
+    for (long i = 0, step = 0; i < count; ++i, ++written, ++step) {
+      if (gap > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gap * step));
+      if (inTurn != 0) {
+        const std::int64_t now = nowNs(), begin = turnStart(inTurn, now);
+        if (begin != now) {
+          std::this_thread::sleep_until(Clock::time_point(std::chrono::nanoseconds(begin)));
+          start = Clock::now();
+          step = 0;
+        }
+      }
       // Each frame is made just before its stamp, as the peers' publisher makes its payload
       // (bench.peer_fanout.drive): its bytes written again in place, so that, like a camera driver's fresh
       // frame, it is in the cache when it is published rather than where 66 ms of other frames left it.
@@ -216,16 +244,21 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
     }
   };
   c.add("img", values[0]);
-  overwrite(cold, gapUs, 0);  // the first seconds, every reader cold
+  overwrite(cold, gapUs, 0, 0);  // the first seconds, every reader cold
   if (warm.count > 0) {
     const long burst = warm.burst > 0 ? warm.burst : warm.count;
     for (long left = warm.count; left > 0; left -= burst) {
-      overwrite(std::min(burst, left), 0, 2);
+      overwrite(std::min(burst, left), 0, 2, 0);
       if (left > burst) std::this_thread::sleep_for(std::chrono::microseconds(warm.pauseUs));
     }
     std::this_thread::sleep_for(kSettle);
   }
-  overwrite(n, gapUs, 0);
+  if (turn != 0) {  // the other side warms up meanwhile: the measured part waits for the word
+    std::cout << "warm" << std::endl;
+    std::string go;
+    std::getline(std::cin, go);
+  }
+  overwrite(n, gapUs, 0, turn);
   c.deleteEntry("img");  // the watchers' end mark; a later run adds it again
   std::cout << stampsJson(sent) << std::endl;
   return 0;
@@ -311,7 +344,7 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
 
 int usage() {
   std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | "
-               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US]]] | "
+               "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US [TURN]]]] | "
                "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
 }
@@ -325,6 +358,9 @@ int main(int argc, char** argv) {
   if (mode == "image-watch" && std::string(argv[2]) != "queue" && std::string(argv[2]) != "latest") return usage();
   if (mode != "image-watch" && n <= 0) return usage();
   if ((mode == "write" && argc < 4) || (mode == "image-write" && argc < 5)) return usage();
+  if (mode == "image-write" && argc > 10 && std::string(argv[10]) != "0" && std::string(argv[10]) != "1" &&
+      std::string(argv[10]) != "2")
+    return usage();
   try {
     const auto contract = cast::LaunchContract::fromEnv();
     BenchComponent component;
@@ -341,7 +377,8 @@ int main(int argc, char** argv) {
                                    argc > 6 ? std::strtol(argv[6], nullptr, 10) : n,
                                    argc > 8 ? std::strtol(argv[8], nullptr, 10) : 0,
                                    argc > 9 ? std::strtol(argv[9], nullptr, 10) : 0},
-                            argc > 7 ? std::strtol(argv[7], nullptr, 10) : 0);
+                            argc > 7 ? std::strtol(argv[7], nullptr, 10) : 0,
+                            argc > 10 ? static_cast<int>(std::strtol(argv[10], nullptr, 10)) : 0);
     else if (mode == "image-watch") code = imageWatchMode(component, argv[2]);
     else return usage();
     component.close();

@@ -13,14 +13,15 @@ import pytest
 
 from bench import peer_fanout
 from bench.checksum import expected_cast, expected_frames, word_sum
-from bench.delivery_stats import parse_watcher, pooled, totals, watcher_figures
-from bench.images import REMOTE, WATCHERS, ServerMemory, figures, shared_bytes
+from bench.delivery_stats import parse_watcher, totals, watcher_figures
+from bench.images import REMOTE, WATCHERS, _halves, figures
 from bench.many_components import split
 from bench.peer_fanout import END, WARM, Receiver, drive, frame
 from bench.report import cpu_idle, plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
 from bench.rows_scale import RELAY, m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
+from bench.server_memory import ServerMemory, shared_bytes
 from bench.stream_cases import window
 
 MS = 1_000_000  # ns
@@ -65,8 +66,8 @@ def test_m8_judges_the_frames_after_the_warm_up_and_shows_the_first_seconds_apar
     assert whole["watchers"]["Java"]["p99_us"] == 50_000.0 and "cold_p50_us" not in whole["watchers"]["Java"]
 
 
-def _round(latencies_ms: list[int], lost: int = 0, checksum_ok: bool = True, peak: int = 100) -> dict[str, Any]:
-    """One round of a phase as figures() gives it: one watcher, Java, with these latencies."""
+def _phase(latencies_ms: list[int], lost: int = 0, checksum_ok: bool = True, peak: int = 100) -> dict[str, Any]:
+    """A phase as figures() gives it: one watcher, Java, with these latencies."""
     sent = {r: r * 100 * MS for r in range(1, len(latencies_ms) + 1)}
     got = {"Java": parse_watcher({"stamps": {str(r): sent[r] + d * MS for r, d in zip(sent, latencies_ms, strict=True)},
                                   "bytes": 1000 * len(sent), "events": len(sent) + 2 - lost, "shared": len(sent)})}
@@ -74,23 +75,11 @@ def _round(latencies_ms: list[int], lost: int = 0, checksum_ok: bool = True, pea
     return {**out, "size": 1000, "server_memory": {"peak": peak, "private": 1, "shared": 1}, "missing": {}}
 
 
-def test_rounds_pooled_are_judged_on_every_rounds_latencies_together() -> None:
-    fast, slow = _round([1] * 10, peak=300), _round([3] * 11 + [9], lost=2, checksum_ok=False, peak=200)
-    both = pooled([fast, slow])
-    java = both["watchers"]["Java"]
-    # The first tenth of each round left out as warm-up: 9 samples of 1 ms, 10 of 3 ms, one of 9 ms together.
-    # The rounds' own p50s were 1 and 3 ms.
-    assert java["p50_us"] == 3000.0 and java["p99_us"] == 9000.0 and len(java["samples_us"]) == 20
-    assert pooled([fast, _round([3] * 9 + [9])])["watchers"]["Java"]["p50_us"] == 1000.0  # by samples, not rounds
-    assert java["received"] == 22 and java["lost"] == 2 and java["shared"] == 22
-    assert not java["checksum_ok"]  # wrong in one round: wrong
-    assert both["frames"] == 22 and both["server_memory"]["peak"] == 300
-    assert both["rounds"] == [{"Java": 1000.0}, {"Java": 3000.0}]
-
-
-def test_a_round_that_failed_fails_the_pooled_phase() -> None:
-    assert pooled([_round([1] * 10), {"error": "Java watcher exited 1"}]) == {
-        "error": "the second of 2 rounds: Java watcher exited 1"}
+def test_the_judged_phase_shows_each_sides_p50_over_each_half_of_its_frames() -> None:
+    # 20 measured frames, the first 2 left out as settling: 9 of 1 ms, then 9 of 3 ms.
+    result = _phase([1] * 11 + [3] * 9)
+    assert _halves(result) == [{"Java": 1000.0}, {"Java": 3000.0}]
+    assert _halves({"error": "Java watcher exited 1"}) == [{}, {}]
 
 
 def test_the_peers_get_the_same_cold_frames_warm_up_and_pause(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -324,15 +313,16 @@ def test_m8_shows_the_first_seconds_beside_the_peers_without_judging_them() -> N
     assert not any("first" in name for name in (f["name"] for f in m8_row(_m8())["figures"]))  # none measured
 
 
-def test_m8_shows_each_round_of_the_judged_phase_beside_zenohs_same_round() -> None:
+def test_m8_shows_each_half_of_the_judged_phase_beside_zenohs_same_half() -> None:
     m8 = _m8()
-    m8["cast_queue_hz"]["rounds"] = [{"Python 1": 1100.0, "Java": 1300.0}, {"Python 1": 1250.0, "Java": 1200.0}]
-    m8["zenoh_hz"]["rounds"] = [{"subscriber 1": 1000.0, "subscriber 2": 1200.0}, {"subscriber 1": 1150.0,
+    m8["cast_queue_hz"]["halves"] = [{"Python 1": 1100.0, "Java": 1300.0}, {"Python 1": 1250.0, "Java": 1200.0}]
+    m8["zenoh_hz"]["halves"] = [{"subscriber 1": 1000.0, "subscriber 2": 1200.0}, {"subscriber 1": 1150.0,
                                                                                    "subscriber 2": 1150.0}]
-    rounds = [f for f in m8_row(m8)["figures"] if " rounds: " in f["name"]]
-    assert [(f["value"], f["peer"]) for f in rounds] == [(1300.0, 1100.0), (1250.0, 1150.0)]
-    assert rounds[0]["name"].startswith("1 MiB, queue, 30 Hz, the first of 2 rounds: the slowest watcher's p50 (Java")
-    assert m8_misses(m8) == []  # shown, not judged: the pooled figures are
+    halves = [f for f in m8_row(m8)["figures"] if " half of the turns: " in f["name"]]
+    assert [(f["value"], f["peer"]) for f in halves] == [(1300.0, 1100.0), (1250.0, 1150.0)]
+    assert halves[0]["name"].startswith("1 MiB, queue, 30 Hz, the first half of the turns: the slowest watcher's "
+                                        "p50 (Java")
+    assert m8_misses(m8) == []  # shown, not judged: the whole phase's figures are
 
 
 def _m9(p99_10: float, p99_500: float, lost: int = 0) -> dict[str, Any]:
