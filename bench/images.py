@@ -313,7 +313,7 @@ def in_turns(server: Server, writer: list[str], frames: int, cold: int, warm: in
     Each result is :func:`figures`' for that side, with ``halves``: its
     watchers' p50s over the first and over the second half of its measured
     frames, to show how much the two systems moved together. The server's
-    memory is sampled in CAST's seconds. Raises RuntimeError when CAST's
+    memory is sampled between the turns (:class:`ServerMemory`). Raises RuntimeError when CAST's
     side fails (Zenoh's side's own failure is its result's ``error``).
     """
     commands = [(label, _watcher_command(label, "queue")) for label in WATCHERS]
@@ -338,7 +338,7 @@ def in_turns(server: Server, writer: list[str], frames: int, cold: int, warm: in
     thread = threading.Thread(target=zenoh, name="m8-zenoh", daemon=True)
     watchers = _Watchers(server, commands, "queue_hz")
     try:
-        memory = ServerMemory(server.proc.process.pid, turns.CAST)
+        memory = ServerMemory(server.proc.process.pid, between_turns=True)
         try:
             sent = _write_in_turns(server, command, thread, peer_warm, go)
             got = watchers.results()

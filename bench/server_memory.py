@@ -9,12 +9,15 @@ from collections.abc import Sequence
 
 from bench import turns
 
-__all__ = ["PRIVATE_EVERY_S", "SHARED_EVERY", "ServerMemory", "idle_memory", "shared_bytes"]
+__all__ = ["PRIVATE_EVERY_S", "QUIET_AT_NS", "SHARED_EVERY", "ServerMemory", "idle_memory", "shared_bytes"]
 
 PRIVATE_EVERY_S = 0.1
 """How often :class:`ServerMemory` reads the server's private memory."""
 SHARED_EVERY = 2
 """Every how many of those samples it reads the server's shared memory too (every 200 ms)."""
+QUIET_AT_NS = 10_000_000
+"""Between turns, it samples this far into each second: the last frame of the second before has been read, and
+the next side writes from :data:`bench.turns.SKIP_NS` on."""
 
 
 def _status_kib(pid: int, keys: Sequence[str]) -> int:
@@ -66,14 +69,15 @@ class ServerMemory:
     (docs/performance.md, "The memory bound"). The shared memory changes by
     whole arena segments, made when the others are full and retired by a pass
     once a second that keeps one spare while values come, so its steps outlast
-    the 200 ms between those samples. With a ``turn`` (:mod:`bench.turns`) it
-    samples in that turn's seconds only: M8's judged phase runs Zenoh in the
-    other seconds, on the same machine, and the sampler is CAST's to bear.
+    the 200 ms between those samples. With ``between_turns`` (M8's judged
+    phase, :mod:`bench.turns`) it reads both once a second, :data:`QUIET_AT_NS`
+    into the second, when neither CAST nor Zenoh writes: the sampler is the
+    benchmark's instrument, and its CPU then meets no frame of either side.
     """
 
-    def __init__(self, pid: int, turn: int = turns.NONE) -> None:
+    def __init__(self, pid: int, between_turns: bool = False) -> None:
         self._pid = pid
-        self._turn = turn
+        self._between_turns = between_turns
         self.peak = self.private = self.shared = 0
         self._last_shared = 0
         self._sample_once(True)
@@ -91,14 +95,20 @@ class ServerMemory:
 
     def _sample(self) -> None:
         count = 0
-        while not self._stop.wait(PRIVATE_EVERY_S):
-            if self._turn and not turns.in_turn(self._turn, time.monotonic_ns()):
-                continue
+        while not self._stop.wait(self._until_next()):
             count += 1
             try:
-                self._sample_once(count % SHARED_EVERY == 0)
+                self._sample_once(self._between_turns or count % SHARED_EVERY == 0)
             except OSError:  # the server ended
                 return
+
+    def _until_next(self) -> float:
+        """Seconds to the next sample: PRIVATE_EVERY_S, or to QUIET_AT_NS into the next second between turns."""
+        if not self._between_turns:
+            return PRIVATE_EVERY_S
+        now = time.monotonic_ns()
+        at = now // turns.SECOND_NS * turns.SECOND_NS + QUIET_AT_NS
+        return ((at if at > now else at + turns.SECOND_NS) - now) / 1e9
 
     def stop(self) -> dict[str, int]:
         """Stop sampling, read both once more, and give the peaks in bytes."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
@@ -11,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from bench import peer_fanout
+from bench import peer_fanout, turns
 from bench.checksum import expected_cast, expected_frames, word_sum
 from bench.delivery_stats import parse_watcher, totals, watcher_figures
 from bench.images import REMOTE, WATCHERS, _halves, figures
@@ -21,7 +22,7 @@ from bench.report import cpu_idle, plot_panels
 from bench.rows import Results, rows
 from bench.rows_calls import m1_row, m1p_row, m3_row
 from bench.rows_scale import RELAY, m8_memory_bound, m8_misses, m8_row, m9_misses, m9_row
-from bench.server_memory import ServerMemory, shared_bytes
+from bench.server_memory import QUIET_AT_NS, ServerMemory, shared_bytes
 from bench.stream_cases import window
 
 MS = 1_000_000  # ns
@@ -436,3 +437,22 @@ def test_the_server_memory_sampler_reads_the_shared_memory_again_when_it_stops()
         os.close(fd)
     assert peaks["shared"] >= 5 << 20
     assert peaks["peak"] >= 5 << 20
+
+
+def test_between_turns_the_sampler_reads_once_a_second_before_either_side_writes(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    moments: list[tuple[int, bool]] = []
+    sample = ServerMemory._sample_once
+
+    def recorded(self: ServerMemory, shared_too: bool) -> None:
+        moments.append((time.monotonic_ns(), shared_too))
+        sample(self, shared_too)
+
+    monkeypatch.setattr(ServerMemory, "_sample_once", recorded)
+    memory = ServerMemory(os.getpid(), between_turns=True)
+    time.sleep(2.3)
+    memory.stop()
+    between = moments[1:-1]  # the first and the last come at its start and its stop, whenever they are
+    assert len(between) >= 2, moments
+    for ns, shared_too in between:
+        assert shared_too and QUIET_AT_NS <= ns % 1_000_000_000 < turns.SKIP_NS, moments
