@@ -16,6 +16,7 @@ import yaml
 from google.protobuf.wrappers_pb2 import BytesValue, StringValue
 
 import cast
+from bench import turns
 from bench.floors import GAP_S, EchoFloor
 from bench.harness import PYTHON, child_env, latencies_us, percentile, rate, start, summary_us
 from cast.auth import TokenSigner
@@ -125,22 +126,27 @@ print(json.dumps(stamps), flush=True)
 """
 
 
-def m3_latency(server: Server, n: int, gap_s: float = GAP_S) -> dict[str, Any]:
+def m3_latency(server: Server, n: int, gap_s: float = GAP_S, sa: str = "bench", turn: int = turns.NONE,
+               sides: int = 2) -> dict[str, Any]:
     """M3: write -> event latency from a writer (this process) to a watcher in its own process.
 
     Writes are spaced by ``gap_s`` so each sample sees an idle system; both
     processes stamp with CLOCK_MONOTONIC (time.perf_counter), which is shared
-    by all processes of a Linux machine.
+    by all processes of a Linux machine. With a ``turn`` of ``sides``
+    (:mod:`bench.turns`), each write waits for its turn: M7 takes the three
+    languages' latencies so, each in its own SA.
     """
-    env = child_env(server.env("m3-watcher", "bench"))
+    env = child_env(server.env(f"m3-watcher-{sa}", sa))
     watcher = subprocess.Popen([PYTHON, "-c", LATENCY_WATCHER, str(n)], env=env, stdout=subprocess.PIPE, text=True)
     assert watcher.stdout is not None
     assert watcher.stdout.readline().strip() == "ready"
-    writer = server.component("m3-writer", "bench")
+    writer = server.component(f"m3-writer-{sa}", sa)
     sent: dict[int, float] = {}
     first = writer.add("lat", VALUE).revision
     for _ in range(n - 1):
         time.sleep(gap_s)
+        if turn:
+            turns.wait_for_turn(turn, sides)
         t0 = time.perf_counter()
         sent[writer.overwrite("lat", VALUE).revision] = t0
     out, _ = watcher.communicate(timeout=120)

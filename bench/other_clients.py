@@ -13,9 +13,9 @@ launch contract from the environment and a mode:
   stdin, W untimed adds, B timed sequential adds and a line with the seconds they took.
 - ``watch N``: a watch on address "lat" of its SA; prints ``ready``, then after N
   events ``{revision: CLOCK_MONOTONIC ns at callback time}``.
-- ``write N GAP_MS [WARM]``: adds "lat", WARM overwrites back to back, then N-1
+- ``write N GAP_MS [WARM [TURN SIDES]]``: adds "lat", WARM overwrites back to back, then N-1
   overwrites spaced by GAP_MS, stamping CLOCK_MONOTONIC ns just before each; prints
-  ``{revision: ns}``.
+  ``{revision: ns}``. With TURN, every overwrite waits for its turn (:mod:`bench.turns`).
 
 The Python client is measured again here and is the floor of every figure. Add:
 each language's process is warmed up, then they take blocks of 100 sequential adds
@@ -24,8 +24,12 @@ runs of a few seconds each a rate moves by 10% or more on this machine, so runs 
 after the other (as this row was first measured) could not tell a 5% difference.
 The latency is computed exactly as :func:`bench.cast_cases.m3_latency` does it for
 Python (writer and watcher in separate processes, 2 ms spacing, the add and the
-first tenth, at most 50, of the samples dropped as warm-up), one language after
-the other.
+first tenth, at most 50, of the samples dropped as warm-up), the three languages
+at once, in turns (:mod:`bench.turns`): each pair in an SA of its own, each writer
+writing in every third second only, so that a spell of this machine slows all
+three alike (one after the other, a spell could put C++ at 0.69 x Python's in one
+run and 1.31 x in the next). Java's judged latency comes after JIT_WARM warm-up
+writes in its turns; its latency without them is measured alone, before, and shown.
 """
 
 from __future__ import annotations
@@ -35,11 +39,13 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from bench import turns
 from bench.cast_cases import VALUE, Server, m3_latency
 from bench.floors import GAP_S
 from bench.harness import ROOT, child_env, summary_us
@@ -49,7 +55,9 @@ JAVA_JAR = ROOT / "java_client" / "target" / "cast-client-all.jar"
 JAVA_TEST_CLASSES = ROOT / "java_client" / "target" / "test-classes"
 JAVA_BENCH_CLASS = "cast.bench.Bench"
 TIMEOUT_S = 180
-SA = "bench"  # m3_latency, the Python floor, writes in this SA
+SA = "bench"  # the Add blocks' SA
+LATENCY_SA = {"Python": "lat-python", "C++": "lat-cpp", "Java": "lat-java"}
+"""Each language's write -> event latency pair writes and watches in an SA of its own: they run at once, in turns."""
 # A client in a compiled language, on the write stream too, should not be held to Python's pace.
 ADD_RATIO = 1.5
 
@@ -99,11 +107,13 @@ def add_rate(cmd: list[str], server: Server, sa: str, n: int, tag: str, warm: in
 
 
 def latency(
-    cmd: list[str], server: Server, sa: str, n: int, gap_s: float = GAP_S, warm: int = 0, tag: str = ""
+    cmd: list[str], server: Server, sa: str, n: int, gap_s: float = GAP_S, warm: int = 0, tag: str = "",
+    turn: int = turns.NONE, sides: int = 2,
 ) -> dict[str, Any]:
     """Write -> event latency: a writer process and a watcher process of the same language.
 
-    With `warm`, the writer first overwrites that many times back to back (not measured).
+    With `warm`, the writer first overwrites that many times back to back (not measured);
+    with a `turn` of `sides`, each of its overwrites waits for its turn (:mod:`bench.turns`).
     """
     # The watcher's log goes to a file: a pipe nobody reads could fill up and stop it.
     errors = tempfile.TemporaryFile("w+")
@@ -124,7 +134,7 @@ def latency(
         sent = {
             int(k): v
             for k, v in _run(
-                [*cmd, "write", str(n), str(round(gap_s * 1000)), str(warm)],
+                [*cmd, "write", str(n), str(round(gap_s * 1000)), str(warm), str(turn), str(sides)],
                 child_env(server.env(f"m7-writer{tag}", sa)),
                 f"{cmd[-1]} write",
             ).items()
@@ -277,7 +287,7 @@ def run(
     rates: dict[str, float] = {}
     lat: dict[str, dict[str, Any]] = {}
     jit: dict[str, Any] = {}
-    server = Server(workdir, [SA])
+    server = Server(workdir, [SA, *LATENCY_SA.values()])
 
     def attempt(label: str, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         if label in failed:
@@ -295,10 +305,36 @@ def run(
         warm = jit_warm if label == "Java" and jit_warm else 200
         return Blocks(commands[label], child_env(server.env(f"m7-add-{label.lower()}", SA)), warm, f"{label} blocks")
 
-    def event_latency(label: str, warm: int = 0) -> dict[str, Any]:
+    def event_latency(label: str, warm: int = 0, turn: int = turns.NONE, sides: int = 2) -> dict[str, Any]:
+        sa = LATENCY_SA[label]
         if label == "Python":
-            return m3_latency(server, n)
-        return latency(commands[label], server, SA, n, warm=warm, tag=f"-{label.lower()}-w{warm}")
+            return m3_latency(server, n, sa=sa, turn=turn, sides=sides)
+        return latency(commands[label], server, sa, n, warm=warm, tag=f"-{label.lower()}-w{warm}", turn=turn,
+                       sides=sides)
+
+    def latencies_in_turns() -> None:
+        """Every language's latency at once, each writer in its turn; Java's after its JIT warm-up (judged)."""
+        warm = {"Java": jit_warm} if jit_warm else {}
+        live = [label for label in labels if label not in failed]
+        got: dict[str, Any] = {}
+
+        def one(label: str, turn: int) -> None:
+            got[label] = attempt(label, "write -> event latency, in turns", event_latency, label,
+                                 warm=warm.get(label, 0), turn=turn, sides=len(live))
+
+        log(f"M7 write -> event latency: {', '.join(live)} at once, in turns of a second")
+        threads = [threading.Thread(target=one, args=(label, turn), name=f"m7-{label}")
+                   for turn, label in enumerate(live, 1)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        for label, result in got.items():
+            if result is not None:
+                if label == "Java" and jit_warm:
+                    jit["latency"] = result
+                else:
+                    lat[label] = result
 
     clients: dict[str, Blocks | PythonBlocks] = {}
     try:
@@ -316,18 +352,11 @@ def run(
         except (RuntimeError, OSError) as exc:
             for label in clients:
                 failed.setdefault(label, f"interleaved Add: {exc}")
-        for label in labels:
-            got = attempt(label, "write -> event latency", event_latency, label)
-            if got is not None:
-                lat[label] = got
-        if "Java" in commands and jit_warm:
-            jit["latency"] = attempt(
-                "Java",
-                f"write -> event latency after {jit_warm:,} warm-up writes",
-                event_latency,
-                "Java",
-                warm=jit_warm,
-            )
+        if "Java" in commands and jit_warm:  # shown beside the judged one: the JIT still compiling, alone
+            cold = attempt("Java", "write -> event latency without warm-up writes", event_latency, "Java")
+            if cold is not None:
+                lat["Java"] = cold
+        latencies_in_turns()
     finally:
         for client in clients.values():
             client.close()

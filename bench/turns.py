@@ -9,7 +9,9 @@ both started and warmed up, and lets each write only in its own seconds of
 ``CLOCK_MONOTONIC``: CAST's C++ writer (``cast_bench image-write`` with a turn)
 in the even ones, the peer's publisher (:func:`bench.peer_fanout.drive` with a
 turn) in the odd ones. The two sides then share the machine's state to within
-a second, and the other side's processes sleep while one side writes.
+a second, and the other side's processes sleep while one side writes. M7
+measures the write -> event latencies of its three client libraries the same
+way, three sides taking a second each in turn.
 
 A side writes in its seconds from :data:`SKIP_NS` after the second begins,
 so that the other side's last frame is read before its first; its frames keep
@@ -31,27 +33,30 @@ SKIP_NS = 70_000_000
 SECOND_NS = 1_000_000_000
 
 
-def in_turn(turn: int, ns: int) -> bool:
-    """Whether CLOCK_MONOTONIC time ``ns`` is in ``turn``'s writing time (always, for NONE)."""
+def in_turn(turn: int, ns: int, sides: int = 2) -> bool:
+    """Whether CLOCK_MONOTONIC time ``ns`` is in ``turn``'s writing time (always, for NONE).
+
+    Of ``sides`` sides taking turns, side ``turn`` (1 to ``sides``) writes in
+    the seconds whose number modulo ``sides`` is ``turn - 1``: with two, CAST
+    in the even ones and PEER in the odd ones.
+    """
     if turn == NONE:
         return True
-    return ns // SECOND_NS % 2 == (0 if turn == CAST else 1) and ns % SECOND_NS >= SKIP_NS
+    return ns // SECOND_NS % sides == turn - 1 and ns % SECOND_NS >= SKIP_NS
 
 
-def next_start(turn: int, ns: int) -> int:
+def next_start(turn: int, ns: int, sides: int = 2) -> int:
     """The first moment at or after ``ns`` in ``turn``'s writing time."""
-    if in_turn(turn, ns):
+    if in_turn(turn, ns, sides):
         return ns
     second = ns // SECOND_NS
-    if second % 2 == (0 if turn == CAST else 1):  # its second, not yet SKIP_NS into it
-        return second * SECOND_NS + SKIP_NS
-    return (second + 1) * SECOND_NS + SKIP_NS
+    return (second + (turn - 1 - second) % sides) * SECOND_NS + SKIP_NS
 
 
-def wait_for_turn(turn: int) -> bool:
+def wait_for_turn(turn: int, sides: int = 2) -> bool:
     """Sleep until ``turn``'s writing time; True if it slept (its pace starts again from now)."""
     now = time.monotonic_ns()
-    start = next_start(turn, now)
+    start = next_start(turn, now, sides)
     if start == now:
         return False
     time.sleep((start - now) / 1e9)

@@ -17,9 +17,15 @@
 //                               "ready" once the watch is confirmed, then after N
 //                               events {"REVISION": NS, ...}, NS the
 //                               steady_clock (CLOCK_MONOTONIC) time in the callback
-//   cast_bench write N GAP_MS   adds "lat", then N-1 overwrites spaced by GAP_MS,
+//   cast_bench write N GAP_MS [WARM [TURN SIDES]]
+//                               adds "lat", WARM overwrites back to back (not
+//                               measured), then N-1 overwrites spaced by GAP_MS,
 //                               stamping CLOCK_MONOTONIC just before each one;
-//                               prints {"REVISION": NS, ...} (the overwrites)
+//                               prints {"REVISION": NS, ...} (the measured ones).
+//                               With TURN (1..SIDES) every overwrite is in its
+//                               turn: the seconds whose number modulo SIDES is
+//                               TURN - 1, from 70 ms into each (bench/turns.py;
+//                               M7 measures the three languages' latencies so)
 //
 // Image-sized entries (M8, bench/images.py):
 //
@@ -169,13 +175,43 @@ int watchMode(cast::Component& c, long n) {
   return 0;
 }
 
-int writeMode(cast::Component& c, long n, long gapMs, long warm) {
+// Turns (bench/turns.py): of `sides` writers that share the machine, side `turn` (1..sides) writes in the
+// seconds of CLOCK_MONOTONIC whose number modulo `sides` is turn - 1, each from kTurnSkipNs on, so that the
+// side before has been read. Turn 0: no turn, write at any time.
+constexpr std::int64_t kSecondNs = 1'000'000'000, kTurnSkipNs = 70'000'000;
+
+struct Turn {
+  int turn = 0, sides = 2;
+};
+
+// The first moment at or after `ns` in the turn's writing time (bench.turns.next_start).
+std::int64_t turnStart(const Turn& t, std::int64_t ns) {
+  if (t.turn == 0) return ns;
+  const std::int64_t second = ns / kSecondNs, mine = t.turn - 1;
+  if (second % t.sides == mine) return ns % kSecondNs >= kTurnSkipNs ? ns : second * kSecondNs + kTurnSkipNs;
+  const std::int64_t ahead = ((mine - second % t.sides) % t.sides + t.sides) % t.sides;
+  return (second + ahead) * kSecondNs + kTurnSkipNs;
+}
+
+// Sleeps until the turn's writing time; true if it slept (a paced schedule starts again from now).
+bool waitForTurn(const Turn& t) {
+  const std::int64_t now = nowNs(), begin = turnStart(t, now);
+  if (begin == now) return false;
+  std::this_thread::sleep_until(Clock::time_point(std::chrono::nanoseconds(begin)));
+  return true;
+}
+
+int writeMode(cast::Component& c, long n, long gapMs, long warm, const Turn& turn) {
   const auto value = value100();
   std::map<std::uint64_t, std::int64_t> sent;
   c.add("lat", value);
-  for (long i = 0; i < warm; ++i) c.overwrite("lat", value);
+  for (long i = 0; i < warm; ++i) {
+    waitForTurn(turn);
+    c.overwrite("lat", value);
+  }
   for (long i = 0; i < n - 1; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(gapMs));
+    waitForTurn(turn);
     const std::int64_t t0 = nowNs();
     sent[c.overwrite("lat", value).revision] = t0;
   }
@@ -189,25 +225,13 @@ int writeMode(cast::Component& c, long n, long gapMs, long warm) {
 // (bench.peer_fanout.SETTLE_S for the peers).
 constexpr auto kSettle = std::chrono::milliseconds(300);
 
-// image-write's turns (bench/turns.py): the even seconds of CLOCK_MONOTONIC (1) or the odd ones (2), each from
-// kTurnSkipNs on, so that the other side's last frame is read before this side's first.
-constexpr std::int64_t kSecondNs = 1'000'000'000, kTurnSkipNs = 70'000'000;
-
-// The first moment at or after `ns` in `turn`'s writing time (bench.turns.next_start).
-std::int64_t turnStart(int turn, std::int64_t ns) {
-  const std::int64_t parity = turn == 1 ? 0 : 1;
-  const std::int64_t second = ns / kSecondNs;
-  if (second % 2 == parity) return ns % kSecondNs >= kTurnSkipNs ? ns : second * kSecondNs + kTurnSkipNs;
-  return (second + 1) * kSecondNs + kTurnSkipNs;
-}
-
 // image-write's warm-up: `count` values of `size` bytes, back to back in bursts of `burst` (0: one burst), with
 // `pauseUs` between bursts, so that no watcher falls a history's length behind before the measured part.
 struct WarmUp {
   long count = 0, size = 0, burst = 0, pauseUs = 0;
 };
 
-int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold, int turn) {
+int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold, const Turn& turn) {
   // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
   std::vector<google::protobuf::BytesValue> values(4);
   auto byteOf = [](std::size_t k) { return static_cast<char>(k % 2 + 1); };  // values[k]'s every byte
@@ -220,17 +244,13 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
   // `count` overwrites with values[base], values[base + 1], the i-th started at start + i * gap (an absolute
   // schedule, so the rate holds whatever each overwrite took; 0: back to back), each stamped just before it.
   // With a turn, one that would fall outside it waits for the turn's next start, and the schedule starts again.
-  auto overwrite = [&](long count, long gap, std::size_t base, int inTurn) {
+  auto overwrite = [&](long count, long gap, std::size_t base, const Turn& inTurn) {
     auto start = Clock::now();
     for (long i = 0, step = 0; i < count; ++i, ++written, ++step) {
       if (gap > 0) std::this_thread::sleep_until(start + std::chrono::microseconds(gap * step));
-      if (inTurn != 0) {
-        const std::int64_t now = nowNs(), begin = turnStart(inTurn, now);
-        if (begin != now) {
-          std::this_thread::sleep_until(Clock::time_point(std::chrono::nanoseconds(begin)));
-          start = Clock::now();
-          step = 0;
-        }
+      if (waitForTurn(inTurn)) {
+        start = Clock::now();
+        step = 0;
       }
       // Each frame is made just before its stamp, as the peers' publisher makes its payload
       // (bench.peer_fanout.drive): its bytes written again in place, so that, like a camera driver's fresh
@@ -244,16 +264,16 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
     }
   };
   c.add("img", values[0]);
-  overwrite(cold, gapUs, 0, 0);  // the first seconds, every reader cold
+  overwrite(cold, gapUs, 0, Turn{});  // the first seconds, every reader cold
   if (warm.count > 0) {
     const long burst = warm.burst > 0 ? warm.burst : warm.count;
     for (long left = warm.count; left > 0; left -= burst) {
-      overwrite(std::min(burst, left), 0, 2, 0);
+      overwrite(std::min(burst, left), 0, 2, Turn{});
       if (left > burst) std::this_thread::sleep_for(std::chrono::microseconds(warm.pauseUs));
     }
     std::this_thread::sleep_for(kSettle);
   }
-  if (turn != 0) {  // the other side warms up meanwhile: the measured part waits for the word
+  if (turn.turn != 0) {  // the other side warms up meanwhile: the measured part waits for the word
     std::cout << "warm" << std::endl;
     std::string go;
     std::getline(std::cin, go);
@@ -343,7 +363,7 @@ int imageWatchMode(cast::Component& c, const std::string& delivery) {
 }
 
 int usage() {
-  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS | "
+  std::cerr << "usage: cast_bench add N | blocks WARM | watch N | write N GAP_MS [WARM [TURN SIDES]] | "
                "image-write SIZE N GAP_US [WARM WARM_SIZE [COLD [BURST PAUSE_US [TURN]]]] | "
                "image-watch queue|latest (with the CAST_* launch environment)\n";
   return 2;
@@ -361,6 +381,10 @@ int main(int argc, char** argv) {
   if (mode == "image-write" && argc > 10 && std::string(argv[10]) != "0" && std::string(argv[10]) != "1" &&
       std::string(argv[10]) != "2")
     return usage();
+  if (mode == "write" && argc > 5) {  // TURN SIDES: 1 <= TURN <= SIDES, or TURN 0 (none)
+    const long turn = std::strtol(argv[5], nullptr, 10), sides = argc > 6 ? std::strtol(argv[6], nullptr, 10) : 2;
+    if (turn < 0 || sides < 1 || turn > sides) return usage();
+  }
   try {
     const auto contract = cast::LaunchContract::fromEnv();
     BenchComponent component;
@@ -370,7 +394,10 @@ int main(int argc, char** argv) {
     else if (mode == "blocks") code = blocksMode(component, n);
     else if (mode == "watch") code = watchMode(component, n);
     else if (mode == "write")
-      code = writeMode(component, n, std::strtol(argv[3], nullptr, 10), argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0);
+      code = writeMode(component, n, std::strtol(argv[3], nullptr, 10),
+                       argc > 4 ? std::strtol(argv[4], nullptr, 10) : 0,
+                       Turn{argc > 5 ? static_cast<int>(std::strtol(argv[5], nullptr, 10)) : 0,
+                            argc > 6 ? static_cast<int>(std::strtol(argv[6], nullptr, 10)) : 2});
     else if (mode == "image-write")
       code = imageWriteMode(component, n, std::strtol(argv[3], nullptr, 10), std::strtol(argv[4], nullptr, 10),
                             WarmUp{argc > 5 ? std::strtol(argv[5], nullptr, 10) : 0,
@@ -378,7 +405,7 @@ int main(int argc, char** argv) {
                                    argc > 8 ? std::strtol(argv[8], nullptr, 10) : 0,
                                    argc > 9 ? std::strtol(argv[9], nullptr, 10) : 0},
                             argc > 7 ? std::strtol(argv[7], nullptr, 10) : 0,
-                            argc > 10 ? static_cast<int>(std::strtol(argv[10], nullptr, 10)) : 0);
+                            Turn{argc > 10 ? static_cast<int>(std::strtol(argv[10], nullptr, 10)) : 0, 2});
     else if (mode == "image-watch") code = imageWatchMode(component, argv[2]);
     else return usage();
     component.close();

@@ -11,6 +11,7 @@ from bench import peer_fanout, turns
 from bench.cast_cases import Server
 from bench.harness import child_env
 from bench.images import HISTORY_BYTES, SA, WARM_SIZE
+from bench.other_clients import java_command
 from tests.interop.cpp_support import cpp_executable
 
 S = 1_000_000_000
@@ -80,3 +81,43 @@ def test_cast_bench_refuses_a_turn_it_does_not_know() -> None:
     out = subprocess.run([str(cpp_executable("cast_bench")), "image-write", "1024", "1", "0", "0", "1024", "0",
                           "0", "0", "3"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 2 and "TURN" in out.stderr
+
+
+def test_three_sides_take_every_third_second() -> None:
+    assert [turns.in_turn(turn, 12 * S + turns.SKIP_NS, sides=3) for turn in (1, 2, 3)] == [True, False, False]
+    assert [turns.next_start(turn, 13 * S, sides=3) for turn in (1, 2, 3)] == [
+        15 * S + turns.SKIP_NS, 13 * S + turns.SKIP_NS, 14 * S + turns.SKIP_NS]
+
+
+def _latency_writes(tmp_path: Path, command: list[str], turn: int, sides: int) -> list[int]:
+    """The stamps of a `write` mode run of 150 spaced overwrites (2 ms apart) after 50 back to back, in a turn."""
+    server = Server(tmp_path, [SA])
+    try:
+        out = subprocess.run([*command, "write", "150", "2", "50", str(turn), str(sides)],
+                             env=child_env(server.env("turns-latency-writer", SA)), capture_output=True, text=True,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+    finally:
+        server.stop()
+    sent = {int(k): int(v) for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+    return [sent[k] for k in sorted(sent)]
+
+
+def test_cast_bench_writes_its_spaced_overwrites_in_its_turn_of_three(tmp_path: Path) -> None:
+    stamps = _latency_writes(tmp_path, [str(cpp_executable("cast_bench"))], 2, 3)
+    assert len(stamps) == 149  # the add is not stamped
+    assert all(turns.in_turn(2, t, sides=3) for t in stamps), [t % (3 * S) for t in stamps]
+
+
+def test_the_java_bench_writes_its_spaced_overwrites_in_its_turn_of_three(tmp_path: Path) -> None:
+    command = java_command()
+    assert isinstance(command, list), command
+    stamps = _latency_writes(tmp_path, command, 3, 3)
+    assert len(stamps) == 149
+    assert all(turns.in_turn(3, t, sides=3) for t in stamps), [t % (3 * S) for t in stamps]
+
+
+def test_cast_bench_refuses_a_turn_past_its_sides() -> None:
+    out = subprocess.run([str(cpp_executable("cast_bench")), "write", "10", "2", "0", "4", "3"],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2 and "TURN SIDES" in out.stderr

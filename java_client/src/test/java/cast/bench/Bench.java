@@ -43,8 +43,11 @@ import java.util.concurrent.TimeUnit;
  *   <li>{@code watch N}: onChange(addressFilter("lat")) in its SA; prints "ready" once
  *       the watch is confirmed, then after N events {"REVISION": NS, ...}, NS the
  *       System.nanoTime() (CLOCK_MONOTONIC) in the callback.
- *   <li>{@code write N GAP_MS}: adds "lat", then N-1 overwrites spaced by GAP_MS,
- *       stamping System.nanoTime() just before each; prints {"REVISION": NS, ...}.
+ *   <li>{@code write N GAP_MS [WARM [TURN SIDES]]}: adds "lat", WARM overwrites back to back (not
+ *       measured), then N-1 overwrites spaced by GAP_MS, stamping System.nanoTime() just before
+ *       each; prints {"REVISION": NS, ...} of the measured ones. With TURN (1..SIDES) every
+ *       overwrite is in its turn ({@link #waitForTurn}; M7 measures the three languages'
+ *       latencies so).
  *   <li>{@code image-write SIZE N GAP_US}: (bench/shared_memory.py) adds "img", a BytesValue of SIZE
  *       bytes, and overwrites it N times, the i-th at start + i * GAP_US (0: back to back), each made
  *       and then stamped on System.nanoTime() just before it; then deletes it (the watchers' end mark) and prints
@@ -76,7 +79,8 @@ public final class Bench {
   public static void main(String[] argv) throws Exception {
     if (argv.length < 2 || (argv[0].equals("write") && argv.length < 3)) {
       System.err.println(
-          "usage: Bench add N | blocks WARM | watch N | write N GAP_MS | image-watch queue|latest"
+          "usage: Bench add N | blocks WARM | watch N | write N GAP_MS [WARM [TURN SIDES]]"
+              + " | image-watch queue|latest"
               + " | image-write SIZE N GAP_US"
               + " (with the CAST_* launch environment)");
       System.exit(2);
@@ -101,7 +105,14 @@ public final class Bench {
         case "add" -> add(c, n, argv.length > 2 ? Integer.parseInt(argv[2]) : 200);
         case "blocks" -> blocks(c, n);
         case "watch" -> watch(c, n);
-        case "write" -> write(c, n, Long.parseLong(argv[2]), argv.length > 3 ? Integer.parseInt(argv[3]) : 0);
+        case "write" ->
+            write(
+                c,
+                n,
+                Long.parseLong(argv[2]),
+                argv.length > 3 ? Integer.parseInt(argv[3]) : 0,
+                argv.length > 4 ? Integer.parseInt(argv[4]) : 0,
+                argv.length > 5 ? Integer.parseInt(argv[5]) : 2);
         case "image-watch" -> imageWatch(c, argv[1]);
         case "image-write" -> imageWrite(c, n, Integer.parseInt(argv[2]), Long.parseLong(argv[3]));
         default -> {
@@ -183,19 +194,54 @@ public final class Bench {
     }
   }
 
-  private static void write(Component c, int n, long gapMs, int warm) throws InterruptedException {
+  private static void write(Component c, int n, long gapMs, int warm, int turn, int sides)
+      throws InterruptedException {
     Map<Long, Long> sent = new TreeMap<>();
     c.add("lat", VALUE);
     for (int i = 0; i < warm; i++) {
+      waitForTurn(turn, sides);
       c.overwrite("lat", VALUE);
     }
     for (int i = 0; i < n - 1; i++) {
       Thread.sleep(gapMs);
+      waitForTurn(turn, sides);
       long t0 = System.nanoTime();
       sent.put(c.overwrite("lat", VALUE).revision(), t0);
     }
     System.out.println(json(sent));
     c.deleteEntry("lat"); // so that another run on this server can add it again
+  }
+
+  private static final long SECOND_NS = 1_000_000_000L;
+  private static final long TURN_SKIP_NS = 70_000_000L;
+
+  /**
+   * Sleeps until turn {@code turn} of {@code sides} may write (bench/turns.py): the seconds of
+   * CLOCK_MONOTONIC whose number modulo {@code sides} is {@code turn - 1}, from 70 ms into each, so
+   * that the side before has been read. Turn 0: no turn.
+   */
+  static void waitForTurn(int turn, int sides) throws InterruptedException {
+    if (turn == 0) {
+      return;
+    }
+    long now = System.nanoTime();
+    long begin = turnStart(turn, sides, now);
+    while (now < begin) {
+      long left = begin - now;
+      Thread.sleep(left / 1_000_000L, (int) (left % 1_000_000L));
+      now = System.nanoTime();
+    }
+  }
+
+  /** The first moment at or after {@code ns} in the turn's writing time (bench.turns.next_start). */
+  static long turnStart(int turn, int sides, long ns) {
+    long second = ns / SECOND_NS;
+    long mine = turn - 1;
+    if (second % sides == mine) {
+      return ns % SECOND_NS >= TURN_SKIP_NS ? ns : second * SECOND_NS + TURN_SKIP_NS;
+    }
+    long ahead = Math.floorMod(mine - second % sides, (long) sides);
+    return (second + ahead) * SECOND_NS + TURN_SKIP_NS;
   }
 
   private static void imageWrite(Component c, int size, int frames, long gapMicros) throws InterruptedException {
