@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cast.client.dispatcher import STANDBY_S, Dispatcher
+from cast.client.dispatcher import BACKLOG_BYTES, STANDBY_S, Dispatcher
 from tests.conftest import wait_for
 
 
@@ -280,3 +280,57 @@ def test_a_submit_racing_stop_never_writes_to_a_closed_wake_descriptor(monkeypat
     stopper.join(10)
     assert not errors, errors
     assert not d.thread.is_alive()
+
+
+class _Timed(_Socket):
+    """A source that notes, in ``seen``, each read of bytes (with its CLOCK_MONOTONIC time)."""
+
+    def __init__(self, seen: list[tuple[str, float]]) -> None:
+        super().__init__()
+        self.seen = seen
+
+    def poll(self, wait: float = 0.0) -> bool:
+        before = len(self.readers)
+        done = super().poll(wait)
+        if len(self.readers) > before:
+            self.seen.append(("read", time.monotonic()))
+        return done
+
+
+def test_with_read_every_s_the_sockets_are_read_at_most_that_often_and_calls_still_run_at_once() -> None:
+    every = 1.0
+    d = Dispatcher("t", read_every_s=every)
+    seen: list[tuple[str, float]] = []
+    source = _Timed(seen)
+    d.attach(source)
+    source.peer.send(b"a")
+    wait_for(lambda: len(seen) == 1, what="the first byte read")
+    source.peer.send(b"b")  # too soon after the first read: it waits in the socket
+    d.submit(lambda: seen.append(("call", time.monotonic())))
+    wait_for(lambda: len(seen) == 3, what="the call, and the second byte read")
+    assert [kind for kind, _ in seen] == ["read", "call", "read"], seen  # the call did not wait for the read
+    # At least `every` after the first look at the socket, which came a moment before the first read's note.
+    assert seen[2][1] - seen[0][1] >= 0.9 * every, seen
+    assert source.readers == ["cast-dispatch-t"] * 2
+    d.stop()
+    source.close()
+    assert not d.thread.is_alive()
+
+
+def test_with_read_every_s_a_read_that_found_a_burst_is_followed_by_the_next_at_once() -> None:
+    every = 3.0
+    d = Dispatcher("t", read_every_s=every)
+    seen: list[tuple[str, float]] = []
+    source = _Timed(seen)
+    d.attach(source)
+    source.peer.send(b"a")  # a few bytes: the next read waits its turn
+    wait_for(lambda: len(seen) == 1, what="the first byte read")
+    source.peer.sendall(b"x" * 2 * BACKLOG_BYTES)  # all of it waiting when that turn comes: a burst
+    wait_for(lambda: len(source.readers) == 1 + 2 * BACKLOG_BYTES, what="the burst read")
+    burst_read = seen[-1][1]
+    source.peer.send(b"y")
+    wait_for(lambda: len(source.readers) == 2 + 2 * BACKLOG_BYTES, what="the byte after the burst")
+    assert burst_read - seen[0][1] >= 0.9 * every, seen  # the burst waited for its turn
+    assert seen[-1][1] - burst_read < every, seen  # the read after it did not
+    d.stop()
+    source.close()

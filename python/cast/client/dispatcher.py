@@ -14,9 +14,12 @@ rather than on the server.
 
 from __future__ import annotations
 
+import array
+import fcntl
 import logging
 import os
 import select
+import termios
 import threading
 import time
 from collections import deque
@@ -25,7 +28,7 @@ from typing import Protocol
 
 from cast.client.alarm import Alarm
 
-__all__ = ["HIGH", "LOW", "MEDIUM", "Dispatcher", "Source"]
+__all__ = ["BACKLOG_BYTES", "HIGH", "LOW", "MEDIUM", "Dispatcher", "Source"]
 
 HIGH, MEDIUM, LOW = 0, 1, 2
 """Priorities of queued calls: the dispatcher takes the highest pending one first (FIFO within one)."""
@@ -36,6 +39,9 @@ STANDBY_S = 0.01
 """How long one callback may run before the standby thread reads the attached sockets meanwhile."""
 
 _BUSY_MS = 1  # how long the thread waits (for a call) while another thread reads a source
+
+BACKLOG_BYTES = 64 << 10
+"""With ``read_every_s``: after a read that found this much waiting in a source, the next comes at once (a burst)."""
 
 _READABLE = select.POLLIN | select.POLLPRI | select.POLLERR | select.POLLHUP
 
@@ -67,9 +73,17 @@ class Dispatcher:
     attached sockets are read only while the queue has room: past it, what
     the server sends waits in the socket and then on the server, which lets
     the watch lag by the same rule.
+
+    With ``read_every_s``, the attached sockets are read at most once in that
+    many seconds (queued calls still run at once): what comes meanwhile waits
+    in the socket and is read together; after a read that found
+    :data:`BACKLOG_BYTES` or more waiting (a burst), the next comes at once. A reader that
+    handles events in batches anyway (``cast record``) then wakes once per
+    batch, not once per frame, and takes that much less CPU from the system
+    it watches (docs/performance.md, "REC1: what recording costs").
     """
 
-    def __init__(self, name: str, capacity: int = 10_000) -> None:
+    def __init__(self, name: str, capacity: int = 10_000, read_every_s: float = 0.0) -> None:
         # deque append and popleft are atomic, so the queues need no lock of their own.
         self._calls: tuple[deque[tuple[Callable[..., object], tuple[object, ...]]], ...] = (deque(), deque(), deque())
         self._thread = threading.Thread(target=self._run, name=f"cast-dispatch-{name}", daemon=True)
@@ -91,6 +105,8 @@ class Dispatcher:
         self._sources: dict[int, Source] = {}  # fd -> source; changed on this thread only
         self._readers: dict[int, Callable[[], bool]] = {}  # fd -> its source's reader(); as _sources
         self._attach: deque[Source] = deque()  # sources to add, from any thread
+        self._read_every = read_every_s
+        self._last_read = 0.0  # time.monotonic() of the last look at the sources
         self._poller = select.poll()
         self._poller.register(self._wake_fd, select.POLLIN)
         self._wake_poller = select.poll()  # the eventfd alone
@@ -250,6 +266,10 @@ class Dispatcher:
                 sources[fd] = source
                 self._readers[fd] = source.reader()
                 self._poller.register(fd, _READABLE)
+        if self._read_every and time.monotonic() < self._last_read + self._read_every:
+            if timeout is None:
+                self._wait_to_read()
+            return  # too soon: what the sources have waits for the next read
         if timeout is None:
             self._sleeping = True
             calls = self._calls
@@ -261,6 +281,10 @@ class Dispatcher:
             ready = self._poller.poll(None if timeout is None else timeout * 1000)
         finally:
             self._sleeping = False
+        burst = False
+        if self._read_every and any(fd != self._wake_fd for fd, _ in ready):  # a source is read: its turn begins
+            self._last_read = time.monotonic()
+            burst = self._backlog()  # what the read below takes, a full socket's worth or a few frames
         for fd, _ in ready:
             if fd == self._wake_fd:
                 self._drain_wake()
@@ -275,6 +299,34 @@ class Dispatcher:
                         self._wake_poller.poll(_BUSY_MS)
                 finally:
                     self._sleeping = False
+        if burst:
+            # A burst (a history replayed): the next read comes at once, or the socket's buffer, read once per
+            # read_every_s, would bound the rate.
+            self._last_read = 0.0
+
+    def _backlog(self) -> bool:
+        """Whether a source holds BACKLOG_BYTES or more unread (FIONREAD)."""
+        waiting = array.array("i", [0])
+        for fd in self._sources:
+            try:
+                fcntl.ioctl(fd, termios.FIONREAD, waiting, True)
+            except OSError:  # ended meanwhile: forgotten at the next read
+                continue
+            if waiting[0] >= BACKLOG_BYTES:
+                return True
+        return False
+
+    def _wait_to_read(self) -> None:
+        """Wait for a call alone until ``read_every_s`` after the last read (or until stopped)."""
+        self._sleeping = True
+        try:
+            calls = self._calls
+            left = self._last_read + self._read_every - time.monotonic()
+            if left > 0 and not (calls[HIGH] or calls[MEDIUM] or calls[LOW] or self._attach or self._stopping):
+                if self._wake_poller.poll(left * 1000):
+                    self._drain_wake()
+        finally:
+            self._sleeping = False
 
     def _call(self, fn: Callable[..., object], args: tuple[object, ...]) -> None:
         self._call_started = time.monotonic()

@@ -192,7 +192,9 @@ class Recorder:
             self._queue.put((server, error))
 
         if self._dispatcher is None:
-            self._dispatcher = Dispatcher(RECORD_ID)
+            # Its socket read once per batch, not once per frame: the changes are written in batches anyway, and
+            # a wake-up per change was most of what recording took from a writer (docs/recording.md).
+            self._dispatcher = Dispatcher(RECORD_ID, read_every_s=BATCH_S)
         server.link.watch_stream = WatchStream(server.link, self._tokens, sink, failed, self._closing,
                                                self._dispatcher)
         return server.link.watch_stream
