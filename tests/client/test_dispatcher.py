@@ -297,14 +297,20 @@ class _Timed(_Socket):
         return done
 
 
-def test_with_read_every_s_the_sockets_are_read_at_most_that_often_and_calls_still_run_at_once() -> None:
-    every = 1.0
+def _read_once_read_every(every: float) -> tuple[Dispatcher, _Timed, list[tuple[str, float]]]:
+    """A dispatcher with ``read_every_s=every`` and a timed source, whose first byte it has read."""
     d = Dispatcher("t", read_every_s=every)
     seen: list[tuple[str, float]] = []
     source = _Timed(seen)
     d.attach(source)
-    source.peer.send(b"a")
+    source.peer.send(b"a")  # a few bytes: the next read waits its turn
     wait_for(lambda: len(seen) == 1, what="the first byte read")
+    return d, source, seen
+
+
+def test_with_read_every_s_the_sockets_are_read_at_most_that_often_and_calls_still_run_at_once() -> None:
+    every = 1.0
+    d, source, seen = _read_once_read_every(every)
     source.peer.send(b"b")  # too soon after the first read: it waits in the socket
     d.submit(lambda: seen.append(("call", time.monotonic())))
     wait_for(lambda: len(seen) == 3, what="the call, and the second byte read")
@@ -319,12 +325,7 @@ def test_with_read_every_s_the_sockets_are_read_at_most_that_often_and_calls_sti
 
 def test_with_read_every_s_a_read_that_found_a_burst_is_followed_by_the_next_at_once() -> None:
     every = 3.0
-    d = Dispatcher("t", read_every_s=every)
-    seen: list[tuple[str, float]] = []
-    source = _Timed(seen)
-    d.attach(source)
-    source.peer.send(b"a")  # a few bytes: the next read waits its turn
-    wait_for(lambda: len(seen) == 1, what="the first byte read")
+    d, source, seen = _read_once_read_every(every)
     source.peer.sendall(b"x" * 2 * BACKLOG_BYTES)  # all of it waiting when that turn comes: a burst
     wait_for(lambda: len(source.readers) == 1 + 2 * BACKLOG_BYTES, what="the burst read")
     burst_read = seen[-1][1]

@@ -272,8 +272,7 @@ class Dispatcher:
             return  # too soon: what the sources have waits for the next read
         if timeout is None:
             self._sleeping = True
-            calls = self._calls
-            if calls[HIGH] or calls[MEDIUM] or calls[LOW] or self._attach or self._stopping:
+            if self._work_waiting():
                 timeout = 0
         elif self._pending >= self.capacity:
             return  # full: what the sources have waits for room (and the server for the socket)
@@ -281,10 +280,10 @@ class Dispatcher:
             ready = self._poller.poll(None if timeout is None else timeout * 1000)
         finally:
             self._sleeping = False
-        burst = False
         if self._read_every and any(fd != self._wake_fd for fd, _ in ready):  # a source is read: its turn begins
-            self._last_read = time.monotonic()
-            burst = self._backlog()  # what the read below takes, a full socket's worth or a few frames
+            # After a burst (a history replayed) the next read comes at once, or the socket's buffer, read once
+            # per read_every_s, would bound the rate.
+            self._last_read = 0.0 if self._backlog() else time.monotonic()
         for fd, _ in ready:
             if fd == self._wake_fd:
                 self._drain_wake()
@@ -299,10 +298,6 @@ class Dispatcher:
                         self._wake_poller.poll(_BUSY_MS)
                 finally:
                     self._sleeping = False
-        if burst:
-            # A burst (a history replayed): the next read comes at once, or the socket's buffer, read once per
-            # read_every_s, would bound the rate.
-            self._last_read = 0.0
 
     def _backlog(self) -> bool:
         """Whether a source holds BACKLOG_BYTES or more unread (FIONREAD)."""
@@ -316,13 +311,17 @@ class Dispatcher:
                 return True
         return False
 
+    def _work_waiting(self) -> bool:
+        """Whether a call, a source to attach or the stop waits (checked with ``_sleeping`` set: no wake-up lost)."""
+        calls = self._calls
+        return bool(calls[HIGH] or calls[MEDIUM] or calls[LOW] or self._attach or self._stopping)
+
     def _wait_to_read(self) -> None:
         """Wait for a call alone until ``read_every_s`` after the last read (or until stopped)."""
         self._sleeping = True
         try:
-            calls = self._calls
             left = self._last_read + self._read_every - time.monotonic()
-            if left > 0 and not (calls[HIGH] or calls[MEDIUM] or calls[LOW] or self._attach or self._stopping):
+            if left > 0 and not self._work_waiting():
                 if self._wake_poller.poll(left * 1000):
                     self._drain_wake()
         finally:
