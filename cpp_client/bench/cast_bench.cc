@@ -39,8 +39,12 @@
 //                               the watchers' real path), then N
 //                               overwrites, the i-th started at start + i * GAP_US
 //                               (0: back to back), each made (its bytes written
-//                               again) and then stamped on CLOCK_MONOTONIC just
-//                               before it; deletes "img" (the watchers' end
+//                               in place, into a loan of the value's bytes: on
+//                               the server's host the staging area the server
+//                               copies it from, so the write copies nothing) and
+//                               then stamped on CLOCK_MONOTONIC just before it
+//                               (the warm-up's and the first seconds' overwrites
+//                               the same way); deletes "img" (the watchers' end
 //                               mark) and prints {"REVISION": NS, ...} (every
 //                               overwrite, in that order: the reader of the stamps
 //                               tells the three parts apart by revision). The
@@ -78,6 +82,7 @@
 #include <algorithm>
 #include <chrono>
 #include <condition_variable>
+#include <cstddef>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
@@ -232,16 +237,13 @@ struct WarmUp {
 };
 
 int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const WarmUp& warm, long cold, const Turn& turn) {
-  // Values of SIZE and of WARM_SIZE bytes, each of 1s and of 2s; made before the clock starts.
-  std::vector<google::protobuf::BytesValue> values(4);
-  auto byteOf = [](std::size_t k) { return static_cast<char>(k % 2 + 1); };  // values[k]'s every byte
-  for (std::size_t k = 0; k < values.size(); ++k) {
-    const long bytes = k < 2 ? size : warm.size;
-    values[k].set_value(std::string(static_cast<std::size_t>(std::max(0L, bytes)), byteOf(k)));
-  }
+  // Value k (0, 1: SIZE bytes; 2, 3: WARM_SIZE bytes) is bytes of 1s (k even) or of 2s (k odd).
+  auto byteOf = [](std::size_t k) { return static_cast<std::byte>(k % 2 + 1); };  // value k's every byte
+  auto bytesOf = [&](std::size_t k) { return static_cast<std::size_t>(std::max(0L, k < 2 ? size : warm.size)); };
+  const google::protobuf::BytesValue noBytes;  // what a loan of its `value` adds its bytes to
   std::map<std::uint64_t, std::int64_t> sent;
   long written = 0;  // the values alternate 1s, 2s over every overwrite, the warm-up's too
-  // `count` overwrites with values[base], values[base + 1], the i-th started at start + i * gap (an absolute
+  // `count` overwrites with values base, base + 1, the i-th started at start + i * gap (an absolute
   // schedule, so the rate holds whatever each overwrite took; 0: back to back), each stamped just before it.
   // With a turn, one that would fall outside it waits for the turn's next start, and the schedule starts again.
   auto overwrite = [&](long count, long gap, std::size_t base, const Turn& inTurn) {
@@ -253,17 +255,21 @@ int imageWriteMode(cast::Component& c, long size, long n, long gapUs, const Warm
         step = 0;
       }
       // Each frame is made just before its stamp, as the peers' publisher makes its payload
-      // (bench.peer_fanout.drive): its bytes written again in place, so that, like a camera driver's fresh
-      // frame, it is in the cache when it is published rather than where 66 ms of other frames left it.
+      // (bench.peer_fanout.drive): its bytes written in place, into a loan of the BytesValue's `value` (on
+      // the server's host, the staging area the server copies it from, so the write copies nothing after the
+      // stamp), so that, like a camera driver's fresh frame, it is in the cache when it is published rather
+      // than where 66 ms of other frames left it.
       const std::size_t k = base + static_cast<std::size_t>(written) % 2;
-      auto& value = values[k];
-      std::string& bytes = *value.mutable_value();
+      cast::Loan loan = c.loan(noBytes, "value", bytesOf(k));
+      cast::MutableByteSpan bytes = loan.buffer();
       std::fill(bytes.begin(), bytes.end(), byteOf(k));
       const std::int64_t t0 = nowNs();
-      sent[c.overwrite("img", value).revision] = t0;
+      sent[c.overwrite("img", std::move(loan)).revision] = t0;
     }
   };
-  c.add("img", values[0]);
+  google::protobuf::BytesValue first;
+  first.set_value(std::string(bytesOf(0), static_cast<char>(byteOf(0))));
+  c.add("img", first);
   overwrite(cold, gapUs, 0, Turn{});  // the first seconds, every reader cold
   if (warm.count > 0) {
     const long burst = warm.burst > 0 ? warm.burst : warm.count;

@@ -5,6 +5,7 @@
 
 #include "cast/schemas.h"
 #include "component_core.h"
+#include "loan_state.h"
 
 namespace cast {
 
@@ -286,6 +287,81 @@ std::future<WriteResult> Component::overwriteAsync(const std::string& id, const 
   const std::string sa = targetSa(subarchitecture);
   const std::string type = writable(value, sa);
   return core().transport().overwriteMessageAsync(sa, id, type, value, expectedVersion);
+}
+
+// ---------------------------------------------------------------- loans
+
+Loan Component::loan(const google::protobuf::Message& value, const std::string& field, std::size_t size,
+                     const std::string& subarchitecture) {
+  const std::string sa = targetSa(subarchitecture);
+  std::string header = detail::loanHeader(value, field, size);  // the field checked before anything is asked
+  const std::string type = writable(value, sa);
+  std::unique_ptr<detail::LoanState> state = core().transport().loan(sa, std::move(header), size);
+  state->sa = sa;
+  state->type = type;
+  return detail::LoanAccess::make(std::move(state));
+}
+
+detail::LoanState& Component::writableLoan(const Loan& loan, const std::string& sa) const {
+  detail::LoanState* state = detail::LoanAccess::state(loan);
+  if (state == nullptr || state->spent()) {
+    throw InvalidArgumentError("this loan was already written (or closed): take a new loan for each write");
+  }
+  if (state->sa != sa) {
+    throw InvalidArgumentError("the loan was taken for subarchitecture '" + state->sa + "' and is written to '" + sa +
+                               "': take it with subarchitecture '" + sa + "'");
+  }
+  return *state;
+}
+
+namespace {
+
+// Calls `write` with the loan's state, checked, then spends the loan whatever
+// the write did (its region, if the write did not take it, goes back).
+template <class Write>
+auto spending(detail::LoanState& loan, detail::Transport& transport, Write&& write) {
+  struct Spend {
+    detail::LoanState& loan;
+    ~Spend() { loan.spend(); }
+  } spend{loan};
+  return write(transport, loan);
+}
+
+}  // namespace
+
+WriteResult Component::add(const std::string& id, Loan&& loan, const std::string& subarchitecture) {
+  const std::string sa = targetSa(subarchitecture);
+  detail::LoanState& state = writableLoan(loan, sa);
+  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
+    return t.addLoan(sa, id, l.type, l);
+  });
+}
+
+WriteResult Component::overwrite(const std::string& id, Loan&& loan, const std::string& subarchitecture,
+                                 std::optional<std::uint64_t> expectedVersion) {
+  const std::string sa = targetSa(subarchitecture);
+  detail::LoanState& state = writableLoan(loan, sa);
+  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
+    return t.overwriteLoan(sa, id, l.type, l, expectedVersion);
+  });
+}
+
+std::future<WriteResult> Component::addAsync(const std::string& id, Loan&& loan, const std::string& subarchitecture) {
+  const std::string sa = targetSa(subarchitecture);
+  detail::LoanState& state = writableLoan(loan, sa);
+  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
+    return t.addLoanAsync(sa, id, l.type, l);
+  });
+}
+
+std::future<WriteResult> Component::overwriteAsync(const std::string& id, Loan&& loan,
+                                                   const std::string& subarchitecture,
+                                                   std::optional<std::uint64_t> expectedVersion) {
+  const std::string sa = targetSa(subarchitecture);
+  detail::LoanState& state = writableLoan(loan, sa);
+  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
+    return t.overwriteLoanAsync(sa, id, l.type, l, expectedVersion);
+  });
 }
 
 WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,

@@ -18,6 +18,7 @@
 #include "cast/log.h"
 #include "conversions.h"
 #include "grpc_server.h"
+#include "loan_state.h"
 #include "session.h"
 #include "watch_stream.h"
 #include "write_stream.h"
@@ -138,6 +139,40 @@ class GrpcTransport final : public Transport {
                                           const std::string& data,
                                           std::optional<std::uint64_t> expectedVersion) override {
     return writeOneAsync(sa, data, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
+  }
+
+  // A loan is placed in the session with its SA's server (placeLoan), opened
+  // on the way within the call timeout; its write names its region when it
+  // goes on that session still (loanedWrite), else sends its bytes.
+
+  std::unique_ptr<LoanState> loan(const std::string& sa, std::string header, std::size_t size) override {
+    const Budget budget(timeout_);
+    return placeLoan(*server(sa).shared, std::move(header), size, budget.left());
+  }
+
+  WriteResult addLoan(const std::string& sa, const std::string& id, const std::string& type,
+                      LoanState& loan) override {
+    return writeOne(sa, loan, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
+  }
+
+  WriteResult overwriteLoan(const std::string& sa, const std::string& id, const std::string& type, LoanState& loan,
+                            std::optional<std::uint64_t> expectedVersion) override {
+    return writeOne(sa, loan, [&](const std::string& bytes) {
+      return overwriteRequest(sa, id, type, bytes, expectedVersion);
+    });
+  }
+
+  std::future<WriteResult> addLoanAsync(const std::string& sa, const std::string& id, const std::string& type,
+                                        LoanState& loan) override {
+    return writeOneAsync(sa, loan, [&](const std::string& bytes) { return addRequest(sa, id, type, bytes); });
+  }
+
+  std::future<WriteResult> overwriteLoanAsync(const std::string& sa, const std::string& id,
+                                              const std::string& type, LoanState& loan,
+                                              std::optional<std::uint64_t> expectedVersion) override {
+    return writeOneAsync(sa, loan, [&](const std::string& bytes) {
       return overwriteRequest(sa, id, type, bytes, expectedVersion);
     });
   }
@@ -526,17 +561,23 @@ class GrpcTransport final : public Transport {
                                 const BuildRequest& build, SharedLink::Within within) {
     return stagedMessage(link, value, staged, build, within);
   }
+  // A loan's value: its region named when it is in the session the write goes on.
+  static v1::WriteRequest stage(SharedLink& link, LoanState& loan, Staging& staged, const BuildRequest& build,
+                                SharedLink::Within within) {
+    return loanedWrite(link, loan, staged, build, within);
+  }
 
   // One add or overwrite (as `build` makes its request), waited for or not.
+  // `value`: bytes, a message or a loan (stage()).
   template <typename Value>
-  WriteResult writeOne(const std::string& sa, const Value& value, const BuildRequest& build) {
+  WriteResult writeOne(const std::string& sa, Value& value, const BuildRequest& build) {
     const Budget budget(timeout_);
     Staging staged;
     v1::WriteRequest request = stage(*server(sa).shared, value, staged, build, budget.left());
     return writeResult(write(sa, std::move(request), staged, budget).write());
   }
   template <typename Value>
-  std::future<WriteResult> writeOneAsync(const std::string& sa, const Value& value, const BuildRequest& build) {
+  std::future<WriteResult> writeOneAsync(const std::string& sa, Value& value, const BuildRequest& build) {
     const Budget budget(timeout_);
     Staging staged;
     v1::WriteRequest request = stage(*server(sa).shared, value, staged, build, budget.left());

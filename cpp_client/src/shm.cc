@@ -17,6 +17,7 @@
 
 #include "cast/errors.h"
 #include "conversions.h"
+#include "loan_state.h"
 #include "shm_wire.h"
 
 namespace cast::detail {
@@ -406,6 +407,31 @@ v1::WriteRequest stagedMessage(SharedLink& link, const google::protobuf::Message
     return build(value.SerializeAsString());
   }
   return stagedRequest(staged, build);
+}
+
+std::unique_ptr<LoanState> placeLoan(SharedLink& link, std::string header, std::size_t size,
+                                     SharedLink::Within within) {
+  std::shared_ptr<ClientSession> session = link.writerSession(within);
+  if (session && header.size() + size >= session->threshold()) {
+    if (std::optional<Reserved> region = session->reserve(header.size() + size, header.size())) {
+      return std::make_unique<LoanState>(header, size, session, std::move(*region));
+    }
+  }
+  return privateLoan(std::move(header), size);
+}
+
+v1::WriteRequest loanedWrite(SharedLink& link, LoanState& loan, Staging& staged,
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                             SharedLink::Within within) {
+  if (loan.shared()) {
+    std::shared_ptr<ClientSession> writer = link.writerSession(within);
+    if (writer) writer->poll();  // as a staged write does: a session the server ended is noticed first
+    if (std::optional<Staged> region = loan.handOver(writer)) {
+      staged.emplace_back(std::move(writer), *region);
+      return stagedRequest(staged, build);
+    }
+  }
+  return stagedWrite(link, loan.takeBytes(), staged, build, within);
 }
 
 v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,

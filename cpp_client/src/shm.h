@@ -148,6 +148,22 @@ v1::WriteRequest stagedMessage(SharedLink& link, const google::protobuf::Message
                                const std::function<v1::WriteRequest(const std::string& bytes)>& build,
                                SharedLink::Within within);
 
+// A loan (loan_state.h) of `size` bytes after `header`: placed in a region
+// of the staging area of the session of `link` (the writer's session, as a
+// staged value's) when header + size reach its threshold and a region fits,
+// its payload on a 64-byte line there; else private memory. `within`: the
+// longest opening the session may take.
+std::unique_ptr<LoanState> placeLoan(SharedLink& link, std::string header, std::size_t size,
+                                     SharedLink::Within within);
+// An add or overwrite of a loan's value: when the loan's region is in the
+// session of `link` the write goes on (still live, not replaced), the request
+// names it with no copy (recorded in `staged`, given back by unstage as a
+// staged value's); else its bytes go as stagedWrite sends bytes (staged
+// again in the live session if there is one).
+v1::WriteRequest loanedWrite(SharedLink& link, LoanState& loan, Staging& staged,
+                             const std::function<v1::WriteRequest(const std::string& bytes)>& build,
+                             SharedLink::Within within);
+
 // A batch of `ops`, its large values staged in the session of `link` (the
 // server the batch goes to).
 v1::WriteRequest stagedBatch(SharedLink& link, const std::vector<BatchOp>& ops, Staging& staged,

@@ -190,6 +190,16 @@ std::size_t ClientSession::quarantined() const {
   return quarantined_;
 }
 
+std::size_t ClientSession::stagingUsed() const {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  return staging_ ? regions_.used() : 0;
+}
+
+std::shared_ptr<const Mapping> ClientSession::stagingArea() const {
+  std::lock_guard<std::mutex> lock(stateMu_);
+  return staging_;
+}
+
 // -------------------------------------------------------------------- writes
 
 std::optional<Staged> ClientSession::stage(std::string_view data) {
@@ -214,6 +224,23 @@ std::optional<Staged> ClientSession::stage(std::size_t size, const std::function
   return staged;
 }
 
+std::optional<Reserved> ClientSession::reserve(std::size_t size, std::size_t payload) {
+  poll();  // as stage(): a session the server ended is noticed before a loan is placed in it
+  // Regions start on a page (Extents hands out whole pages from 0), so the pad
+  // is known before the region is: the payload's offset in the region.
+  Reserved out;
+  out.staged.pad = (kLoanAlignment - payload % kLoanAlignment) % kLoanAlignment;
+  out.staged.size = size;
+  out.staged.taken = roundUpToPages(out.staged.pad + size);
+  std::lock_guard<std::mutex> lock(stateMu_);
+  if (dead_ || !staging_) return std::nullopt;
+  const auto start = regions_.take(out.staged.taken);
+  if (!start) return std::nullopt;
+  out.staged.offset = *start + out.staged.pad;
+  out.staging = staging_;
+  return out;
+}
+
 void ClientSession::describe(const Staged& staged, v1::StagedValue* out) const {
   out->set_session(id_);
   out->set_offset(staged.offset);
@@ -224,7 +251,7 @@ void ClientSession::unstage(const Staged& staged, bool known) {
   std::lock_guard<std::mutex> lock(stateMu_);
   if (!staging_) return;  // the session ended: nothing of it is used again
   if (known) {
-    regions_.give(staged.offset, staged.taken);
+    regions_.give(staged.offset - staged.pad, staged.taken);  // the whole region, a loan's pad included
   } else {
     quarantined_ += staged.taken;
   }
@@ -564,7 +591,8 @@ void ClientSession::end(const std::string& why) {
     dead_ = true;
     why_ = why.empty() ? "closed" : why;
     // Mappings still held by values go when those do (their leases hold them);
-    // a copy into the staging area under way keeps it until it is done.
+    // the staging area stays mapped while a copy into it is under way or a
+    // loan lives (each holds it: a loan's buffer is never unmapped under it).
     staging.swap(staging_);
     segments.swap(segments_);
   }

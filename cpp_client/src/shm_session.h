@@ -124,7 +124,22 @@ std::size_t roundUpToPages(std::size_t size);
 struct Staged {
   std::size_t offset = 0;
   std::size_t size = 0;   // the value's bytes
-  std::size_t taken = 0;  // whole pages
+  std::size_t taken = 0;  // whole pages, from the region's start (offset - pad)
+  // Bytes of the region before the value: a loan's, so that the loaned
+  // field's bytes start on a 64-byte line (ClientSession::reserve); 0 else.
+  std::size_t pad = 0;
+};
+
+// Where a loan's payload starts within the staging area: on a multiple of
+// this (a cache line, as the server's arena places a value's largest bytes
+// field), so that an array the writer makes over it is aligned.
+inline constexpr std::size_t kLoanAlignment = 64;
+
+// A region of the staging area reserved for a loan (ClientSession::reserve),
+// and the staging area's mapping, which the loan keeps mapped.
+struct Reserved {
+  Staged staged;
+  std::shared_ptr<Mapping> staging;
 };
 
 class ClientSession;
@@ -189,6 +204,14 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   // The same for a value of `size` bytes that `fill` writes at the address it
   // is given (a message serialised straight into the staging area).
   std::optional<Staged> stage(std::size_t size, const std::function<void(std::uint8_t*)>& fill);
+  // A region for a loan (cast/loan.h): room for a value of `size` bytes
+  // whose byte `payload` (the loaned field's first) falls on a multiple of
+  // kLoanAlignment within the staging area (Staged::pad before the value),
+  // written by the loan's owner, not here; with the mapping, which keeps the
+  // region's memory mapped while the loan lives, whatever ends the session
+  // meanwhile. Given back by unstage(). nullopt when there is no room or the
+  // session ended (the loan is private memory).
+  std::optional<Reserved> reserve(std::size_t size, std::size_t payload);
   // What a write request says of a staged value.
   void describe(const Staged& staged, v1::StagedValue* out) const;
   // The write's reply came (`known`): its region is free again. Otherwise
@@ -198,6 +221,12 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   void unstage(const Staged& staged, bool known);
   // Staged bytes of writes whose outcome is unknown (kept out of use).
   std::size_t quarantined() const;
+  // Bytes of the staging area taken now (staged values, loans, and what is
+  // quarantined), for tests and diagnostics; 0 once the session ended.
+  std::size_t stagingUsed() const;
+  // The staging area's mapping (nullptr once the session ended), for tests
+  // and diagnostics: what the server reads a staged value from.
+  std::shared_ptr<const Mapping> stagingArea() const;
 
   // The Write-stream requests sent on this session's socket (socket_writes.h).
   SessionWrites& writes() { return *writes_; }
@@ -312,7 +341,7 @@ class ClientSession : public EventSource, public std::enable_shared_from_this<Cl
   std::atomic<std::uint64_t> socketReads_{0};  // socketReads()
 
   mutable std::mutex stateMu_;  // guards what follows
-  std::shared_ptr<Mapping> staging_;  // null once the session ended
+  std::shared_ptr<Mapping> staging_;  // null once the session ended (loans and copies under way keep it mapped)
   Extents regions_;
   std::size_t quarantined_ = 0;
   std::map<std::uint32_t, std::shared_ptr<const Mapping>> segments_;

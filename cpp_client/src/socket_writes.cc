@@ -34,7 +34,9 @@ bool SessionWrites::send(v1::WriteRequest& request, ReplyHandler& onReply,
   if (!waited) session_.startReader();
   message.add_requests()->Swap(&request);
   // A frame that cannot be sent ends the session, which fails this request with the others.
-  session_.send(shm::writes(message.SerializeAsString()));
+  const std::string frame = shm::writes(message.SerializeAsString());
+  sentBytes_.fetch_add(frame.size(), std::memory_order_relaxed);
+  session_.send(frame);
   return true;
 }
 

@@ -72,6 +72,9 @@ class SessionWrites {
   // Requests sent on this socket so far (writes, locks, gets), for tests and
   // diagnostics.
   std::uint64_t sent() const { return sent_.load(std::memory_order_relaxed); }
+  // Bytes of the WRITES frames sent on this socket so far, for tests and
+  // diagnostics (a staged value's bytes are not among them).
+  std::uint64_t sentBytes() const { return sentBytes_.load(std::memory_order_relaxed); }
 
   // From the session's reader thread: fails the requests past their
   // deadline (and then ends the session); how long until the next deadline.
@@ -96,6 +99,7 @@ class SessionWrites {
   std::map<std::uint64_t, Pending> pending_;
   std::atomic<int> followers_{0};  // threads in await() waiting for another reader
   std::atomic<std::uint64_t> sent_{0};  // sent()
+  std::atomic<std::uint64_t> sentBytes_{0};  // sentBytes()
   std::uint64_t nextId_ = 1;
   bool ended_ = false;
 };

@@ -11,6 +11,7 @@
 #include <google/protobuf/message.h>
 
 #include <chrono>
+#include <cstddef>
 #include <cstdint>
 #include <functional>
 #include <future>
@@ -31,6 +32,14 @@ namespace cast {
 namespace detail {
 
 class ClientSession;
+class LoanState;
+
+// A loan (cast/loan.h) in private memory: `header`, then `size` bytes; what a
+// transport with no shared memory gives (loan.cc).
+std::unique_ptr<LoanState> privateLoan(std::string header, std::size_t size);
+// A loan's serialised value as bytes, for a write that sends them; its
+// buffer is gone after it (loan.cc).
+std::string loanBytes(LoanState& loan);
 
 // One write of a batch.
 struct BatchOp {
@@ -98,6 +107,35 @@ class Transport {
                                                          const google::protobuf::Message& value,
                                                          std::optional<std::uint64_t> expectedVersion) {
     return overwriteAsync(sa, id, type, value.SerializeAsString(), expectedVersion);
+  }
+
+  // A loan (cast/loan.h) of `size` bytes, after `header` (the value's other
+  // fields, then the loaned field's key and length), for a write to `sa`: in
+  // a region of the staging area of the session with `sa`'s server when the
+  // transport has one and header + size reach its threshold, else private
+  // memory (privateLoan). The caller sets its sa and type.
+  virtual std::unique_ptr<LoanState> loan(const std::string& sa, std::string header, std::size_t size) = 0;
+  // The same four writes of a loan's value (its type registered, the loan
+  // checked: not spent, taken for `sa`). A transport whose write goes on the
+  // session the loan is in names the loan's region, with no copy; these
+  // defaults send its bytes. The caller spends the loan afterwards, whatever
+  // happened.
+  virtual WriteResult addLoan(const std::string& sa, const std::string& id, const std::string& type,
+                              LoanState& loan) {
+    return add(sa, id, type, loanBytes(loan));
+  }
+  virtual WriteResult overwriteLoan(const std::string& sa, const std::string& id, const std::string& type,
+                                    LoanState& loan, std::optional<std::uint64_t> expectedVersion) {
+    return overwrite(sa, id, type, loanBytes(loan), expectedVersion);
+  }
+  virtual std::future<WriteResult> addLoanAsync(const std::string& sa, const std::string& id,
+                                                const std::string& type, LoanState& loan) {
+    return addAsync(sa, id, type, loanBytes(loan));
+  }
+  virtual std::future<WriteResult> overwriteLoanAsync(const std::string& sa, const std::string& id,
+                                                      const std::string& type, LoanState& loan,
+                                                      std::optional<std::uint64_t> expectedVersion) {
+    return overwriteAsync(sa, id, type, loanBytes(loan), expectedVersion);
   }
 
   virtual EntryRecord get(const std::string& sa, const std::string& id) = 0;

@@ -14,6 +14,7 @@ from cast.client.filters import (
     operation_filter,
     source_filter,
 )
+from cast.client.loan import Loan
 from cast.client.script import Connection, connect
 from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange
 from cast.client.views import ValueView
@@ -50,6 +51,7 @@ __all__ = [
     "HistoryExpiredError",
     "InternalError",
     "InvalidArgumentError",
+    "Loan",
     "LockGuard",
     "LockMode",
     "LockedError",

@@ -9,6 +9,7 @@
 #include "cast/errors.h"
 #include "cast/filters.h"
 #include "cast/grpc_transport.h"
+#include "cast/loan.h"
 #include "cast/log.h"
 #include "cast/runner.h"
 #include "cast/schemas.h"

@@ -17,6 +17,7 @@
 #include <google/protobuf/message.h>
 
 #include <chrono>
+#include <cstddef>
 #include <cstdint>
 #include <functional>
 #include <future>
@@ -28,6 +29,7 @@
 #include "cast/args.h"
 #include "cast/errors.h"
 #include "cast/filters.h"
+#include "cast/loan.h"
 #include "cast/log.h"
 #include "cast/types.h"
 #include "cast/views.h"
@@ -39,6 +41,7 @@ class Component;
 // Internal: what a component is bound to, and its state.
 namespace detail {
 class ComponentCore;
+class LoanState;
 class Transport;
 }  // namespace detail
 
@@ -186,11 +189,37 @@ class Component {
   std::future<WriteResult> overwriteAsync(const std::string& id, const google::protobuf::Message& value,
                                           const std::string& subarchitecture = "",
                                           std::optional<std::uint64_t> expectedVersion = std::nullopt);
+  // A large value written in place (cast/loan.h): the place of `value`'s
+  // top-level singular bytes field `field`, `size` bytes, to fill through
+  // loan.buffer() and then write with add, overwrite, addAsync or
+  // overwriteAsync (the Loan&& forms below) to the same subarchitecture.
+  // `value` holds every other field and leaves `field` empty; it is
+  // serialised now (later changes to it are not written). Registers the
+  // value's type as a write of it does. On the server's host the buffer is in
+  // the staging area the server reads the value from, so nothing is copied;
+  // elsewhere it is private memory (loan.shared()). InvalidArgumentError,
+  // with nothing reserved, when `field` is not a top-level singular bytes
+  // field of the value's type or already holds bytes.
+  Loan loan(const google::protobuf::Message& value, const std::string& field, std::size_t size,
+            const std::string& subarchitecture = "");
+  // add, overwrite, addAsync and overwriteAsync of a loan's value (an entry
+  // of the loan's value's type), as those of a message. The loan is spent by
+  // the call, whatever its outcome: its buffer must not be touched after it.
+  // InvalidArgumentError, the loan untouched and nothing written, when it
+  // was already written or closed, or was taken for another subarchitecture
+  // ("" is the component's own, for both). Batches take messages only.
+  WriteResult add(const std::string& id, Loan&& loan, const std::string& subarchitecture = "");
+  WriteResult overwrite(const std::string& id, Loan&& loan, const std::string& subarchitecture = "",
+                        std::optional<std::uint64_t> expectedVersion = std::nullopt);
+  std::future<WriteResult> addAsync(const std::string& id, Loan&& loan, const std::string& subarchitecture = "");
+  std::future<WriteResult> overwriteAsync(const std::string& id, Loan&& loan, const std::string& subarchitecture = "",
+                                          std::optional<std::uint64_t> expectedVersion = std::nullopt);
   // Deletes an entry (its locks go with it). `delete` is a C++ keyword, so
   // every language calls it deleteEntry / delete_entry.
   WriteResult deleteEntry(const std::string& id, const std::string& subarchitecture = "",
                           std::optional<std::uint64_t> expectedVersion = std::nullopt);
-  // Applies writes in order, all or nothing, in one call.
+  // Applies writes in order, all or nothing, in one call. Its writes take
+  // messages only (no loans).
   std::vector<WriteResult> batch(const std::vector<BatchWrite>& writes, const std::string& subarchitecture = "");
 
   // ------------------------------------------------------------ WM: read
@@ -299,6 +328,8 @@ class Component {
   std::vector<detail::EntryRecord> readAll(const std::string& type, const std::string& subarchitecture,
                                            std::uint32_t limit);
   std::string targetSa(const std::string& subarchitecture) const;
+  // The state of a loan written to `sa`, checked (not spent, taken for `sa`).
+  detail::LoanState& writableLoan(const Loan& loan, const std::string& sa) const;
   std::shared_ptr<detail::ComponentCore> core_;
 };
 

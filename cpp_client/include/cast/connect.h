@@ -60,7 +60,8 @@ class Connection final : private UnmanagedComponent {
   using Component::log;
 
   // Writes: newId, add, overwrite, addAsync, overwriteAsync, deleteEntry,
-  // batch (cast/component.h).
+  // batch (cast/component.h); loan, for a large value written in place
+  // (cast/loan.h).
   using Component::add;
   using Component::addAsync;
   using Component::overwriteAsync;
@@ -68,6 +69,7 @@ class Connection final : private UnmanagedComponent {
   using Component::deleteEntry;
   using Component::newId;
   using Component::overwrite;
+  using Component::loan;
 
   // Reads: get<T>, getEntry<T>, getAll<T>, getView, exists.
   using Component::exists;

@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "loan_state.h"
 #include "transport.h"
 
 namespace cast::testing {
@@ -73,6 +74,15 @@ class FakeTransport : public detail::Transport {
       else out.push_back(deleteEntry(op.subarchitecture, op.id, op.expectedVersion));
     }
     return out;
+  }
+
+  // A loan is private memory here (no shared memory); its writes send its bytes (Transport's defaults).
+  std::unique_ptr<detail::LoanState> loan(const std::string& sa, std::string header, std::size_t size) override {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      ++calls["loan"];
+    }
+    return detail::privateLoan(std::move(header), size);
   }
 
   detail::EntryRecord get(const std::string& sa, const std::string& id) override {

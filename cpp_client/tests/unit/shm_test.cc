@@ -276,6 +276,48 @@ TEST(SharedMemorySession, StagesValuesInTheStagingAreaAndKeepsTheRegionOfAWriteI
   EXPECT_FALSE(p.session->stage(std::string(Pair::kStaging, 'y')));
 }
 
+TEST(SharedMemorySession, ALoansRegionPutsItsPayloadOnA64ByteLineAndIsGivenBackWholeAndOutlivesTheSession) {
+  Pair p;
+  std::optional<Staged> first = p.session->stage(std::string(5000, 'v'));  // the next region starts at 8192
+  ASSERT_TRUE(first);
+  // A value of 5000 bytes whose payload starts after a header of 10: 54 bytes of pad put it on a line.
+  std::optional<cast::detail::Reserved> loan = p.session->reserve(5000, 10);
+  ASSERT_TRUE(loan);
+  EXPECT_EQ(loan->staged.pad, 54u);
+  EXPECT_EQ(loan->staged.offset, 8192u + 54u);
+  EXPECT_EQ(loan->staged.size, 5000u);
+  EXPECT_EQ(loan->staged.taken, 8192u);  // pad + size, in whole pages
+  EXPECT_EQ((loan->staged.offset + 10) % cast::detail::kLoanAlignment, 0u);
+  cast::v1::StagedValue named;
+  p.session->describe(loan->staged, &named);
+  EXPECT_EQ(named.offset(), 8192u + 54u);  // what the server is told: the header's first byte
+  EXPECT_EQ(named.size(), 5000u);
+  // A header of a whole number of lines needs no pad.
+  std::optional<cast::detail::Reserved> lined = p.session->reserve(100, 128);
+  ASSERT_TRUE(lined);
+  EXPECT_EQ(lined->staged.pad, 0u);
+  p.session->unstage(lined->staged, true);
+  // Given back, the whole region is free again, its pad included.
+  EXPECT_EQ(p.session->stagingUsed(), 16384u);
+  p.session->unstage(loan->staged, true);
+  EXPECT_EQ(p.session->stagingUsed(), 8192u);
+  std::optional<Staged> again = p.session->stage(std::string(8192, 'w'));
+  ASSERT_TRUE(again);
+  EXPECT_EQ(again->offset, 8192u);
+  // The mapping a loan holds stays mapped after its session ended: its buffer can still be written.
+  std::optional<cast::detail::Reserved> held = p.session->reserve(100, 0);
+  ASSERT_TRUE(held);
+  p.session->close();
+  EXPECT_FALSE(p.session->reserve(100, 0));  // an ended session places no loan
+  held->staging->data()[held->staged.offset] = 'x';
+  EXPECT_EQ(held->staging->data()[held->staged.offset], 'x');
+  p.session.reset();
+  held->staging->data()[held->staged.offset + 99] = 'y';  // the session is gone, the mapping is not
+  char seen = 0;
+  ASSERT_EQ(::pread(p.staging, &seen, 1, static_cast<off_t>(held->staged.offset)), 1);
+  EXPECT_EQ(seen, 'x');
+}
+
 TEST(SharedMemorySession, AValueLentIsReadInPlaceAndGivenBackWhenTheLastHolderGoes) {
   Pair p;
   std::string pixels(3 * 4096, '\0');

@@ -22,6 +22,7 @@ from google.protobuf.message import Message
 from cast.client.delivery import Delivery, LatestSlots, Priority, delivery_of, priority_of
 from cast.client.dispatcher import Dispatcher
 from cast.client.filters import ChangeFilter, type_name
+from cast.client.loan import Loan, loan_header
 from cast.client.transport import Transport
 from cast.client.types import Entry, Task, WorkingMemoryAddress, WorkingMemoryChange, decode, entry_of
 from cast.client.views import ValueView
@@ -174,8 +175,18 @@ class Component:
     def _sa(self, subarchitecture: str | None) -> str:
         return subarchitecture or self._identity.subarchitecture
 
+    def _value(self, value: Message | Loan, sa: str) -> tuple[str, bytes | Loan]:
+        """:meth:`_serialise`, or a loan as it is (its type was told when it was taken)."""
+        if isinstance(value, Loan):
+            return value.type_name, value
+        return self._serialise(value, sa)
+
     def _serialise(self, value: Message, sa: str) -> tuple[str, bytes]:
-        """The value's type name and bytes; its type told to the server of ``sa`` on the first write there.
+        """The value's type name and bytes; its type told to the server of ``sa`` on the first write there."""
+        return self._register(value, sa), value.SerializeToString()
+
+    def _register(self, value: Message, sa: str) -> str:
+        """The value's type name, told to the server of ``sa`` on the first write there.
 
         Only the server that will hold the value is told: a server that hangs or is away cannot hold up
         writes to the others.
@@ -190,28 +201,49 @@ class Component:
                 if (name, sa) not in self._registered_types:
                     self._transport.register_schemas(files_of(value.DESCRIPTOR), sa)
                     self._registered_types.add((name, sa))
-        return name, value.SerializeToString()
+        return name
 
-    def add(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> WriteResult:
-        """Create an entry; AlreadyExistsError if the id is taken."""
+    def loan(self, value: Message, field: str, size: int, *, subarchitecture: str | None = None) -> Loan:
+        """The place of ``size`` bytes of ``value``'s ``bytes`` field ``field``, to fill and then write.
+
+        ``value`` has every field set but ``field`` (a top-level, singular
+        ``bytes`` field, left empty). Fill ``loan.buffer``, then pass the loan
+        to :meth:`add` or :meth:`overwrite` (or their async forms) in place of
+        a message, once: on the server's host the bytes are written where the
+        server reads them, not copied (``loan.shared``). Close an unwritten
+        loan (or use it in a ``with`` block) to give its place back. Batches
+        take messages only. InvalidArgumentError for a field that cannot be
+        loaned or a negative size (cast.client.loan).
+        """
         sa = self._sa(subarchitecture)
-        type_name_, data = self._serialise(value, sa)
+        header = loan_header(value, field, size)
+        return self._transport.loan(sa, self._register(value, sa), header, size)
+
+    def add(self, entry_id: str, value: Message | Loan, *, subarchitecture: str | None = None) -> WriteResult:
+        """Create an entry; AlreadyExistsError if the id is taken. ``value``: a message, or a loan (:meth:`loan`)."""
+        sa = self._sa(subarchitecture)
+        type_name_, data = self._value(value, sa)
         return self._transport.add(sa, entry_id, type_name_, data)
 
     def overwrite(
         self,
         entry_id: str,
-        value: Message,
+        value: Message | Loan,
         *,
         subarchitecture: str | None = None,
         expected_version: int | None = None,
     ) -> WriteResult:
-        """Replace an entry's value; ConsistencyError if ``expected_version`` is given and differs."""
+        """Replace an entry's value; ConsistencyError if ``expected_version`` is given and differs.
+
+        ``value``: a message, or a loan (:meth:`loan`).
+        """
         sa = self._sa(subarchitecture)
-        type_name_, data = self._serialise(value, sa)
+        type_name_, data = self._value(value, sa)
         return self._transport.overwrite(sa, entry_id, type_name_, data, expected_version)
 
-    def add_async(self, entry_id: str, value: Message, *, subarchitecture: str | None = None) -> Future[WriteResult]:
+    def add_async(
+        self, entry_id: str, value: Message | Loan, *, subarchitecture: str | None = None
+    ) -> Future[WriteResult]:
         """Create an entry without waiting for the answer: a future of its result.
 
         Many writes may be in flight at once (no need for a batch to keep the
@@ -221,20 +253,20 @@ class Component:
         (the thread runs it once it stopped reading replies).
         """
         sa = self._sa(subarchitecture)
-        type_name_, data = self._serialise(value, sa)
+        type_name_, data = self._value(value, sa)
         return self._transport.add_async(sa, entry_id, type_name_, data)
 
     def overwrite_async(
         self,
         entry_id: str,
-        value: Message,
+        value: Message | Loan,
         *,
         subarchitecture: str | None = None,
         expected_version: int | None = None,
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting for the answer: a future of its result (as :meth:`add_async`)."""
         sa = self._sa(subarchitecture)
-        type_name_, data = self._serialise(value, sa)
+        type_name_, data = self._value(value, sa)
         return self._transport.overwrite_async(sa, entry_id, type_name_, data, expected_version)
 
     def delete_entry(
@@ -266,6 +298,9 @@ class Component:
             else:
                 if value is None:
                     raise InvalidArgumentError(f"batch {kind} of '{entry_id}' needs a value")
+                if isinstance(value, Loan):
+                    raise InvalidArgumentError(f"batch {kind} of '{entry_id}' got a loan: a batch takes messages; "
+                                               "write a loan with add or overwrite")
                 type_name_, data = self._serialise(value, sa)
                 ops.append(BatchOp(op, sa, entry_id, type_name_, data))
         return self._transport.batch(ops)

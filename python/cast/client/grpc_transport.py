@@ -25,6 +25,7 @@ from cast.client.channel import CHANNEL_OPTIONS, JOIN_S, TRANSIENT, Backoff, Lin
 from cast.client.conversions import address, entry_from_pb, fill_write, task_from_pb
 from cast.client.credentials import ClientTls, TokenSource
 from cast.client.dispatcher import Dispatcher
+from cast.client.loan import Loan
 from cast.client.session import Session
 from cast.client.shm import attach
 from cast.client.shm_session import ClientSession, Staged
@@ -239,17 +240,37 @@ class GrpcTransport:
             raise
         return result
 
+    def loan(self, sa: str, type_name: str, header: bytes, size: int) -> Loan:
+        """A loan of ``size`` bytes after ``header``: in the staging area of ``sa``'s server when it can be."""
+        budget = _Budget(self._timeout)
+        link = self._server(sa).shared
+        session = link.session(budget.left(), self._tokens.token()) if link is not None else None
+        if session is not None and len(header) + size >= session.threshold:
+            reserved = session.reserve(header, size)
+            if reserved is not None:
+                return Loan(sa, type_name, header, size, (session, *reserved))
+        return Loan(sa, type_name, header, size)
+
     def _fill(
         self, req: wm_pb2.AddRequest | wm_pb2.OverwriteRequest, sa: str, entry_id: str, type_name: str,
-        data: bytes | memoryview, budget: _Budget, server_sa: str = "",
+        data: bytes | memoryview | Loan, budget: _Budget, server_sa: str = "",
     ) -> _Staging:
         """Fill a write's value: staged in shared memory when large and on the server's host, else its bytes.
 
         ``server_sa``: the SA whose server the request goes to, when not ``sa`` (a batch goes to its first's).
+        A loan in the session the write goes on is named where it is (nothing copied).
         """
         link = self._server(server_sa or sa).shared
         # With the token the write goes with: a renewed one opens the session the value is staged in and sent on.
         session = link.session(budget.left(), self._tokens.token()) if link is not None else None
+        if isinstance(data, Loan):
+            taken = data.take(sa, session)
+            if isinstance(taken, Staged):
+                assert session is not None  # a loan's region is named only in the live session it is in
+                fill_write(req, sa, entry_id, type_name, b"")
+                req.staged_value.CopyFrom(session.staged_value(taken))
+                return ((session, taken),)
+            data = taken
         staged = session.stage(data) if session is not None and len(data) >= session.threshold else None
         if session is None or staged is None:
             fill_write(req, sa, entry_id, type_name, data if isinstance(data, bytes) else bytes(data))
@@ -258,13 +279,14 @@ class GrpcTransport:
         req.staged_value.CopyFrom(session.staged_value(staged))
         return ((session, staged),)
 
-    def _add_request(self, sa: str, entry_id: str, type_name: str, data: bytes,
+    def _add_request(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan,
                      budget: _Budget) -> tuple[wm_pb2.WriteRequest, _Staging]:
         request = wm_pb2.WriteRequest()
         return request, self._fill(request.add, sa, entry_id, type_name, data, budget)
 
     def _overwrite_request(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None, budget: _Budget
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None,
+        budget: _Budget,
     ) -> tuple[wm_pb2.WriteRequest, _Staging]:
         request = wm_pb2.WriteRequest()
         staged = self._fill(request.overwrite, sa, entry_id, type_name, data, budget)
@@ -272,21 +294,21 @@ class GrpcTransport:
             request.overwrite.expected_version = expected_version
         return request, staged
 
-    def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
+    def add(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> WriteResult:
         """Create an entry."""
         budget = _Budget(self._timeout)
         request, staged = self._add_request(sa, entry_id, type_name, data, budget)
         reply = self._write(sa, request, budget.left_for(staged), staged)
         return WriteResult(reply.write.revision, reply.write.version)
 
-    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> Future[WriteResult]:
         """Create an entry without waiting: the future of its result."""
         budget = _Budget(self._timeout)
         request, staged = self._add_request(sa, entry_id, type_name, data, budget)
         return self._write_async(sa, request, staged, budget)
 
     def overwrite(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
         budget = _Budget(self._timeout)
@@ -295,7 +317,7 @@ class GrpcTransport:
         return WriteResult(reply.write.revision, reply.write.version)
 
     def overwrite_async(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting: the future of its result."""
         budget = _Budget(self._timeout)

@@ -20,6 +20,7 @@ from dataclasses import replace
 from google.protobuf import descriptor_pb2
 
 from cast.client.dispatcher import Dispatcher
+from cast.client.loan import Loan
 from cast.client.transport import EventSink
 from cast.core.access import Access, event_for, run_sync
 from cast.core.records import BatchOp, EntryRecord, Identity, LockMode, Operation, WriteResult
@@ -31,6 +32,15 @@ from cast.errors import CastError
 from cast.version import library_version
 
 __all__ = ["LocalTransport"]
+
+
+def _bytes(data: bytes | Loan, sa: str) -> bytes:
+    """A write's value as bytes: a loan's, which spends it."""
+    if isinstance(data, Loan):
+        taken = data.take(sa, None)
+        assert isinstance(taken, bytes)  # a loan taken in process is private memory
+        return taken
+    return data
 
 
 def _done(write: Callable[[], WriteResult]) -> Future[WriteResult]:
@@ -73,23 +83,28 @@ class LocalTransport:
         """The system's SA names."""
         return self._host.subarchitectures
 
-    def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
+    def loan(self, sa: str, type_name: str, header: bytes, size: int) -> Loan:
+        """A loan in private memory: in process a value's bytes are handed over, not sent."""
+        return Loan(sa, type_name, header, size)
+
+    def add(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> WriteResult:
         """Create an entry."""
+        data = _bytes(data, sa)
         return run_sync(self._system, self._access.write(BatchOp(Operation.ADD, sa, entry_id, type_name, data)))
 
     def overwrite(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
-        op = BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, data, expected_version)
+        op = BatchOp(Operation.OVERWRITE, sa, entry_id, type_name, _bytes(data, sa), expected_version)
         return run_sync(self._system, self._access.write(op))
 
-    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> Future[WriteResult]:
         """Create an entry; in process the write is done when this returns, so its future is too."""
         return _done(lambda: self.add(sa, entry_id, type_name, data))
 
     def overwrite_async(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> Future[WriteResult]:
         """Replace an entry's value; the future is done when this returns (in process)."""
         return _done(lambda: self.overwrite(sa, entry_id, type_name, data, expected_version))

@@ -53,6 +53,7 @@ METADATA_KEY = "cast-shared-memory"
 _SEGMENT_WAIT_S = 5.0  # how long a claim waits for the SEGMENT frame sent before the message naming it
 _SEND_S = 5.0  # how long a frame may wait for room in the socket: the server reads it at once unless stuck
 _READ_BYTES = 256 << 10  # one read takes what the socket holds (EVENTS frames carry small values' bytes)
+_PAYLOAD_ALIGN = 64  # a loan's payload starts on a cache line (ClientSession.reserve)
 _RECEIVED_EVERY = 64  # a long call reports what it received this often, so the server forgets the rest
 
 
@@ -106,12 +107,13 @@ NATIVE_RECEIVE = _receive is not None
 class Staged:
     """A region of the staging area holding one value, until its write's reply came."""
 
-    __slots__ = ("offset", "size", "taken")
+    __slots__ = ("offset", "size", "start", "taken")
 
-    def __init__(self, offset: int, size: int, taken: int) -> None:
+    def __init__(self, offset: int, size: int, taken: int, start: int | None = None) -> None:
         self.offset = offset
         self.size = size  # the value's bytes
         self.taken = taken  # whole pages
+        self.start = offset if start is None else start  # the region's first byte (a loan's value begins after it)
 
 
 class Lease:
@@ -245,6 +247,34 @@ class ClientSession:
             return None
         return Staged(offset, size, taken)
 
+    def reserve(self, header: bytes, size: int) -> tuple[Staged, memoryview] | None:
+        """A region for a loan (cast.client.loan): ``header`` written, then ``size`` bytes left to the caller.
+
+        The payload (what follows the header) starts on a multiple of 64, as
+        the arena places a value's largest field: a caller filling it with
+        vector stores finds it aligned. The view returned is the region's
+        value (header, then payload); it keeps the staging area mapped while
+        it lives, even past the session's end. None: the session ended, or there
+        is no room (the loan's bytes are then private memory).
+        """
+        self.poll()
+        if self.dead:
+            return None
+        pad = -len(header) % _PAYLOAD_ALIGN
+        value = len(header) + size
+        taken = round_up(pad + value)
+        with self._state:
+            start = self._regions.take(taken)
+        if start is None:
+            return None
+        offset = start + pad
+        try:
+            region = self._staging_view[offset: offset + value]
+        except ValueError:  # the session ended meanwhile (its staging area's view was released)
+            return None
+        region[:len(header)] = header
+        return Staged(offset, value, taken, start), region
+
     def staged_value(self, staged: Staged) -> wm_pb2.StagedValue:
         """What a write request says of a staged value."""
         return wm_pb2.StagedValue(session=self.id, offset=staged.offset, size=staged.size)
@@ -258,7 +288,7 @@ class ClientSession:
         """
         with self._state:
             if known:
-                self._regions.give(staged.offset, staged.taken)
+                self._regions.give(staged.start, staged.taken)
             else:
                 self._quarantined += staged.taken
 

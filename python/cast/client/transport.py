@@ -16,6 +16,7 @@ from typing import Protocol
 from google.protobuf import descriptor_pb2
 
 from cast.client.dispatcher import Dispatcher
+from cast.client.loan import Loan
 from cast.core.records import BatchOp, ChangeEvent, EntryRecord, Identity, LockMode, WriteResult
 from cast.core.sessions import ComponentState
 from cast.core.tasks import TaskOutcome, TaskRecord
@@ -41,19 +42,22 @@ class Transport(Protocol):
     delivers_on_writer_thread: bool
     """True if the event sink is called on writers' threads (so it must never block)."""
 
-    def add(self, sa: str, entry_id: str, type_name: str, data: bytes) -> WriteResult:
+    def loan(self, sa: str, type_name: str, header: bytes, size: int) -> Loan:
+        """A place for ``size`` bytes of a value after its ``header`` (cast.client.loan), written with add/overwrite."""
+
+    def add(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> WriteResult:
         """Create an entry."""
 
     def overwrite(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> WriteResult:
         """Replace an entry's value."""
 
-    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes) -> Future[WriteResult]:
+    def add_async(self, sa: str, entry_id: str, type_name: str, data: bytes | Loan) -> Future[WriteResult]:
         """Create an entry without waiting for the answer: its future (errors arrive on it)."""
 
     def overwrite_async(
-        self, sa: str, entry_id: str, type_name: str, data: bytes, expected_version: int | None
+        self, sa: str, entry_id: str, type_name: str, data: bytes | Loan, expected_version: int | None
     ) -> Future[WriteResult]:
         """Replace an entry's value without waiting for the answer: its future."""
 

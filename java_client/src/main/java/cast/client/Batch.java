@@ -7,7 +7,8 @@ import java.util.List;
 /**
  * Many writes to one SA's working memory applied in order, all or nothing, in one
  * call: {@code batch().add(a, x).overwrite(b, y).deleteEntry(c).apply()}. If one
- * fails none is applied, and the error names the failing operation's index.
+ * fails none is applied, and the error names the failing operation's index. A batch takes
+ * messages only: a {@link Loan} is written with {@code add} or {@code overwrite} of the component.
  */
 public final class Batch {
   private final Component component;

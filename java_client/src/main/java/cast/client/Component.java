@@ -1,6 +1,7 @@
 package cast.client;
 
 import com.google.protobuf.Any;
+import com.google.protobuf.Descriptors.FieldDescriptor;
 import com.google.protobuf.Message;
 import java.time.Duration;
 import java.util.ArrayList;
@@ -257,6 +258,120 @@ public abstract class Component implements AutoCloseable {
     return t().overwriteAsync(sa(subarchitecture), id, any, expectedVersion);
   }
 
+  // ------------------------------------------------------- WM: loans
+
+  /**
+   * A loan of {@code size} bytes of {@code value}'s field {@code field}, for a write to the own SA:
+   * see {@link #loan(Message, String, int, String)}.
+   */
+  public Loan loan(Message value, String field, int size) {
+    return loan(value, field, size, null);
+  }
+
+  /**
+   * A large value written in place ({@link Loan}): the place of the {@code size} bytes of {@code
+   * value}'s field {@code field}, a top-level singular {@code bytes} field left empty in {@code
+   * value} (every other field set), to fill through {@link Loan#buffer()} and then write with
+   * {@code add}, {@code overwrite}, {@code addAsync} or {@code overwriteAsync} to {@code
+   * subarchitecture} (null: the own SA). On the server's host, for a large value, the buffer is in
+   * shared memory and the write copies nothing. Registers the value's type as a write of it does.
+   * InvalidArgumentError, nothing reserved, when {@code field} is not such a field, already holds
+   * bytes, or {@code size} is negative.
+   */
+  public Loan loan(Message value, String field, int size, String subarchitecture) {
+    FieldDescriptor loaned = LoanHeader.field(value, field, size);
+    String target = sa(subarchitecture);
+    Any any = serialise(value, target);
+    return t().loan(target, any.getTypeUrl(), LoanHeader.of(any.getValue(), loaned, size), size);
+  }
+
+  /**
+   * {@code loan}, spent for a write to {@code sa} ({@link Loan#spendFor}): InvalidArgumentError,
+   * nothing written, when it is null, was written or closed, or was taken for another SA.
+   */
+  private static Loan spent(Loan loan, String sa) {
+    if (loan == null) {
+      throw new InvalidArgumentError("a loan to write was expected, got null: take one with loan(value, field, size)");
+    }
+    loan.spendFor(sa);
+    return loan;
+  }
+
+  /**
+   * Create an entry in the own SA with a loan's value ({@link #loan}); AlreadyExistsError if the id
+   * is taken. The loan is spent, whatever the outcome; its buffer must not be touched any more.
+   */
+  public WriteResult add(String id, Loan loan) {
+    return add(id, loan, null);
+  }
+
+  /** Create an entry in {@code subarchitecture} with a loan's value (taken for that SA). */
+  public WriteResult add(String id, Loan loan, String subarchitecture) {
+    String target = sa(subarchitecture);
+    return t().add(target, id, spent(loan, target));
+  }
+
+  /** Create an entry in the own SA with a loan's value without waiting: the future of its result. */
+  public CompletableFuture<WriteResult> addAsync(String id, Loan loan) {
+    return addAsync(id, loan, null);
+  }
+
+  /** Create an entry in {@code subarchitecture} with a loan's value without waiting. */
+  public CompletableFuture<WriteResult> addAsync(String id, Loan loan, String subarchitecture) {
+    String target = sa(subarchitecture);
+    return t().addAsync(target, id, spent(loan, target));
+  }
+
+  /**
+   * Replace an entry's value in the own SA with a loan's ({@link #loan}); NotFoundError if it does
+   * not exist. The loan is spent, whatever the outcome; its buffer must not be touched any more.
+   */
+  public WriteResult overwrite(String id, Loan loan) {
+    return overwrite(id, loan, null, null);
+  }
+
+  /** Replace an entry's value with a loan's if its version is {@code expectedVersion}, else ConsistencyError. */
+  public WriteResult overwrite(String id, Loan loan, long expectedVersion) {
+    return overwrite(id, loan, null, expectedVersion);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture} with a loan's. */
+  public WriteResult overwrite(String id, Loan loan, String subarchitecture) {
+    return overwrite(id, loan, subarchitecture, null);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture} with a loan's, checking its version unless it is null. */
+  public WriteResult overwrite(String id, Loan loan, String subarchitecture, Long expectedVersion) {
+    String target = sa(subarchitecture);
+    return t().overwrite(target, id, spent(loan, target), expectedVersion);
+  }
+
+  /** Replace an entry's value in the own SA with a loan's without waiting: the future of its result. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Loan loan) {
+    return overwriteAsync(id, loan, null, null);
+  }
+
+  /** Replace an entry's value with a loan's if its version is {@code expectedVersion}, without waiting. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Loan loan, long expectedVersion) {
+    return overwriteAsync(id, loan, null, expectedVersion);
+  }
+
+  /** Replace an entry's value in {@code subarchitecture} with a loan's without waiting. */
+  public CompletableFuture<WriteResult> overwriteAsync(String id, Loan loan, String subarchitecture) {
+    return overwriteAsync(id, loan, subarchitecture, null);
+  }
+
+  /**
+   * Replace an entry's value in {@code subarchitecture} with a loan's, checking its version unless
+   * it is null, without waiting: as {@link #overwriteAsync(String, Message, String, Long)}. The
+   * loan is spent when this returns, whatever the outcome; its buffer must not be touched any more.
+   */
+  public CompletableFuture<WriteResult> overwriteAsync(
+      String id, Loan loan, String subarchitecture, Long expectedVersion) {
+    String target = sa(subarchitecture);
+    return t().overwriteAsync(target, id, spent(loan, target), expectedVersion);
+  }
+
   /**
    * Delete an entry of the own SA (its locks go with it). Named {@code deleteEntry}
    * in every language, since {@code delete} is a C++ keyword.
@@ -280,7 +395,10 @@ public abstract class Component implements AutoCloseable {
     return t().delete(sa(subarchitecture), id, expectedVersion);
   }
 
-  /** A batch of writes to the own SA, applied in order, all or nothing, by {@link Batch#apply()}. */
+  /**
+   * A batch of writes to the own SA, applied in order, all or nothing, by {@link Batch#apply()}.
+   * A batch takes messages, not loans: write a {@link Loan} with add or overwrite.
+   */
   public Batch batch() {
     return new Batch(this, subarchitecture());
   }

@@ -13,6 +13,7 @@ import cast.v1.WriteReply;
 import cast.v1.WriteRequest;
 import cast.v1.WriteResponse;
 import com.google.protobuf.Any;
+import com.google.protobuf.ByteString;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
 import io.grpc.Status;
 import io.grpc.StatusRuntimeException;
@@ -333,6 +334,65 @@ final class GrpcTransport implements Transport {
     StagedWrite staged = StagedWrite.to(server(sa), budget.left());
     var request = Conversions.writeOverwrite(sa, id, value, expectedVersion, staged.stage(value));
     return staged.submit(writes(sa), request, results, budget);
+  }
+
+  // A loan is taken in the staging area of the session its writes would stage in; written in that
+  // session, still live, it is named where it is (no copy), else its bytes go (StagedWrite.stage(Loan)).
+
+  @Override
+  public Loan loan(String sa, String typeUrl, ByteString header, int size) {
+    Budget budget = new Budget(callTimeout);
+    SharedLink link = server(sa).shared;
+    SharedSession session = link == null ? null : link.writerSession(budget.left());
+    return new Loan(sa, typeUrl, LoanMemory.of(session, header, size));
+  }
+
+  @Override
+  public WriteResult add(String sa, String id, Loan loan) {
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = stagingFor(sa, loan, budget);
+    StagedWrite.Value value = staged.stage(loan);
+    var request = Conversions.writeAdd(sa, id, value.value(), value.staged());
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> addAsync(String sa, String id, Loan loan) {
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = stagingFor(sa, loan, budget);
+    StagedWrite.Value value = staged.stage(loan);
+    return staged.submit(writes(sa), Conversions.writeAdd(sa, id, value.value(), value.staged()), results, budget);
+  }
+
+  @Override
+  public WriteResult overwrite(String sa, String id, Loan loan, Long expectedVersion) {
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = stagingFor(sa, loan, budget);
+    StagedWrite.Value value = staged.stage(loan);
+    var request = Conversions.writeOverwrite(sa, id, value.value(), expectedVersion, value.staged());
+    return Conversions.result(staged.call(writes(sa), request, budget).getWrite());
+  }
+
+  @Override
+  public CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Loan loan, Long expectedVersion) {
+    Budget budget = new Budget(callTimeout);
+    StagedWrite staged = stagingFor(sa, loan, budget);
+    StagedWrite.Value value = staged.stage(loan);
+    var request = Conversions.writeOverwrite(sa, id, value.value(), expectedVersion, value.staged());
+    return staged.submit(writes(sa), request, results, budget);
+  }
+
+  /**
+   * Staging for the write of {@code loan} to {@code sa} ({@link StagedWrite#to}); when that fails
+   * (the call's time is up before anything was sent), the loan's place goes back.
+   */
+  private StagedWrite stagingFor(String sa, Loan loan, Budget budget) {
+    try {
+      return StagedWrite.to(server(sa), budget.left());
+    } catch (RuntimeException e) {
+      loan.memory().giveBack();
+      throw e;
+    }
   }
 
   @Override

@@ -16,7 +16,8 @@ import java.util.concurrent.atomic.AtomicInteger;
  * {@link Cleaner}: late, but the server's window for this client is not lost for good.
  */
 final class Lease {
-  private static final Cleaner CLEANER =
+  /** The library's cleaner of shared-memory holdings left to the collector: leases, and loans ({@link Loan}). */
+  static final Cleaner CLEANER =
       Cleaner.create(
           r -> {
             Thread t = new Thread(r, "cast-shm-leases");

@@ -56,6 +56,8 @@ final class SessionWrites {
   private volatile int followers; // threads in await waiting for another thread to read; changed under this
   /** WRITES frames sent on this session (for tests and diagnostics). */
   final AtomicLong framesSent = new AtomicLong();
+  /** Bytes of the WRITES frames sent on this session (staged values' not among them; for tests and diagnostics). */
+  final AtomicLong bytesSent = new AtomicLong();
 
   /**
    * A request sent and not answered: where its reply goes; its deadline ({@code at}, in
@@ -134,6 +136,7 @@ final class SessionWrites {
     }
     session.sendNow(frame);
     framesSent.incrementAndGet();
+    bytesSent.addAndGet(frame.length);
     return reply;
   }
 

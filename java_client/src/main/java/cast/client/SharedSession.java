@@ -55,7 +55,8 @@ import org.newsclub.net.unix.FileDescriptorCast;
  * or every segment once the session ended, is unmapped as soon as no lease of it is held (the
  * memory of a dead server goes at once, not at some later garbage collection). So a buffer taken
  * from a view must not be read after the view was closed: its memory may be gone. The staging area
- * is unmapped when the session ends. The twin of
+ * is unmapped when the session ends, or once the last {@link Loan} whose buffer is in it was written
+ * or closed. The twin of
  * python/cast/client/shm_session.py and cpp_client/src/shm_session.cc; {@link SharedLink}
  * opens it.
  */
@@ -212,6 +213,29 @@ final class SharedSession {
   /** Bytes of staged values whose write's outcome is unknown: never written again while the session lives. */
   long quarantined() {
     return staging.quarantined();
+  }
+
+  /**
+   * A region of the staging area lent to a loan, {@code header} written in it and room for {@code
+   * size} bytes of payload after it ({@link ShmStaging#lend}); null when there is none or the
+   * session ended (the loan is then private memory).
+   */
+  ShmStaging.Lent lend(ByteString header, int size) {
+    return dead != null ? null : staging.lend(header, size);
+  }
+
+  /** What a write request says of a loan's value, named where it is. */
+  StagedValue stagedValue(ShmStaging.Lent loan) {
+    return StagedValue.newBuilder()
+        .setSession(ByteString.copyFrom(id))
+        .setOffset(loan.offset())
+        .setSize(loan.size())
+        .build();
+  }
+
+  /** The staging area (loans give their regions back to it; tests read it). */
+  ShmStaging staging() {
+    return staging;
   }
 
   // ------------------------------------------------------------------- reads

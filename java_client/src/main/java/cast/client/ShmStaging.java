@@ -7,6 +7,8 @@ import java.nio.ByteBuffer;
 import java.nio.MappedByteBuffer;
 import java.util.Map;
 import java.util.TreeMap;
+import java.util.concurrent.atomic.AtomicInteger;
+import java.util.concurrent.atomic.AtomicLong;
 import java.util.concurrent.locks.ReentrantReadWriteLock;
 
 /**
@@ -15,13 +17,27 @@ import java.util.concurrent.locks.ReentrantReadWriteLock;
  * writes not answered yet. Regions are whole 4 KiB pages, taken first fit. A write whose
  * outcome is unknown (its stream broke, its deadline passed) may still be applied later, and
  * the server would then copy whatever its region holds: such a region is never written again
- * while the session lives. Part of {@link SharedSession}.
+ * while the session lives. A {@link Loan} is <em>lent</em> a region instead ({@link #lend}): its
+ * header written there, its payload filled by the user in place; while a loan lives (until it is
+ * written or closed) the area stays mapped, even once the session ended, since the user's buffer
+ * is that memory. Part of {@link SharedSession}.
  */
 final class ShmStaging {
   static final int PAGE = 4096;
 
+  /** The boundary a loan's payload starts on within the area: a cache line, as the server's arena aligns it. */
+  static final int PAYLOAD_ALIGNMENT = 64;
+
   /** A region holding one value, until its write's reply came. */
   record Staged(long offset, long size, long taken) {}
+
+  /**
+   * A region lent to a loan: {@code region} as taken (what is freed or kept, the pad included),
+   * the value in it at {@code offset} (after a pad of less than {@link #PAYLOAD_ALIGNMENT} bytes,
+   * so that its payload starts on a multiple of it), {@code size} bytes long (header and
+   * payload), and the payload's place, writable ({@code payload}).
+   */
+  record Lent(Staged region, long offset, long size, ByteBuffer payload) {}
 
   private final MappedByteBuffer area;
   private final long size;
@@ -30,6 +46,11 @@ final class ShmStaging {
   private final TreeMap<Long, Long> free = new TreeMap<>(); // offset -> run length; guarded by this
   private long quarantined; // guarded by this
   private boolean closed; // guarded by mapping's write lock
+  private boolean unmapped; // guarded by mapping's write lock
+  // Loans whose buffer is in the area: it is not unmapped while one lives (their user writes there).
+  private final AtomicInteger lent = new AtomicInteger();
+  /** Values copied into the area ({@link #stage}; a loan's are not: for tests and diagnostics). */
+  final AtomicLong copiedIn = new AtomicLong();
 
   ShmStaging(MappedByteBuffer area) {
     this.area = area;
@@ -57,10 +78,98 @@ final class ShmStaging {
       ByteBuffer to = area.duplicate();
       to.position((int) (long) offset);
       value.copyTo(to);
+      copiedIn.incrementAndGet();
     } finally {
       mapping.readLock().unlock();
     }
     return new Staged(offset, value.size(), taken);
+  }
+
+  /**
+   * A region for a loan's value: {@code header} written in it, then room for {@code size} bytes of
+   * payload starting on a multiple of {@link #PAYLOAD_ALIGNMENT} within the area; null when there
+   * is no room or the area is gone (the loan is then private memory). The area stays mapped until
+   * the loan is {@link #handOver handed over} or {@link #giveBack given back}.
+   */
+  Lent lend(ByteString header, int size) {
+    // Regions start on a page, a multiple of the alignment: the pad depends on the header alone.
+    int pad = (PAYLOAD_ALIGNMENT - header.size() % PAYLOAD_ALIGNMENT) % PAYLOAD_ALIGNMENT;
+    long length = (long) header.size() + size;
+    long taken = roundUp(pad + length);
+    Long offset = take(taken);
+    if (offset == null) {
+      return null;
+    }
+    Staged region = new Staged(offset, pad + length, taken);
+    mapping.readLock().lock(); // close() waits: it sees this loan counted, or this sees it closed
+    try {
+      if (closed) {
+        unstage(region, true);
+        return null;
+      }
+      lent.incrementAndGet();
+      ByteBuffer to = area.duplicate();
+      to.position((int) (offset + pad));
+      header.copyTo(to);
+      ByteBuffer payload = area.duplicate();
+      payload.position((int) (offset + pad + header.size())).limit((int) (offset + pad + length));
+      return new Lent(region, offset + pad, length, payload.slice());
+    } finally {
+      mapping.readLock().unlock();
+    }
+  }
+
+  /** The value of {@code loan}, header and payload, copied out (a write that sends its bytes; still mapped). */
+  ByteString copy(Lent loan) {
+    return ByteString.copyFrom(bytes(loan.offset(), loan.size()));
+  }
+
+  /** {@code length} bytes of the area from {@code offset}, read-only, not copied (a loan's value; tests). */
+  ByteBuffer bytes(long offset, long length) {
+    return area.asReadOnlyBuffer().position((int) offset).limit((int) (offset + length)).slice();
+  }
+
+  /** A loan not written: its region is free again. */
+  void giveBack(Lent loan) {
+    unstage(loan.region(), true);
+    loanEnded();
+  }
+
+  /**
+   * A loan written in place: its region is the write's now, freed or kept after the reply as a
+   * staged value's ({@link #unstage}); this side reads it no more.
+   */
+  void handOver(Lent loan) {
+    loanEnded();
+  }
+
+  /** Loans whose buffer is in the area (not yet written or closed). */
+  int loans() {
+    return lent.get();
+  }
+
+  /** The area's size in bytes. */
+  long size() {
+    return size;
+  }
+
+  private void loanEnded() {
+    if (lent.decrementAndGet() == 0) {
+      mapping.writeLock().lock();
+      try {
+        unmapIfDone();
+      } finally {
+        mapping.writeLock().unlock();
+      }
+    }
+  }
+
+  /** Unmap the area once it is closed and no loan's buffer is in it (holding mapping's write lock). */
+  private void unmapIfDone() {
+    if (closed && !unmapped && lent.get() == 0) {
+      unmapped = true;
+      unmap(area);
+    }
   }
 
   private synchronized Long take(long taken) {
@@ -109,14 +218,15 @@ final class ShmStaging {
     return free.values().stream().mapToLong(Long::longValue).sum();
   }
 
-  /** Unmap the area (the session ended); later stages get null. */
+  /**
+   * The session ended: unmap the area, or once the last loan whose buffer is in it was written or
+   * closed; later stages and loans get null.
+   */
   void close() {
     mapping.writeLock().lock();
     try {
-      if (!closed) {
-        closed = true;
-        unmap(area);
-      }
+      closed = true;
+      unmapIfDone();
     } finally {
       mapping.writeLock().unlock();
     }
@@ -125,8 +235,9 @@ final class ShmStaging {
   /**
    * Unmap a mapping now, rather than when the garbage collector finds it (which may be long
    * after, and keeps the memory file alive meanwhile). Only for a mapping nothing reads any
-   * more: the staging area once the session ended, a retired segment once no lease of it is
-   * held. Without sun.misc.Unsafe (a JVM that lacks it) the collector does it.
+   * more: the staging area once the session ended and no loan's buffer is in it, a retired
+   * segment once no lease of it is held. Without sun.misc.Unsafe (a JVM that lacks it) the
+   * collector does it.
    */
   static void unmap(MappedByteBuffer buffer) {
     try {

@@ -17,7 +17,9 @@ import java.util.concurrent.Executor;
  * request instead of carried; without a session, or without room, it travels as bytes. When
  * the write is over its regions are freed, unless its outcome is unknown (UnavailableError,
  * DeadlineExceededError, an interrupted wait): the server may still apply it and copy whatever
- * the regions then hold, so they stay taken while the session lives. Part of the {@code
+ * the regions then hold, so they stay taken while the session lives. A {@link Loan}'s value is
+ * already in the staging area: in the write's session it is named there, its region one of the
+ * write's ({@link #stage(Loan)}). Part of the {@code
  * grpc_transport} role, as {@code _fill} and {@code _unstage} are in
  * python/cast/client/grpc_transport.py.
  */
@@ -50,6 +52,26 @@ final class StagedWrite {
     }
     regions.add(staged);
     return session.stagedValue(staged);
+  }
+
+  /** What a write request says of its value: its bytes, or its type alone and where it is staged ({@code staged}). */
+  record Value(Any value, StagedValue staged) {}
+
+  /**
+   * The value of {@code loan} (spent for this write): named where it is when it is in this
+   * write's session, still live, with nothing copied (its region is then this write's, freed or
+   * kept after the reply as a staged value's); else its bytes, staged as any value's ({@link
+   * #stage(Any)}), and its place in another session (ended, or given way to a renewed token)
+   * goes back.
+   */
+  Value stage(Loan loan) {
+    if (session != null && loan.memory() instanceof LoanMemory.InStaging inPlace && inPlace.in(session)) {
+      ShmStaging.Lent lent = inPlace.handOver();
+      regions.add(lent.region());
+      return new Value(Any.newBuilder().setTypeUrl(loan.typeUrl()).build(), session.stagedValue(lent));
+    }
+    Any value = loan.value();
+    return new Value(value, stage(value));
   }
 
   /** Whether a write that failed with {@code error} may still be applied. */

@@ -203,6 +203,36 @@ interface Transport extends AutoCloseable {
   /** Replace an entry's value without waiting: the future of its result (errors arrive on it). */
   CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Any value, Long expectedVersion);
 
+  /**
+   * A loan of {@code size} bytes after {@code header} (made by {@link LoanHeader}) for a value of
+   * {@code typeUrl} to be written to {@code sa}: in the staging area of that SA's server when the
+   * value would go by shared memory, else private memory ({@link LoanMemory#of}).
+   */
+  Loan loan(String sa, String typeUrl, ByteString header, int size);
+
+  // A loan's writes: the loan was spent for {@code sa} ({@link Loan#spendFor}), its memory is the
+  // write's. A transport without shared memory sends its bytes, as these defaults do.
+
+  /** Create an entry with a loan's value. */
+  default WriteResult add(String sa, String id, Loan loan) {
+    return add(sa, id, loan.value());
+  }
+
+  /** Create an entry with a loan's value without waiting. */
+  default CompletableFuture<WriteResult> addAsync(String sa, String id, Loan loan) {
+    return addAsync(sa, id, loan.value());
+  }
+
+  /** Replace an entry's value with a loan's, checking its version unless {@code expectedVersion} is null. */
+  default WriteResult overwrite(String sa, String id, Loan loan, Long expectedVersion) {
+    return overwrite(sa, id, loan.value(), expectedVersion);
+  }
+
+  /** Replace an entry's value with a loan's without waiting. */
+  default CompletableFuture<WriteResult> overwriteAsync(String sa, String id, Loan loan, Long expectedVersion) {
+    return overwriteAsync(sa, id, loan.value(), expectedVersion);
+  }
+
   /** Delete an entry, checking its version unless {@code expectedVersion} is null. */
   WriteResult delete(String sa, String id, Long expectedVersion);
 

@@ -1,6 +1,7 @@
 package cast.client;
 
 import com.google.protobuf.Any;
+import com.google.protobuf.ByteString;
 import com.google.protobuf.DescriptorProtos.FileDescriptorSet;
 import java.time.Duration;
 import java.time.Instant;
@@ -154,6 +155,13 @@ final class FakeTransport implements Transport {
   }
 
   // ----------------------------------------------------------------- writes
+
+  /** In private memory, as with no shared memory; its writes send its bytes (Transport's defaults). */
+  @Override
+  public Loan loan(String sa, String typeUrl, ByteString header, int size) {
+    memory.calls.add("Loan " + sa + " " + size);
+    return new Loan(sa, typeUrl, LoanMemory.of(null, header, size));
+  }
 
   @Override
   public WriteResult add(String sa, String id, Any value) {

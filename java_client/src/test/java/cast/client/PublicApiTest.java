@@ -111,7 +111,7 @@ class PublicApiTest {
           "ClientTls", "Component", "ConnectOptions", "Connection", "ConsistencyError",
           "DeadlineExceededError", "Delivery", "Entry", "Filters", "HistoryExpiredError", "Identity",
           "InternalError", "InvalidArgumentError", "LaunchContract", "LockGuard", "LockMode",
-          "LockedError", "ManagedComponent", "NoSessionError", "NotFoundError", "Operation",
+          "LockedError", "Loan", "ManagedComponent", "NoSessionError", "NotFoundError", "Operation",
           "PermissionDeniedError", "Priority", "ResourceExhaustedError", "Runner", "SchemaConflictError",
           "Task", "TaskOutcome", "TaskState", "TaskStateError", "Tokens", "Types",
           "UnauthenticatedError", "UnavailableError", "UnmanagedComponent", "ValueView", "Version",
