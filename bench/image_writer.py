@@ -3,8 +3,8 @@
 `python -m bench.image_writer SIZE N GAP_US` with the launch contract (CAST_*)
 in its environment adds the entry "img" (a ``BytesValue`` of SIZE bytes),
 overwrites it N times, the i-th at start + i * GAP_US (0: back to back),
-each made and then stamped on CLOCK_MONOTONIC (``time.perf_counter_ns``) just before it, then
-deletes it (the watchers' end mark) and prints ``{revision: ns}`` of the
+each made in a loan (``Component.loan``: in place in the staging area on the server's host) and then
+stamped on CLOCK_MONOTONIC (``time.perf_counter_ns``) just before it, then deletes it (the watchers' end mark) and prints ``{revision: ns}`` of the
 overwrites. The same as ``cast_bench image-write`` (C++), which M8 runs.
 """
 
@@ -33,11 +33,12 @@ def main(size: int, frames: int, gap_us: int) -> int:
             delay = start + i * gap_us / 1e6 - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-        # Made (its bytes copied) just before its stamp, as the peers' publisher makes its payload
+        # Made (its bytes copied into its loan) just before its stamp, as the peers' publisher makes its payload
         # (bench.peer_fanout.drive): a fresh frame is in the cache when it is published.
-        value = BytesValue(value=fills[i % 2])
+        loan = c.loan(BytesValue(), "value", size)
+        loan.buffer[:] = fills[i % 2]
         t = time.perf_counter_ns()
-        stamps[c.overwrite("img", value).revision] = t
+        stamps[c.overwrite("img", loan).revision] = t
     c.delete_entry("img")
     print(json.dumps(stamps), flush=True)
     c._cast_close()
