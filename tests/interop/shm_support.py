@@ -3,8 +3,9 @@
 A *peer* is a writer or a reader process with the launch contract in its environment; every
 language's peer takes the same arguments and prints the same lines, so a test runs them alike:
 
-- ``write N [change]``: ``WROTE k`` after each 1 MiB frame, ``DONE``; with ``change``, ``CHANGED k bytes``
-  once write k was acknowledged and the writer wrote 0xFF over its whole staging area;
+- ``write N [change] [loan]``: ``WROTE k`` after each 1 MiB frame, ``DONE``; with ``change``, ``CHANGED k bytes``
+  once write k was acknowledged and the writer wrote 0xFF over its whole staging area; with ``loan``, each frame
+  made in a loan and the loan written;
 - ``read [hold|trywrite]``: ``WATCHING``, then ``GOT revision k shared same sum`` per value (``k``: which
   frame the view's bytes are; ``shared``: 1 when lent by shared memory; ``same``: 1 when the decoded entry
   has the view's bytes; ``sum``: a checksum of every byte of the view, :func:`checksum`), ``FAILED reason``;

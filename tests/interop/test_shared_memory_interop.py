@@ -68,19 +68,22 @@ def sums(frames: int) -> list[int]:
     return [checksum(BytesValue(value=frame(k)).SerializeToString()) for k in range(frames)]
 
 
+@pytest.mark.parametrize("made", ["message", "loan"])
 @pytest.mark.parametrize("writer", LANGUAGES)
 def test_values_written_in_one_language_are_read_by_reference_in_every_language_and_cannot_be_changed(
-    tmp_path: Path, peers: Peers, writer: str
+    tmp_path: Path, peers: Peers, writer: str, made: str
 ) -> None:
-    """Each value the writer wrote reaches every reader by shared memory, identical; after each acknowledgement the
-    writer writes 0xFF over its whole staging area, and no reader ever sees a changed byte."""
+    """Each value the writer wrote (as a message, or made in a loan) reaches every reader by shared memory, identical;
+    after each acknowledgement the writer writes 0xFF over its whole staging area, and no reader ever sees a changed
+    byte."""
     before = dev_shm()
     server = serve(write_config(tmp_path / "system.yaml", CONFIG), cwd=tmp_path)
     try:
         readers = {lang: peers.start(lang, server, f"{lang}-reader", "read") for lang in LANGUAGES}
         for reader in readers.values():
             reader.wait("WATCHING")
-        author = peers.start(writer, server, f"{writer}-writer", "write", "3", "change")
+        loan = ("loan",) if made == "loan" else ()
+        author = peers.start(writer, server, f"{writer}-writer", "write", "3", "change", *loan)
         author.wait("DONE")
         changed = [int(x.split()[2]) for x in author.lines if x.startswith("CHANGED")]
         assert len(changed) == 3 and all(changed), author.lines  # it had a staging area, and wrote all of it over

@@ -3,7 +3,7 @@
 // arguments and lines as tests/reliability/components/shm_peer.py (Python)
 // and cast.itest.ShmPeer (Java), so a test drives any of them:
 //
-//   cast_test_shm write N [change]
+//   cast_test_shm write N [change] [loan]
 //                            adds "img" (or overwrites it if it exists) and
 //                            overwrites it, N values of 1 MiB in all (value k
 //                            is frame(k)), printing "WROTE k" after each and
@@ -11,6 +11,8 @@
 //                            "change": once each write was acknowledged, it
 //                            writes 0xFF over all of its staging area and
 //                            prints "CHANGED k bytes" before "WROTE k".
+//                            "loan": each value is made in a loan
+//                            (Component::loan) and the loan written.
 //   cast_test_shm read [hold|trywrite]
 //                            watches "img" with its entry; prints "WATCHING"
 //                            once the watch is confirmed, then per value
@@ -52,6 +54,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstdint>
@@ -214,14 +217,18 @@ void waitForStdinEnd() {
   }
 }
 
-int writeMode(Peer& peer, int n, bool change) {
+int writeMode(Peer& peer, int n, bool change, bool loaned) {
   for (int k = 0; k < n; ++k) {
     google::protobuf::BytesValue value;
-    value.set_value(frame(k));
-    if (k > 0 || peer.exists("img")) {
-      peer.overwrite("img", value);
+    const bool exists = k > 0 || peer.exists("img");
+    if (loaned) {
+      const std::string bytes = frame(k);
+      cast::Loan loan = peer.loan(value, "value", bytes.size());
+      std::memcpy(loan.buffer().data(), bytes.data(), bytes.size());
+      exists ? peer.overwrite("img", std::move(loan)) : peer.add("img", std::move(loan));
     } else {
-      peer.add("img", value);
+      value.set_value(frame(k));
+      exists ? peer.overwrite("img", value) : peer.add("img", value);
     }
     if (change) say("CHANGED " + std::to_string(k) + " " + std::to_string(changeStaging()));
     say("WROTE " + std::to_string(k));
@@ -325,7 +332,7 @@ int deadlineMode(const std::string& sa, int timeoutMs) {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::cerr << "usage: cast_test_shm write N [change] | read [hold|trywrite] | get | deadline SA MS\n";
+    std::cerr << "usage: cast_test_shm write N [change] [loan] | read [hold|trywrite] | get | deadline SA MS\n";
     return 2;
   }
   const std::string mode = argv[1];
@@ -334,7 +341,11 @@ int main(int argc, char** argv) {
     Peer peer;
     peer.bind(cast::LaunchContract::fromEnv().connect());
     int code = 2;
-    if (mode == "write" && argc > 2) code = writeMode(peer, std::stoi(argv[2]), argc > 3 && std::string(argv[3]) == "change");
+    if (mode == "write" && argc > 2) {
+      const std::vector<std::string> options(argv + 3, argv + argc);
+      const auto has = [&](const char* option) { return std::find(options.begin(), options.end(), option) != options.end(); };
+      code = writeMode(peer, std::stoi(argv[2]), has("change"), has("loan"));
+    }
     if (mode == "read") code = readMode(peer, argc > 2 ? argv[2] : "");
     if (mode == "get") code = getMode(peer);
     peer.close();

@@ -4,11 +4,12 @@ tests/reliability/test_shared_memory_processes.py and tests/interop/test_shared_
 it; the C++ cast_test_shm and the Java cast.itest.ShmPeer take the same arguments and print the same
 lines. With the launch contract (CAST_*) in its environment:
 
-- ``shm_peer.py write N [change]``: adds "img" (or overwrites it if it exists) and
+- ``shm_peer.py write N [change] [loan]``: adds "img" (or overwrites it if it exists) and
   overwrites it, N values of 1 MiB in all (value k is :func:`frame` ``(k)``), printing ``WROTE k`` after each and
   ``DONE`` at the end; then it stays until killed or its stdin closes. ``change``: once each write was
   acknowledged, it writes 0xFF over all of its staging area (the memory the value went through) and prints
-  ``CHANGED k bytes`` (0 bytes: it has no staging area) before ``WROTE k``.
+  ``CHANGED k bytes`` (0 bytes: it has no staging area) before ``WROTE k``. ``loan``: each value is made in a
+  loan (``Component.loan``) and the loan written.
 - ``shm_peer.py read [hold|trywrite]``: watches "img" with its entry, printing
   ``WATCHING`` once the watch is confirmed and ``GOT revision k shared same sum`` per
   value (``k``: which frame the view's field 1 is, -1 for bytes that are no frame;
@@ -135,9 +136,12 @@ class Peer(cast.UnmanagedComponent):
         say(f"FAILED {error}")
 
 
-def write(peer: Peer, frames: int, change: bool) -> None:
+def write(peer: Peer, frames: int, change: bool, loan: bool) -> None:
     for k in range(frames):
-        value = BytesValue(value=frame(k))
+        value: BytesValue | cast.Loan = BytesValue(value=frame(k))
+        if loan:
+            value = peer.loan(BytesValue(), "value", len(frame(k)))
+            value.buffer[:] = frame(k)
         peer.overwrite("img", value) if k or peer.exists("img") else peer.add("img", value)
         if change:
             say(f"CHANGED {k} {change_staging()}")
@@ -219,13 +223,13 @@ def main(mode: str, args: list[str]) -> None:
     peer = Peer()
     peer._cast_bind(LaunchContract.from_env().connect())
     if mode == "write":
-        write(peer, int(args[0]), args[1:2] == ["change"])
+        write(peer, int(args[0]), "change" in args[1:], "loan" in args[1:])
     elif mode == "read":
         read(peer, args[0] if args else "")
     elif mode == "get":
         get(peer)
     else:
-        raise SystemExit("usage: shm_peer.py write N [change] | read [hold|trywrite] | get | deadline SA MS")
+        raise SystemExit("usage: shm_peer.py write N [change] [loan] | read [hold|trywrite] | get | deadline SA MS")
     sys.stdin.read()  # until the test closes it, or kills this process
     peer._cast_close()
 

@@ -7,6 +7,7 @@ import cast.client.CastError;
 import cast.client.ConnectOptions;
 import cast.client.Connection;
 import cast.client.LaunchContract;
+import cast.client.Loan;
 import cast.client.Operation;
 import cast.client.Runner;
 import cast.client.UnmanagedComponent;
@@ -35,11 +36,12 @@ import java.util.Scanner;
  * language alike. With the launch contract (CAST_*) in its environment:
  *
  * <ul>
- *   <li>{@code ShmPeer write N [change]}: adds "img" (or overwrites it if it exists) and
+ *   <li>{@code ShmPeer write N [change] [loan]}: adds "img" (or overwrites it if it exists) and
  *       overwrites it, N values of 1 MiB in all (value k is {@link #frame(int)}), printing {@code
  *       WROTE k} after each and {@code DONE} at the end; then it stays until killed or its stdin
  *       closes. {@code change}: once each write was acknowledged, it writes 0xFF over all of its
- *       staging area and prints {@code CHANGED k bytes} before {@code WROTE k}.
+ *       staging area and prints {@code CHANGED k bytes} before {@code WROTE k}. {@code loan}: each
+ *       value is made in a loan ({@code Component.loan}) and the loan written.
  *   <li>{@code ShmPeer read [hold|trywrite]}: watches "img" with its entry, printing {@code
  *       WATCHING} once the watch is confirmed and {@code GOT revision k shared same sum} per value:
  *       {@code k} which frame the view's field 1 is (-1: bytes that are no frame), {@code shared}
@@ -240,13 +242,27 @@ public final class ShmPeer extends UnmanagedComponent {
     switch (argv[0]) {
       case "write" -> {
         int n = Integer.parseInt(argv[1]);
-        boolean change = argv.length > 2 && argv[2].equals("change");
+        List<String> options = List.of(argv).subList(2, argv.length);
+        boolean change = options.contains("change");
+        boolean loaned = options.contains("loan");
         for (int k = 0; k < n; k++) {
-          BytesValue value = BytesValue.newBuilder().setValue(ByteString.copyFrom(frame(k))).build();
-          if (k > 0 || peer.exists("img")) {
-            peer.overwrite("img", value);
+          boolean exists = k > 0 || peer.exists("img");
+          if (loaned) {
+            byte[] bytes = frame(k);
+            Loan loan = peer.loan(BytesValue.getDefaultInstance(), "value", bytes.length);
+            loan.buffer().put(bytes);
+            if (exists) {
+              peer.overwrite("img", loan);
+            } else {
+              peer.add("img", loan);
+            }
           } else {
-            peer.add("img", value);
+            BytesValue value = BytesValue.newBuilder().setValue(ByteString.copyFrom(frame(k))).build();
+            if (exists) {
+              peer.overwrite("img", value);
+            } else {
+              peer.add("img", value);
+            }
           }
           if (change) {
             say("CHANGED " + k + " " + changeStaging());
@@ -288,7 +304,7 @@ public final class ShmPeer extends UnmanagedComponent {
         }
       }
       default -> {
-        System.err.println("usage: ShmPeer write N [change] | read [hold|trywrite] | get | deadline SA MS");
+        System.err.println("usage: ShmPeer write N [change] [loan] | read [hold|trywrite] | get | deadline SA MS");
         System.exit(2);
       }
     }
