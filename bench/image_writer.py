@@ -3,9 +3,10 @@
 `python -m bench.image_writer SIZE N GAP_US` with the launch contract (CAST_*)
 in its environment adds the entry "img" (a ``BytesValue`` of SIZE bytes),
 overwrites it N times, the i-th at start + i * GAP_US (0: back to back),
-each made in a loan (``Component.loan``: in place in the staging area on the server's host) and then
-stamped on CLOCK_MONOTONIC (``time.perf_counter_ns``) just before it, then deletes it (the watchers' end mark) and prints ``{revision: ns}`` of the
-overwrites. The same as ``cast_bench image-write`` (C++), which M8 runs.
+each made in a loan (``Component.loan``: in place in the staging area on the
+server's host) and then stamped on CLOCK_MONOTONIC (``time.perf_counter_ns``)
+just before it, then deletes it (the watchers' end mark) and prints
+``{revision: ns}`` of the overwrites. The same as ``cast_bench image-write`` (C++), which M8 runs.
 """
 
 from __future__ import annotations
