@@ -32,19 +32,11 @@ from google.protobuf.message import Message
 
 from cast.client.shm_session import ClientSession, Staged
 from cast.errors import InvalidArgumentError
+from cast.wire.values import varint
 
 __all__ = ["Loan", "loan_header"]
 
 _WIRE_LENGTH_DELIMITED = 2
-
-
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while n >= 0x80:
-        out.append(n & 0x7F | 0x80)
-        n >>= 7
-    out.append(n)
-    return bytes(out)
 
 
 def loan_header(value: Message, field: str, size: int) -> bytes:
@@ -75,7 +67,7 @@ def loan_header(value: Message, field: str, size: int) -> bytes:
         )
     if size < 0:
         raise InvalidArgumentError(f"a loan's size is a number of bytes, 0 or more, not {size}")
-    return value.SerializeToString() + _varint(found.number << 3 | _WIRE_LENGTH_DELIMITED) + _varint(size)
+    return value.SerializeToString() + varint(found.number << 3 | _WIRE_LENGTH_DELIMITED) + varint(size)
 
 
 def _repeated(field: Any) -> bool:  # a FieldDescriptor of either protobuf runtime

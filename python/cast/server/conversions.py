@@ -14,7 +14,7 @@ from cast.core.tasks import TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import InvalidArgumentError
 from cast.v1 import entry_pb2, task_manager_pb2
-from cast.wire.values import TYPE_URL_PREFIX, any_of, timestamp
+from cast.wire.values import TYPE_URL_PREFIX, any_of, timestamp, varint
 
 __all__ = [
     "BY_REFERENCE",
@@ -80,15 +80,6 @@ def event_to_pb(ev: ChangeEvent, watch_ids: list[int], include_entry: bool) -> e
     return pb
 
 
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while n > 0x7F:
-        out.append((n & 0x7F) | 0x80)
-        n >>= 7
-    out.append(n)
-    return bytes(out)
-
-
 def event_wire(ev: ChangeEvent, include_entry: int) -> tuple[bytes, bytes | memoryview]:
     """The encoded ``cast.v1.ChangeEvent`` without watch ids, as ``(head, value)``: send ``head + value``.
 
@@ -124,7 +115,7 @@ def _entry_reference(record: EntryRecord) -> bytes:
     pb = entry_pb2.Entry()
     fill_entry(pb, record, Lent(placed.segment, placed.offset, placed.length, placed.value_id))
     encoded = pb.SerializeToString()
-    return _EVENT_ENTRY_TAG + _varint(len(encoded)) + encoded
+    return _EVENT_ENTRY_TAG + varint(len(encoded)) + encoded
 
 
 def _entry_head(record: EntryRecord) -> bytes:
@@ -135,9 +126,9 @@ def _entry_head(record: EntryRecord) -> bytes:
     encoded = rest.SerializeToString()
     url = (TYPE_URL_PREFIX + record.type).encode()
     size = len(record.data)
-    any_fields = _ANY_URL_TAG + _varint(len(url)) + url + _ANY_VALUE_TAG + _varint(size)
-    value = _ENTRY_VALUE_TAG + _varint(len(any_fields) + size) + any_fields
-    return _EVENT_ENTRY_TAG + _varint(len(encoded) + len(value) + size) + encoded + value
+    any_fields = _ANY_URL_TAG + varint(len(url)) + url + _ANY_VALUE_TAG + varint(size)
+    value = _ENTRY_VALUE_TAG + varint(len(any_fields) + size) + any_fields
+    return _EVENT_ENTRY_TAG + varint(len(encoded) + len(value) + size) + encoded + value
 
 
 _EVENT_ENTRY_TAG = b"\x4a"  # ChangeEvent.entry: field 9, length-delimited
@@ -161,11 +152,11 @@ def watch_events_wire(events: list[tuple[ChangeEvent, list[int], int, int, int]]
     parts: list[bytes | memoryview] = []
     for ev, watch_ids, include, skipped, first_skipped in events:
         head, value = event_wire(ev, include)
-        packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(_varint(i) for i in watch_ids)
-        tail = _WATCH_IDS_TAG + _varint(len(packed)) + packed
+        packed = bytes(watch_ids) if all(i < 0x80 for i in watch_ids) else b"".join(varint(i) for i in watch_ids)
+        tail = _WATCH_IDS_TAG + varint(len(packed)) + packed
         if skipped:
-            tail += _SKIPPED_TAG + _varint(skipped) + _FIRST_SKIPPED_TAG + _varint(first_skipped)
-        parts.extend((_EVENTS_TAG, _varint(len(head) + len(value) + len(tail)), head, value, tail))
+            tail += _SKIPPED_TAG + varint(skipped) + _FIRST_SKIPPED_TAG + varint(first_skipped)
+        parts.extend((_EVENTS_TAG, varint(len(head) + len(value) + len(tail)), head, value, tail))
     return b"".join(parts)
 
 

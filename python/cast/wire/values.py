@@ -6,9 +6,19 @@ from google.protobuf import any_pb2, timestamp_pb2
 
 from cast.errors import InvalidArgumentError
 
-__all__ = ["TYPE_URL_PREFIX", "any_of", "any_to_type_data", "ns", "timestamp"]
+__all__ = ["TYPE_URL_PREFIX", "any_of", "any_to_type_data", "ns", "timestamp", "varint"]
 
 TYPE_URL_PREFIX = "type.googleapis.com/"
+
+
+def varint(n: int) -> bytes:
+    """``n`` (0 or more) as a protobuf varint: what a length or a field's key is on the wire."""
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
 
 
 def timestamp(ns: int) -> timestamp_pb2.Timestamp:
