@@ -240,11 +240,17 @@ class GrpcTransport:
             raise
         return result
 
+    def _writer_session(self, sa: str, budget: _Budget) -> ClientSession | None:
+        """The shared-memory session a write to ``sa``'s server goes on, opened within ``budget``; None: bytes.
+
+        With the token the write goes with: a renewed one opens the session the value is staged in and sent on.
+        """
+        link = self._server(sa).shared
+        return link.session(budget.left(), self._tokens.token()) if link is not None else None
+
     def loan(self, sa: str, type_name: str, header: bytes, size: int) -> Loan:
         """A loan of ``size`` bytes after ``header``: in the staging area of ``sa``'s server when it can be."""
-        budget = _Budget(self._timeout)
-        link = self._server(sa).shared
-        session = link.session(budget.left(), self._tokens.token()) if link is not None else None
+        session = self._writer_session(sa, _Budget(self._timeout))
         if session is not None and len(header) + size >= session.threshold:
             reserved = session.reserve(header, size)
             if reserved is not None:
@@ -260,18 +266,13 @@ class GrpcTransport:
         ``server_sa``: the SA whose server the request goes to, when not ``sa`` (a batch goes to its first's).
         A loan in the session the write goes on is named where it is (nothing copied).
         """
-        link = self._server(server_sa or sa).shared
-        # With the token the write goes with: a renewed one opens the session the value is staged in and sent on.
-        session = link.session(budget.left(), self._tokens.token()) if link is not None else None
+        session = self._writer_session(server_sa or sa, budget)
+        staged: Staged | None = None
         if isinstance(data, Loan):
-            taken = data.take(sa, session)
-            if isinstance(taken, Staged):
-                assert session is not None  # a loan's region is named only in the live session it is in
-                fill_write(req, sa, entry_id, type_name, b"")
-                req.staged_value.CopyFrom(session.staged_value(taken))
-                return ((session, taken),)
-            data = taken
-        staged = session.stage(data) if session is not None and len(data) >= session.threshold else None
+            taken = data.take(sa, session)  # its region only when it is in ``session``, which then lives
+            staged, data = (taken, b"") if isinstance(taken, Staged) else (None, taken)
+        if staged is None and session is not None and len(data) >= session.threshold:
+            staged = session.stage(data)
         if session is None or staged is None:
             fill_write(req, sa, entry_id, type_name, data if isinstance(data, bytes) else bytes(data))
             return ()
