@@ -316,42 +316,41 @@ detail::LoanState& Component::writableLoan(const Loan& loan, const std::string& 
 
 namespace {
 
-// Calls `write` with the loan's state, checked, then spends the loan whatever
-// the write did (its region, if the write did not take it, goes back).
-template <class Write>
-auto spending(detail::LoanState& loan, detail::Transport& transport, Write&& write) {
-  struct Spend {
-    detail::LoanState& loan;
-    ~Spend() { loan.spend(); }
-  } spend{loan};
-  return write(transport, loan);
-}
+// Spends a loan when the write that took it returns or throws: its region, if
+// the write did not take it, goes back.
+class SpendOnExit {
+ public:
+  explicit SpendOnExit(detail::LoanState& loan) : loan_(loan) {}
+  SpendOnExit(const SpendOnExit&) = delete;
+  SpendOnExit& operator=(const SpendOnExit&) = delete;
+  ~SpendOnExit() { loan_.spend(); }
+
+ private:
+  detail::LoanState& loan_;
+};
 
 }  // namespace
 
 WriteResult Component::add(const std::string& id, Loan&& loan, const std::string& subarchitecture) {
   const std::string sa = targetSa(subarchitecture);
   detail::LoanState& state = writableLoan(loan, sa);
-  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
-    return t.addLoan(sa, id, l.type, l);
-  });
+  SpendOnExit spend(state);
+  return core().transport().addLoan(sa, id, state.type, state);
 }
 
 WriteResult Component::overwrite(const std::string& id, Loan&& loan, const std::string& subarchitecture,
                                  std::optional<std::uint64_t> expectedVersion) {
   const std::string sa = targetSa(subarchitecture);
   detail::LoanState& state = writableLoan(loan, sa);
-  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
-    return t.overwriteLoan(sa, id, l.type, l, expectedVersion);
-  });
+  SpendOnExit spend(state);
+  return core().transport().overwriteLoan(sa, id, state.type, state, expectedVersion);
 }
 
 std::future<WriteResult> Component::addAsync(const std::string& id, Loan&& loan, const std::string& subarchitecture) {
   const std::string sa = targetSa(subarchitecture);
   detail::LoanState& state = writableLoan(loan, sa);
-  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
-    return t.addLoanAsync(sa, id, l.type, l);
-  });
+  SpendOnExit spend(state);
+  return core().transport().addLoanAsync(sa, id, state.type, state);
 }
 
 std::future<WriteResult> Component::overwriteAsync(const std::string& id, Loan&& loan,
@@ -359,9 +358,8 @@ std::future<WriteResult> Component::overwriteAsync(const std::string& id, Loan&&
                                                    std::optional<std::uint64_t> expectedVersion) {
   const std::string sa = targetSa(subarchitecture);
   detail::LoanState& state = writableLoan(loan, sa);
-  return spending(state, core().transport(), [&](detail::Transport& t, detail::LoanState& l) {
-    return t.overwriteLoanAsync(sa, id, l.type, l, expectedVersion);
-  });
+  SpendOnExit spend(state);
+  return core().transport().overwriteLoanAsync(sa, id, state.type, state, expectedVersion);
 }
 
 WriteResult Component::deleteEntry(const std::string& id, const std::string& subarchitecture,
