@@ -62,7 +62,8 @@ MYPYC_MODULES = [
     "python/cast/wire/values.py",
     "python/cast/wire/shared_memory.py",
     *(f"python/cast/server/{m}.py" for m in (
-        "conversions", "shared_socket", "socket_events", "socket_writes", "write_requests", "writes")),
+        "conversions", "event_encoding", "shared_socket", "socket_events", "socket_writes", "write_requests",
+        "writes")),
 ]
 ext_modules = []
 if os.environ.get("CAST_MYPYC") == "1":

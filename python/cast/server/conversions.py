@@ -1,8 +1,9 @@
 """Conversions of the server: the core's records to wire messages (cast.v1), and requests' filters back.
 
 Event encodings are cached on the event and reused for every stream (see
-:func:`watch_events_wire`). Protobuf only; no gRPC here. The client's
-direction is :mod:`cast.client.conversions`.
+:func:`watch_events_wire`); they are written field by field
+(:mod:`cast.server.event_encoding`), the rest with protobuf's messages. No
+gRPC here. The client's direction is :mod:`cast.client.conversions`.
 """
 
 from __future__ import annotations
@@ -13,13 +14,13 @@ from cast.core.shared import Lent
 from cast.core.tasks import TaskRecord
 from cast.core.watch import EventFilter
 from cast.errors import InvalidArgumentError
+from cast.server.event_encoding import entry_head, entry_reference, event_head
 from cast.v1 import entry_pb2, task_manager_pb2
 from cast.wire.values import TYPE_URL_PREFIX, any_of, timestamp, varint
 
 __all__ = [
     "BY_REFERENCE",
     "entry_to_pb",
-    "event_to_pb",
     "event_wire",
     "fill_entry",
     "filter_from_pb",
@@ -62,24 +63,6 @@ def fill_entry(pb: entry_pb2.Entry, record: EntryRecord, lent: Lent | None = Non
     pb.revision = record.revision
 
 
-def event_to_pb(ev: ChangeEvent, watch_ids: list[int], include_entry: bool) -> entry_pb2.ChangeEvent:
-    """Wire form of an event for one stream."""
-    pb = entry_pb2.ChangeEvent(
-        revision=ev.revision,
-        operation=ev.operation,  # type: ignore[arg-type]  # IntEnum values equal the wire enum
-        address=entry_pb2.EntryAddress(id=ev.id, subarchitecture=ev.subarchitecture),
-        type=ev.type,
-        source_component=ev.source_component,
-        source_subarchitecture=ev.source_subarchitecture,
-        version=ev.version,
-        time=timestamp(ev.time_ns),
-        watch_ids=watch_ids,
-    )
-    if include_entry and ev.entry is not None:
-        pb.entry.CopyFrom(entry_to_pb(ev.entry))
-    return pb
-
-
 def event_wire(ev: ChangeEvent, include_entry: int) -> tuple[bytes, bytes | memoryview]:
     """The encoded ``cast.v1.ChangeEvent`` without watch ids, as ``(head, value)``: send ``head + value``.
 
@@ -100,41 +83,23 @@ def event_wire(ev: ChangeEvent, include_entry: int) -> tuple[bytes, bytes | memo
     if head is None:
         head = cache[0]
         if head is None:
-            head = cache[0] = event_to_pb(ev, [], False).SerializeToString()
+            head = cache[0] = event_head(ev)
         if record is not None:
-            head = cache[slot] = head + (_entry_reference(record) if slot == 2 else _entry_head(record))
+            if slot == 2:
+                placed = record.shared
+                assert isinstance(placed, Placed)
+                entry = entry_reference(record, Lent(placed.segment, placed.offset, placed.length, placed.value_id))
+                size = 0
+            else:
+                entry = entry_head(record)
+                size = len(record.data)
+            head = cache[slot] = head + _EVENT_ENTRY_TAG + varint(len(entry) + size) + entry
     if slot == 1:
         return head, record.data  # type: ignore[union-attr]
     return head, b""
 
 
-def _entry_reference(record: EntryRecord) -> bytes:
-    """``ChangeEvent.entry`` encoded whole, its value named in shared memory (``shared_value``), not carried."""
-    placed = record.shared
-    assert isinstance(placed, Placed)
-    pb = entry_pb2.Entry()
-    fill_entry(pb, record, Lent(placed.segment, placed.offset, placed.length, placed.value_id))
-    encoded = pb.SerializeToString()
-    return _EVENT_ENTRY_TAG + varint(len(encoded)) + encoded
-
-
-def _entry_head(record: EntryRecord) -> bytes:
-    """``ChangeEvent.entry`` encoded up to (not including) the bytes of its value."""
-    rest = entry_pb2.Entry()
-    fill_entry(rest, record)
-    rest.ClearField("value")
-    encoded = rest.SerializeToString()
-    url = (TYPE_URL_PREFIX + record.type).encode()
-    size = len(record.data)
-    any_fields = _ANY_URL_TAG + varint(len(url)) + url + _ANY_VALUE_TAG + varint(size)
-    value = _ENTRY_VALUE_TAG + varint(len(any_fields) + size) + any_fields
-    return _EVENT_ENTRY_TAG + varint(len(encoded) + len(value) + size) + encoded + value
-
-
 _EVENT_ENTRY_TAG = b"\x4a"  # ChangeEvent.entry: field 9, length-delimited
-_ENTRY_VALUE_TAG = b"\x1a"  # Entry.value: field 3, length-delimited
-_ANY_URL_TAG = b"\x0a"  # Any.type_url: field 1
-_ANY_VALUE_TAG = b"\x12"  # Any.value: field 2
 _EVENTS_TAG = b"\x0a"  # WatchResponse.events: field 1, length-delimited
 _WATCH_IDS_TAG = b"\x52"  # ChangeEvent.watch_ids: field 10, packed
 _SKIPPED_TAG = b"\x58"  # ChangeEvent.skipped: field 11, varint
