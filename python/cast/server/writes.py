@@ -108,6 +108,33 @@ def _call(access: Access, kind: str, body: Any) -> tuple[Steps[Any], _Answer]:
     return access.unlock(address.subarchitecture, address.id), _unlock_answer
 
 
+class _Answered:
+    """A request's answer, its reply not yet made: made when the transport takes the replies, after the events.
+
+    Protobuf's reply objects cost tens of microseconds on a 30 Hz write's cold
+    caches; made here, that cost would come before the write's events reach
+    its watchers (docs/performance-m8.md, "The write hop without protobuf's
+    objects").
+    """
+
+    __slots__ = ("answer", "request_id", "result")
+
+    def __init__(self, request_id: int, answer: _Answer, result: Any) -> None:
+        self.request_id = request_id
+        self.answer = answer
+        self.result = result
+
+    def reply(self) -> wm_pb2.WriteReply:
+        """The reply message (an internal error's, should the answer not fit it: as when it was made at once)."""
+        reply = wm_pb2.WriteReply(id=self.request_id)
+        try:
+            self.answer(reply, self.result)
+        except Exception as exc:  # a bug answers this request, never ends the others
+            log.exception("internal error in write request %d", self.request_id)
+            return _error_reply(self.request_id, _internal(exc))
+        return reply
+
+
 def _error_reply(request_id: int, exc: CastError) -> wm_pb2.WriteReply:
     reply = wm_pb2.WriteReply(id=request_id)
     reply.error.code = exc.code
@@ -140,7 +167,7 @@ class Writes:
         self._on_late = on_late
         self._who: Identity | None = None  # the caller, while its token has not expired
         self._until = 0.0
-        self._ready: list[wm_pb2.WriteReply] = []  # replies not yet sent
+        self._ready: list[wm_pb2.WriteReply | _Answered] = []  # replies not yet sent, in order
         self.waiting: set[asyncio.Task[None]] = set()  # requests that wait (locks, a journal)
         self._due = socket_events.due_on(asyncio.get_running_loop())  # the loop's socket watch streams due
 
@@ -174,7 +201,7 @@ class Writes:
     def take(self) -> wm_pb2.WriteReplies:
         """The replies ready now, in one message (several replies share the cost of a message)."""
         out = wm_pb2.WriteReplies()
-        out.replies.extend(self._ready)
+        out.replies.extend([r if isinstance(r, wm_pb2.WriteReply) else r.reply() for r in self._ready])
         self._ready.clear()
         return out
 
@@ -186,7 +213,6 @@ class Writes:
     def _handle(self, request: wm_pb2.WriteRequest) -> None:
         """Apply one request now; answer it now, or from a task if it must wait."""
         request_id = request.id
-        reply = wm_pb2.WriteReply(id=request_id)
         try:
             kind = request.WhichOneof("operation")
             if kind is None:
@@ -195,19 +221,17 @@ class Writes:
                 )
             access = Access(self._system, self._identity())  # who, before what
             if kind == "get":  # a read never waits: answered here, in order with the writes around it
-                self._ready.append(self._get(access, reply, request.get, request.read_call))
+                self._ready.append(self._get(access, request_id, request.get, request.read_call))
                 return
             steps, answer = _call(access, kind, getattr(request, kind))
             try:
                 step = next(steps)
             except StopIteration as done:
-                answer(reply, done.value)
-                self._ready.append(reply)
+                self._ready.append(_Answered(request_id, answer, done.value))
                 return
             pending, result = settle_at_once(self._system, steps, step)
             if pending is None:
-                answer(reply, result)
-                self._ready.append(reply)
+                self._ready.append(_Answered(request_id, answer, result))
                 return
         except CastError as exc:
             self._ready.append(_error_reply(request_id, exc))
@@ -217,13 +241,14 @@ class Writes:
             self._ready.append(_error_reply(request_id, _internal(exc)))
             return
         timeout = request.timeout_ms / 1000 if request.timeout_ms else None
-        task = asyncio.ensure_future(self._finish(reply, steps, pending, answer, timeout))
+        task = asyncio.ensure_future(self._finish(request_id, steps, pending, answer, timeout))
         self.waiting.add(task)
         task.add_done_callback(self.waiting.discard)
 
-    def _get(self, access: Access, reply: wm_pb2.WriteReply, body: wm_pb2.GetRequest,
+    def _get(self, access: Access, request_id: int, body: wm_pb2.GetRequest,
              read_call: int) -> wm_pb2.WriteReply:
         """A get's reply: the entry, its large value lent on the session's ``read_call`` when there is one."""
+        reply = wm_pb2.WriteReply(id=request_id)
         address = body.address
         record = access.get(address.subarchitecture, address.id)
         session = self._session
@@ -242,7 +267,7 @@ class Writes:
 
     async def _finish(
         self,
-        reply: wm_pb2.WriteReply,
+        request_id: int,
         steps: Steps[Any],
         step: Any,
         answer: _Answer,
@@ -251,11 +276,10 @@ class Writes:
         try:
             result = await resume_async(self._system, steps, step, timeout)
         except CastError as exc:
-            self._ready.append(_error_reply(reply.id, exc))
+            self._ready.append(_error_reply(request_id, exc))
         except Exception as exc:  # as in _handle: answer, never leave the request open
-            log.exception("internal error in write request %d", reply.id)
-            self._ready.append(_error_reply(reply.id, _internal(exc)))
+            log.exception("internal error in write request %d", request_id)
+            self._ready.append(_error_reply(request_id, _internal(exc)))
         else:
-            answer(reply, result)
-            self._ready.append(reply)
+            self._ready.append(_Answered(request_id, answer, result))
         self._on_late()
