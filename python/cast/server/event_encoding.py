@@ -3,7 +3,7 @@
 What :func:`cast.server.conversions.event_wire` caches on each event: the
 ``cast.v1.ChangeEvent`` without its watch ids, and its ``entry`` up to (not
 including) the value's bytes or naming the value in shared memory. Building
-and serialising a ``ChangeEvent`` and an ``Entry`` message cost about 50 µs
+and serialising a ``ChangeEvent`` and an ``Entry`` message cost about 55 µs
 of the server's pass over its watchers on every 30 Hz frame, nearly all of it
 protobuf's objects on cold caches (docs/performance-m8.md, "The write hop
 without protobuf's objects"); this module writes the same bytes with the
