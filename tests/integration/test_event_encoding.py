@@ -50,6 +50,8 @@ EVENTS = [
     ChangeEvent(3, 0, Operation.DELETE, "vïsion", "imagé/ß", "", "", "", 0, 0, RECORDS[2]),
     ChangeEvent(4, 1 << 63, Operation.OVERWRITE, "s" * 200, "i" * 300, "a.B" * 50, "c" * 130, "d" * 140,
                 (1 << 64) - 1, (1 << 62) + 7, RECORDS[3]),
+    ChangeEvent(5, 9, Operation.ADD, "vision", "img", "t.Image", "camera", "vision", 1, -1_500_000_000,
+                RECORDS[0]),  # before 1970: a negative int64 of seconds, in ten bytes
 ]
 
 

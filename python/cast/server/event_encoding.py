@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from cast.core.records import ChangeEvent, EntryRecord
 from cast.core.shared import Lent
-from cast.wire.values import TYPE_URL_PREFIX
+from cast.wire.values import TYPE_URL_PREFIX, put_varint
 
 __all__ = ["entry_head", "entry_reference", "event_head"]
 
@@ -26,19 +26,11 @@ _U64 = (1 << 64) - 1  # a negative int64 goes on the wire as its two's complemen
 _BILLION = 1_000_000_000
 
 
-def _varint(out: bytearray, n: int) -> None:
-    n &= _U64
-    while n > 0x7F:
-        out.append((n & 0x7F) | 0x80)
-        n >>= 7
-    out.append(n)
-
-
 def _number(out: bytearray, key: int, n: int) -> None:
-    """A varint field; left out at 0, as proto3 leaves out every default."""
+    """A varint field of ``n`` (0 or more); left out at 0, as proto3 leaves out every default."""
     if n:
         out.append(key)
-        _varint(out, n)
+        put_varint(out, n)
 
 
 def _text(out: bytearray, key: int, text: str) -> None:
@@ -49,7 +41,7 @@ def _text(out: bytearray, key: int, text: str) -> None:
 def _bytes(out: bytearray, key: int, data: bytes | bytearray) -> None:
     """A length-delimited field, written even when empty: a message field set is present."""
     out.append(key)
-    _varint(out, len(data))
+    put_varint(out, len(data))
     out += data
 
 
@@ -63,7 +55,7 @@ def _address(entry_id: str, subarchitecture: str) -> bytearray:
 def _timestamp(ns: int) -> bytearray:
     out = bytearray()
     seconds, nanos = divmod(ns, _BILLION)
-    _number(out, 0x08, seconds)  # Timestamp.seconds = 1
+    _number(out, 0x08, seconds & _U64)  # Timestamp.seconds = 1, an int64 (negative before 1970)
     _number(out, 0x10, nanos)  # Timestamp.nanos = 2
     return out
 
@@ -128,8 +120,8 @@ def entry_head(record: EntryRecord) -> bytes:
     value = bytearray()
     _bytes(value, 0x0A, url)  # Any.type_url = 1
     value.append(0x12)  # Any.value = 2, its bytes to follow
-    _varint(value, size)
+    put_varint(value, size)
     out.append(0x1A)  # value = 3
-    _varint(out, len(value) + size)
+    put_varint(out, len(value) + size)
     out += value
     return bytes(out)

@@ -6,18 +6,23 @@ from google.protobuf import any_pb2, timestamp_pb2
 
 from cast.errors import InvalidArgumentError
 
-__all__ = ["TYPE_URL_PREFIX", "any_of", "any_to_type_data", "ns", "timestamp", "varint"]
+__all__ = ["TYPE_URL_PREFIX", "any_of", "any_to_type_data", "ns", "put_varint", "timestamp", "varint"]
 
 TYPE_URL_PREFIX = "type.googleapis.com/"
+
+
+def put_varint(out: bytearray, n: int) -> None:
+    """Append ``n`` (0 or more) to ``out`` as a protobuf varint."""
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
 
 
 def varint(n: int) -> bytes:
     """``n`` (0 or more) as a protobuf varint: what a length or a field's key is on the wire."""
     out = bytearray()
-    while n > 0x7F:
-        out.append((n & 0x7F) | 0x80)
-        n >>= 7
-    out.append(n)
+    put_varint(out, n)
     return bytes(out)
 
 
