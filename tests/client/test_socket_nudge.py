@@ -10,6 +10,7 @@ tested in java_client's DispatcherReadsTest.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import struct
@@ -87,6 +88,52 @@ def test_a_client_that_nudges_and_never_reads_costs_the_server_no_memory(raw: An
     (reply,) = other.replies(1)
     assert reply.WhichOneof("result") == "write", reply
     assert link.unsent <= len(wire.NUDGED_FRAME)
+
+
+def _fill_with_nudged(h: Any, session: Any) -> Any:
+    """Nudge without reading until the server's answers wait for room in the socket; the server's connection."""
+    link = h.link("writer")
+    session.sock.setblocking(False)
+    with contextlib.suppress(BlockingIOError):
+        for _ in range(2000):  # far more NUDGEDs than the socket's buffers hold
+            session.sock.send(wire.NUDGE_FRAME * 100)
+    session.sock.setblocking(True)
+    wait_for(lambda: link.unsent > 0, what="the server's answers filling the client's socket")
+    return link
+
+
+def test_a_session_refused_while_its_socket_is_full_gets_every_frame_whole_then_refused(raw: Any) -> None:
+    h, session = raw()
+    link = _fill_with_nudged(h, session)
+    wire.send(session.sock, wire.encode(wire.NUDGE, b"xyz"))
+    # The session ends at once (what it held is given back), though its last frames still wait for the client.
+    wait_for(lambda: link.closed and not h.system.shared.sessions, what="the refused session ended")
+    kinds = []
+    while True:
+        try:
+            frame = session.next_frame()  # a frame cut short or interleaved would raise ProtocolError here
+        except (EOFError, ConnectionResetError):
+            break
+        kinds.append(frame.kind)
+        if frame.kind == wire.REFUSED:
+            assert b"NUDGE carries nothing, this one 3 bytes" in frame.body, frame
+    assert kinds and set(kinds[:-1]) == {wire.NUDGED} and kinds[-1] == wire.REFUSED, kinds[-5:]
+
+
+def test_a_refused_client_that_never_reads_its_last_frames_is_closed_all_the_same(raw: Any) -> None:
+    h, session = raw()
+    link = _fill_with_nudged(h, session)
+    owner = link._owner
+    wire.send(session.sock, wire.encode(wire.NUDGE, b"xyz"))
+    wait_for(lambda: link.closed, what="the refused session ended")
+    assert owner.farewells, "its last frames wait for the client"
+    # It is closed unread after a bound (_FAREWELL_S); the guard here only ends the test if it never is.
+    wait_for(lambda: not owner.farewells, timeout=30, what="the unread connection closed")
+    kinds = []
+    with contextlib.suppress(EOFError, ConnectionResetError):
+        while True:
+            kinds.append(session.next_frame().kind)
+    assert set(kinds) <= {wire.NUDGED, wire.REFUSED}, kinds[-5:]
 
 
 def _hello(h: Any, cid: str, version: int) -> socket.socket:

@@ -45,6 +45,7 @@ METADATA_KEY = "cast-shared-memory"
 
 _HELLO_S = 5.0  # how long a connection may take to say HELLO
 _RETIRE_EVERY_S = 1.0  # how often empty segments are looked for
+_FAREWELL_S = 2.0  # how long a refused connection's last frames (REFUSED the last) wait for the client to read them
 _UCRED = struct.Struct("3i")  # pid, uid, gid
 
 
@@ -229,12 +230,7 @@ class _Connection:
             return False
         if not self._pending:
             try:
-                if fd is None:
-                    sent = self._sock.send(frame)
-                else:
-                    sent = self._sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
-            except (BlockingIOError, InterruptedError):
-                sent = 0
+                sent = _send_frame(self._sock, frame, fd)
             except OSError as exc:
                 self.close(f"write failed: {exc}")
                 return False
@@ -252,14 +248,11 @@ class _Connection:
         while self._pending:
             frame, fd = self._pending[0]
             try:
-                if fd is None:
-                    sent = self._sock.send(frame)
-                else:
-                    sent = self._sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
-            except (BlockingIOError, InterruptedError):
-                return
+                sent = _send_frame(self._sock, frame, fd)
             except OSError as exc:
                 self.close(f"write failed: {exc}")
+                return
+            if not sent:
                 return
             self._unsent -= sent
             if sent < len(frame):
@@ -277,14 +270,18 @@ class _Connection:
             self._writes.hold(self._unsent > MAX_UNSENT)
 
     def refuse(self, reason: str) -> None:
-        """Tell the client why (REFUSED), then close."""
-        if not self.closed:
-            with contextlib.suppress(OSError):
-                self._sock.send(wire.refused(reason))
-        self.close(reason)
+        """End the session now and tell the client why: REFUSED, after the frames still waiting to be sent."""
+        if self.closed:
+            return
+        # REFUSED goes behind what waits: sent now, it could land inside a frame half sent (the client would
+        # read a broken frame) or find the socket full (and be lost).
+        last = self._pending
+        self._pending = deque()
+        last.append((wire.refused(reason), None))
+        self.close(reason, last)
 
-    def close(self, reason: str) -> None:
-        """End the connection and its session (everything it held is given back)."""
+    def close(self, reason: str, last: deque[tuple[bytes, int | None]] | None = None) -> None:
+        """End the connection and its session (everything it held is given back); ``last``: frames sent first."""
         if self.closed:
             return
         self.closed = True
@@ -292,7 +289,10 @@ class _Connection:
         with contextlib.suppress(Exception):
             self._loop.remove_reader(self._sock.fileno())
             self._loop.remove_writer(self._sock.fileno())
-        self._sock.close()
+        if last:
+            _Farewell(self._owner, self._sock, last)  # before the session lets go of the descriptors
+        else:
+            self._sock.close()
         _close_all(self._reader.stray())
         self._pending.clear()
         self._unsent = 0
@@ -308,6 +308,56 @@ class _Connection:
             log.info("shared-memory connection closed: %s", reason)
 
 
+class _Farewell:
+    """A closed connection's socket, sending its last frames before it closes, for ``_FAREWELL_S`` at most.
+
+    Its session has already ended: nothing waits on these frames but the client. A descriptor that
+    goes with one is a duplicate, so that a segment retired meanwhile cannot make its number name
+    another file by the time it is sent.
+    """
+
+    def __init__(self, owner: SharedSocket, sock: socket.socket, frames: deque[tuple[bytes, int | None]]) -> None:
+        self._owner = owner
+        self._sock = sock
+        self._frames = deque((frame, None if fd is None else os.dup(fd)) for frame, fd in frames)
+        self._timer = owner.loop.call_later(_FAREWELL_S, self.close)
+        self._writing = False
+        owner.farewells.add(self)
+        self._send()
+
+    def _send(self) -> None:
+        while self._frames:
+            frame, fd = self._frames[0]
+            try:
+                sent = _send_frame(self._sock, frame, fd)
+            except OSError:
+                self.close()  # the client has gone: nothing to tell it
+                return
+            if sent and fd is not None:
+                os.close(fd)
+            if sent < len(frame):
+                self._frames[0] = (frame[sent:], fd if not sent else None)
+                if not self._writing:
+                    self._writing = True
+                    self._owner.loop.add_writer(self._sock.fileno(), self._send)
+                return
+            self._frames.popleft()
+        self.close()
+
+    def close(self) -> None:
+        """Close the socket, sent or not, and the descriptors of the frames not sent."""
+        if self._sock.fileno() < 0:
+            return
+        self._timer.cancel()
+        if self._writing:
+            with contextlib.suppress(Exception):
+                self._owner.loop.remove_writer(self._sock.fileno())
+        self._sock.close()
+        _close_all([fd for _, fd in self._frames if fd is not None])
+        self._frames.clear()
+        self._owner.farewells.discard(self)
+
+
 class SharedSocket:
     """The listening socket of one server's shared memory, and its connections."""
 
@@ -317,6 +367,7 @@ class SharedSocket:
         self.auth = auth
         self.name = f"cast-{system.shared.server_id}"
         self.connections: set[_Connection] = set()
+        self.farewells: set[_Farewell] = set()  # refused connections sending their last frames
         self.inbox = wire.Inbox()  # every connection's reads: all on the loop, each fed to its reader at once
         self.loop = asyncio.get_running_loop()
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_NONBLOCK | socket.SOCK_CLOEXEC)
@@ -361,6 +412,18 @@ class SharedSocket:
         self._sock.close()
         for connection in list(self.connections):
             connection.close("")
+        for farewell in list(self.farewells):
+            farewell.close()
+
+
+def _send_frame(sock: socket.socket, frame: bytes, fd: int | None) -> int:
+    """Send what of ``frame`` the socket takes now (0 if full), ``fd`` with its first byte; OSError once broken."""
+    try:
+        if fd is None:
+            return sock.send(frame)
+        return sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
+    except (BlockingIOError, InterruptedError):
+        return 0
 
 
 def _close_all(fds: list[int]) -> None:
