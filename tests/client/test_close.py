@@ -165,6 +165,32 @@ def test_a_link_finds_its_channels_poller_and_closing_ends_it(
     assert not any(poller.is_alive() for poller in pollers)
 
 
+def test_close_waits_for_a_request_reader_that_has_not_begun_reading(
+    server: ServerHandle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # gRPC starts a thread to read a stream's request iterator; the link's wrapper names it to close()
+    # at its first read, which a loaded machine may not have run when the client closes (a closed
+    # client then left that thread running). Here it never names itself: close() must find it all the
+    # same, by what its target references, and wait for it. This fails first if a gRPC release
+    # renames consume_request_iterator.
+    monkeypatch.setattr(sys, "_current_frames", _refused)
+    monkeypatch.setattr(ServerLink, "track", lambda self, thread: None)
+    link = ServerLink(server.endpoint)
+    started = threading.Event()
+
+    def requests() -> Iterator[wm_pb2.WatchRequest]:
+        started.set()
+        time.sleep(0.5)  # still reading when close() begins: close() must wait for it, not return
+        yield from ()
+
+    link.open_stream(link.wm.Watch, requests(), metadata=(("authorization", f"Bearer {server.token('p', 'vision')}"),))
+    readers = link._request_threads()
+    assert len(readers) == 1, "no reader thread found for the stream (has gRPC renamed consume_request_iterator?)"
+    assert started.wait(10)
+    link.close()
+    assert not readers[0].is_alive(), "close() returned while the stream's request reader still ran"
+
+
 def test_a_decision_stream_opened_as_the_client_closes_ends_quietly(server: ServerHandle) -> None:
     """gRPC refuses a call on a closed channel with ValueError, not RpcError: the stream's thread ends, no traceback."""
     component = server.connect("racer", "vision")

@@ -11,6 +11,7 @@ import gc
 import random
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -109,6 +110,7 @@ class ServerLink:
         self._beats = threading.Condition()
         self._beat_count = 0
         self._threads: list[threading.Thread] = []  # what close() joins: see track()
+        self._request_readers: weakref.WeakSet[Iterator[Any]] = weakref.WeakSet()  # open_stream's wrapped requests
         self._threads_lock = threading.Lock()
 
     def beat_now(self) -> None:
@@ -142,10 +144,12 @@ class ServerLink:
         """``method(request, **kwargs)``: a streaming call whose request reader gRPC starts is tracked too.
 
         Python's gRPC gives no handle on the thread that reads a request iterator, so the iterator is
-        wrapped to name it: its first ``next`` runs on that thread.
+        wrapped to name it: its first ``next`` runs on that thread. Until then (a loaded machine may
+        not have run it yet when the client closes) :meth:`close` finds it by what it references.
         """
         if hasattr(request, "__next__"):
             request = self._read_by_tracked_thread(request)
+            self._request_readers.add(request)
         return self.invoke(method, request, **kwargs)
 
     def invoke(self, method: Callable[..., Any], request: Any, **kwargs: Any) -> Any:
@@ -174,7 +178,17 @@ class ServerLink:
         state = getattr(self.channel, "_call_state", None)
         if state is None:
             return []
-        return [thread for thread in threading.enumerate() if _spins_for(thread, state)]
+        return [thread for thread in threading.enumerate() if _runs(thread, "channel_spin", {id(state)})]
+
+    def _request_threads(self) -> list[threading.Thread]:
+        """The threads gRPC started to read this link's request iterators, whether they began reading or not.
+
+        Found as :meth:`_pollers` is: gRPC's ``consume_request_iterator`` closes over the iterator.
+        """
+        readers = {id(reader) for reader in list(self._request_readers)}
+        if not readers:
+            return []
+        return [thread for thread in threading.enumerate() if _runs(thread, "consume_request_iterator", readers)]
 
     def close(self, deadline: float | None = None) -> None:
         """Close the channel (every stream on it ends), wait for its threads, then end its shared-memory session.
@@ -187,33 +201,33 @@ class ServerLink:
         me = threading.current_thread()
         with self._threads_lock:
             threads = [t for t in self._threads if t is not me]
-        for thread in [*threads, *self._pollers()]:
+        for thread in [*threads, *self._request_threads(), *self._pollers()]:
             thread.join(max(0.0, end - time.monotonic()))
         if self.shared is not None:
             self.shared.close()
 
 
-def _spins_for(thread: threading.Thread, state: object) -> bool:
-    """Whether ``thread`` runs gRPC's ``channel_spin`` over ``state`` (one channel's call state).
+def _runs(thread: threading.Thread, name: str, values: set[int]) -> bool:
+    """Whether ``thread`` runs a gRPC function called ``name`` that closes over one of ``values`` (their ids).
 
-    gRPC starts that function through a Cython wrapper whose closure scope is no Python closure:
-    the function is one or two references away from the thread's target (``gc.get_referents`` reads
-    them without running anything).
+    gRPC starts its threads' functions (``channel_spin``, ``consume_request_iterator``) through a
+    Cython wrapper whose closure scope is no Python closure: the function is one or two references
+    away from the thread's target (``gc.get_referents`` reads them without running anything).
     """
     target = getattr(thread, "_target", None)  # threading deletes it once the thread's run ends
     if target is None:
         return False
     near = [target, *gc.get_referents(target)]
     for holder in [*near, *(ref for obj in near if not isinstance(obj, dict) for ref in gc.get_referents(obj))]:
-        if getattr(holder, "__name__", None) == "channel_spin" and _closes_over(holder, state):
+        if getattr(holder, "__name__", None) == name and _closes_over(holder, values):
             return True
     return False
 
 
-def _closes_over(function: object, value: object) -> bool:
+def _closes_over(function: object, values: set[int]) -> bool:
     for cell in getattr(function, "__closure__", None) or ():
         try:
-            if cell.cell_contents is value:
+            if id(cell.cell_contents) in values:
                 return True
         except ValueError:  # an empty cell
             continue
