@@ -26,6 +26,8 @@ from google.protobuf.wrappers_pb2 import Int64Value
 import cast
 from cast.client.channel import LinkClosedError, ServerLink
 from cast.client.grpc_transport import GrpcTransport
+from cast.client.session import heartbeat_requests
+from cast.core.sessions import ComponentState
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
 from tests.conftest import DEFAULT_CONFIG, PYTHONPATH, ServerHandle, serve, start_server
@@ -131,6 +133,27 @@ def test_one_beat_request_wakes_every_heartbeat_generator_however_late_it_waits(
             waiter.start()
             waiter.join(10)
         assert woke == [seen + 1, seen + 1]
+    finally:
+        link.close()
+
+
+def test_a_heartbeat_generator_begun_after_closes_beat_ends_without_waiting_for_another() -> None:
+    # gRPC may read a new Heartbeat stream's first request only after close() has asked its one beat
+    # (a stream opened again as the client closes, on a loaded machine): that generator saw no beat
+    # to wait for, and slept a heartbeat interval past close().
+    link = ServerLink("127.0.0.1:1")  # no call is made: the channel connects lazily
+    closing = threading.Event()
+    try:
+        closing.set()
+        link.beat_now()  # what close() does, before the generator's first request is read
+        requests = heartbeat_requests(link, closing, "s", 600, lambda: ComponentState.RUNNING)
+        assert next(requests).session_id == "s"
+        rest: list[object] = []
+        reader = threading.Thread(target=lambda: rest.extend(requests), daemon=True)
+        reader.start()
+        reader.join(10)
+        assert not reader.is_alive(), "the generator waited for a beat after the client closed"
+        assert rest == []
     finally:
         link.close()
 

@@ -26,9 +26,29 @@ from cast.errors import CastError, InvalidArgumentError
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.version import library_version
 
-__all__ = ["Session"]
+__all__ = ["Session", "heartbeat_requests"]
 
 log = logging.getLogger("cast.client")
+
+
+def heartbeat_requests(
+    server: ServerLink, closing: threading.Event, session_id: str, every: float, state: Callable[[], ComponentState]
+) -> Iterator[dir_pb2.HeartbeatRequest]:
+    """A Heartbeat stream's requests: one now, then one each ``every`` s or when asked; ends once ``closing`` is set.
+
+    The client's close() sets ``closing``, then asks for a beat, which every
+    generator sees, even one still read by gRPC for a stream that already
+    ended: one waiting when the beat was asked is woken by it, and one that
+    began after it sees ``closing`` before it waits.
+    """
+    asked = server.beats_asked()
+    while True:
+        yield dir_pb2.HeartbeatRequest(session_id=session_id, state=int(state()))  # type: ignore[arg-type]
+        if closing.is_set():
+            return
+        asked = server.wait_beat(asked, every)
+        if closing.is_set():
+            return
 
 
 class Session:
@@ -82,20 +102,9 @@ class Session:
     ) -> None:
         backoff = Backoff()
         while not self._closing.is_set():
-            session_id = server.session_id
-
-            def beats(session_id: str = session_id, every: float = interval) -> Iterator[dir_pb2.HeartbeatRequest]:
-                asked = server.beats_asked()
-                while True:
-                    yield dir_pb2.HeartbeatRequest(session_id=session_id, state=int(state()))  # type: ignore[arg-type]
-                    # Ends with the client: close() sets _closing, then asks for a beat, which every
-                    # generator sees, even one still read by gRPC for a stream that already ended.
-                    asked = server.wait_beat(asked, every)
-                    if self._closing.is_set():
-                        return
-
+            beats = heartbeat_requests(server, self._closing, server.session_id, interval, state)
             try:
-                for _ in server.open_stream(server.directory.Heartbeat, beats(), metadata=self._tokens.metadata()):
+                for _ in server.open_stream(server.directory.Heartbeat, beats, metadata=self._tokens.metadata()):
                     backoff.reset()
                 if self._closing.is_set():
                     return
