@@ -67,9 +67,10 @@ def checksum(data: memoryview) -> int:
 
 
 def say(line: str, lock: threading.Lock = threading.Lock()) -> None:  # noqa: B008 - one lock for every line
-    """One line on stdout, whole."""
+    """One line on stdout, whole: one write, so that a log line on stderr (the same pipe) cannot land inside it."""
     with lock:
-        print(line, flush=True)
+        sys.stdout.write(line + "\n")  # print() writes the line and its end apart, unbuffered (PYTHONUNBUFFERED)
+        sys.stdout.flush()
 
 
 def memory_files(kind: str) -> list[str]:
