@@ -10,15 +10,19 @@ tested in java_client's DispatcherReadsTest.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import socket
 import struct
+from collections import deque
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
 from cast.core.records import Identity
+from cast.server import shared_socket
 from cast.wire import shared_memory as wire
 from tests.client.test_socket_writes import add, session_socket
 from tests.client.test_socket_writes import host as host  # the fixtures, used by name
@@ -134,6 +138,51 @@ def test_a_refused_client_that_never_reads_its_last_frames_is_closed_all_the_sam
         while True:
             kinds.append(session.next_frame().kind)
     assert set(kinds) <= {wire.NUDGED, wire.REFUSED}, kinds[-5:]
+
+
+@pytest.mark.incompatible_with_mypyc  # os.dup is patched in the module
+@pytest.mark.parametrize("dup_fails", [False, True])
+def test_a_refused_connections_last_frames_carry_their_own_descriptors_or_are_left_out(
+    dup_fails: bool, monkeypatch: pytest.MonkeyPatch, tmp_path: Any
+) -> None:
+    # The frames still waiting when a session is refused go out after its session has let go of its
+    # descriptors: each carries a duplicate; one whose duplicate cannot be made (no descriptor left)
+    # is left out whole, and REFUSED still comes last.
+    if dup_fails:
+        monkeypatch.setattr(shared_socket.os, "dup", lambda fd: (_ for _ in ()).throw(OSError(24, "EMFILE")))
+    server_end, client_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    server_end.setblocking(False)
+    memory = tmp_path / "segment"
+    memory.write_bytes(b"the segment")
+    fd = os.open(memory, os.O_RDONLY)
+
+    async def farewell() -> None:
+        owner = SimpleNamespace(loop=asyncio.get_running_loop(), farewells=set())
+        shared_socket._Farewell(owner, server_end, deque([(wire.segment(7, 11), fd), (wire.refused("why"), None)]))
+        while owner.farewells:
+            await asyncio.sleep(0.01)
+
+    try:
+        asyncio.run(farewell())
+        assert server_end.fileno() < 0, "the socket closed once its frames went"
+        os.fstat(fd)  # the caller's descriptor is still its own, open
+        reader = wire.FrameReader()
+        frames: list[wire.Frame] = []
+        while True:
+            data, fds = wire.receive(client_end)
+            if not data:
+                break
+            frames.extend(reader.feed(data, fds))
+        assert [f.kind for f in frames] == ([wire.REFUSED] if dup_fails else [wire.SEGMENT, wire.REFUSED])
+        assert frames[-1].body == b"why"
+        if not dup_fails:
+            sent = frames[0].fd
+            assert sent is not None and sent != fd
+            assert os.pread(sent, 11, 0) == b"the segment"
+            os.close(sent)
+    finally:
+        os.close(fd)
+        client_end.close()
 
 
 def _hello(h: Any, cid: str, version: int) -> socket.socket:

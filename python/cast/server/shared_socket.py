@@ -319,7 +319,12 @@ class _Farewell:
     def __init__(self, owner: SharedSocket, sock: socket.socket, frames: deque[tuple[bytes, int | None]]) -> None:
         self._owner = owner
         self._sock = sock
-        self._frames = deque((frame, None if fd is None else os.dup(fd)) for frame, fd in frames)
+        self._frames: deque[tuple[bytes, int | None]] = deque()
+        for frame, fd in frames:
+            try:
+                self._frames.append((frame, None if fd is None else os.dup(fd)))
+            except OSError:  # out of descriptors: that frame, not yet begun (one begun has none), is left out
+                continue
         self._timer = owner.loop.call_later(_FAREWELL_S, self.close)
         self._writing = False
         owner.farewells.add(self)
