@@ -25,8 +25,10 @@ from google.protobuf.wrappers_pb2 import Int64Value
 
 import cast
 from cast.client.channel import LinkClosedError, ServerLink
+from cast.client.credentials import TokenSource
 from cast.client.grpc_transport import GrpcTransport
 from cast.client.session import heartbeat_requests
+from cast.client.watch_stream import WatchStream
 from cast.core.sessions import ComponentState
 from cast.v1 import directory_pb2 as dir_pb2
 from cast.v1 import working_memory_pb2 as wm_pb2
@@ -156,6 +158,25 @@ def test_a_heartbeat_generator_begun_after_closes_beat_ends_without_waiting_for_
         assert rest == []
     finally:
         link.close()
+
+
+def test_a_watch_stream_closed_before_it_opens_its_call_again_opens_none(server: ServerHandle) -> None:
+    # The stream's thread opens its call again after a break; close() may run between its loop's look at
+    # _closed and that open. The new call's request reader would then wait for ever on a queue close()
+    # never ended: the open is refused instead.
+    link = ServerLink(server.endpoint)
+    errors: list[cast.CastError] = []
+    stream = WatchStream(link, TokenSource(server.token("w", "vision")), lambda event: None, errors.append,
+                         threading.Event())
+    try:
+        stream.close()
+        before = set(threading.enumerate())
+        with pytest.raises(LinkClosedError, match="the watch stream to .* is closed"):
+            stream._open()
+        assert set(threading.enumerate()) <= before, "a call was opened, and its request reader started"
+    finally:
+        link.close()
+    assert errors == []
 
 
 def _refused() -> NoReturn:

@@ -120,6 +120,10 @@ class WatchStream:
 
     def _open(self) -> Any:
         with self._mutex:
+            if self._closed:
+                # close() ran since the stream's loop looked: a new call's request reader would wait for the
+                # end of a queue nobody ends any more.
+                raise LinkClosedError(f"the watch stream to {self._server.endpoint} is closed")
             if self._requests is not None:
                 self._requests.put(None)  # the broken stream's request reader ends, instead of waiting for ever
             requests: queue.SimpleQueue[wm_pb2.WatchRequest | None] = queue.SimpleQueue()
