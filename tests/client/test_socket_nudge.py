@@ -73,17 +73,7 @@ def test_a_nudge_with_a_body_is_refused_naming_it(raw: Any) -> None:
 
 def test_a_client_that_nudges_and_never_reads_costs_the_server_no_memory(raw: Any) -> None:
     h, session = raw()
-    link = h.link("writer")
-    session.sock.setblocking(False)
-    sent = 0
-    try:
-        while sent < 200_000:  # far more NUDGEDs than the socket's buffers hold
-            session.sock.send(wire.NUDGE_FRAME * 100)
-            sent += 100
-    except BlockingIOError:
-        pass  # the server stopped reading it: its answers filled the socket
-    session.sock.setblocking(True)
-    wait_for(lambda: link.unsent > 0, what="the server's answers filling the client's socket")
+    link = _fill_with_nudged(h, session)
     # Once the socket is full the server answers no more: what waits to be sent stays one frame at most.
     assert link.unsent <= len(wire.NUDGED_FRAME), link.unsent
     # Another client is served meanwhile.
@@ -98,7 +88,7 @@ def _fill_with_nudged(h: Any, session: Any) -> Any:
     """Nudge without reading until the server's answers wait for room in the socket; the server's connection."""
     link = h.link("writer")
     session.sock.setblocking(False)
-    with contextlib.suppress(BlockingIOError):
+    with contextlib.suppress(BlockingIOError):  # the server stopped reading it: its answers filled the socket
         for _ in range(2000):  # far more NUDGEDs than the socket's buffers hold
             session.sock.send(wire.NUDGE_FRAME * 100)
     session.sock.setblocking(True)

@@ -245,21 +245,14 @@ class _Connection:
         return True
 
     def _writable(self) -> None:
-        while self._pending:
-            frame, fd = self._pending[0]
-            try:
-                sent = _send_frame(self._sock, frame, fd)
-            except OSError as exc:
-                self.close(f"write failed: {exc}")
-                return
-            if not sent:
-                return
-            self._unsent -= sent
-            if sent < len(frame):
-                self._pending[0] = (frame[sent:], None)
-                self._hold_or_not()
-                return
-            self._pending.popleft()
+        try:
+            self._unsent -= _send_some(self._sock, self._pending)
+        except OSError as exc:
+            self.close(f"write failed: {exc}")
+            return
+        if self._pending:
+            self._hold_or_not()
+            return
         self._loop.remove_writer(self._sock.fileno())
         self._hold_or_not()
         self._tell()
@@ -313,44 +306,41 @@ class _Farewell:
 
     Its session has already ended: nothing waits on these frames but the client. A descriptor that
     goes with one is a duplicate, so that a segment retired meanwhile cannot make its number name
-    another file by the time it is sent.
+    another file by the time it is sent; the duplicates are closed with the socket.
     """
 
     def __init__(self, owner: SharedSocket, sock: socket.socket, frames: deque[tuple[bytes, int | None]]) -> None:
         self._owner = owner
         self._sock = sock
         self._frames: deque[tuple[bytes, int | None]] = deque()
+        self._fds: list[int] = []
         for frame, fd in frames:
-            try:
-                self._frames.append((frame, None if fd is None else os.dup(fd)))
-            except OSError:  # out of descriptors: that frame, not yet begun (one begun has none), is left out
-                continue
+            if fd is not None:
+                try:
+                    fd = os.dup(fd)
+                except OSError:  # out of descriptors: that frame, not yet begun (one begun has none), is left out
+                    continue
+                self._fds.append(fd)
+            self._frames.append((frame, fd))
         self._timer = owner.loop.call_later(_FAREWELL_S, self.close)
         self._writing = False
         owner.farewells.add(self)
         self._send()
 
     def _send(self) -> None:
-        while self._frames:
-            frame, fd = self._frames[0]
-            try:
-                sent = _send_frame(self._sock, frame, fd)
-            except OSError:
-                self.close()  # the client has gone: nothing to tell it
-                return
-            if sent and fd is not None:
-                os.close(fd)
-            if sent < len(frame):
-                self._frames[0] = (frame[sent:], fd if not sent else None)
-                if not self._writing:
-                    self._writing = True
-                    self._owner.loop.add_writer(self._sock.fileno(), self._send)
-                return
-            self._frames.popleft()
-        self.close()
+        try:
+            _send_some(self._sock, self._frames)
+        except OSError:
+            self.close()  # the client has gone: nothing to tell it
+            return
+        if not self._frames:
+            self.close()
+        elif not self._writing:
+            self._writing = True
+            self._owner.loop.add_writer(self._sock.fileno(), self._send)
 
     def close(self) -> None:
-        """Close the socket, sent or not, and the descriptors of the frames not sent."""
+        """Close the socket, its frames sent or not, and the duplicated descriptors."""
         if self._sock.fileno() < 0:
             return
         self._timer.cancel()
@@ -358,7 +348,8 @@ class _Farewell:
             with contextlib.suppress(Exception):
                 self._owner.loop.remove_writer(self._sock.fileno())
         self._sock.close()
-        _close_all([fd for _, fd in self._frames if fd is not None])
+        _close_all(self._fds)
+        self._fds.clear()
         self._frames.clear()
         self._owner.farewells.discard(self)
 
@@ -429,6 +420,24 @@ def _send_frame(sock: socket.socket, frame: bytes, fd: int | None) -> int:
         return sock.sendmsg([frame], [(socket.SOL_SOCKET, socket.SCM_RIGHTS, struct.pack("i", fd))])
     except (BlockingIOError, InterruptedError):
         return 0
+
+
+def _send_some(sock: socket.socket, frames: deque[tuple[bytes, int | None]]) -> int:
+    """Send ``frames`` in order, taking off those sent, until the socket is full; the bytes sent. OSError once broken.
+
+    A frame begun stays first with what is left of it, without its descriptor (it went with the first byte).
+    """
+    total = 0
+    while frames:
+        frame, fd = frames[0]
+        sent = _send_frame(sock, frame, fd)
+        total += sent
+        if sent < len(frame):
+            if sent:
+                frames[0] = (frame[sent:], None)
+            return total
+        frames.popleft()
+    return total
 
 
 def _close_all(fds: list[int]) -> None:
