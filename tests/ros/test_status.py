@@ -90,9 +90,16 @@ def test_components_stats_and_the_web_view_show_the_mappings_rates_errors_and_la
         publisher = helper(ros2_python(), "ros2_node.py", "publish", "/camera/image_raw", "image", "30", "30",
                            env=ros2, log=tmp_path / "images.log")
         assert publisher.wait(60) == 0, (tmp_path / "images.log").read_text()
-        status = wait_for(lambda: (lambda s: s if s.mappings[0].received == 30 and s.mappings[1].delivered == 1
-                                   and s.mappings[0].pending == 0 else None)(status_of(watcher, "bridge")),
-                          30, "every image counted")
+        def counted() -> Any:
+            s = status_of(watcher, "bridge")
+            images, display = s.mappings[0], s.mappings[1]
+            # Asserted, so that a timeout says which count stopped short.
+            assert (images.received, images.pending, display.delivered) == (30, 0, 1), (
+                f"images received {images.received} of 30, pending {images.pending}; display delivered "
+                f"{display.delivered} of 1")
+            return s
+
+        status = wait_for(counted, 30, "every image counted")
         # max_rate: at most 10 a second written (from the first stamp to the last, one more for the start).
         stamps = sorted(published(tmp_path / "images.log").values())
         limited = status.mappings[0]
