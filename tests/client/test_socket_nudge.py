@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import os
 import socket
 import struct
@@ -139,7 +140,7 @@ def test_a_refused_connections_last_frames_carry_their_own_descriptors_or_are_le
     # descriptors: each carries a duplicate; one whose duplicate cannot be made (no descriptor left)
     # is left out whole, and REFUSED still comes last.
     if dup_fails:
-        monkeypatch.setattr(shared_socket.os, "dup", lambda fd: (_ for _ in ()).throw(OSError(24, "EMFILE")))
+        monkeypatch.setattr(shared_socket.os, "dup", _no_descriptor_left)
     server_end, client_end = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
     server_end.setblocking(False)
     memory = tmp_path / "segment"
@@ -173,6 +174,11 @@ def test_a_refused_connections_last_frames_carry_their_own_descriptors_or_are_le
     finally:
         os.close(fd)
         client_end.close()
+
+
+def _no_descriptor_left(fd: int) -> int:
+    """``os.dup`` in a process whose descriptor table is full."""
+    raise OSError(errno.EMFILE, os.strerror(errno.EMFILE))
 
 
 def _hello(h: Any, cid: str, version: int) -> socket.socket:
