@@ -60,6 +60,9 @@ final class SessionSocket implements Dispatcher.Source {
   /** How long the dispatcher must have been idle before the reader thread stops looking every STANDBY_MS. */
   static final long IDLE_MS = 1000;
 
+  /** What a read asks for at least: a reply, an event's frame or a few of them; more when more is waiting. */
+  static final int SMALL_READ = 2048;
+
   /** What the session does with the socket's frames and its failures. */
   interface Owner {
     /** A frame read, on the thread that read it, in the order read. */
@@ -83,6 +86,7 @@ final class SessionSocket implements Dispatcher.Source {
   private ShmWire.Reader frames; // set by start
   private InputStream in; // set by start
   private byte[] readBuffer; // made by the first read
+  private boolean lastReadFilled; // the last read gave all it asked for: more is likely waiting
   private final Object queue = new Object(); // the outbox, what was given back, the reader's pause
   private final ArrayDeque<byte[]> outbox = new ArrayDeque<>(); // guarded by queue
   private final List<Long> givenBack = new ArrayList<>(); // value ids to RELEASE; guarded by queue
@@ -97,6 +101,8 @@ final class SessionSocket implements Dispatcher.Source {
   private final AtomicInteger readingFor = new AtomicInteger();
   // System.nanoTime() when a write that a thread waits for was last sent (long before, at first).
   private volatile long lastWaited = System.nanoTime() - TimeUnit.MILLISECONDS.toNanos(2 * WRITER_PAUSE_MS);
+  /** Bytes the socket's reads asked for, in all (for tests and diagnostics: see {@link #readLength}). */
+  final AtomicLong bytesAsked = new AtomicLong();
   /** Reads by threads waiting for their write's reply (for tests and diagnostics). */
   final AtomicLong waiterReads = new AtomicLong();
   /** Reads by the dispatcher's thread ({@link #read}, for tests and diagnostics). */
@@ -340,17 +346,32 @@ final class SessionSocket implements Dispatcher.Source {
     if (readBuffer == null) {
       readBuffer = new byte[ShmWire.MAX_FRAME];
     }
-    int n = in.read(readBuffer);
+    int asked = readLength();
+    int n = in.read(readBuffer, 0, asked);
     FileDescriptor[] fds = socket.getReceivedFileDescriptors();
     if (n < 0) {
       SharedSession.closeAll(fds);
       owner.end("the server closed the session");
       return false;
     }
+    bytesAsked.addAndGet(asked);
+    lastReadFilled = n == asked;
     for (ShmWire.Frame frame : frames.feed(readBuffer, n, fds)) {
       owner.handle(frame);
     }
     return true;
+  }
+
+  /**
+   * How many bytes the next read asks for (holding {@link #reading}): what the frame begun still
+   * needs, at least {@link #SMALL_READ}, or the whole buffer after a read that filled what it
+   * asked (more is likely waiting). junixsocket copies as many bytes as a read asks for into the
+   * array, whatever the socket gave: a 64 KiB read for a 30-byte reply copied 64 KiB every time
+   * (docs/performance.md, "The Java client's reads").
+   */
+  private int readLength() {
+    int want = Math.max(frames.wanted(), lastReadFilled ? ShmWire.MAX_FRAME : SMALL_READ);
+    return Math.min(want, ShmWire.MAX_FRAME);
   }
 
   // ------------------------------------------------ read by the dispatcher

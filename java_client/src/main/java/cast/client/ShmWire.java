@@ -235,6 +235,23 @@ final class ShmWire {
       return out;
     }
 
+    /**
+     * Bytes still to come of the frame begun in what was fed (its length prefix counted while
+     * incomplete); 0 when what was fed ended at a frame's end.
+     */
+    int wanted() {
+      int held = buf.position(); // compacted after each feed: what is held starts at 0
+      if (held == 0) {
+        return 0;
+      }
+      if (held < 4) {
+        return 4 - held;
+      }
+      // A length over its bound fails at the next feed; here it only sizes the next read.
+      long frame = 4L + Integer.toUnsignedLong(buf.getInt(0));
+      return (int) Math.min(Integer.MAX_VALUE, Math.max(0, frame - held));
+    }
+
     /** Descriptors no frame claimed (to close). */
     List<FileDescriptor> stray() {
       List<FileDescriptor> left = new ArrayList<>(fds);

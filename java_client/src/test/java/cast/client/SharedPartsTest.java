@@ -59,6 +59,26 @@ class SharedPartsTest {
   }
 
   @Test
+  void theReaderSaysHowManyBytesOfTheFrameBegunAreStillToCome() throws Exception {
+    // What sizes the session's next read (SessionSocket.readLength): junixsocket copies as many bytes as a read asks.
+    ShmWire.Reader reader = new ShmWire.Reader();
+    assertEquals(0, reader.wanted(), "nothing begun");
+    ByteBuffer events = ByteBuffer.allocate(4 + 1 + 100_000).order(ByteOrder.LITTLE_ENDIAN);
+    events.putInt(1 + 100_000).put((byte) ShmWire.EVENTS);
+    byte[] frame = events.array();
+    reader.feed(frame, 2, null);
+    assertEquals(2, reader.wanted(), "the rest of the length prefix");
+    reader.feed(java.util.Arrays.copyOfRange(frame, 2, 5), 3, null);
+    assertEquals(100_000, reader.wanted());
+    reader.feed(java.util.Arrays.copyOfRange(frame, 5, 60_005), 60_000, null);
+    assertEquals(40_000, reader.wanted());
+    List<ShmWire.Frame> done = reader.feed(java.util.Arrays.copyOfRange(frame, 60_005, frame.length), 40_000, null);
+    assertEquals(1, done.size());
+    assertEquals(100_000, done.get(0).body().remaining());
+    assertEquals(0, reader.wanted(), "the frame ended where the read did");
+  }
+
+  @Test
   void clientFramesAreLittleEndianAndReleasesAreGathered() {
     ByteBuffer hello = ByteBuffer.wrap(ShmWire.hello("tok")).order(ByteOrder.LITTLE_ENDIAN);
     assertEquals(6, hello.getInt());
